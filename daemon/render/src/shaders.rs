@@ -1,0 +1,120 @@
+//! The WGSL kernels, one per file in `shaders/`, and their shared includes.
+//!
+//! A kernel file pulls an include with a line `//#include NAME.wgsl`; [`source`] splices the
+//! include in its place (once per kernel). Each kernel is declared once here; the `shaders` tests
+//! parse and validate every kernel with naga, so a broken shader fails `cargo test` rather than the
+//! first render.
+
+/// Every compute kernel of the renderer. One name per concept: `Kernel::Isosurface` is
+/// `shaders/isosurface.wgsl` and `gpu/isosurface.rs`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Kernel {
+    Isosurface,
+}
+
+impl Kernel {
+    pub const ALL: [Kernel; 1] = [Kernel::Isosurface];
+
+    pub fn file_name(self) -> &'static str {
+        match self {
+            Kernel::Isosurface => "isosurface.wgsl",
+        }
+    }
+
+    fn raw(self) -> &'static str {
+        match self {
+            Kernel::Isosurface => include_str!("../../../shaders/isosurface.wgsl"),
+        }
+    }
+}
+
+/// Shared include files, by name.
+const INCLUDES: &[(&str, &str)] = &[
+    ("volume.wgsl", include_str!("../../../shaders/volume.wgsl")),
+    ("shading.wgsl", include_str!("../../../shaders/shading.wgsl")),
+];
+
+/// The complete WGSL of a kernel, includes spliced in.
+pub fn source(kernel: Kernel) -> String {
+    let mut out = String::new();
+    for line in kernel.raw().lines() {
+        if let Some(name) = line.trim().strip_prefix("//#include ") {
+            let name = name.trim();
+            let Some((_, text)) = INCLUDES.iter().find(|(n, _)| *n == name) else {
+                panic!("{}: unknown include '{name}'", kernel.file_name());
+            };
+            out.push_str(&format!("// ---- begin {name}\n{text}\n// ---- end {name}\n"));
+        } else {
+            out.push_str(line);
+            out.push('\n');
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+
+    /// Parses and validates a kernel with naga, panicking with the shader's own diagnostics.
+    pub(crate) fn parse(kernel: Kernel) -> naga::Module {
+        let src = source(kernel);
+        let module = naga::front::wgsl::parse_str(&src)
+            .unwrap_or_else(|e| panic!("{}: {}", kernel.file_name(), e.emit_to_string(&src)));
+        naga::valid::Validator::new(
+            naga::valid::ValidationFlags::all(),
+            naga::valid::Capabilities::default(),
+        )
+        .validate(&module)
+        .unwrap_or_else(|e| panic!("{}: {}", kernel.file_name(), e.emit_to_string(&src)));
+        module
+    }
+
+    #[test]
+    fn every_kernel_parses_and_validates() {
+        for k in Kernel::ALL {
+            let m = parse(k);
+            assert!(m.entry_points.iter().any(|e| e.name == "main"), "{} has no `main`", k.file_name());
+        }
+    }
+
+    #[test]
+    fn every_include_is_used_and_spliced_once() {
+        for (name, text) in INCLUDES {
+            let used = Kernel::ALL.iter().any(|&k| source(k).contains(&format!("// ---- begin {name}")));
+            assert!(used, "include {name} is not used by any kernel");
+            assert!(!text.contains("//#include"), "{name}: includes do not nest");
+        }
+    }
+
+    /// Checks a `#[repr(C)]` twin against the WGSL struct of the same name: every member's offset
+    /// and the total size. `members` lists (WGSL member name, Rust offset, Rust size of the field).
+    pub(crate) fn check_layout(kernel: Kernel, name: &str, rust_size: usize, members: &[(&str, usize)]) {
+        let module = parse(kernel);
+        let (ty_handle, ty) = module
+            .types
+            .iter()
+            .find(|(_, t)| t.name.as_deref() == Some(name))
+            .unwrap_or_else(|| panic!("{}: no struct {name}", kernel.file_name()));
+        let naga::TypeInner::Struct { members: wgsl, span } = &ty.inner else {
+            panic!("{name} is not a struct");
+        };
+        let _ = ty_handle;
+        assert_eq!(*span as usize, rust_size, "{name}: WGSL size {span} != Rust size {rust_size}");
+        assert_eq!(
+            wgsl.len(),
+            members.len(),
+            "{name}: WGSL has {} members, Rust {}",
+            wgsl.len(),
+            members.len()
+        );
+        for (m, (rname, roff)) in wgsl.iter().zip(members) {
+            assert_eq!(m.name.as_deref(), Some(*rname), "{name}: member order differs");
+            assert_eq!(
+                m.offset as usize, *roff,
+                "{name}.{rname}: WGSL offset {} != Rust offset {roff}",
+                m.offset
+            );
+        }
+    }
+}

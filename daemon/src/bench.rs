@@ -1,0 +1,99 @@
+//! `isowalld bench`: renderer benchmarks. Times are medians of repeated frames measured in one run;
+//! hardware-free counts (trilinear fetches per pixel) sit beside them.
+
+use crate::args;
+use crate::render::load_volume;
+use anyhow::Result;
+use clap::{Args, Subcommand};
+use isowall_render::gpu::GpuRenderer;
+use isowall_wall::{Camera, RenderSettings, View};
+
+#[derive(Subcommand)]
+pub enum BenchCommand {
+    /// Primary rays only (first hit, normal, direct shading): ms per frame and trilinear fetches per
+    /// pixel with and without empty-space skipping, and how far the two images differ.
+    Primary(PrimaryArgs),
+}
+
+#[derive(Args)]
+pub struct PrimaryArgs {
+    /// Scenes as VOLUME[@ISO], comma-separated (VOLUME as for `render --volume`)
+    #[arg(long, default_value = "procedural:engine,../shared/data/ct-cranium.nrrd@300")]
+    pub scenes: String,
+    /// Image size
+    #[arg(long, default_value = "512x512", value_parser = args::size)]
+    pub size: (u32, u32),
+    /// Frames per configuration (the median is reported)
+    #[arg(long, default_value_t = 7)]
+    pub repeats: usize,
+}
+
+pub fn run(cmd: &BenchCommand) -> Result<()> {
+    match cmd {
+        BenchCommand::Primary(a) => primary(a),
+    }
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+fn primary(a: &PrimaryArgs) -> Result<()> {
+    let gpu = GpuRenderer::new()?;
+    let (w, h) = a.size;
+    println!(
+        "# isowalld bench primary: {w}x{h}, median of {} frames, adapter '{}'",
+        a.repeats.max(1),
+        gpu.adapter_name()
+    );
+    println!(
+        "scene,iso,empty_space_skipping,ms_per_frame,fetches_per_pixel,hit_pixels,max_depth_diff_vs_ess_off"
+    );
+    for scene in a.scenes.split(',').map(str::trim).filter(|s| !s.is_empty()) {
+        let (spec, iso) = match scene.rsplit_once('@') {
+            Some((s, i)) => (
+                s,
+                Some(i.parse::<f64>().map_err(|_| anyhow::anyhow!("{scene}: iso '{i}' is not a number"))?),
+            ),
+            None => (scene, None),
+        };
+        let (volume, iso) = load_volume(Some(spec), None, iso)?;
+        let gv = gpu.upload(&volume)?;
+        let view = View::whole(Camera::framing(volume.box_min(), volume.box_max(), w, h), w, h);
+        let mut frames = Vec::new();
+        for ess in [false, true] {
+            let mut s = RenderSettings::new(iso);
+            s.empty_space_skipping = ess;
+            gpu.render(&gv, &view, &s)?; // warm-up
+            let mut times = Vec::new();
+            let mut last = None;
+            for _ in 0..a.repeats.max(1) {
+                let r = gpu.render(&gv, &view, &s)?;
+                times.push(r.gpu_time.as_secs_f64() * 1e3);
+                last = Some(r.frame);
+            }
+            let frame = last.expect("at least one repeat");
+            frames.push((ess, median(times), frame));
+        }
+        let base = &frames[0].2;
+        for (ess, ms, f) in &frames {
+            let diff = f
+                .depth
+                .iter()
+                .zip(&base.depth)
+                .zip(f.hit.iter().zip(&base.hit))
+                .filter(|(_, (a, b))| **a && **b)
+                .map(|((x, y), _)| (x - y).abs())
+                .fold(0.0f32, f32::max);
+            println!(
+                "{},{iso},{},{ms:.2},{:.2},{},{diff:.2e}",
+                volume.name,
+                if *ess { "on" } else { "off" },
+                f.fetches_per_pixel(),
+                f.hit_count()
+            );
+        }
+    }
+    Ok(())
+}

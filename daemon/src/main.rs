@@ -1,0 +1,54 @@
+//! `isowalld`, the Isowall node daemon. For now it renders single frames to files (`render`) and
+//! benchmarks the renderer (`bench`); the wall issue adds `run` and `check-config`.
+
+mod args;
+mod bench;
+mod render;
+
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(
+    name = "isowalld",
+    version,
+    about = "Isowall node daemon: ray-casts the isosurface of a 3D volume on the GPU (wgpu/Vulkan).",
+    long_about = "Isowall node daemon: ray-casts the isosurface of a 3D volume on the GPU (wgpu/Vulkan; \
+                  Mesa's lavapipe where there is no GPU).\n\nWith no arguments it renders the built-in \
+                  engine-like volume to isowall.png.",
+    after_help = "Logging: set RUST_LOG (e.g. RUST_LOG=debug) for more detail; logs go to stderr."
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Option<Command>,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Render one frame of a volume, headless, to a file (PNG for colour, PFM for other AOVs).
+    Render(render::RenderArgs),
+    /// Benchmarks (medians of repeated frames; speed with its error, never alone).
+    #[command(subcommand)]
+    Bench(bench::BenchCommand),
+}
+
+fn main() -> std::process::ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| {
+            tracing_subscriber::EnvFilter::new("info,wgpu_core=warn,wgpu_hal=warn,naga=warn")
+        }))
+        .with_writer(std::io::stderr)
+        .init();
+    let cli = Cli::parse();
+    let result = match cli.command {
+        None => render::run(&render::RenderArgs::default()),
+        Some(Command::Render(args)) => render::run(&args),
+        Some(Command::Bench(cmd)) => bench::run(&cmd),
+    };
+    match result {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("isowalld: error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}

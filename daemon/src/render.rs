@@ -1,0 +1,204 @@
+//! `isowalld render`: one headless frame to a file.
+
+use crate::args;
+use anyhow::{bail, Context, Result};
+use clap::{Args, ValueEnum};
+use glam::DVec3;
+use isowall_render::gpu::GpuRenderer;
+use isowall_render::{output, reference, Frame};
+use isowall_volume::io::{RawSpec, VoxelType};
+use isowall_volume::{Volume, VolumeSource};
+use isowall_wall::{Aov, Camera, RenderSettings, Shading, View};
+use std::path::PathBuf;
+use std::time::Instant;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Default)]
+pub enum RendererKind {
+    /// The wgpu compute ray-caster (Vulkan; lavapipe where there is no GPU).
+    #[default]
+    Gpu,
+    /// The exact CPU reference renderer (f64, cubic root per cell): slow, the oracle for tests.
+    Reference,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum ShadingArg {
+    Lambert,
+    BlinnPhong,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum AovArg {
+    Color,
+    Depth,
+    Normal,
+    Hit,
+}
+
+impl From<AovArg> for Aov {
+    fn from(a: AovArg) -> Aov {
+        match a {
+            AovArg::Color => Aov::Color,
+            AovArg::Depth => Aov::Depth,
+            AovArg::Normal => Aov::Normal,
+            AovArg::Hit => Aov::Hit,
+        }
+    }
+}
+
+#[derive(Args, Debug, Default, Clone)]
+pub struct RenderArgs {
+    /// Volume: a file (.nrrd .nhdr .mhd .mha .nii .nii.gz, or raw with --dims/--type/--spacing) or
+    /// procedural:NAME[:N] with NAME one of sphere, sphere-over-plane, torus, marschner-lobb, gyroid,
+    /// engine and N the largest dimension [default: procedural:engine, 256x256x118]
+    #[arg(long, value_name = "PATH|procedural:NAME[:N]")]
+    pub volume: Option<String>,
+    /// Iso value in the data's own units (Hounsfield for CT) [default: the procedural volume's own;
+    /// for files the middle of the data range, with a warning]
+    #[arg(long, value_name = "V", allow_negative_numbers = true)]
+    pub iso: Option<f64>,
+    /// Image size in pixels [default: 800x600]
+    #[arg(long, value_name = "WxH", value_parser = args::size)]
+    pub size: Option<(u32, u32)>,
+    /// Camera position (world units) [default: a view that frames the volume]
+    #[arg(long, value_name = "X,Y,Z", value_parser = args::vec3, allow_hyphen_values = true)]
+    pub eye: Option<DVec3>,
+    /// Point the camera looks at [default: the centre of the volume]
+    #[arg(long, value_name = "X,Y,Z", value_parser = args::vec3, allow_hyphen_values = true)]
+    pub target: Option<DVec3>,
+    /// Camera up direction [default: 0,0,1 (world up is +z)]
+    #[arg(long, value_name = "X,Y,Z", value_parser = args::vec3, allow_hyphen_values = true)]
+    pub up: Option<DVec3>,
+    /// Vertical field of view in degrees [default: 35]
+    #[arg(long = "fov-y", value_name = "DEG")]
+    pub fov_y: Option<f64>,
+    /// Direct-light shading model [default: blinn-phong]
+    #[arg(long, value_enum)]
+    pub shading: Option<ShadingArg>,
+    /// Output variable: color (8-bit sRGB PNG) or depth/normal/hit (PFM, 0 where there is no hit)
+    /// [default: color]
+    #[arg(long, value_enum)]
+    pub aov: Option<AovArg>,
+    /// Output file [default: isowall.png for color, isowall-AOV.pfm otherwise]
+    #[arg(long, value_name = "FILE")]
+    pub out: Option<PathBuf>,
+    /// Which renderer [default: gpu]
+    #[arg(long, value_enum)]
+    pub renderer: Option<RendererKind>,
+    /// Raw volumes: dimensions
+    #[arg(long, value_name = "NX,NY,NZ", value_parser = args::dims)]
+    pub dims: Option<[usize; 3]>,
+    /// Raw volumes: voxel type (uint8, int8, uint16, int16, uint32, int32, float32, float64),
+    /// little endian
+    #[arg(long = "type", value_name = "TYPE")]
+    pub voxel_type: Option<VoxelType>,
+    /// Raw volumes: voxel spacing [default: 1,1,1]
+    #[arg(long, value_name = "SX,SY,SZ", value_parser = args::vec3)]
+    pub spacing: Option<DVec3>,
+}
+
+impl RenderArgs {
+    fn raw_spec(&self) -> Result<Option<RawSpec>> {
+        match (self.dims, self.voxel_type) {
+            (None, None) if self.spacing.is_none() => Ok(None),
+            (Some(dims), Some(voxel)) => Ok(Some(RawSpec {
+                dims,
+                voxel,
+                spacing: self.spacing.unwrap_or(DVec3::ONE),
+                big_endian: false,
+                header_bytes: 0,
+            })),
+            _ => bail!("a raw volume needs both --dims and --type (and optionally --spacing)"),
+        }
+    }
+}
+
+/// Loads the volume named by `--volume` (or the default) and the iso value to use.
+pub fn load_volume(spec: Option<&str>, raw: Option<&RawSpec>, iso: Option<f64>) -> Result<(Volume, f64)> {
+    let source: VolumeSource = match spec {
+        Some(s) => s.parse()?,
+        None => VolumeSource::default_engine(),
+    };
+    let start = Instant::now();
+    tracing::info!(volume = %source, "loading volume");
+    let volume = source.load(raw).with_context(|| format!("cannot load volume {source}"))?;
+    let (lo, hi) = volume.value_range();
+    let d = volume.dims();
+    tracing::info!(
+        volume = %source, dims = ?d, spacing = ?volume.spacing().to_array(), range = ?(lo, hi),
+        ms = start.elapsed().as_secs_f64() * 1e3, "volume ready"
+    );
+    let iso = match iso.or(source.natural_iso()) {
+        Some(v) if v.is_finite() => v,
+        Some(v) => bail!("--iso {v} is not a finite number"),
+        None => {
+            let mid = 0.5 * (lo as f64 + hi as f64);
+            tracing::warn!(
+                "no --iso given for {source}: using {mid}, the middle of the data range [{lo}, {hi}]"
+            );
+            mid
+        }
+    };
+    Ok((volume, iso))
+}
+
+pub fn run(a: &RenderArgs) -> Result<()> {
+    let raw = a.raw_spec()?;
+    let (volume, iso) = load_volume(a.volume.as_deref(), raw.as_ref(), a.iso)?;
+    let (w, h) = a.size.unwrap_or((800, 600));
+    let framing = Camera::framing(volume.box_min(), volume.box_max(), w, h);
+    let centre = 0.5 * (volume.box_min() + volume.box_max());
+    let camera = match a.eye {
+        None => Camera {
+            target: a.target.unwrap_or(framing.target),
+            up: a.up.unwrap_or(framing.up),
+            fov_y_deg: a.fov_y.unwrap_or(framing.fov_y_deg),
+            ..framing
+        },
+        Some(eye) => Camera {
+            eye,
+            target: a.target.unwrap_or(centre),
+            up: a.up.unwrap_or(DVec3::Z),
+            fov_y_deg: a.fov_y.unwrap_or(framing.fov_y_deg),
+        },
+    };
+    camera.validate().context("bad camera")?;
+    let view = View::whole(camera, w, h);
+    let mut settings = RenderSettings::new(iso);
+    if let Some(s) = a.shading {
+        settings.shading = match s {
+            ShadingArg::Lambert => Shading::Lambert,
+            ShadingArg::BlinnPhong => Shading::BlinnPhong,
+        };
+    }
+    let aov: Aov = a.aov.map(Aov::from).unwrap_or_default();
+    let out = a.out.clone().unwrap_or_else(|| match aov {
+        Aov::Color => PathBuf::from("isowall.png"),
+        other => PathBuf::from(format!("isowall-{}.pfm", other.name())),
+    });
+
+    let start = Instant::now();
+    let (frame, label): (Frame, String) = match a.renderer.unwrap_or_default() {
+        RendererKind::Gpu => {
+            let gpu = GpuRenderer::new()?;
+            let gv = gpu.upload(&volume)?;
+            let r = gpu.render(&gv, &view, &settings)?;
+            (
+                r.frame,
+                format!("gpu '{}', {:.1} ms on the GPU", gpu.adapter_name(), r.gpu_time.as_secs_f64() * 1e3),
+            )
+        }
+        RendererKind::Reference => (reference::render(&volume, &view, &settings), "reference".to_string()),
+    };
+    output::write_aov(&frame, aov, &out).with_context(|| format!("cannot write {}", out.display()))?;
+    let hits = frame.hit_count() as f64 / frame.pixel_count() as f64 * 100.0;
+    println!(
+        "wrote {} ({} {w}x{h}, {}, iso {iso}; {label}, {:.0} ms in all; {:.1} trilinear fetches/pixel, {hits:.1}% of pixels hit)",
+        out.display(),
+        aov.name(),
+        volume.name,
+        start.elapsed().as_secs_f64() * 1e3,
+        frame.fetches_per_pixel(),
+    );
+    Ok(())
+}

@@ -1,0 +1,99 @@
+//! Per-block min/max of the samples, for empty-space skipping.
+//!
+//! Block (bx, by, bz) covers the cells with indices `b*B .. (b+1)*B` on each axis, i.e. the samples
+//! `b*B ..= (b+1)*B` (the shared face is in both blocks). The trilinear field anywhere in the
+//! block's closed world box lies within [min, max] of those samples, so a block whose `max < iso`
+//! holds no point of the object and a ray may cross it without sampling.
+
+use crate::Volume;
+
+#[derive(Clone, Debug)]
+pub struct BlockMinMax {
+    /// Cells per block edge.
+    pub block: usize,
+    /// Number of blocks on each axis.
+    pub counts: [usize; 3],
+    /// (min, max) per block, x fastest.
+    pub minmax: Vec<[f32; 2]>,
+}
+
+impl BlockMinMax {
+    /// Default cells per block edge.
+    pub const DEFAULT_BLOCK: usize = 8;
+
+    pub fn new(v: &Volume, block: usize) -> BlockMinMax {
+        assert!(block >= 1);
+        let dims = v.dims();
+        // Cells per axis (at least one "cell" for a single-sample axis).
+        let cells = dims.map(|n| n.max(2) - 1);
+        let counts = cells.map(|c| c.div_ceil(block));
+        let mut minmax = Vec::with_capacity(counts.iter().product());
+        for bz in 0..counts[2] {
+            for by in 0..counts[1] {
+                for bx in 0..counts[0] {
+                    let range = |b: usize, a: usize| {
+                        let lo = (b * block).min(dims[a] - 1);
+                        let hi = ((b + 1) * block).min(dims[a] - 1);
+                        lo..=hi
+                    };
+                    let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+                    for k in range(bz, 2) {
+                        for j in range(by, 1) {
+                            for i in range(bx, 0) {
+                                let x = v.at(i, j, k);
+                                lo = lo.min(x);
+                                hi = hi.max(x);
+                            }
+                        }
+                    }
+                    minmax.push([lo, hi]);
+                }
+            }
+        }
+        BlockMinMax { block, counts, minmax }
+    }
+
+    pub fn get(&self, bx: usize, by: usize, bz: usize) -> [f32; 2] {
+        self.minmax[bx + self.counts[0] * (by + self.counts[1] * bz)]
+    }
+
+    /// Fraction of blocks that may contain the iso surface or object (max >= iso).
+    pub fn occupied_fraction(&self, iso: f32) -> f64 {
+        let n = self.minmax.iter().filter(|m| m[1] >= iso).count();
+        n as f64 / self.minmax.len().max(1) as f64
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::DVec3;
+
+    #[test]
+    fn blocks_bound_every_sample_they_cover_including_shared_faces() {
+        let dims = [19, 10, 5];
+        let data: Vec<f32> = (0..dims.iter().product::<usize>()).map(|n| ((n * 7919) % 101) as f32).collect();
+        let v = Volume::new("t", dims, DVec3::ONE, DVec3::ZERO, data).unwrap();
+        let b = BlockMinMax::new(&v, 4);
+        assert_eq!(b.counts, [5, 3, 1]);
+        for k in 0..dims[2] {
+            for j in 0..dims[1] {
+                for i in 0..dims[0] {
+                    // Every block whose closed cell range contains the sample bounds it.
+                    for bx in [i / 4, i.saturating_sub(1) / 4] {
+                        let bx = bx.min(b.counts[0] - 1);
+                        let (by, bz) = ((j.min(8)) / 4, (k.min(3)) / 4);
+                        let [lo, hi] = b.get(bx, by.min(b.counts[1] - 1), bz);
+                        let x = v.at(i, j, k);
+                        if i >= bx * 4 && i <= bx * 4 + 4 {
+                            assert!(
+                                lo <= x && x <= hi,
+                                "sample ({i},{j},{k}) outside block ({bx},{by},{bz})"
+                            );
+                        }
+                    }
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,511 @@
+//! NIfTI-1 reader (<https://nifti.nimh.nih.gov/nifti-1/>).
+//!
+//! Supported:
+//! - single files (`.nii`, magic `n+1`), gzip-compressed whole (`.nii.gz`; recognised by the gzip
+//!   magic, whatever the name says), and header/image pairs (`.hdr` + `.img`, magic `ni1`: open
+//!   the `.hdr`);
+//! - either byte order, told by `sizeof_hdr` = 348;
+//! - `datatype` 2 uint8, 4 int16, 8 int32, 16 float32, 64 float64, 256 int8, 512 uint16,
+//!   768 uint32;
+//! - `dim[0]` = 3, or 4 to 7 when the extra dimensions are 1 (a single time point);
+//! - spacing `|pixdim[1..=3]|`; voxels from `vox_offset`, so header extensions are skipped;
+//! - `scl_slope`/`scl_inter`, applied when the slope is finite and not 0 and the pair is not
+//!   (1, 0) (a non-finite intercept counts as 0, as nibabel does);
+//! - origin `qoffset_x/y/z` when `qform_code` > 0, else the sform's translation when
+//!   `sform_code` > 0, else 0.
+//!
+//! Not supported: orientation. The grid is taken as axis-aligned, index axes along world x, y, z;
+//! a qform rotation, `qfac` or a rotating sform is ignored with a warning. Units (`xyzt_units`)
+//! are not converted. Refused with an error: NIfTI-2, Analyze 7.5 headers (no NIfTI magic), other
+//! datatypes (complex, RGB, 64-bit), more than one time point, zero or non-finite spacing, a
+//! `vox_offset` inside the header.
+
+use super::{
+    format_err, io_err, make_volume, open, read_data, read_full, read_voxels, DataSpec, Encoding, Files,
+    Layout, Scale, VoxelType,
+};
+use crate::{Volume, VolumeError};
+use glam::DVec3;
+use std::io::{BufRead, BufReader, Read};
+use std::path::{Path, PathBuf};
+
+/// The size of a NIfTI-1 header.
+const HEADER_LEN: usize = 348;
+
+/// Reads the NIfTI-1 file (`.nii`, `.nii.gz`, or the `.hdr` of a pair) at `path`.
+pub(crate) fn read(path: &Path) -> Result<Volume, VolumeError> {
+    let (mut r, file_len) = open(path)?;
+    let gzipped = r.fill_buf().map_err(|e| io_err(path, e))?.starts_with(&[0x1f, 0x8b]);
+    let files = Files::single(path);
+    if gzipped {
+        // The whole file is compressed: the header, any extensions, then the voxels.
+        let mut r = BufReader::new(flate2::bufread::MultiGzDecoder::new(r));
+        let header = Header::read(path, &mut r, Encoding::Gzip)?;
+        if !header.single_file {
+            return Err(format_err(
+                path,
+                "magic 'ni1' (a .hdr/.img pair) in a gzip-compressed file is not supported",
+            ));
+        }
+        let skip = header.vox_offset - HEADER_LEN as u64;
+        let data = read_voxels(files, &mut r, Encoding::Gzip, skip, &header.layout, header.scale)?;
+        return header.volume(path, data);
+    }
+
+    let header = Header::read(path, &mut r, Encoding::Raw)?;
+    let is_hdr = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("hdr"));
+    let data = match (header.single_file, is_hdr) {
+        (true, false) => {
+            let spec = DataSpec {
+                encoding: Encoding::Raw,
+                file_skip: Some(header.vox_offset - HEADER_LEN as u64),
+                decoded_skip: 0,
+            };
+            read_data(files, r, HEADER_LEN as u64, file_len, spec, &header.layout, header.scale)?
+        }
+        (false, true) => {
+            let img = image_path(path);
+            let (r, len) = open(&img)?;
+            let spec =
+                DataSpec { encoding: Encoding::Raw, file_skip: Some(header.vox_offset), decoded_skip: 0 };
+            read_data(Files { header: path, data: &img }, r, 0, len, spec, &header.layout, header.scale)?
+        }
+        (true, true) => {
+            return Err(format_err(path, "magic 'n+1' says a single .nii file, but the name ends in .hdr"))
+        }
+        (false, false) => {
+            return Err(format_err(
+                path,
+                "magic 'ni1' says the voxels are in a separate .img file: open the matching .hdr",
+            ))
+        }
+    };
+    header.volume(path, data)
+}
+
+/// The `.img` of a `.hdr`, its extension in the same case.
+fn image_path(hdr: &Path) -> PathBuf {
+    let upper = hdr.extension().is_some_and(|e| e == "HDR");
+    hdr.with_extension(if upper { "IMG" } else { "img" })
+}
+
+/// What Isowall takes from a NIfTI-1 header.
+#[derive(Debug)]
+struct Header {
+    layout: Layout,
+    spacing: DVec3,
+    origin: DVec3,
+    /// Where the voxels begin (in the `.nii`, or in the `.img` of a pair).
+    vox_offset: u64,
+    scale: Option<Scale>,
+    /// Magic `n+1` (one file) rather than `ni1` (a pair).
+    single_file: bool,
+}
+
+impl Header {
+    /// Reads and checks the 348-byte header from `r` (data decoded from `enc`).
+    fn read(path: &Path, r: &mut dyn Read, enc: Encoding) -> Result<Header, VolumeError> {
+        let files = Files::single(path);
+        let mut h = [0u8; HEADER_LEN];
+        let n = read_full(r, &mut h).map_err(|e| files.read_error(enc, e))?;
+        if n < HEADER_LEN {
+            return Err(
+                files.format(format!("header is truncated: {n} bytes, a NIfTI-1 header has {HEADER_LEN}"))
+            );
+        }
+        let err = |what: String| format_err(path, what);
+
+        let sizeof_le = i32::from_le_bytes([h[0], h[1], h[2], h[3]]);
+        let sizeof_be = i32::from_be_bytes([h[0], h[1], h[2], h[3]]);
+        let big = match (sizeof_le, sizeof_be) {
+            (348, _) => false,
+            (_, 348) => true,
+            (540, _) | (_, 540) => return Err(err("NIfTI-2 files are not supported (NIfTI-1 is)".into())),
+            _ => {
+                return Err(err(format!(
+                    "not a NIfTI-1 file: sizeof_hdr is {sizeof_le} (or {sizeof_be} big-endian), not 348"
+                )))
+            }
+        };
+        let i16_at = |o: usize| {
+            if big {
+                i16::from_be_bytes([h[o], h[o + 1]])
+            } else {
+                i16::from_le_bytes([h[o], h[o + 1]])
+            }
+        };
+        let f32_at = |o: usize| {
+            let b = [h[o], h[o + 1], h[o + 2], h[o + 3]];
+            f64::from(if big { f32::from_be_bytes(b) } else { f32::from_le_bytes(b) })
+        };
+
+        let single_file = match &h[344..348] {
+            b"n+1\0" => true,
+            b"ni1\0" => false,
+            m => {
+                return Err(err(format!(
+                    "magic is {:?}, not \"n+1\" (or \"ni1\" for a .hdr/.img pair); Analyze 7.5 files are not supported",
+                    String::from_utf8_lossy(m)
+                )))
+            }
+        };
+
+        let dim: Vec<i64> = (0..8).map(|i| i64::from(i16_at(40 + 2 * i))).collect();
+        let rank = dim[0];
+        if !(3..=7).contains(&rank) || (4..=rank as usize).any(|i| dim[i] != 1) {
+            let shown: Vec<String> =
+                dim.iter().take((rank.clamp(0, 7) + 1) as usize).map(|d| d.to_string()).collect();
+            return Err(err(format!(
+                "dim is [{}]; Isowall reads 3-dimensional volumes (dim[0] = 3, or more with the extra sizes 1)",
+                shown.join(", ")
+            )));
+        }
+        if dim[1..4].iter().any(|&d| d < 1) {
+            return Err(err(format!(
+                "dim[1..3] = {} {} {}: every size must be at least 1",
+                dim[1], dim[2], dim[3]
+            )));
+        }
+        let dims = [dim[1] as usize, dim[2] as usize, dim[3] as usize];
+
+        let datatype = i16_at(70);
+        let voxel = match datatype {
+            2 => VoxelType::U8,
+            4 => VoxelType::I16,
+            8 => VoxelType::I32,
+            16 => VoxelType::F32,
+            64 => VoxelType::F64,
+            256 => VoxelType::I8,
+            512 => VoxelType::U16,
+            768 => VoxelType::U32,
+            d => {
+                let name = match d {
+                    1 => " (binary)",
+                    32 => " (complex64)",
+                    128 => " (rgb24)",
+                    1024 => " (int64)",
+                    1280 => " (uint64)",
+                    1536 => " (float128)",
+                    1792 => " (complex128)",
+                    2048 => " (complex256)",
+                    2304 => " (rgba32)",
+                    _ => "",
+                };
+                return Err(err(format!(
+                    "datatype {d}{name} is not supported (2 uint8, 4 int16, 8 int32, 16 float32, 64 float64, \
+                     256 int8, 512 uint16, 768 uint32 are)"
+                )));
+            }
+        };
+        let bitpix = i16_at(72);
+        if i64::from(bitpix) != 8 * voxel.size() as i64 {
+            tracing::warn!(
+                "{}: bitpix is {bitpix} but datatype {datatype} has {} bits; going by datatype",
+                path.display(),
+                8 * voxel.size()
+            );
+        }
+        let layout = Layout { dims, voxel, big_endian: big };
+        layout.voxel_count().map_err(|e| err(format!("dim: {e}")))?;
+
+        let mut spacing = DVec3::ZERO;
+        for a in 0..3 {
+            let p = f32_at(76 + 4 * (a + 1));
+            if !(p.is_finite() && p != 0.0) {
+                return Err(err(format!("pixdim[{}] is {p}: voxel spacing must be finite and not 0", a + 1)));
+            }
+            spacing[a] = p.abs();
+        }
+
+        let vox_offset = f32_at(108);
+        let min_offset = if single_file { HEADER_LEN as f64 } else { 0.0 };
+        if !(vox_offset.is_finite() && vox_offset >= min_offset && vox_offset.fract() == 0.0) {
+            return Err(err(format!(
+                "vox_offset is {vox_offset}: it must be a whole number of bytes, at least {min_offset}"
+            )));
+        }
+
+        let (slope, inter) = (f32_at(112), f32_at(116));
+        let inter = if inter.is_finite() { inter } else { 0.0 };
+        let scale = (slope.is_finite() && slope != 0.0 && !(slope == 1.0 && inter == 0.0))
+            .then_some(Scale { slope, inter });
+
+        let (qform_code, sform_code) = (i16_at(252), i16_at(254));
+        let origin = if qform_code > 0 {
+            let (b, c, d) = (f32_at(256), f32_at(260), f32_at(264));
+            let qfac = f32_at(76);
+            if b != 0.0 || c != 0.0 || d != 0.0 || qfac < 0.0 {
+                tracing::warn!(
+                    "{}: the qform rotates or flips the grid; Isowall ignores orientation and takes the axes as x, y, z",
+                    path.display()
+                );
+            }
+            DVec3::new(f32_at(268), f32_at(272), f32_at(276))
+        } else if sform_code > 0 {
+            let row = |o: usize| [f32_at(o), f32_at(o + 4), f32_at(o + 8), f32_at(o + 12)];
+            let (x, y, z) = (row(280), row(296), row(312));
+            let diagonal =
+                x[1] == 0.0 && x[2] == 0.0 && y[0] == 0.0 && y[2] == 0.0 && z[0] == 0.0 && z[1] == 0.0;
+            if !diagonal {
+                tracing::warn!(
+                    "{}: the sform rotates the grid; Isowall ignores orientation and takes the axes as x, y, z",
+                    path.display()
+                );
+            }
+            DVec3::new(x[3], y[3], z[3])
+        } else {
+            DVec3::ZERO
+        };
+        if !origin.is_finite() {
+            return Err(err(format!("the origin ({}, {}, {}) is not finite", origin.x, origin.y, origin.z)));
+        }
+
+        Ok(Header { layout, spacing, origin, vox_offset: vox_offset as u64, scale, single_file })
+    }
+
+    fn volume(&self, path: &Path, data: Vec<f32>) -> Result<Volume, VolumeError> {
+        make_volume(path, self.layout.dims, self.spacing, self.origin, data)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::load;
+    use super::super::testutil::{check, encode, gzip, values, ALL_TYPES};
+    use super::*;
+    use std::fs;
+
+    const DIMS: [usize; 3] = [3, 2, 4];
+
+    fn datatype(voxel: VoxelType) -> i16 {
+        match voxel {
+            VoxelType::U8 => 2,
+            VoxelType::I16 => 4,
+            VoxelType::I32 => 8,
+            VoxelType::F32 => 16,
+            VoxelType::F64 => 64,
+            VoxelType::I8 => 256,
+            VoxelType::U16 => 512,
+            VoxelType::U32 => 768,
+        }
+    }
+
+    /// The fields a test sets; the rest of the header is zero.
+    #[derive(Clone)]
+    struct Fields {
+        big: bool,
+        dim: [i16; 8],
+        datatype: i16,
+        bitpix: i16,
+        pixdim: [f32; 8],
+        vox_offset: f32,
+        slope: f32,
+        inter: f32,
+        qform_code: i16,
+        sform_code: i16,
+        qoffset: [f32; 3],
+        srow: [[f32; 4]; 3],
+        magic: &'static [u8; 4],
+    }
+
+    fn fields(voxel: VoxelType, big: bool) -> Fields {
+        Fields {
+            big,
+            dim: [3, 3, 2, 4, 1, 1, 1, 1],
+            datatype: datatype(voxel),
+            bitpix: 8 * voxel.size() as i16,
+            pixdim: [1.0, 0.5, 2.0, -1.25, 1.0, 0.0, 0.0, 0.0],
+            vox_offset: 352.0,
+            slope: 0.0,
+            inter: 0.0,
+            qform_code: 0,
+            sform_code: 0,
+            qoffset: [0.0; 3],
+            srow: [[0.0; 4]; 3],
+            magic: b"n+1\0",
+        }
+    }
+
+    /// The 348-byte header, laid out by the NIfTI-1 specification's offsets.
+    fn header(f: &Fields) -> Vec<u8> {
+        let mut h = vec![0u8; 348];
+        let mut put = |o: usize, b: &[u8]| {
+            let mut b = b.to_vec();
+            if f.big {
+                b.reverse();
+            }
+            h[o..o + b.len()].copy_from_slice(&b);
+        };
+        put(0, &348i32.to_le_bytes());
+        for (i, d) in f.dim.iter().enumerate() {
+            put(40 + 2 * i, &d.to_le_bytes());
+        }
+        put(70, &f.datatype.to_le_bytes());
+        put(72, &f.bitpix.to_le_bytes());
+        for (i, p) in f.pixdim.iter().enumerate() {
+            put(76 + 4 * i, &p.to_le_bytes());
+        }
+        put(108, &f.vox_offset.to_le_bytes());
+        put(112, &f.slope.to_le_bytes());
+        put(116, &f.inter.to_le_bytes());
+        put(252, &f.qform_code.to_le_bytes());
+        put(254, &f.sform_code.to_le_bytes());
+        for (i, q) in f.qoffset.iter().enumerate() {
+            put(268 + 4 * i, &q.to_le_bytes());
+        }
+        for (r, row) in f.srow.iter().enumerate() {
+            for (c, v) in row.iter().enumerate() {
+                put(280 + 16 * r + 4 * c, &v.to_le_bytes());
+            }
+        }
+        h[344..348].copy_from_slice(f.magic);
+        h
+    }
+
+    /// A .nii: the header, zeros up to `vox_offset` (the extension flag "none" and any padding), voxels.
+    fn nii(f: &Fields, data: &[u8]) -> Vec<u8> {
+        let mut b = header(f);
+        if f.vox_offset as usize > b.len() {
+            b.resize(f.vox_offset as usize, 0);
+        }
+        b.extend_from_slice(data);
+        b
+    }
+
+    const SPACING: DVec3 = DVec3::new(0.5, 2.0, 1.25);
+
+    #[test]
+    fn single_gzip_and_pair_files_of_every_type_read_back() {
+        let dir = tempfile::tempdir().unwrap();
+        for voxel in ALL_TYPES {
+            for big in [false, true] {
+                let vals = values(voxel, 24);
+                let raw = encode(&vals, voxel, big);
+                let f = fields(voxel, big);
+                let stem = format!("{}-{big}", voxel.name());
+                let p = dir.path().join(format!("{stem}.nii"));
+                fs::write(&p, nii(&f, &raw)).unwrap();
+                check(&load(&p, None).unwrap(), DIMS, SPACING, DVec3::ZERO, &vals);
+                let p = dir.path().join(format!("{stem}.nii.gz"));
+                fs::write(&p, gzip(&nii(&f, &raw))).unwrap();
+                check(&load(&p, None).unwrap(), DIMS, SPACING, DVec3::ZERO, &vals);
+
+                let pair = Fields { vox_offset: 0.0, magic: b"ni1\0", ..f.clone() };
+                let h = dir.path().join(format!("{stem}.hdr"));
+                fs::write(&h, header(&pair)).unwrap();
+                fs::write(dir.path().join(format!("{stem}.img")), &raw).unwrap();
+                check(&load(&h, None).unwrap(), DIMS, SPACING, DVec3::ZERO, &vals);
+            }
+        }
+    }
+
+    #[test]
+    fn scaling_origin_extensions_and_a_single_time_point() {
+        let dir = tempfile::tempdir().unwrap();
+        let vals = values(VoxelType::I16, 24);
+        let raw = encode(&vals, VoxelType::I16, false);
+        let p = dir.path().join("s.nii");
+        let base = fields(VoxelType::I16, false);
+
+        let f = Fields { slope: 0.5, inter: -10.0, ..base.clone() };
+        fs::write(&p, nii(&f, &raw)).unwrap();
+        let scaled: Vec<f64> = vals.iter().map(|v| v * 0.5 - 10.0).collect();
+        check(&load(&p, None).unwrap(), DIMS, SPACING, DVec3::ZERO, &scaled);
+
+        // qform origin; a 4-D file with one time point; 48 bytes of extensions before the voxels.
+        let f = Fields {
+            dim: [4, 3, 2, 4, 1, 1, 1, 1],
+            qform_code: 1,
+            qoffset: [-90.0, 126.0, -72.5],
+            vox_offset: 400.0,
+            ..base.clone()
+        };
+        fs::write(&p, nii(&f, &raw)).unwrap();
+        check(&load(&p, None).unwrap(), DIMS, SPACING, DVec3::new(-90.0, 126.0, -72.5), &vals);
+
+        // sform origin when there is no qform.
+        let f = Fields {
+            sform_code: 2,
+            srow: [[0.5, 0.0, 0.0, 1.0], [0.0, 2.0, 0.0, 2.0], [0.0, 0.0, 1.25, 3.0]],
+            ..base
+        };
+        fs::write(&p, nii(&f, &raw)).unwrap();
+        check(&load(&p, None).unwrap(), DIMS, SPACING, DVec3::new(1.0, 2.0, 3.0), &vals);
+    }
+
+    fn error_of(dir: &Path, name: &str, bytes: &[u8]) -> VolumeError {
+        let p = dir.join(name);
+        fs::write(&p, bytes).unwrap();
+        let e = load(&p, None).unwrap_err();
+        assert!(e.to_string().starts_with(&p.display().to_string()), "{e}");
+        e
+    }
+
+    #[test]
+    fn bad_headers_and_data_are_refused_with_the_reason() {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        let raw = encode(&values(VoxelType::U8, 24), VoxelType::U8, false);
+        let base = fields(VoxelType::U8, false);
+        let m = |f: Fields| error_of(d, "e.nii", &nii(&f, &raw)).to_string();
+
+        let s = m(Fields { dim: [4, 3, 2, 4, 2, 1, 1, 1], ..base.clone() });
+        assert!(s.contains("dim is [4, 3, 2, 4, 2]"), "{s}");
+        let s = m(Fields { dim: [2, 3, 8, 1, 1, 1, 1, 1], ..base.clone() });
+        assert!(s.contains("3-dimensional"), "{s}");
+        let s = m(Fields { dim: [3, 3, 0, 4, 1, 1, 1, 1], ..base.clone() });
+        assert!(s.contains("at least 1"), "{s}");
+        let s = m(Fields { datatype: 128, ..base.clone() });
+        assert!(s.contains("datatype 128 (rgb24) is not supported"), "{s}");
+        let s = m(Fields { pixdim: [1.0, 1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0], ..base.clone() });
+        assert!(s.contains("pixdim[2] is 0"), "{s}");
+        let s = m(Fields { vox_offset: 100.0, ..base.clone() });
+        assert!(s.contains("vox_offset is 100"), "{s}");
+        let s = m(Fields { magic: b"abcd", ..base.clone() });
+        assert!(s.contains("magic"), "{s}");
+        let s = m(Fields { magic: b"ni1\0", ..base.clone() });
+        assert!(s.contains("open the matching .hdr"), "{s}");
+        let mut bytes = nii(&base, &raw);
+        bytes[0..4].copy_from_slice(&540i32.to_le_bytes());
+        let s = error_of(d, "e.nii", &bytes).to_string();
+        assert!(s.contains("NIfTI-2"), "{s}");
+        bytes[0..4].copy_from_slice(&1234i32.to_le_bytes());
+        let s = error_of(d, "e.nii", &bytes).to_string();
+        assert!(s.contains("sizeof_hdr is 1234"), "{s}");
+        let s = error_of(d, "e.nii", &header(&base)[..200]).to_string();
+        assert!(s.contains("header is truncated: 200 bytes"), "{s}");
+
+        let s = error_of(d, "e.nii", &nii(&base, &raw[..20])).to_string();
+        assert!(s.contains("data is truncated: 20 bytes from byte 352 on, 3x2x4 uint8 needs 24"), "{s}");
+        let s = error_of(d, "e.nii", &nii(&base, &[raw.as_slice(), &[0; 3]].concat())).to_string();
+        assert!(s.contains("extra data: file has 3 bytes more"), "{s}");
+        let s = error_of(d, "e.nii.gz", &gzip(&nii(&base, &raw[..20]))).to_string();
+        assert!(s.contains("decompresses to 20 bytes"), "{s}");
+        let s = error_of(d, "e.nii.gz", &gzip(&nii(&base, &[raw.as_slice(), &[0; 3]].concat()))).to_string();
+        assert!(s.contains("extra data"), "{s}");
+        let mut garbage = gzip(&nii(&base, &raw));
+        // A valid gzip header, then a deflate block of the reserved type 3.
+        garbage[10..].fill(0xFF);
+        let s = error_of(d, "e.nii.gz", &garbage).to_string();
+        assert!(s.contains("gzip data is corrupt"), "{s}");
+        let s = error_of(d, "e.nii.gz", &gzip(&header(&base)[..100])).to_string();
+        assert!(s.contains("header is truncated: 100 bytes"), "{s}");
+        let s = error_of(d, "e.nii.gz", b"not a nifti at all").to_string();
+        assert!(s.contains("truncated") || s.contains("sizeof_hdr"), "{s}");
+    }
+
+    #[test]
+    fn nan_voxels_and_missing_image_files_name_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut vals = values(VoxelType::F32, 24);
+        vals[3] = f64::NAN;
+        let f = fields(VoxelType::F32, true);
+        let e = error_of(dir.path(), "nan.nii.gz", &gzip(&nii(&f, &encode(&vals, VoxelType::F32, true))));
+        assert!(matches!(e, VolumeError::NonFinite { count: 1, i: 0, j: 1, k: 0, .. }), "{e}");
+
+        let h = dir.path().join("lonely.hdr");
+        fs::write(&h, header(&Fields { vox_offset: 0.0, magic: b"ni1\0", ..f })).unwrap();
+        let e = load(&h, None).unwrap_err();
+        assert!(matches!(&e, VolumeError::Io { path, .. } if path == &dir.path().join("lonely.img")), "{e}");
+    }
+}

@@ -1,0 +1,240 @@
+//! Scalar volumes and the field they define (DESIGN.md "Volume"):
+//!
+//! - dims (nx, ny, nz), x fastest in memory; sample (i, j, k) sits at world position
+//!   `origin + (i*sx, j*sy, k*sz)`;
+//! - the field f is the trilinear interpolant of the samples inside the box
+//!   `[origin, origin + (n-1)*s]`; outside the box it is empty (below any iso), so a surface cut by
+//!   the box is closed by a cap on the box face.
+//!
+//! Voxels are held as `f32` in the data's own units (Hounsfield for CT), whatever the file's type.
+//! Non-finite voxels are rejected when a volume is made ([`VolumeError::NonFinite`]): the policy
+//! is "refuse with a clear error", so no NaN or Inf can reach a renderer.
+//!
+//! Modules: [`io`] reads files (raw, NRRD, MetaImage, NIfTI-1), [`procedural`] makes the built-in
+//! volumes, [`blocks`] holds the per-block min/max used for empty-space skipping, [`source`] parses
+//! `PATH | procedural:NAME[:N]`.
+
+pub mod blocks;
+pub mod io;
+pub mod procedural;
+pub mod source;
+
+use glam::DVec3;
+use std::path::PathBuf;
+
+pub use blocks::BlockMinMax;
+pub use source::VolumeSource;
+
+/// Everything that can go wrong making or reading a volume. File errors carry the path.
+#[derive(Debug, thiserror::Error)]
+pub enum VolumeError {
+    #[error("{path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+    /// A malformed header or an inconsistent file: `what` says which field and why.
+    #[error("{path}: {what}")]
+    Format { path: PathBuf, what: String },
+    #[error("{path}: {count} non-finite voxel(s) (NaN or Inf), the first at index ({i}, {j}, {k}); Isowall refuses volumes with NaN/Inf voxels: clean the data or choose another file")]
+    NonFinite { path: PathBuf, count: usize, i: usize, j: usize, k: usize },
+    #[error("invalid volume: {0}")]
+    Invalid(String),
+    #[error("{0}")]
+    Source(String),
+}
+
+/// A scalar volume on a regular grid, voxels as `f32` in the data's units.
+#[derive(Clone, Debug)]
+pub struct Volume {
+    dims: [usize; 3],
+    spacing: DVec3,
+    origin: DVec3,
+    data: Vec<f32>,
+    /// Where it came from, for messages: a path or `procedural:NAME:N`.
+    pub name: String,
+}
+
+impl Volume {
+    /// Makes a volume, checking that dims are >= 1, data has nx*ny*nz voxels, spacing is finite and
+    /// positive, the origin finite and no voxel NaN or Inf.
+    pub fn new(
+        name: impl Into<String>,
+        dims: [usize; 3],
+        spacing: DVec3,
+        origin: DVec3,
+        data: Vec<f32>,
+    ) -> Result<Volume, VolumeError> {
+        let name = name.into();
+        if dims.iter().any(|&n| n == 0) {
+            return Err(VolumeError::Invalid(format!("{name}: dims {dims:?} must all be at least 1")));
+        }
+        let count = dims.iter().try_fold(1usize, |acc, &n| acc.checked_mul(n));
+        if count != Some(data.len()) {
+            return Err(VolumeError::Invalid(format!(
+                "{name}: dims {dims:?} need {} voxels but {} were given",
+                count.map_or("too many".to_string(), |c| c.to_string()),
+                data.len()
+            )));
+        }
+        if !(spacing.is_finite() && spacing.min_element() > 0.0) {
+            return Err(VolumeError::Invalid(format!(
+                "{name}: spacing {spacing:?} must be finite and positive"
+            )));
+        }
+        if !origin.is_finite() {
+            return Err(VolumeError::Invalid(format!("{name}: origin {origin:?} is not finite")));
+        }
+        if let Some(first) = data.iter().position(|v| !v.is_finite()) {
+            let count = data.iter().filter(|v| !v.is_finite()).count();
+            let (i, j, k) = (first % dims[0], (first / dims[0]) % dims[1], first / (dims[0] * dims[1]));
+            return Err(VolumeError::NonFinite { path: PathBuf::from(&name), count, i, j, k });
+        }
+        Ok(Volume { dims, spacing, origin, data, name })
+    }
+
+    pub fn dims(&self) -> [usize; 3] {
+        self.dims
+    }
+    pub fn spacing(&self) -> DVec3 {
+        self.spacing
+    }
+    pub fn origin(&self) -> DVec3 {
+        self.origin
+    }
+    pub fn data(&self) -> &[f32] {
+        &self.data
+    }
+    /// Bytes the voxels occupy in memory.
+    pub fn resident_bytes(&self) -> usize {
+        self.data.len() * std::mem::size_of::<f32>()
+    }
+
+    /// The voxel at (i, j, k); panics when out of range (callers clamp).
+    #[inline]
+    pub fn at(&self, i: usize, j: usize, k: usize) -> f32 {
+        self.data[i + self.dims[0] * (j + self.dims[1] * k)]
+    }
+
+    /// The box the field lives in: `[origin, origin + (n-1)*s]`.
+    pub fn box_min(&self) -> DVec3 {
+        self.origin
+    }
+    pub fn box_max(&self) -> DVec3 {
+        self.origin
+            + self.spacing
+                * DVec3::new((self.dims[0] - 1) as f64, (self.dims[1] - 1) as f64, (self.dims[2] - 1) as f64)
+    }
+
+    /// Smallest and largest voxel value.
+    pub fn value_range(&self) -> (f32, f32) {
+        self.data.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &v| (lo.min(v), hi.max(v)))
+    }
+
+    /// Continuous voxel coordinates of a world position.
+    #[inline]
+    pub fn to_voxel(&self, p: DVec3) -> DVec3 {
+        (p - self.origin) / self.spacing
+    }
+
+    /// Whether a world point lies in the closed box.
+    pub fn contains(&self, p: DVec3) -> bool {
+        let (lo, hi) = (self.box_min(), self.box_max());
+        p.cmpge(lo).all() && p.cmple(hi).all()
+    }
+
+    /// The trilinear interpolant at continuous voxel coordinates `u`, clamped to the box.
+    /// An axis with a single sample is constant along that axis.
+    #[inline]
+    pub fn trilinear_voxel(&self, u: DVec3) -> f64 {
+        let mut i0 = [0usize; 3];
+        let mut fr = [0f64; 3];
+        for a in 0..3 {
+            let n = self.dims[a];
+            if n == 1 {
+                continue;
+            }
+            let x = u[a].clamp(0.0, (n - 1) as f64);
+            let i = (x.floor() as usize).min(n - 2);
+            i0[a] = i;
+            fr[a] = x - i as f64;
+        }
+        let step = |a: usize| usize::from(self.dims[a] > 1);
+        let (i, j, k) = (i0[0], i0[1], i0[2]);
+        let (di, dj, dk) = (step(0), step(1), step(2));
+        let c = |a, b, c| self.at(a, b, c) as f64;
+        let lerp = |a: f64, b: f64, t: f64| a + (b - a) * t;
+        let x00 = lerp(c(i, j, k), c(i + di, j, k), fr[0]);
+        let x10 = lerp(c(i, j + dj, k), c(i + di, j + dj, k), fr[0]);
+        let x01 = lerp(c(i, j, k + dk), c(i + di, j, k + dk), fr[0]);
+        let x11 = lerp(c(i, j + dj, k + dk), c(i + di, j + dj, k + dk), fr[0]);
+        lerp(lerp(x00, x10, fr[1]), lerp(x01, x11, fr[1]), fr[2])
+    }
+
+    /// The field at a world point: the trilinear interpolant inside the box, `None` (empty) outside.
+    pub fn sample(&self, p: DVec3) -> Option<f64> {
+        self.contains(p).then(|| self.trilinear_voxel(self.to_voxel(p)))
+    }
+
+    /// The field at a world point with the position clamped to the box (for gradient stencils).
+    pub fn sample_clamped(&self, p: DVec3) -> f64 {
+        self.trilinear_voxel(self.to_voxel(p))
+    }
+
+    /// Central differences of the trilinear field at `p` with h = one voxel spacing per axis,
+    /// stencil positions clamped to the box (DESIGN.md "Normal").
+    pub fn gradient(&self, p: DVec3) -> DVec3 {
+        let s = self.spacing;
+        let d =
+            |e: DVec3, h: f64| (self.sample_clamped(p + e * h) - self.sample_clamped(p - e * h)) / (2.0 * h);
+        DVec3::new(d(DVec3::X, s.x), d(DVec3::Y, s.y), d(DVec3::Z, s.z))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn ramp() -> Volume {
+        // f = i + 10 j + 100 k on a 3x3x3 grid with spacing (1, 2, 4): trilinear reproduces it exactly.
+        let mut d = Vec::new();
+        for k in 0..3 {
+            for j in 0..3 {
+                for i in 0..3 {
+                    d.push((i + 10 * j + 100 * k) as f32);
+                }
+            }
+        }
+        Volume::new("ramp", [3, 3, 3], DVec3::new(1.0, 2.0, 4.0), DVec3::new(-1.0, 0.0, 0.0), d).unwrap()
+    }
+
+    #[test]
+    fn trilinear_reproduces_a_linear_field_and_outside_is_empty() {
+        let v = ramp();
+        let p = DVec3::new(-1.0 + 1.25, 2.0 * 0.5, 4.0 * 1.75);
+        assert!((v.sample(p).unwrap() - (1.25 + 5.0 + 175.0)).abs() < 1e-12);
+        assert_eq!(v.box_max(), DVec3::new(1.0, 4.0, 8.0));
+        assert!(v.sample(DVec3::new(1.0001, 1.0, 1.0)).is_none());
+        assert!(v.sample(v.box_max()).is_some());
+        let g = v.gradient(DVec3::new(0.0, 2.0, 4.0));
+        assert!((g - DVec3::new(1.0, 5.0, 25.0)).length() < 1e-12, "{g:?}");
+    }
+
+    #[test]
+    fn invalid_volumes_are_refused_with_the_reason() {
+        let e = Volume::new("v", [2, 2, 2], DVec3::ONE, DVec3::ZERO, vec![0.0; 7]).unwrap_err();
+        assert!(e.to_string().contains("need 8 voxels but 7"), "{e}");
+        let mut d = vec![0.0; 8];
+        d[5] = f32::NAN;
+        let e = Volume::new("v.raw", [2, 2, 2], DVec3::ONE, DVec3::ZERO, d).unwrap_err();
+        assert!(matches!(e, VolumeError::NonFinite { count: 1, i: 1, j: 0, k: 1, .. }), "{e}");
+        assert!(e.to_string().starts_with("v.raw:"));
+        assert!(Volume::new("v", [2, 2, 2], DVec3::new(1.0, 0.0, 1.0), DVec3::ZERO, vec![0.0; 8]).is_err());
+        assert!(Volume::new("v", [0, 2, 2], DVec3::ONE, DVec3::ZERO, vec![]).is_err());
+    }
+
+    #[test]
+    fn single_sample_axes_are_constant() {
+        let v = Volume::new("one", [1, 1, 1], DVec3::ONE, DVec3::ZERO, vec![3.0]).unwrap();
+        assert_eq!(v.sample(DVec3::ZERO), Some(3.0));
+        assert_eq!(v.sample(DVec3::new(0.1, 0.0, 0.0)), None);
+        assert_eq!(v.gradient(DVec3::ZERO), DVec3::ZERO);
+    }
+}

@@ -1,0 +1,232 @@
+//! The pinhole camera of DESIGN.md ("Camera"), exactly:
+//!
+//! pixel (px, py) of a W x H image, py = 0 the top row, ray through the pixel centre
+//! `d = normalize(f + sx*r + sy*u)` with `sx = ((px+0.5)/W*2-1) * tan(fov_y/2) * W/H`,
+//! `sy = (1-(py+0.5)/H*2) * tan(fov_y/2)`, `f = normalize(target - eye)`, `r = normalize(f x up)`,
+//! `u = r x f`.
+//!
+//! A [`View`] is that camera over a full image of `full` pixels, of which a [`Window`] is
+//! rendered. A wall tile is such a window of the one wall image (an off-axis sub-frustum), so the
+//! assembled wall is exactly one big image.
+
+use glam::DVec3;
+use serde::{Deserialize, Serialize};
+
+/// A pinhole camera: eye, target, up and the *vertical* field of view in degrees.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Camera {
+    pub eye: DVec3,
+    pub target: DVec3,
+    pub up: DVec3,
+    pub fov_y_deg: f64,
+}
+
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum CameraError {
+    #[error("camera eye and target coincide ({0:?})")]
+    EyeIsTarget(DVec3),
+    #[error("camera up {up:?} is parallel to the view direction {forward:?}")]
+    UpParallel { up: DVec3, forward: DVec3 },
+    #[error("vertical field of view {0} degrees is outside (0, 180)")]
+    BadFov(f64),
+    #[error("{0} is not finite")]
+    NotFinite(&'static str),
+}
+
+/// The orthonormal frame of a camera: forward, right, up (DESIGN.md's f, r, u).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Basis {
+    pub forward: DVec3,
+    pub right: DVec3,
+    pub up: DVec3,
+    /// tan(fov_y / 2)
+    pub tan_half_fov: f64,
+}
+
+impl Camera {
+    /// Checks that the camera defines a frame: finite, eye != target, up not parallel, 0 < fov < 180.
+    pub fn validate(&self) -> Result<(), CameraError> {
+        for (name, v) in [("eye", self.eye), ("target", self.target), ("up", self.up)] {
+            if !v.is_finite() {
+                return Err(CameraError::NotFinite(name));
+            }
+        }
+        if !(self.fov_y_deg > 0.0 && self.fov_y_deg < 180.0) {
+            return Err(CameraError::BadFov(self.fov_y_deg));
+        }
+        let d = self.target - self.eye;
+        if d.length() <= 1e-12 * (1.0 + self.eye.length()) {
+            return Err(CameraError::EyeIsTarget(self.eye));
+        }
+        let f = d.normalize();
+        if f.cross(self.up).length() <= 1e-9 * self.up.length().max(1e-300) {
+            return Err(CameraError::UpParallel { up: self.up, forward: f });
+        }
+        Ok(())
+    }
+
+    /// The camera frame. Call [`Camera::validate`] first; a degenerate camera gives NaNs here.
+    pub fn basis(&self) -> Basis {
+        let forward = (self.target - self.eye).normalize();
+        let right = forward.cross(self.up).normalize();
+        let up = right.cross(forward);
+        Basis { forward, right, up, tan_half_fov: (self.fov_y_deg.to_radians() * 0.5).tan() }
+    }
+
+    /// A camera that frames an axis-aligned box: a three-quarter view from the front-right and
+    /// above (world up is +z), at the distance where all eight corners fit a `width` x `height`
+    /// image with a 5% margin.
+    pub fn framing(box_min: DVec3, box_max: DVec3, width: u32, height: u32) -> Camera {
+        let fov_y_deg: f64 = 35.0;
+        let centre = 0.5 * (box_min + box_max);
+        let dir = DVec3::new(0.9, -1.5, 0.8).normalize();
+        let mut cam = Camera { eye: centre + dir, target: centre, up: DVec3::Z, fov_y_deg };
+        let b = cam.basis();
+        let tan_y = 0.95 * b.tan_half_fov;
+        let tan_x = tan_y * width as f64 / height.max(1) as f64;
+        // Corner c at lateral offsets (x, y) and depth z from the centre fits when
+        // |x| / (dist + z) <= tan_x and |y| / (dist + z) <= tan_y.
+        let mut dist: f64 = 1e-6;
+        for i in 0..8 {
+            let c = DVec3::new(
+                if i & 1 == 0 { box_min.x } else { box_max.x },
+                if i & 2 == 0 { box_min.y } else { box_max.y },
+                if i & 4 == 0 { box_min.z } else { box_max.z },
+            ) - centre;
+            let z = c.dot(b.forward);
+            dist = dist.max(c.dot(b.right).abs() / tan_x - z).max(c.dot(b.up).abs() / tan_y - z);
+        }
+        // Keep the eye outside the box's bounding sphere, so the whole box is in front of it.
+        dist = dist.max(1.01 * (0.5 * (box_max - box_min).length()).max(1e-6));
+        cam.eye = centre - dist * b.forward;
+        cam
+    }
+}
+
+/// A rectangle of pixels inside the full image: `x, y` its top-left pixel, `width x height` its size.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Window {
+    pub x: u32,
+    pub y: u32,
+    pub width: u32,
+    pub height: u32,
+}
+
+/// A camera looking at a full image of `full` = (W, H) pixels, of which `window` is rendered.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct View {
+    pub camera: Camera,
+    pub full: (u32, u32),
+    pub window: Window,
+}
+
+impl View {
+    /// The whole image of `width` x `height` pixels.
+    pub fn whole(camera: Camera, width: u32, height: u32) -> View {
+        View { camera, full: (width, height), window: Window { x: 0, y: 0, width, height } }
+    }
+
+    /// Number of pixels rendered (the window's).
+    pub fn pixel_count(&self) -> usize {
+        self.window.width as usize * self.window.height as usize
+    }
+
+    /// The unit ray direction through the centre of pixel (px, py) of the *full* image.
+    pub fn ray_dir_full(&self, basis: &Basis, px: u32, py: u32) -> DVec3 {
+        let (w, h) = (self.full.0 as f64, self.full.1 as f64);
+        let sx = ((px as f64 + 0.5) / w * 2.0 - 1.0) * basis.tan_half_fov * w / h;
+        let sy = (1.0 - (py as f64 + 0.5) / h * 2.0) * basis.tan_half_fov;
+        (basis.forward + sx * basis.right + sy * basis.up).normalize()
+    }
+
+    /// The unit ray direction through the centre of pixel (x, y) of the *window*.
+    pub fn ray_dir(&self, basis: &Basis, x: u32, y: u32) -> DVec3 {
+        self.ray_dir_full(basis, self.window.x + x, self.window.y + y)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pixel_rays_match_the_convention_vectors() {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../../shared/conventions/camera-and-hits.json");
+        let Ok(text) = std::fs::read_to_string(path) else {
+            assert!(std::env::var("CI").as_deref() != Ok("true"), "{path} missing under CI=true");
+            eprintln!("skipping: {path} not found (the shared/ folder is beside the checkout only in CI and for developers)");
+            return;
+        };
+        let j: serde_json::Value = serde_json::from_str(&text).unwrap();
+        let v3 = |v: &serde_json::Value| {
+            DVec3::new(v[0].as_f64().unwrap(), v[1].as_f64().unwrap(), v[2].as_f64().unwrap())
+        };
+        let cam = &j["camera"];
+        let camera = Camera {
+            eye: v3(&cam["eye"]),
+            target: v3(&cam["target"]),
+            up: v3(&cam["up"]),
+            fov_y_deg: cam["fov_y_deg"].as_f64().unwrap(),
+        };
+        camera.validate().unwrap();
+        let (w, h) = (cam["width"].as_u64().unwrap() as u32, cam["height"].as_u64().unwrap() as u32);
+        let view = View::whole(camera, w, h);
+        let basis = camera.basis();
+        let pixels = j["pixels"].as_array().unwrap();
+        assert!(pixels.len() >= 5);
+        for p in pixels {
+            let (px, py) = (p["px"].as_u64().unwrap() as u32, p["py"].as_u64().unwrap() as u32);
+            let want = v3(&p["dir"]);
+            let got = view.ray_dir_full(&basis, px, py);
+            assert!((got - want).length() < 1e-8, "pixel ({px},{py}): got {got:?}, want {want:?}");
+        }
+    }
+
+    #[test]
+    fn a_window_sees_the_same_rays_as_the_whole_image() {
+        let camera =
+            Camera { eye: DVec3::new(3.0, -7.0, 2.0), target: DVec3::ZERO, up: DVec3::Z, fov_y_deg: 40.0 };
+        let whole = View::whole(camera, 64, 48);
+        let tile = View { window: Window { x: 32, y: 24, width: 32, height: 24 }, ..whole };
+        let b = camera.basis();
+        assert_eq!(tile.ray_dir(&b, 3, 5), whole.ray_dir_full(&b, 35, 29));
+        assert_ne!(tile.ray_dir(&b, 3, 5), whole.ray_dir_full(&b, 3, 5));
+    }
+
+    #[test]
+    fn degenerate_cameras_are_rejected() {
+        let ok =
+            Camera { eye: DVec3::new(0.0, -5.0, 0.0), target: DVec3::ZERO, up: DVec3::Z, fov_y_deg: 30.0 };
+        assert!(ok.validate().is_ok());
+        assert!(matches!(Camera { target: ok.eye, ..ok }.validate(), Err(CameraError::EyeIsTarget(_))));
+        assert!(matches!(Camera { up: DVec3::Y, ..ok }.validate(), Err(CameraError::UpParallel { .. })));
+        assert!(matches!(Camera { fov_y_deg: 180.0, ..ok }.validate(), Err(CameraError::BadFov(_))));
+        assert!(matches!(Camera { eye: DVec3::NAN, ..ok }.validate(), Err(CameraError::NotFinite("eye"))));
+    }
+
+    #[test]
+    fn framing_keeps_the_box_in_view() {
+        let (lo, hi) = (DVec3::ZERO, DVec3::new(255.0, 255.0, 117.0));
+        for (w, h) in [(64, 64), (128, 32), (32, 128)] {
+            let cam = Camera::framing(lo, hi, w, h);
+            cam.validate().unwrap();
+            let b = cam.basis();
+            let tan_x = b.tan_half_fov * w as f64 / h as f64;
+            for i in 0..8 {
+                let c = DVec3::new(
+                    if i & 1 == 0 { lo.x } else { hi.x },
+                    if i & 2 == 0 { lo.y } else { hi.y },
+                    if i & 4 == 0 { lo.z } else { hi.z },
+                );
+                let v = c - cam.eye;
+                let z = v.dot(b.forward);
+                assert!(z > 0.0);
+                assert!(v.dot(b.right).abs() / z <= tan_x, "corner {c:?} outside horizontally for {w}x{h}");
+                assert!(
+                    v.dot(b.up).abs() / z <= b.tan_half_fov,
+                    "corner {c:?} outside vertically for {w}x{h}"
+                );
+            }
+        }
+    }
+}

@@ -1,0 +1,204 @@
+//! What a frame is rendered with, apart from the camera: iso value, march step, shading model,
+//! light and material, and which AOV to output. Plain data shared by the CLI, the controller's frame
+//! state and both renderers; the GPU copy of it is a separate `bytemuck` type in the renderer.
+
+use glam::DVec3;
+use serde::{Deserialize, Serialize};
+
+/// The direct-light shading model of DESIGN.md's final colour.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum Shading {
+    Lambert,
+    #[default]
+    BlinnPhong,
+}
+
+/// A directional light. `direction` points *towards* the light. When `camera_relative` is set,
+/// `direction` is given in the camera frame (x right, y up, z towards the viewer), so the light
+/// follows the camera: the default, a key light above-left of the viewer.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Light {
+    pub direction: DVec3,
+    pub camera_relative: bool,
+    /// Linear RGB radiance scale of the light.
+    pub color: [f64; 3],
+    /// Constant ambient term (linear RGB), added before AO/IBL exist.
+    pub ambient: [f64; 3],
+}
+
+impl Default for Light {
+    fn default() -> Self {
+        Light {
+            direction: DVec3::new(-0.4, 0.6, 0.7).normalize(),
+            camera_relative: true,
+            color: [0.9, 0.9, 0.9],
+            ambient: [0.15, 0.15, 0.17],
+        }
+    }
+}
+
+impl Light {
+    /// The unit direction towards the light in world space, for a camera with frame (forward, right, up).
+    pub fn world_direction(&self, forward: DVec3, right: DVec3, up: DVec3) -> DVec3 {
+        let d = if self.camera_relative {
+            self.direction.x * right + self.direction.y * up - self.direction.z * forward
+        } else {
+            self.direction
+        };
+        d.normalize_or(DVec3::Z)
+    }
+}
+
+/// Surface material: linear albedo, and a Blinn-Phong specular lobe.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Material {
+    pub albedo: [f64; 3],
+    pub specular: f64,
+    pub shininess: f64,
+}
+
+impl Default for Material {
+    fn default() -> Self {
+        Material { albedo: [0.85, 0.78, 0.68], specular: 0.25, shininess: 40.0 }
+    }
+}
+
+/// Arbitrary output variables (DESIGN.md "AOVs"). Every non-colour AOV is 0 where a pixel has no hit.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum Aov {
+    /// Final colour, 8-bit sRGB PNG.
+    #[default]
+    Color,
+    /// Distance from the eye to the hit along the ray (world units).
+    Depth,
+    /// N = -grad f / |grad f| at the hit (points out of the object), not flipped towards the viewer.
+    Normal,
+    /// 1 where the ray hits the isosurface, else 0.
+    Hit,
+}
+
+impl Aov {
+    pub const ALL: [Aov; 4] = [Aov::Color, Aov::Depth, Aov::Normal, Aov::Hit];
+
+    /// The AOV's name on the command line and in files.
+    pub fn name(self) -> &'static str {
+        match self {
+            Aov::Color => "color",
+            Aov::Depth => "depth",
+            Aov::Normal => "normal",
+            Aov::Hit => "hit",
+        }
+    }
+
+    /// Number of float channels in the AOV's PFM (colour is written as PNG instead).
+    pub fn channels(self) -> usize {
+        match self {
+            Aov::Color | Aov::Normal => 3,
+            Aov::Depth | Aov::Hit => 1,
+        }
+    }
+}
+
+/// Everything but the camera that decides a frame's pixels.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RenderSettings {
+    /// The iso value, in the data's own units (Hounsfield for CT).
+    pub iso: f64,
+    /// Primary-ray march step in voxels of the smallest spacing (the GPU's; the reference is exact).
+    pub step_voxels: f64,
+    /// Skip blocks whose min/max excludes the iso value (primary rays).
+    pub empty_space_skipping: bool,
+    pub shading: Shading,
+    pub light: Light,
+    pub material: Material,
+    /// Exposure multiplier applied to linear colour before the sRGB transfer.
+    pub exposure: f64,
+    /// Linear RGB of pixels without a hit, in the colour image.
+    pub background: [f64; 3],
+}
+
+impl RenderSettings {
+    pub fn new(iso: f64) -> Self {
+        RenderSettings {
+            iso,
+            step_voxels: 0.5,
+            empty_space_skipping: true,
+            shading: Shading::default(),
+            light: Light::default(),
+            material: Material::default(),
+            exposure: 1.0,
+            background: [0.02, 0.025, 0.035],
+        }
+    }
+}
+
+/// The sRGB transfer function (IEC 61966-2-1) of a linear value, clamped to [0, 1].
+pub fn linear_to_srgb(x: f64) -> f64 {
+    let x = if x.is_finite() { x.clamp(0.0, 1.0) } else { 0.0 };
+    if x <= 0.003_130_8 {
+        12.92 * x
+    } else {
+        1.055 * x.powf(1.0 / 2.4) - 0.055
+    }
+}
+
+/// Direct light at a surface point, linear RGB, for unit `n` (facing the viewer), unit `l` towards
+/// the light and unit `v` towards the viewer: albedo * (ambient + light * N.L) + specular (Blinn-Phong).
+/// The one formula both renderers follow (the WGSL twin is `shade` in shaders/shading.wgsl).
+pub fn shade(settings: &RenderSettings, n: DVec3, l: DVec3, v: DVec3) -> [f64; 3] {
+    let m = &settings.material;
+    let lt = &settings.light;
+    let ndl = n.dot(l).max(0.0);
+    let spec = match settings.shading {
+        Shading::Lambert => 0.0,
+        Shading::BlinnPhong => {
+            let h = (l + v).normalize_or(n);
+            if ndl > 0.0 {
+                m.specular * n.dot(h).max(0.0).powf(m.shininess)
+            } else {
+                0.0
+            }
+        }
+    };
+    std::array::from_fn(|c| m.albedo[c] * (lt.ambient[c] + lt.color[c] * ndl) + lt.color[c] * spec)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn srgb_transfer_endpoints_and_knee() {
+        assert_eq!(linear_to_srgb(0.0), 0.0);
+        assert!((linear_to_srgb(1.0) - 1.0).abs() < 1e-12);
+        assert!((linear_to_srgb(0.5) - 0.735_356_983).abs() < 1e-6);
+        assert_eq!(linear_to_srgb(f64::NAN), 0.0);
+        assert_eq!(linear_to_srgb(7.0), linear_to_srgb(1.0));
+    }
+
+    #[test]
+    fn lambert_has_no_highlight_and_blinn_phong_does() {
+        let mut s = RenderSettings::new(0.0);
+        let n = DVec3::Z;
+        s.shading = Shading::Lambert;
+        let lam = shade(&s, n, n, n);
+        s.shading = Shading::BlinnPhong;
+        let bp = shade(&s, n, n, n);
+        for c in 0..3 {
+            assert!((lam[c] - s.material.albedo[c] * (s.light.ambient[c] + s.light.color[c])).abs() < 1e-12);
+            assert!((bp[c] - lam[c] - s.light.color[c] * s.material.specular).abs() < 1e-12);
+        }
+        // Light from behind: ambient only.
+        let back = shade(&s, n, -n, n);
+        assert!((back[0] - s.material.albedo[0] * s.light.ambient[0]).abs() < 1e-12);
+    }
+
+    #[test]
+    fn camera_relative_light_follows_the_camera() {
+        let l = Light { direction: DVec3::new(0.0, 0.0, 1.0), ..Light::default() };
+        let (f, r, u) = (DVec3::Y, DVec3::X, DVec3::Z);
+        assert!((l.world_direction(f, r, u) - (-DVec3::Y)).length() < 1e-12);
+    }
+}

@@ -1,0 +1,51 @@
+# Sourced by scripts/run.sh and scripts/test.sh: makes sure this Debian/Ubuntu machine has what
+# Isowall needs (a Rust toolchain, a Vulkan loader and driver), installing it with apt when run as
+# root, else printing the exact command and stopping.
+
+need_pkgs=()
+missing_why=()
+
+if ! command -v cargo >/dev/null 2>&1; then
+    echo "isowall: cargo (Rust) is not installed. Install a Rust toolchain first, e.g.:" >&2
+    echo "    curl --proto '=https' --tlsv1.2 -sSf https://sh.rustup.rs | sh   (then: . \"\$HOME/.cargo/env\")" >&2
+    echo "or: apt-get install cargo   (Rust 1.85 or newer is needed)" >&2
+    exit 1
+fi
+
+# The Vulkan loader.
+if ! ldconfig -p 2>/dev/null | grep -q 'libvulkan\.so\.1'; then
+    need_pkgs+=(libvulkan1)
+    missing_why+=("the Vulkan loader (libvulkan.so.1)")
+fi
+# A Vulkan driver: any installed ICD manifest will do (a GPU's, or Mesa's lavapipe).
+have_icd=no
+for d in /usr/share/vulkan/icd.d /etc/vulkan/icd.d /usr/local/share/vulkan/icd.d; do
+    if ls "$d"/*.json >/dev/null 2>&1; then have_icd=yes; fi
+done
+if [ -n "${VK_DRIVER_FILES:-}${VK_ICD_FILENAMES:-}" ]; then have_icd=yes; fi
+if [ "$have_icd" = no ]; then
+    need_pkgs+=(mesa-vulkan-drivers)
+    missing_why+=("a Vulkan driver (Mesa's software driver lavapipe, where there is no GPU driver)")
+fi
+
+if [ ${#need_pkgs[@]} -gt 0 ]; then
+    echo "isowall: missing ${missing_why[*]}" >&2
+    if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+        echo "isowall: installing ${need_pkgs[*]} with apt-get" >&2
+        export DEBIAN_FRONTEND=noninteractive
+        apt-get update -qq && apt-get install -y -qq --no-install-recommends "${need_pkgs[@]}" >&2 || {
+            echo "isowall: apt-get install ${need_pkgs[*]} failed; install them and run this again" >&2
+            exit 1
+        }
+    else
+        echo "isowall: install them first (as root):" >&2
+        echo "    sudo apt-get install ${need_pkgs[*]}" >&2
+        exit 1
+    fi
+fi
+
+# Mesa's window-system code warns without a runtime dir; headless runs do not need a real one.
+if [ -z "${XDG_RUNTIME_DIR:-}" ] || [ ! -d "${XDG_RUNTIME_DIR}" ]; then
+    XDG_RUNTIME_DIR=$(mktemp -d "${TMPDIR:-/tmp}/isowall-xdg.XXXXXX")
+    export XDG_RUNTIME_DIR
+fi

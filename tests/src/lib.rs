@@ -1,0 +1,69 @@
+//! Helpers for the end-to-end tests in `tests/tests/`: they run the real `isowalld` and `isowall`
+//! binaries as separate processes (and, with the wall, over the network on loopback).
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::sync::OnceLock;
+
+/// The repository root.
+pub fn repo_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).parent().expect("tests/ has a parent").to_path_buf()
+}
+
+/// Whether this is a CI run (`CI=true`), where nothing may be skipped.
+pub fn in_ci() -> bool {
+    std::env::var("CI").as_deref() == Ok("true")
+}
+
+/// `../shared` beside the checkout, with the real data and convention vectors. `None` (after a
+/// message) where it is absent, e.g. on a user's machine; under CI it must be there.
+pub fn shared_dir() -> Option<PathBuf> {
+    let dir = repo_root().join("../shared");
+    if dir.join("DESIGN.md").exists() {
+        return Some(dir);
+    }
+    assert!(!in_ci(), "{} is missing under CI=true", dir.display());
+    eprintln!("skipping: {} not found (it sits beside the checkout for developers and CI)", dir.display());
+    None
+}
+
+/// Path of a workspace binary, built once per test process with the same profile as the tests.
+pub fn bin(name: &str) -> PathBuf {
+    static BUILT: OnceLock<()> = OnceLock::new();
+    let target_dir = std::env::current_exe()
+        .ok()
+        .and_then(|p| p.parent()?.parent().map(Path::to_path_buf))
+        .expect("test executable lives in target/<profile>/deps");
+    BUILT.get_or_init(|| {
+        let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+        let mut cmd = Command::new(cargo);
+        cmd.current_dir(repo_root()).args(["build", "--quiet", "--bins", "-p", "isowalld", "-p", "isowall"]);
+        if target_dir.file_name().is_some_and(|n| n == "release") {
+            cmd.arg("--release");
+        }
+        let status = cmd.status().expect("cannot run cargo to build the binaries");
+        assert!(status.success(), "building the binaries failed");
+    });
+    let path = target_dir.join(name);
+    assert!(path.exists(), "{} was not built", path.display());
+    path
+}
+
+/// Runs a binary with arguments in `dir` and returns its output (never panics on a non-zero exit).
+pub fn run_in(dir: &Path, name: &str, args: &[&str]) -> Output {
+    Command::new(bin(name)).current_dir(dir).args(args).output().expect("cannot start the binary")
+}
+
+/// For commands that need the GPU: `true` if it succeeded; `false` (skip, after a message) where no
+/// Vulkan adapter exists outside CI; panics with the command's stderr on any other failure.
+pub fn gpu_ok(what: &str, out: &Output) -> bool {
+    if out.status.success() {
+        return true;
+    }
+    let err = String::from_utf8_lossy(&out.stderr);
+    if err.contains("no Vulkan adapter") && !in_ci() {
+        eprintln!("skipping {what}: no Vulkan adapter (install mesa-vulkan-drivers)");
+        return false;
+    }
+    panic!("{what} failed ({}):\n{err}", out.status);
+}
