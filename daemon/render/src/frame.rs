@@ -15,6 +15,12 @@ pub struct Frame {
     /// N = -grad f / |grad f| (outward), not flipped towards the viewer.
     pub normal: Vec<[f32; 3]>,
     pub hit: Vec<bool>,
+    /// A in [0, 1], 0 = fully open (0 where AO is off).
+    pub occlusion: Vec<f32>,
+    /// Normalized mean of the unoccluded AO directions (N where none is, or AO is off).
+    pub bent_normal: Vec<[f32; 3]>,
+    /// E(p) for albedo 1 before exposure, linear RGB.
+    pub ibl: Vec<[f32; 3]>,
     /// Trilinear field evaluations made for the frame (each is 8 voxel reads), all pixels together.
     pub fetches: u64,
 }
@@ -30,6 +36,9 @@ impl Frame {
             depth: vec![0.0; n],
             normal: vec![[0.0; 3]; n],
             hit: vec![false; n],
+            occlusion: vec![0.0; n],
+            bent_normal: vec![[0.0; 3]; n],
+            ibl: vec![[0.0; 3]; n],
             fetches: 0,
         }
     }
@@ -50,6 +59,9 @@ impl Frame {
             Aov::Depth => self.depth.clone(),
             Aov::Normal => self.normal.iter().flatten().copied().collect(),
             Aov::Hit => self.hit.iter().map(|&h| if h { 1.0 } else { 0.0 }).collect(),
+            Aov::Occlusion => self.occlusion.clone(),
+            Aov::BentNormal => self.bent_normal.iter().flatten().copied().collect(),
+            Aov::Ibl => self.ibl.iter().flatten().copied().collect(),
         }
     }
 

@@ -3,6 +3,7 @@
 //! cell) that the GPU is tested against. Both produce a [`Frame`] for a
 //! [`View`](isowall_wall::View) of a volume. Nothing here touches the network.
 
+pub mod environment;
 pub mod frame;
 pub mod gpu;
 pub mod output;

@@ -9,4 +9,6 @@ pub mod camera;
 pub mod render_state;
 
 pub use camera::{Camera, CameraError, View, Window};
-pub use render_state::{Aov, Light, Material, RenderSettings, Shading};
+pub use render_state::{
+    AoMethod, AoRadius, AoSettings, Aov, IblMethod, Light, Material, RenderSettings, Shading,
+};

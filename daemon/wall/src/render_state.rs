@@ -77,10 +77,17 @@ pub enum Aov {
     Normal,
     /// 1 where the ray hits the isosurface, else 0.
     Hit,
+    /// A in [0, 1] (0 = fully open), the ambient occlusion of DESIGN.md.
+    Occlusion,
+    /// The bent normal: normalized mean of the unoccluded AO directions (N where none is).
+    BentNormal,
+    /// E(p) of DESIGN.md ("IBL") for albedo 1, before exposure: float RGB, what the IBL method estimates.
+    Ibl,
 }
 
 impl Aov {
-    pub const ALL: [Aov; 4] = [Aov::Color, Aov::Depth, Aov::Normal, Aov::Hit];
+    pub const ALL: [Aov; 7] =
+        [Aov::Color, Aov::Depth, Aov::Normal, Aov::Hit, Aov::Occlusion, Aov::BentNormal, Aov::Ibl];
 
     /// The AOV's name on the command line and in files.
     pub fn name(self) -> &'static str {
@@ -89,14 +96,100 @@ impl Aov {
             Aov::Depth => "depth",
             Aov::Normal => "normal",
             Aov::Hit => "hit",
+            Aov::Occlusion => "occlusion",
+            Aov::BentNormal => "bent-normal",
+            Aov::Ibl => "ibl",
         }
     }
 
     /// Number of float channels in the AOV's PFM (colour is written as PNG instead).
     pub fn channels(self) -> usize {
         match self {
-            Aov::Color | Aov::Normal => 3,
-            Aov::Depth | Aov::Hit => 1,
+            Aov::Color | Aov::Normal | Aov::BentNormal | Aov::Ibl => 3,
+            Aov::Depth | Aov::Hit | Aov::Occlusion => 1,
+        }
+    }
+}
+
+/// How ambient occlusion is computed (DESIGN.md "AO").
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum AoMethod {
+    /// Ours: cosine-weighted R2 directions with a per-pixel, per-frame shift, concentric disk
+    /// mapping, origin offset along N, march of at most half a voxel, occluded as soon as a sample
+    /// reaches f >= iso, radius R in world units.
+    #[default]
+    Ours,
+    /// The 2008 RTPara shader, ported faithfully as the baseline (not our method).
+    Seed,
+}
+
+/// The AO radius R: world units, or unbounded (to the box).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum AoRadius {
+    /// 8 voxels of the largest spacing.
+    Default,
+    World(f64),
+    Unbounded,
+}
+
+/// How the ambient term is lit (DESIGN.md "IBL").
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum IblMethod {
+    /// A constant ambient light (the light's `ambient`) times 1 - A.
+    #[default]
+    None,
+    /// The 2008 method: the raw environment at the bent normal (as if the surface were a mirror),
+    /// times 1 - A.
+    Seed,
+    /// The environment's diffuse irradiance (9 SH coefficients) at the bent normal, times 1 - A.
+    Bent,
+    /// Every escaping AO ray looks up L_env in its own direction: unbiased, no extra tracing.
+    Rays,
+}
+
+/// Ambient occlusion and image-based lighting parameters.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AoSettings {
+    /// AO rays per pixel per frame; 0 turns AO off (A = 0, bent normal = N).
+    pub samples: u32,
+    pub radius: AoRadius,
+    pub method: AoMethod,
+    pub ibl: IblMethod,
+    /// March step of AO rays (ours) in voxels of the smallest spacing.
+    pub step_voxels: f64,
+    /// Offset of the AO ray origin along the normal, in voxels of the smallest spacing.
+    pub offset_voxels: f64,
+    /// Frame index: with the pixel, it seeds the per-pixel shift of the sample pattern.
+    pub frame: u32,
+    /// A user seed mixed into every pixel's hash (`--seed`).
+    pub seed: u32,
+}
+
+impl Default for AoSettings {
+    fn default() -> Self {
+        AoSettings {
+            samples: 0,
+            radius: AoRadius::Default,
+            method: AoMethod::Ours,
+            ibl: IblMethod::None,
+            step_voxels: 0.5,
+            offset_voxels: 0.5,
+            frame: 0,
+            seed: 0,
+        }
+    }
+}
+
+impl AoSettings {
+    /// R in world units for a volume of the given spacing and box: `None` when unbounded.
+    pub fn radius_world(&self, spacing: DVec3) -> Option<f64> {
+        match self.radius {
+            AoRadius::Default => Some(8.0 * spacing.max_element()),
+            AoRadius::World(r) => Some(r),
+            AoRadius::Unbounded => None,
         }
     }
 }
@@ -117,6 +210,7 @@ pub struct RenderSettings {
     pub exposure: f64,
     /// Linear RGB of pixels without a hit, in the colour image.
     pub background: [f64; 3],
+    pub ao: AoSettings,
 }
 
 impl RenderSettings {
@@ -130,6 +224,7 @@ impl RenderSettings {
             material: Material::default(),
             exposure: 1.0,
             background: [0.02, 0.025, 0.035],
+            ao: AoSettings::default(),
         }
     }
 }
