@@ -1,5 +1,5 @@
 // Kernel::Isosurface (daemon/render/src/gpu/isosurface.rs): primary rays to the first hit of the
-// isosurface, exactly as DESIGN.md defines it, then normal, direct shading and the AOVs.
+// isosurface, exactly as DESIGN.md defines it, then the normal and the direct light.
 //
 // - Ray through the pixel centre of the *full* image (a window of it is rendered: wall tiles).
 // - Box entry and exit; outside the box the field is empty, so entering the box where f >= iso is
@@ -12,70 +12,16 @@
 // - Normal: N = -grad f / |grad f| by central differences (h = one voxel per axis); the direction
 //   towards the viewer where the gradient vanishes. Shading uses N turned towards the viewer.
 //
+//#include frame.wgsl
 //#include volume.wgsl
 //#include shading.wgsl
 
-// Twin: `IsoParams` in isosurface.rs (layout checked by a test against this declaration).
-struct IsoParams {
-    eye: vec4<f32>,
-    forward: vec4<f32>,      // w: tan(fov_y / 2)
-    right: vec4<f32>,
-    up: vec4<f32>,
-    light_dir: vec4<f32>,    // towards the light, world space
-    light_color: vec4<f32>,
-    ambient: vec4<f32>,
-    albedo: vec4<f32>,       // w: specular
-    background: vec4<f32>,   // w: exposure
-    box_min: vec4<f32>,
-    box_max: vec4<f32>,
-    spacing: vec4<f32>,      // w: march step, world units
-    dims: vec4<u32>,         // w: cells per block edge
-    block_counts: vec4<u32>, // w: flags (bit 0: empty-space skipping)
-    full_size: vec2<u32>,
-    window_origin: vec2<u32>,
-    window_size: vec2<u32>,
-    shading: u32,
-    iso: f32,
-    shininess: f32,
-    refine_steps: u32,
-    max_steps: u32,
-    _pad: u32,
-}
-
-const FLAG_EMPTY_SPACE_SKIPPING: u32 = 1u;
-
-@group(0) @binding(0) var<uniform> params: IsoParams;
-@group(0) @binding(1) var<storage, read> volume: array<f32>;
-@group(0) @binding(2) var<storage, read> block_minmax: array<vec2<f32>>;
-// Per pixel: linear colour after exposure (w: 1 on a hit, else 0).
+// Per pixel: direct light (linear, before exposure, no ambient); w: 1 on a hit, else 0.
 @group(0) @binding(3) var<storage, read_write> out_color: array<vec4<f32>>;
 // Per pixel: N (xyz, outward, unflipped) and depth (w); all 0 without a hit.
 @group(0) @binding(4) var<storage, read_write> out_geometry: array<vec4<f32>>;
 // Per pixel: trilinear fetches made.
 @group(0) @binding(5) var<storage, read_write> out_fetches: array<u32>;
-
-// The block (of `params.dims.w` cells per edge) containing world point p.
-fn block_of(p: vec3<f32>) -> vec3<u32> {
-    let cells = to_voxel(p).xyz / f32(params.dims.w);
-    let c = vec3<i32>(floor(cells));
-    return vec3<u32>(clamp(c, vec3<i32>(0), vec3<i32>(params.block_counts.xyz) - 1));
-}
-
-fn block_max(b: vec3<u32>) -> f32 {
-    let n = params.block_counts.xyz;
-    return block_minmax[b.x + n.x * (b.y + n.y * b.z)].y;
-}
-
-// Ray parameter where the ray leaves block b (world box of its cells, clamped to the volume box).
-fn block_exit(b: vec3<u32>, eye: vec3<f32>, inv_dir: vec3<f32>) -> f32 {
-    let bs = f32(params.dims.w);
-    let lo = params.box_min.xyz + vec3<f32>(b) * bs * params.spacing.xyz;
-    let hi = min(lo + bs * params.spacing.xyz, params.box_max.xyz);
-    let t0 = (lo - eye) * inv_dir;
-    let t1 = (hi - eye) * inv_dir;
-    let tmax = max(t0, t1);
-    return min(min(tmax.x, tmax.y), tmax.z);
-}
 
 @compute @workgroup_size(8, 8, 1)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
@@ -83,26 +29,13 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let out_index = gid.x + gid.y * params.window_size.x;
-    let px = params.window_origin + gid.xy;
-    let size = vec2<f32>(params.full_size);
-    let tan_half = params.forward.w;
-    let sx = ((f32(px.x) + 0.5) / size.x * 2.0 - 1.0) * tan_half * size.x / size.y;
-    let sy = (1.0 - (f32(px.y) + 0.5) / size.y * 2.0) * tan_half;
-    let dir = normalize(params.forward.xyz + sx * params.right.xyz + sy * params.up.xyz);
+    let dir = pixel_dir(params.window_origin + gid.xy);
     let eye = params.eye.xyz;
     let iso = params.iso;
-
-    // Box entry and exit (slabs). WGSL gives no infinities, so a zero direction component is
-    // replaced by a tiny one of the same side: its slab then spans (almost) all t, as it should.
-    let tiny = vec3<f32>(1e-20);
-    let dir_safe = select(dir, select(tiny, -tiny, dir < vec3<f32>(0.0)), abs(dir) < tiny);
-    let inv_dir = 1.0 / dir_safe;
-    let ta = (params.box_min.xyz - eye) * inv_dir;
-    let tb = (params.box_max.xyz - eye) * inv_dir;
-    let tmin3 = min(ta, tb);
-    let tmax3 = max(ta, tb);
-    let t_enter = max(max(tmin3.x, tmin3.y), tmin3.z);
-    let t_exit = min(min(tmax3.x, tmax3.y), tmax3.z);
+    let inv_dir = safe_inv(dir);
+    let tc = box_clip(eye, inv_dir);
+    let t_enter = tc.x;
+    let t_exit = tc.y;
 
     var hit = false;
     var cap = false;
@@ -119,13 +52,16 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
                 hit = true;
                 cap = true;
                 t_hit = t_enter;
-                // The face entered: the axis whose slab gave t_enter, facing against the ray.
-                var axis = 0u;
-                if tmin3.y >= tmin3.x && tmin3.y >= tmin3.z {
+                // The face entered: the axis whose slab gave t_enter (lowest axis on a tie).
+                let ta = (params.box_min.xyz - eye) * inv_dir;
+                let tb = (params.box_max.xyz - eye) * inv_dir;
+                let tmin3 = min(ta, tb);
+                var axis = 2u;
+                if tmin3.y >= tmin3.z {
                     axis = 1u;
                 }
-                if tmin3.z >= tmin3.x && tmin3.z >= tmin3.y {
-                    axis = 2u;
+                if tmin3.x >= tmin3.y && tmin3.x >= tmin3.z {
+                    axis = 0u;
                 }
                 cap_normal[axis] = -sign(dir[axis]);
             }
@@ -134,7 +70,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         }
 
         let step = params.spacing.w;
-        let ess = (params.block_counts.w & FLAG_EMPTY_SPACE_SKIPPING) != 0u;
+        let ess = skipping();
         var steps = 0u;
         while !hit && t < t_exit && steps < params.max_steps {
             steps += 1u;
@@ -179,7 +115,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
 
     if !hit {
-        out_color[out_index] = vec4<f32>(params.background.xyz, 0.0);
+        out_color[out_index] = vec4<f32>(0.0);
         out_geometry[out_index] = vec4<f32>(0.0);
         out_fetches[out_index] = fetches;
         return;
@@ -196,8 +132,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let v = -dir;
     let ns = select(-n, n, dot(n, v) >= 0.0);
-    let rgb = shade(ns, params.light_dir.xyz, v) * params.background.w;
-    out_color[out_index] = vec4<f32>(rgb, 1.0);
+    out_color[out_index] = vec4<f32>(direct_light(ns, params.light_dir.xyz, v), 1.0);
     out_geometry[out_index] = vec4<f32>(n, t_hit);
     out_fetches[out_index] = fetches;
 }

@@ -2,7 +2,7 @@
 // with the dims in `params.dims`. Used by every kernel that reads the volume. Twin of
 // `Volume::trilinear_voxel` / `Volume::gradient` in daemon/volume (the CPU side), which tests compare.
 //
-// Expects at module scope: `params` (with dims, box_min, spacing), `volume: array<f32>`.
+// Expects frame.wgsl before it (`params`, `volume`, `block_minmax`).
 
 // Trilinear field evaluations made by this invocation ("trilinear fetches", 8 voxel reads each).
 var<private> fetches: u32 = 0u;
@@ -47,4 +47,48 @@ fn gradient(p: vec3<f32>) -> vec3<f32> {
     let gy = trilinear_voxel(u + vec4<f32>(0.0, 1.0, 0.0, 0.0)) - trilinear_voxel(u - vec4<f32>(0.0, 1.0, 0.0, 0.0));
     let gz = trilinear_voxel(u + vec4<f32>(0.0, 0.0, 1.0, 0.0)) - trilinear_voxel(u - vec4<f32>(0.0, 0.0, 1.0, 0.0));
     return vec3<f32>(gx, gy, gz) / (2.0 * s);
+}
+
+// 1 / dir with zero components replaced by tiny ones of the same side (WGSL has no infinities):
+// their slab then spans (almost) all t, as it should.
+fn safe_inv(dir: vec3<f32>) -> vec3<f32> {
+    let tiny = vec3<f32>(1e-20);
+    return 1.0 / select(dir, select(tiny, -tiny, dir < vec3<f32>(0.0)), abs(dir) < tiny);
+}
+
+// Entry and exit parameters of the ray o + t dir through the volume box (slabs); the ray misses
+// when exit < max(entry, 0).
+fn box_clip(o: vec3<f32>, inv_dir: vec3<f32>) -> vec2<f32> {
+    let ta = (params.box_min.xyz - o) * inv_dir;
+    let tb = (params.box_max.xyz - o) * inv_dir;
+    let tmin3 = min(ta, tb);
+    let tmax3 = max(ta, tb);
+    return vec2<f32>(max(max(tmin3.x, tmin3.y), tmin3.z), min(min(tmax3.x, tmax3.y), tmax3.z));
+}
+
+// The block (of `params.dims.w` cells per edge) containing world point p.
+fn block_of(p: vec3<f32>) -> vec3<u32> {
+    let cells = to_voxel(p).xyz / f32(params.dims.w);
+    let c = vec3<i32>(floor(cells));
+    return vec3<u32>(clamp(c, vec3<i32>(0), vec3<i32>(params.block_counts.xyz) - 1));
+}
+
+// Largest sample of block b: the field anywhere in the block's closed box is at most this.
+fn block_max(b: vec3<u32>) -> f32 {
+    let n = params.block_counts.xyz;
+    return block_minmax[b.x + n.x * (b.y + n.y * b.z)].y;
+}
+
+// Ray parameter where the ray o + t dir leaves block b (its box clamped to the volume box).
+fn block_exit(b: vec3<u32>, o: vec3<f32>, inv_dir: vec3<f32>) -> f32 {
+    let bs = f32(params.dims.w);
+    let lo = params.box_min.xyz + vec3<f32>(b) * bs * params.spacing.xyz;
+    let hi = min(lo + bs * params.spacing.xyz, params.box_max.xyz);
+    let tmax = max((lo - o) * inv_dir, (hi - o) * inv_dir);
+    return min(min(tmax.x, tmax.y), tmax.z);
+}
+
+// Whether empty-space skipping is on for this frame.
+fn skipping() -> bool {
+    return (params.block_counts.w & FLAG_EMPTY_SPACE_SKIPPING) != 0u;
 }

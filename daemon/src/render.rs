@@ -4,11 +4,12 @@ use crate::args;
 use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
 use glam::DVec3;
+use isowall_render::environment::{EnvSource, Environment};
 use isowall_render::gpu::GpuRenderer;
 use isowall_render::{output, reference, Frame};
 use isowall_volume::io::{RawSpec, VoxelType};
 use isowall_volume::{Volume, VolumeSource};
-use isowall_wall::{Aov, Camera, RenderSettings, Shading, View};
+use isowall_wall::{AoMethod, AoRadius, Aov, Camera, IblMethod, RenderSettings, Shading, View};
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -33,6 +34,40 @@ pub enum AovArg {
     Depth,
     Normal,
     Hit,
+    Occlusion,
+    BentNormal,
+    Ibl,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum AoMethodArg {
+    /// Cosine-weighted R2 directions, decorrelated per pixel and frame, exact-enough march
+    Ours,
+    /// The 2008 RTPara shader, ported faithfully as the baseline (biased; not our method)
+    Seed,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum IblArg {
+    /// Constant ambient light times 1 - A
+    None,
+    /// The raw environment at the bent normal times 1 - A (the 2008 method)
+    Seed,
+    /// The environment's diffuse irradiance (SH9) at the bent normal times 1 - A
+    Bent,
+    /// Every escaping AO ray looks up the environment (unbiased)
+    Rays,
+}
+
+/// `--ao-radius R|unbounded`.
+fn ao_radius(s: &str) -> Result<AoRadius, String> {
+    if s == "unbounded" {
+        return Ok(AoRadius::Unbounded);
+    }
+    match s.parse::<f64>() {
+        Ok(r) if r.is_finite() && r > 0.0 => Ok(AoRadius::World(r)),
+        _ => Err(format!("'{s}' is neither a positive number (world units) nor 'unbounded'")),
+    }
 }
 
 impl From<AovArg> for Aov {
@@ -42,6 +77,9 @@ impl From<AovArg> for Aov {
             AovArg::Depth => Aov::Depth,
             AovArg::Normal => Aov::Normal,
             AovArg::Hit => Aov::Hit,
+            AovArg::Occlusion => Aov::Occlusion,
+            AovArg::BentNormal => Aov::BentNormal,
+            AovArg::Ibl => Aov::Ibl,
         }
     }
 }
@@ -75,7 +113,8 @@ pub struct RenderArgs {
     /// Direct-light shading model [default: blinn-phong]
     #[arg(long, value_enum)]
     pub shading: Option<ShadingArg>,
-    /// Output variable: color (8-bit sRGB PNG) or depth/normal/hit (PFM, 0 where there is no hit)
+    /// Output variable: color (8-bit sRGB PNG) or depth, normal, hit, occlusion (A, 0 = open),
+    /// bent-normal, ibl (E for albedo 1, before exposure) as PFM, 0 where there is no hit
     /// [default: color]
     #[arg(long, value_enum)]
     pub aov: Option<AovArg>,
@@ -95,6 +134,33 @@ pub struct RenderArgs {
     /// Raw volumes: voxel spacing [default: 1,1,1]
     #[arg(long, value_name = "SX,SY,SZ", value_parser = args::vec3)]
     pub spacing: Option<DVec3>,
+    /// Ambient-occlusion rays per pixel per frame; 0 turns AO off [default: 0]
+    #[arg(long = "ao-samples", value_name = "N")]
+    pub ao_samples: Option<u32>,
+    /// AO radius in world units, or `unbounded` (to the volume's box) [default: 8 voxels of the
+    /// largest spacing]
+    #[arg(long = "ao-radius", value_name = "R|unbounded", value_parser = ao_radius)]
+    pub ao_radius: Option<AoRadius>,
+    /// AO method [default: ours]
+    #[arg(long = "ao-method", value_enum)]
+    pub ao_method: Option<AoMethodArg>,
+    /// Ambient/image-based lighting [default: none]
+    #[arg(long, value_enum)]
+    pub ibl: Option<IblArg>,
+    /// Environment for IBL: `sky` (built-in procedural HDR sky), FILE.hdr (equirectangular), or a
+    /// directory with six faces px nx py ny pz nz (.png or .hdr) [default: sky]
+    #[arg(long, value_name = "sky|FILE.hdr|DIR")]
+    pub env: Option<String>,
+    /// Frames to accumulate, each with a fresh decorrelation of the AO pattern [default: 1]
+    #[arg(long, value_name = "K")]
+    pub frames: Option<u32>,
+    /// Seed mixed into every pixel's sample pattern (renders are reproducible) [default: 0]
+    #[arg(long, value_name = "S")]
+    pub seed: Option<u32>,
+    /// Exposure: linear colour is multiplied by it before the sRGB transfer [default: 1, or 0.6
+    /// with an IBL method, whose environment adds about as much light as the direct light]
+    #[arg(long, value_name = "X")]
+    pub exposure: Option<f64>,
 }
 
 impl RenderArgs {
@@ -171,6 +237,46 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             ShadingArg::BlinnPhong => Shading::BlinnPhong,
         };
     }
+    if let Some(n) = a.ao_samples {
+        settings.ao.samples = n;
+    }
+    if let Some(r) = a.ao_radius {
+        settings.ao.radius = r;
+    }
+    if let Some(m) = a.ao_method {
+        settings.ao.method = match m {
+            AoMethodArg::Ours => AoMethod::Ours,
+            AoMethodArg::Seed => AoMethod::Seed,
+        };
+    }
+    if let Some(i) = a.ibl {
+        settings.ao.ibl = match i {
+            IblArg::None => IblMethod::None,
+            IblArg::Seed => IblMethod::Seed,
+            IblArg::Bent => IblMethod::Bent,
+            IblArg::Rays => IblMethod::Rays,
+        };
+    }
+    settings.ao.seed = a.seed.unwrap_or(0);
+    settings.exposure = match a.exposure {
+        Some(x) if x.is_finite() && x >= 0.0 => x,
+        Some(x) => bail!("--exposure {x} must be a finite number >= 0"),
+        None if settings.ibl_needs_environment() => 0.6,
+        None => 1.0,
+    };
+    let frames = a.frames.unwrap_or(1);
+    if !(1..=isowall_render::gpu::MAX_FRAMES).contains(&frames) {
+        bail!("--frames {frames} is outside 1..={}", isowall_render::gpu::MAX_FRAMES);
+    }
+    let env: Option<Environment> = if settings.ibl_needs_environment() {
+        let src: EnvSource = a.env.as_deref().unwrap_or("sky").parse().context("--env")?;
+        Some(src.load().context("cannot load the environment")?)
+    } else {
+        if a.env.is_some() {
+            tracing::warn!("--env is ignored with --ibl none");
+        }
+        None
+    };
     let aov: Aov = a.aov.map(Aov::from).unwrap_or_default();
     let out = a.out.clone().unwrap_or_else(|| match aov {
         Aov::Color => PathBuf::from("isowall.png"),
@@ -182,13 +288,17 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         RendererKind::Gpu => {
             let gpu = GpuRenderer::new()?;
             let gv = gpu.upload(&volume)?;
-            let r = gpu.render(&gv, &view, &settings)?;
+            let genv = env.as_ref().map(|e| gpu.upload_environment(e)).transpose()?;
+            let r = gpu.render_accumulated(&gv, &view, &settings, genv.as_ref(), frames)?;
             (
                 r.frame,
                 format!("gpu '{}', {:.1} ms on the GPU", gpu.adapter_name(), r.gpu_time.as_secs_f64() * 1e3),
             )
         }
-        RendererKind::Reference => (reference::render(&volume, &view, &settings), "reference".to_string()),
+        RendererKind::Reference => (
+            reference::render_accumulated(&volume, &view, &settings, env.as_ref(), frames),
+            "reference".to_string(),
+        ),
     };
     output::write_aov(&frame, aov, &out).with_context(|| format!("cannot write {}", out.display()))?;
     let hits = frame.hit_count() as f64 / frame.pixel_count() as f64 * 100.0;

@@ -8,6 +8,7 @@ pub mod frame;
 pub mod gpu;
 pub mod output;
 pub mod reference;
+pub mod sampling;
 pub mod shaders;
 
 pub use frame::Frame;

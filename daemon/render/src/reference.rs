@@ -25,21 +25,63 @@
 //!   spacing per axis, stencil clamped to the box), pointing out of the object and not flipped.
 //!   Where `|grad f| <= 1e-12 * max|f| / min spacing` (max over the hit cell's corners and the
 //!   iso value), the gradient is taken as vanished and `N = -dir` (towards the viewer).
-//! - **Shading** uses `N` flipped to face the viewer, the light of the settings in the camera
-//!   frame, [`shade`] and the exposure. Pixels without a hit hold the background colour and zero in
-//!   every other AOV.
+//! - **Shading** uses `N` flipped to face the viewer (`N_s` below), the light of the settings in
+//!   the camera frame, [`shade`] with its ambient term replaced by the ambient/IBL term `E`, and
+//!   the exposure: colour = exposure * (albedo * direct + albedo * E). Pixels without a hit hold
+//!   the background colour and zero in every other AOV.
 //! - **Single-sample axes** (dims 1): the box is flat on that axis and the field is constant along
 //!   it; a ray through such a box meets it in one point (or runs inside the plane).
 //!
-//! `fetches` counts trilinear field evaluations: one per cell the ray visits (its eight corner
-//! reads) and six per hit for the gradient.
+//! # Ambient occlusion (DESIGN.md "AO"), `AoMethod::Ours`, exact
+//!
+//! With `ao.samples = N > 0`, every hit `p` casts N rays from `o = p + offset * N_s`
+//! (`offset = ao.offset_voxels * min spacing`) in the directions
+//! `w_i = cosine_direction(N_s, r2_point(i, pixel_key(px, py, ao.frame, ao.seed)))` of
+//! [`crate::sampling`] (px, py: the pixel in the *full* image). Ray i is occluded (`V_i = 1`) when
+//! the exact trilinear field reaches `f >= iso` at some `t` in `[0, R]`, `R` the AO radius
+//! ([`AoSettings::radius_world`](isowall_wall::AoSettings::radius_world)) or the box exit when
+//! unbounded; `t = 0` is included, so an origin inside the object is occluded. Outside the box the
+//! field is empty, so a ray that leaves the box is open (and one whose origin lies outside the box
+//! is tested from where it enters it, if it does). Exact: the ray walks the cells like a primary
+//! ray and each segment's cubic is tested for `max >= iso` (its ends and the roots of its
+//! derivative), no step, no up-crossing needed. `A = (1/N) sum V_i`; the bent normal is the
+//! normalized sum of the unoccluded `w_i`, and `N_s` when none is (or when AO is off) — DESIGN.md's
+//! "N", on the side facing the viewer as in shading.
+//!
+//! # `AoMethod::Seed`: the 2008 baseline, ported faithfully with its flaws (not our method)
+//!
+//! See [`seed_ambient`]. Directions from [`crate::sampling::seed_directions`] (all on one
+//! diagonal of the disk, the ones outside it skipped but counted), lifted around `N_s`; a fixed
+//! march in texture space; no origin offset; occluded on a strict `vpold < iso < vp` pair.
+//!
+//! # IBL (DESIGN.md "IBL"): the ambient term `E` (for albedo 1, before exposure)
+//!
+//! - `IblMethod::None`: `E = ambient * (1 - A)` (the light's constant ambient). With AO off
+//!   (`A = 0`) this is exactly the renderer's colour before AO existed.
+//! - `Seed`: `E = L_env(bent) * (1 - A)`, the raw environment at the bent normal.
+//! - `Bent`: `E = irradiance(sh9, bent) * (1 - A)` ([`Environment::irradiance`]; SH9 projected
+//!   once per frame).
+//! - `Rays`: `E = (1/N) sum (1 - V_i) L_env(w_i)`: every escaping AO ray looks the environment
+//!   up in its own direction; the cosine weighting is in the sample density, so this is an
+//!   unbiased estimate of `(1/pi) ∫ L_env V cos`. For the seed AO method, its non-skipped
+//!   directions likewise, divided by its N (skipped samples count as 0).
+//!   With AO off (`samples = 0`) there are no rays: `E` falls back to `irradiance(sh9, N_s)`.
+//!
+//! Without an environment (`None`) an IBL method lights with the uniform environment
+//! `Environment::constant(ambient)`, so it degrades to the constant ambient instead of failing.
+//!
+//! `fetches` counts trilinear field evaluations: one per cell a ray visits (its eight corner
+//! reads), primary or AO, six per hit for the gradient and one per step of the seed AO march.
 
+use crate::environment::Environment;
 use crate::frame::Frame;
+use crate::sampling::{cosine_direction, pixel_key, r2_point, seed_directions, seed_lift};
 use glam::DVec3;
 use isowall_volume::Volume;
 use isowall_wall::camera::Basis;
 use isowall_wall::render_state::shade;
-use isowall_wall::{RenderSettings, View};
+use isowall_wall::{AoMethod, IblMethod, RenderSettings, View};
+use std::borrow::Cow;
 use std::sync::atomic::{AtomicU32, Ordering};
 
 /// A primary-ray hit.
@@ -63,14 +105,27 @@ pub fn trace(volume: &Volume, eye: DVec3, dir: DVec3, iso: f64) -> Option<Hit> {
     trace_counted(volume, eye, dir, iso).0
 }
 
-/// Renders the window of `view` with the exact reference method. Rows are shared among
-/// `available_parallelism` threads; the output does not depend on how.
+/// Renders the window of `view` with the exact reference method, without an environment (an IBL
+/// method other than `None` then lights with the constant ambient, see the module documentation).
 pub fn render(volume: &Volume, view: &View, settings: &RenderSettings) -> Frame {
+    render_with_env(volume, view, settings, None)
+}
+
+/// Renders the window of `view` with the exact reference method, AO and IBL included (module
+/// documentation), lit by `env` where the IBL method needs one. Rows are shared among
+/// `available_parallelism` threads; the output does not depend on how.
+pub fn render_with_env(
+    volume: &Volume,
+    view: &View,
+    settings: &RenderSettings,
+    env: Option<&Environment>,
+) -> Frame {
     let basis = view.camera.basis();
     let (width, height) = (view.window.width, view.window.height);
     let _span = tracing::debug_span!("reference_render", width, height, iso = settings.iso).entered();
     let mut frame = Frame::new(width, height);
     let light = settings.light.world_direction(basis.forward, basis.right, basis.up);
+    let lighting = IblLighting::new(settings, env);
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get()).min(height.max(1) as usize);
     let next_row = AtomicU32::new(0);
     let rows: Vec<(u32, Vec<Pixel>, u64)> = std::thread::scope(|s| {
@@ -86,7 +141,8 @@ pub fn render(volume: &Volume, view: &View, settings: &RenderSettings) -> Frame 
                         let mut fetches = 0;
                         let row = (0..width)
                             .map(|x| {
-                                let (px, f) = shade_pixel(volume, view, &basis, settings, light, x, y);
+                                let (px, f) =
+                                    shade_pixel(volume, view, &basis, settings, &lighting, light, x, y);
                                 fetches += f;
                                 px
                             })
@@ -107,6 +163,9 @@ pub fn render(volume: &Volume, view: &View, settings: &RenderSettings) -> Frame 
             frame.depth[i] = px.depth;
             frame.normal[i] = px.normal;
             frame.hit[i] = px.hit;
+            frame.occlusion[i] = px.occlusion;
+            frame.bent_normal[i] = px.bent_normal;
+            frame.ibl[i] = px.ibl;
         }
     }
     tracing::debug!(
@@ -118,39 +177,345 @@ pub fn render(volume: &Volume, view: &View, settings: &RenderSettings) -> Frame 
     frame
 }
 
+/// Progressive accumulation (`--frames K`): the mean of `frames` renders with `ao.frame` =
+/// `settings.ao.frame`, `+ 1`, ..., `+ K - 1` (wrapping), each with its fresh per-pixel
+/// decorrelation. Colour, occlusion and E are averaged; the bent normal is the renormalized mean
+/// of the frames' bent normals; depth, normal and hit are those of every frame (they do not depend
+/// on the frame index); `fetches` is the total. `frames = 0` counts as 1, and 1 gives exactly
+/// [`render_with_env`].
+pub fn render_accumulated(
+    volume: &Volume,
+    view: &View,
+    settings: &RenderSettings,
+    env: Option<&Environment>,
+    frames: u32,
+) -> Frame {
+    let k = frames.max(1);
+    let mut first = render_with_env(volume, view, settings, env);
+    if k == 1 {
+        return first;
+    }
+    let n = first.pixel_count();
+    let widen = |v: [f32; 3]| v.map(f64::from);
+    let mut color: Vec<[f64; 3]> = first.color.iter().map(|&c| widen(c)).collect();
+    let mut occlusion: Vec<f64> = first.occlusion.iter().map(|&a| a as f64).collect();
+    let mut ibl: Vec<[f64; 3]> = first.ibl.iter().map(|&e| widen(e)).collect();
+    let mut bent: Vec<DVec3> = first.bent_normal.iter().map(|&b| DVec3::from(widen(b))).collect();
+    for f in 1..k {
+        let mut s = *settings;
+        s.ao.frame = settings.ao.frame.wrapping_add(f);
+        let next = render_with_env(volume, view, &s, env);
+        first.fetches += next.fetches;
+        for i in 0..n {
+            for c in 0..3 {
+                color[i][c] += next.color[i][c] as f64;
+                ibl[i][c] += next.ibl[i][c] as f64;
+            }
+            occlusion[i] += next.occlusion[i] as f64;
+            bent[i] += DVec3::from(widen(next.bent_normal[i]));
+        }
+    }
+    let kf = k as f64;
+    for i in 0..n {
+        first.color[i] = color[i].map(|c| (c / kf) as f32);
+        first.ibl[i] = ibl[i].map(|c| (c / kf) as f32);
+        first.occlusion[i] = (occlusion[i] / kf) as f32;
+        if first.hit[i] {
+            // Every frame's bent normal lies in the hemisphere of N_s, so the sum is not zero;
+            // should it be, the first frame's is kept.
+            if let Some(b) = bent[i].try_normalize() {
+                first.bent_normal[i] = b.to_array().map(|c| c as f32);
+            }
+        }
+    }
+    first
+}
+
+/// The environment and its SH9 projection an IBL method lights with, prepared once per frame.
+pub struct IblLighting<'a> {
+    method: IblMethod,
+    ambient: [f64; 3],
+    /// `None` for `IblMethod::None`.
+    env: Option<Cow<'a, Environment>>,
+    /// SH9 of `env` (zero where not needed).
+    sh: [[f32; 3]; 9],
+}
+
+impl<'a> IblLighting<'a> {
+    /// Prepares the lighting of `settings.ao.ibl` from `env`, or from the uniform environment of
+    /// the light's ambient when `env` is `None`.
+    pub fn new(settings: &RenderSettings, env: Option<&'a Environment>) -> IblLighting<'a> {
+        let method = settings.ao.ibl;
+        let ambient = settings.light.ambient;
+        let env = (method != IblMethod::None).then(|| match env {
+            Some(e) => Cow::Borrowed(e),
+            None => Cow::Owned(Environment::constant(ambient.map(|c| c as f32))),
+        });
+        let sh = match (&env, method) {
+            (Some(e), IblMethod::Bent | IblMethod::Rays) => e.sh9(),
+            _ => [[0.0; 3]; 9],
+        };
+        IblLighting { method, ambient, env, sh }
+    }
+
+    /// L_env towards `d` (zero without an environment).
+    fn radiance(&self, d: DVec3) -> [f64; 3] {
+        self.env.as_ref().map_or([0.0; 3], |e| e.lookup(d).map(f64::from))
+    }
+
+    /// Whether the AO rays must look up the environment.
+    fn rays(&self) -> bool {
+        self.method == IblMethod::Rays
+    }
+
+    /// E from A, the bent normal and (for `Rays`) the sum of L_env over the escaping rays of `n`
+    /// samples.
+    fn irradiance(&self, a: f64, bent: DVec3, ray_sum: [f64; 3], n: u32) -> [f64; 3] {
+        let open = 1.0 - a;
+        match self.method {
+            IblMethod::None => self.ambient.map(|c| c * open),
+            IblMethod::Seed => self.radiance(bent).map(|c| c * open),
+            IblMethod::Bent => Environment::irradiance(&self.sh, bent).map(|c| c as f64 * open),
+            IblMethod::Rays if n == 0 => Environment::irradiance(&self.sh, bent).map(f64::from),
+            IblMethod::Rays => ray_sum.map(|c| c / n as f64),
+        }
+    }
+}
+
+/// What AO and IBL give at one surface point.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Ambient {
+    /// A in [0, 1], 0 = open.
+    pub occlusion: f64,
+    /// Unit bent normal (`N_s` where no ray is open or AO is off).
+    pub bent_normal: DVec3,
+    /// E for albedo 1 before exposure, linear RGB.
+    pub irradiance: [f64; 3],
+    /// Trilinear fetches the AO rays made.
+    pub fetches: u64,
+}
+
+/// The origin of the AO rays (ours) of a surface point `p` with viewer-facing normal `n_s`:
+/// `p + ao.offset_voxels * min spacing * n_s`.
+pub fn ao_origin(volume: &Volume, settings: &RenderSettings, p: DVec3, n_s: DVec3) -> DVec3 {
+    p + settings.ao.offset_voxels * volume.spacing().min_element() * n_s
+}
+
+/// AO, bent normal and E at the surface point `p` with unit viewer-facing normal `n_s`, seen
+/// through pixel `(px, py)` of the full image (module documentation; `settings.ao.method` picks
+/// ours or the seed baseline).
+pub fn ambient_at(
+    volume: &Volume,
+    settings: &RenderSettings,
+    lighting: &IblLighting,
+    p: DVec3,
+    n_s: DVec3,
+    (px, py): (u32, u32),
+) -> Ambient {
+    let ao = &settings.ao;
+    let n = ao.samples;
+    if n == 0 || ao.method == AoMethod::Seed {
+        return seed_ambient(volume, settings, lighting, p, n_s);
+    }
+    let key = pixel_key(px, py, ao.frame, ao.seed);
+    let o = ao_origin(volume, settings, p, n_s);
+    let radius = ao.radius_world(volume.spacing());
+    let (mut occluded, mut open_sum, mut ray_sum, mut fetches) = (0u32, DVec3::ZERO, [0.0; 3], 0);
+    for i in 0..n {
+        let (u, v) = r2_point(i, key);
+        let w = cosine_direction(n_s, u, v);
+        let (hit, f) = ao_ray_counted(volume, o, w, settings.iso, radius);
+        fetches += f;
+        if hit {
+            occluded += 1;
+        } else {
+            open_sum += w;
+            if lighting.rays() {
+                let l = lighting.radiance(w);
+                (0..3).for_each(|c| ray_sum[c] += l[c]);
+            }
+        }
+    }
+    let occlusion = occluded as f64 / n as f64;
+    let bent_normal = open_sum.try_normalize().unwrap_or(n_s);
+    let irradiance = lighting.irradiance(occlusion, bent_normal, ray_sum, n);
+    Ambient { occlusion, bent_normal, irradiance, fetches }
+}
+
+/// The 2008 RTPara AO shader, ported faithfully as the **baseline**, with its flaws (DESIGN.md):
+/// this is *not* our method. For a hit `p` with viewer-facing normal `n_s` and `n_samples` = N:
+///
+/// - Position in the report's normalized volume space (3D texture coordinates of the box):
+///   `q = (p - box_min) / (box_max - box_min)` per axis (a flat axis divides by 1 and keeps q = 0;
+///   it takes no part in the range test below).
+/// - Directions from [`seed_directions`]`(N)` (u = v: all on one diagonal of the disk), lifted
+///   around `n_s` with [`seed_lift`]; the ones outside the disk are skipped but still counted in N.
+/// - No origin offset. Each direction `w` (a *world* unit vector used as a texture-space one, as
+///   the shader adds `t * dir` to the texture coordinate) is marched at `q_k = q + t_k w`,
+///   `t_k = 0.01 k`, k = 1..=90 (t = 0.01 .. 0.9), whatever the voxel size; the field is the
+///   trilinear interpolant at the world point `box_min + q_k (box_max - box_min)`. `vpold` starts
+///   as the field at `p` (about iso); the ray is occluded at the first step with
+///   `vpold < iso < vp` (strict). A step outside `[0, 1]^3` reads empty (`-inf`): no crossing,
+///   and as the box is convex the ray cannot come back, so the march ends there.
+/// - A = occluded / N; bent normal = normalized sum of the non-skipped unoccluded directions
+///   (`n_s` when none).
+pub fn seed_ambient(
+    volume: &Volume,
+    settings: &RenderSettings,
+    lighting: &IblLighting,
+    p: DVec3,
+    n_s: DVec3,
+) -> Ambient {
+    let n = settings.ao.samples;
+    if n == 0 {
+        // AO off (either method): A = 0, bent normal N_s.
+        let irradiance = lighting.irradiance(0.0, n_s, [0.0; 3], 0);
+        return Ambient { occlusion: 0.0, bent_normal: n_s, irradiance, fetches: 0 };
+    }
+    let (occluded, open_sum, ray_sum, fetches) = seed_march(volume, settings.iso, p, n_s, n, lighting);
+    let occlusion = occluded as f64 / n as f64;
+    let bent_normal = open_sum.try_normalize().unwrap_or(n_s);
+    let irradiance = lighting.irradiance(occlusion, bent_normal, ray_sum, n);
+    Ambient { occlusion, bent_normal, irradiance, fetches }
+}
+
+/// The seed march of [`seed_ambient`]: (occluded count, sum of open directions, sum of L_env over
+/// them when the lighting wants rays, fetches).
+fn seed_march(
+    volume: &Volume,
+    iso: f64,
+    p: DVec3,
+    n_s: DVec3,
+    n: u32,
+    lighting: &IblLighting,
+) -> (u32, DVec3, [f64; 3], u64) {
+    let (lo, hi) = (volume.box_min(), volume.box_max());
+    let extent = hi - lo;
+    let flat = extent.cmple(DVec3::ZERO);
+    let q = (p - lo) / DVec3::select(flat, DVec3::ONE, extent);
+    let q = DVec3::select(flat, DVec3::ZERO, q);
+    let start = volume.sample_clamped(p);
+    let (mut occluded, mut open_sum, mut ray_sum, mut fetches) = (0u32, DVec3::ZERO, [0.0; 3], 1u64);
+    for d in seed_directions(n).flatten() {
+        let w = seed_lift(n_s, d);
+        let mut vpold = start;
+        let mut hit = false;
+        for k in 1..=90 {
+            let qt = q + (k as f64 * 0.01) * w;
+            let inside = (0..3).all(|a| flat.test(a) || (0.0..=1.0).contains(&qt[a]));
+            if !inside {
+                break;
+            }
+            fetches += 1;
+            let vp = volume.trilinear_voxel(volume.to_voxel(lo + qt * extent));
+            if vpold < iso && iso < vp {
+                hit = true;
+                break;
+            }
+            vpold = vp;
+        }
+        if hit {
+            occluded += 1;
+        } else {
+            open_sum += w;
+            if lighting.rays() {
+                let l = lighting.radiance(w);
+                (0..3).for_each(|c| ray_sum[c] += l[c]);
+            }
+        }
+    }
+    (occluded, open_sum, ray_sum, fetches)
+}
+
+/// Whether the AO ray `origin + t * dir` is occluded: the exact trilinear field reaches
+/// `f >= iso` for some `t` in `[0, radius]` (`None`: to the box exit), outside the box empty.
+/// `dir` is normalised here; a zero or non-finite ray or a NaN iso is open.
+pub fn ao_ray_occluded(volume: &Volume, origin: DVec3, dir: DVec3, iso: f64, radius: Option<f64>) -> bool {
+    ao_ray_counted(volume, origin, dir, iso, radius).0
+}
+
+/// [`ao_ray_occluded`] plus the fetches it made.
+fn ao_ray_counted(volume: &Volume, o: DVec3, dir: DVec3, iso: f64, radius: Option<f64>) -> (bool, u64) {
+    let dir = dir.normalize_or_zero();
+    if dir == DVec3::ZERO || !dir.is_finite() || !o.is_finite() || iso.is_nan() {
+        return (false, 0);
+    }
+    let Some((t_enter, t_exit, _)) = clip(volume.box_min(), volume.box_max(), o, dir) else {
+        return (false, 0);
+    };
+    let t_start = t_enter.max(0.0);
+    let t_end = radius.map_or(t_exit, |r| t_exit.min(r));
+    if t_end.is_nan() || t_end < t_start {
+        return (false, 0);
+    }
+    let u_start = volume.to_voxel(o + t_start * dir);
+    let mut fetches = 0;
+    for (t0, t1, cell) in CellWalk::new(volume, u_start, dir / volume.spacing(), t_start, t_end) {
+        fetches += 1;
+        // Every corner below iso: the trilinear blend is below it everywhere in the cell.
+        if cell.max() < iso {
+            continue;
+        }
+        if reaches(&cell.cubic(iso), t1 - t0) {
+            return (true, fetches);
+        }
+    }
+    (false, fetches)
+}
+
 /// One pixel's AOVs.
 struct Pixel {
     color: [f32; 3],
     depth: f32,
     normal: [f32; 3],
     hit: bool,
+    occlusion: f32,
+    bent_normal: [f32; 3],
+    ibl: [f32; 3],
 }
 
 /// Traces and shades the pixel (x, y) of the window; returns it and the fetches made.
+#[allow(clippy::too_many_arguments)]
 fn shade_pixel(
     volume: &Volume,
     view: &View,
     basis: &Basis,
     settings: &RenderSettings,
+    lighting: &IblLighting,
     light: DVec3,
     x: u32,
     y: u32,
 ) -> (Pixel, u64) {
     let dir = view.ray_dir(basis, x, y);
-    let (hit, fetches) = trace_counted(volume, view.camera.eye, dir, settings.iso);
+    let (hit, mut fetches) = trace_counted(volume, view.camera.eye, dir, settings.iso);
     let px = match hit {
-        None => {
-            Pixel { color: settings.background.map(|c| c as f32), depth: 0.0, normal: [0.0; 3], hit: false }
-        }
+        None => Pixel {
+            color: settings.background.map(|c| c as f32),
+            depth: 0.0,
+            normal: [0.0; 3],
+            hit: false,
+            occlusion: 0.0,
+            bent_normal: [0.0; 3],
+            ibl: [0.0; 3],
+        },
         Some(h) => {
             let v = -dir;
             let n = if h.normal.dot(v) < 0.0 { -h.normal } else { h.normal };
-            let c = shade(settings, n, light, v);
+            let pixel = (view.window.x + x, view.window.y + y);
+            let amb = ambient_at(volume, settings, lighting, h.position, n, pixel);
+            fetches += amb.fetches;
+            // albedo * (E + light * N.L) + specular: shade() with its ambient replaced by E.
+            let mut lit = *settings;
+            lit.light.ambient = amb.irradiance;
+            let c = shade(&lit, n, light, v);
             Pixel {
                 color: c.map(|c| (c * settings.exposure) as f32),
                 depth: h.t as f32,
                 normal: h.normal.to_array().map(|c| c as f32),
                 hit: true,
+                occlusion: amb.occlusion as f32,
+                bent_normal: amb.bent_normal.to_array().map(|c| c as f32),
+                ibl: amb.irradiance.map(|c| c as f32),
             }
         }
     };
@@ -181,6 +546,69 @@ fn clip(lo: DVec3, hi: DVec3, eye: DVec3, dir: DVec3) -> Option<(f64, f64, Optio
     (t_exit >= t_enter.max(0.0)).then_some((t_enter, t_exit, axis))
 }
 
+/// The cells a ray crosses from `t_start` to `t_end`, front to back: `(t0, t1, cell)` per
+/// segment, the cell's cubic in `s = t - t0`. The ray is at voxel position `u_start` at
+/// `t_start` and moves `du` voxels per unit `t`. Shared by primary and AO rays.
+struct CellWalk<'v> {
+    volume: &'v Volume,
+    u_start: DVec3,
+    du: DVec3,
+    t_start: f64,
+    t_end: f64,
+    /// 3D DDA over the interior cell planes: next plane index and its t per axis.
+    plane: [f64; 3],
+    next: [f64; 3],
+    step: [f64; 3],
+    t0: f64,
+    done: bool,
+}
+
+impl<'v> CellWalk<'v> {
+    fn new(volume: &'v Volume, u_start: DVec3, du: DVec3, t_start: f64, t_end: f64) -> CellWalk<'v> {
+        let dims = volume.dims();
+        let mut plane = [0f64; 3];
+        let mut next = [f64::INFINITY; 3];
+        let mut step = [0f64; 3];
+        for a in 0..3 {
+            if dims[a] > 1 && du[a] != 0.0 {
+                step[a] = du[a].signum();
+                plane[a] = if du[a] > 0.0 { u_start[a].floor() + 1.0 } else { u_start[a].ceil() - 1.0 };
+                next[a] = t_start + (plane[a] - u_start[a]) / du[a];
+            }
+        }
+        CellWalk { volume, u_start, du, t_start, t_end, plane, next, step, t0: t_start, done: false }
+    }
+
+    fn u_at(&self, t: f64) -> DVec3 {
+        self.u_start + (t - self.t_start) * self.du
+    }
+}
+
+impl Iterator for CellWalk<'_> {
+    type Item = (f64, f64, Cell);
+
+    fn next(&mut self) -> Option<(f64, f64, Cell)> {
+        if self.done {
+            return None;
+        }
+        let t0 = self.t0;
+        let t1 = self.next[0].min(self.next[1]).min(self.next[2]).min(self.t_end).max(t0);
+        let cell = Cell::along(self.volume, self.u_at(0.5 * (t0 + t1)), self.u_at(t0), self.du);
+        if t1 >= self.t_end {
+            self.done = true;
+        } else {
+            for a in 0..3 {
+                if self.next[a] <= t1 {
+                    self.plane[a] += self.step[a];
+                    self.next[a] = self.t_start + (self.plane[a] - self.u_start[a]) / self.du[a];
+                }
+            }
+            self.t0 = t1;
+        }
+        Some((t0, t1, cell))
+    }
+}
+
 /// [`trace`] plus the number of trilinear fetches it made.
 fn trace_counted(volume: &Volume, eye: DVec3, dir: DVec3, iso: f64) -> (Option<Hit>, u64) {
     let dir = dir.normalize_or_zero();
@@ -194,38 +622,19 @@ fn trace_counted(volume: &Volume, eye: DVec3, dir: DVec3, iso: f64) -> (Option<H
     let outside = t_enter > 0.0;
     let t_start = t_enter.max(0.0);
 
-    let dims = volume.dims();
     let spacing = volume.spacing();
-    let du = dir / spacing;
     // Voxel coordinates of the start point; the entry face's coordinate is snapped onto the face.
     let mut start = eye + t_start * dir;
     if let (true, Some(a)) = (outside, entry_axis) {
         start[a] = if dir[a] > 0.0 { lo[a] } else { hi[a] };
-    }
-    let u_start = volume.to_voxel(start);
-    let u_at = |t: f64| u_start + (t - t_start) * du;
-
-    // 3D DDA over the interior cell planes: next plane index and its t per axis.
-    let mut plane = [0f64; 3];
-    let mut next = [f64::INFINITY; 3];
-    let mut step = [0f64; 3];
-    for a in 0..3 {
-        if dims[a] > 1 && du[a] != 0.0 {
-            step[a] = du[a].signum();
-            plane[a] = if du[a] > 0.0 { u_start[a].floor() + 1.0 } else { u_start[a].ceil() - 1.0 };
-            next[a] = t_start + (plane[a] - u_start[a]) / du[a];
-        }
     }
 
     let mut fetches = 0u64;
     // Whether f >= iso at the last point looked at: outside the box f is empty (below); an eye
     // inside the box takes the state of the field at the eye (inside the object or not).
     let mut above: Option<bool> = if outside { Some(false) } else { None };
-    let mut t0 = t_start;
-    loop {
-        let t1 = next[0].min(next[1]).min(next[2]).min(t_end).max(t0);
+    for (t0, t1, cell) in CellWalk::new(volume, volume.to_voxel(start), dir / spacing, t_start, t_end) {
         fetches += 1;
-        let cell = Cell::along(volume, u_at(0.5 * (t0 + t1)), u_at(t0), du);
         let g = cell.cubic(iso);
         let was_above = *above.get_or_insert(eval(&g, 0.0) >= 0.0);
         match first_up_crossing(&g, t1 - t0, was_above) {
@@ -254,17 +663,8 @@ fn trace_counted(volume: &Volume, eye: DVec3, dir: DVec3, iso: f64) -> (Option<H
             }
             Crossing::None { above_at_end } => above = Some(above_at_end),
         }
-        if t1 >= t_end {
-            return (None, fetches);
-        }
-        for a in 0..3 {
-            if next[a] <= t1 {
-                plane[a] += step[a];
-                next[a] = t_start + (plane[a] - u_start[a]) / du[a];
-            }
-        }
-        t0 = t1;
     }
+    (None, fetches)
 }
 
 /// The trilinear interpolant of one cell along a ray segment, in local voxel coordinates.
@@ -306,6 +706,11 @@ impl Cell {
     /// The largest corner magnitude.
     fn max_abs(&self) -> f64 {
         self.c.iter().fold(0.0, |m, v| m.max(v.abs()))
+    }
+
+    /// The largest corner value: the trilinear blend inside the cell is never above it.
+    fn max(&self) -> f64 {
+        self.c.iter().fold(f64::NEG_INFINITY, |m, &v| m.max(v))
     }
 
     /// Coefficients (ascending powers of s, s = t - segment start) of f(s) - iso.
@@ -379,6 +784,21 @@ fn first_up_crossing(g: &[f64; 4], len: f64, mut above: bool) -> Crossing {
         lo = hi;
     }
     Crossing::None { above_at_end: above }
+}
+
+/// Whether g >= 0 somewhere on [0, len] (exact: the maximum of the cubic there is at 0, at len or
+/// at a root of g'). A `len` that is not positive tests s = 0 only.
+fn reaches(g: &[f64; 4], len: f64) -> bool {
+    if eval(g, 0.0) >= 0.0 {
+        return true;
+    }
+    if len.is_nan() || len <= 0.0 {
+        return false;
+    }
+    eval(g, len) >= 0.0
+        || quadratic_roots(3.0 * g[3], 2.0 * g[2], g[1])
+            .into_iter()
+            .any(|r| r > 0.0 && r < len && eval(g, r) >= 0.0)
 }
 
 /// The smallest s in (lo, hi] with g(s) >= 0 to full f64 precision, given g(lo) < 0 <= g(hi).
@@ -721,6 +1141,208 @@ mod tests {
         for i in 0..f.pixel_count() {
             let k = if f.hit[i] { 2.0 } else { 1.0 };
             assert!((bright.color[i][0] - k * f.color[i][0]).abs() < 1e-6);
+        }
+    }
+
+    #[test]
+    fn reaches_finds_any_point_at_or_above_iso() {
+        // g = 0.01 - (s - 1/2)^2: below at both ends, above around s = 1/2.
+        let g = [0.01 - 0.25, 1.0, -1.0, 0.0];
+        assert!(reaches(&g, 1.0));
+        assert!(!reaches(&g, 0.3));
+        assert!(!reaches(&[-0.01 - 0.25, 1.0, -1.0, 0.0], 1.0));
+        // At the start only, or at the end only.
+        assert!(reaches(&[0.0, -1.0, 0.0, 0.0], 1.0));
+        assert!(reaches(&[-1.0, 1.0, 0.0, 0.0], 1.0));
+        assert!(!reaches(&[-1.0, 1.0, 0.0, 0.0], 0.999));
+        // A zero-length segment looks at s = 0 alone; NaN never reaches.
+        assert!(!reaches(&[-1.0, 5.0, 0.0, 0.0], 0.0) && reaches(&[0.0; 4], 0.0));
+        assert!(!reaches(&[f64::NAN; 4], 1.0));
+    }
+
+    #[test]
+    fn ao_rays_are_occluded_exactly_within_the_radius() {
+        let v = two_slabs();
+        // From the gap straight up: f = 0 (iso) exactly at z = 4.5, one unit away.
+        let o = DVec3::new(1.5, 1.5, 3.5);
+        assert!(!ao_ray_occluded(&v, o, DVec3::Z, 0.0, Some(0.999)));
+        assert!(ao_ray_occluded(&v, o, DVec3::Z, 0.0, Some(1.0)));
+        assert!(ao_ray_occluded(&v, o, DVec3::Z, 0.0, None));
+        assert!(ao_ray_occluded(&v, o, -DVec3::Z, 0.0, Some(1.0)));
+        // Along the gap: leaves the box without meeting the object.
+        assert!(!ao_ray_occluded(&v, o, DVec3::X, 0.0, None));
+        // An origin inside the object is occluded, even with R = 0.
+        assert!(ao_ray_occluded(&v, DVec3::new(1.5, 1.5, 1.0), DVec3::X, 0.0, Some(0.0)));
+        // An origin outside the box: tested from where the ray enters it (a cap at z = 0).
+        let below = DVec3::new(1.5, 1.5, -2.0);
+        assert!(!ao_ray_occluded(&v, below, DVec3::Z, 0.0, Some(1.999)));
+        assert!(ao_ray_occluded(&v, below, DVec3::Z, 0.0, Some(2.0)));
+        assert!(!ao_ray_occluded(&v, below, -DVec3::Z, 0.0, None));
+        // Degenerate rays are open.
+        assert!(!ao_ray_occluded(&v, o, DVec3::ZERO, 0.0, None));
+        assert!(!ao_ray_occluded(&v, o, DVec3::new(f64::NAN, 0.0, 1.0), 0.0, None));
+        assert!(!ao_ray_occluded(&v, o, DVec3::Z, f64::NAN, None));
+
+        // A blob thinner than half a voxel (see a_spike_thinner_than_half_a_voxel_is_found): a
+        // half-voxel march steps over it, the exact test does not.
+        let v = field([9, 9, 9], DVec3::ONE, DVec3::ZERO, |p| if p == DVec3::splat(4.0) { 1.0 } else { 0.0 });
+        let (o, w) = (DVec3::new(0.25, 4.02, 3.97), DVec3::X);
+        assert!(ao_ray_occluded(&v, o, w, 0.9, None));
+        assert!(!ao_ray_occluded(&v, o, w, 0.9, Some(2.5)));
+        assert!(!ao_ray_occluded(&v, o + DVec3::new(0.0, 0.3, 0.0), w, 0.9, None));
+    }
+
+    /// Viewer-facing normal of pixel i of a whole-image view, from the frame's N.
+    fn facing(view: &View, f: &Frame, i: usize) -> DVec3 {
+        let b = view.camera.basis();
+        let dir = view.ray_dir(&b, i as u32 % view.window.width, i as u32 / view.window.width);
+        let n = DVec3::from(f.normal[i].map(f64::from));
+        if n.dot(-dir) < 0.0 {
+            -n
+        } else {
+            n
+        }
+    }
+
+    #[test]
+    fn ao_off_keeps_the_colour_of_constant_ambient_shading() {
+        let c = DVec3::new(7.3, 6.8, 7.9);
+        let v = field([16, 15, 17], DVec3::ONE, DVec3::ZERO, |p| 5.5 - (p - c).length());
+        let view = small_view(&v, 20, 16);
+        let mut s = RenderSettings::new(0.0);
+        s.exposure = 1.3;
+        let f = render(&v, &view, &s);
+        let b = view.camera.basis();
+        let light = s.light.world_direction(b.forward, b.right, b.up);
+        assert!(f.hit_count() > 20);
+        for i in 0..f.pixel_count() {
+            if !f.hit[i] {
+                assert_eq!((f.occlusion[i], f.bent_normal[i], f.ibl[i]), (0.0, [0.0; 3], [0.0; 3]));
+                continue;
+            }
+            let dir = view.ray_dir(&b, i as u32 % 20, i as u32 / 20);
+            let h = trace(&v, view.camera.eye, dir, 0.0).unwrap();
+            let n = if h.normal.dot(-dir) < 0.0 { -h.normal } else { h.normal };
+            // Exactly the shading of before AO existed: shade() with the constant ambient.
+            assert_eq!(f.color[i], shade(&s, n, light, -dir).map(|c| (c * s.exposure) as f32));
+            assert_eq!(f.occlusion[i], 0.0);
+            assert_eq!(f.bent_normal[i], n.to_array().map(|c| c as f32));
+            assert_eq!(f.ibl[i], s.light.ambient.map(|c| c as f32));
+        }
+    }
+
+    #[test]
+    fn occlusion_scales_the_ambient_term_only() {
+        // A ball in a bowl-shaped box corner: f = max(ball, floor, wall).
+        let c = DVec3::new(6.0, 6.0, 5.0);
+        let v = field([14, 14, 14], DVec3::ONE, DVec3::ZERO, |p| {
+            (3.0 - (p - c).length()).max(2.0 - p.z).max(2.0 - p.x)
+        });
+        let view = small_view(&v, 24, 20);
+        let mut s = RenderSettings::new(0.0);
+        s.exposure = 0.8;
+        let off = render(&v, &view, &s);
+        s.ao.samples = 32;
+        let on = render(&v, &view, &s);
+        assert!(on.fetches > off.fetches);
+        let mut occluded = 0;
+        for i in 0..on.pixel_count() {
+            assert_eq!((on.hit[i], on.depth[i], on.normal[i]), (off.hit[i], off.depth[i], off.normal[i]));
+            if !on.hit[i] {
+                continue;
+            }
+            let a = on.occlusion[i] as f64;
+            assert!((0.0..=1.0).contains(&a));
+            occluded += usize::from(a > 0.1);
+            for c in 0..3 {
+                let want =
+                    off.color[i][c] as f64 - s.exposure * s.material.albedo[c] * s.light.ambient[c] * a;
+                assert!(
+                    (on.color[i][c] as f64 - want).abs() < 1e-5,
+                    "pixel {i}: {:?} vs {want}",
+                    on.color[i]
+                );
+                assert!((on.ibl[i][c] as f64 - s.light.ambient[c] * (1.0 - a)).abs() < 1e-6);
+            }
+            let n = facing(&view, &on, i);
+            let bent = DVec3::from(on.bent_normal[i].map(f64::from));
+            assert!((bent.length() - 1.0).abs() < 1e-5 && bent.dot(n) > 0.0, "{bent:?} {n:?}");
+        }
+        assert!(occluded > 10, "the scene has creases: {occluded}");
+    }
+
+    #[test]
+    fn seed_ao_marches_fixed_texture_steps_and_counts_skipped_samples() {
+        // Floor below z = 5 and ceiling above z = 12 (f = max(5 - z, z - 12), linear near both
+        // surfaces so the trilinear field crosses 0 exactly there). A point of the floor, N = +z.
+        let make = |sz: f64| {
+            let s = DVec3::new(1.0, 1.0, sz);
+            field([16, 16, 32], s, DVec3::ZERO, |p| (5.0 - p.z / sz).max(p.z / sz - 12.0))
+        };
+        let v = make(1.0);
+        let mut s = RenderSettings::new(0.0);
+        s.ao.method = AoMethod::Seed;
+        s.ao.samples = 64;
+        let lighting = IblLighting::new(&s, None);
+        let p = DVec3::new(8.0, 8.0, 5.0);
+        let got = seed_ambient(&v, &s, &lighting, p, DVec3::Z);
+        // Expected from the geometry: direction (x0, x0, sqrt(1 - 2 x0^2)) with x0 = 4i/N - 3
+        // inside the disk; texture steps q + 0.01 k w, k = 1..=90, the box is 15 x 15 x 31; the
+        // ceiling is met (f from < 0 to > 0) at the first step with 31 q_z > 12, while in the box.
+        let mut want = 0;
+        let mut kept = 0;
+        for i in 0..64 {
+            let x0 = 4.0 * i as f64 / 64.0 - 3.0;
+            if 2.0 * x0 * x0 > 1.0 {
+                continue;
+            }
+            kept += 1;
+            let w = DVec3::new(x0, x0, (1.0 - 2.0 * x0 * x0).sqrt());
+            let q0 = p / DVec3::new(15.0, 15.0, 31.0);
+            for k in 1..=90 {
+                let q = q0 + 0.01 * k as f64 * w;
+                if q.cmplt(DVec3::ZERO).any() || q.cmpgt(DVec3::ONE).any() {
+                    break;
+                }
+                if 31.0 * q.z > 12.0 {
+                    want += 1;
+                    break;
+                }
+            }
+        }
+        assert_eq!(kept, 23);
+        assert!(want > 5 && want < kept, "test setup: {want} of {kept}");
+        assert_eq!(got.occlusion, want as f64 / 64.0, "skipped samples count in the denominator");
+        // Symmetric about x0 = 0 on the diagonal: the open directions sum up along the normal.
+        assert!((got.bent_normal - DVec3::Z).length() < 1e-9, "{:?}", got.bent_normal);
+        assert!(got.fetches > 0);
+        // The march is in texture space: stretching z (the same samples, spacing 2) changes nothing.
+        let tall = make(2.0);
+        let got2 = seed_ambient(&tall, &s, &lighting, DVec3::new(8.0, 8.0, 10.0), DVec3::Z);
+        assert_eq!(got2.occlusion, got.occlusion);
+    }
+
+    #[test]
+    fn ibl_without_an_environment_lights_with_the_constant_ambient() {
+        let c = DVec3::new(7.3, 6.8, 7.9);
+        let v = field([16, 15, 17], DVec3::ONE, DVec3::ZERO, |p| 5.5 - (p - c).length());
+        let view = small_view(&v, 12, 10);
+        let mut s = RenderSettings::new(0.0);
+        s.ao.samples = 16;
+        let none = render(&v, &view, &s);
+        for ibl in [IblMethod::Seed, IblMethod::Bent, IblMethod::Rays] {
+            s.ao.ibl = ibl;
+            let f = render(&v, &view, &s);
+            for i in 0..f.pixel_count() {
+                for c in 0..3 {
+                    assert!(
+                        (f.ibl[i][c] - none.ibl[i][c]).abs() < 2e-3,
+                        "{ibl:?} {:?} {:?}",
+                        f.ibl[i],
+                        none.ibl[i]
+                    );
+                }
+            }
         }
     }
 }

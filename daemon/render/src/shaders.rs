@@ -10,26 +10,32 @@
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Kernel {
     Isosurface,
+    Ao,
 }
 
 impl Kernel {
-    pub const ALL: [Kernel; 1] = [Kernel::Isosurface];
+    pub const ALL: [Kernel; 2] = [Kernel::Isosurface, Kernel::Ao];
 
     pub fn file_name(self) -> &'static str {
         match self {
             Kernel::Isosurface => "isosurface.wgsl",
+            Kernel::Ao => "ao.wgsl",
         }
     }
 
     fn raw(self) -> &'static str {
         match self {
             Kernel::Isosurface => include_str!("../../../shaders/isosurface.wgsl"),
+            Kernel::Ao => include_str!("../../../shaders/ao.wgsl"),
         }
     }
 }
 
 /// Shared include files, by name.
 const INCLUDES: &[(&str, &str)] = &[
+    ("frame.wgsl", include_str!("../../../shaders/frame.wgsl")),
+    ("sampling.wgsl", include_str!("../../../shaders/sampling.wgsl")),
+    ("environment.wgsl", include_str!("../../../shaders/environment.wgsl")),
     ("volume.wgsl", include_str!("../../../shaders/volume.wgsl")),
     ("shading.wgsl", include_str!("../../../shaders/shading.wgsl")),
 ];

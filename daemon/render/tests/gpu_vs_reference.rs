@@ -34,7 +34,7 @@ fn gpu_agrees_with_the_exact_reference_on_procedural_volumes() {
         let view = View::whole(Camera::framing(volume.box_min(), volume.box_max(), SIZE, SIZE), SIZE, SIZE);
         let settings = RenderSettings::new(iso);
         let gv = gpu.upload(&volume).unwrap();
-        let g = gpu.render(&gv, &view, &settings).unwrap().frame;
+        let g = gpu.render(&gv, &view, &settings, None).unwrap().frame;
         let r = reference::render(&volume, &view, &settings);
         let a = common::compare(&g, &r, volume.spacing().min_element());
         eprintln!("{}: {a:?}", kind.name());
@@ -70,9 +70,9 @@ fn empty_space_skipping_saves_fetches_and_changes_nothing_else() {
     let gv = gpu.upload(&volume).unwrap();
     let mut s = RenderSettings::new(iso);
     s.empty_space_skipping = false;
-    let off = gpu.render(&gv, &view, &s).unwrap().frame;
+    let off = gpu.render(&gv, &view, &s, None).unwrap().frame;
     s.empty_space_skipping = true;
-    let on = gpu.render(&gv, &view, &s).unwrap().frame;
+    let on = gpu.render(&gv, &view, &s, None).unwrap().frame;
     // A march may step over a thin grazing crossing (the reference cannot), and steps restart at
     // block exits, so the two marches may each miss a different such crossing: rare pixels, all on
     // a silhouette. Everywhere else both give the reference's surface.
@@ -112,8 +112,8 @@ fn a_tile_renders_exactly_the_pixels_of_the_whole_image() {
     let tile = View { window: Window { x: 40, y: 24, width: 33, height: 41 }, ..whole };
     let gv = gpu.upload(&volume).unwrap();
     let s = RenderSettings::new(iso);
-    let w = gpu.render(&gv, &whole, &s).unwrap().frame;
-    let t = gpu.render(&gv, &tile, &s).unwrap().frame;
+    let w = gpu.render(&gv, &whole, &s, None).unwrap().frame;
+    let t = gpu.render(&gv, &tile, &s, None).unwrap().frame;
     assert!(t.hit_count() > 50);
     for y in 0..41 {
         for x in 0..33 {
@@ -144,7 +144,7 @@ fn misses_are_zero_in_every_aov_and_caps_use_the_face_normal() {
     let mut s = RenderSettings::new(0.5);
     s.shading = Shading::Lambert;
     let gv = gpu.upload(&volume).unwrap();
-    let f = gpu.render(&gv, &view, &s).unwrap().frame;
+    let f = gpu.render(&gv, &view, &s, None).unwrap().frame;
     let r = reference::render(&volume, &view, &s);
     assert!(f.hit_count() > 100 && f.hit_count() < 64 * 64);
     for i in 0..f.pixel_count() {

@@ -214,6 +214,11 @@ pub struct RenderSettings {
 }
 
 impl RenderSettings {
+    /// Whether the IBL method looks up an environment (every method but `none`).
+    pub fn ibl_needs_environment(&self) -> bool {
+        self.ao.ibl != IblMethod::None
+    }
+
     pub fn new(iso: f64) -> Self {
         RenderSettings {
             iso,

@@ -1,14 +1,28 @@
-//! The wgpu renderer. One render thread owns the [`GpuRenderer`] (and so the device); the volume is
-//! uploaded once ([`GpuVolume`]) and frames are rendered from it, read back into a [`Frame`].
+//! The wgpu renderer. One render thread owns the [`GpuRenderer`] (and so the device); the volume
+//! ([`GpuVolume`]) and the environment ([`GpuEnvironment`]) are uploaded once, and frames are
+//! rendered from them and read back into a [`Frame`].
+//!
+//! A frame is two kernels: [`Kernel::Isosurface`](crate::shaders::Kernel) (first hit, normal,
+//! direct light) and, when AO or IBL is on, [`Kernel::Ao`](crate::shaders::Kernel) once per
+//! accumulated frame (occlusion, bent normal, IBL term, added into accumulators). The host then
+//! composes the colour exactly as the CPU reference does:
+//! `exposure * (direct + albedo * E)`, with `E = ambient` when neither AO nor IBL is on.
 
+pub mod ao;
+pub mod frame_params;
 pub mod isosurface;
 
+use crate::environment::Environment;
+use crate::shaders::{self, Kernel};
 use crate::Frame;
 use isowall_volume::{BlockMinMax, Volume};
-use isowall_wall::{RenderSettings, View};
-use std::time::Duration;
+use isowall_wall::{IblMethod, RenderSettings, View};
+use std::time::{Duration, Instant};
+use wgpu::util::DeviceExt;
 
-pub use isosurface::{GpuVolume, IsoParams, IsosurfaceKernel};
+pub use ao::AoKernel;
+pub use frame_params::FrameParams;
+pub use isosurface::IsosurfaceKernel;
 
 #[derive(Debug, thiserror::Error)]
 pub enum GpuError {
@@ -16,14 +30,18 @@ pub enum GpuError {
     NoAdapter(String),
     #[error("the Vulkan adapter '{adapter}' refused a device: {source}")]
     Device { adapter: String, source: wgpu::RequestDeviceError },
-    #[error("volume {name} needs a {bytes}-byte buffer but the adapter allows at most {limit} bytes per storage binding")]
-    VolumeTooLarge { name: String, bytes: u64, limit: u64 },
+    #[error(
+        "{name} needs a {bytes}-byte buffer but the adapter allows at most {limit} bytes per storage binding"
+    )]
+    TooLarge { name: String, bytes: u64, limit: u64 },
     #[error("GPU validation failed in {stage}: {message}")]
     Validation { stage: &'static str, message: String },
     #[error("GPU readback failed: {0}")]
     Readback(String),
     #[error("invalid view: {0}")]
     View(String),
+    #[error("invalid settings: {0}")]
+    Settings(String),
 }
 
 /// The device, its queue, and what adapter they came from.
@@ -71,12 +89,149 @@ impl GpuContext {
             .map(|_| ())
             .map_err(|e| GpuError::Readback(e.to_string()))
     }
+
+    /// A storage buffer initialised with `contents`, refused with a clear error past the limits.
+    fn storage_init(&self, name: &str, contents: &[u8]) -> Result<wgpu::Buffer, GpuError> {
+        let limits = self.device.limits();
+        let limit = limits.max_storage_buffer_binding_size.min(limits.max_buffer_size);
+        if contents.len() as u64 > limit {
+            return Err(GpuError::TooLarge { name: name.to_string(), bytes: contents.len() as u64, limit });
+        }
+        self.validated("upload", || {
+            self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(name),
+                contents,
+                usage: wgpu::BufferUsages::STORAGE,
+            })
+        })
+    }
+
+    /// A compute pipeline for `kernel` with one bind group of `entries`.
+    pub(crate) fn pipeline(
+        &self,
+        kernel: Kernel,
+        entries: &[wgpu::BindGroupLayoutEntry],
+    ) -> Result<(wgpu::ComputePipeline, wgpu::BindGroupLayout), GpuError> {
+        self.validated("pipeline", || {
+            let device = &self.device;
+            let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some(kernel.file_name()),
+                source: wgpu::ShaderSource::Wgsl(shaders::source(kernel).into()),
+            });
+            let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+                label: Some(kernel.file_name()),
+                entries,
+            });
+            let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                label: Some(kernel.file_name()),
+                bind_group_layouts: &[Some(&layout)],
+                immediate_size: 0,
+            });
+            let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(kernel.file_name()),
+                layout: Some(&pipeline_layout),
+                module: &module,
+                entry_point: Some("main"),
+                compilation_options: Default::default(),
+                cache: None,
+            });
+            (pipeline, layout)
+        })
+    }
+}
+
+/// Bind group layout entries shared by every kernel: the frame parameters (0), the voxels (1) and
+/// the block min/max (2), as declared in shaders/frame.wgsl.
+pub(crate) fn frame_entries() -> [wgpu::BindGroupLayoutEntry; 3] {
+    [
+        wgpu::BindGroupLayoutEntry {
+            binding: 0,
+            visibility: wgpu::ShaderStages::COMPUTE,
+            ty: wgpu::BindingType::Buffer {
+                ty: wgpu::BufferBindingType::Uniform,
+                has_dynamic_offset: false,
+                min_binding_size: wgpu::BufferSize::new(std::mem::size_of::<FrameParams>() as u64),
+            },
+            count: None,
+        },
+        storage_entry(1, true),
+        storage_entry(2, true),
+    ]
+}
+
+pub(crate) fn storage_entry(binding: u32, read_only: bool) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::COMPUTE,
+        ty: wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Storage { read_only },
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        },
+        count: None,
+    }
+}
+
+/// Workgroup edge of every kernel (`@workgroup_size(8, 8, 1)`).
+pub(crate) const WORKGROUP: u32 = 8;
+
+/// A volume on the GPU: voxels (f32) and per-block min/max.
+pub struct GpuVolume {
+    voxels: wgpu::Buffer,
+    block_minmax: wgpu::Buffer,
+    pub dims: [u32; 3],
+    pub block: u32,
+    pub counts: [u32; 3],
+    pub spacing: glam::DVec3,
+    pub box_min: glam::DVec3,
+    pub box_max: glam::DVec3,
+    pub name: String,
+}
+
+impl GpuVolume {
+    pub fn upload(ctx: &GpuContext, v: &Volume, blocks: &BlockMinMax) -> Result<GpuVolume, GpuError> {
+        let voxels = ctx.storage_init(&format!("volume {}", v.name), bytemuck::cast_slice(v.data()))?;
+        let block_minmax = ctx.storage_init("block min/max", bytemuck::cast_slice(&blocks.minmax))?;
+        let d = v.dims();
+        Ok(GpuVolume {
+            voxels,
+            block_minmax,
+            dims: [d[0] as u32, d[1] as u32, d[2] as u32],
+            block: blocks.block as u32,
+            counts: blocks.counts.map(|c| c as u32),
+            spacing: v.spacing(),
+            box_min: v.box_min(),
+            box_max: v.box_max(),
+            name: v.name.clone(),
+        })
+    }
+}
+
+/// An environment on the GPU: the equirectangular texels and their SH9 projection.
+pub struct GpuEnvironment {
+    texels: wgpu::Buffer,
+    pub width: u32,
+    pub height: u32,
+    pub sh: [[f32; 3]; 9],
+}
+
+impl GpuEnvironment {
+    pub fn upload(ctx: &GpuContext, env: &Environment) -> Result<GpuEnvironment, GpuError> {
+        let texels = ctx.storage_init(
+            &format!("environment {}", env.name),
+            bytemuck::cast_slice(&env.equirect_f32x4()),
+        )?;
+        Ok(GpuEnvironment { texels, width: env.width, height: env.height, sh: env.sh9() })
+    }
 }
 
 /// The GPU renderer: device plus compiled kernels.
 pub struct GpuRenderer {
     pub ctx: GpuContext,
     isosurface: IsosurfaceKernel,
+    ao: AoKernel,
+    /// Bound where no environment is given (IBL off): one black texel.
+    no_env: GpuEnvironment,
 }
 
 /// A rendered frame and the time the GPU took for it (submit to done, readback excluded).
@@ -85,11 +240,16 @@ pub struct Rendered {
     pub gpu_time: Duration,
 }
 
+/// The most frames one `render` accumulates.
+pub const MAX_FRAMES: u32 = 4096;
+
 impl GpuRenderer {
     pub fn new() -> Result<GpuRenderer, GpuError> {
         let ctx = GpuContext::new()?;
         let isosurface = IsosurfaceKernel::new(&ctx)?;
-        Ok(GpuRenderer { ctx, isosurface })
+        let ao = AoKernel::new(&ctx)?;
+        let no_env = GpuEnvironment::upload(&ctx, &Environment::constant([0.0; 3]))?;
+        Ok(GpuRenderer { ctx, isosurface, ao, no_env })
     }
 
     pub fn adapter_name(&self) -> &str {
@@ -102,13 +262,191 @@ impl GpuRenderer {
         GpuVolume::upload(&self.ctx, volume, &blocks)
     }
 
+    /// Uploads an environment for IBL.
+    pub fn upload_environment(&self, env: &Environment) -> Result<GpuEnvironment, GpuError> {
+        GpuEnvironment::upload(&self.ctx, env)
+    }
+
     /// Renders one frame of `view` and reads every AOV back.
     pub fn render(
         &self,
         volume: &GpuVolume,
         view: &View,
         settings: &RenderSettings,
+        env: Option<&GpuEnvironment>,
     ) -> Result<Rendered, GpuError> {
-        self.isosurface.render(&self.ctx, volume, view, settings)
+        self.render_accumulated(volume, view, settings, env, 1)
     }
+
+    /// Renders `frames` frames with frame indices `settings.ao.frame ..` (fresh decorrelation each)
+    /// and averages their AO and IBL (progressive accumulation); reads every AOV back.
+    pub fn render_accumulated(
+        &self,
+        volume: &GpuVolume,
+        view: &View,
+        settings: &RenderSettings,
+        env: Option<&GpuEnvironment>,
+        frames: u32,
+    ) -> Result<Rendered, GpuError> {
+        let (w, h) = (view.window.width, view.window.height);
+        if w == 0 || h == 0 || view.full.0 == 0 || view.full.1 == 0 {
+            return Err(GpuError::View(format!("empty window {w}x{h} of {}x{}", view.full.0, view.full.1)));
+        }
+        if view.window.x.checked_add(w).is_none_or(|r| r > view.full.0)
+            || view.window.y.checked_add(h).is_none_or(|b| b > view.full.1)
+        {
+            return Err(GpuError::View(format!(
+                "window {:?} lies outside the {}x{} image",
+                view.window, view.full.0, view.full.1
+            )));
+        }
+        view.camera.validate().map_err(|e| GpuError::View(e.to_string()))?;
+        if !(1..=MAX_FRAMES).contains(&frames) {
+            return Err(GpuError::Settings(format!("frames {frames} is outside 1..={MAX_FRAMES}")));
+        }
+        if settings.ibl_needs_environment() && env.is_none() {
+            return Err(GpuError::Settings(format!("IBL method {:?} needs an environment", settings.ao.ibl)));
+        }
+        let env = env.unwrap_or(&self.no_env);
+        let n = w as u64 * h as u64;
+        let device = &self.ctx.device;
+        let with_ao = settings.ao.samples > 0 || settings.ao.ibl != IblMethod::None;
+
+        let sizes = [n * 16, n * 16, n * 4, n * 16, n * 16];
+        let (buffers, staging) = self.ctx.validated("frame buffers", || {
+            let make = |label: &str, size: u64, usage| {
+                device.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some(label),
+                    size,
+                    usage,
+                    mapped_at_creation: false,
+                })
+            };
+            let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC;
+            let read = wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST;
+            let labels = ["direct", "geometry", "fetches", "acc ao", "acc ibl"];
+            let buffers: Vec<_> = labels.iter().zip(sizes).map(|(l, s)| make(l, s, storage)).collect();
+            let staging: Vec<_> = labels.iter().zip(sizes).map(|(l, s)| make(l, s, read)).collect();
+            (buffers, staging)
+        })?;
+
+        let mut enc = device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
+        let mut uniforms = Vec::new();
+        let mut params = FrameParams::new(volume, view, settings, env);
+        let uniform = |p: &FrameParams| {
+            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("frame params"),
+                contents: bytemuck::bytes_of(p),
+                usage: wgpu::BufferUsages::UNIFORM,
+            })
+        };
+        self.ctx.validated("encode", || {
+            uniforms.push(uniform(&params));
+            self.isosurface.encode(
+                device,
+                &mut enc,
+                &uniforms[0],
+                volume,
+                [&buffers[0], &buffers[1], &buffers[2]],
+                (w, h),
+            );
+            if with_ao {
+                for k in 0..frames {
+                    params.frame = settings.ao.frame.wrapping_add(k);
+                    uniforms.push(uniform(&params));
+                    let u = uniforms.last().expect("just pushed");
+                    self.ao.encode(
+                        device,
+                        &mut enc,
+                        u,
+                        volume,
+                        &env.texels,
+                        [&buffers[0], &buffers[1], &buffers[3], &buffers[4], &buffers[2]],
+                        (w, h),
+                    );
+                }
+            }
+        })?;
+        let start = Instant::now();
+        self.ctx.queue.submit([enc.finish()]);
+        self.ctx.wait()?;
+        let gpu_time = start.elapsed();
+
+        let mut enc =
+            device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("readback") });
+        for (src, dst) in buffers.iter().zip(&staging) {
+            enc.copy_buffer_to_buffer(src, 0, dst, 0, None);
+        }
+        self.ctx.queue.submit([enc.finish()]);
+        let bytes = read_buffers(&self.ctx, &staging)?;
+
+        let direct: &[[f32; 4]] = bytemuck::cast_slice(&bytes[0]);
+        let geometry: &[[f32; 4]] = bytemuck::cast_slice(&bytes[1]);
+        let fetches: &[u32] = bytemuck::cast_slice(&bytes[2]);
+        let acc_ao: &[[f32; 4]] = bytemuck::cast_slice(&bytes[3]);
+        let acc_ibl: &[[f32; 4]] = bytemuck::cast_slice(&bytes[4]);
+        let mut frame = Frame::new(w, h);
+        let k = if with_ao { frames as f32 } else { 1.0 };
+        let exposure = settings.exposure as f32;
+        let albedo = settings.material.albedo.map(|a| a as f32);
+        let basis = view.camera.basis();
+        for i in 0..n as usize {
+            let g = geometry[i];
+            if direct[i][3] < 0.5 {
+                frame.color[i] = settings.background.map(|c| c as f32);
+                continue;
+            }
+            frame.hit[i] = true;
+            frame.normal[i] = [g[0], g[1], g[2]];
+            frame.depth[i] = g[3];
+            let (a, bent, e) = if with_ao {
+                let b = glam::Vec3::new(acc_ao[i][0], acc_ao[i][1], acc_ao[i][2]).normalize_or_zero();
+                (acc_ao[i][3] / k, b, [0, 1, 2].map(|c| acc_ibl[i][c] / k))
+            } else {
+                let nv = glam::Vec3::from_array(frame.normal[i]);
+                let d = view.ray_dir(&basis, (i % w as usize) as u32, (i / w as usize) as u32);
+                let facing = if nv.dot(-d.as_vec3()) >= 0.0 { nv } else { -nv };
+                (0.0, facing, settings.light.ambient.map(|c| c as f32))
+            };
+            frame.occlusion[i] = a;
+            frame.bent_normal[i] = bent.to_array();
+            frame.ibl[i] = e;
+            frame.color[i] = std::array::from_fn(|c| exposure * (direct[i][c] + albedo[c] * e[c]));
+        }
+        frame.fetches = fetches.iter().map(|&f| f as u64).sum();
+        tracing::debug!(
+            width = w,
+            height = h,
+            frames,
+            hits = frame.hit_count(),
+            fetches_per_pixel = frame.fetches_per_pixel(),
+            gpu_ms = gpu_time.as_secs_f64() * 1e3,
+            "frame rendered"
+        );
+        Ok(Rendered { frame, gpu_time })
+    }
+}
+
+/// Maps every buffer for reading, waits, and copies their contents out.
+fn read_buffers(ctx: &GpuContext, buffers: &[wgpu::Buffer]) -> Result<Vec<Vec<u8>>, GpuError> {
+    let (tx, rx) = std::sync::mpsc::channel();
+    for (i, b) in buffers.iter().enumerate() {
+        let tx = tx.clone();
+        b.map_async(wgpu::MapMode::Read, .., move |r| {
+            let _ = tx.send((i, r));
+        });
+    }
+    drop(tx);
+    ctx.wait()?;
+    for (i, r) in rx.iter() {
+        r.map_err(|e| GpuError::Readback(format!("buffer {i}: {e}")))?;
+    }
+    let mut out = Vec::with_capacity(buffers.len());
+    for b in buffers {
+        let view = b.get_mapped_range(..).map_err(|e| GpuError::Readback(e.to_string()))?;
+        out.push(view.to_vec());
+        drop(view);
+        b.unmap();
+    }
+    Ok(out)
 }

@@ -1,0 +1,196 @@
+//! [`FrameParams`]: the `bytemuck` twin of WGSL `FrameParams` (shaders/frame.wgsl), bound at 0 by
+//! every kernel. A test checks its layout against the shader with naga.
+
+use super::{GpuEnvironment, GpuVolume};
+use bytemuck::{Pod, Zeroable};
+use isowall_wall::{AoMethod, IblMethod, RenderSettings, Shading, View};
+
+/// Bisection steps after the bracketing march step (then one secant step): h / 4096.
+pub const REFINE_STEPS: u32 = 12;
+const FLAG_EMPTY_SPACE_SKIPPING: u32 = 1;
+
+/// Twin of WGSL `FrameParams`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Pod, Zeroable)]
+pub struct FrameParams {
+    pub eye: [f32; 4],
+    /// w: tan(fov_y / 2)
+    pub forward: [f32; 4],
+    pub right: [f32; 4],
+    pub up: [f32; 4],
+    pub light_dir: [f32; 4],
+    pub light_color: [f32; 4],
+    pub ambient: [f32; 4],
+    /// w: specular
+    pub albedo: [f32; 4],
+    /// w: exposure
+    pub background: [f32; 4],
+    pub box_min: [f32; 4],
+    pub box_max: [f32; 4],
+    /// w: primary march step in world units
+    pub spacing: [f32; 4],
+    /// w: cells per block edge
+    pub dims: [u32; 4],
+    /// w: flags
+    pub block_counts: [u32; 4],
+    pub full_size: [u32; 2],
+    pub window_origin: [u32; 2],
+    pub window_size: [u32; 2],
+    pub shading: u32,
+    pub iso: f32,
+    pub shininess: f32,
+    pub refine_steps: u32,
+    pub max_steps: u32,
+    pub ao_samples: u32,
+    pub ao_method: u32,
+    pub ibl: u32,
+    pub frame: u32,
+    pub seed: u32,
+    /// < 0: unbounded
+    pub ao_radius: f32,
+    pub ao_offset: f32,
+    pub ao_step: f32,
+    pub env_width: u32,
+    pub env_height: u32,
+    pub _pad0: u32,
+    pub _pad1: u32,
+    pub _pad2: u32,
+    pub sh: [[f32; 4]; 9],
+}
+
+fn v4(v: glam::DVec3, w: f64) -> [f32; 4] {
+    [v.x as f32, v.y as f32, v.z as f32, w as f32]
+}
+
+fn rgb4(c: [f64; 3], w: f64) -> [f32; 4] {
+    [c[0] as f32, c[1] as f32, c[2] as f32, w as f32]
+}
+
+impl FrameParams {
+    /// Converts the model's view and settings (f64) into the kernels' parameters (f32).
+    pub fn new(volume: &GpuVolume, view: &View, s: &RenderSettings, env: &GpuEnvironment) -> FrameParams {
+        let b = view.camera.basis();
+        let light = s.light.world_direction(b.forward, b.right, b.up);
+        let voxel = volume.spacing.min_element();
+        let step = s.step_voxels * voxel;
+        let ao_step = s.ao.step_voxels * voxel;
+        // Enough steps to cross the box diagonal, plus two per block crossed, plus slack.
+        let diag = (volume.box_max - volume.box_min).length();
+        let blocks: u64 = volume.counts.iter().map(|&c| c as u64).sum::<u64>() * 2 + 64;
+        let max_steps = (diag / step.min(ao_step)).ceil() as u64 + blocks;
+        let mut sh = [[0.0; 4]; 9];
+        for (dst, src) in sh.iter_mut().zip(&env.sh) {
+            *dst = [src[0], src[1], src[2], 0.0];
+        }
+        FrameParams {
+            eye: v4(view.camera.eye, 0.0),
+            forward: v4(b.forward, b.tan_half_fov),
+            right: v4(b.right, 0.0),
+            up: v4(b.up, 0.0),
+            light_dir: v4(light, 0.0),
+            light_color: rgb4(s.light.color, 0.0),
+            ambient: rgb4(s.light.ambient, 0.0),
+            albedo: rgb4(s.material.albedo, s.material.specular),
+            background: rgb4(s.background, s.exposure),
+            box_min: v4(volume.box_min, 0.0),
+            box_max: v4(volume.box_max, 0.0),
+            spacing: v4(volume.spacing, step),
+            dims: [volume.dims[0], volume.dims[1], volume.dims[2], volume.block],
+            block_counts: [
+                volume.counts[0],
+                volume.counts[1],
+                volume.counts[2],
+                if s.empty_space_skipping { FLAG_EMPTY_SPACE_SKIPPING } else { 0 },
+            ],
+            full_size: [view.full.0, view.full.1],
+            window_origin: [view.window.x, view.window.y],
+            window_size: [view.window.width, view.window.height],
+            shading: match s.shading {
+                Shading::Lambert => 0,
+                Shading::BlinnPhong => 1,
+            },
+            iso: s.iso as f32,
+            shininess: s.material.shininess as f32,
+            refine_steps: REFINE_STEPS,
+            max_steps: max_steps.min(u32::MAX as u64) as u32,
+            ao_samples: s.ao.samples,
+            ao_method: match s.ao.method {
+                AoMethod::Ours => 0,
+                AoMethod::Seed => 1,
+            },
+            ibl: match s.ao.ibl {
+                IblMethod::None => 0,
+                IblMethod::Seed => 1,
+                IblMethod::Bent => 2,
+                IblMethod::Rays => 3,
+            },
+            frame: s.ao.frame,
+            seed: s.ao.seed,
+            ao_radius: s.ao.radius_world(volume.spacing).map_or(-1.0, |r| r as f32),
+            ao_offset: (s.ao.offset_voxels * voxel) as f32,
+            ao_step: ao_step as f32,
+            env_width: env.width,
+            env_height: env.height,
+            _pad0: 0,
+            _pad1: 0,
+            _pad2: 0,
+            sh,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::shaders::Kernel;
+    use std::mem::offset_of;
+
+    #[test]
+    fn frame_params_layout_matches_the_wgsl_of_every_kernel() {
+        for kernel in Kernel::ALL {
+            crate::shaders::tests::check_layout(
+                kernel,
+                "FrameParams",
+                std::mem::size_of::<FrameParams>(),
+                &[
+                    ("eye", offset_of!(FrameParams, eye)),
+                    ("forward", offset_of!(FrameParams, forward)),
+                    ("right", offset_of!(FrameParams, right)),
+                    ("up", offset_of!(FrameParams, up)),
+                    ("light_dir", offset_of!(FrameParams, light_dir)),
+                    ("light_color", offset_of!(FrameParams, light_color)),
+                    ("ambient", offset_of!(FrameParams, ambient)),
+                    ("albedo", offset_of!(FrameParams, albedo)),
+                    ("background", offset_of!(FrameParams, background)),
+                    ("box_min", offset_of!(FrameParams, box_min)),
+                    ("box_max", offset_of!(FrameParams, box_max)),
+                    ("spacing", offset_of!(FrameParams, spacing)),
+                    ("dims", offset_of!(FrameParams, dims)),
+                    ("block_counts", offset_of!(FrameParams, block_counts)),
+                    ("full_size", offset_of!(FrameParams, full_size)),
+                    ("window_origin", offset_of!(FrameParams, window_origin)),
+                    ("window_size", offset_of!(FrameParams, window_size)),
+                    ("shading", offset_of!(FrameParams, shading)),
+                    ("iso", offset_of!(FrameParams, iso)),
+                    ("shininess", offset_of!(FrameParams, shininess)),
+                    ("refine_steps", offset_of!(FrameParams, refine_steps)),
+                    ("max_steps", offset_of!(FrameParams, max_steps)),
+                    ("ao_samples", offset_of!(FrameParams, ao_samples)),
+                    ("ao_method", offset_of!(FrameParams, ao_method)),
+                    ("ibl", offset_of!(FrameParams, ibl)),
+                    ("frame", offset_of!(FrameParams, frame)),
+                    ("seed", offset_of!(FrameParams, seed)),
+                    ("ao_radius", offset_of!(FrameParams, ao_radius)),
+                    ("ao_offset", offset_of!(FrameParams, ao_offset)),
+                    ("ao_step", offset_of!(FrameParams, ao_step)),
+                    ("env_width", offset_of!(FrameParams, env_width)),
+                    ("env_height", offset_of!(FrameParams, env_height)),
+                    ("_pad0", offset_of!(FrameParams, _pad0)),
+                    ("_pad1", offset_of!(FrameParams, _pad1)),
+                    ("_pad2", offset_of!(FrameParams, _pad2)),
+                    ("sh", offset_of!(FrameParams, sh)),
+                ],
+            );
+        }
+    }
+}

@@ -1,0 +1,57 @@
+// Shared include: the frame's parameters, bound at 0 by every kernel, with the volume (1) and its
+// per-block min/max (2). Twin: `FrameParams` in daemon/render/src/gpu/frame_params.rs, whose
+// layout a test checks against this declaration (naga). No vec3 members.
+
+struct FrameParams {
+    eye: vec4<f32>,
+    forward: vec4<f32>,      // w: tan(fov_y / 2)
+    right: vec4<f32>,
+    up: vec4<f32>,
+    light_dir: vec4<f32>,    // towards the light, world space
+    light_color: vec4<f32>,
+    ambient: vec4<f32>,
+    albedo: vec4<f32>,       // w: specular
+    background: vec4<f32>,   // w: exposure
+    box_min: vec4<f32>,
+    box_max: vec4<f32>,
+    spacing: vec4<f32>,      // w: primary march step, world units
+    dims: vec4<u32>,         // w: cells per block edge
+    block_counts: vec4<u32>, // w: flags (bit 0: empty-space skipping)
+    full_size: vec2<u32>,
+    window_origin: vec2<u32>,
+    window_size: vec2<u32>,
+    shading: u32,
+    iso: f32,
+    shininess: f32,
+    refine_steps: u32,
+    max_steps: u32,
+    ao_samples: u32,
+    ao_method: u32,          // 0 ours, 1 seed (the 2008 baseline)
+    ibl: u32,                // 0 none, 1 seed, 2 bent, 3 rays
+    frame: u32,
+    seed: u32,
+    ao_radius: f32,          // world units; < 0: unbounded (to the box)
+    ao_offset: f32,          // AO ray origin offset along N, world units
+    ao_step: f32,            // AO march step, world units
+    env_width: u32,
+    env_height: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
+    sh: array<vec4<f32>, 9>, // SH9 of the environment (rgb), for IBL `bent`
+}
+
+const FLAG_EMPTY_SPACE_SKIPPING: u32 = 1u;
+
+@group(0) @binding(0) var<uniform> params: FrameParams;
+@group(0) @binding(1) var<storage, read> volume: array<f32>;
+@group(0) @binding(2) var<storage, read> block_minmax: array<vec2<f32>>;
+
+// Unit ray through the centre of pixel px of the FULL image (DESIGN.md "Camera").
+fn pixel_dir(px: vec2<u32>) -> vec3<f32> {
+    let size = vec2<f32>(params.full_size);
+    let tan_half = params.forward.w;
+    let sx = ((f32(px.x) + 0.5) / size.x * 2.0 - 1.0) * tan_half * size.x / size.y;
+    let sy = (1.0 - (f32(px.y) + 0.5) / size.y * 2.0) * tan_half;
+    return normalize(params.forward.xyz + sx * params.right.xyz + sy * params.up.xyz);
+}

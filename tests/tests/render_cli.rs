@@ -1,0 +1,220 @@
+//! `isowalld render` as a user runs it: a real process, real files.
+
+use isowall_e2e::{gpu_ok, run_in, shared_dir};
+use isowall_render::output::read_pfm;
+use std::path::Path;
+
+#[test]
+fn no_arguments_render_the_engine_to_isowall_png() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = run_in(dir.path(), "isowalld", &[]);
+    if !gpu_ok("isowalld (no arguments)", &out) {
+        return;
+    }
+    let img = image::open(dir.path().join("isowall.png")).expect("isowall.png written").to_rgb8();
+    assert_eq!(img.dimensions(), (800, 600));
+    // The engine covers a good part of the frame, lit: many pixels well above the dark background.
+    let lit = img.pixels().filter(|p| p.0.iter().map(|&c| c as u32).sum::<u32>() > 200).count();
+    let frac = lit as f64 / (800.0 * 600.0);
+    assert!(frac > 0.15 && frac < 0.9, "lit fraction {frac}");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(stdout.contains("procedural:engine:256") && stdout.contains("fetches/pixel"), "{stdout}");
+}
+
+#[test]
+fn render_help_names_every_contract_flag() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = run_in(dir.path(), "isowalld", &["render", "--help"]);
+    assert!(out.status.success());
+    let help = String::from_utf8_lossy(&out.stdout);
+    for flag in [
+        "--volume",
+        "--iso",
+        "--size",
+        "--eye",
+        "--target",
+        "--up",
+        "--fov-y",
+        "--shading",
+        "--aov",
+        "--out",
+        "--renderer",
+        "--dims",
+        "--type",
+        "--spacing",
+    ] {
+        assert!(help.contains(flag), "render --help lacks {flag}");
+    }
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    assert!(!v.is_empty());
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+/// Renders one AOV of a scene with both renderers through the CLI and returns (gpu, reference).
+fn both(
+    dir: &Path,
+    volume: &str,
+    iso: &str,
+    aov: &str,
+) -> Option<(isowall_render::output::Pfm, isowall_render::output::Pfm)> {
+    let mut res = Vec::new();
+    for renderer in ["gpu", "reference"] {
+        let file = dir.join(format!("{aov}-{renderer}.pfm"));
+        let args = [
+            "render",
+            "--volume",
+            volume,
+            "--iso",
+            iso,
+            "--size",
+            "96x96",
+            "--aov",
+            aov,
+            "--renderer",
+            renderer,
+            "--out",
+            file.to_str().unwrap(),
+        ];
+        let out = run_in(dir, "isowalld", &args);
+        if !gpu_ok(&format!("render {volume} {aov} {renderer}"), &out) {
+            return None;
+        }
+        res.push(read_pfm(&file).unwrap());
+    }
+    let r = res.pop().unwrap();
+    Some((res.pop().unwrap(), r))
+}
+
+/// Issue "First light", done when: `--aov depth|normal|hit` of ct-cranium agree with the exact
+/// reference renderer: hit masks except on silhouette pixels, median depth error under 0.05 voxel,
+/// median normal error under 1 degree.
+#[test]
+fn ct_cranium_depth_normal_hit_agree_with_the_reference() {
+    let Some(shared) = shared_dir() else { return };
+    let ct = shared.join("data/ct-cranium.nrrd");
+    let ct = ct.to_str().unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let Some((gh, rh)) = both(dir.path(), ct, "300", "hit") else { return };
+    let (w, h) = (rh.width as i64, rh.height as i64);
+    let at = |x: i64, y: i64| rh.data[(y * w + x) as usize];
+    let silhouette = |x: i64, y: i64| {
+        (-1..=1).any(|dy| {
+            (-1..=1).any(|dx| {
+                let (nx, ny) = (x + dx, y + dy);
+                nx >= 0 && ny >= 0 && nx < w && ny < h && at(nx, ny) != at(x, y)
+            })
+        })
+    };
+    let mut off_silhouette = 0;
+    for y in 0..h {
+        for x in 0..w {
+            let i = (y * w + x) as usize;
+            assert!(gh.data[i] == 0.0 || gh.data[i] == 1.0, "hit AOV holds {}", gh.data[i]);
+            if gh.data[i] != rh.data[i] && !silhouette(x, y) {
+                off_silhouette += 1;
+            }
+        }
+    }
+    let hits = rh.data.iter().filter(|&&v| v == 1.0).count();
+    assert!(hits > 1000, "only {hits} reference hits: the view misses the skull");
+    assert_eq!(off_silhouette, 0, "hit masks differ off the silhouette");
+    let both_hit: Vec<usize> =
+        (0..rh.data.len()).filter(|&i| rh.data[i] == 1.0 && gh.data[i] == 1.0).collect();
+
+    let (gd, rd) = both(dir.path(), ct, "300", "depth").unwrap();
+    let voxel = 0.9570312;
+    let depth_err =
+        median(both_hit.iter().map(|&i| (gd.data[i] - rd.data[i]).abs() as f64 / voxel).collect());
+    assert!(depth_err < 0.05, "median depth error {depth_err} voxel");
+    // No hit, no depth.
+    assert!((0..rh.data.len()).all(|i| gh.data[i] == 1.0 || gd.data[i] == 0.0));
+
+    let (gn, rn) = both(dir.path(), ct, "300", "normal").unwrap();
+    let angle = |i: usize| {
+        let (a, b) = (&gn.data[3 * i..3 * i + 3], &rn.data[3 * i..3 * i + 3]);
+        let dot: f64 = (0..3).map(|c| a[c] as f64 * b[c] as f64).sum();
+        dot.clamp(-1.0, 1.0).acos().to_degrees()
+    };
+    let normal_err = median(both_hit.iter().map(|&i| angle(i)).collect());
+    assert!(normal_err < 1.0, "median normal error {normal_err} degrees");
+    eprintln!("ct-cranium 96x96: {hits} hits, median depth error {depth_err:.2e} voxel, median normal error {normal_err:.2e} deg");
+}
+
+#[test]
+fn a_raw_volume_renders_from_its_flags() {
+    let dir = tempfile::tempdir().unwrap();
+    // A 24^3 uint8 ball, written by hand.
+    let n = 24usize;
+    let mut data = vec![0u8; n * n * n];
+    for k in 0..n {
+        for j in 0..n {
+            for i in 0..n {
+                let d = ((i as f64 - 11.5).powi(2) + (j as f64 - 11.5).powi(2) + (k as f64 - 11.5).powi(2))
+                    .sqrt();
+                data[i + n * (j + n * k)] = if d < 8.0 { 200 } else { 10 };
+            }
+        }
+    }
+    std::fs::write(dir.path().join("ball.raw"), &data).unwrap();
+    let out = run_in(
+        dir.path(),
+        "isowalld",
+        &[
+            "render",
+            "--volume",
+            "ball.raw",
+            "--dims",
+            "24,24,24",
+            "--type",
+            "uint8",
+            "--spacing",
+            "1,1,2",
+            "--iso",
+            "100",
+            "--size",
+            "64x64",
+            "--aov",
+            "hit",
+            "--out",
+            "hit.pfm",
+        ],
+    );
+    if !gpu_ok("raw render", &out) {
+        return;
+    }
+    let hit = read_pfm(&dir.path().join("hit.pfm")).unwrap();
+    let n_hit = hit.data.iter().filter(|&&v| v == 1.0).count();
+    assert!(n_hit > 200, "{n_hit} hits");
+    // Without --type the raw file cannot be read, and the error says what is missing.
+    let out = run_in(dir.path(), "isowalld", &["render", "--volume", "ball.raw", "--dims", "24,24,24"]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--type"));
+}
+
+#[test]
+fn bad_volume_files_fail_with_the_file_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = run_in(dir.path(), "isowalld", &["render", "--volume", "no-such-file.nrrd"]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("no-such-file.nrrd"), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+
+    std::fs::write(
+        dir.path().join("short.nrrd"),
+        b"NRRD0004\ntype: short\ndimension: 3\nsizes: 4 4 4\nencoding: raw\nendian: little\n\n\x01\x02\x03",
+    )
+    .unwrap();
+    let out = run_in(dir.path(), "isowalld", &["render", "--volume", "short.nrrd", "--iso", "1"]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("short.nrrd") && err.contains("truncated"), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+
+    let out = run_in(dir.path(), "isowalld", &["render", "--volume", "procedural:teapot"]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("teapot"));
+}
