@@ -146,9 +146,10 @@ mod tests {
         assert_eq!(hash(12_345), 2_435_775_735); // 0x912efcf7
                                                  // pixel_key(3, 5, 0, 0) = h(3 ^ h(5 ^ h(0 ^ h(0)))) with the same Python.
         assert_eq!(pixel_key(3, 5, 0, 0), 4_225_011_718);
-        // r2 with that key, same Python ((x >> 8) / 2^24 of the 32-bit sums).
-        assert_eq!(r2_point(0, 4_225_011_718), (0.324_537_992_477_417, 0.081_785_261_631_011_96));
-        assert_eq!(r2_point(7, 4_225_011_718), (0.608_681_619_167_327_9, 0.070_667_266_845_703_12));
+        // r2 with that key, same Python: (x >> 8, y >> 8) of the 32-bit sums, over 2^24.
+        let p = |x: u32, y: u32| (x as f32 / 16_777_216.0, y as f32 / 16_777_216.0);
+        assert_eq!(r2_point(0, 4_225_011_718), p(5_444_844, 1_372_129));
+        assert_eq!(r2_point(7, 4_225_011_718), p(10_211_983, 1_185_600));
     }
 
     #[test]
