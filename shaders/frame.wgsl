@@ -35,7 +35,7 @@ struct FrameParams {
     ao_step: f32,            // AO march step, world units
     env_width: u32,
     env_height: u32,
-    _pad0: u32,
+    ao_exact: u32,           // ours: 1 exact per-cell test, 0 march with ao_step
     _pad1: u32,
     _pad2: u32,
     sh: array<vec4<f32>, 9>, // SH9 of the environment (rgb), for IBL `bent`
