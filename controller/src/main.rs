@@ -1,21 +1,65 @@
-//! `isowall`, the controller CLI. The wall issue gives it `up`, `orbit`, `snapshot`, `keygen` and
-//! `check-config`; until then it only says so.
+//! `isowall`, the controller CLI: checks configs, makes the wall's certificates, brings a wall up
+//! (local daemons for loopback nodes), drives it (an orbit), and gathers whole-wall snapshots.
+//! It never links wgpu: the daemons render.
 
-use clap::Parser;
+mod check_config;
+mod drive;
+mod local;
+mod wall;
+
+use clap::{Parser, Subcommand};
 
 #[derive(Parser)]
 #[command(
     name = "isowall",
     version,
     about = "Isowall controller: brings a display wall up from a config and drives it.",
-    long_about = "Isowall controller: brings a display wall up from a config and drives it. The wall \
-                  commands (up, orbit, snapshot, keygen, check-config) are not built yet; render single \
-                  frames with `isowalld render`."
+    long_about = "Isowall controller: brings a display wall up from a config and drives it.\n\n\
+                  First `isowall keygen --config WALL.toml` (once), then `isowall up WALL.toml` \
+                  starts a daemon for every node on this machine's loopback, orbits the volume and \
+                  stops them on exit. Render single frames with `isowalld render`.",
+    after_help = "Logging: RUST_LOG=debug for more; local daemons log to FOLDER-OF-CONFIG/logs/NODE.log."
 )]
-struct Cli {}
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
 
-fn main() {
-    let _ = Cli::parse();
-    eprintln!("isowall: no wall commands yet; see `isowall --help`. Render a frame with `isowalld render`.");
-    std::process::exit(2);
+#[derive(Subcommand)]
+enum Command {
+    /// Check a wall config: print every problem as FILE:LINE:COL (exit 1), or a summary.
+    CheckConfig(check_config::CheckConfigArgs),
+    /// Make the wall's certificate authority and a certificate per node and for the controller.
+    Keygen(drive::KeygenArgs),
+    /// Start a local daemon for every loopback node, drive an orbit, optionally snapshot, stop them.
+    Up(drive::UpArgs),
+    /// Drive an orbit of N frames on a running wall and print frame statistics.
+    Orbit(drive::OrbitArgs),
+    /// Gather every tile's last frame of a running wall into one image (bezels dark).
+    Snapshot(drive::SnapshotArgs),
+}
+
+fn main() -> std::process::ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::CheckConfig(args) => check_config::run(&args),
+        Command::Keygen(args) => drive::keygen(&args),
+        Command::Up(args) => drive::up(&args),
+        Command::Orbit(args) => drive::orbit(&args),
+        Command::Snapshot(args) => drive::snapshot(&args),
+    };
+    match result {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("isowall: error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
 }

@@ -3,7 +3,11 @@
 
 mod args;
 mod bench;
+mod chart;
+mod check_config;
 mod render;
+mod run;
+mod tiles;
 
 use clap::{Parser, Subcommand};
 
@@ -26,9 +30,14 @@ struct Cli {
 enum Command {
     /// Render one frame of a volume, headless, to a file (PNG for colour, PFM for other AOVs).
     Render(render::RenderArgs),
+    /// Run as a wall node: listen for the controller, render this node's tiles each frame, swap
+    /// with the rest of the wall (`isowall up` starts local nodes this way).
+    Run(run::RunArgs),
     /// Benchmarks (medians of repeated frames; speed with its error, never alone).
     #[command(subcommand)]
     Bench(bench::BenchCommand),
+    /// Check a wall config: print every problem as FILE:LINE:COL (exit 1), or a summary.
+    CheckConfig(check_config::CheckConfigArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -42,7 +51,9 @@ fn main() -> std::process::ExitCode {
     let result = match cli.command {
         None => render::run(&render::RenderArgs::default()),
         Some(Command::Render(args)) => render::run(&args),
+        Some(Command::Run(args)) => run::run(&args),
         Some(Command::Bench(cmd)) => bench::run(&cmd),
+        Some(Command::CheckConfig(args)) => check_config::run(&args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

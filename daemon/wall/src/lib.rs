@@ -3,12 +3,34 @@
 //!
 //! - [`camera`]: the pinhole camera of DESIGN.md and the pixel-centre ray convention, for a whole
 //!   image or a window of it (a tile is a window of the wall image).
+//! - [`config`]: the wall config (TOML): wall, camera, volume, render defaults, tiles and nodes,
+//!   validated with every problem at its file, line and column.
 //! - [`render_state`]: what a frame is rendered with: iso value, shading, light, material, AOV.
+//! - The frame protocol, sans-IO (time is passed in as a `Duration` since any epoch):
+//!   [`wire`] (frame state on the wire, converted to and from the model), [`messages`], [`codec`]
+//!   (the one place bytes are made: bincode, length-prefixed frames, limits), [`clock`] (offsets
+//!   from Ping/Pong), [`barrier`] (the controller's swap barrier) and [`daemon_machine`] (a
+//!   daemon's side).
 
+pub mod barrier;
 pub mod camera;
+pub mod clock;
+pub mod codec;
+pub mod config;
+pub mod daemon_machine;
+pub mod messages;
 pub mod render_state;
+pub mod wire;
 
+pub use barrier::{ControllerOutput, FrameController, FrameStats, NodeFrameStats};
 pub use camera::{Camera, CameraError, View, Window};
+pub use config::{
+    CameraConfig, CertConfig, ConfigErrors, NodeConfig, Problem, RenderConfig, TileConfig, VolumeConfig,
+    WallConfig, WallSection,
+};
+pub use daemon_machine::{NodeMachine, NodeOutput};
+pub use messages::{Message, ProtocolError, Role, TileImage, PROTOCOL_VERSION};
 pub use render_state::{
     AoMethod, AoRadius, AoSettings, Aov, IblMethod, Light, Material, RenderSettings, Shading,
 };
+pub use wire::{FrameSpec, FrameState};

@@ -1,0 +1,203 @@
+//! The controller's commands that talk to a wall: `keygen`, `up`, `orbit`, `snapshot`.
+
+use crate::local::LocalDaemons;
+use crate::wall::{compose, report, Wall};
+use anyhow::{anyhow, Context, Result};
+use clap::Args;
+use glam::{DQuat, DVec3};
+use isowall_volume::VolumeSource;
+use isowall_wall::config::WallConfig;
+use isowall_wall::{Camera, RenderSettings};
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+#[derive(Args)]
+pub struct KeygenArgs {
+    /// The wall config: its nodes get certificates, written to its `[certificates] dir`
+    #[arg(long, value_name = "FILE")]
+    pub config: PathBuf,
+    /// Write here instead of the config's certificate folder
+    #[arg(long, value_name = "DIR")]
+    pub out: Option<PathBuf>,
+}
+
+#[derive(Args)]
+pub struct OrbitOptions {
+    /// Frames to drive
+    #[arg(long, default_value_t = 90)]
+    pub frames: u64,
+    /// Orbit step per frame, degrees about the world's up axis through the target
+    #[arg(long, default_value_t = 4.0)]
+    pub degrees_per_frame: f64,
+}
+
+#[derive(Args)]
+pub struct UpArgs {
+    /// The wall config (TOML)
+    pub config: PathBuf,
+    #[command(flatten)]
+    pub orbit: OrbitOptions,
+    /// Write a whole-wall snapshot of the last frame here (PNG)
+    #[arg(long, value_name = "FILE.png")]
+    pub snapshot: Option<PathBuf>,
+    /// How long to wait for the nodes to come up, seconds
+    #[arg(long, default_value_t = 120)]
+    pub start_timeout: u64,
+}
+
+#[derive(Args)]
+pub struct OrbitArgs {
+    /// The wall config (TOML)
+    pub config: PathBuf,
+    #[command(flatten)]
+    pub orbit: OrbitOptions,
+}
+
+#[derive(Args)]
+pub struct SnapshotArgs {
+    /// The wall config (TOML)
+    pub config: PathBuf,
+    /// The whole-wall image to write (PNG)
+    #[arg(long, value_name = "FILE.png")]
+    pub out: PathBuf,
+}
+
+fn load(config: &std::path::Path) -> Result<WallConfig> {
+    WallConfig::load(config).map_err(|e| anyhow!("{e}"))
+}
+
+pub fn keygen(a: &KeygenArgs) -> Result<()> {
+    let config = load(&a.config)?;
+    let dir = a.out.clone().unwrap_or_else(|| config.cert_dir());
+    let names: Vec<String> = config.nodes.iter().map(|n| n.name.clone()).collect();
+    let files = isowall_net::keygen(&dir, &config.wall.name, &names)?;
+    println!(
+        "wrote {} files to {} (keep ca.key off the wall: it signs certificates)",
+        files.len(),
+        dir.display()
+    );
+    Ok(())
+}
+
+/// The wall camera and render settings for the configured volume (the controller reads the volume
+/// only for its box and default iso).
+fn scene(config: &WallConfig) -> Result<(Camera, RenderSettings)> {
+    let source: VolumeSource = config.volume_source().parse()?;
+    let raw = match (&config.volume.dims, &config.volume.voxel_type) {
+        (Some(dims), Some(t)) => Some(isowall_volume::io::RawSpec {
+            dims: *dims,
+            voxel: t.parse().map_err(|e: String| anyhow!("[volume] type: {e}"))?,
+            spacing: DVec3::from_array(config.volume.spacing.unwrap_or([1.0; 3])),
+            big_endian: false,
+            header_bytes: 0,
+        }),
+        _ => None,
+    };
+    let volume = source.load(raw.as_ref()).with_context(|| format!("cannot load volume {source}"))?;
+    let iso = config.volume.iso.or(source.natural_iso()).unwrap_or_else(|| {
+        let (lo, hi) = volume.value_range();
+        0.5 * (lo as f64 + hi as f64)
+    });
+    Ok((config.camera_for(volume.box_min(), volume.box_max()), config.render_settings(iso)))
+}
+
+/// The camera of frame `k` of an orbit: the eye turned about the world up axis (+z) through the
+/// target.
+pub fn orbit_camera(base: &Camera, k: u64, degrees_per_frame: f64) -> Camera {
+    let rot = DQuat::from_rotation_z((k as f64 * degrees_per_frame).to_radians());
+    Camera { eye: base.target + rot * (base.eye - base.target), up: rot * base.up, ..*base }
+}
+
+async fn drive(
+    wall: &mut Wall,
+    base: &Camera,
+    settings: &RenderSettings,
+    o: &OrbitOptions,
+) -> Result<Duration> {
+    wall.sync_clocks(5).await;
+    let start = Instant::now();
+    for k in 0..o.frames {
+        wall.frame(&orbit_camera(base, k, o.degrees_per_frame), settings).await?;
+        if k % 30 == 29 {
+            wall.sync_clocks(1).await;
+        }
+    }
+    let elapsed = start.elapsed();
+    wall.settle().await;
+    Ok(elapsed)
+}
+
+fn runtime() -> Result<tokio::runtime::Runtime> {
+    tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .context("async runtime")
+}
+
+async fn write_snapshot(wall: &mut Wall, out: &std::path::Path) -> Result<()> {
+    let tiles = wall.snapshot().await;
+    let (w, h, rgb) = compose(&wall.config, &tiles);
+    image::save_buffer(out, &rgb, w, h, image::ExtendedColorType::Rgb8)
+        .with_context(|| format!("cannot write {}", out.display()))?;
+    let got: usize = tiles.values().map(Vec::len).sum();
+    println!("wrote {} ({w}x{h}, {got} of {} tiles)", out.display(), wall.config.tiles.len());
+    Ok(())
+}
+
+pub fn up(a: &UpArgs) -> Result<()> {
+    let config = load(&a.config)?;
+    let (base, settings) = scene(&config)?;
+    let log_dir = config.resolve("logs");
+    let mut daemons = LocalDaemons::start(&config, &log_dir)?;
+    eprintln!("isowall: starting wall '{}': {} local node(s)", config.wall.name, daemons.len());
+    let rt = runtime()?;
+    let result = rt.block_on(async {
+        let started = Instant::now();
+        let mut wall = Wall::connect(config, Duration::from_secs(a.start_timeout)).await.map_err(|e| {
+            let dead = daemons.exited();
+            if dead.is_empty() {
+                e
+            } else {
+                let list: Vec<String> = dead.iter().map(|(n, s)| format!("{n} ({s})")).collect();
+                anyhow!("{e:#}\nlocal daemons that exited: {} (see {})", list.join(", "), log_dir.display())
+            }
+        })?;
+        eprintln!("isowall: wall up in {:.2} s", started.elapsed().as_secs_f64());
+        let elapsed = drive(&mut wall, &base, &settings, &a.orbit).await?;
+        eprintln!(
+            "isowall: first frame swapped {:.2} s after start",
+            started.elapsed().as_secs_f64() - elapsed.as_secs_f64()
+        );
+        print!("{}", report(&wall, elapsed));
+        if let Some(out) = &a.snapshot {
+            write_snapshot(&mut wall, out).await?;
+        }
+        wall.close("the controller is done").await;
+        Ok::<(), anyhow::Error>(())
+    });
+    drop(daemons);
+    result
+}
+
+pub fn orbit(a: &OrbitArgs) -> Result<()> {
+    let config = load(&a.config)?;
+    let (base, settings) = scene(&config)?;
+    runtime()?.block_on(async {
+        let mut wall = Wall::connect(config, Duration::from_secs(10)).await?;
+        let elapsed = drive(&mut wall, &base, &settings, &a.orbit).await?;
+        print!("{}", report(&wall, elapsed));
+        wall.close("the controller is done").await;
+        Ok(())
+    })
+}
+
+pub fn snapshot(a: &SnapshotArgs) -> Result<()> {
+    let config = load(&a.config)?;
+    runtime()?.block_on(async {
+        let mut wall = Wall::connect(config, Duration::from_secs(10)).await?;
+        write_snapshot(&mut wall, &a.out).await?;
+        wall.close("snapshot taken").await;
+        Ok(())
+    })
+}

@@ -1,0 +1,407 @@
+//! Driving a wall: connect to every node (QUIC, mutual TLS), feed the model's
+//! [`FrameController`] with what arrives and carry out what it asks, frame after frame; gather
+//! snapshots; report statistics. The network code only moves bytes and calls the state machine.
+
+use anyhow::{anyhow, bail, Context, Result};
+use isowall_net::transport::{self, Channel, ChannelSender};
+use isowall_net::Identity;
+use isowall_wall::barrier::{ControllerOutput, FrameController, FrameStats};
+use isowall_wall::codec;
+use isowall_wall::config::WallConfig;
+use isowall_wall::messages::{Message, Role, TileImage};
+use isowall_wall::wire::FrameState;
+use isowall_wall::{Camera, RenderSettings};
+use std::collections::{BTreeMap, HashMap};
+use std::time::{Duration, Instant};
+use tokio::sync::mpsc;
+
+/// What arrives from a node's connection.
+enum Event {
+    Message(String, Message),
+    Closed(String, String),
+}
+
+/// A connected wall.
+pub struct Wall {
+    pub config: WallConfig,
+    machine: FrameController,
+    senders: HashMap<String, ChannelSender>,
+    connections: HashMap<String, quinn::Connection>,
+    events: mpsc::UnboundedReceiver<Event>,
+    events_tx: mpsc::UnboundedSender<Event>,
+    endpoint: quinn::Endpoint,
+    epoch: Instant,
+    next_frame: u64,
+    /// Statistics of finished frames.
+    pub finished: Vec<FrameStats>,
+    /// Releases: (frame, barrier time, stragglers).
+    pub releases: Vec<(u64, Duration, Vec<String>)>,
+    snapshots: BTreeMap<String, Vec<TileImage>>,
+}
+
+impl Wall {
+    /// Connects to every node, retrying until `timeout`; names the nodes that cannot be reached.
+    pub async fn connect(config: WallConfig, timeout: Duration) -> Result<Wall> {
+        let identity =
+            Identity::load(&config.cert_dir(), isowall_net::tls::CONTROLLER).with_context(|| {
+                format!("no controller certificate: run `isowall keygen --config {}`", config.path.display())
+            })?;
+        let endpoint = transport::client(&identity)?;
+        let deadline = Duration::from_millis(config.wall.deadline_ms);
+        let names: Vec<String> = config.nodes.iter().map(|n| n.name.clone()).collect();
+        let (events_tx, events) = mpsc::unbounded_channel();
+        let mut wall = Wall {
+            machine: FrameController::new(names.clone(), deadline),
+            config,
+            senders: HashMap::new(),
+            connections: HashMap::new(),
+            events,
+            events_tx,
+            endpoint,
+            epoch: Instant::now(),
+            next_frame: 1,
+            finished: Vec::new(),
+            releases: Vec::new(),
+            snapshots: BTreeMap::new(),
+        };
+        let start = Instant::now();
+        let mut last_report = Instant::now();
+        let mut errors: BTreeMap<String, String> = BTreeMap::new();
+        loop {
+            for node in wall.config.nodes.clone() {
+                if wall.senders.contains_key(&node.name) {
+                    continue;
+                }
+                match wall.connect_node(&node.name, &node.address).await {
+                    Ok(()) => {
+                        errors.remove(&node.name);
+                        eprintln!("isowall: node {} up ({}/{})", node.name, wall.senders.len(), names.len());
+                    }
+                    Err(e) => {
+                        errors.insert(node.name.clone(), format!("{} ({}): {e:#}", node.name, node.address));
+                    }
+                }
+            }
+            if errors.is_empty() {
+                return Ok(wall);
+            }
+            if start.elapsed() > timeout {
+                let list: Vec<String> = errors.values().cloned().collect();
+                bail!(
+                    "cannot reach {} of {} nodes after {:?}:\n  {}",
+                    errors.len(),
+                    names.len(),
+                    timeout,
+                    list.join("\n  ")
+                );
+            }
+            if last_report.elapsed() > Duration::from_secs(5) {
+                let waiting: Vec<&str> = errors.keys().map(String::as_str).collect();
+                eprintln!("isowall: waiting for {}", waiting.join(", "));
+                last_report = Instant::now();
+            }
+            tokio::time::sleep(Duration::from_millis(200)).await;
+        }
+    }
+
+    async fn connect_node(&mut self, name: &str, address: &str) -> Result<()> {
+        let addr = transport::resolve(address)?;
+        let conn =
+            tokio::time::timeout(Duration::from_secs(3), transport::connect(&self.endpoint, addr, name))
+                .await
+                .map_err(|_| anyhow!("no answer"))??;
+        let limit = usize::try_from(self.config.wall.message_limit_bytes).unwrap_or(usize::MAX);
+        let Channel { connection, mut sender, mut receiver } = Channel::open(conn, name, limit).await?;
+        sender.send(&codec::hello(isowall_net::tls::CONTROLLER, Role::Controller)).await?;
+        let first = tokio::time::timeout(Duration::from_secs(5), receiver.recv())
+            .await
+            .map_err(|_| anyhow!("no Hello"))??
+            .ok_or_else(|| anyhow!("closed before Hello"))?;
+        let said = codec::check_hello(&first, Role::Daemon).map_err(|e| anyhow!("{e}"))?;
+        if said != name {
+            transport::close(&connection, "wrong node");
+            bail!("the node at {address} says it is '{said}'");
+        }
+        let tx = self.events_tx.clone();
+        let node = name.to_string();
+        tokio::spawn(async move {
+            loop {
+                match receiver.recv().await {
+                    Ok(Some(m)) => {
+                        if tx.send(Event::Message(node.clone(), m)).is_err() {
+                            break;
+                        }
+                    }
+                    Ok(None) => {
+                        let _ = tx.send(Event::Closed(node.clone(), "connection closed".into()));
+                        break;
+                    }
+                    Err(e) => {
+                        let _ = tx.send(Event::Closed(node.clone(), e.to_string()));
+                        break;
+                    }
+                }
+            }
+        });
+        let now = self.now();
+        let outputs = self.machine.node_up(now, name).map_err(|e| anyhow!("{e}"))?;
+        self.senders.insert(name.to_string(), sender);
+        self.connections.insert(name.to_string(), connection);
+        self.execute(outputs).await;
+        Ok(())
+    }
+
+    fn now(&self) -> Duration {
+        self.epoch.elapsed()
+    }
+
+    /// Carries out the machine's outputs.
+    async fn execute(&mut self, outputs: Vec<ControllerOutput>) {
+        for out in outputs {
+            match out {
+                ControllerOutput::Send { node, message } => {
+                    let failed = match self.senders.get_mut(&node) {
+                        Some(s) => s.send(&message).await.err(),
+                        None => None,
+                    };
+                    if let Some(e) = failed {
+                        self.drop_node(&node, &e.to_string());
+                        let now = self.now();
+                        let more = self.machine.node_down(now, &node, &e.to_string());
+                        Box::pin(self.execute(more)).await;
+                    }
+                }
+                ControllerOutput::Released { frame_id, ready: _, stragglers, barrier } => {
+                    if !stragglers.is_empty() {
+                        eprintln!(
+                            "isowall: frame {frame_id}: swap released without {} (missed the deadline)",
+                            stragglers.join(", ")
+                        );
+                    }
+                    self.releases.push((frame_id, barrier, stragglers));
+                }
+                ControllerOutput::NodeDown { node, reason } => {
+                    eprintln!("isowall: node {node} is down: {reason}");
+                    self.drop_node(&node, &reason);
+                }
+                ControllerOutput::FrameDone { stats, .. } => self.finished.push(stats),
+                ControllerOutput::Snapshot { node, tiles } => {
+                    self.snapshots.insert(node, tiles);
+                }
+            }
+        }
+    }
+
+    fn drop_node(&mut self, node: &str, reason: &str) {
+        self.senders.remove(node);
+        if let Some(c) = self.connections.remove(node) {
+            transport::close(&c, reason);
+        }
+    }
+
+    /// Waits for the next event or timeout and lets the machine handle it.
+    async fn step(&mut self) {
+        let timeout = self.machine.poll_timeout();
+        let sleep = match timeout {
+            Some(t) => t.saturating_sub(self.now()),
+            None => Duration::from_millis(200),
+        };
+        let outputs = tokio::select! {
+            e = self.events.recv() => match e {
+                Some(Event::Message(node, msg)) => {
+                    let now = self.now();
+                    match self.machine.handle(now, &node, msg) {
+                        Ok(out) => out,
+                        Err(err) => {
+                            eprintln!("isowall: closing {node}: {err}");
+                            self.drop_node(&node, &err.to_string());
+                            self.machine.node_down(now, &node, &err.to_string())
+                        }
+                    }
+                }
+                Some(Event::Closed(node, reason)) => {
+                    let now = self.now();
+                    if self.senders.contains_key(&node) {
+                        self.machine.node_down(now, &node, &reason)
+                    } else {
+                        Vec::new()
+                    }
+                }
+                None => Vec::new(),
+            },
+            _ = tokio::time::sleep(sleep) => {
+                let now = self.now();
+                match timeout {
+                    Some(t) if now >= t => self.machine.handle_timeout(now),
+                    _ => Vec::new(),
+                }
+            }
+        };
+        self.execute(outputs).await;
+    }
+
+    /// Pings every node a few times so present times can be compared across nodes.
+    pub async fn sync_clocks(&mut self, rounds: usize) {
+        for _ in 0..rounds {
+            let now = self.now();
+            let out = self.machine.ping(now);
+            self.execute(out).await;
+            let until = Instant::now() + Duration::from_millis(20);
+            while Instant::now() < until {
+                tokio::select! {
+                    _ = self.step() => {}
+                    _ = tokio::time::sleep_until(until.into()) => break,
+                }
+            }
+        }
+    }
+
+    /// Runs one frame: begins it and waits until its swap is released.
+    pub async fn frame(&mut self, camera: &Camera, settings: &RenderSettings) -> Result<()> {
+        let id = self.next_frame;
+        self.next_frame += 1;
+        let state = FrameState::new(id, camera, settings, 0);
+        let now = self.now();
+        let out = self.machine.begin_frame(now, state).map_err(|e| anyhow!("{e}"))?;
+        self.execute(out).await;
+        while self.releases.last().map(|r| r.0) != Some(id) {
+            if self.senders.is_empty() {
+                bail!("every node of the wall is down");
+            }
+            self.step().await;
+        }
+        Ok(())
+    }
+
+    /// Waits until every begun frame is finished (presented everywhere, or its present deadline).
+    pub async fn settle(&mut self) {
+        let last = self.next_frame - 1;
+        let give_up = Instant::now() + Duration::from_millis(self.config.wall.deadline_ms) * 2;
+        while self.finished.last().map(|f| f.frame_id) != Some(last) && Instant::now() < give_up {
+            self.step().await;
+        }
+    }
+
+    /// Gathers every node's last presented tiles.
+    pub async fn snapshot(&mut self) -> BTreeMap<String, Vec<TileImage>> {
+        self.snapshots.clear();
+        let now = self.now();
+        let out = self.machine.request_snapshot(now);
+        let expected = out.len();
+        self.execute(out).await;
+        let give_up = Instant::now() + Duration::from_secs(10);
+        while self.snapshots.len() < expected && Instant::now() < give_up && !self.senders.is_empty() {
+            self.step().await;
+        }
+        std::mem::take(&mut self.snapshots)
+    }
+
+    /// Says goodbye to every node.
+    pub async fn close(mut self, reason: &str) {
+        for (node, s) in self.senders.iter_mut() {
+            if let Err(e) = s.send(&Message::Bye { reason: reason.to_string() }).await {
+                tracing::debug!(%node, "bye: {e}");
+            }
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        for c in self.connections.values() {
+            transport::close(c, reason);
+        }
+        self.endpoint.wait_idle().await;
+    }
+}
+
+/// Places every tile's image by the wall geometry into one RGB image; bezels and gaps dark, tiles
+/// with no image (a node down) a grey placeholder.
+pub fn compose(config: &WallConfig, tiles: &BTreeMap<String, Vec<TileImage>>) -> (u32, u32, Vec<u8>) {
+    let (w, h) = config.wall_size();
+    let mut img = vec![12u8; w as usize * h as usize * 3];
+    let by_name: HashMap<&str, &TileImage> = tiles.values().flatten().map(|t| (t.name.as_str(), t)).collect();
+    for tile in &config.tiles {
+        let image =
+            by_name.get(tile.name.as_str()).filter(|t| t.width == tile.width && t.height == tile.height);
+        for y in 0..tile.height {
+            let row = (tile.y + y) as usize * w as usize;
+            for x in 0..tile.width {
+                let dst = (row + (tile.x + x) as usize) * 3;
+                let px: [u8; 3] = match image {
+                    Some(t) => {
+                        let src = ((y * t.width + x) * 3) as usize;
+                        [t.rgb8[src], t.rgb8[src + 1], t.rgb8[src + 2]]
+                    }
+                    // Placeholder: grey with a darker diagonal cross.
+                    None if x * tile.height / tile.width.max(1) == y
+                        || (tile.width - 1 - x) * tile.height / tile.width.max(1) == y =>
+                    {
+                        [40, 40, 40]
+                    }
+                    None => [96, 96, 96],
+                };
+                img[dst..dst + 3].copy_from_slice(&px);
+            }
+        }
+    }
+    (w, h, img)
+}
+
+/// p-quantile of durations (nearest rank).
+pub fn quantile(mut v: Vec<Duration>, q: f64) -> Option<Duration> {
+    if v.is_empty() {
+        return None;
+    }
+    v.sort();
+    Some(v[((v.len() - 1) as f64 * q).round() as usize])
+}
+
+/// Human statistics of a run.
+pub fn report(wall: &Wall, elapsed: Duration) -> String {
+    let frames = wall.releases.len();
+    let mut s = format!(
+        "frames: {frames} in {:.2} s ({:.1} fps)\n",
+        elapsed.as_secs_f64(),
+        frames as f64 / elapsed.as_secs_f64().max(1e-9)
+    );
+    let ms = |d: Option<Duration>| d.map_or("-".to_string(), |d| format!("{:.2} ms", d.as_secs_f64() * 1e3));
+    let barrier: Vec<Duration> = wall.releases.iter().map(|r| r.1).collect();
+    s += &format!(
+        "barrier (frame state sent -> swap released): p50 {} p99 {} max {}\n",
+        ms(quantile(barrier.clone(), 0.5)),
+        ms(quantile(barrier.clone(), 0.99)),
+        ms(quantile(barrier, 1.0))
+    );
+    let skews: Vec<Duration> = wall.finished.iter().filter_map(|f| f.swap_skew).collect();
+    s += &format!(
+        "swap skew (measured, controller clock): p50 {} p99 {} max {} over {} frames\n",
+        ms(quantile(skews.clone(), 0.5)),
+        ms(quantile(skews.clone(), 0.99)),
+        ms(quantile(skews.clone(), 1.0)),
+        skews.len()
+    );
+    let mut per_node: BTreeMap<&str, (Vec<Duration>, Vec<Duration>, Vec<Duration>)> = BTreeMap::new();
+    for f in &wall.finished {
+        for n in &f.per_node {
+            let e = per_node.entry(n.node.as_str()).or_default();
+            e.0.extend(n.render);
+            e.1.extend(n.ready_after);
+            if let (Some(p), Some(r)) = (n.presented_at, wall.releases.iter().find(|r| r.0 == f.frame_id)) {
+                let _ = r;
+                e.2.push(p);
+            }
+        }
+    }
+    for (node, (render, ready, _)) in per_node {
+        s += &format!(
+            "  {node}: render p50 {} max {}; ready after p50 {} max {}\n",
+            ms(quantile(render.clone(), 0.5)),
+            ms(quantile(render, 1.0)),
+            ms(quantile(ready.clone(), 0.5)),
+            ms(quantile(ready, 1.0)),
+        );
+    }
+    let stragglers: Vec<String> =
+        wall.releases.iter().flat_map(|r| r.2.iter().map(|n| format!("{n}@{}", r.0))).collect();
+    if !stragglers.is_empty() {
+        s += &format!("stragglers (node@frame): {}\n", stragglers.join(", "));
+    }
+    s
+}

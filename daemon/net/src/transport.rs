@@ -1,0 +1,174 @@
+//! QUIC endpoints and framed message channels. One bidirectional stream per connection carries
+//! length-prefixed [`Message`]s (the model's codec frames them); a message over the wall's limit,
+//! or bytes that do not decode, end that connection with a reason and nothing else.
+
+use crate::tls::{Identity, TlsError};
+use isowall_wall::codec::{self, CodecError, Decoder};
+use isowall_wall::messages::Message;
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+
+/// The application protocol name both sides announce.
+pub const ALPN: &[u8] = b"isowall/1";
+
+#[derive(Debug, thiserror::Error)]
+pub enum NetError {
+    #[error(transparent)]
+    Tls(#[from] TlsError),
+    #[error("cannot listen on {addr}: {source}")]
+    Bind { addr: SocketAddr, source: std::io::Error },
+    #[error("cannot resolve '{0}' to an address")]
+    Resolve(String),
+    #[error("connecting to {peer}: {reason}")]
+    Connect { peer: String, reason: String },
+    #[error("connection to {peer} lost: {reason}")]
+    Connection { peer: String, reason: String },
+    #[error("{peer} sent a bad message: {source}")]
+    Codec { peer: String, source: CodecError },
+}
+
+/// Transport settings: keep-alives so a dead peer is noticed within the idle timeout.
+pub fn transport_config() -> quinn::TransportConfig {
+    let mut t = quinn::TransportConfig::default();
+    t.keep_alive_interval(Some(Duration::from_millis(500)));
+    t.max_idle_timeout(Some(Duration::from_secs(5).try_into().expect("5 s is a valid idle timeout")));
+    t
+}
+
+/// Resolves `host:port` (the first address).
+pub fn resolve(address: &str) -> Result<SocketAddr, NetError> {
+    use std::net::ToSocketAddrs;
+    address
+        .to_socket_addrs()
+        .ok()
+        .and_then(|mut a| a.next())
+        .ok_or_else(|| NetError::Resolve(address.to_string()))
+}
+
+/// A server endpoint on `addr` that accepts only peers with a wall certificate.
+pub fn server(addr: SocketAddr, identity: &Identity) -> Result<quinn::Endpoint, NetError> {
+    quinn::Endpoint::server(identity.server_config()?, addr).map_err(|source| NetError::Bind { addr, source })
+}
+
+/// A client endpoint presenting `identity`.
+pub fn client(identity: &Identity) -> Result<quinn::Endpoint, NetError> {
+    let bind: SocketAddr = "0.0.0.0:0".parse().expect("valid address");
+    let mut ep = quinn::Endpoint::client(bind).map_err(|source| NetError::Bind { addr: bind, source })?;
+    ep.set_default_client_config(identity.client_config()?);
+    Ok(ep)
+}
+
+/// Connects to the node `name` at `addr`; its certificate must name it and be signed by the wall CA.
+pub async fn connect(
+    endpoint: &quinn::Endpoint,
+    addr: SocketAddr,
+    name: &str,
+) -> Result<quinn::Connection, NetError> {
+    let err = |reason: String| NetError::Connect { peer: format!("{name} ({addr})"), reason };
+    endpoint.connect(addr, name).map_err(|e| err(e.to_string()))?.await.map_err(|e| err(e.to_string()))
+}
+
+/// The sending half of a channel.
+pub struct ChannelSender {
+    pub peer: String,
+    send: quinn::SendStream,
+}
+
+/// The receiving half of a channel.
+pub struct ChannelReceiver {
+    pub peer: String,
+    recv: quinn::RecvStream,
+    decoder: Decoder,
+}
+
+/// A framed, bidirectional message channel over one QUIC stream.
+pub struct Channel {
+    pub connection: quinn::Connection,
+    pub sender: ChannelSender,
+    pub receiver: ChannelReceiver,
+}
+
+impl Channel {
+    /// Opens the channel (the connecting side).
+    pub async fn open(connection: quinn::Connection, peer: &str, limit: usize) -> Result<Channel, NetError> {
+        let (send, recv) = connection
+            .open_bi()
+            .await
+            .map_err(|e| NetError::Connection { peer: peer.to_string(), reason: e.to_string() })?;
+        Ok(Channel::new(connection, peer, send, recv, limit))
+    }
+
+    /// Accepts the channel (the listening side).
+    pub async fn accept(
+        connection: quinn::Connection,
+        peer: &str,
+        limit: usize,
+    ) -> Result<Channel, NetError> {
+        let (send, recv) = connection
+            .accept_bi()
+            .await
+            .map_err(|e| NetError::Connection { peer: peer.to_string(), reason: e.to_string() })?;
+        Ok(Channel::new(connection, peer, send, recv, limit))
+    }
+
+    fn new(
+        connection: quinn::Connection,
+        peer: &str,
+        send: quinn::SendStream,
+        recv: quinn::RecvStream,
+        limit: usize,
+    ) -> Channel {
+        Channel {
+            connection,
+            sender: ChannelSender { peer: peer.to_string(), send },
+            receiver: ChannelReceiver { peer: peer.to_string(), recv, decoder: Decoder::new(limit) },
+        }
+    }
+
+    /// Closes the connection with a reason the peer sees.
+    pub fn close(&self, reason: &str) {
+        close(&self.connection, reason);
+    }
+}
+
+/// Closes a connection with an application reason (trimmed to fit a frame).
+pub fn close(connection: &quinn::Connection, reason: &str) {
+    let reason: String = reason.chars().take(200).collect();
+    connection.close(quinn::VarInt::from_u32(1), reason.as_bytes());
+}
+
+impl ChannelSender {
+    pub async fn send(&mut self, message: &Message) -> Result<(), NetError> {
+        let bytes =
+            codec::frame(message).map_err(|source| NetError::Codec { peer: self.peer.clone(), source })?;
+        self.send
+            .write_all(&bytes)
+            .await
+            .map_err(|e| NetError::Connection { peer: self.peer.clone(), reason: e.to_string() })
+    }
+}
+
+impl ChannelReceiver {
+    /// The next message; `None` when the peer finished the stream cleanly.
+    pub async fn recv(&mut self) -> Result<Option<Message>, NetError> {
+        let mut buf = vec![0u8; 64 * 1024];
+        loop {
+            match self.decoder.next() {
+                Ok(Some(m)) => return Ok(Some(m)),
+                Ok(None) => {}
+                Err(source) => return Err(NetError::Codec { peer: self.peer.clone(), source }),
+            }
+            match self.recv.read(&mut buf).await {
+                Ok(Some(n)) => self.decoder.push(&buf[..n]),
+                Ok(None) => return Ok(None),
+                Err(e) => {
+                    return Err(NetError::Connection { peer: self.peer.clone(), reason: e.to_string() })
+                }
+            }
+        }
+    }
+}
+
+/// Shared handle for a sender used from several tasks.
+pub type SharedSender = Arc<tokio::sync::Mutex<ChannelSender>>;

@@ -1,0 +1,283 @@
+//! `isowalld run`: a wall node. It loads the volume, opens the GPU on its render thread, listens
+//! for the controller over QUIC (mutual TLS against the wall CA), and drives the model's
+//! [`NodeMachine`] with what arrives: render the node's tiles for each frame state, reply Ready,
+//! present on Swap, answer snapshots with the last presented tiles. Headless: presenting makes the
+//! rendered tiles the shown ones (kept for snapshots). The network code only moves bytes and calls
+//! the state machine; the render thread alone touches the GPU.
+
+use crate::render::load_volume;
+use crate::tiles::{JobResult, TileJob, TileRenderer, TileResult};
+use anyhow::{anyhow, Context, Result};
+use clap::Args;
+use isowall_net::transport::{self, Channel, NetError};
+use isowall_net::Identity;
+use isowall_render::environment::{EnvSource, Environment};
+use isowall_volume::io::RawSpec;
+use isowall_wall::config::WallConfig;
+use isowall_wall::daemon_machine::{NodeMachine, NodeOutput};
+use isowall_wall::messages::{Message, TileImage};
+use isowall_wall::wire::FrameSpec;
+use std::path::PathBuf;
+use std::time::Instant;
+use tokio::sync::mpsc::UnboundedReceiver;
+
+#[derive(Args, Debug, Clone)]
+pub struct RunArgs {
+    /// The wall config (TOML)
+    #[arg(long, value_name = "FILE")]
+    pub config: PathBuf,
+    /// This node's name in the config
+    #[arg(long, value_name = "NAME")]
+    pub node: String,
+}
+
+/// What the node needs beyond the network.
+struct Node {
+    name: String,
+    config: WallConfig,
+    tiles: Vec<String>,
+    renderer: TileRenderer,
+    results: UnboundedReceiver<Result<JobResult, String>>,
+    epoch: Instant,
+    limit: usize,
+    /// Rendered, waiting for the swap.
+    pending: Option<JobResult>,
+    /// The tiles on show (the last presented frame), for snapshots.
+    shown: Option<(u64, Vec<TileResult>)>,
+}
+
+pub fn run(a: &RunArgs) -> Result<()> {
+    let config = WallConfig::load(&a.config).map_err(|e| anyhow!("{e}"))?;
+    let node = config
+        .node(&a.node)
+        .ok_or_else(|| {
+            let names: Vec<&str> = config.nodes.iter().map(|n| n.name.as_str()).collect();
+            anyhow!("{}: no node '{}' (nodes: {})", a.config.display(), a.node, names.join(", "))
+        })?
+        .clone();
+    let identity = Identity::load(&config.cert_dir(), &node.name).with_context(|| {
+        format!(
+            "no certificate for node '{}': run `isowall keygen --config {}`",
+            node.name,
+            a.config.display()
+        )
+    })?;
+    let raw = raw_spec(&config)?;
+    let (volume, iso) = load_volume(Some(&config.volume_source()), raw.as_ref(), config.volume.iso)?;
+    let _ = iso;
+    let env_src: EnvSource = config.env_source().parse().context("[render] env")?;
+    let env: Environment = env_src.load().context("cannot load the environment")?;
+    let (tx, results) = tokio::sync::mpsc::unbounded_channel();
+    let renderer = TileRenderer::start(volume, Some(env), tx)?;
+    let addr = transport::resolve(&node.address)?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")?;
+    let limit = usize::try_from(config.wall.message_limit_bytes).unwrap_or(usize::MAX);
+    let mut state = Node {
+        name: node.name.clone(),
+        tiles: node.tiles.clone(),
+        config,
+        renderer,
+        results,
+        epoch: Instant::now(),
+        limit,
+        pending: None,
+        shown: None,
+    };
+    runtime.block_on(async move {
+        let endpoint = transport::server(addr, &identity)?;
+        tracing::info!(node = %state.name, %addr, "listening for the controller");
+        // Systemd (Type=notify) and scripts wait for this line.
+        println!("isowalld: node {} ready on {addr}", state.name);
+        let mut next: Option<quinn::Connection> = None;
+        loop {
+            let conn = match next.take() {
+                Some(c) => c,
+                None => match accept(&endpoint).await {
+                    Some(c) => c,
+                    None => return Ok::<(), anyhow::Error>(()),
+                },
+            };
+            next = serve(&mut state, &endpoint, conn).await;
+        }
+    })
+}
+
+fn raw_spec(config: &WallConfig) -> Result<Option<RawSpec>> {
+    let v = &config.volume;
+    match (v.dims, &v.voxel_type) {
+        (Some(dims), Some(t)) => Ok(Some(RawSpec {
+            dims,
+            voxel: t.parse().map_err(|e: String| anyhow!("[volume] type: {e}"))?,
+            spacing: glam::DVec3::from_array(v.spacing.unwrap_or([1.0; 3])),
+            big_endian: false,
+            header_bytes: 0,
+        })),
+        _ => Ok(None),
+    }
+}
+
+/// The next connection whose TLS handshake succeeds; refused peers are logged and skipped.
+async fn accept(endpoint: &quinn::Endpoint) -> Option<quinn::Connection> {
+    loop {
+        let incoming = endpoint.accept().await?;
+        let remote = incoming.remote_address();
+        match incoming.await {
+            Ok(c) => return Some(c),
+            Err(e) => tracing::warn!(%remote, "refused a connection: {e}"),
+        }
+    }
+}
+
+/// Serves one controller until its connection ends; returns a newer controller's connection if
+/// one arrived meanwhile (the newer controller takes over).
+async fn serve(
+    node: &mut Node,
+    endpoint: &quinn::Endpoint,
+    conn: quinn::Connection,
+) -> Option<quinn::Connection> {
+    let remote = conn.remote_address();
+    let channel = match Channel::accept(conn, "controller", node.limit).await {
+        Ok(c) => c,
+        Err(e) => {
+            tracing::warn!(%remote, "controller connection failed: {e}");
+            return None;
+        }
+    };
+    tracing::info!(%remote, "controller connected");
+    let Channel { connection, mut sender, mut receiver } = channel;
+    let mut machine = NodeMachine::new(node.name.clone(), node.tiles.clone());
+    node.pending = None;
+    if let Err(e) = sender.send(&machine.hello()).await {
+        tracing::warn!("{e}");
+        return None;
+    }
+    let (msg_tx, mut msg_rx) = tokio::sync::mpsc::channel::<Result<Option<Message>, NetError>>(16);
+    let reader = tokio::spawn(async move {
+        loop {
+            let r = receiver.recv().await;
+            let end = !matches!(r, Ok(Some(_)));
+            if msg_tx.send(r).await.is_err() || end {
+                break;
+            }
+        }
+    });
+    let outcome = loop {
+        let outputs = tokio::select! {
+            m = msg_rx.recv() => match m {
+                Some(Ok(Some(msg))) => match machine.handle(node.epoch.elapsed(), msg) {
+                    Ok(out) => out,
+                    Err(e) => {
+                        tracing::warn!("closing the controller connection: {e}");
+                        transport::close(&connection, &e.to_string());
+                        break None;
+                    }
+                },
+                Some(Ok(None)) | None => {
+                    tracing::info!("the controller closed the connection");
+                    break None;
+                }
+                Some(Err(e)) => {
+                    tracing::warn!("controller connection ended: {e}");
+                    transport::close(&connection, &e.to_string());
+                    break None;
+                }
+            },
+            r = node.results.recv() => match r {
+                Some(Ok(done)) => {
+                    let (id, t) = (done.frame_id, done.render_time);
+                    node.pending = Some(done);
+                    machine.render_done(node.epoch.elapsed(), id, t)
+                }
+                Some(Err(e)) => {
+                    tracing::error!("render failed: {e}");
+                    transport::close(&connection, &format!("render failed: {e}"));
+                    break None;
+                }
+                None => break None,
+            },
+            c = accept(endpoint) => {
+                tracing::info!("a new controller connected; it takes over");
+                transport::close(&connection, "another controller took over");
+                break c;
+            }
+        };
+        if let Err(e) = execute(node, &mut machine, &mut sender, outputs).await {
+            tracing::warn!("controller connection ended: {e}");
+            break None;
+        }
+    };
+    reader.abort();
+    outcome
+}
+
+/// Carries out the machine's outputs (and those they lead to).
+async fn execute(
+    node: &mut Node,
+    machine: &mut NodeMachine,
+    sender: &mut transport::ChannelSender,
+    outputs: Vec<NodeOutput>,
+) -> Result<(), NetError> {
+    let mut queue: std::collections::VecDeque<NodeOutput> = outputs.into();
+    while let Some(out) = queue.pop_front() {
+        match out {
+            NodeOutput::Send(m) => sender.send(&m).await?,
+            NodeOutput::Render { state, accumulate_frame } => {
+                let spec = match FrameSpec::try_from(&state) {
+                    Ok(s) => s,
+                    Err(e) => {
+                        tracing::warn!("frame {}: {e}", state.frame_id);
+                        continue;
+                    }
+                };
+                let _span =
+                    tracing::info_span!("frame", frame_id = spec.frame_id, node = %node.name).entered();
+                let tiles = node
+                    .tiles
+                    .iter()
+                    .filter_map(|t| node.config.tile_view(spec.camera, t).map(|v| (t.clone(), v)))
+                    .collect();
+                tracing::debug!(accumulate_frame, "render");
+                if let Err(e) = node.renderer.submit(TileJob {
+                    frame_id: spec.frame_id,
+                    tiles,
+                    settings: spec.settings,
+                    accumulate_frame,
+                }) {
+                    tracing::error!("{e}");
+                }
+            }
+            NodeOutput::Present { frame_id } => {
+                let _span = tracing::info_span!("frame", frame_id, node = %node.name).entered();
+                if let Some(p) = node.pending.take().filter(|p| p.frame_id == frame_id) {
+                    node.shown = Some((frame_id, p.tiles));
+                }
+                queue.extend(machine.presented(node.epoch.elapsed(), frame_id));
+            }
+            NodeOutput::SnapshotWanted => {
+                let tiles = match &node.shown {
+                    Some((id, tiles)) => tiles
+                        .iter()
+                        .map(|t| TileImage {
+                            name: t.name.clone(),
+                            width: t.width,
+                            height: t.height,
+                            frame_id: *id,
+                            rgb8: t.rgb8.clone(),
+                        })
+                        .collect(),
+                    None => Vec::new(),
+                };
+                sender.send(&Message::Snapshot { tiles }).await?;
+            }
+            NodeOutput::Closed { reason } => {
+                tracing::info!("the controller said goodbye: {reason}");
+                return Err(NetError::Connection { peer: "controller".into(), reason });
+            }
+        }
+    }
+    Ok(())
+}

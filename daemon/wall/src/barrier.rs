@@ -1,0 +1,861 @@
+//! The controller's frame machine: the swap barrier of DESIGN.md ("Distribution", "Faults").
+//!
+//! Sans-IO, in the manner of `quinn-proto`: [`FrameController`] never touches a socket or a clock.
+//! The caller passes the time in (`now`, a [`Duration`] since any fixed epoch of the controller's
+//! clock), feeds it what happens ([`FrameController::node_up`], [`FrameController::node_down`],
+//! [`FrameController::handle`]), asks it to act ([`FrameController::begin_frame`],
+//! [`FrameController::ping`], [`FrameController::request_snapshot`]), calls
+//! [`FrameController::handle_timeout`] once `now` reaches [`FrameController::poll_timeout`], and
+//! carries out the [`ControllerOutput`]s every call returns, in order.
+//!
+//! One frame:
+//! 1. `begin_frame`: the frame state goes to every node that is up; they are the frame's
+//!    participants (a node that comes up later joins at the next frame).
+//! 2. Ready replies are collected. When every participant still up is ready, or the deadline
+//!    (`begin + deadline`) passes, the swap is released: Swap goes to the ready nodes, and
+//!    [`ControllerOutput::Released`] names the ready nodes and the stragglers.
+//! 3. Presented replies are collected, each converted to controller time by the node's clock
+//!    offset (from Ping/Pong, see [`crate::clock`]). When every released node has presented, or
+//!    the present deadline passes, [`ControllerOutput::FrameDone`] carries the frame's statistics,
+//!    the swap skew among them.
+//!
+//! The next frame may begin as soon as the previous one is released: its Presented replies are
+//! still collected meanwhile. (If it is released in turn before they all came, the older frame is
+//! finished first, with what arrived.) A straggler's late Ready, or a late Presented, is counted
+//! and otherwise ignored; it is no error. What is an error ([`ProtocolError`]: the caller closes
+//! that node's connection, then calls `node_down`): a message only the controller sends, a second
+//! Hello, Ready for a frame the node was never sent or twice, Presented for a frame it was not
+//! told to swap, a Pong for no Ping, a Snapshot nobody asked for, a message from an unknown node
+//! or one that is not up.
+
+use std::collections::{BTreeMap, VecDeque};
+use std::time::Duration;
+
+use crate::clock::{ClockEstimator, ClockOffset, ClockSample};
+use crate::messages::{Message, ProtocolError, TileImage};
+use crate::wire::FrameState;
+
+/// Pings and swaps remembered per node, at most (older ones are forgotten: their answers will be
+/// protocol errors, which they are after this many have gone unanswered).
+const REMEMBERED: usize = 32;
+
+/// What the caller must do, in order.
+#[allow(clippy::large_enum_variant)] // a Message with a FrameState, see `Message`
+#[derive(Debug, Clone, PartialEq)]
+pub enum ControllerOutput {
+    /// Send `message` on `node`'s connection.
+    Send { node: String, message: Message },
+    /// The swap of `frame_id` was released (Swap sent to `ready`) `barrier` after it began;
+    /// `stragglers` were up and missed the deadline (they get no Swap for it).
+    Released { frame_id: u64, ready: Vec<String>, stragglers: Vec<String>, barrier: Duration },
+    /// `node` is down (or its connection was replaced); it takes part in no frame until it is up.
+    NodeDown { node: String, reason: String },
+    /// A frame is finished: every released node presented it, or the present deadline passed.
+    FrameDone { frame_id: u64, stats: FrameStats },
+    /// A node's answer to [`FrameController::request_snapshot`].
+    Snapshot { node: String, tiles: Vec<TileImage> },
+}
+
+/// One node's part in one frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NodeFrameStats {
+    pub node: String,
+    /// The render time it reported in Ready.
+    pub render: Option<Duration>,
+    /// When its Ready arrived, since the frame began (`None`: not before the release).
+    pub ready_after: Option<Duration>,
+    /// When it presented, in controller time (`None`: it did not report in time, or its clock
+    /// offset is not known yet).
+    pub presented_at: Option<Duration>,
+    /// When it presented, by its own clock, as it reported.
+    pub presented_node_time_us: Option<i64>,
+    /// Whether it went down during the frame.
+    pub went_down: bool,
+}
+
+/// A finished frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameStats {
+    pub frame_id: u64,
+    /// The frame's participants, by name.
+    pub per_node: Vec<NodeFrameStats>,
+    /// max - min of `presented_at` over the nodes that have one (`None` when none has).
+    pub swap_skew: Option<Duration>,
+    /// From the frame's begin to the release of its swap.
+    pub barrier: Duration,
+    /// Nodes of the wall that took no part in the frame (down when it began).
+    pub missing: Vec<String>,
+}
+
+/// Running counts of one node, since the controller was made.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct NodeCounters {
+    /// Frames it was sent.
+    pub frames: u64,
+    /// Frames it was ready for in time.
+    pub ready: u64,
+    /// Frames released without it while it was up.
+    pub straggled: u64,
+    /// Ready replies that came after their frame was released (ignored).
+    pub late_ready: u64,
+    /// Presented replies that came after their frame was finished (ignored).
+    pub late_presented: u64,
+    /// Times it went down.
+    pub downs: u64,
+    /// Ping/Pong round trips completed.
+    pub pongs: u64,
+}
+
+/// Why a frame cannot begin.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum BeginError {
+    #[error("frame {0} is still waiting for its swap to be released")]
+    InFlight(u64),
+    #[error("frame id {given} does not follow the last frame id {last}")]
+    NotIncreasing { last: u64, given: u64 },
+}
+
+#[derive(Debug, Default)]
+struct NodeState {
+    up: bool,
+    clock: ClockEstimator,
+    /// Outstanding pings: (id, t0_us).
+    pings: VecDeque<(u64, i64)>,
+    /// First and last frame ids sent on this connection.
+    first_sent: Option<u64>,
+    last_sent: Option<u64>,
+    last_ready: Option<u64>,
+    /// Frames it was told to swap and has not reported presented.
+    swapped: VecDeque<u64>,
+    snapshot_wanted: bool,
+    counters: NodeCounters,
+}
+
+impl NodeState {
+    /// Forgets everything of the previous connection (a restarted daemon has a new clock too).
+    fn reset_connection(&mut self) {
+        self.clock.clear();
+        self.pings.clear();
+        self.first_sent = None;
+        self.last_sent = None;
+        self.last_ready = None;
+        self.swapped.clear();
+        self.snapshot_wanted = false;
+    }
+}
+
+#[derive(Debug, Default, Clone)]
+struct Part {
+    render: Option<Duration>,
+    ready_after: Option<Duration>,
+    released: bool,
+    presented: bool,
+    presented_at: Option<Duration>,
+    presented_node_time_us: Option<i64>,
+    down: bool,
+}
+
+#[derive(Debug)]
+struct Frame {
+    id: u64,
+    begin: Duration,
+    /// Set at the release.
+    released_at: Option<Duration>,
+    parts: BTreeMap<String, Part>,
+    missing: Vec<String>,
+}
+
+impl Frame {
+    fn all_ready(&self) -> bool {
+        self.parts.values().all(|p| p.down || p.ready_after.is_some())
+    }
+
+    fn all_presented(&self) -> bool {
+        self.parts.values().all(|p| p.down || !p.released || p.presented)
+    }
+}
+
+fn micros(t: Duration) -> i64 {
+    i64::try_from(t.as_micros()).unwrap_or(i64::MAX)
+}
+
+/// The controller's frame machine (see the module docs).
+#[derive(Debug)]
+pub struct FrameController {
+    nodes: BTreeMap<String, NodeState>,
+    deadline: Duration,
+    present_deadline: Duration,
+    ping_interval: Option<Duration>,
+    next_ping_at: Option<Duration>,
+    next_ping_id: u64,
+    last_frame_id: Option<u64>,
+    /// Begun, not released.
+    collecting: Option<Frame>,
+    /// Released, not finished.
+    presenting: Option<Frame>,
+}
+
+impl FrameController {
+    /// Pings every up node this often by default (see [`FrameController::set_ping_interval`]).
+    pub const DEFAULT_PING_INTERVAL: Duration = Duration::from_millis(500);
+
+    /// A controller for the wall's `nodes` (all down until [`FrameController::node_up`]); a frame's
+    /// swap is released at the latest `deadline` after it began, and it is finished at the latest
+    /// `deadline` after its release.
+    pub fn new(nodes: Vec<String>, deadline: Duration) -> Self {
+        FrameController {
+            nodes: nodes.into_iter().map(|n| (n, NodeState::default())).collect(),
+            deadline,
+            present_deadline: deadline,
+            ping_interval: Some(Self::DEFAULT_PING_INTERVAL),
+            next_ping_at: None,
+            next_ping_id: 1,
+            last_frame_id: None,
+            collecting: None,
+            presenting: None,
+        }
+    }
+
+    // ---- getters ----
+
+    /// The frame whose swap is not released yet (a new frame cannot begin while there is one).
+    pub fn in_flight(&self) -> Option<u64> {
+        self.collecting.as_ref().map(|f| f.id)
+    }
+
+    /// The released frame still collecting Presented replies.
+    pub fn presenting(&self) -> Option<u64> {
+        self.presenting.as_ref().map(|f| f.id)
+    }
+
+    /// The node's clock offset (node clock - controller clock), once a Pong has arrived on its
+    /// current connection.
+    pub fn clock_offset(&self, node: &str) -> Option<ClockOffset> {
+        self.nodes.get(node)?.clock.estimate()
+    }
+
+    pub fn is_up(&self, node: &str) -> bool {
+        self.nodes.get(node).is_some_and(|n| n.up)
+    }
+
+    /// The wall's nodes, in name order.
+    pub fn nodes(&self) -> impl Iterator<Item = &str> {
+        self.nodes.keys().map(String::as_str)
+    }
+
+    pub fn up_nodes(&self) -> Vec<String> {
+        self.nodes.iter().filter(|(_, n)| n.up).map(|(k, _)| k.clone()).collect()
+    }
+
+    pub fn counters(&self, node: &str) -> Option<NodeCounters> {
+        self.nodes.get(node).map(|n| n.counters)
+    }
+
+    pub fn deadline(&self) -> Duration {
+        self.deadline
+    }
+
+    // ---- settings ----
+
+    pub fn set_deadline(&mut self, deadline: Duration) {
+        self.deadline = deadline;
+    }
+
+    /// How long after its release a frame waits for Presented replies (default: the deadline).
+    pub fn set_present_deadline(&mut self, d: Duration) {
+        self.present_deadline = d;
+    }
+
+    /// Ping every up node this often from [`FrameController::handle_timeout`]; `None`: only when
+    /// [`FrameController::ping`] is called (and once at each node's `node_up`).
+    pub fn set_ping_interval(&mut self, interval: Option<Duration>) {
+        self.ping_interval = interval;
+        if interval.is_none() {
+            self.next_ping_at = None;
+        }
+    }
+
+    // ---- connections ----
+
+    /// `node`'s connection is open and its Hello checked ([`crate::codec::check_hello`]). It takes
+    /// part from the next frame that begins. Returns a first Ping to it (clock sync). If the node
+    /// was up already, its old connection is taken down first (what that releases comes first).
+    pub fn node_up(&mut self, now: Duration, node: &str) -> Result<Vec<ControllerOutput>, ProtocolError> {
+        let Some(st) = self.nodes.get(node) else {
+            return Err(ProtocolError::new(node, "Hello", "not a node of this wall"));
+        };
+        let mut out = Vec::new();
+        if st.up {
+            out = self.node_down(now, node, "replaced by a new connection");
+        }
+        let st = self.nodes.get_mut(node).expect("checked above");
+        st.reset_connection();
+        st.up = true;
+        if self.ping_interval.is_some() && self.next_ping_at.is_none() {
+            self.next_ping_at = Some(now + self.ping_interval.unwrap_or_default());
+        }
+        out.push(self.ping_one(now, node));
+        Ok(out)
+    }
+
+    /// `node`'s connection closed (or timed out, or the caller closed it after a protocol error).
+    /// It leaves the frames in flight; a frame that only waited on it is released or finished now.
+    /// Returns nothing for a node that is not up.
+    pub fn node_down(&mut self, now: Duration, node: &str, reason: &str) -> Vec<ControllerOutput> {
+        let Some(st) = self.nodes.get_mut(node) else { return Vec::new() };
+        if !st.up {
+            return Vec::new();
+        }
+        st.up = false;
+        st.counters.downs += 1;
+        st.reset_connection();
+        let mut out = vec![ControllerOutput::NodeDown { node: node.to_string(), reason: reason.to_string() }];
+        if let Some(f) = &mut self.presenting {
+            if let Some(p) = f.parts.get_mut(node) {
+                p.down = true;
+            }
+            if f.all_presented() {
+                self.finish(&mut out);
+            }
+        }
+        if let Some(f) = &mut self.collecting {
+            if let Some(p) = f.parts.get_mut(node) {
+                p.down = true;
+            }
+            if f.all_ready() {
+                self.release(now, &mut out);
+            }
+        }
+        out
+    }
+
+    // ---- frames ----
+
+    /// Begins frame `state.frame_id` (ids must increase): sends `state` to every up node. With no
+    /// node up, the frame is released and finished at once.
+    pub fn begin_frame(
+        &mut self,
+        now: Duration,
+        state: FrameState,
+    ) -> Result<Vec<ControllerOutput>, BeginError> {
+        if let Some(f) = &self.collecting {
+            return Err(BeginError::InFlight(f.id));
+        }
+        let id = state.frame_id;
+        if let Some(last) = self.last_frame_id {
+            if id <= last {
+                return Err(BeginError::NotIncreasing { last, given: id });
+            }
+        }
+        self.last_frame_id = Some(id);
+        let mut out = Vec::new();
+        let mut parts = BTreeMap::new();
+        let mut missing = Vec::new();
+        for (name, st) in &mut self.nodes {
+            if !st.up {
+                missing.push(name.clone());
+                continue;
+            }
+            st.first_sent.get_or_insert(id);
+            st.last_sent = Some(id);
+            st.counters.frames += 1;
+            parts.insert(name.clone(), Part::default());
+            out.push(ControllerOutput::Send { node: name.clone(), message: Message::FrameState(state) });
+        }
+        self.collecting = Some(Frame { id, begin: now, released_at: None, parts, missing });
+        if self.collecting.as_ref().is_some_and(Frame::all_ready) {
+            self.release(now, &mut out);
+        }
+        Ok(out)
+    }
+
+    /// Releases the collecting frame: finishes the presenting one if still there, sends Swap to
+    /// the ready nodes, reports; finishes the new one at once if nobody was ready.
+    fn release(&mut self, now: Duration, out: &mut Vec<ControllerOutput>) {
+        let Some(mut f) = self.collecting.take() else { return };
+        if self.presenting.is_some() {
+            self.finish(out);
+        }
+        let (mut ready, mut stragglers) = (Vec::new(), Vec::new());
+        for (name, p) in &mut f.parts {
+            if p.down {
+                continue;
+            }
+            let st = self.nodes.get_mut(name).expect("participants are nodes");
+            if p.ready_after.is_some() {
+                p.released = true;
+                st.swapped.push_back(f.id);
+                if st.swapped.len() > REMEMBERED {
+                    st.swapped.pop_front();
+                }
+                out.push(ControllerOutput::Send {
+                    node: name.clone(),
+                    message: Message::Swap { frame_id: f.id },
+                });
+                ready.push(name.clone());
+            } else {
+                st.counters.straggled += 1;
+                stragglers.push(name.clone());
+            }
+        }
+        let barrier = now.saturating_sub(f.begin);
+        f.released_at = Some(now);
+        out.push(ControllerOutput::Released { frame_id: f.id, ready, stragglers, barrier });
+        self.presenting = Some(f);
+        if self.presenting.as_ref().is_some_and(Frame::all_presented) {
+            self.finish(out);
+        }
+    }
+
+    /// Finishes the presenting frame with what arrived.
+    fn finish(&mut self, out: &mut Vec<ControllerOutput>) {
+        let Some(f) = self.presenting.take() else { return };
+        let released_at = f.released_at.unwrap_or(f.begin);
+        let per_node: Vec<NodeFrameStats> = f
+            .parts
+            .into_iter()
+            .map(|(node, p)| NodeFrameStats {
+                node,
+                render: p.render,
+                ready_after: p.ready_after,
+                presented_at: p.presented_at,
+                presented_node_time_us: p.presented_node_time_us,
+                went_down: p.down,
+            })
+            .collect();
+        let times = per_node.iter().filter_map(|s| s.presented_at);
+        let swap_skew = match (times.clone().min(), times.max()) {
+            (Some(lo), Some(hi)) => Some(hi - lo),
+            _ => None,
+        };
+        out.push(ControllerOutput::FrameDone {
+            frame_id: f.id,
+            stats: FrameStats {
+                frame_id: f.id,
+                per_node,
+                swap_skew,
+                barrier: released_at.saturating_sub(f.begin),
+                missing: f.missing,
+            },
+        });
+    }
+
+    // ---- timers ----
+
+    /// When [`FrameController::handle_timeout`] must be called next: the release deadline of the
+    /// frame in flight, the present deadline of the presenting one, or the next ping.
+    pub fn poll_timeout(&self) -> Option<Duration> {
+        let collect = self.collecting.as_ref().map(|f| f.begin + self.deadline);
+        let present =
+            self.presenting.as_ref().map(|f| f.released_at.unwrap_or(f.begin) + self.present_deadline);
+        [collect, present, self.next_ping_at].into_iter().flatten().min()
+    }
+
+    /// Acts on every timer that is due at `now`: releases the swap to the ready nodes (naming the
+    /// stragglers), finishes a frame whose Presented replies are overdue, pings.
+    pub fn handle_timeout(&mut self, now: Duration) -> Vec<ControllerOutput> {
+        let mut out = Vec::new();
+        if let Some(f) = &self.presenting {
+            if now >= f.released_at.unwrap_or(f.begin) + self.present_deadline {
+                self.finish(&mut out);
+            }
+        }
+        if let Some(f) = &self.collecting {
+            if now >= f.begin + self.deadline {
+                self.release(now, &mut out);
+            }
+        }
+        if let (Some(at), Some(every)) = (self.next_ping_at, self.ping_interval) {
+            if now >= at {
+                out.extend(self.ping(now));
+                // The next ping at the next multiple of the interval after now.
+                let mut next = at + every;
+                if next <= now {
+                    next = now + every;
+                }
+                self.next_ping_at = Some(next);
+            }
+        }
+        out
+    }
+
+    // ---- clocks and snapshots ----
+
+    fn ping_one(&mut self, now: Duration, node: &str) -> ControllerOutput {
+        let id = self.next_ping_id;
+        self.next_ping_id += 1;
+        let t0_us = micros(now);
+        let st = self.nodes.get_mut(node).expect("a node");
+        st.pings.push_back((id, t0_us));
+        if st.pings.len() > REMEMBERED {
+            st.pings.pop_front();
+        }
+        ControllerOutput::Send { node: node.to_string(), message: Message::Ping { id, t0_us } }
+    }
+
+    /// Pings every up node now (clock sync; the Pongs go through [`FrameController::handle`]).
+    pub fn ping(&mut self, now: Duration) -> Vec<ControllerOutput> {
+        let up = self.up_nodes();
+        up.iter().map(|n| self.ping_one(now, n)).collect()
+    }
+
+    /// Asks every up node for its tiles' last presented frames; each answer comes out of
+    /// [`FrameController::handle`] as [`ControllerOutput::Snapshot`].
+    pub fn request_snapshot(&mut self, _now: Duration) -> Vec<ControllerOutput> {
+        let mut out = Vec::new();
+        for (name, st) in &mut self.nodes {
+            if st.up {
+                st.snapshot_wanted = true;
+                out.push(ControllerOutput::Send { node: name.clone(), message: Message::SnapshotRequest });
+            }
+        }
+        out
+    }
+
+    // ---- messages ----
+
+    /// A message from `node` (whose Hello was handled by the caller before `node_up`). On
+    /// `Err`, close that node's connection with the error as the reason and call `node_down`.
+    pub fn handle(
+        &mut self,
+        now: Duration,
+        node: &str,
+        msg: Message,
+    ) -> Result<Vec<ControllerOutput>, ProtocolError> {
+        let kind = msg.kind();
+        let err = |problem: String| ProtocolError::new(node, kind, problem);
+        let Some(st) = self.nodes.get(node) else {
+            return Err(err("not a node of this wall".into()));
+        };
+        if !st.up {
+            return Err(err("the node is not up (no Hello, or its connection is closed)".into()));
+        }
+        match msg {
+            Message::Hello { .. } => Err(err("a second Hello: the handshake is done".into())),
+            Message::FrameState(_)
+            | Message::Swap { .. }
+            | Message::Ping { .. }
+            | Message::SnapshotRequest => Err(err("only the controller sends this".into())),
+            Message::Ready { frame_id, render_us } => self.handle_ready(now, node, frame_id, render_us),
+            Message::Presented { frame_id, node_time_us } => {
+                self.handle_presented(now, node, frame_id, node_time_us)
+            }
+            Message::Pong { id, t0_us, t1_us } => self.handle_pong(now, node, id, t0_us, t1_us),
+            Message::Snapshot { tiles } => {
+                let st = self.nodes.get_mut(node).expect("checked");
+                if !std::mem::take(&mut st.snapshot_wanted) {
+                    return Err(err("a Snapshot nobody asked for".into()));
+                }
+                for t in &tiles {
+                    t.validate().map_err(err)?;
+                }
+                Ok(vec![ControllerOutput::Snapshot { node: node.to_string(), tiles }])
+            }
+            Message::Bye { reason } => Ok(self.node_down(now, node, &format!("said goodbye: {reason}"))),
+        }
+    }
+
+    fn handle_ready(
+        &mut self,
+        now: Duration,
+        node: &str,
+        id: u64,
+        render_us: u64,
+    ) -> Result<Vec<ControllerOutput>, ProtocolError> {
+        let st = self.nodes.get_mut(node).expect("checked");
+        let err = |problem: String| Err(ProtocolError::new(node, "Ready", problem));
+        match (st.first_sent, st.last_sent) {
+            (Some(first), Some(last)) if (first..=last).contains(&id) => {}
+            _ => return err(format!("Ready for frame {id}, which was never sent to it")),
+        }
+        if let Some(last_ready) = st.last_ready {
+            if id <= last_ready {
+                return err(format!("Ready for frame {id} after Ready for frame {last_ready}"));
+            }
+        }
+        st.last_ready = Some(id);
+        let mut out = Vec::new();
+        let part = self.collecting.as_mut().filter(|f| f.id == id).and_then(|f| {
+            let begin = f.begin;
+            f.parts.get_mut(node).map(|p| (p, begin))
+        });
+        match part {
+            Some((p, begin)) if !p.down => {
+                p.ready_after = Some(now.saturating_sub(begin));
+                p.render = Some(Duration::from_micros(render_us));
+                st.counters.ready += 1;
+                if self.collecting.as_ref().is_some_and(Frame::all_ready) {
+                    self.release(now, &mut out);
+                }
+            }
+            _ => st.counters.late_ready += 1,
+        }
+        Ok(out)
+    }
+
+    fn handle_presented(
+        &mut self,
+        now: Duration,
+        node: &str,
+        id: u64,
+        node_time_us: i64,
+    ) -> Result<Vec<ControllerOutput>, ProtocolError> {
+        let _ = now;
+        let st = self.nodes.get_mut(node).expect("checked");
+        let Some(pos) = st.swapped.iter().position(|&s| s == id) else {
+            return Err(ProtocolError::new(
+                node,
+                "Presented",
+                format!("Presented for frame {id} before (or without) its Swap"),
+            ));
+        };
+        // Frames swapped before it and not reported presented were reported in lost messages, or
+        // never will be: forget them.
+        st.swapped.drain(..=pos);
+        let offset = st.clock.estimate();
+        let mut out = Vec::new();
+        let part = self.presenting.as_mut().filter(|f| f.id == id).and_then(|f| f.parts.get_mut(node));
+        match part {
+            Some(p) if p.released && !p.down && !p.presented => {
+                p.presented = true;
+                p.presented_node_time_us = Some(node_time_us);
+                p.presented_at = offset
+                    .map(|o| o.to_controller(node_time_us))
+                    .and_then(|us| u64::try_from(us).ok())
+                    .map(Duration::from_micros);
+                if self.presenting.as_ref().is_some_and(Frame::all_presented) {
+                    self.finish(&mut out);
+                }
+            }
+            _ => st.counters.late_presented += 1,
+        }
+        Ok(out)
+    }
+
+    fn handle_pong(
+        &mut self,
+        now: Duration,
+        node: &str,
+        id: u64,
+        t0_us: i64,
+        t1_us: i64,
+    ) -> Result<Vec<ControllerOutput>, ProtocolError> {
+        let st = self.nodes.get_mut(node).expect("checked");
+        let err = |problem: String| Err(ProtocolError::new(node, "Pong", problem));
+        let Some(pos) = st.pings.iter().position(|&(p, _)| p == id) else {
+            return err(format!("Pong for Ping {id}, which was not sent to it (or was answered)"));
+        };
+        let (_, sent) = st.pings[pos];
+        if sent != t0_us {
+            return err(format!("Pong for Ping {id} echoes t0 = {t0_us} us, but it was sent at {sent} us"));
+        }
+        st.pings.remove(pos);
+        st.clock.add(ClockSample { t0_us: sent, t1_us, t2_us: micros(now) });
+        st.counters.pongs += 1;
+        Ok(Vec::new())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::Camera;
+    use crate::render_state::RenderSettings;
+    use glam::DVec3;
+
+    fn ms(x: u64) -> Duration {
+        Duration::from_millis(x)
+    }
+
+    fn state(id: u64) -> FrameState {
+        let cam =
+            Camera { eye: DVec3::new(0.0, -5.0, 0.0), target: DVec3::ZERO, up: DVec3::Z, fov_y_deg: 30.0 };
+        FrameState::new(id, &cam, &RenderSettings::new(0.5), 0)
+    }
+
+    fn sends(out: &[ControllerOutput]) -> Vec<(String, &'static str)> {
+        out.iter()
+            .filter_map(|o| match o {
+                ControllerOutput::Send { node, message } => Some((node.clone(), message.kind())),
+                _ => None,
+            })
+            .collect()
+    }
+
+    fn released(out: &[ControllerOutput]) -> Option<(Vec<String>, Vec<String>, Duration)> {
+        out.iter().find_map(|o| match o {
+            ControllerOutput::Released { ready, stragglers, barrier, .. } => {
+                Some((ready.clone(), stragglers.clone(), *barrier))
+            }
+            _ => None,
+        })
+    }
+
+    fn controller(names: &[&str]) -> FrameController {
+        let mut c = FrameController::new(names.iter().map(|s| s.to_string()).collect(), ms(50));
+        c.set_ping_interval(None);
+        for n in names {
+            let out = c.node_up(ms(0), n).unwrap();
+            assert_eq!(sends(&out), vec![(n.to_string(), "Ping")]);
+        }
+        c
+    }
+
+    #[test]
+    fn a_frame_is_released_when_all_are_ready_and_done_when_all_presented() {
+        let mut c = controller(&["a", "b"]);
+        let out = c.begin_frame(ms(100), state(1)).unwrap();
+        assert_eq!(sends(&out), vec![("a".into(), "FrameState"), ("b".into(), "FrameState")]);
+        assert_eq!(c.in_flight(), Some(1));
+        assert_eq!(c.poll_timeout(), Some(ms(150)));
+        assert!(c.handle(ms(110), "a", Message::Ready { frame_id: 1, render_us: 9000 }).unwrap().is_empty());
+        let out = c.handle(ms(120), "b", Message::Ready { frame_id: 1, render_us: 19000 }).unwrap();
+        assert_eq!(sends(&out), vec![("a".into(), "Swap"), ("b".into(), "Swap")]);
+        assert_eq!(released(&out), Some((vec!["a".into(), "b".into()], vec![], ms(20))));
+        assert_eq!(c.in_flight(), None);
+        assert_eq!(c.presenting(), Some(1));
+        // No clock offsets known (no Pong yet): presented_at stays None.
+        c.handle(ms(125), "a", Message::Presented { frame_id: 1, node_time_us: 5 }).unwrap();
+        let out = c.handle(ms(126), "b", Message::Presented { frame_id: 1, node_time_us: 6 }).unwrap();
+        let ControllerOutput::FrameDone { frame_id: 1, stats } = &out[0] else { panic!("{out:?}") };
+        assert_eq!(stats.barrier, ms(20));
+        assert_eq!(stats.swap_skew, None);
+        assert_eq!(stats.per_node[1].render, Some(ms(19)));
+        assert_eq!(stats.per_node[1].ready_after, Some(ms(20)));
+        assert_eq!(stats.per_node[1].presented_node_time_us, Some(6));
+        assert_eq!(c.poll_timeout(), None);
+    }
+
+    #[test]
+    fn the_deadline_releases_the_ready_and_names_the_stragglers() {
+        let mut c = controller(&["a", "b", "c"]);
+        c.begin_frame(ms(0), state(1)).unwrap();
+        c.handle(ms(10), "a", Message::Ready { frame_id: 1, render_us: 0 }).unwrap();
+        assert!(c.handle_timeout(ms(49)).is_empty());
+        let out = c.handle_timeout(ms(50));
+        assert_eq!(released(&out), Some((vec!["a".into()], vec!["b".into(), "c".into()], ms(50))));
+        assert_eq!(sends(&out), vec![("a".into(), "Swap")]);
+        // A straggler's late Ready is counted, not an error; a second one for the same frame is.
+        assert!(c.handle(ms(60), "b", Message::Ready { frame_id: 1, render_us: 0 }).unwrap().is_empty());
+        assert_eq!(c.counters("b").unwrap().late_ready, 1);
+        assert_eq!(c.counters("b").unwrap().straggled, 1);
+        let e = c.handle(ms(61), "b", Message::Ready { frame_id: 1, render_us: 0 }).unwrap_err();
+        assert_eq!((e.peer.as_str(), e.message), ("b", "Ready"));
+        // The next frame may begin while frame 1 still waits for Presented.
+        c.begin_frame(ms(62), state(2)).unwrap();
+        assert_eq!(c.presenting(), Some(1));
+        let out = c.handle(ms(63), "a", Message::Presented { frame_id: 1, node_time_us: 0 }).unwrap();
+        assert!(matches!(&out[0], ControllerOutput::FrameDone { frame_id: 1, .. }));
+    }
+
+    #[test]
+    fn a_node_going_down_releases_a_frame_that_waited_only_on_it() {
+        let mut c = controller(&["a", "b"]);
+        c.begin_frame(ms(0), state(1)).unwrap();
+        c.handle(ms(10), "a", Message::Ready { frame_id: 1, render_us: 0 }).unwrap();
+        let out = c.node_down(ms(20), "b", "connection lost");
+        assert_eq!(out[0], ControllerOutput::NodeDown { node: "b".into(), reason: "connection lost".into() });
+        assert_eq!(released(&out), Some((vec!["a".into()], vec![], ms(20))));
+        assert!(c.node_down(ms(21), "b", "again").is_empty());
+        // Down: not in the next frame, listed as missing.
+        let out = c.begin_frame(ms(30), state(2)).unwrap();
+        assert_eq!(sends(&out), vec![("a".into(), "FrameState")]);
+        // Back up mid-frame: joins at the next one.
+        c.node_up(ms(31), "b").unwrap();
+        let out = c.handle(ms(32), "a", Message::Ready { frame_id: 2, render_us: 0 }).unwrap();
+        assert_eq!(released(&out).unwrap().0, vec!["a".to_string()]);
+        let out = c.begin_frame(ms(40), state(3)).unwrap();
+        assert_eq!(sends(&out).len(), 2);
+        // Presented from frame 2 still finishes it; frame 1's stats were finished at frame 2's release.
+        let out = c.handle(ms(41), "a", Message::Presented { frame_id: 2, node_time_us: 0 }).unwrap();
+        let ControllerOutput::FrameDone { stats, .. } = &out[0] else { panic!() };
+        assert_eq!(stats.missing, vec!["b".to_string()]);
+    }
+
+    #[test]
+    fn frames_cannot_overlap_or_go_backwards() {
+        let mut c = controller(&["a"]);
+        c.begin_frame(ms(0), state(5)).unwrap();
+        assert_eq!(c.begin_frame(ms(1), state(6)), Err(BeginError::InFlight(5)));
+        c.handle_timeout(ms(50));
+        assert_eq!(c.begin_frame(ms(51), state(5)), Err(BeginError::NotIncreasing { last: 5, given: 5 }));
+        // With nobody up a frame is released and finished at once.
+        let mut c = FrameController::new(vec!["a".into()], ms(50));
+        let out = c.begin_frame(ms(0), state(1)).unwrap();
+        assert!(matches!(out[0], ControllerOutput::Released { .. }));
+        assert!(matches!(out[1], ControllerOutput::FrameDone { .. }));
+        assert_eq!(c.in_flight(), None);
+    }
+
+    #[test]
+    fn protocol_violations_name_the_node_and_the_message() {
+        let mut c = controller(&["a", "b"]);
+        c.begin_frame(ms(0), state(1)).unwrap();
+        let cases: Vec<(&str, Message, &str)> = vec![
+            ("a", Message::Ready { frame_id: 2, render_us: 0 }, "never sent"),
+            ("a", Message::Presented { frame_id: 1, node_time_us: 0 }, "before (or without) its Swap"),
+            ("a", Message::Swap { frame_id: 1 }, "only the controller"),
+            ("a", Message::FrameState(state(1)), "only the controller"),
+            (
+                "a",
+                Message::Hello { version: 1, name: "a".into(), role: crate::messages::Role::Daemon },
+                "second Hello",
+            ),
+            ("a", Message::Pong { id: 99, t0_us: 0, t1_us: 0 }, "not sent to it"),
+            ("a", Message::Snapshot { tiles: vec![] }, "nobody asked"),
+            ("zz", Message::Ready { frame_id: 1, render_us: 0 }, "not a node of this wall"),
+        ];
+        for (node, msg, what) in cases {
+            let kind = msg.kind();
+            let e = c.handle(ms(1), node, msg).unwrap_err();
+            assert_eq!((e.peer.as_str(), e.message), (node, kind));
+            assert!(e.problem.contains(what), "{e}");
+            assert!(e.to_string().contains(node) && e.to_string().contains(kind), "{e}");
+        }
+        c.node_down(ms(2), "b", "x");
+        let e = c.handle(ms(3), "b", Message::Ready { frame_id: 1, render_us: 0 }).unwrap_err();
+        assert!(e.problem.contains("not up"), "{e}");
+        assert!(c.node_up(ms(3), "nobody").is_err());
+        // A Pong whose t0 is not the Ping's.
+        let out = c.ping(ms(5));
+        let Some(ControllerOutput::Send { message: Message::Ping { id, t0_us }, .. }) = out.first() else {
+            panic!()
+        };
+        let e = c.handle(ms(6), "a", Message::Pong { id: *id, t0_us: t0_us + 1, t1_us: 0 }).unwrap_err();
+        assert!(e.problem.contains("echoes"), "{e}");
+    }
+
+    #[test]
+    fn pongs_give_offsets_and_presented_times_convert_through_them() {
+        let mut c = controller(&["a", "b"]);
+        // The node_up pings were id 1 (a) and 2 (b) at t0 = 0; a's clock is 50 ms ahead, b's 30 ms
+        // behind, 1 ms each way.
+        c.handle(ms(2), "a", Message::Pong { id: 1, t0_us: 0, t1_us: 1_000 + 50_000 }).unwrap();
+        c.handle(ms(2), "b", Message::Pong { id: 2, t0_us: 0, t1_us: 1_000 - 30_000 }).unwrap();
+        assert_eq!(c.clock_offset("a").unwrap().offset_us, 50_000);
+        assert_eq!(c.clock_offset("b").unwrap().offset_us, -30_000);
+        assert_eq!(c.clock_offset("a").unwrap().error_us, 1_001);
+        c.begin_frame(ms(100), state(1)).unwrap();
+        c.handle(ms(110), "a", Message::Ready { frame_id: 1, render_us: 0 }).unwrap();
+        c.handle(ms(110), "b", Message::Ready { frame_id: 1, render_us: 0 }).unwrap();
+        // Both present at controller time 111 ms and 111.4 ms.
+        c.handle(ms(112), "a", Message::Presented { frame_id: 1, node_time_us: 111_000 + 50_000 }).unwrap();
+        let out = c
+            .handle(ms(112), "b", Message::Presented { frame_id: 1, node_time_us: 111_400 - 30_000 })
+            .unwrap();
+        let ControllerOutput::FrameDone { stats, .. } = &out[0] else { panic!() };
+        assert_eq!(stats.per_node[0].presented_at, Some(ms(111)));
+        assert_eq!(stats.swap_skew, Some(Duration::from_micros(400)));
+    }
+
+    #[test]
+    fn pings_are_scheduled_by_the_timer() {
+        let mut c = FrameController::new(vec!["a".into()], ms(50));
+        assert_eq!(c.poll_timeout(), None);
+        c.node_up(ms(0), "a").unwrap();
+        assert_eq!(c.poll_timeout(), Some(FrameController::DEFAULT_PING_INTERVAL));
+        let out = c.handle_timeout(ms(500));
+        assert_eq!(sends(&out), vec![("a".into(), "Ping")]);
+        assert_eq!(c.poll_timeout(), Some(ms(1000)));
+    }
+}

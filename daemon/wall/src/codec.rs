@@ -1,0 +1,462 @@
+//! The bytes of [`Message`]s: the one place that calls bincode.
+//!
+//! A message is bincode 2 (`config::standard()`: little-endian, variable-length integers) of the
+//! serde form of [`Message`]. On a stream each message is a *frame*: a `u32` little-endian length,
+//! then that many bytes of exactly one message.
+//!
+//! Nothing a peer sends can make the receiver allocate much more than it is willing to accept:
+//! - [`Decoder`] reads a frame's length first and rejects one over its limit before buffering any
+//!   of its body;
+//! - inside a frame, bincode's own limit ([`bincode::config::Configuration::with_limit`]) is the
+//!   smallest power of four >= the frame's length (at least 4 KiB), so a length field inside
+//!   the message (a string, a byte buffer) that claims more than that fails before anything is
+//!   allocated for it: at most 4 x the frame, never more than 4 x the decoder's limit.
+//!
+//! Errors never panic; after one, a [`Decoder`] refuses everything (the stream has lost its
+//! framing) and the caller closes the connection with the error as the reason.
+
+use bincode::config;
+use bincode::error::DecodeError;
+
+use crate::messages::{Message, Role, PROTOCOL_VERSION};
+
+/// Bytes of the length prefix.
+pub const HEADER_LEN: usize = 4;
+/// No decoder accepts a frame longer than this, whatever its limit (1 GiB).
+pub const MAX_FRAME_LEN: usize = 1 << 30;
+/// A sensible limit for what a daemon accepts from the controller: nothing it sends is large.
+pub const DAEMON_LIMIT: usize = 1 << 20;
+/// A sensible limit for what the controller accepts from a daemon: snapshots carry whole tiles
+/// (four 4K tiles of RGB8 are about 100 MB).
+pub const CONTROLLER_LIMIT: usize = 256 << 20;
+
+/// Why bytes could not become a message, or a message bytes.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum CodecError {
+    #[error("cannot encode a {kind} message: {reason}")]
+    Encode { kind: &'static str, reason: String },
+    #[error("a frame of {len} bytes is over the limit of {limit} bytes")]
+    TooLong { len: usize, limit: usize },
+    #[error("malformed message in a frame of {len} bytes: {reason}")]
+    Malformed { len: usize, reason: String },
+    #[error("{extra} bytes of garbage after a {kind} message inside its frame")]
+    TrailingBytes { kind: &'static str, extra: usize },
+    #[error("the stream broke earlier ({0}); close the connection")]
+    Broken(Box<CodecError>),
+}
+
+/// Why a connection's first message does not open it.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum HandshakeError {
+    #[error("the first message must be Hello, not {0}")]
+    NotHello(&'static str),
+    #[error("peer `{name}` speaks protocol version {theirs}, this build speaks {ours}")]
+    Version { name: String, ours: u16, theirs: u16 },
+    #[error("peer `{name}` says it is a {got}, expected a {expected}")]
+    Role { name: String, expected: &'static str, got: &'static str },
+    #[error("peer name `{0}` is empty or not printable")]
+    BadName(String),
+}
+
+/// Checks a connection's first message: a [`Message::Hello`] of this protocol version from a
+/// peer of the `expected` role. Returns the peer's name.
+pub fn check_hello(msg: &Message, expected: Role) -> Result<String, HandshakeError> {
+    let Message::Hello { version, name, role } = msg else {
+        return Err(HandshakeError::NotHello(msg.kind()));
+    };
+    if *version != PROTOCOL_VERSION {
+        return Err(HandshakeError::Version { name: name.clone(), ours: PROTOCOL_VERSION, theirs: *version });
+    }
+    if *role != expected {
+        return Err(HandshakeError::Role { name: name.clone(), expected: expected.name(), got: role.name() });
+    }
+    if name.is_empty() || name.len() > 256 || name.chars().any(|c| c.is_control()) {
+        return Err(HandshakeError::BadName(name.escape_debug().to_string()));
+    }
+    Ok(name.clone())
+}
+
+/// A Hello of this build.
+pub fn hello(name: &str, role: Role) -> Message {
+    Message::Hello { version: PROTOCOL_VERSION, name: name.to_string(), role }
+}
+
+fn encode_err(msg: &Message, e: impl std::fmt::Display) -> CodecError {
+    CodecError::Encode { kind: msg.kind(), reason: e.to_string() }
+}
+
+/// The bytes of one message (no length prefix).
+pub fn encode(msg: &Message) -> Result<Vec<u8>, CodecError> {
+    bincode::serde::encode_to_vec(msg, config::standard()).map_err(|e| encode_err(msg, e))
+}
+
+/// One frame: the message's length as `u32` little-endian, then the message.
+pub fn frame(msg: &Message) -> Result<Vec<u8>, CodecError> {
+    let mut out = vec![0u8; HEADER_LEN];
+    bincode::serde::encode_into_std_write(msg, &mut out, config::standard())
+        .map_err(|e| encode_err(msg, e))?;
+    let len = out.len() - HEADER_LEN;
+    if len > MAX_FRAME_LEN {
+        return Err(CodecError::TooLong { len, limit: MAX_FRAME_LEN });
+    }
+    out[..HEADER_LEN].copy_from_slice(&(len as u32).to_le_bytes());
+    Ok(out)
+}
+
+/// Decodes `body` with bincode's limit `N`.
+fn decode_limited<const N: usize>(body: &[u8]) -> Result<(Message, usize), DecodeError> {
+    bincode::serde::decode_from_slice(body, config::standard().with_limit::<N>())
+}
+
+/// Decodes `body` with bincode's limit the smallest power of four >= its length (>= 4 KiB).
+fn decode_bounded(body: &[u8]) -> Result<(Message, usize), DecodeError> {
+    macro_rules! try_limits {
+        ($($shift:literal),*) => {
+            $(
+                if body.len() <= (1usize << $shift) {
+                    return decode_limited::<{ 1usize << $shift }>(body);
+                }
+            )*
+        };
+    }
+    try_limits!(12, 14, 16, 18, 20, 22, 24, 26, 28, 30);
+    Err(DecodeError::LimitExceeded)
+}
+
+/// Decodes exactly one message from `body` (a frame without its length prefix): every byte must
+/// belong to the message.
+pub fn decode(body: &[u8]) -> Result<Message, CodecError> {
+    let (msg, used) =
+        decode_bounded(body).map_err(|e| CodecError::Malformed { len: body.len(), reason: e.to_string() })?;
+    if used != body.len() {
+        return Err(CodecError::TrailingBytes { kind: msg.kind(), extra: body.len() - used });
+    }
+    Ok(msg)
+}
+
+/// Splits a byte stream into messages. Feed it what arrives with [`Decoder::push`], then call
+/// [`Decoder::next`] until it returns `Ok(None)`.
+#[derive(Debug)]
+pub struct Decoder {
+    limit: usize,
+    buf: Vec<u8>,
+    /// Bytes of `buf` before this are consumed.
+    start: usize,
+    broken: Option<CodecError>,
+}
+
+impl Decoder {
+    /// A decoder that accepts frames of at most `limit` bytes (clamped to [`MAX_FRAME_LEN`]).
+    pub fn new(limit: usize) -> Self {
+        Decoder { limit: limit.min(MAX_FRAME_LEN), buf: Vec::new(), start: 0, broken: None }
+    }
+
+    pub fn limit(&self) -> usize {
+        self.limit
+    }
+
+    /// Bytes received and not yet decoded.
+    pub fn buffered(&self) -> usize {
+        self.buf.len() - self.start
+    }
+
+    /// Whether an error broke the stream (every later [`Decoder::next`] fails).
+    pub fn is_broken(&self) -> bool {
+        self.broken.is_some()
+    }
+
+    /// Appends received bytes. A frame header over the limit breaks the decoder at once, and its
+    /// bytes are dropped rather than kept.
+    pub fn push(&mut self, bytes: &[u8]) {
+        if self.broken.is_some() {
+            return;
+        }
+        if self.start > 0 && self.start == self.buf.len() {
+            self.buf.clear();
+            self.start = 0;
+        }
+        self.buf.extend_from_slice(bytes);
+        if let Err(e) = self.check_header() {
+            self.fail(e);
+        }
+    }
+
+    /// The length of the frame at the front, if its header has arrived and is within the limit.
+    fn check_header(&self) -> Result<Option<usize>, CodecError> {
+        let avail = &self.buf[self.start..];
+        if avail.len() < HEADER_LEN {
+            return Ok(None);
+        }
+        let len = u32::from_le_bytes([avail[0], avail[1], avail[2], avail[3]]) as usize;
+        if len > self.limit {
+            return Err(CodecError::TooLong { len, limit: self.limit });
+        }
+        Ok(Some(len))
+    }
+
+    fn fail(&mut self, e: CodecError) {
+        self.broken = Some(e);
+        self.buf = Vec::new();
+        self.start = 0;
+    }
+
+    /// The next complete message: `Ok(None)` while more bytes are needed.
+    #[allow(clippy::should_implement_trait)]
+    pub fn next(&mut self) -> Result<Option<Message>, CodecError> {
+        if let Some(e) = &self.broken {
+            return Err(CodecError::Broken(Box::new(e.clone())));
+        }
+        let len = match self.check_header() {
+            Ok(Some(len)) => len,
+            Ok(None) => {
+                self.compact();
+                return Ok(None);
+            }
+            Err(e) => {
+                self.fail(e.clone());
+                return Err(e);
+            }
+        };
+        if self.buffered() < HEADER_LEN + len {
+            self.compact();
+            return Ok(None);
+        }
+        let body = &self.buf[self.start + HEADER_LEN..self.start + HEADER_LEN + len];
+        let result = decode(body);
+        self.start += HEADER_LEN + len;
+        match result {
+            Ok(msg) => {
+                self.compact();
+                Ok(Some(msg))
+            }
+            Err(e) => {
+                self.fail(e.clone());
+                Err(e)
+            }
+        }
+    }
+
+    /// Drops consumed bytes; gives back the memory of a large frame once it is decoded.
+    fn compact(&mut self) {
+        if self.start == self.buf.len() {
+            self.buf.clear();
+            self.start = 0;
+            if self.buf.capacity() > 1 << 20 {
+                self.buf = Vec::new();
+            }
+        } else if self.start > 0 && self.start >= self.buf.len() / 2 {
+            self.buf.drain(..self.start);
+            self.start = 0;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::Camera;
+    use crate::messages::TileImage;
+    use crate::render_state::RenderSettings;
+    use crate::wire::FrameState;
+    use glam::DVec3;
+
+    fn all_messages() -> Vec<Message> {
+        let cam =
+            Camera { eye: DVec3::new(0.0, -5.0, 1.0), target: DVec3::ZERO, up: DVec3::Z, fov_y_deg: 30.0 };
+        vec![
+            hello("node-a", Role::Daemon),
+            hello("controller", Role::Controller),
+            Message::FrameState(FrameState::new(u64::MAX - 1, &cam, &RenderSettings::new(300.0), 4)),
+            Message::Ready { frame_id: 12, render_us: 16_667 },
+            Message::Swap { frame_id: 12 },
+            Message::Presented { frame_id: 12, node_time_us: -42 },
+            Message::Ping { id: 7, t0_us: i64::MIN },
+            Message::Pong { id: 7, t0_us: 1, t1_us: i64::MAX },
+            Message::SnapshotRequest,
+            Message::Snapshot {
+                tiles: vec![
+                    TileImage {
+                        name: "left".into(),
+                        width: 4,
+                        height: 2,
+                        frame_id: 12,
+                        rgb8: (0..24).collect(),
+                    },
+                    TileImage { name: "right".into(), width: 0, height: 0, frame_id: 12, rgb8: vec![] },
+                ],
+            },
+            Message::Bye { reason: "shutting down: état normal".into() },
+        ]
+    }
+
+    #[test]
+    fn every_message_round_trips_alone_and_in_a_stream() {
+        let msgs = all_messages();
+        let mut stream = Vec::new();
+        for m in &msgs {
+            assert_eq!(&decode(&encode(m).unwrap()).unwrap(), m);
+            stream.extend(frame(m).unwrap());
+        }
+        // Fed one byte at a time, then all at once.
+        let mut d = Decoder::new(DAEMON_LIMIT);
+        let mut got = Vec::new();
+        for b in &stream {
+            d.push(std::slice::from_ref(b));
+            while let Some(m) = d.next().unwrap() {
+                got.push(m);
+            }
+        }
+        assert_eq!(got, msgs);
+        assert_eq!(d.buffered(), 0);
+        let mut d = Decoder::new(DAEMON_LIMIT);
+        d.push(&stream);
+        let mut got = Vec::new();
+        while let Some(m) = d.next().unwrap() {
+            got.push(m);
+        }
+        assert_eq!(got, msgs);
+    }
+
+    #[test]
+    fn tile_bytes_are_one_byte_string() {
+        let t =
+            TileImage { name: String::new(), width: 100, height: 100, frame_id: 0, rgb8: vec![200; 30_000] };
+        let n = encode(&Message::Snapshot { tiles: vec![t] }).unwrap().len();
+        // 30000 bytes + a few of lengths and numbers: no per-byte overhead.
+        assert!(n < 30_020, "{n}");
+    }
+
+    #[test]
+    fn an_oversized_length_is_rejected_before_its_body_is_buffered() {
+        let mut d = Decoder::new(1000);
+        d.push(&1001u32.to_le_bytes());
+        assert!(d.is_broken(), "the header alone breaks the decoder");
+        assert_eq!(d.buffered(), 0);
+        assert_eq!(
+            d.next(),
+            Err(CodecError::Broken(Box::new(CodecError::TooLong { len: 1001, limit: 1000 })))
+        );
+        d.push(&[0u8; 4096]);
+        assert_eq!(d.buffered(), 0, "a broken decoder keeps nothing");
+
+        let mut d = Decoder::new(usize::MAX);
+        assert_eq!(d.limit(), MAX_FRAME_LEN);
+        d.push(&u32::MAX.to_le_bytes());
+        assert!(matches!(d.next(), Err(CodecError::Broken(e)) if matches!(*e, CodecError::TooLong { .. })));
+    }
+
+    #[test]
+    fn a_length_inside_a_frame_cannot_make_bincode_allocate() {
+        // A Bye whose reason claims 2^40 bytes, inside a 12-byte frame: bincode's limit stops it
+        // before it allocates (were it to try, the test would abort).
+        let mut body = encode(&Message::Bye { reason: String::new() }).unwrap();
+        assert_eq!(body.pop(), Some(0)); // the empty string's length
+        body.push(253); // varint: u64 follows
+        body.extend((1u64 << 40).to_le_bytes());
+        let e = decode(&body).unwrap_err();
+        assert!(
+            matches!(&e, CodecError::Malformed { reason, .. } if reason.to_lowercase().contains("limit")),
+            "{e}"
+        );
+        // The same for a tile's pixels, through the decoder.
+        let mut body = encode(&Message::Snapshot {
+            tiles: vec![TileImage { name: "t".into(), width: 1, height: 1, frame_id: 1, rgb8: vec![] }],
+        })
+        .unwrap();
+        body.pop();
+        body.push(253);
+        body.extend((1u64 << 33).to_le_bytes());
+        let mut d = Decoder::new(DAEMON_LIMIT);
+        d.push(&(body.len() as u32).to_le_bytes());
+        d.push(&body);
+        assert!(matches!(d.next(), Err(CodecError::Malformed { .. })));
+    }
+
+    #[test]
+    fn a_truncated_frame_waits_for_the_rest() {
+        let f = frame(&Message::Ready { frame_id: 99, render_us: 1234 }).unwrap();
+        let mut d = Decoder::new(DAEMON_LIMIT);
+        d.push(&f[..2]);
+        assert_eq!(d.next(), Ok(None));
+        d.push(&f[2..f.len() - 1]);
+        assert_eq!(d.next(), Ok(None));
+        assert_eq!(d.next(), Ok(None));
+        d.push(&f[f.len() - 1..]);
+        assert_eq!(d.next(), Ok(Some(Message::Ready { frame_id: 99, render_us: 1234 })));
+        assert_eq!(d.next(), Ok(None));
+    }
+
+    #[test]
+    fn trailing_garbage_inside_a_frame_is_an_error() {
+        let mut body = encode(&Message::Swap { frame_id: 5 }).unwrap();
+        body.extend([1, 2, 3]);
+        assert_eq!(decode(&body), Err(CodecError::TrailingBytes { kind: "Swap", extra: 3 }));
+        let mut d = Decoder::new(DAEMON_LIMIT);
+        d.push(&(body.len() as u32).to_le_bytes());
+        d.push(&body);
+        assert!(matches!(d.next(), Err(CodecError::TrailingBytes { .. })));
+        assert!(d.is_broken());
+    }
+
+    #[test]
+    fn garbage_errors_and_never_panics() {
+        // An unknown variant, an empty frame, a bad UTF-8 name.
+        assert!(matches!(decode(&[200]), Err(CodecError::Malformed { .. })));
+        assert!(matches!(decode(&[]), Err(CodecError::Malformed { .. })));
+        let mut body = encode(&hello("ab", Role::Daemon)).unwrap();
+        let n = body.len();
+        body[n - 3] = 0xff; // inside the name
+        assert!(decode(&body).is_err());
+        // Random frames: errors or messages, no panic. (xorshift, seeded)
+        let mut s = 0x9e37_79b9_7f4a_7c15u64;
+        let mut rnd = || {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            s
+        };
+        let mut ok = 0;
+        for _ in 0..20_000 {
+            let len = (rnd() % 40) as usize;
+            let body: Vec<u8> = (0..len).map(|_| rnd() as u8 % 16).collect();
+            ok += decode(&body).is_ok() as u32;
+            let mut d = Decoder::new(64);
+            let stream: Vec<u8> = (0..len).map(|_| rnd() as u8).collect();
+            d.push(&stream);
+            while let Ok(Some(_)) = d.next() {}
+        }
+        assert!(ok > 0, "some random bodies are valid small messages");
+    }
+
+    #[test]
+    fn hello_checks_version_role_and_name() {
+        assert_eq!(check_hello(&hello("n1", Role::Daemon), Role::Daemon), Ok("n1".into()));
+        let old = Message::Hello { version: PROTOCOL_VERSION + 1, name: "n1".into(), role: Role::Daemon };
+        let e = check_hello(&old, Role::Daemon).unwrap_err();
+        assert_eq!(e, HandshakeError::Version { name: "n1".into(), ours: PROTOCOL_VERSION, theirs: 2 });
+        assert!(e.to_string().contains("version 2"));
+        // Through the codec, as a peer would send it.
+        let mut d = Decoder::new(DAEMON_LIMIT);
+        d.push(&frame(&old).unwrap());
+        assert!(matches!(
+            check_hello(&d.next().unwrap().unwrap(), Role::Daemon),
+            Err(HandshakeError::Version { .. })
+        ));
+        assert!(matches!(
+            check_hello(&hello("n1", Role::Controller), Role::Daemon),
+            Err(HandshakeError::Role { .. })
+        ));
+        assert_eq!(
+            check_hello(&Message::SnapshotRequest, Role::Daemon),
+            Err(HandshakeError::NotHello("SnapshotRequest"))
+        );
+        assert!(matches!(
+            check_hello(&hello("", Role::Daemon), Role::Daemon),
+            Err(HandshakeError::BadName(_))
+        ));
+        assert!(matches!(
+            check_hello(&hello("a\nb", Role::Daemon), Role::Daemon),
+            Err(HandshakeError::BadName(_))
+        ));
+    }
+}

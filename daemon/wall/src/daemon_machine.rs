@@ -1,0 +1,378 @@
+//! The daemon's side of the frame protocol: [`NodeMachine`], sans-IO like
+//! [`crate::barrier::FrameController`]. `now` is the daemon's own clock (a [`Duration`] since any
+//! fixed epoch); the controller learns its offset from Ping/Pong.
+//!
+//! The caller sends [`NodeMachine::hello`] when the connection opens, passes every message to
+//! [`NodeMachine::handle`], and carries out the [`NodeOutput`]s:
+//! - `Render { state, accumulate_frame }`: render `state` (one at a time), then call
+//!   [`NodeMachine::render_done`], which sends Ready. `accumulate_frame` counts frames with the
+//!   same image (only the frame id changed): 0 after any change, then 1, 2, ... so progressive AO
+//!   can use `settings.ao.frame + accumulate_frame` as its decorrelation index and average in.
+//! - `Present { frame_id }`: the Swap came: present that frame now, then call
+//!   [`NodeMachine::presented`] with the time it was shown, which sends Presented.
+//! - `Send(message)`: send it to the controller.
+//! - `SnapshotWanted`: send `Message::Snapshot` with the tiles' last presented frames.
+//! - `Closed { reason }`: the controller said goodbye; close the connection.
+//!
+//! A FrameState that arrives while a frame renders is queued; a newer one replaces it (only the
+//! latest is worth rendering). A rendered frame still waiting for its Swap when a new FrameState
+//! comes is dropped: the controller released that frame without this node (it was a straggler).
+
+use std::collections::VecDeque;
+use std::time::Duration;
+
+use crate::codec::check_hello;
+use crate::messages::{Message, ProtocolError, Role, PROTOCOL_VERSION};
+use crate::wire::{FrameSpec, FrameState};
+
+/// What the daemon's caller must do, in order.
+#[derive(Debug, Clone, PartialEq)]
+pub enum NodeOutput {
+    /// Render this frame, then call [`NodeMachine::render_done`].
+    Render { state: FrameState, accumulate_frame: u32 },
+    /// Send this to the controller.
+    Send(Message),
+    /// Present this rendered frame now, then call [`NodeMachine::presented`].
+    Present { frame_id: u64 },
+    /// Answer with `Message::Snapshot` of the tiles' last presented frames.
+    SnapshotWanted,
+    /// The controller said Bye: close the connection.
+    Closed { reason: String },
+}
+
+/// Running counts of a daemon.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct NodeMachineCounters {
+    pub rendered: u64,
+    pub presented: u64,
+    /// Queued frame states replaced by newer ones before they were rendered.
+    pub skipped: u64,
+    /// Rendered frames dropped because a newer frame came before their Swap.
+    pub dropped: u64,
+}
+
+/// The daemon's frame machine (see the module docs).
+#[derive(Debug)]
+pub struct NodeMachine {
+    name: String,
+    tiles: Vec<String>,
+    hello_done: bool,
+    last_frame_id: Option<u64>,
+    /// The frame being rendered.
+    rendering: Option<u64>,
+    /// The latest frame state received while rendering.
+    queued: Option<FrameState>,
+    /// Rendered, Ready sent, waiting for Swap.
+    rendered: Option<u64>,
+    /// Present told, `presented` not yet called.
+    presenting: VecDeque<u64>,
+    /// The last frame state started, for `accumulate_frame`.
+    last_started: Option<FrameState>,
+    accumulate: u32,
+    last_presented: Option<u64>,
+    counters: NodeMachineCounters,
+}
+
+const PEER: &str = "controller";
+
+fn micros(t: Duration) -> i64 {
+    i64::try_from(t.as_micros()).unwrap_or(i64::MAX)
+}
+
+impl NodeMachine {
+    /// A daemon called `name` (its name in the wall config) showing `tiles`.
+    pub fn new(name: impl Into<String>, tiles: Vec<String>) -> Self {
+        NodeMachine {
+            name: name.into(),
+            tiles,
+            hello_done: false,
+            last_frame_id: None,
+            rendering: None,
+            queued: None,
+            rendered: None,
+            presenting: VecDeque::new(),
+            last_started: None,
+            accumulate: 0,
+            last_presented: None,
+            counters: NodeMachineCounters::default(),
+        }
+    }
+
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    pub fn tiles(&self) -> &[String] {
+        &self.tiles
+    }
+
+    /// The frame being rendered.
+    pub fn rendering(&self) -> Option<u64> {
+        self.rendering
+    }
+
+    /// The rendered frame waiting for its Swap.
+    pub fn waiting_for_swap(&self) -> Option<u64> {
+        self.rendered
+    }
+
+    pub fn last_presented(&self) -> Option<u64> {
+        self.last_presented
+    }
+
+    pub fn counters(&self) -> NodeMachineCounters {
+        self.counters
+    }
+
+    /// The first message to send on a new connection.
+    pub fn hello(&self) -> Message {
+        Message::Hello { version: PROTOCOL_VERSION, name: self.name.clone(), role: Role::Daemon }
+    }
+
+    /// The connection closed: forget the frames in flight (a new connection starts over; a render
+    /// still running is ignored when it completes). Accumulation restarts too.
+    pub fn reset(&mut self) {
+        *self = NodeMachine {
+            counters: self.counters,
+            ..NodeMachine::new(self.name.clone(), self.tiles.clone())
+        };
+    }
+
+    fn start(&mut self, state: FrameState) -> NodeOutput {
+        self.accumulate = match &self.last_started {
+            Some(prev) if prev.same_image(&state) => self.accumulate.saturating_add(1),
+            _ => 0,
+        };
+        self.last_started = Some(state);
+        self.rendering = Some(state.frame_id);
+        NodeOutput::Render { state, accumulate_frame: self.accumulate }
+    }
+
+    /// A message from the controller. On `Err`, close the connection with the error as the reason.
+    pub fn handle(&mut self, now: Duration, msg: Message) -> Result<Vec<NodeOutput>, ProtocolError> {
+        let kind = msg.kind();
+        let err = |problem: String| Err(ProtocolError::new(PEER, kind, problem));
+        if !self.hello_done {
+            return match check_hello(&msg, Role::Controller) {
+                Ok(_) => {
+                    self.hello_done = true;
+                    Ok(Vec::new())
+                }
+                Err(e) => err(e.to_string()),
+            };
+        }
+        match msg {
+            Message::Hello { .. } => err("a second Hello: the handshake is done".into()),
+            Message::Ready { .. }
+            | Message::Presented { .. }
+            | Message::Pong { .. }
+            | Message::Snapshot { .. } => err("only a daemon sends this".into()),
+            Message::FrameState(state) => {
+                if let Some(last) = self.last_frame_id {
+                    if state.frame_id <= last {
+                        return err(format!("frame {} does not follow frame {last}", state.frame_id));
+                    }
+                }
+                if let Err(e) = FrameSpec::try_from(&state) {
+                    return err(format!("frame {}: {e}", state.frame_id));
+                }
+                self.last_frame_id = Some(state.frame_id);
+                if self.rendering.is_some() {
+                    if self.queued.replace(state).is_some() {
+                        self.counters.skipped += 1;
+                    }
+                    return Ok(Vec::new());
+                }
+                if self.rendered.take().is_some() {
+                    self.counters.dropped += 1;
+                }
+                Ok(vec![self.start(state)])
+            }
+            Message::Swap { frame_id } => {
+                if self.rendered != Some(frame_id) {
+                    let what = match (self.rendering, self.rendered) {
+                        (Some(r), _) if r == frame_id => "it is still rendering".to_string(),
+                        (_, Some(w)) => format!("the frame rendered and waiting is {w}"),
+                        _ => "no frame is rendered".to_string(),
+                    };
+                    return err(format!("Swap for frame {frame_id}, which is not rendered: {what}"));
+                }
+                self.rendered = None;
+                self.presenting.push_back(frame_id);
+                Ok(vec![NodeOutput::Present { frame_id }])
+            }
+            Message::Ping { id, t0_us } => {
+                Ok(vec![NodeOutput::Send(Message::Pong { id, t0_us, t1_us: micros(now) })])
+            }
+            Message::SnapshotRequest => Ok(vec![NodeOutput::SnapshotWanted]),
+            Message::Bye { reason } => {
+                self.reset();
+                Ok(vec![NodeOutput::Closed { reason }])
+            }
+        }
+    }
+
+    /// The renderer finished `frame_id` in `render_time`: sends Ready, and starts the queued frame
+    /// if one came meanwhile (then the finished one is superseded: the controller has moved on).
+    /// A completion for a frame that is not rendering (after a reset) is ignored.
+    pub fn render_done(&mut self, now: Duration, frame_id: u64, render_time: Duration) -> Vec<NodeOutput> {
+        let _ = now;
+        if self.rendering != Some(frame_id) {
+            return Vec::new();
+        }
+        self.rendering = None;
+        self.counters.rendered += 1;
+        let render_us = u64::try_from(render_time.as_micros()).unwrap_or(u64::MAX);
+        let mut out = vec![NodeOutput::Send(Message::Ready { frame_id, render_us })];
+        match self.queued.take() {
+            Some(next) => {
+                self.counters.dropped += 1;
+                out.push(self.start(next));
+            }
+            None => self.rendered = Some(frame_id),
+        }
+        out
+    }
+
+    /// `frame_id` was shown at `now` (the daemon's clock, e.g. the vsync it went out on): sends
+    /// Presented. Ignored for a frame it was not told to present.
+    pub fn presented(&mut self, now: Duration, frame_id: u64) -> Vec<NodeOutput> {
+        let Some(pos) = self.presenting.iter().position(|&f| f == frame_id) else {
+            return Vec::new();
+        };
+        self.presenting.drain(..=pos);
+        self.last_presented = Some(frame_id);
+        self.counters.presented += 1;
+        vec![NodeOutput::Send(Message::Presented { frame_id, node_time_us: micros(now) })]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::Camera;
+    use crate::codec::hello;
+    use crate::render_state::RenderSettings;
+    use glam::DVec3;
+
+    fn ms(x: u64) -> Duration {
+        Duration::from_millis(x)
+    }
+
+    fn state(id: u64, eye_y: f64) -> FrameState {
+        let cam =
+            Camera { eye: DVec3::new(0.0, eye_y, 0.0), target: DVec3::ZERO, up: DVec3::Z, fov_y_deg: 30.0 };
+        FrameState::new(id, &cam, &RenderSettings::new(0.5), 0)
+    }
+
+    fn machine() -> NodeMachine {
+        let mut m = NodeMachine::new("n1", vec!["left".into()]);
+        assert!(m.handle(ms(0), hello("controller", Role::Controller)).unwrap().is_empty());
+        m
+    }
+
+    fn render(out: &[NodeOutput]) -> Option<(u64, u32)> {
+        out.iter().find_map(|o| match o {
+            NodeOutput::Render { state, accumulate_frame } => Some((state.frame_id, *accumulate_frame)),
+            _ => None,
+        })
+    }
+
+    #[test]
+    fn a_frame_renders_waits_presents_and_accumulates_while_unchanged() {
+        let mut m = machine();
+        assert_eq!(m.hello(), hello("n1", Role::Daemon));
+        let mut acc = Vec::new();
+        for (id, eye) in [(1, -5.0), (2, -5.0), (3, -5.0), (4, -6.0), (5, -6.0)] {
+            let out = m.handle(ms(id * 20), Message::FrameState(state(id, eye))).unwrap();
+            let (fid, a) = render(&out).unwrap();
+            assert_eq!(fid, id);
+            acc.push(a);
+            let out = m.render_done(ms(id * 20 + 5), id, ms(5));
+            assert_eq!(out, vec![NodeOutput::Send(Message::Ready { frame_id: id, render_us: 5000 })]);
+            assert_eq!(m.waiting_for_swap(), Some(id));
+            let out = m.handle(ms(id * 20 + 6), Message::Swap { frame_id: id }).unwrap();
+            assert_eq!(out, vec![NodeOutput::Present { frame_id: id }]);
+            let out = m.presented(ms(id * 20 + 7), id);
+            assert_eq!(
+                out,
+                vec![NodeOutput::Send(Message::Presented {
+                    frame_id: id,
+                    node_time_us: (id as i64 * 20 + 7) * 1000
+                })]
+            );
+        }
+        assert_eq!(acc, vec![0, 1, 2, 0, 1]);
+        assert_eq!(m.last_presented(), Some(5));
+    }
+
+    #[test]
+    fn frame_states_during_a_render_queue_the_latest() {
+        let mut m = machine();
+        m.handle(ms(0), Message::FrameState(state(1, -5.0))).unwrap();
+        assert!(m.handle(ms(1), Message::FrameState(state(2, -5.0))).unwrap().is_empty());
+        assert!(m.handle(ms(2), Message::FrameState(state(3, -5.0))).unwrap().is_empty());
+        let out = m.render_done(ms(3), 1, ms(3));
+        assert_eq!(out[0], NodeOutput::Send(Message::Ready { frame_id: 1, render_us: 3000 }));
+        assert_eq!(render(&out), Some((3, 1)));
+        assert_eq!(m.waiting_for_swap(), None, "frame 1 is superseded");
+        assert_eq!(m.counters().skipped, 1);
+        // A straggler: rendered 3, no Swap came, frame 4 arrives: 3 is dropped, 4 renders.
+        m.render_done(ms(4), 3, ms(1));
+        assert_eq!(m.waiting_for_swap(), Some(3));
+        let out = m.handle(ms(5), Message::FrameState(state(4, -5.0))).unwrap();
+        assert_eq!(render(&out), Some((4, 2)));
+        assert_eq!(m.counters().dropped, 2);
+        // Completions of frames not rendering are ignored.
+        assert!(m.render_done(ms(6), 3, ms(1)).is_empty());
+        assert!(m.presented(ms(6), 3).is_empty());
+    }
+
+    #[test]
+    fn ping_is_answered_with_the_local_clock() {
+        let mut m = machine();
+        let out = m.handle(ms(1234), Message::Ping { id: 9, t0_us: -7 }).unwrap();
+        assert_eq!(out, vec![NodeOutput::Send(Message::Pong { id: 9, t0_us: -7, t1_us: 1_234_000 })]);
+        assert_eq!(m.handle(ms(0), Message::SnapshotRequest).unwrap(), vec![NodeOutput::SnapshotWanted]);
+    }
+
+    #[test]
+    fn violations_are_protocol_errors_naming_the_message() {
+        // Before Hello.
+        let mut m = NodeMachine::new("n1", vec![]);
+        let e = m.handle(ms(0), Message::Swap { frame_id: 1 }).unwrap_err();
+        assert_eq!((e.peer.as_str(), e.message), ("controller", "Swap"));
+        assert!(e.problem.contains("must be Hello"), "{e}");
+        let e = m
+            .handle(
+                ms(0),
+                Message::Hello { version: PROTOCOL_VERSION + 1, name: "c".into(), role: Role::Controller },
+            )
+            .unwrap_err();
+        assert!(e.problem.contains("version"), "{e}");
+        let e = m.handle(ms(0), hello("c", Role::Daemon)).unwrap_err();
+        assert!(e.problem.contains("expected a controller"), "{e}");
+
+        let mut m = machine();
+        let e = m.handle(ms(0), Message::Swap { frame_id: 1 }).unwrap_err();
+        assert!(e.problem.contains("Swap for frame 1, which is not rendered: no frame is rendered"), "{e}");
+        m.handle(ms(0), Message::FrameState(state(5, -5.0))).unwrap();
+        let e = m.handle(ms(0), Message::Swap { frame_id: 5 }).unwrap_err();
+        assert!(e.problem.contains("still rendering"), "{e}");
+        let e = m.handle(ms(0), Message::FrameState(state(5, -5.0))).unwrap_err();
+        assert!(e.problem.contains("does not follow frame 5"), "{e}");
+        let mut bad = state(6, -5.0);
+        bad.camera.fov_y_deg = 200.0;
+        let e = m.handle(ms(0), Message::FrameState(bad)).unwrap_err();
+        assert!(e.problem.contains("camera.fov_y_deg"), "{e}");
+        for msg in [Message::Ready { frame_id: 5, render_us: 0 }, Message::Snapshot { tiles: vec![] }] {
+            let e = m.handle(ms(0), msg).unwrap_err();
+            assert!(e.problem.contains("only a daemon"), "{e}");
+        }
+        let e = m.handle(ms(0), hello("controller", Role::Controller)).unwrap_err();
+        assert!(e.problem.contains("second Hello"), "{e}");
+        let out = m.handle(ms(0), Message::Bye { reason: "done".into() }).unwrap();
+        assert_eq!(out, vec![NodeOutput::Closed { reason: "done".into() }]);
+        assert_eq!(m.rendering(), None);
+    }
+}

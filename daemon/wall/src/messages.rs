@@ -1,0 +1,221 @@
+//! The frame protocol's messages (DESIGN.md "Distribution"): what a controller and its daemons say
+//! to each other over one connection, and [`ProtocolError`], the reason a peer's connection is
+//! closed when it breaks the protocol.
+//!
+//! One frame, as the controller sees it:
+//!
+//! ```text
+//! controller                                   daemon
+//!     Hello ------------------------------------> (both ways, first on a connection)
+//!     FrameState(n) ----------------------------> renders its tiles
+//!     <---------------------------------------- Ready { n, render_us }
+//!     (all up nodes ready, or the deadline)
+//!     Swap(n) ----------------------------------> presents
+//!     <---------------------------------------- Presented { n, node_time_us }
+//!     Ping { id, t0 } --------------------------> (now and then: clock offsets)
+//!     <---------------------------------------- Pong { id, t0, t1 }
+//! ```
+//!
+//! The bytes of these messages are [`crate::codec`]'s business; this module knows no encoding.
+
+use serde::{Deserialize, Serialize};
+
+use crate::wire::FrameState;
+
+/// The protocol version of this build; a peer's [`Message::Hello`] must carry the same.
+pub const PROTOCOL_VERSION: u16 = 1;
+
+/// Which side of a connection a peer is.
+#[derive(Serialize, Deserialize, Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Role {
+    Controller,
+    Daemon,
+}
+
+impl Role {
+    pub fn name(self) -> &'static str {
+        match self {
+            Role::Controller => "controller",
+            Role::Daemon => "daemon",
+        }
+    }
+}
+
+/// One tile's last presented frame: 8-bit sRGB, rows top to bottom, `width * height * 3` bytes.
+#[derive(Serialize, Deserialize, Debug, Clone, PartialEq, Eq)]
+pub struct TileImage {
+    pub name: String,
+    pub width: u32,
+    pub height: u32,
+    pub frame_id: u64,
+    /// Encoded as one byte string (not a sequence of numbers), so decoding it is a copy.
+    #[serde(with = "byte_buf")]
+    pub rgb8: Vec<u8>,
+}
+
+impl TileImage {
+    /// Checks that `rgb8` holds exactly `width * height * 3` bytes.
+    pub fn validate(&self) -> Result<(), String> {
+        let want = self.width as u64 * self.height as u64 * 3;
+        if self.rgb8.len() as u64 != want {
+            return Err(format!(
+                "tile `{}` is {}x{} but carries {} bytes instead of {want}",
+                self.name,
+                self.width,
+                self.height,
+                self.rgb8.len()
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Everything said on a wall connection.
+// FrameState is the large variant (about 300 bytes) and the most frequent one: boxing it would
+// only add an allocation per frame.
+#[allow(clippy::large_enum_variant)]
+#[derive(Serialize, Deserialize, Debug, Clone, PartialEq)]
+pub enum Message {
+    /// The first message on a connection, both ways.
+    Hello { version: u16, name: String, role: Role },
+    /// Controller -> daemon: render this frame.
+    FrameState(FrameState),
+    /// Daemon -> controller: rendered, waiting for the swap.
+    Ready { frame_id: u64, render_us: u64 },
+    /// Controller -> daemon: present now.
+    Swap { frame_id: u64 },
+    /// Daemon -> controller: presented at `node_time_us` of the daemon's own clock.
+    Presented { frame_id: u64, node_time_us: i64 },
+    /// Controller -> daemon: clock sync; `t0_us` is the controller's clock at sending.
+    Ping { id: u64, t0_us: i64 },
+    /// Daemon -> controller: `t1_us` is the daemon's clock when the Ping arrived.
+    Pong { id: u64, t0_us: i64, t1_us: i64 },
+    /// Controller -> daemon: send me your tiles' last presented frames.
+    SnapshotRequest,
+    /// Daemon -> controller: its tiles' last presented frames.
+    Snapshot { tiles: Vec<TileImage> },
+    /// Either way, then close.
+    Bye { reason: String },
+}
+
+impl Message {
+    /// The message's name, for errors and logs.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Message::Hello { .. } => "Hello",
+            Message::FrameState(_) => "FrameState",
+            Message::Ready { .. } => "Ready",
+            Message::Swap { .. } => "Swap",
+            Message::Presented { .. } => "Presented",
+            Message::Ping { .. } => "Ping",
+            Message::Pong { .. } => "Pong",
+            Message::SnapshotRequest => "SnapshotRequest",
+            Message::Snapshot { .. } => "Snapshot",
+            Message::Bye { .. } => "Bye",
+        }
+    }
+
+    /// Who may send it: `None` for messages both sides send (Hello, Bye).
+    pub fn sender(&self) -> Option<Role> {
+        match self {
+            Message::Hello { .. } | Message::Bye { .. } => None,
+            Message::FrameState(_)
+            | Message::Swap { .. }
+            | Message::Ping { .. }
+            | Message::SnapshotRequest => Some(Role::Controller),
+            Message::Ready { .. }
+            | Message::Presented { .. }
+            | Message::Pong { .. }
+            | Message::Snapshot { .. } => Some(Role::Daemon),
+        }
+    }
+}
+
+/// A peer broke the protocol: the caller closes that peer's connection (with this as the reason)
+/// and nothing else stops.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("protocol violation by `{peer}` ({message}): {problem}")]
+pub struct ProtocolError {
+    /// The peer: a node's name on the controller, `controller` on a daemon.
+    pub peer: String,
+    /// The offending message's kind ([`Message::kind`]).
+    pub message: &'static str,
+    pub problem: String,
+}
+
+impl ProtocolError {
+    pub fn new(peer: &str, message: &'static str, problem: impl Into<String>) -> Self {
+        ProtocolError { peer: peer.to_string(), message, problem: problem.into() }
+    }
+}
+
+/// Serde glue for a `Vec<u8>` as one byte string (what `serde_bytes` does, without the crate).
+mod byte_buf {
+    use serde::de::{Deserializer, SeqAccess, Visitor};
+    use serde::Serializer;
+    use std::fmt;
+
+    pub fn serialize<S: Serializer>(v: &[u8], s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_bytes(v)
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<u8>, D::Error> {
+        d.deserialize_byte_buf(BytesVisitor)
+    }
+
+    struct BytesVisitor;
+
+    impl<'de> Visitor<'de> for BytesVisitor {
+        type Value = Vec<u8>;
+
+        fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+            f.write_str("a byte string")
+        }
+
+        fn visit_bytes<E>(self, v: &[u8]) -> Result<Vec<u8>, E> {
+            Ok(v.to_vec())
+        }
+
+        fn visit_byte_buf<E>(self, v: Vec<u8>) -> Result<Vec<u8>, E> {
+            Ok(v)
+        }
+
+        // Self-describing formats (JSON) write bytes as a sequence of numbers.
+        fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Vec<u8>, A::Error> {
+            let mut v = Vec::with_capacity(seq.size_hint().unwrap_or(0).min(1 << 16));
+            while let Some(b) = seq.next_element()? {
+                v.push(b);
+            }
+            Ok(v)
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_message_has_a_kind_and_a_sender() {
+        let m = Message::Ready { frame_id: 3, render_us: 10 };
+        assert_eq!(m.kind(), "Ready");
+        assert_eq!(m.sender(), Some(Role::Daemon));
+        assert_eq!(Message::Swap { frame_id: 1 }.sender(), Some(Role::Controller));
+        assert_eq!(Message::Bye { reason: String::new() }.sender(), None);
+    }
+
+    #[test]
+    fn tile_images_check_their_size() {
+        let mut t = TileImage { name: "a".into(), width: 2, height: 3, frame_id: 0, rgb8: vec![0; 18] };
+        assert!(t.validate().is_ok());
+        t.rgb8.pop();
+        assert!(t.validate().unwrap_err().contains("17 bytes instead of 18"));
+    }
+
+    #[test]
+    fn tile_bytes_survive_json_too() {
+        let t = TileImage { name: "a".into(), width: 1, height: 1, frame_id: 7, rgb8: vec![1, 2, 255] };
+        let s = serde_json::to_string(&t).unwrap();
+        assert_eq!(serde_json::from_str::<TileImage>(&s).unwrap(), t);
+    }
+}

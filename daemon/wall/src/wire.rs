@@ -1,0 +1,480 @@
+//! Wire types: what a frame's state looks like on the network, kept apart from the model types
+//! ([`Camera`], [`RenderSettings`]) so that either can change without silently changing the other.
+//!
+//! Conversions are explicit: model -> wire is `From` (it cannot fail), wire -> model is `TryFrom`
+//! and validates everything a peer could get wrong (finite numbers, a camera that defines a frame,
+//! positive steps, enum codes in range), returning a [`WireError`] that names the field.
+//!
+//! Enums travel as `u8` codes, fixed here forever (append only):
+//! - shading: 0 Lambert, 1 Blinn-Phong
+//! - AO radius kind: 0 default (8 voxels), 1 world (`radius`), 2 unbounded
+//! - AO method: 0 ours, 1 seed
+//! - IBL: 0 none, 1 seed, 2 bent, 3 rays
+
+use glam::DVec3;
+use serde::{Deserialize, Serialize};
+
+use crate::camera::{Camera, CameraError};
+use crate::render_state::{
+    AoMethod, AoRadius, AoSettings, IblMethod, Light, Material, RenderSettings, Shading,
+};
+
+/// A camera on the wire: [`Camera`] with plain arrays.
+#[derive(Serialize, Deserialize, Debug, Clone, Copy, PartialEq)]
+pub struct WireCamera {
+    pub eye: [f64; 3],
+    pub target: [f64; 3],
+    pub up: [f64; 3],
+    pub fov_y_deg: f64,
+}
+
+/// [`Light`] on the wire.
+#[derive(Serialize, Deserialize, Debug, Clone, Copy, PartialEq)]
+pub struct WireLight {
+    pub direction: [f64; 3],
+    pub camera_relative: bool,
+    pub color: [f64; 3],
+    pub ambient: [f64; 3],
+}
+
+/// [`Material`] on the wire.
+#[derive(Serialize, Deserialize, Debug, Clone, Copy, PartialEq)]
+pub struct WireMaterial {
+    pub albedo: [f64; 3],
+    pub specular: f64,
+    pub shininess: f64,
+}
+
+/// [`AoSettings`] on the wire; the enums as codes (see the module docs).
+#[derive(Serialize, Deserialize, Debug, Clone, Copy, PartialEq)]
+pub struct WireAo {
+    pub samples: u32,
+    /// 0 default, 1 world (`radius` world units), 2 unbounded.
+    pub radius_kind: u8,
+    /// World units when `radius_kind` is 1; 0 otherwise.
+    pub radius: f64,
+    /// 0 ours, 1 seed.
+    pub method: u8,
+    /// 0 none, 1 seed, 2 bent, 3 rays.
+    pub ibl: u8,
+    pub exact: bool,
+    pub step_voxels: f64,
+    pub offset_voxels: f64,
+    pub frame: u32,
+    pub seed: u32,
+}
+
+/// [`RenderSettings`] on the wire.
+#[derive(Serialize, Deserialize, Debug, Clone, Copy, PartialEq)]
+pub struct WireSettings {
+    pub iso: f64,
+    pub step_voxels: f64,
+    pub empty_space_skipping: bool,
+    /// 0 Lambert, 1 Blinn-Phong.
+    pub shading: u8,
+    pub light: WireLight,
+    pub material: WireMaterial,
+    pub exposure: f64,
+    pub background: [f64; 3],
+    pub ao: WireAo,
+}
+
+/// What the controller broadcasts each frame.
+#[derive(Serialize, Deserialize, Debug, Clone, Copy, PartialEq)]
+pub struct FrameState {
+    pub frame_id: u64,
+    pub camera: WireCamera,
+    pub settings: WireSettings,
+    /// The quality level chosen by the controller's governor (0 = the cheapest).
+    pub quality: u32,
+}
+
+impl FrameState {
+    /// The frame state of a model frame.
+    pub fn new(frame_id: u64, camera: &Camera, settings: &RenderSettings, quality: u32) -> Self {
+        FrameState { frame_id, camera: camera.into(), settings: settings.into(), quality }
+    }
+
+    /// Whether `other` asks for the same image (everything but the frame id is equal): a daemon
+    /// keeps accumulating progressive AO while this holds.
+    pub fn same_image(&self, other: &FrameState) -> bool {
+        self.camera == other.camera && self.settings == other.settings && self.quality == other.quality
+    }
+}
+
+/// A frame's state in model types: what [`FrameState`] validates into.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FrameSpec {
+    pub frame_id: u64,
+    pub camera: Camera,
+    pub settings: RenderSettings,
+    pub quality: u32,
+}
+
+impl From<&FrameSpec> for FrameState {
+    fn from(f: &FrameSpec) -> Self {
+        FrameState::new(f.frame_id, &f.camera, &f.settings, f.quality)
+    }
+}
+
+impl TryFrom<&FrameState> for FrameSpec {
+    type Error = WireError;
+    fn try_from(s: &FrameState) -> Result<Self, WireError> {
+        Ok(FrameSpec {
+            frame_id: s.frame_id,
+            camera: Camera::try_from(s.camera)?,
+            settings: RenderSettings::try_from(s.settings)?,
+            quality: s.quality,
+        })
+    }
+}
+
+impl TryFrom<FrameState> for FrameSpec {
+    type Error = WireError;
+    fn try_from(s: FrameState) -> Result<Self, WireError> {
+        FrameSpec::try_from(&s)
+    }
+}
+
+/// A wire value that does not make a valid model value; `field` is its path, e.g.
+/// `settings.ao.step_voxels`.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum WireError {
+    #[error("`{field}` is not finite ({value})")]
+    NotFinite { field: &'static str, value: f64 },
+    #[error("`{field}` = {value} is out of range: {expected}")]
+    OutOfRange { field: &'static str, value: f64, expected: &'static str },
+    #[error("`{field}` = {value} is not a known code (0..={max})")]
+    UnknownCode { field: &'static str, value: u8, max: u8 },
+    /// The camera does not define a frame ([`CameraError`], as text).
+    #[error("`{field}`: {reason}")]
+    Camera { field: &'static str, reason: String },
+}
+
+impl WireError {
+    /// The path of the offending field.
+    pub fn field(&self) -> &'static str {
+        match self {
+            WireError::NotFinite { field, .. }
+            | WireError::OutOfRange { field, .. }
+            | WireError::UnknownCode { field, .. }
+            | WireError::Camera { field, .. } => field,
+        }
+    }
+}
+
+fn finite(field: &'static str, value: f64) -> Result<f64, WireError> {
+    if value.is_finite() {
+        Ok(value)
+    } else {
+        Err(WireError::NotFinite { field, value })
+    }
+}
+
+fn finite3(field: &'static str, v: [f64; 3]) -> Result<[f64; 3], WireError> {
+    for x in v {
+        finite(field, x)?;
+    }
+    Ok(v)
+}
+
+fn positive(field: &'static str, value: f64) -> Result<f64, WireError> {
+    finite(field, value)?;
+    if value > 0.0 {
+        Ok(value)
+    } else {
+        Err(WireError::OutOfRange { field, value, expected: "> 0" })
+    }
+}
+
+fn non_negative(field: &'static str, value: f64) -> Result<f64, WireError> {
+    finite(field, value)?;
+    if value >= 0.0 {
+        Ok(value)
+    } else {
+        Err(WireError::OutOfRange { field, value, expected: ">= 0" })
+    }
+}
+
+fn v3(a: [f64; 3]) -> DVec3 {
+    DVec3::from_array(a)
+}
+
+impl From<&Camera> for WireCamera {
+    fn from(c: &Camera) -> Self {
+        WireCamera {
+            eye: c.eye.to_array(),
+            target: c.target.to_array(),
+            up: c.up.to_array(),
+            fov_y_deg: c.fov_y_deg,
+        }
+    }
+}
+
+impl From<Camera> for WireCamera {
+    fn from(c: Camera) -> Self {
+        (&c).into()
+    }
+}
+
+impl TryFrom<WireCamera> for Camera {
+    type Error = WireError;
+    fn try_from(w: WireCamera) -> Result<Self, WireError> {
+        let cam = Camera {
+            eye: v3(finite3("camera.eye", w.eye)?),
+            target: v3(finite3("camera.target", w.target)?),
+            up: v3(finite3("camera.up", w.up)?),
+            fov_y_deg: finite("camera.fov_y_deg", w.fov_y_deg)?,
+        };
+        cam.validate().map_err(|error| {
+            let field = match &error {
+                CameraError::EyeIsTarget(_) => "camera.target",
+                CameraError::UpParallel { .. } => "camera.up",
+                CameraError::BadFov(_) => "camera.fov_y_deg",
+                CameraError::NotFinite(_) => "camera",
+            };
+            WireError::Camera { field, reason: error.to_string() }
+        })?;
+        Ok(cam)
+    }
+}
+
+fn shading_code(s: Shading) -> u8 {
+    match s {
+        Shading::Lambert => 0,
+        Shading::BlinnPhong => 1,
+    }
+}
+
+fn ao_method_code(m: AoMethod) -> u8 {
+    match m {
+        AoMethod::Ours => 0,
+        AoMethod::Seed => 1,
+    }
+}
+
+fn ibl_code(m: IblMethod) -> u8 {
+    match m {
+        IblMethod::None => 0,
+        IblMethod::Seed => 1,
+        IblMethod::Bent => 2,
+        IblMethod::Rays => 3,
+    }
+}
+
+impl From<&AoSettings> for WireAo {
+    fn from(a: &AoSettings) -> Self {
+        let (radius_kind, radius) = match a.radius {
+            AoRadius::Default => (0, 0.0),
+            AoRadius::World(r) => (1, r),
+            AoRadius::Unbounded => (2, 0.0),
+        };
+        WireAo {
+            samples: a.samples,
+            radius_kind,
+            radius,
+            method: ao_method_code(a.method),
+            ibl: ibl_code(a.ibl),
+            exact: a.exact,
+            step_voxels: a.step_voxels,
+            offset_voxels: a.offset_voxels,
+            frame: a.frame,
+            seed: a.seed,
+        }
+    }
+}
+
+impl TryFrom<WireAo> for AoSettings {
+    type Error = WireError;
+    fn try_from(w: WireAo) -> Result<Self, WireError> {
+        let radius = match w.radius_kind {
+            0 => AoRadius::Default,
+            1 => AoRadius::World(positive("settings.ao.radius", w.radius)?),
+            2 => AoRadius::Unbounded,
+            value => return Err(WireError::UnknownCode { field: "settings.ao.radius_kind", value, max: 2 }),
+        };
+        let method = match w.method {
+            0 => AoMethod::Ours,
+            1 => AoMethod::Seed,
+            value => return Err(WireError::UnknownCode { field: "settings.ao.method", value, max: 1 }),
+        };
+        let ibl = match w.ibl {
+            0 => IblMethod::None,
+            1 => IblMethod::Seed,
+            2 => IblMethod::Bent,
+            3 => IblMethod::Rays,
+            value => return Err(WireError::UnknownCode { field: "settings.ao.ibl", value, max: 3 }),
+        };
+        Ok(AoSettings {
+            samples: w.samples,
+            radius,
+            method,
+            ibl,
+            exact: w.exact,
+            step_voxels: positive("settings.ao.step_voxels", w.step_voxels)?,
+            offset_voxels: non_negative("settings.ao.offset_voxels", w.offset_voxels)?,
+            frame: w.frame,
+            seed: w.seed,
+        })
+    }
+}
+
+impl From<&RenderSettings> for WireSettings {
+    fn from(s: &RenderSettings) -> Self {
+        WireSettings {
+            iso: s.iso,
+            step_voxels: s.step_voxels,
+            empty_space_skipping: s.empty_space_skipping,
+            shading: shading_code(s.shading),
+            light: WireLight {
+                direction: s.light.direction.to_array(),
+                camera_relative: s.light.camera_relative,
+                color: s.light.color,
+                ambient: s.light.ambient,
+            },
+            material: WireMaterial {
+                albedo: s.material.albedo,
+                specular: s.material.specular,
+                shininess: s.material.shininess,
+            },
+            exposure: s.exposure,
+            background: s.background,
+            ao: (&s.ao).into(),
+        }
+    }
+}
+
+impl From<RenderSettings> for WireSettings {
+    fn from(s: RenderSettings) -> Self {
+        (&s).into()
+    }
+}
+
+impl TryFrom<WireSettings> for RenderSettings {
+    type Error = WireError;
+    fn try_from(w: WireSettings) -> Result<Self, WireError> {
+        let shading = match w.shading {
+            0 => Shading::Lambert,
+            1 => Shading::BlinnPhong,
+            value => return Err(WireError::UnknownCode { field: "settings.shading", value, max: 1 }),
+        };
+        Ok(RenderSettings {
+            iso: finite("settings.iso", w.iso)?,
+            step_voxels: positive("settings.step_voxels", w.step_voxels)?,
+            empty_space_skipping: w.empty_space_skipping,
+            shading,
+            light: Light {
+                direction: v3(finite3("settings.light.direction", w.light.direction)?),
+                camera_relative: w.light.camera_relative,
+                color: finite3("settings.light.color", w.light.color)?,
+                ambient: finite3("settings.light.ambient", w.light.ambient)?,
+            },
+            material: Material {
+                albedo: finite3("settings.material.albedo", w.material.albedo)?,
+                specular: finite("settings.material.specular", w.material.specular)?,
+                shininess: non_negative("settings.material.shininess", w.material.shininess)?,
+            },
+            exposure: non_negative("settings.exposure", w.exposure)?,
+            background: finite3("settings.background", w.background)?,
+            ao: AoSettings::try_from(w.ao)?,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn camera() -> Camera {
+        Camera {
+            eye: DVec3::new(3.0, -7.0, 2.0),
+            target: DVec3::new(0.5, 0.25, 0.0),
+            up: DVec3::Z,
+            fov_y_deg: 40.0,
+        }
+    }
+
+    fn settings() -> RenderSettings {
+        let mut s = RenderSettings::new(300.0);
+        s.shading = Shading::Lambert;
+        s.ao = AoSettings {
+            samples: 32,
+            radius: AoRadius::World(12.5),
+            method: AoMethod::Seed,
+            ibl: IblMethod::Rays,
+            exact: false,
+            step_voxels: 0.25,
+            offset_voxels: 0.0,
+            frame: 9,
+            seed: 77,
+        };
+        s
+    }
+
+    #[test]
+    fn model_wire_model_round_trips() {
+        let spec = FrameSpec { frame_id: 42, camera: camera(), settings: settings(), quality: 3 };
+        let wire = FrameState::from(&spec);
+        assert_eq!(FrameSpec::try_from(&wire).unwrap(), spec);
+        // Every enum value survives.
+        for radius in [AoRadius::Default, AoRadius::World(1.0), AoRadius::Unbounded] {
+            for method in [AoMethod::Ours, AoMethod::Seed] {
+                for ibl in [IblMethod::None, IblMethod::Seed, IblMethod::Bent, IblMethod::Rays] {
+                    for shading in [Shading::Lambert, Shading::BlinnPhong] {
+                        let mut s = settings();
+                        s.shading = shading;
+                        s.ao.radius = radius;
+                        s.ao.method = method;
+                        s.ao.ibl = ibl;
+                        assert_eq!(RenderSettings::try_from(WireSettings::from(&s)).unwrap(), s);
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn invalid_wire_values_name_their_field() {
+        let good = FrameState::new(1, &camera(), &settings(), 0);
+        let check = |f: &dyn Fn(&mut FrameState), field: &str| {
+            let mut s = good;
+            f(&mut s);
+            let err = FrameSpec::try_from(&s).unwrap_err();
+            assert_eq!(err.field(), field, "{err}");
+            assert!(err.to_string().contains(field), "{err}");
+        };
+        check(&|s| s.camera.eye[1] = f64::NAN, "camera.eye");
+        check(&|s| s.camera.up = [0.0, 0.0, f64::INFINITY], "camera.up");
+        check(&|s| s.camera.target = s.camera.eye, "camera.target");
+        check(&|s| s.camera.up = [3.0 - 0.5, -7.0 - 0.25, 2.0], "camera.up");
+        check(&|s| s.camera.fov_y_deg = 0.0, "camera.fov_y_deg");
+        check(&|s| s.camera.fov_y_deg = f64::NAN, "camera.fov_y_deg");
+        check(&|s| s.settings.iso = f64::NEG_INFINITY, "settings.iso");
+        check(&|s| s.settings.step_voxels = 0.0, "settings.step_voxels");
+        check(&|s| s.settings.shading = 2, "settings.shading");
+        check(&|s| s.settings.light.direction[0] = f64::NAN, "settings.light.direction");
+        check(&|s| s.settings.light.color[2] = f64::INFINITY, "settings.light.color");
+        check(&|s| s.settings.material.shininess = -1.0, "settings.material.shininess");
+        check(&|s| s.settings.exposure = -0.5, "settings.exposure");
+        check(&|s| s.settings.background[0] = f64::NAN, "settings.background");
+        check(&|s| s.settings.ao.radius_kind = 3, "settings.ao.radius_kind");
+        check(&|s| s.settings.ao.radius = -2.0, "settings.ao.radius");
+        check(&|s| s.settings.ao.method = 200, "settings.ao.method");
+        check(&|s| s.settings.ao.ibl = 4, "settings.ao.ibl");
+        check(&|s| s.settings.ao.step_voxels = f64::NAN, "settings.ao.step_voxels");
+        check(&|s| s.settings.ao.offset_voxels = -0.1, "settings.ao.offset_voxels");
+    }
+
+    #[test]
+    fn same_image_ignores_only_the_frame_id() {
+        let a = FrameState::new(1, &camera(), &settings(), 2);
+        let mut b = a;
+        b.frame_id = 2;
+        assert!(a.same_image(&b));
+        b.quality = 3;
+        assert!(!a.same_image(&b));
+        let mut c = a;
+        c.settings.ao.frame += 1;
+        assert!(!a.same_image(&c));
+    }
+}

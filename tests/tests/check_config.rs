@@ -1,0 +1,103 @@
+//! `isowall check-config` and `isowalld check-config` as a user runs them: a broken wall config
+//! exits 1 naming FILE:LINE:COL for every problem; the example configs exit 0 with a summary.
+
+use isowall_e2e::{repo_root, run_in};
+
+const BROKEN: &str = r#"[wall]
+name = "broken"
+colour = "red"
+
+[volume]
+source = "procedural:engine"
+
+[[tiles]]
+name = "t00"
+x = 0
+y = 0
+width = 160
+height = 120
+
+[[tiles]]
+name = "t00"
+x = 400
+y = 0
+width = 160
+height = 120
+
+[[tiles]]
+name = "t02"
+x = 100
+y = 60
+width = 160
+height = 120
+
+[[nodes]]
+name = "node0"
+address = "127.0.0.1:7401"
+tiles = ["t00", "t02"]
+"#;
+
+#[test]
+fn a_broken_config_names_every_problem_with_its_position() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("broken.toml"), BROKEN).unwrap();
+    for bin in ["isowall", "isowalld"] {
+        let out = run_in(dir.path(), bin, &["check-config", "broken.toml"]);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{bin}: {err}");
+        for want in [
+            "broken.toml:3:1: unknown field `colour`",
+            "broken.toml:16:8: duplicate tile name 't00' (first at line 9)",
+            "broken.toml:22:1: tile 't02' overlaps tile 't00'",
+        ] {
+            assert!(err.contains(want), "{bin}: stderr lacks {want:?}:\n{err}");
+        }
+        let positioned = err.lines().filter(|l| l.starts_with("broken.toml:")).count();
+        assert_eq!(positioned, 3, "{bin}: one line per problem:\n{err}");
+        assert!(out.stdout.is_empty(), "{bin}: nothing on stdout");
+    }
+}
+
+#[test]
+fn a_syntax_error_and_a_missing_file_exit_1() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("syntax.toml"), "[wall]\nname = \"x\nx = 1\n").unwrap();
+    for bin in ["isowall", "isowalld"] {
+        let out = run_in(dir.path(), bin, &["check-config", "syntax.toml"]);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{bin}: {err}");
+        assert!(err.lines().any(|l| l.starts_with("syntax.toml:2:")), "{bin}: {err}");
+        let out = run_in(dir.path(), bin, &["check-config", "missing.toml"]);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{bin}: {err}");
+        assert!(err.contains("missing.toml: cannot read the wall config"), "{bin}: {err}");
+    }
+}
+
+#[test]
+fn every_example_config_checks_out_with_a_summary() {
+    let dir = tempfile::tempdir().unwrap();
+    let examples = repo_root().join("wall-configs");
+    let mut n = 0;
+    for entry in std::fs::read_dir(&examples).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_none_or(|e| e != "toml") {
+            continue;
+        }
+        let name = path.file_stem().unwrap().to_string_lossy().into_owned();
+        for bin in ["isowall", "isowalld"] {
+            let out = run_in(dir.path(), bin, &["check-config", path.to_str().unwrap()]);
+            let stdout = String::from_utf8_lossy(&out.stdout);
+            assert!(out.status.success(), "{bin} {name}: {}", String::from_utf8_lossy(&out.stderr));
+            assert!(stdout.contains(&format!("wall '{name}': ")), "{bin} {name}: {stdout}");
+            assert!(stdout.contains(" px, ") && stdout.contains("tiles on"), "{bin} {name}: {stdout}");
+        }
+        n += 1;
+    }
+    assert!(n >= 4);
+    let out =
+        run_in(dir.path(), "isowall", &["check-config", examples.join("local-2x2.toml").to_str().unwrap()]);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(stdout.contains("wall 'local-2x2': 328x248 px, 4 tiles on 4 nodes"), "{stdout}");
+    assert!(stdout.contains("node3 (127.0.0.1:7404): t11 160x120+168+128"), "{stdout}");
+}
