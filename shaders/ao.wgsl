@@ -189,7 +189,7 @@ fn exact_occluded(o: vec3<f32>, w: vec3<f32>) -> bool {
     // Voxels per unit t; an axis that (practically) does not move is never stepped: its cell
     // still comes from each segment's midpoint.
     let du = w / params.spacing.xyz;
-    let moving = multi & abs(du) > vec3<f32>(1e-10);
+    let moving = multi & (abs(du) > vec3<f32>(1e-10));
     let du_safe = select(vec3<f32>(1.0), du, moving);
     let step = select(vec3<f32>(0.0), sign(du), moving);
     // The DDA's start (t_init, u_init); the next cell plane per axis and the t where it is crossed.
@@ -241,7 +241,7 @@ fn exact_occluded(o: vec3<f32>, w: vec3<f32>) -> bool {
         if t1 >= t_end {
             return false;
         }
-        let crossed = moving & next <= vec3<f32>(t1);
+        let crossed = moving & (next <= vec3<f32>(t1));
         plane = select(plane, plane + step, crossed);
         next = select(next, t_init + (plane - u_init) / du_safe, crossed);
         t = t1;

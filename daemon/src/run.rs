@@ -29,6 +29,10 @@ pub struct RunArgs {
     /// This node's name in the config
     #[arg(long, value_name = "NAME")]
     pub node: String,
+    /// Fault injection for tests and demos of the barrier: hold every frame this long after it
+    /// has rendered before replying Ready (a slow node)
+    #[arg(long, value_name = "MS", default_value_t = 0, hide_short_help = true)]
+    pub slow_ms: u64,
 }
 
 /// What the node needs beyond the network.
@@ -40,6 +44,8 @@ struct Node {
     results: UnboundedReceiver<Result<JobResult, String>>,
     epoch: Instant,
     limit: usize,
+    /// Fault injection: extra delay before Ready.
+    slow: std::time::Duration,
     /// Rendered, waiting for the swap.
     pending: Option<JobResult>,
     /// The tiles on show (the last presented frame), for snapshots.
@@ -84,6 +90,7 @@ pub fn run(a: &RunArgs) -> Result<()> {
         results,
         epoch: Instant::now(),
         limit,
+        slow: std::time::Duration::from_millis(a.slow_ms),
         pending: None,
         shown: None,
     };
@@ -188,6 +195,9 @@ async fn serve(
             },
             r = node.results.recv() => match r {
                 Some(Ok(done)) => {
+                    if !node.slow.is_zero() {
+                        tokio::time::sleep(node.slow).await;
+                    }
                     let (id, t) = (done.frame_id, done.render_time);
                     node.pending = Some(done);
                     machine.render_done(node.epoch.elapsed(), id, t)

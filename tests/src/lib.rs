@@ -67,3 +67,60 @@ pub fn gpu_ok(what: &str, out: &Output) -> bool {
     }
     panic!("{what} failed ({}):\n{err}", out.status);
 }
+
+/// `n` distinct UDP ports free on loopback right now (bound, read, released).
+pub fn free_udp_ports(n: usize) -> Vec<u16> {
+    let sockets: Vec<std::net::UdpSocket> =
+        (0..n).map(|_| std::net::UdpSocket::bind("127.0.0.1:0").expect("bind a loopback UDP port")).collect();
+    sockets.iter().map(|s| s.local_addr().expect("local address").port()).collect()
+}
+
+/// A child process killed when dropped (a daemon under test).
+pub struct Daemon {
+    pub child: std::process::Child,
+    pub log: PathBuf,
+}
+
+impl Daemon {
+    /// Starts `isowalld run --config CONFIG --node NODE EXTRA...`, logging to `dir/NODE.log`.
+    pub fn start(dir: &Path, config: &Path, node: &str, extra: &[&str]) -> Daemon {
+        let log = dir.join(format!("{node}.log"));
+        let file = std::fs::File::create(&log).expect("log file");
+        let child = Command::new(bin("isowalld"))
+            .args(["run", "--config"])
+            .arg(config)
+            .args(["--node", node])
+            .args(extra)
+            .stdout(file.try_clone().expect("log file"))
+            .stderr(file)
+            .spawn()
+            .expect("start isowalld");
+        Daemon { child, log }
+    }
+
+    /// Waits until the daemon printed that it listens (or exited, or `timeout`); `false` on failure.
+    pub fn wait_ready(&mut self, timeout: std::time::Duration) -> bool {
+        let start = std::time::Instant::now();
+        while start.elapsed() < timeout {
+            if std::fs::read_to_string(&self.log).is_ok_and(|l| l.contains("ready on")) {
+                return true;
+            }
+            if self.child.try_wait().ok().flatten().is_some() {
+                return false;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(100));
+        }
+        false
+    }
+
+    pub fn log_text(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+}
+
+impl Drop for Daemon {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}

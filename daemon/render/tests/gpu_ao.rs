@@ -333,3 +333,28 @@ fn stepped_ours_still_works_and_exact_finds_a_thin_plate_it_misses() {
     );
     assert!(*stepped_thin < a_thin - 0.1, "stepped does not miss the thin plate: {stepped_thin} vs {a_thin}");
 }
+
+#[test]
+fn exact_ao_skips_empty_blocks_without_changing_the_occlusion() {
+    let Some(gpu) = common::gpu() else { return };
+    // Block skipping in the exact walk jumps to a block's exit and restarts the cell walk there:
+    // with and without it the AO kernel must give the reference's occlusion at its own hits (the
+    // primary march restarts at block exits too, so the hits themselves may differ slightly),
+    // with fewer fetches when skipping.
+    let (volume, iso) = scene(Procedural::Engine, 64);
+    let view = framed(&volume, 64);
+    let gv = gpu.upload(&volume).unwrap();
+    let mut s = RenderSettings::new(iso);
+    s.ao.samples = 32;
+    s.ao.radius = AoRadius::Unbounded;
+    let mut fetches = Vec::new();
+    for skipping in [true, false] {
+        s.empty_space_skipping = skipping;
+        let f = gpu.render(&gv, &view, &s, None).unwrap().frame;
+        let (n, off) = ao_at_gpu_hits(&volume, &view, &s, &f);
+        eprintln!("exact AO, unbounded, skipping {skipping}: {off} of {n} pixels differ from the reference at the GPU's hits; {} fetches", f.fetches);
+        assert!(off * 500 <= n, "skipping {skipping}: {off} of {n} pixels differ from the reference");
+        fetches.push(f.fetches as f64);
+    }
+    assert!(fetches[0] < 0.8 * fetches[1], "skipping saved too little: {fetches:?}");
+}

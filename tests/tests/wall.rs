@@ -1,0 +1,201 @@
+//! The wall over real processes on loopback (issue "The wall"): a 2x2 wall of four daemons and the
+//! controller, whose snapshot must equal a single render of the whole wall camera; a slow daemon
+//! reported by name while the others go on; a peer with another CA's certificate refused.
+
+use isowall_e2e::{free_udp_ports, gpu_ok, in_ci, run_in, Daemon};
+use std::path::Path;
+use std::time::Duration;
+
+/// A 2x2 wall of `w`x`h` tiles with `bezel`-pixel mullions on the given ports.
+fn wall_config(
+    dir: &Path,
+    name: &str,
+    ports: &[u16],
+    w: u32,
+    h: u32,
+    bezel: u32,
+    deadline_ms: u64,
+    certs: &str,
+) -> std::path::PathBuf {
+    let mut s = format!(
+        "[wall]\nname = \"{name}\"\ndeadline_ms = {deadline_ms}\n\n\
+         [camera]\neye = [60.0, -70.0, 45.0]\ntarget = [23.5, 23.5, 23.5]\nup = [0, 0, 1]\nfov_y = 40.0\n\n\
+         [volume]\nsource = \"procedural:torus:48\"\n\n\
+         [render]\nao_samples = 4\nibl = \"bent\"\nenv = \"sky\"\n\n\
+         [certificates]\ndir = \"{certs}\"\n"
+    );
+    for (i, port) in ports.iter().enumerate() {
+        let (cx, cy) = ((i % 2) as u32, (i / 2) as u32);
+        let border = [
+            if cx == 0 { 0 } else { bezel },
+            if cx == 0 { bezel } else { 0 },
+            if cy == 0 { 0 } else { bezel },
+            if cy == 0 { bezel } else { 0 },
+        ];
+        s += &format!(
+            "\n[[tiles]]\nname = \"t{cx}{cy}\"\nx = {}\ny = {}\nwidth = {w}\nheight = {h}\nbezel = [{}, {}, {}, {}]\n",
+            cx * (w + 2 * bezel),
+            cy * (h + 2 * bezel),
+            border[0], border[1], border[2], border[3]
+        );
+        s += &format!(
+            "\n[[nodes]]\nname = \"node{i}\"\naddress = \"127.0.0.1:{port}\"\ntiles = [\"t{cx}{cy}\"]\n"
+        );
+    }
+    let path = dir.join(format!("{name}.toml"));
+    std::fs::write(&path, s).unwrap();
+    path
+}
+
+#[test]
+fn a_2x2_wall_snapshot_equals_the_single_render_of_the_whole_wall() {
+    let dir = tempfile::tempdir().unwrap();
+    let (w, h, bezel) = (40u32, 30u32, 3u32);
+    let config = wall_config(dir.path(), "w2x2", &free_udp_ports(4), w, h, bezel, 60_000, "keys");
+    let out = run_in(dir.path(), "isowall", &["keygen", "--config", config.to_str().unwrap()]);
+    assert!(out.status.success(), "keygen: {}", String::from_utf8_lossy(&out.stderr));
+    let out = run_in(
+        dir.path(),
+        "isowall",
+        &[
+            "up",
+            config.to_str().unwrap(),
+            "--frames",
+            "1",
+            "--snapshot",
+            "wall.png",
+            "--start-timeout",
+            "120",
+        ],
+    );
+    if !gpu_ok("isowall up", &out) {
+        return;
+    }
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(stdout.contains("4 of 4 tiles"), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+    // The whole wall image: tiles plus two mullions each way.
+    let (fw, fh) = (2 * w + 2 * bezel, 2 * h + 2 * bezel);
+    let out = run_in(
+        dir.path(),
+        "isowalld",
+        &[
+            "render",
+            "--volume",
+            "procedural:torus:48",
+            "--size",
+            &format!("{fw}x{fh}"),
+            "--eye",
+            "60,-70,45",
+            "--target",
+            "23.5,23.5,23.5",
+            "--up",
+            "0,0,1",
+            "--fov-y",
+            "40",
+            "--ao-samples",
+            "4",
+            "--ibl",
+            "bent",
+            "--env",
+            "sky",
+            "--out",
+            "whole.png",
+        ],
+    );
+    assert!(gpu_ok("isowalld render", &out));
+    let wall = image::open(dir.path().join("wall.png")).unwrap().to_rgb8();
+    let whole = image::open(dir.path().join("whole.png")).unwrap().to_rgb8();
+    assert_eq!(wall.dimensions(), (fw, fh));
+    let in_tile = |x: u32, y: u32| {
+        let tx = x < w || x >= w + 2 * bezel;
+        let ty = y < h || y >= h + 2 * bezel;
+        tx && ty
+    };
+    let (mut compared, mut max_diff, mut sum_diff, mut lit) = (0u64, 0u8, 0u64, 0u64);
+    for y in 0..fh {
+        for x in 0..fw {
+            let (a, b) = (wall.get_pixel(x, y).0, whole.get_pixel(x, y).0);
+            if in_tile(x, y) {
+                compared += 1;
+                for c in 0..3 {
+                    let d = a[c].abs_diff(b[c]);
+                    max_diff = max_diff.max(d);
+                    sum_diff += d as u64;
+                }
+                lit += u64::from(b.iter().map(|&v| v as u32).sum::<u32>() > 200);
+            } else {
+                assert!(a.iter().all(|&v| v < 40), "bezel pixel ({x},{y}) not dark: {a:?}");
+            }
+        }
+    }
+    assert_eq!(compared, 4 * (w * h) as u64);
+    assert!(lit > 200, "the torus is hardly in view ({lit} lit pixels)");
+    // Tiles are windows of the one wall image with the same per-pixel sample patterns: the same
+    // pixels, up to one 8-bit level where float sums round differently.
+    let mean = sum_diff as f64 / (3 * compared) as f64;
+    eprintln!("wall snapshot vs single render: max difference {max_diff} levels, mean {mean:.4}");
+    assert!(max_diff <= 1 && mean < 0.01, "max {max_diff}, mean {mean}");
+}
+
+#[test]
+fn a_slow_daemon_is_reported_by_name_and_the_others_go_on() {
+    let dir = tempfile::tempdir().unwrap();
+    // Deadline 5 s (a loaded 2-core CI machine renders a 16x12 tile well within it); node2 holds
+    // every frame 12 s, so it misses every deadline.
+    let config = wall_config(dir.path(), "slow", &free_udp_ports(4), 16, 12, 2, 5000, "keys");
+    let cfg = config.to_str().unwrap();
+    assert!(run_in(dir.path(), "isowall", &["keygen", "--config", cfg]).status.success());
+    let mut daemons: Vec<Daemon> = (0..4)
+        .map(|i| {
+            let extra: &[&str] = if i == 2 { &["--slow-ms", "12000"] } else { &[] };
+            Daemon::start(dir.path(), &config, &format!("node{i}"), extra)
+        })
+        .collect();
+    for (i, d) in daemons.iter_mut().enumerate() {
+        if !d.wait_ready(Duration::from_secs(120)) {
+            let log = d.log_text();
+            if log.contains("no Vulkan adapter") && !in_ci() {
+                eprintln!("skipping: no Vulkan adapter");
+                return;
+            }
+            panic!("node{i} did not start:\n{log}");
+        }
+    }
+    let out = run_in(dir.path(), "isowall", &["orbit", cfg, "--frames", "3"]);
+    let (stdout, stderr) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "orbit failed:\n{stdout}\n{stderr}");
+    assert!(stderr.contains("swap released without node2"), "the slow node is not named:\n{stderr}");
+    for other in ["node0", "node1", "node3"] {
+        assert!(!stderr.contains(&format!("without {other}")), "{other} was reported too:\n{stderr}");
+    }
+    assert!(stdout.contains("frames: 3"), "{stdout}");
+    assert!(stdout.contains("stragglers (node@frame): node2@1"), "{stdout}");
+}
+
+#[test]
+fn a_peer_with_another_cas_certificate_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let ports = free_udp_ports(4);
+    let config = wall_config(dir.path(), "good", &ports, 16, 12, 2, 5000, "keys");
+    let rogue = wall_config(dir.path(), "rogue", &ports, 16, 12, 2, 5000, "rogue-keys");
+    for c in [&config, &rogue] {
+        assert!(run_in(dir.path(), "isowall", &["keygen", "--config", c.to_str().unwrap()]).status.success());
+    }
+    let mut daemon = Daemon::start(dir.path(), &config, "node0", &[]);
+    if !daemon.wait_ready(Duration::from_secs(120)) {
+        let log = daemon.log_text();
+        if log.contains("no Vulkan adapter") && !in_ci() {
+            return;
+        }
+        panic!("node0 did not start:\n{log}");
+    }
+    // A controller whose certificate another CA signed (and which trusts only that CA).
+    let out = run_in(dir.path(), "isowall", &["snapshot", rogue.to_str().unwrap(), "--out", "x.png"]);
+    assert!(!out.status.success(), "the rogue controller got in");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("cannot reach") && err.contains("node0"), "{err}");
+    std::thread::sleep(Duration::from_millis(300));
+    let log = daemon.log_text();
+    assert!(log.contains("refused a connection"), "the daemon did not log the refusal:\n{log}");
+    assert!(!dir.path().join("x.png").exists());
+}
