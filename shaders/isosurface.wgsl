@@ -126,9 +126,13 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     if cap {
         n = cap_normal;
     } else {
+        // The gradient has vanished (a plateau) when it is below f32 rounding of the samples it
+        // came from: then the normal faces the viewer (like the reference's relative threshold).
         let g = gradient(p);
-        let gl = length(g);
-        n = select(-dir, -g / gl, gl > 0.0 && gl == gl);
+        let gl = length(g.xyz);
+        let min_spacing = min(min(params.spacing.x, params.spacing.y), params.spacing.z);
+        let vanished = gl <= 1e-6 * g.w / min_spacing;
+        n = select(-g.xyz / gl, -dir, vanished || gl != gl);
     }
     let v = -dir;
     let ns = select(-n, n, dot(n, v) >= 0.0);

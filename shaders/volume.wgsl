@@ -40,13 +40,18 @@ fn field(p: vec3<f32>) -> f32 {
 }
 
 // Central differences of the trilinear field, h = one voxel spacing per axis, stencil clamped.
-fn gradient(p: vec3<f32>) -> vec3<f32> {
+// w: the largest |f| among the six samples, the scale for deciding that the gradient vanished.
+fn gradient(p: vec3<f32>) -> vec4<f32> {
     let u = to_voxel(p);
     let s = params.spacing.xyz;
-    let gx = trilinear_voxel(u + vec4<f32>(1.0, 0.0, 0.0, 0.0)) - trilinear_voxel(u - vec4<f32>(1.0, 0.0, 0.0, 0.0));
-    let gy = trilinear_voxel(u + vec4<f32>(0.0, 1.0, 0.0, 0.0)) - trilinear_voxel(u - vec4<f32>(0.0, 1.0, 0.0, 0.0));
-    let gz = trilinear_voxel(u + vec4<f32>(0.0, 0.0, 1.0, 0.0)) - trilinear_voxel(u - vec4<f32>(0.0, 0.0, 1.0, 0.0));
-    return vec3<f32>(gx, gy, gz) / (2.0 * s);
+    let xp = trilinear_voxel(u + vec4<f32>(1.0, 0.0, 0.0, 0.0));
+    let xm = trilinear_voxel(u - vec4<f32>(1.0, 0.0, 0.0, 0.0));
+    let yp = trilinear_voxel(u + vec4<f32>(0.0, 1.0, 0.0, 0.0));
+    let ym = trilinear_voxel(u - vec4<f32>(0.0, 1.0, 0.0, 0.0));
+    let zp = trilinear_voxel(u + vec4<f32>(0.0, 0.0, 1.0, 0.0));
+    let zm = trilinear_voxel(u - vec4<f32>(0.0, 0.0, 1.0, 0.0));
+    let scale = max(max(max(abs(xp), abs(xm)), max(abs(yp), abs(ym))), max(abs(zp), abs(zm)));
+    return vec4<f32>(vec3<f32>(xp - xm, yp - ym, zp - zm) / (2.0 * s), scale);
 }
 
 // 1 / dir with zero components replaced by tiny ones of the same side (WGSL has no infinities):

@@ -116,8 +116,9 @@ impl Aov {
 #[serde(rename_all = "kebab-case")]
 pub enum AoMethod {
     /// Ours: cosine-weighted R2 directions with a per-pixel, per-frame shift, concentric disk
-    /// mapping, origin offset along N, march of at most half a voxel, occluded as soon as a sample
-    /// reaches f >= iso, radius R in world units.
+    /// mapping, origin offset along N, occluded as soon as the ray reaches f >= iso within R (world
+    /// units): every cell the ray crosses is tested exactly (`exact`, the default), or the ray
+    /// marches with at most half a voxel per step.
     #[default]
     Ours,
     /// The 2008 RTPara shader, ported faithfully as the baseline (not our method).
