@@ -29,6 +29,9 @@ pub struct OrbitOptions {
     /// Orbit step per frame, degrees about the world's up axis through the target
     #[arg(long, default_value_t = 4.0)]
     pub degrees_per_frame: f64,
+    /// Frames per second at most (0: as fast as the wall swaps)
+    #[arg(long, default_value_t = 0.0)]
+    pub fps: f64,
 }
 
 #[derive(Args)]
@@ -116,7 +119,11 @@ async fn drive(
 ) -> Result<Duration> {
     wall.sync_clocks(5).await;
     let start = Instant::now();
+    let period = (o.fps > 0.0).then(|| Duration::from_secs_f64(1.0 / o.fps));
     for k in 0..o.frames {
+        if let Some(p) = period {
+            tokio::time::sleep_until((start + p.mul_f64(k as f64)).into()).await;
+        }
         wall.frame(&orbit_camera(base, k, o.degrees_per_frame), settings).await?;
         if k % 30 == 29 {
             wall.sync_clocks(1).await;

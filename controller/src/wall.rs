@@ -15,10 +15,41 @@ use std::collections::{BTreeMap, HashMap};
 use std::time::{Duration, Instant};
 use tokio::sync::mpsc;
 
-/// What arrives from a node's connection.
+/// What arrives from a node's connection (or a reconnection attempt).
 enum Event {
     Message(String, Message),
     Closed(String, String),
+    /// A node that was down is reachable again (handshake done).
+    Reconnected(String, Link),
+    /// A reconnection attempt failed; another may start.
+    Unreachable(String),
+}
+
+/// An established, greeted connection to a node.
+struct Link {
+    connection: quinn::Connection,
+    sender: ChannelSender,
+    receiver: transport::ChannelReceiver,
+}
+
+/// Connects to node `name` at `address` and exchanges Hellos.
+async fn establish(endpoint: quinn::Endpoint, name: String, address: String, limit: usize) -> Result<Link> {
+    let addr = transport::resolve(&address)?;
+    let conn = tokio::time::timeout(Duration::from_secs(3), transport::connect(&endpoint, addr, &name))
+        .await
+        .map_err(|_| anyhow!("no answer"))??;
+    let Channel { connection, mut sender, mut receiver } = Channel::open(conn, &name, limit).await?;
+    sender.send(&codec::hello(isowall_net::tls::CONTROLLER, Role::Controller)).await?;
+    let first = tokio::time::timeout(Duration::from_secs(5), receiver.recv())
+        .await
+        .map_err(|_| anyhow!("no Hello"))??
+        .ok_or_else(|| anyhow!("closed before Hello"))?;
+    let said = codec::check_hello(&first, Role::Daemon).map_err(|e| anyhow!("{e}"))?;
+    if said != name {
+        transport::close(&connection, "wrong node");
+        bail!("the node at {address} says it is '{said}'");
+    }
+    Ok(Link { connection, sender, receiver })
 }
 
 /// A connected wall.
@@ -37,6 +68,10 @@ pub struct Wall {
     /// Releases: (frame, barrier time, stragglers).
     pub releases: Vec<(u64, Duration, Vec<String>)>,
     snapshots: BTreeMap<String, Vec<TileImage>>,
+    /// Nodes with a reconnection attempt under way.
+    reconnecting: std::collections::HashSet<String>,
+    /// When each down node was last tried.
+    last_try: HashMap<String, Instant>,
 }
 
 impl Wall {
@@ -63,6 +98,8 @@ impl Wall {
             finished: Vec::new(),
             releases: Vec::new(),
             snapshots: BTreeMap::new(),
+            reconnecting: Default::default(),
+            last_try: HashMap::new(),
         };
         let start = Instant::now();
         let mut last_report = Instant::now();
@@ -104,24 +141,19 @@ impl Wall {
         }
     }
 
+    fn limit(&self) -> usize {
+        usize::try_from(self.config.wall.message_limit_bytes).unwrap_or(usize::MAX)
+    }
+
     async fn connect_node(&mut self, name: &str, address: &str) -> Result<()> {
-        let addr = transport::resolve(address)?;
-        let conn =
-            tokio::time::timeout(Duration::from_secs(3), transport::connect(&self.endpoint, addr, name))
-                .await
-                .map_err(|_| anyhow!("no answer"))??;
-        let limit = usize::try_from(self.config.wall.message_limit_bytes).unwrap_or(usize::MAX);
-        let Channel { connection, mut sender, mut receiver } = Channel::open(conn, name, limit).await?;
-        sender.send(&codec::hello(isowall_net::tls::CONTROLLER, Role::Controller)).await?;
-        let first = tokio::time::timeout(Duration::from_secs(5), receiver.recv())
-            .await
-            .map_err(|_| anyhow!("no Hello"))??
-            .ok_or_else(|| anyhow!("closed before Hello"))?;
-        let said = codec::check_hello(&first, Role::Daemon).map_err(|e| anyhow!("{e}"))?;
-        if said != name {
-            transport::close(&connection, "wrong node");
-            bail!("the node at {address} says it is '{said}'");
-        }
+        let link =
+            establish(self.endpoint.clone(), name.to_string(), address.to_string(), self.limit()).await?;
+        self.attach(name, link).await
+    }
+
+    /// Starts reading a greeted link and tells the machine the node is up.
+    async fn attach(&mut self, name: &str, link: Link) -> Result<()> {
+        let Link { connection, sender, mut receiver } = link;
         let tx = self.events_tx.clone();
         let node = name.to_string();
         tokio::spawn(async move {
@@ -149,6 +181,30 @@ impl Wall {
         self.connections.insert(name.to_string(), connection);
         self.execute(outputs).await;
         Ok(())
+    }
+
+    /// Tries, in the background and at most once a second each, to reach the nodes that are down;
+    /// a node that answers rejoins at the next frame.
+    fn retry_down_nodes(&mut self) {
+        let limit = self.limit();
+        for node in self.config.nodes.clone() {
+            if self.senders.contains_key(&node.name) || self.reconnecting.contains(&node.name) {
+                continue;
+            }
+            if self.last_try.get(&node.name).is_some_and(|t| t.elapsed() < Duration::from_secs(1)) {
+                continue;
+            }
+            self.last_try.insert(node.name.clone(), Instant::now());
+            self.reconnecting.insert(node.name.clone());
+            let (tx, ep) = (self.events_tx.clone(), self.endpoint.clone());
+            tokio::spawn(async move {
+                let ev = match establish(ep, node.name.clone(), node.address.clone(), limit).await {
+                    Ok(link) => Event::Reconnected(node.name.clone(), link),
+                    Err(_) => Event::Unreachable(node.name.clone()),
+                };
+                let _ = tx.send(ev);
+            });
+        }
     }
 
     fn now(&self) -> Duration {
@@ -227,6 +283,21 @@ impl Wall {
                         Vec::new()
                     }
                 }
+                Some(Event::Reconnected(node, link)) => {
+                    self.reconnecting.remove(&node);
+                    if self.senders.contains_key(&node) {
+                        transport::close(&link.connection, "already connected");
+                    } else if let Err(e) = self.attach(&node, link).await {
+                        eprintln!("isowall: node {node} came back but: {e:#}");
+                    } else {
+                        eprintln!("isowall: node {node} is back; it rejoins at the next frame");
+                    }
+                    Vec::new()
+                }
+                Some(Event::Unreachable(node)) => {
+                    self.reconnecting.remove(&node);
+                    Vec::new()
+                }
                 None => Vec::new(),
             },
             _ = tokio::time::sleep(sleep) => {
@@ -258,6 +329,7 @@ impl Wall {
 
     /// Runs one frame: begins it and waits until its swap is released.
     pub async fn frame(&mut self, camera: &Camera, settings: &RenderSettings) -> Result<()> {
+        self.retry_down_nodes();
         let id = self.next_frame;
         self.next_frame += 1;
         let state = FrameState::new(id, camera, settings, 0);
@@ -265,7 +337,7 @@ impl Wall {
         let out = self.machine.begin_frame(now, state).map_err(|e| anyhow!("{e}"))?;
         self.execute(out).await;
         while self.releases.last().map(|r| r.0) != Some(id) {
-            if self.senders.is_empty() {
+            if self.senders.is_empty() && self.reconnecting.is_empty() {
                 bail!("every node of the wall is down");
             }
             self.step().await;

@@ -124,3 +124,46 @@ impl Drop for Daemon {
         let _ = self.child.wait();
     }
 }
+
+/// Writes `dir/NAME.toml`: a 2x2 wall of `w`x`h` tiles with `bezel`-pixel mullions, nodes
+/// `node0..3` on the given loopback ports, the torus at 48^3 with 4 AO samples and sky light, a
+/// fixed camera, and the certificates in `dir/CERTS`.
+pub fn wall_config(
+    dir: &Path,
+    name: &str,
+    ports: &[u16],
+    w: u32,
+    h: u32,
+    bezel: u32,
+    deadline_ms: u64,
+    certs: &str,
+) -> PathBuf {
+    let mut s = format!(
+        "[wall]\nname = \"{name}\"\ndeadline_ms = {deadline_ms}\n\n\
+         [camera]\neye = [60.0, -70.0, 45.0]\ntarget = [23.5, 23.5, 23.5]\nup = [0, 0, 1]\nfov_y = 40.0\n\n\
+         [volume]\nsource = \"procedural:torus:48\"\n\n\
+         [render]\nao_samples = 4\nibl = \"bent\"\nenv = \"sky\"\n\n\
+         [certificates]\ndir = \"{certs}\"\n"
+    );
+    for (i, port) in ports.iter().enumerate() {
+        let (cx, cy) = ((i % 2) as u32, (i / 2) as u32);
+        let border = [
+            if cx == 0 { 0 } else { bezel },
+            if cx == 0 { bezel } else { 0 },
+            if cy == 0 { 0 } else { bezel },
+            if cy == 0 { bezel } else { 0 },
+        ];
+        s += &format!(
+            "\n[[tiles]]\nname = \"t{cx}{cy}\"\nx = {}\ny = {}\nwidth = {w}\nheight = {h}\nbezel = [{}, {}, {}, {}]\n",
+            cx * (w + 2 * bezel),
+            cy * (h + 2 * bezel),
+            border[0], border[1], border[2], border[3]
+        );
+        s += &format!(
+            "\n[[nodes]]\nname = \"node{i}\"\naddress = \"127.0.0.1:{port}\"\ntiles = [\"t{cx}{cy}\"]\n"
+        );
+    }
+    let path = dir.join(format!("{name}.toml"));
+    std::fs::write(&path, s).unwrap();
+    path
+}

@@ -2,50 +2,8 @@
 //! controller, whose snapshot must equal a single render of the whole wall camera; a slow daemon
 //! reported by name while the others go on; a peer with another CA's certificate refused.
 
-use isowall_e2e::{free_udp_ports, gpu_ok, in_ci, run_in, Daemon};
-use std::path::Path;
+use isowall_e2e::{free_udp_ports, gpu_ok, in_ci, run_in, wall_config, Daemon};
 use std::time::Duration;
-
-/// A 2x2 wall of `w`x`h` tiles with `bezel`-pixel mullions on the given ports.
-fn wall_config(
-    dir: &Path,
-    name: &str,
-    ports: &[u16],
-    w: u32,
-    h: u32,
-    bezel: u32,
-    deadline_ms: u64,
-    certs: &str,
-) -> std::path::PathBuf {
-    let mut s = format!(
-        "[wall]\nname = \"{name}\"\ndeadline_ms = {deadline_ms}\n\n\
-         [camera]\neye = [60.0, -70.0, 45.0]\ntarget = [23.5, 23.5, 23.5]\nup = [0, 0, 1]\nfov_y = 40.0\n\n\
-         [volume]\nsource = \"procedural:torus:48\"\n\n\
-         [render]\nao_samples = 4\nibl = \"bent\"\nenv = \"sky\"\n\n\
-         [certificates]\ndir = \"{certs}\"\n"
-    );
-    for (i, port) in ports.iter().enumerate() {
-        let (cx, cy) = ((i % 2) as u32, (i / 2) as u32);
-        let border = [
-            if cx == 0 { 0 } else { bezel },
-            if cx == 0 { bezel } else { 0 },
-            if cy == 0 { 0 } else { bezel },
-            if cy == 0 { bezel } else { 0 },
-        ];
-        s += &format!(
-            "\n[[tiles]]\nname = \"t{cx}{cy}\"\nx = {}\ny = {}\nwidth = {w}\nheight = {h}\nbezel = [{}, {}, {}, {}]\n",
-            cx * (w + 2 * bezel),
-            cy * (h + 2 * bezel),
-            border[0], border[1], border[2], border[3]
-        );
-        s += &format!(
-            "\n[[nodes]]\nname = \"node{i}\"\naddress = \"127.0.0.1:{port}\"\ntiles = [\"t{cx}{cy}\"]\n"
-        );
-    }
-    let path = dir.join(format!("{name}.toml"));
-    std::fs::write(&path, s).unwrap();
-    path
-}
 
 #[test]
 fn a_2x2_wall_snapshot_equals_the_single_render_of_the_whole_wall() {
