@@ -76,6 +76,12 @@ pub struct AccuracyArgs {
     /// A small sweep (samples 4, 16, 64; fewer variants) for smoke tests
     #[arg(long)]
     pub quick: bool,
+    /// Time budgets (ms, comma-separated) at which the summary gives each method's error
+    #[arg(long, default_value = BUDGETS_MS)]
+    pub budgets: String,
+    /// Measure nothing: redraw the chart and the summary from an accuracy.csv this command wrote
+    #[arg(long, value_name = "FILE")]
+    pub from_csv: Option<std::path::PathBuf>,
 }
 
 #[derive(Args)]
@@ -340,6 +346,9 @@ impl Variant {
 /// The sweep: methods x samples at the default (exact) test, accumulated frames, march steps x a
 /// couple of sample counts, IBL methods x a couple of sample counts. Not the cartesian product.
 fn accuracy_sweep(quick: bool) -> Vec<Variant> {
+    // Ours also at 1 and 2 samples, so that the time at which ours reaches the seed's error can be
+    // interpolated rather than bounded (the seed needs 4: below that its disk rejects every sample).
+    let low: &[u32] = if quick { &[] } else { &[1, 2] };
     let samples: &[u32] = if quick { &[4, 16, 64] } else { &[4, 8, 16, 32, 64, 128, 256] };
     let (frames, max_rays): (&[u32], u32) = if quick { (&[2], 32) } else { (&[2, 4, 8], 512) };
     let steps: &[f64] = if quick { &[0.5, 2.0] } else { &[0.25, 0.5, 1.0, 2.0] };
@@ -348,7 +357,7 @@ fn accuracy_sweep(quick: bool) -> Vec<Variant> {
     for &n in samples {
         v.push(Variant { method: AoMethod::Seed, ..Variant::ours(n) });
     }
-    v.extend(samples.iter().map(|&n| Variant::ours(n)));
+    v.extend(low.iter().chain(samples).map(|&n| Variant::ours(n)));
     for &k in frames {
         for &n in samples.iter().filter(|&&n| n * k <= max_rays) {
             v.push(Variant { frames: k, ..Variant::ours(n) });
@@ -469,16 +478,41 @@ fn time_to_reach(curve: &[(f64, f64)], y: f64) -> Reach {
     }
 }
 
-/// The (ms, occlusion RMSE) curve of the points of `scene` matching `pred`, sorted by time.
+/// The (ms, occlusion RMSE) curve of the points of `scene` matching `pred`: their Pareto front
+/// (a point slower and no more accurate than another is left out, as a user would never pick it;
+/// this also keeps timing noise from folding the curve back), sorted by time, error falling.
 fn curve_of(rows: &[AccuracyRow], scene: &str, pred: impl Fn(&Variant) -> bool) -> Vec<(f64, f64)> {
-    let mut c: Vec<(f64, f64)> = rows
+    let points: Vec<(f64, f64)> = rows
         .iter()
         .filter(|r| r.scene == scene && pred(&r.variant))
         .map(|r| (r.ms, r.occlusion_rmse))
         .filter(|&(t, e)| t > 0.0 && e > 0.0)
         .collect();
-    c.sort_by(|a, b| a.0.total_cmp(&b.0));
-    c
+    crate::chart::pareto_front(&points)
+}
+
+/// The error a method achieves within a time budget: interpolated (log-log) along its curve (its
+/// non-dominated points), the curve's lowest error past its last point; `Err` with the reason
+/// where the budget lies outside the times measured (below the fastest or above the slowest point).
+fn error_at_budget(
+    rows: &[AccuracyRow],
+    scene: &str,
+    pred: impl Fn(&Variant) -> bool,
+    budget: f64,
+) -> Result<f64, String> {
+    let front = curve_of(rows, scene, &pred);
+    let slowest = rows
+        .iter()
+        .filter(|r| r.scene == scene && pred(&r.variant))
+        .map(|r| r.ms)
+        .fold(f64::NEG_INFINITY, f64::max);
+    match (front.first(), front.last()) {
+        (Some(f), _) if budget < f.0 => Err(format!("n/a (fastest {:.0} ms)", f.0)),
+        _ if budget > slowest => Err(format!("n/a (slowest {slowest:.0} ms)")),
+        (Some(_), Some(l)) if budget >= l.0 => Ok(l.1),
+        (Some(_), Some(_)) => interp_loglog(&front, budget).ok_or_else(|| "n/a".to_string()),
+        _ => Err("n/a (no points)".into()),
+    }
 }
 
 fn is_ours(v: &Variant) -> bool {
@@ -489,85 +523,110 @@ fn is_seed(v: &Variant) -> bool {
     v.method == AoMethod::Seed && v.frames == 1 && v.ibl == IblMethod::None
 }
 
-pub const BUDGETS_MS: [f64; 3] = [10.0, 30.0, 100.0];
+/// The default time budgets of the summary's table (ms).
+pub const BUDGETS_MS: &str = "10,30,100";
+
+/// Speed-ups of ours over the seed, with whether each is only a lower bound.
+#[derive(Default)]
+struct Speedups(Vec<(f64, bool)>);
+
+impl Speedups {
+    /// How much sooner ours (curve) reaches `err`, which the seed reaches at `t_seed`; as text.
+    fn add(&mut self, ours: &[(f64, f64)], err: f64, t_seed: f64) -> String {
+        match time_to_reach(ours, err) {
+            Reach::At(t) => {
+                self.0.push((t_seed / t, false));
+                format!("ours reaches it at {t:.1} ms, {:.1}x sooner", t_seed / t)
+            }
+            Reach::AtMost(t) => {
+                self.0.push((t_seed / t, true));
+                format!(
+                    "ours is below it at its fastest point ({t:.1} ms): at least {:.1}x sooner",
+                    t_seed / t
+                )
+            }
+            Reach::Never => "ours never reaches it".into(),
+        }
+    }
+
+    fn range(&self) -> Option<String> {
+        let lo = self.0.iter().map(|s| s.0).fold(f64::INFINITY, f64::min);
+        let hi = self.0.iter().map(|s| s.0).fold(0.0, f64::max);
+        let bound = if self.0.iter().any(|s| s.1) { " (some only lower bounds)" } else { "" };
+        (!self.0.is_empty()).then(|| format!("{lo:.1}x to {hi:.1}x sooner{bound}"))
+    }
+}
+
+/// Smallest, largest and geometric mean of positive ratios.
+fn ratio_stats(r: &[f64]) -> Option<(f64, f64, f64)> {
+    if r.is_empty() {
+        return None;
+    }
+    let (lo, hi) = r.iter().fold((f64::INFINITY, 0.0f64), |(l, h), &x| (l.min(x), h.max(x)));
+    Some((lo, hi, (r.iter().map(|x| x.ln()).sum::<f64>() / r.len() as f64).exp()))
+}
 
 /// The summary: occlusion RMSE of ours and seed at the time budgets, the error ratio at equal
-/// time, how much sooner ours reaches the seed's best error, and the IBL methods' colour error.
-fn accuracy_summary(rows: &[AccuracyRow], scenes: &[(String, String, f64)]) -> String {
+/// time, how much sooner ours reaches the seed's error, and the IBL methods' colour error.
+fn accuracy_summary(rows: &[AccuracyRow], scenes: &[(String, String, f64)], budgets: &[f64]) -> String {
     use std::fmt::Write;
     let mut o = String::new();
-    let fmt_budget = |c: &[(f64, f64)], b: f64| match (interp_loglog(c, b), c.first(), c.last()) {
-        (Some(e), _, _) => format!("{e:.4}"),
-        (None, Some(f), _) if b < f.0 => format!("n/a (fastest {:.0} ms)", f.0),
-        (None, _, Some(l)) => format!("n/a (slowest {:.0} ms)", l.0),
-        _ => "n/a".into(),
-    };
     let _ = writeln!(
         o,
-        "Occlusion RMSE at a time budget (log-log interpolation along each curve; n/a outside it):\n"
+        "Occlusion RMSE within a time budget: log-log interpolation along each method's curve (its\n\
+         non-dominated points; past the last one, its lowest error); n/a outside the times measured:\n"
     );
-    let _ = writeln!(o, "| scene | method | 10 ms | 30 ms | 100 ms | primary only |");
-    let _ = writeln!(o, "|---|---|---|---|---|---|");
+    let heads: Vec<String> = budgets.iter().map(|b| format!("{b} ms")).collect();
+    let _ = writeln!(o, "| scene | method | {} | primary only |", heads.join(" | "));
+    let _ = writeln!(o, "|---|---|{}---|", "---|".repeat(budgets.len()));
     for (key, _, primary_ms) in scenes {
         for (name, pred) in [("ours", is_ours as fn(&Variant) -> bool), ("seed", is_seed)] {
-            let c = curve_of(rows, key, pred);
-            let cells: Vec<String> = BUDGETS_MS.iter().map(|&b| fmt_budget(&c, b)).collect();
+            let cells: Vec<String> = budgets
+                .iter()
+                .map(|&b| error_at_budget(rows, key, pred, b).map_or_else(|e| e, |v| format!("{v:.4}")))
+                .collect();
             let _ = writeln!(o, "| {key} | {name} | {} | {primary_ms:.1} ms |", cells.join(" | "));
         }
     }
-    let _ = writeln!(o, "\nOurs against the seed:\n");
-    let (mut all_ratios, mut all_speedups) = (Vec::new(), Vec::new());
+    let _ = writeln!(o, "\nOurs against the seed (occlusion RMSE):\n");
+    let (mut all_ratios, mut vs_256) = (Vec::new(), Speedups::default());
     for (key, _, _) in scenes {
         let ours = curve_of(rows, key, is_ours);
-        let seed = curve_of(rows, key, is_seed);
-        let ratios: Vec<f64> =
-            seed.iter().filter_map(|&(t, e)| interp_loglog(&ours, t).map(|eo| e / eo)).collect();
-        let ratio_text = if ratios.is_empty() {
-            "no common time range".to_string()
-        } else {
-            let (lo, hi) = ratios.iter().fold((f64::INFINITY, 0.0f64), |(l, h), &r| (l.min(r), h.max(r)));
-            let gm = (ratios.iter().map(|r| r.ln()).sum::<f64>() / ratios.len() as f64).exp();
-            all_ratios.extend(&ratios);
-            format!("{lo:.1}x to {hi:.1}x lower (geometric mean {gm:.1}x, at {} seed points)", ratios.len())
-        };
-        // The seed's best error, and the time it takes each method to get there.
-        let best = seed.iter().copied().min_by(|a, b| a.1.total_cmp(&b.1));
-        let speed_text = match best {
-            None => "no seed points".to_string(),
-            Some((ts, es)) => {
-                match time_to_reach(&ours, es) {
-                    Reach::At(t) => {
-                        all_speedups.push((ts / t, false));
-                        format!("seed's best RMSE {es:.4} at {ts:.0} ms: ours reaches it at {t:.1} ms, {:.1}x sooner", ts / t)
-                    }
-                    Reach::AtMost(t) => {
-                        all_speedups.push((ts / t, true));
-                        format!(
-                        "seed's best RMSE {es:.4} at {ts:.0} ms: ours is below it already at its fastest point, {t:.1} ms: at least {:.1}x sooner",
-                        ts / t
-                    )
-                    }
-                    Reach::Never => format!("seed's best RMSE {es:.4} at {ts:.0} ms: ours never reaches it"),
-                }
+        let seed: Vec<&AccuracyRow> =
+            rows.iter().filter(|r| r.scene == *key && is_seed(&r.variant)).collect();
+        let ratios: Vec<f64> = seed
+            .iter()
+            .filter_map(|r| error_at_budget(rows, key, is_ours, r.ms).ok().map(|eo| r.occlusion_rmse / eo))
+            .collect();
+        all_ratios.extend(&ratios);
+        let ratio_text = match ratio_stats(&ratios) {
+            None => "no common time range".to_string(),
+            Some((lo, hi, gm)) => {
+                format!(
+                    "{lo:.1}x to {hi:.1}x lower (geometric mean {gm:.1}x, at {} seed points)",
+                    ratios.len()
+                )
             }
         };
-        let _ = writeln!(o, "- {key}: at equal time ours' occlusion RMSE is {ratio_text}; {speed_text}.");
+        let mut text = format!("- {key}: at equal time ours' error is {ratio_text}");
+        if let Some(most) = seed.iter().max_by_key(|r| r.variant.samples) {
+            let reach = vs_256.add(&ours, most.occlusion_rmse, most.ms);
+            let _ = write!(
+                text,
+                "; the seed's error at {} samples ({:.4}, {:.0} ms): {reach}",
+                most.variant.samples, most.occlusion_rmse, most.ms
+            );
+        }
+        let _ = writeln!(o, "{text}.");
     }
-    if !all_ratios.is_empty() {
-        let (lo, hi) = all_ratios.iter().fold((f64::INFINITY, 0.0f64), |(l, h), &r| (l.min(r), h.max(r)));
-        let gm = (all_ratios.iter().map(|r| r.ln()).sum::<f64>() / all_ratios.len() as f64).exp();
-        let _ =
-            writeln!(o, "- All scenes: at equal time {lo:.1}x to {hi:.1}x lower (geometric mean {gm:.1}x).");
-    }
-    if !all_speedups.is_empty() {
-        let lo = all_speedups.iter().map(|s| s.0).fold(f64::INFINITY, f64::min);
-        let hi = all_speedups.iter().map(|s| s.0).fold(0.0, f64::max);
-        let bound =
-            if all_speedups.iter().any(|s| s.1) { " (lower bounds where marked 'at least')" } else { "" };
+    if let Some((lo, hi, gm)) = ratio_stats(&all_ratios) {
         let _ = writeln!(
             o,
-            "- All scenes: ours reaches the seed's best error {lo:.1}x to {hi:.1}x sooner{bound}."
+            "- All scenes: at equal time ours' error is {lo:.1}x to {hi:.1}x lower (geometric mean {gm:.1}x)."
         );
+    }
+    if let Some(r) = vs_256.range() {
+        let _ = writeln!(o, "- All scenes: ours reaches the error of the seed at its most samples {r}.");
     }
     let _ = writeln!(o, "\nIBL: colour RMSE (linear, hit pixels) against the converged `rays` reference:\n");
     let ibl_rows: Vec<&AccuracyRow> = rows.iter().filter(|r| r.variant.ibl != IblMethod::None).collect();
@@ -597,6 +656,20 @@ fn accuracy_summary(rows: &[AccuracyRow], scenes: &[(String, String, f64)]) -> S
 
 fn accuracy(a: &AccuracyArgs) -> Result<()> {
     let started = Instant::now();
+    let budgets: Vec<f64> = a
+        .budgets
+        .split(',')
+        .map(|b| match b.trim().parse::<f64>() {
+            Ok(v) if v.is_finite() && v > 0.0 => Ok(v),
+            _ => Err(anyhow::anyhow!("--budgets: '{b}' is not a positive number of ms")),
+        })
+        .collect::<Result<_>>()?;
+    std::fs::create_dir_all(&a.out).with_context(|| format!("cannot create {}", a.out.display()))?;
+    if let Some(csv) = &a.from_csv {
+        let text = std::fs::read_to_string(csv).with_context(|| format!("cannot read {}", csv.display()))?;
+        let run = AccuracyRun::from_csv(&text).with_context(|| format!("{}", csv.display()))?;
+        return accuracy_report(&run, &a.out, &budgets, None);
+    }
     let gpu = GpuRenderer::new()?;
     let (w, h) = a.size;
     let repeats = a.repeats.unwrap_or(if a.quick { 1 } else { 3 }).max(1);
@@ -605,7 +678,6 @@ fn accuracy(a: &AccuracyArgs) -> Result<()> {
         anyhow::bail!("--reference-frames {ref_frames} is outside 1..={}", isowall_render::gpu::MAX_FRAMES);
     }
     const REF_SAMPLES: u32 = 256;
-    std::fs::create_dir_all(&a.out).with_context(|| format!("cannot create {}", a.out.display()))?;
     let sky = Environment::sky();
     let genv = gpu.upload_environment(&sky)?;
     let sweep = accuracy_sweep(a.quick);
@@ -659,31 +731,38 @@ fn accuracy(a: &AccuracyArgs) -> Result<()> {
         tracing::info!(scene = %key, s = ref_start.elapsed().as_secs_f64(), "references rendered");
 
         let plain = RenderSettings::new(iso);
-        gpu.render(&gv, &view, &plain, None)?;
-        let primary_ms = median(
-            (0..repeats)
-                .map(|_| gpu.render(&gv, &view, &plain, None).map(|r| r.gpu_time.as_secs_f64() * 1e3))
-                .collect::<Result<_, _>>()?,
-        );
-        scenes.push((key.clone(), scene_title(&key, volume.dims(), iso), primary_ms));
 
-        for v in &sweep {
-            let mut s = settings_for(v);
-            let env = env_for(v);
-            let color_ref = if v.ibl == IblMethod::None { &reference } else { &reference_rays };
-            s.ao.frame = 500_000; // warm-up, a pattern of its own
-            gpu.render_accumulated(&gv, &view, &s, env, v.frames)?;
-            let (mut times, mut occ, mut p99, mut col, mut fetches) = (Vec::new(), 0.0, 0.0, 0.0, 0.0);
-            for r in 0..repeats {
-                s.ao.frame = r as u32 * v.frames;
-                let out = gpu.render_accumulated(&gv, &view, &s, env, v.frames)?;
-                times.push(out.gpu_time.as_secs_f64() * 1e3);
-                let (e, p) = error_stats(&out.frame.occlusion, &reference.occlusion, &reference.hit);
-                occ += e / repeats as f64;
-                p99 += p / repeats as f64;
-                col += color_rmse(&out.frame.color, &color_ref.color, &reference.hit) / repeats as f64;
-                fetches += out.frame.fetches_per_pixel() / repeats as f64;
+        // Warm-up, then `repeats` passes over the whole sweep: each point's timed frames are spread
+        // over the scene's run, so a burst of load from elsewhere on the machine hits one of them,
+        // not all (the median drops it).
+        let mut acc = vec![(Vec::new(), 0.0, 0.0, 0.0, 0.0); sweep.len()]; // times, occ, p99, colour, fetches
+        let mut primary_times = Vec::new();
+        for pass in 0..=repeats {
+            let timed = pass > 0;
+            let r = gpu.render(&gv, &view, &plain, None)?;
+            if timed {
+                primary_times.push(r.gpu_time.as_secs_f64() * 1e3);
             }
+            for (v, acc) in sweep.iter().zip(&mut acc) {
+                let mut s = settings_for(v);
+                // The warm-up has a pattern of its own; each timed pass a fresh one.
+                s.ao.frame = if timed { (pass as u32 - 1) * v.frames } else { 500_000 };
+                let out = gpu.render_accumulated(&gv, &view, &s, env_for(v), v.frames)?;
+                if !timed {
+                    continue;
+                }
+                let color_ref = if v.ibl == IblMethod::None { &reference } else { &reference_rays };
+                let (e, p) = error_stats(&out.frame.occlusion, &reference.occlusion, &reference.hit);
+                let n = repeats as f64;
+                acc.0.push(out.gpu_time.as_secs_f64() * 1e3);
+                acc.1 += e / n;
+                acc.2 += p / n;
+                acc.3 += color_rmse(&out.frame.color, &color_ref.color, &reference.hit) / n;
+                acc.4 += out.frame.fetches_per_pixel() / n;
+            }
+        }
+        scenes.push((key.clone(), scene_title(&key, volume.dims(), iso), median(primary_times)));
+        for (v, (times, occ, p99, col, fetches)) in sweep.iter().zip(acc) {
             let row = AccuracyRow {
                 scene: key.clone(),
                 variant: *v,
@@ -711,61 +790,204 @@ fn accuracy(a: &AccuracyArgs) -> Result<()> {
         match (exact, stepped) {
             (Some(e), Some(s)) if (e - s).abs() < 1e-9 => Some(
                 "the GPU kernel ignored ao.exact in this run (same fetches as the 0.5-voxel march): \
-                 'ours' and the reference are the 0.5-voxel march here",
+                 'ours' and the reference are the 0.5-voxel march here"
+                    .to_string(),
             ),
             _ => None,
         }
     };
-
-    let header = format!(
-        "# isowalld bench accuracy, {w}x{h}, adapter '{adapter}', {} scene(s){}\n\
-         # ms: median of {repeats} frame(s) (after one warm-up) of GPU submit-to-done wall time (Rendered::gpu_time), \
-         readback excluded; no GPU timestamp queries are used\n\
-         # frames: frames accumulated in one render (ms is for all of them); samples: AO rays per pixel per frame\n\
-         # step: 'exact' (ours: exact per-cell test), march step in voxels (ours-stepped), empty (seed: its fixed 0.01 of the texture)\n\
-         # reference: GPU, ours exact, {ref_frames} frames x {REF_SAMPLES} samples accumulated (disjoint pattern); \
-         IBL points' color_rmse against the same with --ibl rays and the built-in sky (exposure 0.6)\n\
-         # occlusion_rmse, occlusion_p99: RMSE and 99th percentile of |A - A_ref| over hit pixels; color_rmse: linear RGB \
-         after exposure, over hit pixels; each the mean over the repeats\n{}",
-        scenes.len(),
-        if skipped.is_empty() { String::new() } else { format!(" (skipped, not found: {})", skipped.join(", ")) },
-        exact_note.map_or(String::new(), |n| format!("# note: {n}\n")),
-    );
-    let mut csv = header.clone();
-    csv.push_str(
-        "scene,method,samples,frames,step,ibl,ms,fetches_per_pixel,occlusion_rmse,occlusion_p99,color_rmse\n",
-    );
-    for r in &rows {
-        csv.push_str(&csv_row(r));
-        csv.push('\n');
-    }
+    let run = AccuracyRun {
+        size: (w, h),
+        adapter,
+        repeats,
+        ref_frames,
+        ref_samples: REF_SAMPLES,
+        scenes,
+        skipped,
+        note: exact_note,
+        rows,
+    };
     let csv_path = a.out.join("accuracy.csv");
-    std::fs::write(&csv_path, csv).with_context(|| format!("cannot write {}", csv_path.display()))?;
+    std::fs::write(&csv_path, run.to_csv())
+        .with_context(|| format!("cannot write {}", csv_path.display()))?;
+    accuracy_report(&run, &a.out, &budgets, Some(started.elapsed().as_secs_f64()))
+}
 
-    let chart = accuracy_chart(&rows, &scenes, (w, h), &adapter, repeats, ref_frames, REF_SAMPLES);
+/// Everything a sweep measured: enough to redraw the chart and the summary (`--from-csv`).
+struct AccuracyRun {
+    size: (u32, u32),
+    adapter: String,
+    repeats: usize,
+    ref_frames: u32,
+    ref_samples: u32,
+    /// Short name, panel title and primary-only ms of each scene measured.
+    scenes: Vec<(String, String, f64)>,
+    skipped: Vec<String>,
+    note: Option<String>,
+    rows: Vec<AccuracyRow>,
+}
+
+const ACCURACY_COLUMNS: &str =
+    "scene,method,samples,frames,step,ibl,ms,fetches_per_pixel,occlusion_rmse,occlusion_p99,color_rmse";
+
+impl AccuracyRun {
+    fn to_csv(&self) -> String {
+        let (w, h) = self.size;
+        let mut csv = format!(
+            "# isowalld bench accuracy, {w}x{h}, adapter '{}', {} scene(s){}\n\
+             # ms: median of {} frame(s) of GPU submit-to-done wall time (Rendered::gpu_time), readback excluded, no GPU \
+             timestamp queries; one frame per pass over the sweep, after a warm-up pass\n\
+             # frames: frames accumulated in one render (ms is for all of them); samples: AO rays per pixel per frame\n\
+             # step: 'exact' (ours: exact per-cell test), march step in voxels (ours-stepped), empty (seed: its fixed 0.01 of the texture)\n\
+             # reference: GPU, ours exact, {} frames x {} samples accumulated (disjoint pattern); \
+             IBL points' color_rmse against the same with --ibl rays and the built-in sky (exposure 0.6)\n\
+             # occlusion_rmse, occlusion_p99: RMSE and 99th percentile of |A - A_ref| over hit pixels; color_rmse: linear RGB \
+             after exposure, over hit pixels; each the mean over the repeats\n",
+            self.adapter,
+            self.scenes.len(),
+            if self.skipped.is_empty() {
+                String::new()
+            } else {
+                format!(" (skipped, not found: {})", self.skipped.join(", "))
+            },
+            self.repeats,
+            self.ref_frames,
+            self.ref_samples,
+        );
+        if let Some(n) = &self.note {
+            csv.push_str(&format!("# note: {n}\n"));
+        }
+        // Machine-readable lines, for `--from-csv`.
+        csv.push_str(&format!(
+            "# run: size={w}x{h}; repeats={}; reference_frames={}; reference_samples={}; adapter={}\n",
+            self.repeats, self.ref_frames, self.ref_samples, self.adapter
+        ));
+        for (key, title, primary) in &self.scenes {
+            csv.push_str(&format!("# scene: {key}; {title}; primary_only_ms={primary:.3}\n"));
+        }
+        csv.push_str(ACCURACY_COLUMNS);
+        csv.push('\n');
+        for r in &self.rows {
+            csv.push_str(&csv_row(r));
+            csv.push('\n');
+        }
+        csv
+    }
+
+    /// Reads back what `to_csv` wrote.
+    fn from_csv(text: &str) -> Result<AccuracyRun> {
+        let mut run = AccuracyRun {
+            size: (0, 0),
+            adapter: String::new(),
+            repeats: 0,
+            ref_frames: 0,
+            ref_samples: 0,
+            scenes: Vec::new(),
+            skipped: Vec::new(),
+            note: None,
+            rows: Vec::new(),
+        };
+        let bad = |n: usize, what: &str| anyhow::anyhow!("line {}: {what}", n + 1);
+        for (n, line) in text.lines().enumerate() {
+            if let Some(rest) = line.strip_prefix("# run: ") {
+                for kv in rest.split("; ") {
+                    let (k, v) = kv.split_once('=').ok_or_else(|| bad(n, "expected key=value"))?;
+                    match k {
+                        "size" => run.size = args::size(v).map_err(|e| bad(n, &e))?,
+                        "repeats" => run.repeats = v.parse().map_err(|_| bad(n, "repeats"))?,
+                        "reference_frames" => run.ref_frames = v.parse().map_err(|_| bad(n, "frames"))?,
+                        "reference_samples" => run.ref_samples = v.parse().map_err(|_| bad(n, "samples"))?,
+                        "adapter" => run.adapter = v.to_string(),
+                        _ => {}
+                    }
+                }
+            } else if let Some(rest) = line.strip_prefix("# scene: ") {
+                let parts: Vec<&str> = rest.split("; ").collect();
+                let [key, title, primary] = parts[..] else {
+                    return Err(bad(n, "expected KEY; TITLE; primary"));
+                };
+                let primary =
+                    primary.trim_start_matches("primary_only_ms=").parse().map_err(|_| bad(n, "ms"))?;
+                run.scenes.push((key.to_string(), title.to_string(), primary));
+            } else if let Some(rest) = line.strip_prefix("# note: ") {
+                run.note = Some(rest.to_string());
+            } else if line.starts_with('#') || line == ACCURACY_COLUMNS || line.trim().is_empty() {
+                continue;
+            } else {
+                let f: Vec<&str> = line.split(',').collect();
+                if f.len() != 11 {
+                    return Err(bad(n, "expected 11 columns"));
+                }
+                let num = |i: usize| {
+                    f[i].parse::<f64>().map_err(|_| bad(n, &format!("'{}' is not a number", f[i])))
+                };
+                let (method, exact) = match f[1] {
+                    "seed" => (AoMethod::Seed, true),
+                    "ours" => (AoMethod::Ours, true),
+                    "ours-stepped" => (AoMethod::Ours, false),
+                    m => return Err(bad(n, &format!("unknown method '{m}'"))),
+                };
+                let ibl = match f[5] {
+                    "none" => IblMethod::None,
+                    "seed" => IblMethod::Seed,
+                    "bent" => IblMethod::Bent,
+                    "rays" => IblMethod::Rays,
+                    i => return Err(bad(n, &format!("unknown ibl '{i}'"))),
+                };
+                let variant = Variant {
+                    method,
+                    exact,
+                    step: if exact { 0.5 } else { num(4)? },
+                    samples: num(2)? as u32,
+                    frames: num(3)? as u32,
+                    ibl,
+                };
+                run.rows.push(AccuracyRow {
+                    scene: f[0].to_string(),
+                    variant,
+                    ms: num(6)?,
+                    fetches_per_pixel: num(7)?,
+                    occlusion_rmse: num(8)?,
+                    occlusion_p99: num(9)?,
+                    color_rmse: num(10)?,
+                });
+            }
+        }
+        if run.size.0 == 0 || run.scenes.is_empty() {
+            anyhow::bail!("no '# run:' or '# scene:' line: not written by `isowalld bench accuracy`");
+        }
+        Ok(run)
+    }
+}
+
+/// Writes chart.png, chart.svg and summary.txt for a run into `out`, and prints the summary.
+fn accuracy_report(
+    run: &AccuracyRun,
+    out: &std::path::Path,
+    budgets: &[f64],
+    secs: Option<f64>,
+) -> Result<()> {
+    let (w, h) = run.size;
+    let chart = accuracy_chart(run);
     let size = crate::chart::default_size(&chart);
-    crate::chart::write_png(&chart, &a.out.join("chart.png"), size)?;
-    crate::chart::write_svg(&chart, &a.out.join("chart.svg"), size)?;
-
+    crate::chart::write_png(&chart, &out.join("chart.png"), size)?;
+    crate::chart::write_svg(&chart, &out.join("chart.svg"), size)?;
     let mut summary = format!(
-        "isowalld bench accuracy: {w}x{h}, adapter '{adapter}', median of {repeats} frame(s), reference {ref_frames} x {REF_SAMPLES} samples (ours exact, GPU)\n"
+        "isowalld bench accuracy: {w}x{h}, adapter '{}', median of {} frame(s), reference {} x {} samples (ours exact, GPU)\n",
+        run.adapter, run.repeats, run.ref_frames, run.ref_samples
     );
-    if let Some(n) = exact_note {
+    if let Some(n) = &run.note {
         summary.push_str(&format!("Note: {n}.\n"));
     }
     summary.push('\n');
-    summary.push_str(&accuracy_summary(&rows, &scenes));
-    summary.push_str(&format!("\n{} points in {:.0} s.\n", rows.len(), started.elapsed().as_secs_f64()));
-    std::fs::write(a.out.join("summary.txt"), &summary)
-        .with_context(|| format!("cannot write {}", a.out.join("summary.txt").display()))?;
+    summary.push_str(&accuracy_summary(&run.rows, &run.scenes, budgets));
+    if let Some(secs) = secs {
+        summary.push_str(&format!("\n{} points in {secs:.0} s.\n", run.rows.len()));
+    }
+    let path = out.join("summary.txt");
+    std::fs::write(&path, &summary).with_context(|| format!("cannot write {}", path.display()))?;
     println!("\n{summary}");
-    println!(
-        "wrote {}, {}, {} and {}",
-        csv_path.display(),
-        a.out.join("chart.png").display(),
-        a.out.join("chart.svg").display(),
-        a.out.join("summary.txt").display()
-    );
+    println!("wrote {} (chart.png, chart.svg, summary.txt)", out.display());
     Ok(())
 }
 
@@ -787,26 +1009,31 @@ fn csv_row(r: &AccuracyRow) -> String {
     )
 }
 
-fn accuracy_chart(
-    rows: &[AccuracyRow],
-    scenes: &[(String, String, f64)],
-    (w, h): (u32, u32),
-    adapter: &str,
-    repeats: usize,
-    ref_frames: u32,
-    ref_samples: u32,
-) -> Chart {
-    let panels = scenes
+fn accuracy_chart(run: &AccuracyRun) -> Chart {
+    let (rows, (w, h), adapter) = (&run.rows, run.size, &run.adapter);
+    let (repeats, ref_frames, ref_samples) = (run.repeats, run.ref_frames, run.ref_samples);
+    let panels = run
+        .scenes
         .iter()
         .map(|(key, title, _)| {
             let mut series: Vec<Series> = Vec::new();
             for r in rows.iter().filter(|r| r.scene == *key) {
                 let Some(c) = r.variant.curve() else { continue };
                 let p = (r.ms, r.occlusion_rmse);
+                // Sample counts beside the seed's and ours' points.
+                let note = if is_seed(&r.variant) || is_ours(&r.variant) {
+                    r.variant.samples.to_string()
+                } else {
+                    String::new()
+                };
                 match series.iter_mut().find(|s| s.label == c.label) {
-                    Some(s) => s.points.push(p),
+                    Some(s) => {
+                        s.points.push(p);
+                        s.notes.push(note);
+                    }
                     None => series.push(Series {
                         label: c.label,
+                        notes: vec![note],
                         color: c.color,
                         marker: c.marker,
                         points: vec![p],
@@ -819,8 +1046,8 @@ fn accuracy_chart(
     Chart {
         title: format!("Ambient occlusion: error against frame time ({w}x{h}, {adapter})"),
         subtitle: format!(
-            "Occlusion RMSE over hit pixels against a converged reference (GPU, ours exact, {ref_frames} frames x {ref_samples} samples); \
-             time: median of {repeats} GPU submit-to-done wall times. Points: 4 to 256 samples per frame."
+            "Occlusion RMSE over hit pixels against a converged reference (GPU, ours exact, {ref_frames} frames x {ref_samples} samples).\n\
+             Time: median of {repeats} GPU submit-to-done wall times per point. Numbers beside points: AO samples per pixel per frame."
         ),
         x_desc: "ms per frame".into(),
         y_desc: "occlusion RMSE".into(),
@@ -836,7 +1063,7 @@ mod tests {
     fn loglog_interpolation_and_reach() {
         let c = [(10.0, 0.1), (40.0, 0.025), (160.0, 0.01)];
         assert!((interp_loglog(&c, 20.0).unwrap() - 0.05).abs() < 1e-12);
-        assert_eq!(interp_loglog(&c, 10.0), Some(0.1));
+        assert!((interp_loglog(&c, 10.0).unwrap() - 0.1).abs() < 1e-12);
         assert_eq!(interp_loglog(&c, 5.0), None);
         assert_eq!(interp_loglog(&c, 200.0), None);
         assert!(matches!(time_to_reach(&c, 0.05), Reach::At(t) if (t - 20.0).abs() < 1e-9));
@@ -845,10 +1072,66 @@ mod tests {
     }
 
     #[test]
+    fn csv_round_trip_and_budgets() {
+        let row = |variant: Variant, ms: f64, e: f64| AccuracyRow {
+            scene: "engine".into(),
+            variant,
+            ms,
+            fetches_per_pixel: 10.0,
+            occlusion_rmse: e,
+            occlusion_p99: 3.0 * e,
+            color_rmse: e / 10.0,
+        };
+        let seed = |n| Variant { method: AoMethod::Seed, ..Variant::ours(n) };
+        let run = AccuracyRun {
+            size: (64, 48),
+            adapter: "test adapter (1.0, 2 bits)".into(),
+            repeats: 3,
+            ref_frames: 16,
+            ref_samples: 256,
+            scenes: vec![("engine".into(), "engine-like 256x256x118, iso 0".into(), 5.0)],
+            skipped: vec![],
+            note: Some("a note".into()),
+            rows: vec![
+                row(seed(4), 10.0, 0.2),
+                row(seed(64), 50.0, 0.19),
+                row(Variant::ours(4), 10.0, 0.1),
+                row(Variant::ours(16), 20.0, 0.05),
+                row(Variant::ours(64), 40.0, 0.025),
+                row(Variant { exact: false, step: 0.25, ..Variant::ours(16) }, 30.0, 0.04),
+                row(Variant { ibl: IblMethod::Bent, ..Variant::ours(16) }, 22.0, 0.05),
+            ],
+        };
+        let back = AccuracyRun::from_csv(&run.to_csv()).unwrap();
+        assert_eq!((back.size, back.repeats, back.ref_frames), ((64, 48), 3, 16));
+        assert_eq!(back.adapter, run.adapter);
+        assert_eq!(back.scenes, run.scenes);
+        assert_eq!(back.note.as_deref(), Some("a note"));
+        assert_eq!(back.rows.len(), run.rows.len());
+        for (a, b) in back.rows.iter().zip(&run.rows) {
+            assert_eq!(
+                a.variant,
+                Variant { step: if b.variant.exact { 0.5 } else { b.variant.step }, ..b.variant }
+            );
+            assert!((a.ms - b.ms).abs() < 1e-3 && (a.occlusion_rmse - b.occlusion_rmse).abs() < 1e-5);
+        }
+        // Budgets: interpolated along each method's curve; n/a outside the times measured.
+        let at = |pred: fn(&Variant) -> bool, b| error_at_budget(&run.rows, "engine", pred, b);
+        assert!((at(is_ours, 20.0).unwrap() - 0.05).abs() < 1e-12);
+        assert!((at(is_ours, 40.0).unwrap() - 0.025).abs() < 1e-12);
+        assert!(at(is_ours, 5.0).unwrap_err().contains("fastest 10 ms"));
+        assert!(at(is_ours, 100.0).unwrap_err().contains("slowest 40 ms"));
+        assert!((at(is_seed, 50.0).unwrap() - 0.19).abs() < 1e-12);
+        let summary = accuracy_summary(&run.rows, &run.scenes, &[10.0, 30.0]);
+        assert!(summary.contains("| engine | ours | 0.1000 |"), "{summary}");
+        assert!(AccuracyRun::from_csv("scene,method\n").is_err());
+    }
+
+    #[test]
     fn sweep_is_not_the_product_and_names_are_stable() {
         let full = accuracy_sweep(false);
         assert_eq!(full.iter().filter(|v| is_seed(v)).count(), 7);
-        assert_eq!(full.iter().filter(|v| is_ours(v)).count(), 7);
+        assert_eq!(full.iter().filter(|v| is_ours(v)).count(), 9);
         assert!(full.iter().all(|v| v.samples * v.frames <= 512));
         assert_eq!(full.iter().filter(|v| !v.exact).count(), 8);
         assert_eq!(full.iter().filter(|v| v.ibl != IblMethod::None).count(), 6);

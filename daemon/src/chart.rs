@@ -21,10 +21,12 @@ pub enum Marker {
     Triangle,
 }
 
-/// One curve: its points (x, y), joined in order of x.
+/// One curve: its points (x, y), joined in the order given (e.g. of sample count).
 #[derive(Clone, Debug)]
 pub struct Series {
     pub label: String,
+    /// Short notes drawn beside points (e.g. the sample count), parallel to `points`; empty for none.
+    pub notes: Vec<String>,
     pub color: (u8, u8, u8),
     pub marker: Marker,
     pub points: Vec<(f64, f64)>,
@@ -99,11 +101,11 @@ pub fn grid(panels: usize) -> (usize, usize) {
 /// A size that gives each panel about 440x360 pixels.
 pub fn default_size(chart: &Chart) -> (u32, u32) {
     let (cols, rows) = grid(chart.panels.len());
-    let legend_rows = legend_entries(chart).len().div_ceil(legend_columns(cols * 440)) as u32;
+    let legend_rows = (legend_entries(chart).len() + 1).div_ceil(legend_columns(cols * 440)) as u32;
     (cols as u32 * 440, rows as u32 * 360 + TITLE_H + legend_rows * LEGEND_ROW_H + 12)
 }
 
-const TITLE_H: u32 = 58;
+const TITLE_H: u32 = 74;
 const LEGEND_ROW_H: u32 = 22;
 
 fn legend_columns(width: usize) -> usize {
@@ -148,6 +150,36 @@ fn tick(v: f64) -> String {
     }
 }
 
+/// Tick values for a log axis over [lo, hi]: 1-2-5 per decade (every mantissa 1-9 where that gives
+/// fewer than 3 ticks), and light grid lines at every mantissa 1-9.
+fn log_ticks(lo: f64, hi: f64) -> (Vec<f64>, Vec<f64>) {
+    let pick = |mantissas: &[f64]| -> Vec<f64> {
+        let mut out = Vec::new();
+        let mut decade = 10f64.powf(lo.log10().floor());
+        while decade <= hi {
+            for m in mantissas {
+                let v = m * decade;
+                // Round away the float noise of m * 10^k (e.g. 0.30000000000000004).
+                let v = format!("{v:.12e}").parse::<f64>().unwrap_or(v);
+                if v >= lo && v <= hi {
+                    out.push(v);
+                }
+            }
+            decade *= 10.0;
+        }
+        out
+    };
+    let all = pick(&[1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0]);
+    let mut bold = pick(&[1.0, 2.0, 5.0]);
+    if bold.len() < 3 {
+        bold = all.clone();
+    }
+    if bold.len() > 12 {
+        bold = pick(&[1.0]);
+    }
+    (bold, all)
+}
+
 /// Log-scale range around `values` (positive ones only), with a margin.
 fn log_range(values: impl Iterator<Item = f64>) -> (f64, f64) {
     let (lo, hi) = values
@@ -171,17 +203,15 @@ where
     let (cols, rows) = grid(chart.panels.len());
     let entries = legend_entries(chart);
     let lcols = legend_columns(width as usize);
-    let legend_h = entries.len().div_ceil(lcols) as u32 * LEGEND_ROW_H + 12;
+    let legend_h = (entries.len() + 1).div_ceil(lcols) as u32 * LEGEND_ROW_H + 12;
     let (top, rest) = root.split_vertically(TITLE_H);
     let (body, legend) = rest.split_vertically(height.saturating_sub(TITLE_H + legend_h));
 
     top.draw(&Text::new(chart.title.as_str(), (12, 8), (FAMILY, 20).into_font().color(&BLACK))).map_err(e)?;
-    top.draw(&Text::new(
-        chart.subtitle.as_str(),
-        (12, 34),
-        (FAMILY, 13).into_font().color(&RGBColor(70, 70, 70)),
-    ))
-    .map_err(e)?;
+    for (i, line) in chart.subtitle.lines().enumerate() {
+        let style = (FAMILY, 13).into_font().color(&RGBColor(70, 70, 70));
+        top.draw(&Text::new(line, (12, 34 + 17 * i as i32), style)).map_err(e)?;
+    }
 
     let cells = body.split_evenly((rows, cols));
     for (panel, area) in chart.panels.iter().zip(&cells) {
@@ -189,12 +219,16 @@ where
         let ys = panel.series.iter().flat_map(|s| s.points.iter().map(|p| p.1));
         let (x0, x1) = log_range(xs);
         let (y0, y1) = log_range(ys);
+        let (xt, yt) = (log_ticks(x0, x1), log_ticks(y0, y1));
         let mut cc = ChartBuilder::on(area)
             .caption(panel.title.as_str(), (FAMILY, 15))
             .margin(10)
             .x_label_area_size(38)
             .y_label_area_size(56)
-            .build_cartesian_2d((x0..x1).log_scale(), (y0..y1).log_scale())
+            .build_cartesian_2d(
+                (x0..x1).log_scale().with_key_points(xt.0).with_light_points(xt.1),
+                (y0..y1).log_scale().with_key_points(yt.0).with_light_points(yt.1),
+            )
             .map_err(e)?;
         cc.configure_mesh()
             .x_desc(chart.x_desc.as_str())
@@ -219,10 +253,18 @@ where
                 .map_err(e)?;
         }
         for s in &panel.series {
-            let mut pts: Vec<(f64, f64)> =
+            let pts: Vec<(f64, f64)> =
                 s.points.iter().copied().filter(|&(x, y)| x > 0.0 && y > 0.0 && x.is_finite()).collect();
-            pts.sort_by(|a, b| a.0.total_cmp(&b.0));
             let c = rgb(s.color);
+            let note_style = (FAMILY, 10).into_font().color(&c);
+            for (p, note) in s.points.iter().zip(&s.notes).filter(|(_, n)| !n.is_empty()) {
+                if p.0 > 0.0 && p.1 > 0.0 {
+                    cc.draw_series(std::iter::once(
+                        EmptyElement::at(*p) + Text::new(note.clone(), (5, -13), note_style.clone()),
+                    ))
+                    .map_err(e)?;
+                }
+            }
             cc.draw_series(LineSeries::new(pts.iter().copied(), c.stroke_width(2))).map_err(e)?;
             let style = c.filled();
             match s.marker {
@@ -312,9 +354,20 @@ mod tests {
     }
 
     #[test]
+    fn log_ticks_cover_narrow_and_wide_ranges() {
+        let (bold, light) = log_ticks(0.08, 0.3);
+        assert_eq!(bold, vec![0.08, 0.09, 0.1, 0.2, 0.3]);
+        assert_eq!(light, bold);
+        let (bold, light) = log_ticks(3.0, 700.0);
+        assert_eq!(bold, vec![5.0, 10.0, 20.0, 50.0, 100.0, 200.0, 500.0]);
+        assert_eq!(light.len(), 7 + 9 + 7);
+    }
+
+    #[test]
     fn writes_png_and_svg_for_a_tiny_chart() {
         let series = |label: &str, color, marker, k: f64| Series {
             label: label.into(),
+            notes: vec!["4".into(), String::new(), "16".into()],
             color,
             marker,
             points: vec![(10.0 * k, 0.2 / k), (20.0 * k, 0.1 / k), (40.0 * k, 0.06 / k)],

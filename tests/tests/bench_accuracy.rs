@@ -1,0 +1,69 @@
+//! `isowalld bench accuracy` as a user runs it: a real process writing the CSV and the chart.
+
+use isowall_e2e::{gpu_ok, run_in};
+
+const COLUMNS: &str =
+    "scene,method,samples,frames,step,ibl,ms,fetches_per_pixel,occlusion_rmse,occlusion_p99,color_rmse";
+
+#[test]
+fn quick_accuracy_bench_writes_csv_chart_and_budget_table() {
+    let dir = tempfile::tempdir().unwrap();
+    let out_dir = dir.path().join("acc");
+    let out = run_in(
+        dir.path(),
+        "isowalld",
+        &[
+            "bench",
+            "accuracy",
+            "--quick",
+            "--scenes",
+            "procedural:sphere-over-plane:16,missing-file.nrrd@3",
+            "--size",
+            "32x32",
+            "--out",
+            out_dir.to_str().unwrap(),
+        ],
+    );
+    if !gpu_ok("isowalld bench accuracy --quick", &out) {
+        return;
+    }
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    // The missing file is skipped with a message, the budget table is printed.
+    assert!(stdout.contains("skipping missing-file.nrrd@3"), "{stdout}");
+    assert!(stdout.contains("| 10 ms | 30 ms | 100 ms |"), "{stdout}");
+    assert!(
+        stdout.contains("| sphere-over-plane | ours |") && stdout.contains("| sphere-over-plane | seed |")
+    );
+
+    let csv = std::fs::read_to_string(out_dir.join("accuracy.csv")).expect("accuracy.csv written");
+    assert!(csv.contains("submit-to-done") && csv.contains("reference: GPU, ours exact"), "{csv}");
+    let mut lines = csv.lines().filter(|l| !l.starts_with('#'));
+    assert_eq!(lines.next(), Some(COLUMNS));
+    let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
+    assert!(rows.len() >= 10, "{csv}");
+    for r in &rows {
+        assert_eq!(r.len(), 11, "{r:?}");
+        assert_eq!(r[0], "sphere-over-plane");
+        let num = |i: usize| r[i].parse::<f64>().unwrap_or_else(|_| panic!("column {i} of {r:?}"));
+        assert!(num(6) > 0.0 && num(7) > 0.0, "{r:?}");
+        for i in 8..11 {
+            assert!(num(i).is_finite() && num(i) >= 0.0, "{r:?}");
+        }
+    }
+    for (method, ibl) in [("seed", "none"), ("ours", "none"), ("ours-stepped", "none"), ("ours", "rays")] {
+        assert!(rows.iter().any(|r| r[1] == method && r[5] == ibl), "no {method}/{ibl} row:\n{csv}");
+    }
+    // Ours converges: at 64 samples its error is well below its error at 4.
+    let ours = |n: &str| {
+        rows.iter().find(|r| r[1] == "ours" && r[2] == n && r[3] == "1" && r[5] == "none").unwrap()[8]
+            .parse::<f64>()
+            .unwrap()
+    };
+    assert!(ours("64") < 0.7 * ours("4"), "{csv}");
+
+    let png = image::open(out_dir.join("chart.png")).expect("chart.png written").to_rgb8();
+    assert!(png.width() >= 400 && png.height() >= 300);
+    let svg = std::fs::read_to_string(out_dir.join("chart.svg")).expect("chart.svg written");
+    assert!(svg.starts_with("<svg") && svg.contains("sphere over plane"));
+    assert!(out_dir.join("summary.txt").exists());
+}
