@@ -28,6 +28,21 @@ if [ "$have_icd" = no ]; then
     missing_why+=("a Vulkan driver (Mesa's software driver lavapipe, where there is no GPU driver)")
 fi
 
+# The test suite (scripts/test.sh sets isowall_tests=yes) also shows a node's tiles in a window:
+# a virtual X server (Xvfb), X screenshots (xwd, in x11-apps) and the X11 libraries that winit
+# loads at run time.
+if [ "${isowall_tests:-}" = yes ]; then
+    command -v Xvfb >/dev/null 2>&1 || { need_pkgs+=(xvfb); missing_why+=("Xvfb (for the window test)"); }
+    command -v xwd >/dev/null 2>&1 || { need_pkgs+=(x11-apps); missing_why+=("xwd (for the window test)"); }
+    for lib in libX11-xcb.so.1:libx11-xcb1 libXcursor.so.1:libxcursor1 libXi.so.6:libxi6 \
+               libxkbcommon-x11.so.0:libxkbcommon-x11-0; do
+        if ! ldconfig -p 2>/dev/null | grep -q "${lib%%:*}"; then
+            need_pkgs+=("${lib##*:}")
+            missing_why+=("${lib%%:*} (for the window test)")
+        fi
+    done
+fi
+
 if [ ${#need_pkgs[@]} -gt 0 ]; then
     echo "isowall: missing ${missing_why[*]}" >&2
     if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then

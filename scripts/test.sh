@@ -3,5 +3,6 @@
 # with CI=true a missing adapter fails them instead of skipping them.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+isowall_tests=yes   # setup.sh adds what the window test needs (Xvfb, xwd)
 . scripts/setup.sh
 cargo test --workspace --no-fail-fast "$@"

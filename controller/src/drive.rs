@@ -46,6 +46,14 @@ pub struct UpArgs {
     /// How long to wait for the nodes to come up, seconds
     #[arg(long, default_value_t = 120)]
     pub start_timeout: u64,
+    /// Where local nodes show their tiles (`isowalld run --display`): offscreen (snapshots
+    /// only), window (a window per tile; needs a display), or auto
+    #[arg(long, default_value = "offscreen", value_parser = ["offscreen", "window", "auto"])]
+    pub display: String,
+    /// With --display window|auto: windows at the tiles' sizes instead of fullscreen (a wall
+    /// tried out on one desktop)
+    #[arg(long)]
+    pub windowed: bool,
 }
 
 #[derive(Args)]
@@ -156,7 +164,7 @@ pub fn up(a: &UpArgs) -> Result<()> {
     let config = load(&a.config)?;
     let (base, settings) = scene(&config)?;
     let log_dir = config.resolve("logs");
-    let mut daemons = LocalDaemons::start(&config, &log_dir)?;
+    let mut daemons = LocalDaemons::start(&config, &log_dir, &a.display, a.windowed)?;
     eprintln!("isowall: starting wall '{}': {} local node(s)", config.wall.name, daemons.len());
     let rt = runtime()?;
     let result = rt.block_on(async {

@@ -28,8 +28,9 @@ pub struct LocalDaemons {
 }
 
 impl LocalDaemons {
-    /// Starts a daemon for every loopback node of the wall. Their logs go to `log_dir/NODE.log`.
-    pub fn start(config: &WallConfig, log_dir: &Path) -> Result<LocalDaemons> {
+    /// Starts a daemon for every loopback node of the wall, with `display` passed on as
+    /// `--display` (and `--windowed` if asked). Their logs go to `log_dir/NODE.log`.
+    pub fn start(config: &WallConfig, log_dir: &Path, display: &str, windowed: bool) -> Result<LocalDaemons> {
         let bin = daemon_binary();
         std::fs::create_dir_all(log_dir).with_context(|| format!("cannot create {}", log_dir.display()))?;
         let mut me = LocalDaemons { children: Vec::new() };
@@ -43,6 +44,8 @@ impl LocalDaemons {
                 .arg(&config.path)
                 .arg("--node")
                 .arg(&node.name)
+                .args(["--display", display])
+                .args(windowed.then_some("--windowed"))
                 .stdin(Stdio::null())
                 .stdout(log.try_clone()?)
                 .stderr(log)

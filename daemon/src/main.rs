@@ -5,6 +5,7 @@ mod args;
 mod bench;
 mod chart;
 mod check_config;
+mod display;
 mod render;
 mod run;
 mod tiles;
@@ -43,7 +44,7 @@ enum Command {
 fn main() -> std::process::ExitCode {
     tracing_subscriber::fmt()
         .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| {
-            tracing_subscriber::EnvFilter::new("info,wgpu_core=warn,wgpu_hal=warn,naga=warn")
+            tracing_subscriber::EnvFilter::new("info,wgpu_core=warn,wgpu_hal=warn,naga=warn,winit=error")
         }))
         .with_writer(std::io::stderr)
         .init();

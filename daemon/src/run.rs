@@ -1,12 +1,15 @@
 //! `isowalld run`: a wall node. It loads the volume, opens the GPU on its render thread, listens
 //! for the controller over QUIC (mutual TLS against the wall CA), and drives the model's
 //! [`NodeMachine`] with what arrives: render the node's tiles for each frame state, reply Ready,
-//! present on Swap, answer snapshots with the last presented tiles. Headless: presenting makes the
-//! rendered tiles the shown ones (kept for snapshots). The network code only moves bytes and calls
-//! the state machine; the render thread alone touches the GPU.
+//! present on Swap, answer snapshots with the last presented tiles. Presenting makes the rendered
+//! tiles the shown ones (kept for snapshots) and, where the node has windows (`--display`, see
+//! `display.rs`), draws them there first: `Presented` then carries the moment the windows were
+//! presented. The network code only moves bytes and calls the state machine; the render thread
+//! alone touches the GPU.
 
+use crate::display::{self, Display, DisplayMode, WindowSetup};
 use crate::render::load_volume;
-use crate::tiles::{JobResult, TileJob, TileRenderer, TileResult};
+use crate::tiles::{JobResult, RenderHandle, TileJob, TileRenderer, TileResult};
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
 use isowall_net::transport::{self, Channel, NetError};
@@ -33,6 +36,14 @@ pub struct RunArgs {
     /// has rendered before replying Ready (a slow node)
     #[arg(long, value_name = "MS", default_value_t = 0, hide_short_help = true)]
     pub slow_ms: u64,
+    /// Where to show the tiles: a fullscreen window per tile (`window`), none (`offscreen`: tiles
+    /// are kept for snapshots only), or `auto`: windows when a display exists (DISPLAY or
+    /// WAYLAND_DISPLAY set and a window opens), else offscreen
+    #[arg(long, value_enum, value_name = "MODE", default_value = "auto")]
+    pub display: DisplayMode,
+    /// Windows at the tiles' sizes instead of fullscreen (testing a wall on a desktop)
+    #[arg(long)]
+    pub windowed: bool,
 }
 
 /// What the node needs beyond the network.
@@ -40,7 +51,9 @@ struct Node {
     name: String,
     config: WallConfig,
     tiles: Vec<String>,
-    renderer: TileRenderer,
+    renderer: RenderHandle,
+    /// The render thread presents in windows at each swap.
+    on_screen: bool,
     results: UnboundedReceiver<Result<JobResult, String>>,
     epoch: Instant,
     limit: usize,
@@ -68,6 +81,8 @@ pub fn run(a: &RunArgs) -> Result<()> {
             a.config.display()
         )
     })?;
+    // Before the slow set-up, so that `--display window` without a display fails at once.
+    let display = display::choose(a.display)?;
     let raw = raw_spec(&config)?;
     let (volume, iso) = load_volume(Some(&config.volume_source()), raw.as_ref(), config.volume.iso)?;
     let _ = iso;
@@ -76,17 +91,20 @@ pub fn run(a: &RunArgs) -> Result<()> {
     let (tx, results) = tokio::sync::mpsc::unbounded_channel();
     let renderer = TileRenderer::start(volume, Some(env), tx)?;
     let addr = transport::resolve(&node.address)?;
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .context("cannot start the async runtime")?;
     let limit = usize::try_from(config.wall.message_limit_bytes).unwrap_or(usize::MAX);
+    let setup = WindowSetup {
+        mode: a.display,
+        windowed: a.windowed,
+        wall: config.wall.name.clone(),
+        node: node.name.clone(),
+        tiles: config.tiles_of(&node.name).into_iter().cloned().collect(),
+    };
     let mut state = Node {
         name: node.name.clone(),
         tiles: node.tiles.clone(),
         config,
-        renderer,
+        renderer: renderer.handle(),
+        on_screen: false,
         results,
         epoch: Instant::now(),
         limit,
@@ -94,21 +112,57 @@ pub fn run(a: &RunArgs) -> Result<()> {
         pending: None,
         shown: None,
     };
+    match display {
+        Display::Offscreen => network(state, addr, identity, None),
+        Display::Windows(event_loop) => {
+            let start = Box::new(move |on_screen: bool, stop| {
+                state.on_screen = on_screen;
+                network(state, addr, identity, Some(stop))
+            });
+            display::run_windows(event_loop, setup, renderer, start)
+        }
+    }
+}
+
+/// The node's network side: listens for controllers and serves them, one at a time, until `stop`
+/// fires (then it closes the endpoint, telling a connected controller) or forever.
+fn network(
+    mut state: Node,
+    addr: std::net::SocketAddr,
+    identity: Identity,
+    stop: Option<tokio::sync::oneshot::Receiver<()>>,
+) -> Result<()> {
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")?;
     runtime.block_on(async move {
         let endpoint = transport::server(addr, &identity)?;
         tracing::info!(node = %state.name, %addr, "listening for the controller");
         // Systemd (Type=notify) and scripts wait for this line.
         println!("isowalld: node {} ready on {addr}", state.name);
-        let mut next: Option<quinn::Connection> = None;
-        loop {
-            let conn = match next.take() {
-                Some(c) => c,
-                None => match accept(&endpoint).await {
+        let serve_all = async {
+            let mut next: Option<quinn::Connection> = None;
+            loop {
+                let conn = match next.take() {
                     Some(c) => c,
-                    None => return Ok::<(), anyhow::Error>(()),
-                },
-            };
-            next = serve(&mut state, &endpoint, conn).await;
+                    None => match accept(&endpoint).await {
+                        Some(c) => c,
+                        None => return Ok::<(), anyhow::Error>(()),
+                    },
+                };
+                next = serve(&mut state, &endpoint, conn).await;
+            }
+        };
+        let Some(stop) = stop else { return serve_all.await };
+        tokio::select! {
+            r = serve_all => r,
+            _ = stop => {
+                endpoint.close(0u32.into(), b"the node is shutting down");
+                let _ = tokio::time::timeout(std::time::Duration::from_secs(1), endpoint.wait_idle()).await;
+                Ok(())
+            }
         }
     })
 }
@@ -185,6 +239,7 @@ async fn serve(
                 },
                 Some(Ok(None)) | None => {
                     tracing::info!("the controller closed the connection");
+                    transport::close(&connection, "the controller ended its stream");
                     break None;
                 }
                 Some(Err(e)) => {
@@ -261,11 +316,21 @@ async fn execute(
                 }
             }
             NodeOutput::Present { frame_id } => {
-                let _span = tracing::info_span!("frame", frame_id, node = %node.name).entered();
                 if let Some(p) = node.pending.take().filter(|p| p.frame_id == frame_id) {
                     node.shown = Some((frame_id, p.tiles));
                 }
-                queue.extend(machine.presented(node.epoch.elapsed(), frame_id));
+                let at = if node.on_screen {
+                    match node.renderer.present(frame_id).await {
+                        Ok(t) => t.saturating_duration_since(node.epoch),
+                        Err(e) => {
+                            tracing::warn!(frame_id, node = %node.name, "presenting failed: {e:#}");
+                            node.epoch.elapsed()
+                        }
+                    }
+                } else {
+                    node.epoch.elapsed()
+                };
+                queue.extend(machine.presented(at, frame_id));
             }
             NodeOutput::SnapshotWanted => {
                 let tiles = match &node.shown {

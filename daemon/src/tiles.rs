@@ -1,16 +1,19 @@
 //! The render thread of a wall node: it alone owns the GPU device. It renders the node's tiles for
 //! each frame state it is sent, keeps progressive accumulation going while the state is unchanged
 //! (the frame index advances the sample pattern; any change restarts the average), and hands back
-//! 8-bit sRGB images of the tiles.
+//! 8-bit sRGB images of the tiles. Where the node presents in windows, it also owns their surfaces
+//! (created from its own wgpu instance): a rendered frame is staged on them at once, and the swap
+//! ([`RenderHandle::present`]) only draws and presents.
 
 use anyhow::{Context, Result};
 use isowall_render::environment::Environment;
+use isowall_render::gpu::present::{Presented, TileSurface};
 use isowall_render::gpu::GpuRenderer;
 use isowall_render::output::srgb8;
 use isowall_render::Frame;
 use isowall_volume::Volume;
 use isowall_wall::{RenderSettings, View};
-use std::sync::mpsc;
+use std::sync::{mpsc, Arc};
 use std::time::{Duration, Instant};
 
 /// One frame to render: the views of the node's tiles, the settings, and where in the
@@ -37,9 +40,41 @@ pub struct JobResult {
     pub render_time: Duration,
 }
 
-/// Handle to the render thread.
+/// A window to present a tile in, with its size in pixels.
+pub struct TileWindow {
+    pub tile: String,
+    pub window: Arc<winit::window::Window>,
+    pub size: (u32, u32),
+}
+
+/// What the render thread is asked to do, in order.
+enum Job {
+    Render(Box<TileJob>),
+    Window(WindowJob),
+}
+
+/// The presentation jobs.
+enum WindowJob {
+    /// Create a surface per window (replacing any); replies with one line per surface.
+    Attach(Vec<TileWindow>, mpsc::Sender<Result<Vec<String>, String>>),
+    /// The swap: present `frame_id` (staged when it rendered) on every surface; replies with the
+    /// moment the last surface was presented.
+    Present(u64, tokio::sync::oneshot::Sender<Result<Instant, String>>),
+    Resize(String, u32, u32),
+    Redraw(String),
+}
+
+/// The render thread: a [`RenderHandle`] to it and the thread to join.
 pub struct TileRenderer {
-    jobs: mpsc::Sender<TileJob>,
+    handle: RenderHandle,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+/// Sends jobs to the render thread (cloneable: the network and the window event loop hold one
+/// each). The thread ends when every handle is gone.
+#[derive(Clone)]
+pub struct RenderHandle {
+    jobs: mpsc::Sender<Job>,
 }
 
 /// Running sum of a tile's linear colour over the accumulated frames.
@@ -56,9 +91,9 @@ impl TileRenderer {
         env: Option<Environment>,
         results: tokio::sync::mpsc::UnboundedSender<Result<JobResult, String>>,
     ) -> Result<TileRenderer> {
-        let (jobs, rx) = mpsc::channel::<TileJob>();
+        let (jobs, rx) = mpsc::channel::<Job>();
         let (ready_tx, ready_rx) = mpsc::channel::<Result<String, String>>();
-        std::thread::Builder::new()
+        let thread = std::thread::Builder::new()
             .name("render".into())
             .spawn(move || {
                 let setup = (|| -> Result<_, String> {
@@ -83,7 +118,15 @@ impl TileRenderer {
                 };
                 drop(volume);
                 let mut acc: Vec<Accumulator> = Vec::new();
+                let mut surfaces: Vec<TileSurface> = Vec::new();
                 for job in rx {
+                    let job = match job {
+                        Job::Render(job) => job,
+                        Job::Window(w) => {
+                            window_job(&gpu, &mut surfaces, w);
+                            continue;
+                        }
+                    };
                     let start = Instant::now();
                     let mut out = Vec::new();
                     let mut failed = None;
@@ -104,7 +147,9 @@ impl TileRenderer {
                     let msg = match failed {
                         Some(e) => Err(e),
                         None => {
-                            Ok(JobResult { frame_id: job.frame_id, tiles: out, render_time: start.elapsed() })
+                            let render_time = start.elapsed();
+                            stage(&gpu, &mut surfaces, job.frame_id, &out);
+                            Ok(JobResult { frame_id: job.frame_id, tiles: out, render_time })
                         }
                     };
                     if results.send(msg).is_err() {
@@ -116,15 +161,125 @@ impl TileRenderer {
         match ready_rx.recv() {
             Ok(Ok(adapter)) => {
                 tracing::info!(%adapter, "render thread ready");
-                Ok(TileRenderer { jobs })
+                Ok(TileRenderer { handle: RenderHandle { jobs }, thread: Some(thread) })
             }
             Ok(Err(e)) => anyhow::bail!("GPU set-up failed: {e}"),
             Err(_) => anyhow::bail!("the render thread ended during set-up"),
         }
     }
 
-    pub fn submit(&self, job: TileJob) -> Result<()> {
+    pub fn handle(&self) -> RenderHandle {
+        self.handle.clone()
+    }
+
+    /// Waits for the render thread to end (once every other [`RenderHandle`] is dropped): its
+    /// window surfaces go before the windows do.
+    pub fn join(self) {
+        let TileRenderer { handle, thread } = self;
+        drop(handle);
+        if let Some(t) = thread {
+            let _ = t.join();
+        }
+    }
+}
+
+impl RenderHandle {
+    fn send(&self, job: Job) -> Result<()> {
         self.jobs.send(job).map_err(|_| anyhow::anyhow!("the render thread has stopped"))
+    }
+
+    pub fn submit(&self, job: TileJob) -> Result<()> {
+        self.send(Job::Render(Box::new(job)))
+    }
+
+    /// Creates the windows' surfaces on the render thread and waits for them: one line per
+    /// surface (tile, size, format), or the first error.
+    pub fn attach(&self, windows: Vec<TileWindow>) -> Result<Vec<String>> {
+        let (tx, rx) = mpsc::channel();
+        self.send(Job::Window(WindowJob::Attach(windows, tx)))?;
+        rx.recv().map_err(|_| anyhow::anyhow!("the render thread has stopped"))?.map_err(anyhow::Error::msg)
+    }
+
+    /// The swap: presents `frame_id` in every window; resolves to when it was presented.
+    pub async fn present(&self, frame_id: u64) -> Result<Instant> {
+        let (tx, rx) = tokio::sync::oneshot::channel();
+        self.send(Job::Window(WindowJob::Present(frame_id, tx)))?;
+        rx.await.map_err(|_| anyhow::anyhow!("the render thread has stopped"))?.map_err(anyhow::Error::msg)
+    }
+
+    /// A tile's window changed size (pixels).
+    pub fn resize(&self, tile: &str, width: u32, height: u32) {
+        let _ = self.send(Job::Window(WindowJob::Resize(tile.to_string(), width, height)));
+    }
+
+    /// A tile's window needs its image again (exposed).
+    pub fn redraw(&self, tile: &str) {
+        let _ = self.send(Job::Window(WindowJob::Redraw(tile.to_string())));
+    }
+}
+
+/// Uploads a rendered frame's tiles to their windows' surfaces, ready for the swap.
+fn stage(gpu: &GpuRenderer, surfaces: &mut [TileSurface], frame_id: u64, tiles: &[TileResult]) {
+    for s in surfaces.iter_mut() {
+        if let Some(t) = tiles.iter().find(|t| t.name == s.name) {
+            if let Err(e) = s.stage(&gpu.ctx, frame_id, t.width, t.height, &t.rgb8) {
+                tracing::warn!("{e}");
+            }
+        }
+    }
+}
+
+/// The presentation jobs of the render thread.
+fn window_job(gpu: &GpuRenderer, surfaces: &mut Vec<TileSurface>, job: WindowJob) {
+    match job {
+        WindowJob::Attach(windows, reply) => {
+            surfaces.clear();
+            let made: Result<Vec<TileSurface>, String> = windows
+                .into_iter()
+                .map(|w| TileSurface::new(&gpu.ctx, &w.tile, w.window, w.size).map_err(|e| e.to_string()))
+                .collect();
+            let answer = made.map(|made| {
+                *surfaces = made;
+                surfaces
+                    .iter_mut()
+                    .map(|s| {
+                        // Black until the first frame.
+                        if let Err(e) = s.redraw(&gpu.ctx) {
+                            tracing::warn!("{e}");
+                        }
+                        let (w, h) = s.size();
+                        format!("{} {w}x{h} {:?}", s.name, s.format())
+                    })
+                    .collect()
+            });
+            let _ = reply.send(answer);
+        }
+        WindowJob::Present(frame_id, reply) => {
+            let mut result = Ok(());
+            for s in surfaces.iter_mut() {
+                match s.present(&gpu.ctx, frame_id) {
+                    Ok(Presented::Frame) => {}
+                    Ok(p) => tracing::debug!(tile = %s.name, frame_id, ?p, "presented without the frame"),
+                    Err(e) => result = Err(e.to_string()),
+                }
+            }
+            let _ = reply.send(result.map(|()| Instant::now()));
+        }
+        WindowJob::Resize(tile, width, height) => {
+            for s in surfaces.iter_mut().filter(|s| s.name == tile) {
+                if let Err(e) = s.resize(&gpu.ctx, width, height).and_then(|()| s.redraw(&gpu.ctx).map(drop))
+                {
+                    tracing::warn!("{e}");
+                }
+            }
+        }
+        WindowJob::Redraw(tile) => {
+            for s in surfaces.iter_mut().filter(|s| s.name == tile) {
+                if let Err(e) = s.redraw(&gpu.ctx) {
+                    tracing::warn!("{e}");
+                }
+            }
+        }
     }
 }
 

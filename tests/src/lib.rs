@@ -83,10 +83,21 @@ pub struct Daemon {
 
 impl Daemon {
     /// Starts `isowalld run --config CONFIG --node NODE EXTRA...`, logging to `dir/NODE.log`.
+    /// Headless whatever the desktop: DISPLAY and WAYLAND_DISPLAY are not passed on.
     pub fn start(dir: &Path, config: &Path, node: &str, extra: &[&str]) -> Daemon {
+        Daemon::start_on(dir, config, node, extra, None)
+    }
+
+    /// [`Daemon::start`] with DISPLAY set to `display` (e.g. `:99`, an Xvfb) where given.
+    pub fn start_on(dir: &Path, config: &Path, node: &str, extra: &[&str], display: Option<&str>) -> Daemon {
         let log = dir.join(format!("{node}.log"));
         let file = std::fs::File::create(&log).expect("log file");
-        let child = Command::new(bin("isowalld"))
+        let mut cmd = Command::new(bin("isowalld"));
+        cmd.env_remove("DISPLAY").env_remove("WAYLAND_DISPLAY");
+        if let Some(d) = display {
+            cmd.env("DISPLAY", d);
+        }
+        let child = cmd
             .args(["run", "--config"])
             .arg(config)
             .args(["--node", node])

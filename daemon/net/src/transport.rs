@@ -147,10 +147,29 @@ impl ChannelSender {
             .await
             .map_err(|e| NetError::Connection { peer: self.peer.clone(), reason: e.to_string() })
     }
+
+    /// Writes `bytes` to the stream as they are, framed or not. For tests that play a misbehaving
+    /// peer (oversized, truncated or undecodable frames); the binaries send only through
+    /// [`ChannelSender::send`].
+    pub async fn send_raw(&mut self, bytes: &[u8]) -> Result<(), NetError> {
+        self.send
+            .write_all(bytes)
+            .await
+            .map_err(|e| NetError::Connection { peer: self.peer.clone(), reason: e.to_string() })
+    }
+
+    /// Finishes the stream (the peer's receiver sees its end). For tests, like
+    /// [`ChannelSender::send_raw`].
+    pub fn finish(&mut self) -> Result<(), NetError> {
+        self.send
+            .finish()
+            .map_err(|e| NetError::Connection { peer: self.peer.clone(), reason: e.to_string() })
+    }
 }
 
 impl ChannelReceiver {
-    /// The next message; `None` when the peer finished the stream cleanly.
+    /// The next message; `None` when the peer finished the stream cleanly, between two frames (a
+    /// stream that ends inside a frame is a [`CodecError::Truncated`] error).
     pub async fn recv(&mut self) -> Result<Option<Message>, NetError> {
         let mut buf = vec![0u8; 64 * 1024];
         loop {
@@ -161,7 +180,12 @@ impl ChannelReceiver {
             }
             match self.recv.read(&mut buf).await {
                 Ok(Some(n)) => self.decoder.push(&buf[..n]),
-                Ok(None) => return Ok(None),
+                Ok(None) => {
+                    self.decoder
+                        .finish()
+                        .map_err(|source| NetError::Codec { peer: self.peer.clone(), source })?;
+                    return Ok(None);
+                }
                 Err(e) => {
                     return Err(NetError::Connection { peer: self.peer.clone(), reason: e.to_string() })
                 }

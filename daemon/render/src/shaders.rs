@@ -5,21 +5,34 @@
 //! parse and validate every kernel with naga, so a broken shader fails `cargo test` rather than the
 //! first render.
 
-/// Every compute kernel of the renderer. One name per concept: `Kernel::Isosurface` is
-/// `shaders/isosurface.wgsl` and `gpu/isosurface.rs`.
+/// Every shader of the renderer: the compute kernels and the presentation pass. One name per
+/// concept: `Kernel::Isosurface` is `shaders/isosurface.wgsl` and `gpu/isosurface.rs`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Kernel {
     Isosurface,
     Ao,
+    /// Not a compute kernel: the render pass that draws a tile's image into its window.
+    Present,
 }
 
 impl Kernel {
-    pub const ALL: [Kernel; 2] = [Kernel::Isosurface, Kernel::Ao];
+    pub const ALL: [Kernel; 3] = [Kernel::Isosurface, Kernel::Ao, Kernel::Present];
+    /// The compute kernels (entry point `main`, the frame parameters of `frame.wgsl`).
+    pub const COMPUTE: [Kernel; 2] = [Kernel::Isosurface, Kernel::Ao];
 
     pub fn file_name(self) -> &'static str {
         match self {
             Kernel::Isosurface => "isosurface.wgsl",
             Kernel::Ao => "ao.wgsl",
+            Kernel::Present => "present.wgsl",
+        }
+    }
+
+    /// The entry points the host uses.
+    pub fn entry_points(self) -> &'static [&'static str] {
+        match self {
+            Kernel::Isosurface | Kernel::Ao => &["main"],
+            Kernel::Present => &["vs_main", "fs_main"],
         }
     }
 
@@ -27,6 +40,7 @@ impl Kernel {
         match self {
             Kernel::Isosurface => include_str!("../../../shaders/isosurface.wgsl"),
             Kernel::Ao => include_str!("../../../shaders/ao.wgsl"),
+            Kernel::Present => include_str!("../../../shaders/present.wgsl"),
         }
     }
 }
@@ -80,7 +94,9 @@ pub(crate) mod tests {
     fn every_kernel_parses_and_validates() {
         for k in Kernel::ALL {
             let m = parse(k);
-            assert!(m.entry_points.iter().any(|e| e.name == "main"), "{} has no `main`", k.file_name());
+            for name in k.entry_points() {
+                assert!(m.entry_points.iter().any(|e| e.name == *name), "{} has no `{name}`", k.file_name());
+            }
         }
     }
 

@@ -41,6 +41,10 @@ pub enum CodecError {
     Malformed { len: usize, reason: String },
     #[error("{extra} bytes of garbage after a {kind} message inside its frame")]
     TrailingBytes { kind: &'static str, extra: usize },
+    /// The stream ended inside a frame: `have` bytes of it (header included) had arrived, of
+    /// `need` (`None` while the 4-byte length itself was incomplete).
+    #[error("the stream ended inside a frame: {have} of {} bytes", need.map_or("at least 4".to_string(), |n| n.to_string()))]
+    Truncated { have: usize, need: Option<usize> },
     #[error("the stream broke earlier ({0}); close the connection")]
     Broken(Box<CodecError>),
 }
@@ -143,12 +147,15 @@ pub struct Decoder {
     /// Bytes of `buf` before this are consumed.
     start: usize,
     broken: Option<CodecError>,
+    /// Whether [`Decoder::next`] has returned `broken` itself yet (later calls wrap it in
+    /// [`CodecError::Broken`]).
+    reported: bool,
 }
 
 impl Decoder {
     /// A decoder that accepts frames of at most `limit` bytes (clamped to [`MAX_FRAME_LEN`]).
     pub fn new(limit: usize) -> Self {
-        Decoder { limit: limit.min(MAX_FRAME_LEN), buf: Vec::new(), start: 0, broken: None }
+        Decoder { limit: limit.min(MAX_FRAME_LEN), buf: Vec::new(), start: 0, broken: None, reported: false }
     }
 
     pub fn limit(&self) -> usize {
@@ -200,10 +207,32 @@ impl Decoder {
         self.start = 0;
     }
 
-    /// The next complete message: `Ok(None)` while more bytes are needed.
+    /// The stream ended: `Err` ([`CodecError::Truncated`]) if part of a frame is still buffered
+    /// (or the error that broke the decoder earlier); `Ok` if it ended between frames.
+    pub fn finish(&mut self) -> Result<(), CodecError> {
+        if let Some(e) = &self.broken {
+            return Err(CodecError::Broken(Box::new(e.clone())));
+        }
+        let have = self.buffered();
+        if have == 0 {
+            return Ok(());
+        }
+        let need = self.check_header().ok().flatten().map(|len| HEADER_LEN + len);
+        let e = CodecError::Truncated { have, need };
+        self.fail(e.clone());
+        self.reported = true;
+        Err(e)
+    }
+
+    /// The next complete message: `Ok(None)` while more bytes are needed. The first error is
+    /// returned as it is (a frame header over the limit, found by [`Decoder::push`], included);
+    /// every later call returns it as [`CodecError::Broken`].
     #[allow(clippy::should_implement_trait)]
     pub fn next(&mut self) -> Result<Option<Message>, CodecError> {
         if let Some(e) = &self.broken {
+            if !std::mem::replace(&mut self.reported, true) {
+                return Err(e.clone());
+            }
             return Err(CodecError::Broken(Box::new(e.clone())));
         }
         let len = match self.check_header() {
@@ -214,6 +243,7 @@ impl Decoder {
             }
             Err(e) => {
                 self.fail(e.clone());
+                self.reported = true;
                 return Err(e);
             }
         };
@@ -231,6 +261,7 @@ impl Decoder {
             }
             Err(e) => {
                 self.fail(e.clone());
+                self.reported = true;
                 Err(e)
             }
         }
@@ -332,6 +363,8 @@ mod tests {
         d.push(&1001u32.to_le_bytes());
         assert!(d.is_broken(), "the header alone breaks the decoder");
         assert_eq!(d.buffered(), 0);
+        // Reported as it is once, then as what broke the stream.
+        assert_eq!(d.next(), Err(CodecError::TooLong { len: 1001, limit: 1000 }));
         assert_eq!(
             d.next(),
             Err(CodecError::Broken(Box::new(CodecError::TooLong { len: 1001, limit: 1000 })))
@@ -342,6 +375,7 @@ mod tests {
         let mut d = Decoder::new(usize::MAX);
         assert_eq!(d.limit(), MAX_FRAME_LEN);
         d.push(&u32::MAX.to_le_bytes());
+        assert!(matches!(d.next(), Err(CodecError::TooLong { .. })));
         assert!(matches!(d.next(), Err(CodecError::Broken(e)) if matches!(*e, CodecError::TooLong { .. })));
     }
 
@@ -384,6 +418,30 @@ mod tests {
         d.push(&f[f.len() - 1..]);
         assert_eq!(d.next(), Ok(Some(Message::Ready { frame_id: 99, render_us: 1234 })));
         assert_eq!(d.next(), Ok(None));
+        assert_eq!(d.finish(), Ok(()), "the stream may end between frames");
+    }
+
+    #[test]
+    fn a_stream_that_ends_inside_a_frame_is_truncated() {
+        let f = frame(&Message::Swap { frame_id: 7 }).unwrap();
+        let mut d = Decoder::new(DAEMON_LIMIT);
+        d.push(&f[..f.len() - 1]);
+        assert_eq!(d.next(), Ok(None));
+        let e = d.finish().unwrap_err();
+        assert_eq!(e, CodecError::Truncated { have: f.len() - 1, need: Some(f.len()) });
+        assert_eq!(
+            e.to_string(),
+            format!("the stream ended inside a frame: {} of {} bytes", f.len() - 1, f.len())
+        );
+        assert!(d.is_broken());
+        assert!(matches!(d.next(), Err(CodecError::Broken(_))));
+        // Inside the length itself.
+        let mut d = Decoder::new(DAEMON_LIMIT);
+        d.push(&f[..2]);
+        assert_eq!(d.finish(), Err(CodecError::Truncated { have: 2, need: None }));
+        assert!(matches!(d.finish(), Err(CodecError::Broken(_))));
+        let e = CodecError::Truncated { have: 2, need: None };
+        assert_eq!(e.to_string(), "the stream ended inside a frame: 2 of at least 4 bytes");
     }
 
     #[test]

@@ -148,7 +148,7 @@ mod tests {
 
     #[test]
     fn frame_params_layout_matches_the_wgsl_of_every_kernel() {
-        for kernel in Kernel::ALL {
+        for kernel in Kernel::COMPUTE {
             crate::shaders::tests::check_layout(
                 kernel,
                 "FrameParams",

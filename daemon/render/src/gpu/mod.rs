@@ -11,6 +11,7 @@
 pub mod ao;
 pub mod frame_params;
 pub mod isosurface;
+pub mod present;
 
 use crate::environment::Environment;
 use crate::shaders::{self, Kernel};
@@ -42,13 +43,18 @@ pub enum GpuError {
     View(String),
     #[error("invalid settings: {0}")]
     Settings(String),
+    #[error("presentation: {0}")]
+    Surface(String),
 }
 
-/// The device, its queue, and what adapter they came from.
+/// The device, its queue, and what adapter they came from. The instance and adapter are kept for
+/// presentation: window surfaces are created from the same instance and configured for the adapter.
 pub struct GpuContext {
     pub device: wgpu::Device,
     pub queue: wgpu::Queue,
     pub info: wgpu::AdapterInfo,
+    pub instance: wgpu::Instance,
+    pub adapter: wgpu::Adapter,
 }
 
 impl GpuContext {
@@ -69,7 +75,7 @@ impl GpuContext {
         }))
         .map_err(|source| GpuError::Device { adapter: info.name.clone(), source })?;
         tracing::info!(adapter = %info.name, backend = ?info.backend, kind = ?info.device_type, "GPU device open");
-        Ok(GpuContext { device, queue, info })
+        Ok(GpuContext { device, queue, info, instance, adapter })
     }
 
     /// Runs `f` inside a validation error scope and turns a captured error into [`GpuError`].

@@ -1,0 +1,212 @@
+//! Presentation in windows (issue "The wall", item 4): a one-node wall under a virtual X server
+//! (Xvfb) with `isowalld run --display window --windowed`. After two frames the tile's window, as
+//! an X screenshot (`xwd`) shows it, must hold exactly the tile's image: the one the node's
+//! snapshot returns.
+//!
+//! Outside CI the test skips, with a message, where Xvfb or xwd is missing (`scripts/test.sh` has
+//! `scripts/setup.sh` install them: packages xvfb and x11-apps); under CI=true it must run.
+
+use isowall_e2e::{free_udp_ports, in_ci, run_in, Daemon};
+use std::io::BufRead;
+use std::path::{Path, PathBuf};
+use std::process::{Child, ChildStdout, Command, Stdio};
+use std::time::{Duration, Instant};
+
+/// A virtual X server on a display number it picked itself; killed when dropped.
+struct Xvfb {
+    child: Child,
+    display: String,
+    /// Kept open: Xvfb reported its display number on it.
+    _stdout: std::io::BufReader<ChildStdout>,
+}
+
+impl Xvfb {
+    /// Starts Xvfb with one `width`x`height` 24-bit screen; `None` (after a message) where there
+    /// is no Xvfb outside CI.
+    fn start(width: u32, height: u32) -> Option<Xvfb> {
+        let spawned = Command::new("Xvfb")
+            // -displayfd: take the first free display number and write it on fd 1 once ready.
+            .args(["-displayfd", "1", "-screen", "0", &format!("{width}x{height}x24"), "-nolisten", "tcp"])
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn();
+        let mut child = match spawned {
+            Ok(c) => c,
+            Err(e) => {
+                assert!(!in_ci(), "cannot run Xvfb under CI=true ({e}): scripts/setup.sh installs xvfb");
+                eprintln!("skipping: cannot run Xvfb ({e}); install it: apt-get install xvfb x11-apps");
+                return None;
+            }
+        };
+        let mut stdout = std::io::BufReader::new(child.stdout.take().expect("piped"));
+        let mut line = String::new();
+        let _ = stdout.read_line(&mut line);
+        let number = line.trim();
+        if number.is_empty() || !number.bytes().all(|b| b.is_ascii_digit()) {
+            let _ = child.kill();
+            let _ = child.wait();
+            assert!(!in_ci(), "Xvfb did not start under CI=true (it reported {line:?})");
+            eprintln!("skipping: Xvfb did not start (it reported {line:?})");
+            return None;
+        }
+        Some(Xvfb { display: format!(":{number}"), child, _stdout: stdout })
+    }
+}
+
+impl Drop for Xvfb {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// An image as 8-bit RGB, rows top to bottom.
+struct Rgb {
+    width: u32,
+    height: u32,
+    pixels: Vec<[u8; 3]>,
+}
+
+/// Parses an X window dump (XWD version 7, as `xwd` writes it) of a TrueColor visual with 32 bits
+/// per pixel (Xvfb's 24-bit depth): a big-endian header of 25 32-bit fields, the window name, the
+/// colormap (12 bytes per entry), then the pixels, `bytes_per_line` per row.
+fn parse_xwd(bytes: &[u8]) -> Result<Rgb, String> {
+    let field = |i: usize| -> Result<u32, String> {
+        let b = bytes.get(4 * i..4 * i + 4).ok_or("XWD header truncated")?;
+        Ok(u32::from_be_bytes(b.try_into().expect("4 bytes")))
+    };
+    let (header_size, version, width, height) = (field(0)?, field(1)?, field(4)?, field(5)?);
+    let (byte_order, bits_per_pixel, bytes_per_line, visual_class) =
+        (field(7)?, field(11)?, field(12)?, field(13)?);
+    let masks = [field(14)?, field(15)?, field(16)?];
+    let ncolors = field(19)?;
+    if version != 7 || bits_per_pixel != 32 || visual_class != 4 {
+        return Err(format!(
+            "unsupported XWD: version {version}, {bits_per_pixel} bits per pixel, visual class {visual_class} \
+             (want 7, 32, TrueColor 4)"
+        ));
+    }
+    let start = header_size as usize + 12 * ncolors as usize;
+    let need = start + bytes_per_line as usize * height as usize;
+    if bytes.len() < need || (bytes_per_line as usize) < 4 * width as usize {
+        return Err(format!("XWD truncated: {} bytes, {need} needed", bytes.len()));
+    }
+    let mut pixels = Vec::with_capacity(width as usize * height as usize);
+    for y in 0..height as usize {
+        for x in 0..width as usize {
+            let at = start + y * bytes_per_line as usize + 4 * x;
+            let b: [u8; 4] = bytes[at..at + 4].try_into().expect("4 bytes");
+            let v = if byte_order == 0 { u32::from_le_bytes(b) } else { u32::from_be_bytes(b) };
+            pixels.push(masks.map(|m| ((v & m) >> m.trailing_zeros()) as u8));
+        }
+    }
+    Ok(Rgb { width, height, pixels })
+}
+
+/// A screenshot of the window named `title` on `display` (`xwd -name`: the window's pixels as
+/// the screen shows them).
+fn screenshot(display: &str, title: &str) -> Result<Rgb, String> {
+    let out = Command::new("xwd")
+        .args(["-display", display, "-silent", "-name", title])
+        .output()
+        .map_err(|e| format!("cannot run xwd: {e}"))?;
+    if !out.status.success() {
+        return Err(format!("xwd failed: {}", String::from_utf8_lossy(&out.stderr)));
+    }
+    parse_xwd(&out.stdout)
+}
+
+/// A one-node wall of one `w`x`h` tile named t00 (the torus, fixed camera, no AO: quick).
+fn one_tile_wall(dir: &Path, port: u16, w: u32, h: u32) -> PathBuf {
+    let s = format!(
+        "[wall]\nname = \"present\"\ndeadline_ms = 60000\n\n\
+         [camera]\neye = [60.0, -70.0, 45.0]\ntarget = [23.5, 23.5, 23.5]\nup = [0, 0, 1]\nfov_y = 40.0\n\n\
+         [volume]\nsource = \"procedural:torus:48\"\n\n\
+         [certificates]\ndir = \"keys\"\n\n\
+         [[tiles]]\nname = \"t00\"\nx = 0\ny = 0\nwidth = {w}\nheight = {h}\n\n\
+         [[nodes]]\nname = \"node0\"\naddress = \"127.0.0.1:{port}\"\ntiles = [\"t00\"]\n"
+    );
+    let path = dir.join("present.toml");
+    std::fs::write(&path, s).unwrap();
+    path
+}
+
+#[test]
+fn a_window_shows_the_presented_tile_exactly() {
+    let Some(xvfb) = Xvfb::start(320, 240) else { return };
+    if let Err(e) = Command::new("xwd").arg("-help").output() {
+        assert!(!in_ci(), "cannot run xwd under CI=true ({e}): scripts/setup.sh installs x11-apps");
+        eprintln!("skipping: cannot run xwd ({e}); install it: apt-get install x11-apps");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let (w, h) = (64u32, 48u32);
+    let config = one_tile_wall(dir.path(), free_udp_ports(1)[0], w, h);
+    let cfg = config.to_str().unwrap();
+    let out = run_in(dir.path(), "isowall", &["keygen", "--config", cfg]);
+    assert!(out.status.success(), "keygen: {}", String::from_utf8_lossy(&out.stderr));
+
+    let mut daemon = Daemon::start_on(
+        dir.path(),
+        &config,
+        "node0",
+        &["--display", "window", "--windowed"],
+        Some(&xvfb.display),
+    );
+    if !daemon.wait_ready(Duration::from_secs(120)) {
+        let log = daemon.log_text();
+        if log.contains("no Vulkan adapter") && !in_ci() {
+            eprintln!("skipping: no Vulkan adapter");
+            return;
+        }
+        panic!("node0 did not start on {}:\n{log}", xvfb.display);
+    }
+    let log = daemon.log_text();
+    assert!(log.contains(&format!("presenting tile t00 {w}x{h}")), "no window for t00:\n{log}");
+
+    let out = run_in(dir.path(), "isowall", &["orbit", cfg, "--frames", "2"]);
+    assert!(
+        out.status.success(),
+        "orbit failed:\n{}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let out = run_in(dir.path(), "isowall", &["snapshot", cfg, "--out", "snap.png"]);
+    assert!(out.status.success(), "snapshot failed: {}", String::from_utf8_lossy(&out.stderr));
+    let snap = image::open(dir.path().join("snap.png")).unwrap().to_rgb8();
+    assert_eq!(snap.dimensions(), (w, h));
+    let lit = snap.pixels().filter(|p| p.0.iter().map(|&v| v as u32).sum::<u32>() > 200).count();
+    assert!(lit > 100, "the torus is hardly in view in the snapshot ({lit} lit pixels)");
+
+    // The present reaches the X server a moment after the node reported it: look until the
+    // window shows the frame (or give up after 20 s and report what it shows).
+    let title = "isowall present: t00 (node0)";
+    let start = Instant::now();
+    let (max_diff, shot) = loop {
+        let shot = screenshot(&xvfb.display, title).unwrap_or_else(|e| panic!("{e}\n{}", daemon.log_text()));
+        assert_eq!((shot.width, shot.height), (w, h), "the window is not the tile's size");
+        let max_diff = shot
+            .pixels
+            .iter()
+            .zip(snap.pixels())
+            .map(|(a, b)| (0..3).map(|c| a[c].abs_diff(b.0[c])).max().unwrap_or(0))
+            .max()
+            .unwrap_or(0);
+        if max_diff <= 1 || start.elapsed() > Duration::from_secs(20) {
+            break (max_diff, shot);
+        }
+        std::thread::sleep(Duration::from_millis(250));
+    };
+    eprintln!("window vs snapshot: max difference {max_diff} levels");
+    if max_diff > 1 {
+        let img = image::RgbImage::from_fn(w, h, |x, y| image::Rgb(shot.pixels[(y * w + x) as usize]));
+        let keep = std::env::temp_dir().join("isowall-present-window.png");
+        let _ = img.save(&keep);
+        panic!(
+            "the window does not show the tile (max difference {max_diff} levels; screenshot in {}):\n{}",
+            keep.display(),
+            daemon.log_text()
+        );
+    }
+}
