@@ -11,6 +11,11 @@ if ! command -v cargo >/dev/null 2>&1; then
     echo "or: apt-get install cargo   (Rust 1.85 or newer is needed)" >&2
     exit 1
 fi
+rust_version=$(rustc --version 2>/dev/null | awk '{print $2}')
+if [ -n "$rust_version" ] && ! printf '1.85.0\n%s\n' "$rust_version" | sort -V -C; then
+    echo "isowall: Rust $rust_version is too old: 1.85 or newer is needed (rustup update, or a newer cargo package)" >&2
+    exit 1
+fi
 
 # The Vulkan loader.
 if ! ldconfig -p 2>/dev/null | grep -q 'libvulkan\.so\.1'; then

@@ -1,5 +1,5 @@
-//! `isowalld`, the Isowall node daemon. For now it renders single frames to files (`render`) and
-//! benchmarks the renderer (`bench`); the wall issue adds `run` and `check-config`.
+//! `isowalld`, the Isowall node daemon: `run` serves a wall node, `render` renders single frames to
+//! files, `bench` measures the renderer, `check-config` checks a wall config.
 
 mod args;
 mod bench;

@@ -134,8 +134,8 @@ pub struct RenderArgs {
     /// Raw volumes: voxel spacing [default: 1,1,1]
     #[arg(long, value_name = "SX,SY,SZ", value_parser = args::vec3)]
     pub spacing: Option<DVec3>,
-    /// Ambient-occlusion rays per pixel per frame; 0 turns AO off [default: 0]
-    #[arg(long = "ao-samples", value_name = "N")]
+    /// Ambient-occlusion rays per pixel per frame, 0..=1024; 0 turns AO off [default: 0]
+    #[arg(long = "ao-samples", value_name = "N", value_parser = clap::value_parser!(u32).range(0..=1024))]
     pub ao_samples: Option<u32>,
     /// AO radius in world units, or `unbounded` (to the volume's box) [default: 8 voxels of the
     /// largest spacing]

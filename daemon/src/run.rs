@@ -57,6 +57,8 @@ struct Node {
     results: UnboundedReceiver<Result<JobResult, String>>,
     epoch: Instant,
     limit: usize,
+    /// The render thread is gone: the node must exit (and be restarted).
+    render_dead: bool,
     /// Fault injection: extra delay before Ready.
     slow: std::time::Duration,
     /// Rendered, waiting for the swap.
@@ -109,6 +111,7 @@ pub fn run(a: &RunArgs) -> Result<()> {
         epoch: Instant::now(),
         limit,
         slow: std::time::Duration::from_millis(a.slow_ms),
+        render_dead: false,
         pending: None,
         shown: None,
     };
@@ -142,17 +145,36 @@ fn network(
         tracing::info!(node = %state.name, %addr, "listening for the controller");
         // Systemd (Type=notify) and scripts wait for this line.
         println!("isowalld: node {} ready on {addr}", state.name);
+        // Handshakes run in their own tasks (a slow or silent peer holds up nobody); finished
+        // connections queue here, and the session loop takes the next one (cancel-safe).
+        let (conn_tx, mut conns) = tokio::sync::mpsc::channel::<quinn::Connection>(4);
+        let acceptor = endpoint.clone();
+        tokio::spawn(async move {
+            while let Some(incoming) = acceptor.accept().await {
+                let tx = conn_tx.clone();
+                tokio::spawn(async move {
+                    let remote = incoming.remote_address();
+                    match tokio::time::timeout(std::time::Duration::from_secs(10), incoming).await {
+                        Ok(Ok(c)) => {
+                            let _ = tx.send(c).await;
+                        }
+                        Ok(Err(e)) => tracing::warn!(%remote, "refused a connection: {e}"),
+                        Err(_) => tracing::warn!(%remote, "refused a connection: handshake timed out"),
+                    }
+                });
+            }
+        });
         let serve_all = async {
             let mut next: Option<quinn::Connection> = None;
             loop {
                 let conn = match next.take() {
                     Some(c) => c,
-                    None => match accept(&endpoint).await {
+                    None => match conns.recv().await {
                         Some(c) => c,
                         None => return Ok::<(), anyhow::Error>(()),
                     },
                 };
-                next = serve(&mut state, &endpoint, conn).await;
+                next = serve(&mut state, &mut conns, conn).await?;
             }
         };
         let Some(stop) = stop else { return serve_all.await };
@@ -181,31 +203,31 @@ fn raw_spec(config: &WallConfig) -> Result<Option<RawSpec>> {
     }
 }
 
-/// The next connection whose TLS handshake succeeds; refused peers are logged and skipped.
-async fn accept(endpoint: &quinn::Endpoint) -> Option<quinn::Connection> {
-    loop {
-        let incoming = endpoint.accept().await?;
-        let remote = incoming.remote_address();
-        match incoming.await {
-            Ok(c) => return Some(c),
-            Err(e) => tracing::warn!(%remote, "refused a connection: {e}"),
-        }
-    }
-}
-
 /// Serves one controller until its connection ends; returns a newer controller's connection if
-/// one arrived meanwhile (the newer controller takes over).
+/// one arrived meanwhile (the newer controller takes over). An error means the node cannot go on
+/// (its render thread is gone): the process exits and its supervisor restarts it.
 async fn serve(
     node: &mut Node,
-    endpoint: &quinn::Endpoint,
+    conns: &mut tokio::sync::mpsc::Receiver<quinn::Connection>,
     conn: quinn::Connection,
-) -> Option<quinn::Connection> {
+) -> Result<Option<quinn::Connection>> {
     let remote = conn.remote_address();
-    let channel = match Channel::accept(conn, "controller", node.limit).await {
-        Ok(c) => c,
-        Err(e) => {
+    // A peer that completes the handshake but never opens the stream does not hold the node.
+    let opened = tokio::time::timeout(
+        std::time::Duration::from_secs(5),
+        Channel::accept(conn.clone(), "controller", node.limit),
+    )
+    .await;
+    let channel = match opened {
+        Ok(Ok(c)) => c,
+        Ok(Err(e)) => {
             tracing::warn!(%remote, "controller connection failed: {e}");
-            return None;
+            return Ok(None);
+        }
+        Err(_) => {
+            tracing::warn!(%remote, "closing a connection that opened no stream within 5 s");
+            transport::close(&conn, "no stream opened within 5 s");
+            return Ok(None);
         }
     };
     tracing::info!(%remote, "controller connected");
@@ -214,7 +236,7 @@ async fn serve(
     node.pending = None;
     if let Err(e) = sender.send(&machine.hello()).await {
         tracing::warn!("{e}");
-        return None;
+        return Ok(None);
     }
     let (msg_tx, mut msg_rx) = tokio::sync::mpsc::channel::<Result<Option<Message>, NetError>>(16);
     let reader = tokio::spawn(async move {
@@ -234,18 +256,18 @@ async fn serve(
                     Err(e) => {
                         tracing::warn!("closing the controller connection: {e}");
                         transport::close(&connection, &e.to_string());
-                        break None;
+                        break Ok(None);
                     }
                 },
                 Some(Ok(None)) | None => {
                     tracing::info!("the controller closed the connection");
                     transport::close(&connection, "the controller ended its stream");
-                    break None;
+                    break Ok(None);
                 }
                 Some(Err(e)) => {
                     tracing::warn!("controller connection ended: {e}");
                     transport::close(&connection, &e.to_string());
-                    break None;
+                    break Ok(None);
                 }
             },
             r = node.results.recv() => match r {
@@ -260,19 +282,23 @@ async fn serve(
                 Some(Err(e)) => {
                     tracing::error!("render failed: {e}");
                     transport::close(&connection, &format!("render failed: {e}"));
-                    break None;
+                    break Ok(None);
                 }
-                None => break None,
+                None => break Err(anyhow!("the render thread has stopped")),
             },
-            c = accept(endpoint) => {
+            c = conns.recv() => {
                 tracing::info!("a new controller connected; it takes over");
                 transport::close(&connection, "another controller took over");
-                break c;
+                break Ok(c);
             }
         };
         if let Err(e) = execute(node, &mut machine, &mut sender, outputs).await {
             tracing::warn!("controller connection ended: {e}");
-            break None;
+            break Ok(None);
+        }
+        if node.render_dead {
+            transport::close(&connection, "the node's render thread has stopped");
+            break Err(anyhow!("the render thread has stopped"));
         }
     };
     reader.abort();
@@ -313,6 +339,7 @@ async fn execute(
                     accumulate_frame,
                 }) {
                     tracing::error!("{e}");
+                    node.render_dead = true;
                 }
             }
             NodeOutput::Present { frame_id } => {

@@ -42,6 +42,14 @@ fn render_help_names_every_contract_flag() {
         "--dims",
         "--type",
         "--spacing",
+        "--ao-samples",
+        "--ao-radius",
+        "--ao-method",
+        "--ibl",
+        "--env",
+        "--frames",
+        "--seed",
+        "--exposure",
     ] {
         assert!(help.contains(flag), "render --help lacks {flag}");
     }

@@ -64,6 +64,11 @@ pub fn keygen(dir: &Path, wall: &str, names: &[String]) -> Result<Vec<PathBuf>, 
     let mut write = |name: &str, text: String| -> Result<(), TlsError> {
         let path = dir.join(name);
         std::fs::write(&path, text).map_err(io(&path))?;
+        if name.ends_with(".key") {
+            // Private keys: readable by their owner only.
+            use std::os::unix::fs::PermissionsExt;
+            std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o600)).map_err(io(&path))?;
+        }
         written.push(path);
         Ok(())
     };

@@ -896,6 +896,16 @@ fn validate_render(doc: &mut Doc<'_>, r: &RenderConfig) {
             doc.at(&at("ao_radius"), format!("render: `ao_radius` {radius} must be > 0 (or \"unbounded\")"));
         }
     }
+    if r.ao_samples > crate::render_state::MAX_AO_SAMPLES {
+        doc.at(
+            &at("ao_samples"),
+            format!(
+                "render: `ao_samples` {} is more than {} per frame (accumulate frames instead)",
+                r.ao_samples,
+                crate::render_state::MAX_AO_SAMPLES
+            ),
+        );
+    }
     if let Some(x) = r.exposure {
         if !(x.is_finite() && x >= 0.0) {
             doc.at(&at("exposure"), format!("render: `exposure` {x} must be a finite number >= 0"));
@@ -1612,6 +1622,7 @@ tiles = ["b"]
             "a radius in world units (a number > 0) or \"unbounded\"",
         );
         expect(&render("exposure = -1"), Some(2), "render: `exposure` -1 must be a finite number >= 0");
+        expect(&render("ao_samples = 5000"), Some(2), "render: `ao_samples` 5000 is more than 1024");
         expect(&render("shading = \"phong\""), Some(2), "unknown variant `phong`");
         expect(&render("ibl = \"sh\""), Some(2), "unknown variant `sh`");
         expect(&render("ao_method = \"theirs\""), Some(2), "unknown variant `theirs`");

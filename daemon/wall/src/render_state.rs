@@ -111,6 +111,13 @@ impl Aov {
     }
 }
 
+/// The most AO rays per pixel per frame anything accepts (the CLI, a config, a frame state from the
+/// network): more belongs in progressive accumulation, and a kernel must stay short.
+pub const MAX_AO_SAMPLES: u32 = 1024;
+/// The range of march steps, in voxels, accepted from outside.
+pub const MIN_STEP_VOXELS: f64 = 0.05;
+pub const MAX_STEP_VOXELS: f64 = 2.0;
+
 /// How ambient occlusion is computed (DESIGN.md "AO").
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "kebab-case")]

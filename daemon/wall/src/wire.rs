@@ -178,6 +178,18 @@ fn finite3(field: &'static str, v: [f64; 3]) -> Result<[f64; 3], WireError> {
     Ok(v)
 }
 
+/// A march step in voxels: a step far below a voxel only costs time (a frame could run for hours
+/// on a kernel without a watchdog), one above two voxels skips the surface.
+fn step(field: &'static str, value: f64) -> Result<f64, WireError> {
+    if value.is_finite()
+        && (crate::render_state::MIN_STEP_VOXELS..=crate::render_state::MAX_STEP_VOXELS).contains(&value)
+    {
+        Ok(value)
+    } else {
+        Err(WireError::OutOfRange { field, value, expected: "in 0.05..=2 voxels" })
+    }
+}
+
 fn positive(field: &'static str, value: f64) -> Result<f64, WireError> {
     finite(field, value)?;
     if value > 0.0 {
@@ -306,12 +318,20 @@ impl TryFrom<WireAo> for AoSettings {
             value => return Err(WireError::UnknownCode { field: "settings.ao.ibl", value, max: 3 }),
         };
         Ok(AoSettings {
-            samples: w.samples,
+            samples: if w.samples <= crate::render_state::MAX_AO_SAMPLES {
+                w.samples
+            } else {
+                return Err(WireError::OutOfRange {
+                    field: "settings.ao.samples",
+                    value: w.samples as f64,
+                    expected: "<= 1024",
+                });
+            },
             radius,
             method,
             ibl,
             exact: w.exact,
-            step_voxels: positive("settings.ao.step_voxels", w.step_voxels)?,
+            step_voxels: step("settings.ao.step_voxels", w.step_voxels)?,
             offset_voxels: non_negative("settings.ao.offset_voxels", w.offset_voxels)?,
             frame: w.frame,
             seed: w.seed,
@@ -360,7 +380,7 @@ impl TryFrom<WireSettings> for RenderSettings {
         };
         Ok(RenderSettings {
             iso: finite("settings.iso", w.iso)?,
-            step_voxels: positive("settings.step_voxels", w.step_voxels)?,
+            step_voxels: step("settings.step_voxels", w.step_voxels)?,
             empty_space_skipping: w.empty_space_skipping,
             shading,
             light: Light {
@@ -451,6 +471,9 @@ mod tests {
         check(&|s| s.camera.fov_y_deg = f64::NAN, "camera.fov_y_deg");
         check(&|s| s.settings.iso = f64::NEG_INFINITY, "settings.iso");
         check(&|s| s.settings.step_voxels = 0.0, "settings.step_voxels");
+        check(&|s| s.settings.step_voxels = 1e-9, "settings.step_voxels");
+        check(&|s| s.settings.ao.step_voxels = 50.0, "settings.ao.step_voxels");
+        check(&|s| s.settings.ao.samples = 5000, "settings.ao.samples");
         check(&|s| s.settings.shading = 2, "settings.shading");
         check(&|s| s.settings.light.direction[0] = f64::NAN, "settings.light.direction");
         check(&|s| s.settings.light.color[2] = f64::INFINITY, "settings.light.color");
