@@ -119,27 +119,32 @@ pub fn orbit_camera(base: &Camera, k: u64, degrees_per_frame: f64) -> Camera {
     Camera { eye: base.target + rot * (base.eye - base.target), up: rot * base.up, ..*base }
 }
 
+/// Drives the orbit; returns how long its frames took and when the first swap was released.
 async fn drive(
     wall: &mut Wall,
     base: &Camera,
     settings: &RenderSettings,
     o: &OrbitOptions,
-) -> Result<Duration> {
+) -> Result<(Duration, Option<Instant>)> {
     wall.sync_clocks(5).await;
     let start = Instant::now();
     let period = (o.fps > 0.0).then(|| Duration::from_secs_f64(1.0 / o.fps));
+    let mut first_swap = None;
     for k in 0..o.frames {
         if let Some(p) = period {
             tokio::time::sleep_until((start + p.mul_f64(k as f64)).into()).await;
         }
         wall.frame(&orbit_camera(base, k, o.degrees_per_frame), settings).await?;
+        if k == 0 {
+            first_swap = Some(Instant::now());
+        }
         if k % 30 == 29 {
             wall.sync_clocks(1).await;
         }
     }
     let elapsed = start.elapsed();
     wall.settle().await;
-    Ok(elapsed)
+    Ok((elapsed, first_swap))
 }
 
 fn runtime() -> Result<tokio::runtime::Runtime> {
@@ -161,6 +166,7 @@ async fn write_snapshot(wall: &mut Wall, out: &std::path::Path) -> Result<()> {
 }
 
 pub fn up(a: &UpArgs) -> Result<()> {
+    let started = Instant::now();
     let config = load(&a.config)?;
     let (base, settings) = scene(&config)?;
     let log_dir = config.resolve("logs");
@@ -168,7 +174,6 @@ pub fn up(a: &UpArgs) -> Result<()> {
     eprintln!("isowall: starting wall '{}': {} local node(s)", config.wall.name, daemons.len());
     let rt = runtime()?;
     let result = rt.block_on(async {
-        let started = Instant::now();
         let mut wall = Wall::connect(config, Duration::from_secs(a.start_timeout)).await.map_err(|e| {
             let dead = daemons.exited();
             if dead.is_empty() {
@@ -179,11 +184,10 @@ pub fn up(a: &UpArgs) -> Result<()> {
             }
         })?;
         eprintln!("isowall: wall up in {:.2} s", started.elapsed().as_secs_f64());
-        let elapsed = drive(&mut wall, &base, &settings, &a.orbit).await?;
-        eprintln!(
-            "isowall: first frame swapped {:.2} s after start",
-            started.elapsed().as_secs_f64() - elapsed.as_secs_f64()
-        );
+        let (elapsed, first_swap) = drive(&mut wall, &base, &settings, &a.orbit).await?;
+        if let Some(t) = first_swap {
+            println!("first swap released {:.2} s after `isowall up` started", (t - started).as_secs_f64());
+        }
         print!("{}", report(&wall, elapsed));
         if let Some(out) = &a.snapshot {
             write_snapshot(&mut wall, out).await?;
@@ -200,7 +204,7 @@ pub fn orbit(a: &OrbitArgs) -> Result<()> {
     let (base, settings) = scene(&config)?;
     runtime()?.block_on(async {
         let mut wall = Wall::connect(config, Duration::from_secs(10)).await?;
-        let elapsed = drive(&mut wall, &base, &settings, &a.orbit).await?;
+        let (elapsed, _) = drive(&mut wall, &base, &settings, &a.orbit).await?;
         print!("{}", report(&wall, elapsed));
         wall.close("the controller is done").await;
         Ok(())
