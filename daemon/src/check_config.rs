@@ -1,5 +1,6 @@
-//! `isowalld check-config FILE`: reads and validates a wall config. Every problem is printed to
-//! stderr as `FILE:LINE:COL: message` and the exit status is 1; a valid config prints a short
+//! `isowalld check-config FILE`: reads and validates a wall config
+//! ([`WallConfig::check_report`](isowall_wall::WallConfig::check_report)). Every problem is printed
+//! to stderr as `FILE:LINE:COL: message` and the exit status is 1; a valid config prints a short
 //! summary (the wall, its image size and the tiles of every node) to stdout.
 
 use isowall_wall::WallConfig;
@@ -13,16 +14,13 @@ pub struct CheckConfigArgs {
 }
 
 pub fn run(a: &CheckConfigArgs) -> anyhow::Result<()> {
-    match WallConfig::load(&a.file) {
-        Ok(config) => {
-            println!("{}: ok", a.file.display());
-            println!("{}", config.summary());
-            Ok(())
+    let (problems, last) = match WallConfig::check_report(&a.file) {
+        Ok(report) => {
+            println!("{report}");
+            return Ok(());
         }
-        Err(errors) => {
-            eprintln!("{errors}");
-            let n = errors.problems.len();
-            anyhow::bail!("{}: {n} problem{}", a.file.display(), if n == 1 { "" } else { "s" })
-        }
-    }
+        Err(e) => e,
+    };
+    eprintln!("{problems}");
+    anyhow::bail!("{last}")
 }

@@ -656,6 +656,21 @@ impl WallConfig {
         }
     }
 
+    /// What `check-config FILE` prints, for both binaries: `Ok(text)` for a valid config (the
+    /// file and a summary), `Err((problems, last line))` with every problem as FILE:LINE:COL.
+    pub fn check_report(path: &Path) -> Result<String, (String, String)> {
+        match WallConfig::load(path) {
+            Ok(config) => Ok(format!("{}: ok\n{}", path.display(), config.summary())),
+            Err(errors) => {
+                let n = errors.problems.len();
+                Err((
+                    errors.to_string(),
+                    format!("{}: {n} problem{}", path.display(), if n == 1 { "" } else { "s" }),
+                ))
+            }
+        }
+    }
+
     /// A short human summary: the wall, its image size, and the tiles of every node.
     pub fn summary(&self) -> String {
         let (w, h) = self.wall_size();
