@@ -212,6 +212,12 @@ async fn serve(
     conn: quinn::Connection,
 ) -> Result<Option<quinn::Connection>> {
     let remote = conn.remote_address();
+    // The wall CA signed it, but only the controller's certificate may drive the node.
+    if !isowall_net::tls::peer_is(&conn, isowall_net::tls::CONTROLLER) {
+        tracing::warn!(%remote, "refused a connection: its certificate is not the controller's");
+        transport::close(&conn, "only the wall's controller certificate may drive a node");
+        return Ok(None);
+    }
     // A peer that completes the handshake but never opens the stream does not hold the node.
     let opened = tokio::time::timeout(
         std::time::Duration::from_secs(5),

@@ -157,4 +157,20 @@ fn a_peer_with_another_cas_certificate_is_refused() {
     let log = daemon.log_text();
     assert!(log.contains("refused a connection"), "the daemon did not log the refusal:\n{log}");
     assert!(!dir.path().join("x.png").exists());
+
+    // A node's certificate (the wall CA signed it) cannot pose as the controller.
+    let impostor_keys = dir.path().join("impostor-keys");
+    std::fs::create_dir_all(&impostor_keys).unwrap();
+    for f in ["ca.pem", "node0.pem", "node0.key"] {
+        std::fs::copy(dir.path().join("keys").join(f), impostor_keys.join(f)).unwrap();
+    }
+    std::fs::copy(dir.path().join("keys/node1.pem"), impostor_keys.join("controller.pem")).unwrap();
+    std::fs::copy(dir.path().join("keys/node1.key"), impostor_keys.join("controller.key")).unwrap();
+    let impostor = wall_config(dir.path(), "impostor", &ports, 16, 12, 2, 5000, "impostor-keys");
+    let out = run_in(dir.path(), "isowall", &["snapshot", impostor.to_str().unwrap(), "--out", "y.png"]);
+    assert!(!out.status.success(), "a node's certificate drove the wall");
+    std::thread::sleep(Duration::from_millis(300));
+    let log = daemon.log_text();
+    assert!(log.contains("not the controller's"), "the daemon did not refuse the impostor:\n{log}");
+    assert!(!dir.path().join("y.png").exists());
 }

@@ -167,3 +167,15 @@ impl Identity {
         Ok(config)
     }
 }
+
+/// Whether the peer of `connection` presented a certificate (already verified against the wall CA
+/// by the handshake) that names `name`: a daemon uses it to accept only the controller's
+/// certificate as a controller, not another node's.
+pub fn peer_is(connection: &quinn::Connection, name: &str) -> bool {
+    let Some(identity) = connection.peer_identity() else { return false };
+    let Ok(chain) = identity.downcast::<Vec<CertificateDer<'static>>>() else { return false };
+    let Some(leaf) = chain.first() else { return false };
+    let Ok(cert) = webpki::EndEntityCert::try_from(leaf) else { return false };
+    let Ok(server_name) = rustls::pki_types::ServerName::try_from(name) else { return false };
+    cert.verify_is_valid_for_subject_name(&server_name).is_ok()
+}
