@@ -50,16 +50,24 @@ const IBL_SEED: u32 = 1u;
 const IBL_BENT: u32 = 2u;
 const IBL_RAYS: u32 = 3u;
 
-// Ours: does o + t w reach f >= iso for some t in [0, R] (R clipped to the box)?
-fn ours_occluded(o: vec3<f32>, w: vec3<f32>) -> bool {
-    let inv = safe_inv(w);
+// The part of the AO ray o + t w that is tested: from where it is in the box (t >= 0) to where it
+// leaves the box or reaches the radius R (`ao_radius` < 0: unbounded). Empty when y < x.
+fn ao_ray_range(o: vec3<f32>, inv: vec3<f32>) -> vec2<f32> {
     let tc = box_clip(o, inv);
-    var t = max(tc.x, 0.0);
     var t_end = tc.y;
     if params.ao_radius >= 0.0 {
         t_end = min(t_end, params.ao_radius);
     }
-    if t_end < t {
+    return vec2<f32>(max(tc.x, 0.0), t_end);
+}
+
+// Ours: does o + t w reach f >= iso for some t in [0, R] (R clipped to the box)?
+fn ours_occluded(o: vec3<f32>, w: vec3<f32>) -> bool {
+    let inv = safe_inv(w);
+    let range = ao_ray_range(o, inv);
+    var t = range.x;
+    let t_end = range.y;
+    if !(t_end >= t) {
         return false;
     }
     let h = params.ao_step;
@@ -169,12 +177,9 @@ const T_NEVER: f32 = 1e30;
 // left at its exit without loading a cell, and the DDA restarts there.
 fn exact_occluded(o: vec3<f32>, w: vec3<f32>) -> bool {
     let inv = safe_inv(w);
-    let tc = box_clip(o, inv);
-    var t = max(tc.x, 0.0);
-    var t_end = tc.y;
-    if params.ao_radius >= 0.0 {
-        t_end = min(t_end, params.ao_radius);
-    }
+    let range = ao_ray_range(o, inv);
+    var t = range.x;
+    let t_end = range.y;
     if !(t_end >= t) {
         return false;
     }

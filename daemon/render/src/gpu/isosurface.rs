@@ -1,7 +1,7 @@
 //! `Kernel::Isosurface` (shaders/isosurface.wgsl): primary rays, first hit, normal, direct light.
 //! Outputs per pixel: direct light + hit flag, N + depth, trilinear fetches.
 
-use super::{frame_entries, storage_entry, GpuContext, GpuError, GpuVolume, WORKGROUP};
+use super::{frame_entries, storage_entry, GpuContext, GpuError, GpuVolume};
 use crate::shaders::Kernel;
 
 /// The compiled kernel.
@@ -28,24 +28,7 @@ impl IsosurfaceKernel {
         outputs: [&wgpu::Buffer; 3],
         size: (u32, u32),
     ) {
-        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("isosurface"),
-            layout: &self.layout,
-            entries: &[
-                wgpu::BindGroupEntry { binding: 0, resource: params.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 1, resource: volume.voxels.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 2, resource: volume.block_minmax.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 3, resource: outputs[0].as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 4, resource: outputs[1].as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 5, resource: outputs[2].as_entire_binding() },
-            ],
-        });
-        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some("isosurface"),
-            timestamp_writes: None,
-        });
-        pass.set_pipeline(&self.pipeline);
-        pass.set_bind_group(0, &bind_group, &[]);
-        pass.dispatch_workgroups(size.0.div_ceil(WORKGROUP), size.1.div_ceil(WORKGROUP), 1);
+        let io = [params, &volume.voxels, &volume.block_minmax, outputs[0], outputs[1], outputs[2]];
+        super::dispatch(device, enc, &self.pipeline, &self.layout, "isosurface", &io, size);
     }
 }

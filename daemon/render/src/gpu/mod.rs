@@ -181,6 +181,34 @@ pub(crate) fn storage_entry(binding: u32, read_only: bool) -> wgpu::BindGroupLay
 /// Workgroup edge of every kernel (`@workgroup_size(8, 8, 1)`).
 pub(crate) const WORKGROUP: u32 = 8;
 
+/// Records one compute pass of `pipeline` over a `size` window, with `buffers` bound in order at
+/// bindings 0, 1, 2, ... of group 0 (every kernel declares its bindings that way).
+pub(crate) fn dispatch(
+    device: &wgpu::Device,
+    enc: &mut wgpu::CommandEncoder,
+    pipeline: &wgpu::ComputePipeline,
+    layout: &wgpu::BindGroupLayout,
+    label: &str,
+    buffers: &[&wgpu::Buffer],
+    size: (u32, u32),
+) {
+    let entries: Vec<wgpu::BindGroupEntry> = buffers
+        .iter()
+        .enumerate()
+        .map(|(i, b)| wgpu::BindGroupEntry { binding: i as u32, resource: b.as_entire_binding() })
+        .collect();
+    let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some(label),
+        layout,
+        entries: &entries,
+    });
+    let mut pass =
+        enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(label), timestamp_writes: None });
+    pass.set_pipeline(pipeline);
+    pass.set_bind_group(0, &bind_group, &[]);
+    pass.dispatch_workgroups(size.0.div_ceil(WORKGROUP), size.1.div_ceil(WORKGROUP), 1);
+}
+
 /// A volume on the GPU: voxels (f32) and per-block min/max.
 pub struct GpuVolume {
     voxels: wgpu::Buffer,
