@@ -63,7 +63,7 @@ impl Volume {
         data: Vec<f32>,
     ) -> Result<Volume, VolumeError> {
         let name = name.into();
-        if dims.iter().any(|&n| n == 0) {
+        if dims.contains(&0) {
             return Err(VolumeError::Invalid(format!("{name}: dims {dims:?} must all be at least 1")));
         }
         let count = dims.iter().try_fold(1usize, |acc, &n| acc.checked_mul(n));
