@@ -8,9 +8,11 @@
 
 mod common;
 
+use common::{ao_at_gpu_hits, plate_scene};
+
 use glam::DVec3;
 use isowall_render::environment::Environment;
-use isowall_render::reference::{self, IblLighting};
+use isowall_render::reference;
 use isowall_render::Frame;
 use isowall_volume::procedural::{sphere_over_plane_geometry, Procedural};
 use isowall_volume::{Volume, VolumeSource};
@@ -195,48 +197,6 @@ fn ao_is_reproducible_and_a_tile_matches_the_whole_image() {
     let c = gpu.render(&gv, &whole, &s, None).unwrap().frame;
     let differing = (0..a.pixel_count()).filter(|&i| a.hit[i] && a.occlusion[i] != c.occlusion[i]).count();
     assert!(differing > 50, "the frame index does not decorrelate ({differing} pixels differ)");
-}
-
-/// The reference's AO at every GPU hit (the GPU's own hit point and viewer-facing normal, the same
-/// pixel's directions): (hit pixels, pixels whose occlusion differs from the GPU's by more than one
-/// ray). This holds the AO kernel alone to the reference, whatever the primary march did.
-fn ao_at_gpu_hits(volume: &Volume, view: &View, s: &RenderSettings, g: &Frame) -> (usize, usize) {
-    let b = view.camera.basis();
-    let lighting = IblLighting::new(s, None);
-    let one_ray = 1.0 / s.ao.samples as f64 + 1e-6;
-    let (mut n, mut off) = (0, 0);
-    for i in 0..g.pixel_count() {
-        if !g.hit[i] {
-            continue;
-        }
-        let (x, y) = (i as u32 % view.window.width, i as u32 / view.window.width);
-        let dir = view.ray_dir(&b, x, y);
-        let p = view.camera.eye + g.depth[i] as f64 * dir;
-        let nv = DVec3::from(g.normal[i].map(f64::from));
-        let ns = if nv.dot(-dir) < 0.0 { -nv } else { nv };
-        let a = reference::ambient_at(volume, s, &lighting, p, ns, (view.window.x + x, view.window.y + y));
-        n += 1;
-        off += usize::from((a.occlusion - g.occlusion[i] as f64).abs() > one_ray);
-    }
-    (n, off)
-}
-
-/// The thin-plate scene of the stability suite (docs/stability.md): a floor (f >= 0 below
-/// z = 3.5) under a plate over the whole box whose lower face is at z = 7.85. `thick` false: the
-/// samples at z = 7, 8, 9 are -0.85, 0.15, -0.85, so the plate is z in [7.85, 8.15], 0.3 voxel thick;
-/// true: samples 0.15 at z = 8, 9, 10, the same lower face, 2.3 voxels thick. 32 x 32 x 64, spacing 1.
-fn plate_scene(thick: bool) -> Volume {
-    let (nx, ny, nz) = (32, 32, 64);
-    let top = if thick { 10.0 } else { 8.0 };
-    let mut data = Vec::with_capacity(nx * ny * nz);
-    for k in 0..nz {
-        let z = k as f64;
-        let plate = 0.15 - (8.0 - z).max(z - top).max(0.0);
-        let floor = 3.5 - z;
-        data.extend(std::iter::repeat_n(plate.max(floor) as f32, nx * ny));
-    }
-    Volume::new(if thick { "thick plate" } else { "thin plate" }, [nx, ny, nz], DVec3::ONE, DVec3::ZERO, data)
-        .unwrap()
 }
 
 /// Looking down at the floor from between the floor and the plate (eye inside the box): every AO

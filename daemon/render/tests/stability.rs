@@ -11,10 +11,12 @@
 
 mod common;
 
+use common::{ao_at_gpu_hits, hit_position, plate_scene, sampled};
+
 use glam::DVec3;
 use isowall_render::environment::Environment;
 use isowall_render::gpu::{GpuEnvironment, GpuRenderer};
-use isowall_render::reference::{self, IblLighting};
+use isowall_render::reference;
 use isowall_render::Frame;
 use isowall_volume::procedural::Procedural;
 use isowall_volume::{Volume, VolumeError, VolumeSource};
@@ -133,19 +135,6 @@ fn check_frame(f: &Frame, s: &RenderSettings, label: &str) {
     }
 }
 
-/// A volume sampling `f` at the world positions of its samples.
-fn sampled(name: &str, dims: [usize; 3], spacing: DVec3, f: impl Fn(DVec3) -> f64) -> Volume {
-    let mut data = Vec::with_capacity(dims.iter().product());
-    for k in 0..dims[2] {
-        for j in 0..dims[1] {
-            for i in 0..dims[0] {
-                data.push(f(spacing * DVec3::new(i as f64, j as f64, k as f64)) as f32);
-            }
-        }
-    }
-    Volume::new(name, dims, spacing, DVec3::ZERO, data).unwrap()
-}
-
 fn framed(v: &Volume, n: u32) -> View {
     View::whole(Camera::framing(v.box_min(), v.box_max(), n, n), n, n)
 }
@@ -153,13 +142,6 @@ fn framed(v: &Volume, n: u32) -> View {
 fn mean_occlusion(f: &Frame) -> f64 {
     let hits = f.hit_count().max(1);
     (0..f.pixel_count()).filter(|&i| f.hit[i]).map(|i| f.occlusion[i] as f64).sum::<f64>() / hits as f64
-}
-
-/// The world position of pixel i's hit.
-fn hit_position(view: &View, f: &Frame, i: usize) -> DVec3 {
-    let b = view.camera.basis();
-    let (x, y) = (i as u32 % view.window.width, i as u32 / view.window.width);
-    view.camera.eye + f.depth[i] as f64 * view.ray_dir(&b, x, y)
 }
 
 /// GPU against reference on the primary hit (DESIGN.md's tolerances: masks agree off the
@@ -173,44 +155,8 @@ fn assert_primary_agrees(volume: &Volume, p: &Pair, case: &str) -> common::Agree
     a
 }
 
-/// The AO kernel alone: the reference's AO at the GPU's own hits (its hit point and normal, the
-/// same pixel's directions); returns (hit pixels, pixels differing by more than one ray).
-fn ao_at_gpu_hits(volume: &Volume, view: &View, s: &RenderSettings, g: &Frame) -> (usize, usize) {
-    let b = view.camera.basis();
-    let lighting = IblLighting::new(s, None);
-    let one_ray = 1.0 / s.ao.samples.max(1) as f64 + 1e-6;
-    let (mut n, mut off) = (0, 0);
-    for i in 0..g.pixel_count() {
-        if !g.hit[i] {
-            continue;
-        }
-        let (x, y) = (i as u32 % view.window.width, i as u32 / view.window.width);
-        let dir = view.ray_dir(&b, x, y);
-        let nv = DVec3::from(g.normal[i].map(f64::from));
-        let ns = if nv.dot(-dir) < 0.0 { -nv } else { nv };
-        let p = hit_position(view, g, i);
-        let a = reference::ambient_at(volume, s, &lighting, p, ns, (view.window.x + x, view.window.y + y));
-        n += 1;
-        off += usize::from((a.occlusion - g.occlusion[i] as f64).abs() > one_ray);
-    }
-    (n, off)
-}
-
 // ---------------------------------------------------------------------------------------------
 // Sheets thinner than a step
-
-/// A floor (f >= 0 below z = 3.5) under a plate over the whole box whose lower face is at
-/// z = 7.85: thin, samples -0.85, 0.15, -0.85 at z = 7, 8, 9 (f = 0.15 - |z - 8|, z in
-/// [7.85, 8.15], 0.3 voxel thick); thick, 0.15 at z = 8, 9, 10 (the same lower face, 2.3 voxels
-/// thick). 32 x 32 x 64, spacing 1 (the box is tall so that the seed's texture-space steps are
-/// 0.63 voxel along z).
-fn plate_scene(thick: bool) -> Volume {
-    let top = if thick { 10.0 } else { 8.0 };
-    sampled(if thick { "thick plate" } else { "thin plate" }, [32, 32, 64], DVec3::ONE, |p| {
-        let plate = 0.15 - (8.0 - p.z).max(p.z - top).max(0.0);
-        plate.max(3.5 - p.z)
-    })
-}
 
 /// Looking down at the floor from between the floor and the plate (the eye inside the box).
 fn under_the_plate(n: u32) -> View {

@@ -1,8 +1,12 @@
 //! Shared by the GPU integration tests.
 #![allow(dead_code)]
 
+use glam::DVec3;
 use isowall_render::gpu::{GpuError, GpuRenderer};
+use isowall_render::reference::{self, IblLighting};
 use isowall_render::Frame;
+use isowall_volume::Volume;
+use isowall_wall::{RenderSettings, View};
 
 /// The GPU renderer, or `None` (after a message) where no Vulkan adapter exists. Under `CI=true`
 /// a missing adapter fails the test loudly instead: GPU tests never skip silently in CI.
@@ -89,4 +93,60 @@ pub fn compare(gpu: &Frame, reference: &Frame, voxel: f64) -> Agreement {
         normal_median_deg: quantile(normal.clone(), 0.5),
         normal_p99_deg: quantile(normal, 0.99),
     }
+}
+
+/// The world position of pixel i's hit.
+pub fn hit_position(view: &View, f: &Frame, i: usize) -> DVec3 {
+    let b = view.camera.basis();
+    let (x, y) = (i as u32 % view.window.width, i as u32 / view.window.width);
+    view.camera.eye + f.depth[i] as f64 * view.ray_dir(&b, x, y)
+}
+
+/// The AO kernel alone: the reference's AO at the GPU's own hits (its hit point and normal, the
+/// same pixel's directions); returns (hit pixels, pixels differing by more than one ray).
+pub fn ao_at_gpu_hits(volume: &Volume, view: &View, s: &RenderSettings, g: &Frame) -> (usize, usize) {
+    let b = view.camera.basis();
+    let lighting = IblLighting::new(s, None);
+    let one_ray = 1.0 / s.ao.samples.max(1) as f64 + 1e-6;
+    let (mut n, mut off) = (0, 0);
+    for i in 0..g.pixel_count() {
+        if !g.hit[i] {
+            continue;
+        }
+        let (x, y) = (i as u32 % view.window.width, i as u32 / view.window.width);
+        let dir = view.ray_dir(&b, x, y);
+        let nv = DVec3::from(g.normal[i].map(f64::from));
+        let ns = if nv.dot(-dir) < 0.0 { -nv } else { nv };
+        let p = hit_position(view, g, i);
+        let a = reference::ambient_at(volume, s, &lighting, p, ns, (view.window.x + x, view.window.y + y));
+        n += 1;
+        off += usize::from((a.occlusion - g.occlusion[i] as f64).abs() > one_ray);
+    }
+    (n, off)
+}
+
+/// A floor (f >= 0 below z = 3.5) under a plate over the whole box whose lower face is at
+/// z = 7.85: thin, samples -0.85, 0.15, -0.85 at z = 7, 8, 9 (f = 0.15 - |z - 8|, z in
+/// [7.85, 8.15], 0.3 voxel thick); thick, 0.15 at z = 8, 9, 10 (the same lower face, 2.3 voxels
+/// thick). 32 x 32 x 64, spacing 1 (the box is tall so that the seed's texture-space steps are
+/// 0.63 voxel along z).
+pub fn plate_scene(thick: bool) -> Volume {
+    let top = if thick { 10.0 } else { 8.0 };
+    sampled(if thick { "thick plate" } else { "thin plate" }, [32, 32, 64], DVec3::ONE, |p| {
+        let plate = 0.15 - (8.0 - p.z).max(p.z - top).max(0.0);
+        plate.max(3.5 - p.z)
+    })
+}
+
+/// A volume sampling `f` at the world positions of its samples.
+pub fn sampled(name: &str, dims: [usize; 3], spacing: DVec3, f: impl Fn(DVec3) -> f64) -> Volume {
+    let mut data = Vec::with_capacity(dims.iter().product());
+    for k in 0..dims[2] {
+        for j in 0..dims[1] {
+            for i in 0..dims[0] {
+                data.push(f(spacing * DVec3::new(i as f64, j as f64, k as f64)) as f32);
+            }
+        }
+    }
+    Volume::new(name, dims, spacing, DVec3::ZERO, data).unwrap()
 }
