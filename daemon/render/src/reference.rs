@@ -320,26 +320,48 @@ pub fn ambient_at(
     let key = pixel_key(px, py, ao.frame, ao.seed);
     let o = ao_origin(volume, settings, p, n_s);
     let radius = ao.radius_world(volume.spacing());
-    let (mut occluded, mut open_sum, mut ray_sum, mut fetches) = (0u32, DVec3::ZERO, [0.0; 3], 0);
+    let (mut tally, mut fetches) = (Tally::default(), 0);
     for i in 0..n {
         let (u, v) = r2_point(i, key);
         let w = cosine_direction(n_s, u, v);
         let (hit, f) = ao_ray_counted(volume, o, w, settings.iso, radius);
         fetches += f;
-        if hit {
-            occluded += 1;
+        tally.add(hit, w, lighting);
+    }
+    tally.ambient(n, n_s, lighting, fetches)
+}
+
+/// What the AO rays of one point found: how many were occluded, the sum of the open directions,
+/// and the sum of L_env over them (when the lighting estimates by rays). Shared by ours and the
+/// seed method.
+#[derive(Default)]
+struct Tally {
+    occluded: u32,
+    open_sum: DVec3,
+    ray_sum: [f64; 3],
+}
+
+impl Tally {
+    fn add(&mut self, occluded: bool, w: DVec3, lighting: &IblLighting) {
+        if occluded {
+            self.occluded += 1;
         } else {
-            open_sum += w;
+            self.open_sum += w;
             if lighting.rays() {
                 let l = lighting.radiance(w);
-                (0..3).for_each(|c| ray_sum[c] += l[c]);
+                (0..3).for_each(|c| self.ray_sum[c] += l[c]);
             }
         }
     }
-    let occlusion = occluded as f64 / n as f64;
-    let bent_normal = open_sum.try_normalize().unwrap_or(n_s);
-    let irradiance = lighting.irradiance(occlusion, bent_normal, ray_sum, n);
-    Ambient { occlusion, bent_normal, irradiance, fetches }
+
+    /// A = occluded / n (n counts skipped samples too); bent normal = the normalized open sum, or
+    /// `n_s` when no ray was open; E from the lighting.
+    fn ambient(&self, n: u32, n_s: DVec3, lighting: &IblLighting, fetches: u64) -> Ambient {
+        let occlusion = self.occluded as f64 / n as f64;
+        let bent_normal = self.open_sum.try_normalize().unwrap_or(n_s);
+        let irradiance = lighting.irradiance(occlusion, bent_normal, self.ray_sum, n);
+        Ambient { occlusion, bent_normal, irradiance, fetches }
+    }
 }
 
 /// The 2008 RTPara AO shader, ported faithfully as the **baseline**, with its flaws (DESIGN.md):
@@ -372,15 +394,11 @@ pub fn seed_ambient(
         let irradiance = lighting.irradiance(0.0, n_s, [0.0; 3], 0);
         return Ambient { occlusion: 0.0, bent_normal: n_s, irradiance, fetches: 0 };
     }
-    let (occluded, open_sum, ray_sum, fetches) = seed_march(volume, settings.iso, p, n_s, n, lighting);
-    let occlusion = occluded as f64 / n as f64;
-    let bent_normal = open_sum.try_normalize().unwrap_or(n_s);
-    let irradiance = lighting.irradiance(occlusion, bent_normal, ray_sum, n);
-    Ambient { occlusion, bent_normal, irradiance, fetches }
+    let (tally, fetches) = seed_march(volume, settings.iso, p, n_s, n, lighting);
+    tally.ambient(n, n_s, lighting, fetches)
 }
 
-/// The seed march of [`seed_ambient`]: (occluded count, sum of open directions, sum of L_env over
-/// them when the lighting wants rays, fetches).
+/// The seed march of [`seed_ambient`]: what its rays found, and the fetches.
 fn seed_march(
     volume: &Volume,
     iso: f64,
@@ -388,14 +406,14 @@ fn seed_march(
     n_s: DVec3,
     n: u32,
     lighting: &IblLighting,
-) -> (u32, DVec3, [f64; 3], u64) {
+) -> (Tally, u64) {
     let (lo, hi) = (volume.box_min(), volume.box_max());
     let extent = hi - lo;
     let flat = extent.cmple(DVec3::ZERO);
     let q = (p - lo) / DVec3::select(flat, DVec3::ONE, extent);
     let q = DVec3::select(flat, DVec3::ZERO, q);
     let start = volume.sample_clamped(p);
-    let (mut occluded, mut open_sum, mut ray_sum, mut fetches) = (0u32, DVec3::ZERO, [0.0; 3], 1u64);
+    let (mut tally, mut fetches) = (Tally::default(), 1u64);
     for d in seed_directions(n).flatten() {
         let w = seed_lift(n_s, d);
         let mut vpold = start;
@@ -414,17 +432,9 @@ fn seed_march(
             }
             vpold = vp;
         }
-        if hit {
-            occluded += 1;
-        } else {
-            open_sum += w;
-            if lighting.rays() {
-                let l = lighting.radiance(w);
-                (0..3).for_each(|c| ray_sum[c] += l[c]);
-            }
-        }
+        tally.add(hit, w, lighting);
     }
-    (occluded, open_sum, ray_sum, fetches)
+    (tally, fetches)
 }
 
 /// Whether the AO ray `origin + t * dir` is occluded: the exact trilinear field reaches
