@@ -1,6 +1,8 @@
 //! Helpers for the end-to-end tests in `tests/tests/`: they run the real `isowalld` and `isowall`
 //! binaries as separate processes (and, with the wall, over the network on loopback).
 
+pub mod relay;
+
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::OnceLock;
@@ -134,6 +136,25 @@ impl Drop for Daemon {
         let _ = self.child.kill();
         let _ = self.child.wait();
     }
+}
+
+/// Starts `isowalld run` for the nodes `node0..count` of `config` and waits until each listens;
+/// `None` (skip, after a message) where no Vulkan adapter exists outside CI; panics with the log of
+/// a node that does not start.
+pub fn start_nodes(dir: &Path, config: &Path, count: usize) -> Option<Vec<Daemon>> {
+    let mut daemons: Vec<Daemon> =
+        (0..count).map(|i| Daemon::start(dir, config, &format!("node{i}"), &[])).collect();
+    for (i, d) in daemons.iter_mut().enumerate() {
+        if !d.wait_ready(std::time::Duration::from_secs(120)) {
+            let log = d.log_text();
+            if log.contains("no Vulkan adapter") && !in_ci() {
+                eprintln!("skipping: no Vulkan adapter");
+                return None;
+            }
+            panic!("node{i} did not start:\n{log}");
+        }
+    }
+    Some(daemons)
 }
 
 /// Writes `dir/NAME.toml`: a 2x2 wall of `w`x`h` tiles with `bezel`-pixel mullions, nodes

@@ -3,27 +3,10 @@
 //! rejoins when restarted; the controller killed with SIGKILL leaves the daemons serving, and a new
 //! controller drives them without a restart of theirs.
 
-use isowall_e2e::{bin, free_udp_ports, in_ci, run_in, wall_config, Daemon};
+use isowall_e2e::{bin, free_udp_ports, run_in, start_nodes, wall_config, Daemon};
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
-
-/// Starts the four nodes; `None` (skip) where no Vulkan adapter exists outside CI.
-fn start_nodes(dir: &Path, config: &Path) -> Option<Vec<Daemon>> {
-    let mut daemons: Vec<Daemon> =
-        (0..4).map(|i| Daemon::start(dir, config, &format!("node{i}"), &[])).collect();
-    for (i, d) in daemons.iter_mut().enumerate() {
-        if !d.wait_ready(Duration::from_secs(120)) {
-            let log = d.log_text();
-            if log.contains("no Vulkan adapter") && !in_ci() {
-                eprintln!("skipping: no Vulkan adapter");
-                return None;
-            }
-            panic!("node{i} did not start:\n{log}");
-        }
-    }
-    Some(daemons)
-}
 
 /// Starts `isowall orbit` with its stderr to `dir/NAME.err`, stdout to `dir/NAME.out`.
 fn orbit(dir: &Path, config: &Path, name: &str, frames: u32, fps: u32) -> Child {
@@ -60,7 +43,7 @@ fn a_killed_node_is_reported_and_rejoins_when_restarted() {
     assert!(run_in(dir.path(), "isowall", &["keygen", "--config", config.to_str().unwrap()])
         .status
         .success());
-    let Some(mut daemons) = start_nodes(dir.path(), &config) else { return };
+    let Some(mut daemons) = start_nodes(dir.path(), &config, 4) else { return };
     let mut controller = orbit(dir.path(), &config, "orbit", 120, 10);
     let err = dir.path().join("orbit.err");
     std::thread::sleep(Duration::from_secs(3));
@@ -116,7 +99,7 @@ fn a_killed_controller_leaves_the_daemons_serving_a_new_one() {
     assert!(run_in(dir.path(), "isowall", &["keygen", "--config", config.to_str().unwrap()])
         .status
         .success());
-    let Some(mut daemons) = start_nodes(dir.path(), &config) else { return };
+    let Some(mut daemons) = start_nodes(dir.path(), &config, 4) else { return };
     let mut first = orbit(dir.path(), &config, "first", 1000, 10);
     std::thread::sleep(Duration::from_secs(2));
     first.kill().unwrap();
