@@ -43,7 +43,10 @@ struct FrameParams {
 
 const FLAG_EMPTY_SPACE_SKIPPING: u32 = 1u;
 
-@group(0) @binding(0) var<uniform> params: FrameParams;
+// A read-only storage buffer, not a uniform: Mesa's lavapipe (22.x) inlines uniform values into a
+// new compiled shader variant per uniform buffer it sees and keeps every variant, so a uniform
+// that changes each frame grew a daemon by ~1.5 MB a frame (found by the soak test).
+@group(0) @binding(0) var<storage, read> params: FrameParams;
 @group(0) @binding(1) var<storage, read> volume: array<f32>;
 @group(0) @binding(2) var<storage, read> block_minmax: array<vec2<f32>>;
 

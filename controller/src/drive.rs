@@ -119,12 +119,14 @@ pub fn orbit_camera(base: &Camera, k: u64, degrees_per_frame: f64) -> Camera {
     Camera { eye: base.target + rot * (base.eye - base.target), up: rot * base.up, ..*base }
 }
 
-/// Drives the orbit; returns how long its frames took and when the first swap was released.
+/// Drives the orbit, calling `after_frame(k, wall)` after frame k's swap; returns how long its frames
+/// took and when the first swap was released.
 async fn drive(
     wall: &mut Wall,
     base: &Camera,
     settings: &RenderSettings,
     o: &OrbitOptions,
+    after_frame: &mut dyn FnMut(u64, &Wall),
 ) -> Result<(Duration, Option<Instant>)> {
     wall.sync_clocks(5).await;
     let start = Instant::now();
@@ -138,6 +140,7 @@ async fn drive(
         if k == 0 {
             first_swap = Some(Instant::now());
         }
+        after_frame(k, wall);
         if k % 30 == 29 {
             wall.sync_clocks(1).await;
         }
@@ -184,11 +187,16 @@ pub fn up(a: &UpArgs) -> Result<()> {
             }
         })?;
         eprintln!("isowall: wall up in {:.2} s", started.elapsed().as_secs_f64());
-        let (elapsed, first_swap) = drive(&mut wall, &base, &settings, &a.orbit).await?;
+        let mut pids = vec![("controller".to_string(), std::process::id())];
+        pids.extend(daemons.pids());
+        let mut watch = ResourceWatch::new(a.orbit.frames, pids);
+        let (elapsed, first_swap) =
+            drive(&mut wall, &base, &settings, &a.orbit, &mut |k, w| watch.after_frame(k, w)).await?;
         if let Some(t) = first_swap {
             println!("first swap released {:.2} s after `isowall up` started", (t - started).as_secs_f64());
         }
         print!("{}", report(&wall, elapsed));
+        print!("{}", watch.report(&wall));
         if let Some(out) = &a.snapshot {
             write_snapshot(&mut wall, out).await?;
         }
@@ -199,12 +207,86 @@ pub fn up(a: &UpArgs) -> Result<()> {
     result
 }
 
+/// Resident memory and open descriptors of the controller and its local daemons, sampled once the
+/// wall is warm (after a tenth of the frames, at most 100) and at the end, and the drift of the
+/// frame time between the first window after warm-up and the last one: what a soak run reports.
+struct ResourceWatch {
+    warm: u64,
+    pids: Vec<(String, u32)>,
+    start: Vec<Option<crate::local::Resources>>,
+    first_window: Option<Duration>,
+}
+
+impl ResourceWatch {
+    fn new(frames: u64, pids: Vec<(String, u32)>) -> ResourceWatch {
+        ResourceWatch { warm: (frames / 10).clamp(1, 100), pids, start: Vec::new(), first_window: None }
+    }
+
+    fn sample(&self) -> Vec<Option<crate::local::Resources>> {
+        self.pids.iter().map(|(_, pid)| crate::local::resources(*pid)).collect()
+    }
+
+    /// Median barrier time of the last `n` released frames.
+    fn window(wall: &Wall, n: u64) -> Option<Duration> {
+        let r = &wall.releases;
+        let from = r.len().saturating_sub(n as usize);
+        crate::wall::quantile(r[from..].iter().map(|x| x.1).collect(), 0.5)
+    }
+
+    fn after_frame(&mut self, k: u64, wall: &Wall) {
+        if k + 1 == self.warm {
+            self.start = self.sample();
+        }
+        if k + 1 == 2 * self.warm {
+            self.first_window = Self::window(wall, self.warm);
+        }
+    }
+
+    fn report(&self, wall: &Wall) -> String {
+        if self.start.is_empty() {
+            return String::new();
+        }
+        let end = self.sample();
+        let mut s = format!(
+            "resources after frame {} -> after frame {} (resident memory, open descriptors):\n",
+            self.warm, wall.released
+        );
+        for (((name, pid), a), b) in self.pids.iter().zip(&self.start).zip(&end) {
+            match (a, b) {
+                (Some(a), Some(b)) => {
+                    s += &format!(
+                        "  {name} (pid {pid}): rss {:.1} -> {:.1} MiB ({:+} KiB), fds {} -> {}\n",
+                        a.rss_kib as f64 / 1024.0,
+                        b.rss_kib as f64 / 1024.0,
+                        b.rss_kib as i64 - a.rss_kib as i64,
+                        a.fds,
+                        b.fds
+                    )
+                }
+                _ => s += &format!("  {name} (pid {pid}): not readable (exited, or no /proc)\n"),
+            }
+        }
+        if let (Some(first), Some(last)) = (self.first_window, Self::window(wall, self.warm)) {
+            s += &format!(
+                "frame time drift: barrier median {:.2} ms (frames {}..{}) -> {:.2} ms (last {} frames), x{:.2}\n",
+                first.as_secs_f64() * 1e3,
+                self.warm,
+                2 * self.warm,
+                last.as_secs_f64() * 1e3,
+                self.warm,
+                last.as_secs_f64() / first.as_secs_f64().max(1e-9)
+            );
+        }
+        s
+    }
+}
+
 pub fn orbit(a: &OrbitArgs) -> Result<()> {
     let config = load(&a.config)?;
     let (base, settings) = scene(&config)?;
     runtime()?.block_on(async {
         let mut wall = Wall::connect(config, Duration::from_secs(10)).await?;
-        let (elapsed, _) = drive(&mut wall, &base, &settings, &a.orbit).await?;
+        let (elapsed, _) = drive(&mut wall, &base, &settings, &a.orbit, &mut |_, _| {}).await?;
         print!("{}", report(&wall, elapsed));
         wall.close("the controller is done").await;
         Ok(())

@@ -65,6 +65,14 @@ impl LocalDaemons {
             .collect()
     }
 
+    /// (node, pid) of every local daemon still running.
+    pub fn pids(&mut self) -> Vec<(String, u32)> {
+        self.children
+            .iter_mut()
+            .filter_map(|(n, c)| c.try_wait().ok().flatten().is_none().then(|| (n.clone(), c.id())))
+            .collect()
+    }
+
     pub fn len(&self) -> usize {
         self.children.len()
     }
@@ -79,5 +87,56 @@ impl Drop for LocalDaemons {
             let _ = child.wait();
             tracing::debug!(node = %name, "local daemon stopped");
         }
+    }
+}
+
+/// What a process holds: resident memory and open file descriptors (Linux `/proc`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Resources {
+    pub rss_kib: u64,
+    pub fds: usize,
+}
+
+/// Reads `/proc/PID/status` (VmRSS) and counts `/proc/PID/fd`; `None` where the process is gone
+/// or `/proc` is not there.
+pub fn resources(pid: u32) -> Option<Resources> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let rss_kib = status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))?
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()?;
+    let fds = std::fs::read_dir(format!("/proc/{pid}/fd")).ok()?.count();
+    Some(Resources { rss_kib, fds })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn resources_of_this_process_grow_with_what_it_holds() {
+        let Some(before) = resources(std::process::id()) else {
+            assert!(!cfg!(target_os = "linux"), "/proc is readable on Linux");
+            return;
+        };
+        assert!(before.rss_kib > 0 && before.fds >= 3, "{before:?}");
+        let files: Vec<std::fs::File> = (0..8).map(|_| tempfile_in_tmp()).collect();
+        let block = std::hint::black_box(vec![1u8; 32 << 20]);
+        let after = resources(std::process::id()).unwrap();
+        assert!(after.fds >= before.fds + 8, "{before:?} -> {after:?}");
+        assert!(after.rss_kib >= before.rss_kib + 30 * 1024, "{before:?} -> {after:?}");
+        drop((files, block));
+    }
+
+    fn tempfile_in_tmp() -> std::fs::File {
+        std::fs::File::open(std::env::temp_dir()).expect("the temp folder opens")
+    }
+
+    #[test]
+    fn a_gone_process_has_no_resources() {
+        assert_eq!(resources(u32::MAX), None);
     }
 }

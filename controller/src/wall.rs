@@ -52,6 +52,16 @@ async fn establish(endpoint: quinn::Endpoint, name: String, address: String, lim
     Ok(Link { connection, sender, receiver })
 }
 
+/// Frames of statistics the controller keeps (a demo loops for hours: memory stays flat).
+pub const HISTORY: usize = 4096;
+
+/// Drops the oldest entries once `v` holds twice [`HISTORY`], keeping the last [`HISTORY`].
+fn trim_history<T>(v: &mut Vec<T>) {
+    if v.len() >= 2 * HISTORY {
+        v.drain(..v.len() - HISTORY);
+    }
+}
+
 /// A connected wall.
 pub struct Wall {
     pub config: WallConfig,
@@ -63,10 +73,12 @@ pub struct Wall {
     endpoint: quinn::Endpoint,
     epoch: Instant,
     next_frame: u64,
-    /// Statistics of finished frames.
+    /// Statistics of the last finished frames (at most [`HISTORY`]..2 x [`HISTORY`]).
     pub finished: Vec<FrameStats>,
-    /// Releases: (frame, barrier time, stragglers).
+    /// The last releases: (frame, barrier time, stragglers), bounded like `finished`.
     pub releases: Vec<(u64, Duration, Vec<String>)>,
+    /// Swaps released since the wall came up (all of them, unlike `releases`).
+    pub released: u64,
     snapshots: BTreeMap<String, Vec<TileImage>>,
     /// Nodes with a reconnection attempt under way.
     reconnecting: std::collections::HashSet<String>,
@@ -97,6 +109,7 @@ impl Wall {
             next_frame: 1,
             finished: Vec::new(),
             releases: Vec::new(),
+            released: 0,
             snapshots: BTreeMap::new(),
             reconnecting: Default::default(),
             last_try: HashMap::new(),
@@ -235,12 +248,17 @@ impl Wall {
                         );
                     }
                     self.releases.push((frame_id, barrier, stragglers));
+                    self.released += 1;
+                    trim_history(&mut self.releases);
                 }
                 ControllerOutput::NodeDown { node, reason } => {
                     eprintln!("isowall: node {node} is down: {reason}");
                     self.drop_node(&node, &reason);
                 }
-                ControllerOutput::FrameDone { stats, .. } => self.finished.push(stats),
+                ControllerOutput::FrameDone { stats, .. } => {
+                    self.finished.push(stats);
+                    trim_history(&mut self.finished);
+                }
                 ControllerOutput::Snapshot { node, tiles } => {
                     self.snapshots.insert(node, tiles);
                 }
@@ -427,12 +445,15 @@ pub fn quantile(mut v: Vec<Duration>, q: f64) -> Option<Duration> {
 
 /// Human statistics of a run.
 pub fn report(wall: &Wall, elapsed: Duration) -> String {
-    let frames = wall.releases.len();
+    let frames = wall.released;
     let mut s = format!(
         "frames: {frames} in {:.2} s ({:.1} fps)\n",
         elapsed.as_secs_f64(),
         frames as f64 / elapsed.as_secs_f64().max(1e-9)
     );
+    if frames > wall.releases.len() as u64 {
+        s += &format!("(the statistics below are over the last {} frames)\n", wall.releases.len());
+    }
     let ms = |d: Option<Duration>| d.map_or("-".to_string(), |d| format!("{:.2} ms", d.as_secs_f64() * 1e3));
     let barrier: Vec<Duration> = wall.releases.iter().map(|r| r.1).collect();
     s += &format!(
@@ -449,19 +470,15 @@ pub fn report(wall: &Wall, elapsed: Duration) -> String {
         ms(quantile(skews.clone(), 1.0)),
         skews.len()
     );
-    let mut per_node: BTreeMap<&str, (Vec<Duration>, Vec<Duration>, Vec<Duration>)> = BTreeMap::new();
+    let mut per_node: BTreeMap<&str, (Vec<Duration>, Vec<Duration>)> = BTreeMap::new();
     for f in &wall.finished {
         for n in &f.per_node {
             let e = per_node.entry(n.node.as_str()).or_default();
             e.0.extend(n.render);
             e.1.extend(n.ready_after);
-            if let (Some(p), Some(r)) = (n.presented_at, wall.releases.iter().find(|r| r.0 == f.frame_id)) {
-                let _ = r;
-                e.2.push(p);
-            }
         }
     }
-    for (node, (render, ready, _)) in per_node {
+    for (node, (render, ready)) in per_node {
         s += &format!(
             "  {node}: render p50 {} max {}; ready after p50 {} max {}\n",
             ms(quantile(render.clone(), 0.5)),

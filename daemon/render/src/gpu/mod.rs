@@ -147,14 +147,15 @@ impl GpuContext {
 }
 
 /// Bind group layout entries shared by every kernel: the frame parameters (0), the voxels (1) and
-/// the block min/max (2), as declared in shaders/frame.wgsl.
+/// the block min/max (2), as declared in shaders/frame.wgsl (the parameters in a read-only storage
+/// buffer: see there why not a uniform).
 pub(crate) fn frame_entries() -> [wgpu::BindGroupLayoutEntry; 3] {
     [
         wgpu::BindGroupLayoutEntry {
             binding: 0,
             visibility: wgpu::ShaderStages::COMPUTE,
             ty: wgpu::BindingType::Buffer {
-                ty: wgpu::BufferBindingType::Uniform,
+                ty: wgpu::BufferBindingType::Storage { read_only: true },
                 has_dynamic_offset: false,
                 min_binding_size: wgpu::BufferSize::new(std::mem::size_of::<FrameParams>() as u64),
             },
@@ -371,7 +372,7 @@ impl GpuRenderer {
             device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some("frame params"),
                 contents: bytemuck::bytes_of(p),
-                usage: wgpu::BufferUsages::UNIFORM,
+                usage: wgpu::BufferUsages::STORAGE,
             })
         };
         self.ctx.validated("encode", || {
