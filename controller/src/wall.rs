@@ -53,7 +53,7 @@ async fn establish(endpoint: quinn::Endpoint, name: String, address: String, lim
 }
 
 /// Frames of statistics the controller keeps (a demo loops for hours: memory stays flat).
-pub const HISTORY: usize = 4096;
+pub const HISTORY: usize = 1024;
 
 /// Drops the oldest entries once `v` holds twice [`HISTORY`], keeping the last [`HISTORY`].
 fn trim_history<T>(v: &mut Vec<T>) {
