@@ -308,7 +308,7 @@ impl Wall {
                     } else if let Err(e) = self.attach(&node, link).await {
                         eprintln!("isowall: node {node} came back but: {e:#}");
                     } else {
-                        eprintln!("isowall: node {node} is back; it rejoins at the next frame");
+                        eprintln!("isowall: node {node} is back; it rejoins at frame {}", self.next_frame);
                     }
                     Vec::new()
                 }

@@ -74,6 +74,22 @@ fn a_killed_node_is_reported_and_rejoins_when_restarted() {
     let status = controller.wait().unwrap();
     let out = std::fs::read_to_string(dir.path().join("orbit.out")).unwrap();
     let log = std::fs::read_to_string(&err).unwrap();
+    // It renders the current state within 3 frames of rejoining: no swap after that goes without it.
+    let rejoin: u64 = log
+        .split("node node1 is back; it rejoins at frame ")
+        .nth(1)
+        .and_then(|s| s.split_whitespace().next())
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| panic!("no rejoin frame in:\n{log}"));
+    let late: Vec<u64> = log
+        .lines()
+        .filter(|l| l.contains("swap released without") && l.contains("node1"))
+        .filter_map(|l| l.split("frame ").nth(1)?.split(':').next()?.parse().ok())
+        .filter(|&f| f >= rejoin + 3)
+        .collect();
+    assert!(late.is_empty(), "node1 rejoined at frame {rejoin} but missed frames {late:?}:\n{log}");
+    let missed = log.lines().filter(|l| l.contains("swap released without") && l.contains("node1")).count();
+    eprintln!("node1 missed {missed} swaps; rejoined at frame {rejoin} and made every swap from then on");
     assert!(status.success(), "the controller failed:\n{out}\n{log}");
     assert!(out.contains("frames: 120"), "the wall did not go on:\n{out}\n{log}");
     // The others were never reported.

@@ -57,7 +57,7 @@ fn a_wall_behind_lossy_relays_completes_every_frame_with_the_same_image() {
     let direct = wall_config(dir.path(), "net", &ports, 16, 12, 2, 10_000, "keys");
     assert!(run_in(dir.path(), "isowall", &["keygen", "--config", direct.to_str().unwrap()]).status.success());
     let Some(mut daemons) = start_nodes(dir.path(), &direct, 4) else { return };
-    let frames = 30;
+    let frames = 100;
     // First without relays: warms the daemons up (pipelines, connections) and gives the image the
     // wall must show after this orbit; it runs again at the end for the frame-time comparison.
     orbit_and_snapshot(dir.path(), &direct, frames, "direct.png");
