@@ -30,7 +30,8 @@ struct Run {
 /// `isowall orbit` of `frames` then `isowall snapshot` to `png`, both over `config`.
 fn orbit_and_snapshot(dir: &Path, config: &Path, frames: u32, png: &str) -> Run {
     let c = config.to_str().unwrap();
-    let out = run_in(dir, "isowall", &["orbit", c, "--frames", &frames.to_string(), "--degrees-per-frame", "3"]);
+    let out =
+        run_in(dir, "isowall", &["orbit", c, "--frames", &frames.to_string(), "--degrees-per-frame", "3"]);
     let (stdout, stderr) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
     assert!(out.status.success(), "orbit over {c} failed:\n{stdout}\n{stderr}");
     assert!(stdout.contains(&format!("frames: {frames} ")), "not every frame completed:\n{stdout}\n{stderr}");
@@ -55,7 +56,9 @@ fn a_wall_behind_lossy_relays_completes_every_frame_with_the_same_image() {
     let dir = tempfile::tempdir().unwrap();
     let ports = free_udp_ports(4);
     let direct = wall_config(dir.path(), "net", &ports, 16, 12, 2, 10_000, "keys");
-    assert!(run_in(dir.path(), "isowall", &["keygen", "--config", direct.to_str().unwrap()]).status.success());
+    assert!(run_in(dir.path(), "isowall", &["keygen", "--config", direct.to_str().unwrap()])
+        .status
+        .success());
     let Some(mut daemons) = start_nodes(dir.path(), &direct, 4) else { return };
     let frames = 100;
     // First without relays: warms the daemons up (pipelines, connections) and gives the image the
@@ -97,7 +100,9 @@ fn a_wall_behind_lossy_relays_completes_every_frame_with_the_same_image() {
     let reference = image::open(dir.path().join("direct.png")).unwrap().to_rgb8();
     let colours: std::collections::HashSet<[u8; 3]> = reference.pixels().map(|p| p.0).collect();
     assert!(colours.len() > 10, "the direct snapshot is nearly blank ({} colours)", colours.len());
-    eprintln!("frames {frames}, 2x2 wall of 16x12 tiles, torus 48^3, 4 AO samples; relay 2 ms ± 1 ms each way");
+    eprintln!(
+        "frames {frames}, 2x2 wall of 16x12 tiles, torus 48^3, 4 AO samples; relay 2 ms ± 1 ms each way"
+    );
     eprintln!("loss  fps    barrier p50  p99       datagrams forwarded/dropped  fps vs direct");
     eprintln!(
         "none  {:5.1}  {:7.2} ms  {:7.2} ms  (no relay)",
@@ -115,7 +120,10 @@ fn a_wall_behind_lossy_relays_completes_every_frame_with_the_same_image() {
         let got = image::open(dir.path().join(png)).unwrap().to_rgb8();
         assert_eq!(got.dimensions(), reference.dimensions());
         let differ = got.pixels().zip(reference.pixels()).filter(|(a, b)| a != b).count();
-        assert_eq!(differ, 0, "at loss {loss} the wall's image differs from the direct run in {differ} pixels");
+        assert_eq!(
+            differ, 0,
+            "at loss {loss} the wall's image differs from the direct run in {differ} pixels"
+        );
     }
     for (i, d) in daemons.iter_mut().enumerate() {
         assert!(d.child.try_wait().unwrap().is_none(), "node{i} exited:\n{}", d.log_text());

@@ -20,7 +20,11 @@ fn a_wall_soak_keeps_memory_and_descriptors_flat() {
     let config = wall_config(dir.path(), "soak", &free_udp_ports(4), 8, 6, 1, 10_000, "keys");
     let c = config.to_str().unwrap();
     assert!(run_in(dir.path(), "isowall", &["keygen", "--config", c]).status.success());
-    let out = run_in(dir.path(), "isowall", &["up", c, "--frames", &frames.to_string(), "--degrees-per-frame", "3.6"]);
+    let out = run_in(
+        dir.path(),
+        "isowall",
+        &["up", c, "--frames", &frames.to_string(), "--degrees-per-frame", "3.6"],
+    );
     if !gpu_ok("isowall up", &out) {
         return;
     }
