@@ -1270,7 +1270,7 @@ tiles = ["b"]
         expect(&unbounded, Some(35), "object space needs a bounded AO radius");
         let seed = format!("{}\n[render]\nao_method = \"seed\"\n", with("name = \"test\"", obj));
         expect(&seed, Some(35), "cannot use the `seed` AO method");
-        expect(&with("name = \"test\"", "name = \"test\"\nmode = \"sideways\""), Some(2), "sideways");
+        expect(&with("name = \"test\"", "name = \"test\"\nmode = \"sideways\""), Some(3), "sideways");
     }
 
     #[test]
