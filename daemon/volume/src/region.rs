@@ -263,7 +263,11 @@ impl VolumeStream {
 
     /// Calls `f(k, rows)` for every z-slice k of `range` in order, with the slice's rows of the
     /// y-range, whole along x (`nx * (hi.y - lo.y + 1)` values).
-    fn for_each_slice(&self, range: &VoxelRange, f: &mut dyn FnMut(usize, &[f32])) -> Result<(), VolumeError> {
+    fn for_each_slice(
+        &self,
+        range: &VoxelRange,
+        f: &mut dyn FnMut(usize, &[f32]),
+    ) -> Result<(), VolumeError> {
         let [nx, ny, _] = self.info.dims;
         let rows = range.hi[1] + 1 - range.lo[1];
         match &self.kind {
@@ -347,9 +351,9 @@ impl FilePlan {
                     crate::io::skip_bytes(files, &mut *dec, enc, before)?;
                     let n = crate::io::read_full(&mut *dec, &mut bytes).map_err(|e| files.io(e))?;
                     if n < bytes.len() {
-                        return Err(files.format(format!(
-                            "data is truncated: the {enc:?} data ends in slice {k}"
-                        )));
+                        return Err(
+                            files.format(format!("data is truncated: the {enc:?} data ends in slice {k}"))
+                        );
                     }
                     if k < range.hi[2] || whole {
                         crate::io::skip_bytes(files, &mut *dec, enc, after)?;

@@ -11,14 +11,15 @@
 //! - **Ownership**: a brick owns the closed box of its samples; neighbours share the cut plane's
 //!   samples. A primary ray's march step belongs to the brick that owns its starting point (half-open
 //!   at the cut, see [`Brick::owned_planes`]), so exactly one brick finds each hit.
-//! - **Halo**: the samples a brick reads beyond its box, per axis: `ceil(max(R + offset, step) / s) + 2`
+//! - **Halo**: the samples a brick reads beyond its box, per axis: `ceil((R + offset + step) / s) + 2`
 //!   voxels of that axis' spacing s, with R the AO radius, `offset` the AO rays' start along the
-//!   normal and `step` the primary march step (the step that crosses the cut reads one step
-//!   beyond it), plus 2 for the gradient stencil (central differences one voxel away, whose
+//!   normal and `step` the primary march step (the step that crosses the cut reads up to one step
+//!   beyond it, and a hit found there casts its AO rays from there), plus 2 for the gradient stencil (central differences one voxel away, whose
 //!   trilinear cell reaches one more sample). Then normals and AO near a cut read exactly the
 //!   samples a single-node render reads. An unbounded radius has no halo: object space refuses it
 //!   ([`BrickError::UnboundedRadius`]), and so the 2008 `seed` AO method, which marches 0.9 of the box.
 
+use crate::camera::{View, Window};
 use crate::render_state::{AoMethod, RenderSettings};
 use glam::DVec3;
 
@@ -226,6 +227,45 @@ fn split_box(
     split_box(occ, dims, spacing, by_count, right_lo, b1, k - k_left, out)
 }
 
+/// The part of `view`'s window where a box can show: the bounding rectangle of its eight corners
+/// projected (pixel centres, the DESIGN.md camera), widened by a pixel for rounding, clipped to
+/// the window; the whole window where a corner is at or behind the eye's plane; `None` where the
+/// rectangle misses the window.
+pub fn covered_window(view: &View, box_min: DVec3, box_max: DVec3) -> Option<Window> {
+    let b = view.camera.basis();
+    let (w, h) = (view.full.0 as f64, view.full.1 as f64);
+    let tan_x = b.tan_half_fov * w / h;
+    let (mut x0, mut x1, mut y0, mut y1) =
+        (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
+    for i in 0..8 {
+        let c = DVec3::new(
+            if i & 1 == 0 { box_min.x } else { box_max.x },
+            if i & 2 == 0 { box_min.y } else { box_max.y },
+            if i & 4 == 0 { box_min.z } else { box_max.z },
+        ) - view.camera.eye;
+        let z = c.dot(b.forward);
+        if z <= 1e-9 * c.length().max(1e-300) {
+            return Some(view.window);
+        }
+        // sx = ((px + 0.5) / W * 2 - 1) * tan_x  <=>  px = (sx / tan_x + 1) / 2 * W - 0.5
+        let px = (c.dot(b.right) / z / tan_x + 1.0) * 0.5 * w - 0.5;
+        let py = (1.0 - c.dot(b.up) / z / b.tan_half_fov) * 0.5 * h - 0.5;
+        x0 = x0.min(px);
+        x1 = x1.max(px);
+        y0 = y0.min(py);
+        y1 = y1.max(py);
+    }
+    let win = view.window;
+    let clip = |lo: f64, hi: f64, start: u32, len: u32| -> Option<(u32, u32)> {
+        let lo = (lo.floor() - 1.0).max(start as f64);
+        let hi = (hi.ceil() + 1.0).min((start + len) as f64 - 1.0);
+        (hi >= lo).then(|| (lo as u32, (hi - lo) as u32 + 1))
+    };
+    let (x, width) = clip(x0, x1, win.x, win.width)?;
+    let (y, height) = clip(y0, y1, win.y, win.height)?;
+    Some(Window { x, y, width, height })
+}
+
 /// The AO reach a brick's halo must cover for `settings`: R plus the rays' start offset, in world
 /// units. Errors where object space cannot bound it.
 pub fn ao_reach(settings: &RenderSettings, spacing: DVec3) -> Result<f64, BrickError> {
@@ -239,8 +279,9 @@ pub fn ao_reach(settings: &RenderSettings, spacing: DVec3) -> Result<f64, BrickE
 /// The halo (samples per axis) for `settings` on a volume of `spacing` (module notes).
 pub fn halo_voxels(settings: &RenderSettings, spacing: DVec3) -> Result<[usize; 3], BrickError> {
     let reach = ao_reach(settings, spacing)?;
+    // The hit lies up to one primary step past the owned box (the step that crosses the cut).
     let step = settings.step_voxels * spacing.min_element();
-    let w = reach.max(step);
+    let w = reach + step;
     Ok([0, 1, 2].map(|a| (w / spacing[a] - 1e-9).ceil().max(0.0) as usize + GRADIENT_STENCIL))
 }
 
@@ -252,9 +293,8 @@ pub fn check_within_halo(
 ) -> Result<(), BrickError> {
     let need = halo_voxels(settings, spacing)?;
     if (0..3).any(|a| need[a] > halo[a]) {
-        let halo_world = (0..3)
-            .map(|a| (halo[a] - GRADIENT_STENCIL) as f64 * spacing[a])
-            .fold(f64::INFINITY, f64::min);
+        let halo_world =
+            (0..3).map(|a| (halo[a] - GRADIENT_STENCIL) as f64 * spacing[a]).fold(f64::INFINITY, f64::min);
         return Err(BrickError::BeyondHalo { radius: ao_reach(settings, spacing)?, halo: halo_world });
     }
     Ok(())
@@ -347,7 +387,7 @@ mod tests {
     fn halo_covers_the_ao_reach_plus_the_stencil_and_refuses_unbounded() {
         let mut s = RenderSettings::new(0.0);
         s.ao.radius = AoRadius::World(6.0);
-        // (6 + 0.5) / 1 -> 7, + 2; z spacing 2: ceil(3.25) = 4, + 2.
+        // (6 + 0.5 + 0.5) / 1 -> 7, + 2; z spacing 2: ceil(3.5) = 4, + 2.
         assert_eq!(halo_voxels(&s, DVec3::new(1.0, 1.0, 2.0)).unwrap(), [9, 9, 6]);
         let halo = halo_voxels(&s, DVec3::ONE).unwrap();
         assert!(check_within_halo(&s, DVec3::ONE, halo).is_ok());
@@ -360,6 +400,43 @@ mod tests {
         s.ao.radius = AoRadius::Default;
         s.ao.method = AoMethod::Seed;
         assert_eq!(halo_voxels(&s, DVec3::ONE), Err(BrickError::SeedMethod));
+    }
+
+    #[test]
+    fn covered_window_holds_every_pixel_whose_ray_meets_the_box() {
+        use crate::camera::Camera;
+        let cam = Camera {
+            eye: DVec3::new(60.0, -50.0, 40.0),
+            target: DVec3::new(16.0, 16.0, 16.0),
+            up: DVec3::Z,
+            fov_y_deg: 35.0,
+        };
+        let full = (96, 64);
+        let tile = Window { x: 48, y: 0, width: 48, height: 64 };
+        let view = View { camera: cam, full, window: tile };
+        let (lo, hi) = (DVec3::new(16.0, 0.0, 0.0), DVec3::new(32.0, 32.0, 32.0));
+        let r = covered_window(&view, lo, hi).expect("the box shows in the tile");
+        assert!(r.x >= tile.x && r.x + r.width <= tile.x + tile.width && r.width < tile.width);
+        let basis = cam.basis();
+        let mut inside = 0;
+        for py in 0..full.1 {
+            for px in tile.x..tile.x + tile.width {
+                let d = view.ray_dir_full(&basis, px, py);
+                let inv = d.recip();
+                let (ta, tb) = ((lo - cam.eye) * inv, (hi - cam.eye) * inv);
+                let (t0, t1) = (ta.min(tb).max_element(), ta.max(tb).min_element());
+                if t1 >= t0.max(0.0) {
+                    inside += 1;
+                    let in_rect = px >= r.x && px < r.x + r.width && py >= r.y && py < r.y + r.height;
+                    assert!(in_rect, "pixel ({px}, {py}) sees the box outside {r:?}");
+                }
+            }
+        }
+        assert!(inside > 100);
+        // A box behind the camera's view of this tile misses it; one around the eye covers all.
+        let left = View { window: Window { x: 0, y: 0, width: 8, height: 8 }, ..view };
+        assert_eq!(covered_window(&left, lo, hi), None);
+        assert_eq!(covered_window(&view, cam.eye - DVec3::ONE, cam.eye + DVec3::ONE), Some(tile));
     }
 
     #[test]

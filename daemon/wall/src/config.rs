@@ -1259,8 +1259,11 @@ tiles = ["b"]
 
     #[test]
     fn object_mode_parses_and_refuses_an_unbounded_radius_or_the_seed_method() {
-        let c = WallConfig::parse(&with("name = \"test\"", "name = \"test\"\nmode = \"object\""), Path::new("w.toml"))
-            .unwrap();
+        let c = WallConfig::parse(
+            &with("name = \"test\"", "name = \"test\"\nmode = \"object\""),
+            Path::new("w.toml"),
+        )
+        .unwrap();
         assert_eq!(c.wall.mode, WallMode::Object);
         assert!(c.wall.compress);
         let plain = WallConfig::parse(GOOD, Path::new("w.toml")).unwrap();

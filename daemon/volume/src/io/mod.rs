@@ -545,7 +545,13 @@ fn reserve_up_to(out: &mut Vec<f32>, more: usize, cap: usize) {
 }
 
 /// Converts whole voxels of `voxel` type in `bytes` to `f32` and appends them to `out`.
-pub(crate) fn decode_into(bytes: &[u8], voxel: VoxelType, big_endian: bool, scale: Option<Scale>, out: &mut Vec<f32>) {
+pub(crate) fn decode_into(
+    bytes: &[u8],
+    voxel: VoxelType,
+    big_endian: bool,
+    scale: Option<Scale>,
+    out: &mut Vec<f32>,
+) {
     macro_rules! decode {
         ($t:ty) => {{
             const N: usize = std::mem::size_of::<$t>();
