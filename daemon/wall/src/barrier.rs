@@ -71,6 +71,13 @@ pub struct NodeFrameStats {
     pub presented_node_time_us: Option<i64>,
     /// Whether it went down during the frame.
     pub went_down: bool,
+    // object space
+    /// Bytes it sent its peers for the frame (object space).
+    pub bytes_sent: Option<u64>,
+    /// Its compositing time (object space).
+    pub composite: Option<Duration>,
+    /// The volume bytes it holds: its brick and halo (object space).
+    pub resident_bytes: Option<u64>,
 }
 
 /// A finished frame.
@@ -153,6 +160,10 @@ struct Part {
     presented_at: Option<Duration>,
     presented_node_time_us: Option<i64>,
     down: bool,
+    // object space
+    bytes_sent: Option<u64>,
+    composite: Option<Duration>,
+    resident_bytes: Option<u64>,
 }
 
 #[derive(Debug)]
@@ -421,6 +432,9 @@ impl FrameController {
                 presented_at: p.presented_at,
                 presented_node_time_us: p.presented_node_time_us,
                 went_down: p.down,
+                bytes_sent: p.bytes_sent,
+                composite: p.composite,
+                resident_bytes: p.resident_bytes,
             })
             .collect();
         let times = per_node.iter().filter_map(|s| s.presented_at);
@@ -552,6 +566,23 @@ impl FrameController {
                 Ok(vec![ControllerOutput::Snapshot { node: node.to_string(), tiles }])
             }
             Message::Bye { reason } => Ok(self.node_down(now, node, &format!("said goodbye: {reason}"))),
+            Message::Composited { frame_id, bytes_sent, composite_us, resident_bytes } => {
+                let st = self.nodes.get(node).expect("checked");
+                let sent = matches!((st.first_sent, st.last_sent), (Some(a), Some(b)) if (a..=b).contains(&frame_id));
+                if !sent || st.last_ready.is_some_and(|r| frame_id <= r) {
+                    return Err(err(format!(
+                        "Composited for frame {frame_id}, which it is not rendering (sent {:?}..={:?}, ready {:?})",
+                        st.first_sent, st.last_sent, st.last_ready
+                    )));
+                }
+                let part = self.collecting.as_mut().filter(|f| f.id == frame_id).and_then(|f| f.parts.get_mut(node));
+                if let Some(p) = part {
+                    p.bytes_sent = Some(bytes_sent);
+                    p.composite = Some(Duration::from_micros(composite_us));
+                    p.resident_bytes = Some(resident_bytes);
+                }
+                Ok(Vec::new())
+            }
         }
     }
 

@@ -17,6 +17,7 @@ pub mod bricks;
 pub mod camera;
 pub mod clock;
 pub mod codec;
+pub mod composite;
 pub mod config;
 pub mod daemon_machine;
 pub mod messages;
