@@ -79,7 +79,8 @@ pub fn load_brick(config: &WallConfig, node: &str, raw: Option<&RawSpec>) -> Res
     let halo = bricks::halo_voxels(&settings, info.spacing).map_err(|e| anyhow!("[render] {e}"))?;
     let brick = split[index].clone();
     let (lo, hi) = brick.data_range(halo, info.dims);
-    let region = stream.read_region(&VoxelRange { lo, hi }).with_context(|| format!("cannot read volume {source}"))?;
+    let region =
+        stream.read_region(&VoxelRange { lo, hi }).with_context(|| format!("cannot read volume {source}"))?;
     let (owned_min, owned_max) = brick.owned_planes(info.dims, info.origin, info.spacing);
     let whole_bytes = info.dims.iter().product::<usize>() * 4;
     tracing::info!(
@@ -98,10 +99,14 @@ pub fn load_brick(config: &WallConfig, node: &str, raw: Option<&RawSpec>) -> Res
         "object space: brick ready"
     );
     Ok(BrickSetup {
-        data: BrickData { region, info, blocks, object: ObjectSpace { data_offset: lo, owned_min, owned_max } },
+        data: BrickData {
+            region,
+            info,
+            blocks,
+            object: ObjectSpace { data_offset: lo, owned_min, owned_max },
+        },
         brick,
         halo,
-
     })
 }
 
@@ -129,6 +134,8 @@ pub struct ObjectNode {
     compress: bool,
     /// Per frame: when this node's render finished, the bytes it sent, its render time.
     local: HashMap<u64, (Instant, u64, Duration)>,
+    /// Per frame: time spent encoding, decoding and merging pixels.
+    work: HashMap<u64, Duration>,
     background: [u8; 3],
     warned: Option<String>,
 }
@@ -158,6 +165,7 @@ impl ObjectNode {
             outbox: Outbox { endpoint: None, addrs, conns: Arc::new(Mutex::new(HashMap::new())) },
             compress: config.wall.compress,
             local: HashMap::new(),
+            work: HashMap::new(),
             background: [0; 3],
             warned: None,
         })
@@ -168,6 +176,7 @@ impl ObjectNode {
         self.compositor.reset();
         self.submitted.clear();
         self.local.clear();
+        self.work.clear();
     }
 
     /// Opens the endpoint this node connects to its peers from (inside the async runtime).
@@ -225,6 +234,7 @@ impl ObjectNode {
     /// Returns the frame's composited tiles when nothing else is awaited.
     pub fn local_done(&mut self, done: JobResult) -> Option<JobResult> {
         let id = done.frame_id;
+        let t0 = Instant::now();
         let windows = self.submitted.remove(&id).unwrap_or_default();
         // Layers by tile owner.
         let mut by_owner: HashMap<String, Vec<(String, Layer)>> = HashMap::new();
@@ -259,16 +269,24 @@ impl ObjectNode {
                 Err(e) => tracing::error!(frame_id = id, %peer, "{e}"),
             }
         }
-        self.local.insert(id, (Instant::now(), sent, done.render_time));
+        // Compositing time runs from here: this node's render is done (encoding included).
+        self.local.insert(id, (t0, sent, done.render_time));
         self.local.retain(|&k, _| k + 16 > id);
-        let c = self.compositor.local(id, &mine, self.background)?;
-        Some(self.finish(c))
+        let c = self.compositor.local(id, &mine, self.background);
+        *self.work.entry(id).or_default() += t0.elapsed();
+        self.work.retain(|&k, _| k + 16 > id);
+        Some(self.finish(c?))
     }
 
     /// A peer's pixels: the composited frame when it completes it, or the error that closes the
     /// peer's connection.
     pub fn peer(&mut self, item: PeerItem) -> Option<JobResult> {
-        match self.compositor.peer(&item.cert, item.pixels) {
+        let (id, t0) = (item.pixels.frame_id, Instant::now());
+        let r = self.compositor.peer(&item.cert, item.pixels);
+        if self.work.len() < 64 {
+            *self.work.entry(id).or_default() += t0.elapsed();
+        }
+        match r {
             Ok(Some(c)) => Some(self.finish(c)),
             Ok(None) => None,
             Err(e) => {
@@ -284,14 +302,24 @@ impl ObjectNode {
         let tiles = c
             .tiles
             .into_iter()
-            .map(|t| TileResult { name: t.name, width: t.width, height: t.height, rgb8: t.rgb8, depth: t.depth })
+            .map(|t| TileResult {
+                name: t.name,
+                width: t.width,
+                height: t.height,
+                rgb8: t.rgb8,
+                depth: t.depth,
+            })
             .collect();
         JobResult { frame_id: c.frame_id, tiles, render_time }
     }
 
-    /// Bytes sent to peers for a frame and the time since this node's render of it finished.
-    pub fn frame_stats(&self, frame_id: u64) -> (u64, Duration) {
-        self.local.get(&frame_id).map_or((0, Duration::ZERO), |(at, sent, _)| (*sent, at.elapsed()))
+    /// Bytes sent to peers for a frame, the time since this node's render of it finished, and the
+    /// time spent encoding, decoding and merging its pixels.
+    pub fn frame_stats(&self, frame_id: u64) -> (u64, Duration, Duration) {
+        let work = self.work.get(&frame_id).copied().unwrap_or_default();
+        self.local
+            .get(&frame_id)
+            .map_or((0, Duration::ZERO, work), |(at, sent, _)| (*sent, at.elapsed(), work))
     }
 }
 
@@ -364,7 +392,8 @@ impl Inbox {
         let me = self.clone();
         tokio::spawn(async move {
             let remote = conn.remote_address();
-            let Some(cert) = me.nodes.iter().find(|n| **n != me.own && isowall_net::tls::peer_is(&conn, n)).cloned()
+            let Some(cert) =
+                me.nodes.iter().find(|n| **n != me.own && isowall_net::tls::peer_is(&conn, n)).cloned()
             else {
                 tracing::warn!(%remote, "refused a connection: its certificate is neither the controller's nor another node's");
                 transport::close(&conn, "only the controller and the wall's other nodes may connect");

@@ -8,8 +8,8 @@
 //! alone touches the GPU.
 
 use crate::display::{self, Display, DisplayMode, WindowSetup};
-use crate::render::load_volume;
 use crate::object::{Inbox, ObjectNode, PeerItem};
+use crate::render::load_volume;
 use crate::tiles::{JobResult, RenderHandle, RenderVolume, TileJob, TileRenderer, TileResult};
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
@@ -181,7 +181,10 @@ fn network(
                     let remote = incoming.remote_address();
                     match tokio::time::timeout(std::time::Duration::from_secs(10), incoming).await {
                         // object space: other nodes' connections carry pixels.
-                        Ok(Ok(c)) if inbox.is_some() && !isowall_net::tls::peer_is(&c, isowall_net::tls::CONTROLLER) => {
+                        Ok(Ok(c))
+                            if inbox.is_some()
+                                && !isowall_net::tls::peer_is(&c, isowall_net::tls::CONTROLLER) =>
+                        {
                             inbox.as_ref().expect("checked").accept(c);
                         }
                         Ok(Ok(c)) => {
@@ -373,12 +376,18 @@ async fn frame_done(
 ) -> Vec<NodeOutput> {
     let (id, t) = (done.frame_id, done.render_time);
     if let Some(o) = &node.object {
-        let (bytes_sent, composite) = o.frame_stats(id);
-        tracing::debug!(frame_id = id, bytes_sent, composite_ms = composite.as_secs_f64() * 1e3, "composited");
+        let (bytes_sent, composite, work) = o.frame_stats(id);
+        tracing::debug!(
+            frame_id = id,
+            bytes_sent,
+            composite_ms = composite.as_secs_f64() * 1e3,
+            "composited"
+        );
         let msg = Message::Composited {
             frame_id: id,
             bytes_sent,
             composite_us: composite.as_micros() as u64,
+            merge_us: work.as_micros() as u64,
             resident_bytes: o.resident_bytes,
         };
         if let Err(e) = sender.send(&msg).await {

@@ -312,6 +312,13 @@ fn accumulate(name: &str, a: &mut Accumulator, mut frame: Frame) -> TileResult {
             c[i] = s[i] / k;
         }
     }
-    let depth = frame.depth.iter().zip(&frame.hit).map(|(&d, &h)| if h { d } else { f32::INFINITY }).collect();
-    TileResult { name: name.to_string(), width: frame.width, height: frame.height, rgb8: srgb8(&frame), depth }
+    let depth =
+        frame.depth.iter().zip(&frame.hit).map(|(&d, &h)| if h { d } else { f32::INFINITY }).collect();
+    TileResult {
+        name: name.to_string(),
+        width: frame.width,
+        height: frame.height,
+        rgb8: srgb8(&frame),
+        depth,
+    }
 }

@@ -38,7 +38,9 @@ fn object_wall(nodes: usize, compress: bool) {
     let stdout = String::from_utf8_lossy(&out.stdout);
     let logs = || {
         (0..nodes)
-            .map(|i| std::fs::read_to_string(dir.path().join(format!("logs/node{i}.log"))).unwrap_or_default())
+            .map(|i| {
+                std::fs::read_to_string(dir.path().join(format!("logs/node{i}.log"))).unwrap_or_default()
+            })
             .collect::<Vec<_>>()
             .join("\n---\n")
     };
@@ -89,9 +91,31 @@ fn object_wall(nodes: usize, compress: bool) {
         let size = format!("{fw}x{fh}");
         let radius = AO_RADIUS.to_string();
         let args = [
-            "render", "--volume", VOLUME, "--size", &size, "--eye", "60,-70,45", "--target", "23.5,23.5,23.5", "--up",
-            "0,0,1", "--fov-y", "40", "--ao-samples", "4", "--ao-radius", &radius, "--ibl", "bent", "--env", "sky",
-            "--aov", aov, "--out", out,
+            "render",
+            "--volume",
+            VOLUME,
+            "--size",
+            &size,
+            "--eye",
+            "60,-70,45",
+            "--target",
+            "23.5,23.5,23.5",
+            "--up",
+            "0,0,1",
+            "--fov-y",
+            "40",
+            "--ao-samples",
+            "4",
+            "--ao-radius",
+            &radius,
+            "--ibl",
+            "bent",
+            "--env",
+            "sky",
+            "--aov",
+            aov,
+            "--out",
+            out,
         ];
         assert!(gpu_ok("isowalld render", &run_in(dir.path(), "isowalld", &args)));
     };

@@ -11,14 +11,17 @@ use isowall_volume::{BlockMinMax, VolumeSource, VoxelRange};
 use isowall_wall::bricks::{self, Occupancy};
 use isowall_wall::{AoRadius, Camera, RenderSettings, View};
 
-/// Renders `source` whole and as `n` bricks; returns (whole, composite, per-brick frames, bricks).
+/// The single render, the composite of the bricks, each brick's frame, and the bricks.
+type Renders = (Frame, Frame, Vec<(Frame, ObjectSpace)>, Vec<bricks::Brick>);
+
+/// Renders `source` whole and as `n` bricks.
 fn whole_and_bricks(
     source: &str,
     n: usize,
     settings: &RenderSettings,
     camera: Camera,
     size: (u32, u32),
-) -> Option<(Frame, Frame, Vec<(Frame, ObjectSpace)>, Vec<bricks::Brick>)> {
+) -> Option<Renders> {
     let gpu = common::gpu()?;
     let src: VolumeSource = source.parse().unwrap();
     let stream = src.stream(None).unwrap();
@@ -176,9 +179,9 @@ fn pixels_along_the_cut_agree_and_a_brick_without_halo_would_differ() {
             .upload_brick(&region, &info, &blocks, ObjectSpace { data_offset: lo, owned_min, owned_max })
             .unwrap();
         let f = gpu.render(&gb, &view, &s, None).unwrap().frame;
-        for i in 0..f.pixel_count() {
-            if f.hit[i] && f.depth[i] < nearest[i].0 {
-                nearest[i] = (f.depth[i], f.color[i]);
+        for (i, n) in nearest.iter_mut().enumerate() {
+            if f.hit[i] && f.depth[i] < n.0 {
+                *n = (f.depth[i], f.color[i]);
             }
         }
     }

@@ -192,7 +192,7 @@ impl VolumeStream {
         // The blocks whose closed sample range on an axis holds sample s (two at a shared face).
         let blocks_of = |s: usize, a: usize| -> [Option<usize>; 2] {
             let b = (s / block).min(counts[a] - 1);
-            let prev = (s % block == 0 && s > 0 && (s / block) <= counts[a]).then(|| s / block - 1);
+            let prev = (s.is_multiple_of(block) && s > 0).then(|| s / block - 1);
             [Some(b), prev.filter(|&p| p != b)]
         };
         let [nx, ny, _] = dims;

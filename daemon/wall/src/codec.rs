@@ -108,7 +108,9 @@ pub fn frame(msg: &Message) -> Result<Vec<u8>, CodecError> {
 }
 
 /// Decodes `body` with bincode's limit `N`.
-fn decode_limited<T: serde::de::DeserializeOwned, const N: usize>(body: &[u8]) -> Result<(T, usize), DecodeError> {
+fn decode_limited<T: serde::de::DeserializeOwned, const N: usize>(
+    body: &[u8],
+) -> Result<(T, usize), DecodeError> {
     bincode::serde::decode_from_slice(body, config::standard().with_limit::<N>())
 }
 

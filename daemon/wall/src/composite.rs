@@ -198,7 +198,13 @@ pub struct TileCanvas {
 impl TileCanvas {
     pub fn new(name: &str, width: u32, height: u32) -> TileCanvas {
         let n = width as usize * height as usize;
-        TileCanvas { name: name.to_string(), width, height, depth: vec![f32::INFINITY; n], rgb8: vec![0; n * 3] }
+        TileCanvas {
+            name: name.to_string(),
+            width,
+            height,
+            depth: vec![f32::INFINITY; n],
+            rgb8: vec![0; n * 3],
+        }
     }
 
     /// Keeps, per pixel, the nearer of the canvas and the layer (a layer inside the tile).
@@ -255,7 +261,11 @@ pub struct Compositor {
 }
 
 impl Compositor {
-    pub fn new(node: &str, peers: impl IntoIterator<Item = String>, tiles: Vec<(String, u32, u32)>) -> Compositor {
+    pub fn new(
+        node: &str,
+        peers: impl IntoIterator<Item = String>,
+        tiles: Vec<(String, u32, u32)>,
+    ) -> Compositor {
         let peers = peers.into_iter().filter(|p| p != node).collect();
         Compositor { node: node.to_string(), peers, tiles, pending: BTreeMap::new(), last_done: None }
     }
@@ -280,7 +290,12 @@ impl Compositor {
 
     /// This node's own layers of `frame_id` (tile name, layer), and the background for pixels no
     /// brick hits. Layers for tiles this node does not show are ignored (they go to peers).
-    pub fn local(&mut self, frame_id: u64, layers: &[(String, Layer)], background: [u8; 3]) -> Option<Composited> {
+    pub fn local(
+        &mut self,
+        frame_id: u64,
+        layers: &[(String, Layer)],
+        background: [u8; 3],
+    ) -> Option<Composited> {
         if self.stale(frame_id) {
             return None;
         }
@@ -385,7 +400,14 @@ mod tests {
 
     #[test]
     fn rects_round_trip_raw_and_lz4_and_lz4_pays_on_sparse_hits() {
-        let l = layer(3, 2, 40, 30, |i, j| if (i + j) % 7 == 0 { (5.0 + i as f32, 200) } else { (f32::INFINITY, 10) });
+        let l =
+            layer(
+                3,
+                2,
+                40,
+                30,
+                |i, j| if (i + j) % 7 == 0 { (5.0 + i as f32, 200) } else { (f32::INFINITY, 10) },
+            );
         for compress in [false, true] {
             let r = l.encode("t", compress);
             assert_eq!(r.encoding, if compress { PixelEncoding::Lz4 } else { PixelEncoding::Raw });
@@ -445,7 +467,8 @@ mod tests {
         assert!(matches!(e, CompositeError::WrongSender { .. }));
         let e = c.peer("z", PeerPixels { frame_id: 2, node: "z".into(), rects: vec![] }).unwrap_err();
         assert!(matches!(e, CompositeError::UnknownPeer { .. }));
-        let e = c.peer("b", PeerPixels { frame_id: 2, node: "b".into(), rects: vec![near.encode("u", false)] });
+        let e =
+            c.peer("b", PeerPixels { frame_id: 2, node: "b".into(), rects: vec![near.encode("u", false)] });
         assert!(matches!(e, Err(CompositeError::NotMyTile { .. })));
         // Uncovered pixels get the background; frames can complete before an older one, which is dropped.
         c.peer("b", PeerPixels { frame_id: 3, node: "b".into(), rects: vec![] }).unwrap();

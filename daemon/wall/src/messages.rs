@@ -99,8 +99,9 @@ pub enum Message {
     // object space
     /// Daemon -> controller, before Ready in object space: the bytes it sent its peers for the
     /// frame and its compositing time (its render done to its tiles composited: waiting for the
-    /// peers' pixels and merging them), and the volume bytes it holds (its brick and halo).
-    Composited { frame_id: u64, bytes_sent: u64, composite_us: u64, resident_bytes: u64 },
+    /// peers' pixels and merging them), the part of it spent working (encoding its pixels for the
+    /// peers, decoding theirs, merging), and the volume bytes it holds (its brick and halo).
+    Composited { frame_id: u64, bytes_sent: u64, composite_us: u64, merge_us: u64, resident_bytes: u64 },
 }
 
 impl Message {
