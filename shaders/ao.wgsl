@@ -210,7 +210,7 @@ fn exact_occluded(o: vec3<f32>, w: vec3<f32>) -> bool {
         let um = u_init + (0.5 * (t + t1) - t_init) * du;
         let cell = clamp(vec3<i32>(floor(um)), vec3<i32>(0), top);
         if ess {
-            let b = min(cell / bs, nb - 1);
+            let b = min((cell + data_offset_cells()) / bs, nb - 1);
             if block_max(vec3<u32>(b)) < iso {
                 let tb = max(block_exit(vec3<u32>(b), o, inv), t1);
                 if tb >= t_end {

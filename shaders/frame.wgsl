@@ -39,6 +39,10 @@ struct FrameParams {
     _pad1: u32,
     _pad2: u32,
     sh: array<vec4<f32>, 9>, // SH9 of the environment (rgb), for IBL `bent`
+    // object space (bricks.rs): the volume buffer holds a brick and its halo.
+    data_offset: vec4<f32>,  // xyz: global sample index of the buffer's first sample; w: 1 in object space
+    owned_min: vec4<f32>,    // a point q (clamped to the box) is this brick's when
+    owned_max: vec4<f32>,    //   owned_min <= q < owned_max on every axis
 }
 
 const FLAG_EMPTY_SPACE_SKIPPING: u32 = 1u;

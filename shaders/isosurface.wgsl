@@ -9,6 +9,10 @@
 // - March with `params.spacing.w` (world units; at most half a voxel by default), skipping blocks
 //   whose max < iso (empty-space skipping, when flag bit 0 is set), then bisect the bracketing step
 //   `params.refine_steps` times and finish with one secant step.
+// - Object space (bricks.rs): the march runs over the whole box as above, but only the steps that
+//   start in this brick (`owns`) sample and look for a crossing; the others only advance t, so t,
+//   the samples and the hit are the single-node render's bit for bit, and each step's crossing is
+//   found by exactly one brick (the tile owner keeps the nearest hit).
 // - Normal: N = -grad f / |grad f| by central differences (h = one voxel per axis); the direction
 //   towards the viewer where the gradient vanishes. Shading uses N turned towards the viewer.
 //
@@ -45,33 +49,41 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     if t_exit >= max(t_enter, 0.0) {
         var t = max(t_enter, 0.0);
         var below = true;
-        let f0 = field(eye + t * dir);
-        if t_enter >= 0.0 {
-            // Entering the box from outside (empty): f >= iso at the face is a crossing up.
-            if f0 >= iso {
-                hit = true;
-                cap = true;
-                t_hit = t_enter;
-                // The face entered: the axis whose slab gave t_enter (lowest axis on a tie).
-                let ta = (params.box_min.xyz - eye) * inv_dir;
-                let tb = (params.box_max.xyz - eye) * inv_dir;
-                let tmin3 = min(ta, tb);
-                var axis = 2u;
-                if tmin3.y >= tmin3.z {
-                    axis = 1u;
+        // Object space: `below` is known at t only once the march is in this brick; a step that
+        // starts in another brick is that brick's (it finds that step's crossing).
+        var known = true;
+        if owns(eye + t * dir) {
+            let f0 = field(eye + t * dir);
+            if t_enter >= 0.0 {
+                // Entering the box from outside (empty): f >= iso at the face is a crossing up.
+                if f0 >= iso {
+                    hit = true;
+                    cap = true;
+                    t_hit = t_enter;
+                    // The face entered: the axis whose slab gave t_enter (lowest axis on a tie).
+                    let ta = (params.box_min.xyz - eye) * inv_dir;
+                    let tb = (params.box_max.xyz - eye) * inv_dir;
+                    let tmin3 = min(ta, tb);
+                    var axis = 2u;
+                    if tmin3.y >= tmin3.z {
+                        axis = 1u;
+                    }
+                    if tmin3.x >= tmin3.y && tmin3.x >= tmin3.z {
+                        axis = 0u;
+                    }
+                    cap_normal[axis] = -sign(dir[axis]);
                 }
-                if tmin3.x >= tmin3.y && tmin3.x >= tmin3.z {
-                    axis = 0u;
-                }
-                cap_normal[axis] = -sign(dir[axis]);
+            } else {
+                below = f0 < iso;
             }
         } else {
-            below = f0 < iso;
+            known = false;
         }
 
         let step = params.spacing.w;
         let ess = skipping();
         var steps = 0u;
+        var was_owned = false;
         while !hit && t < t_exit && steps < params.max_steps {
             steps += 1u;
             if ess {
@@ -81,10 +93,24 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
                     // where we leave it is below iso too (the block's closure is bounded by max).
                     t = max(block_exit(b, eye, inv_dir), t + 1e-3 * step);
                     below = true;
+                    known = true;
                     continue;
                 }
             }
             let t_next = min(t + step, t_exit);
+            if !owns(eye + t * dir) {
+                if was_owned {
+                    break;
+                }
+                known = false;
+                t = t_next;
+                continue;
+            }
+            was_owned = true;
+            if !known {
+                below = field(eye + t * dir) < iso;
+                known = true;
+            }
             let f_next = field(eye + t_next * dir);
             if below && f_next >= iso {
                 // Refine in [lo, hi] with f(lo) < iso <= f(hi).

@@ -29,9 +29,31 @@ fn trilinear_voxel(u: vec4<f32>) -> f32 {
     return mix(mix(x00, x10, fr.y), mix(x01, x11, fr.y), fr.z);
 }
 
-// Continuous voxel coordinates of a world point.
+// Continuous voxel coordinates of a world point in the whole volume's grid.
+fn to_global_voxel(p: vec3<f32>) -> vec3<f32> {
+    return (p - params.box_min.xyz) / params.spacing.xyz;
+}
+
+// Continuous voxel coordinates of a world point in the `volume` buffer: the whole volume's, less
+// the brick's offset in object space (an exact subtraction of whole numbers, so the trilinear
+// weights are the single-node render's bit for bit).
 fn to_voxel(p: vec3<f32>) -> vec4<f32> {
-    return vec4<f32>((p - params.box_min.xyz) / params.spacing.xyz, 0.0);
+    return vec4<f32>(to_global_voxel(p) - params.data_offset.xyz, 0.0);
+}
+
+// Object space: the buffer's offset in whole samples (0 in screen space).
+fn data_offset_cells() -> vec3<i32> {
+    return vec3<i32>(params.data_offset.xyz);
+}
+
+// Object space: whether the march step starting at p is this brick's (always, in screen space).
+// p is clamped to the box first, so the bricks' half-open boxes give every step to exactly one.
+fn owns(p: vec3<f32>) -> bool {
+    if params.data_offset.w == 0.0 {
+        return true;
+    }
+    let q = clamp(p, params.box_min.xyz, params.box_max.xyz);
+    return all(q >= params.owned_min.xyz) && all(q < params.owned_max.xyz);
 }
 
 // The field at a world point, position clamped to the box (callers handle "outside is empty").
@@ -73,7 +95,7 @@ fn box_clip(o: vec3<f32>, inv_dir: vec3<f32>) -> vec2<f32> {
 
 // The block (of `params.dims.w` cells per edge) containing world point p.
 fn block_of(p: vec3<f32>) -> vec3<u32> {
-    let cells = to_voxel(p).xyz / f32(params.dims.w);
+    let cells = to_global_voxel(p) / f32(params.dims.w);
     let c = vec3<i32>(floor(cells));
     return vec3<u32>(clamp(c, vec3<i32>(0), vec3<i32>(params.block_counts.xyz) - 1));
 }

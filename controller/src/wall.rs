@@ -487,6 +487,39 @@ pub fn report(wall: &Wall, elapsed: Duration) -> String {
             ms(quantile(ready, 1.0)),
         );
     }
+    // object space: bytes each node sent its peers per frame, and its compositing time.
+    // Per node: bytes sent, compositing times, resident bytes, compositing work.
+    type ObjectStats = (Vec<u64>, Vec<Duration>, u64, Vec<Duration>);
+    let mut object: BTreeMap<&str, ObjectStats> = BTreeMap::new();
+    for f in &wall.finished {
+        for n in &f.per_node {
+            if let (Some(b), Some(c)) = (n.bytes_sent, n.composite) {
+                let e = object.entry(n.node.as_str()).or_default();
+                e.0.push(b);
+                e.1.push(c);
+                e.2 = n.resident_bytes.unwrap_or(0);
+                e.3.extend(n.merge);
+            }
+        }
+    }
+    if !object.is_empty() {
+        s +=
+            "object space (bytes sent to peers per frame; compositing: own render done -> tiles composited, \
+              of which work: encode, decode, merge):\n";
+    }
+    for (node, (mut bytes, composite, resident, merge)) in object {
+        bytes.sort_unstable();
+        let median = bytes[(bytes.len() - 1) / 2];
+        s += &format!(
+            "  {node}: sent p50 {median} B ({:.2} MB) max {} B; composite p50 {} max {}; work p50 {} max {}; resident volume {resident} B\n",
+            median as f64 / 1e6,
+            bytes.last().copied().unwrap_or(0),
+            ms(quantile(composite.clone(), 0.5)),
+            ms(quantile(composite, 1.0)),
+            ms(quantile(merge.clone(), 0.5)),
+            ms(quantile(merge, 1.0)),
+        );
+    }
     let stragglers: Vec<String> =
         wall.releases.iter().flat_map(|r| r.2.iter().map(|n| format!("{n}@{}", r.0))).collect();
     if !stragglers.is_empty() {

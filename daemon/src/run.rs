@@ -8,15 +8,16 @@
 //! alone touches the GPU.
 
 use crate::display::{self, Display, DisplayMode, WindowSetup};
+use crate::object::{Inbox, ObjectNode, PeerItem};
 use crate::render::load_volume;
-use crate::tiles::{JobResult, RenderHandle, TileJob, TileRenderer, TileResult};
+use crate::tiles::{JobResult, RenderHandle, RenderVolume, TileJob, TileRenderer, TileResult};
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
 use isowall_net::transport::{self, Channel, NetError};
 use isowall_net::Identity;
 use isowall_render::environment::{EnvSource, Environment};
 use isowall_volume::io::RawSpec;
-use isowall_wall::config::WallConfig;
+use isowall_wall::config::{WallConfig, WallMode};
 use isowall_wall::daemon_machine::{NodeMachine, NodeOutput};
 use isowall_wall::messages::{Message, TileImage};
 use isowall_wall::wire::FrameSpec;
@@ -65,6 +66,12 @@ struct Node {
     pending: Option<JobResult>,
     /// The tiles on show (the last presented frame), for snapshots.
     shown: Option<(u64, Vec<TileResult>)>,
+    // object space
+    /// The brick's compositing and peers (`object.rs`); `None` in screen space.
+    object: Option<ObjectNode>,
+    /// Peers' pixels as they arrive, and who hands their connections over.
+    peer_rx: Option<tokio::sync::mpsc::Receiver<PeerItem>>,
+    inbox: Option<Inbox>,
 }
 
 pub fn run(a: &RunArgs) -> Result<()> {
@@ -86,14 +93,24 @@ pub fn run(a: &RunArgs) -> Result<()> {
     // Before the slow set-up, so that `--display window` without a display fails at once.
     let display = display::choose(a.display)?;
     let raw = raw_spec(&config)?;
-    let (volume, iso) = load_volume(Some(&config.volume_source()), raw.as_ref(), config.volume.iso)?;
-    let _ = iso;
+    let limit = usize::try_from(config.wall.message_limit_bytes).unwrap_or(usize::MAX);
+    // object space: only the brick and its halo.
+    let (volume, object, peer_rx, inbox) = if config.wall.mode == WallMode::Object {
+        let setup = crate::object::load_brick(&config, &node.name, raw.as_ref())?;
+        let object = ObjectNode::new(&config, &node.name, &setup)?;
+        let (tx, rx) = tokio::sync::mpsc::channel(64);
+        let nodes = config.nodes.iter().map(|n| n.name.clone()).collect();
+        let inbox = Inbox { tx, nodes, own: node.name.clone(), limit };
+        (RenderVolume::Brick(Box::new(setup.data)), Some(object), Some(rx), Some(inbox))
+    } else {
+        let (volume, _iso) = load_volume(Some(&config.volume_source()), raw.as_ref(), config.volume.iso)?;
+        (RenderVolume::Whole(volume), None, None, None)
+    };
     let env_src: EnvSource = config.env_source().parse().context("[render] env")?;
     let env: Environment = env_src.load().context("cannot load the environment")?;
     let (tx, results) = tokio::sync::mpsc::unbounded_channel();
     let renderer = TileRenderer::start(volume, Some(env), tx)?;
     let addr = transport::resolve(&node.address)?;
-    let limit = usize::try_from(config.wall.message_limit_bytes).unwrap_or(usize::MAX);
     let setup = WindowSetup {
         mode: a.display,
         windowed: a.windowed,
@@ -114,6 +131,9 @@ pub fn run(a: &RunArgs) -> Result<()> {
         render_dead: false,
         pending: None,
         shown: None,
+        object,
+        peer_rx,
+        inbox,
     };
     match display {
         Display::Offscreen => network(state, addr, identity, None),
@@ -141,6 +161,9 @@ fn network(
         .build()
         .context("cannot start the async runtime")?;
     runtime.block_on(async move {
+        if let Some(o) = state.object.as_mut() {
+            o.open_endpoint(&identity)?;
+        }
         let endpoint = transport::server(addr, &identity)?;
         tracing::info!(node = %state.name, %addr, "listening for the controller");
         // Systemd (Type=notify) and scripts wait for this line.
@@ -149,12 +172,21 @@ fn network(
         // connections queue here, and the session loop takes the next one (cancel-safe).
         let (conn_tx, mut conns) = tokio::sync::mpsc::channel::<quinn::Connection>(4);
         let acceptor = endpoint.clone();
+        let inbox = state.inbox.clone();
         tokio::spawn(async move {
             while let Some(incoming) = acceptor.accept().await {
                 let tx = conn_tx.clone();
+                let inbox = inbox.clone();
                 tokio::spawn(async move {
                     let remote = incoming.remote_address();
                     match tokio::time::timeout(std::time::Duration::from_secs(10), incoming).await {
+                        // object space: other nodes' connections carry pixels.
+                        Ok(Ok(c))
+                            if inbox.is_some()
+                                && !isowall_net::tls::peer_is(&c, isowall_net::tls::CONTROLLER) =>
+                        {
+                            inbox.as_ref().expect("checked").accept(c);
+                        }
                         Ok(Ok(c)) => {
                             let _ = tx.send(c).await;
                         }
@@ -240,6 +272,9 @@ async fn serve(
     let Channel { connection, mut sender, mut receiver } = channel;
     let mut machine = NodeMachine::new(node.name.clone(), node.tiles.clone());
     node.pending = None;
+    if let Some(o) = node.object.as_mut() {
+        o.reset();
+    }
     if let Err(e) = sender.send(&machine.hello()).await {
         tracing::warn!("{e}");
         return Ok(None);
@@ -281,9 +316,15 @@ async fn serve(
                     if !node.slow.is_zero() {
                         tokio::time::sleep(node.slow).await;
                     }
-                    let (id, t) = (done.frame_id, done.render_time);
-                    node.pending = Some(done);
-                    machine.render_done(node.epoch.elapsed(), id, t)
+                    // object space: the tiles are done once the peers' pixels are in.
+                    let done = match node.object.as_mut() {
+                        Some(o) => o.local_done(done),
+                        None => Some(done),
+                    };
+                    match done {
+                        Some(done) => frame_done(node, &mut machine, &mut sender, done).await,
+                        None => Vec::new(),
+                    }
                 }
                 Some(Err(e)) => {
                     tracing::error!("render failed: {e}");
@@ -292,6 +333,12 @@ async fn serve(
                 }
                 None => break Err(anyhow!("the render thread has stopped")),
             },
+            Some(item) = recv_peer(&mut node.peer_rx) => {
+                match node.object.as_mut().and_then(|o| o.peer(item)) {
+                    Some(done) => frame_done(node, &mut machine, &mut sender, done).await,
+                    None => Vec::new(),
+                }
+            }
             c = conns.recv() => {
                 tracing::info!("a new controller connected; it takes over");
                 transport::close(&connection, "another controller took over");
@@ -309,6 +356,46 @@ async fn serve(
     };
     reader.abort();
     outcome
+}
+
+/// object space: the next peer's pixels (never, in screen space).
+async fn recv_peer(rx: &mut Option<tokio::sync::mpsc::Receiver<PeerItem>>) -> Option<PeerItem> {
+    match rx {
+        Some(rx) => rx.recv().await,
+        None => std::future::pending().await,
+    }
+}
+
+/// A frame's tiles are done (rendered; in object space, composited): keep them for the swap and
+/// tell the controller (object space: Composited first, with the bytes sent and compositing time).
+async fn frame_done(
+    node: &mut Node,
+    machine: &mut NodeMachine,
+    sender: &mut transport::ChannelSender,
+    done: JobResult,
+) -> Vec<NodeOutput> {
+    let (id, t) = (done.frame_id, done.render_time);
+    if let Some(o) = &node.object {
+        let (bytes_sent, composite, work) = o.frame_stats(id);
+        tracing::debug!(
+            frame_id = id,
+            bytes_sent,
+            composite_ms = composite.as_secs_f64() * 1e3,
+            "composited"
+        );
+        let msg = Message::Composited {
+            frame_id: id,
+            bytes_sent,
+            composite_us: composite.as_micros() as u64,
+            merge_us: work.as_micros() as u64,
+            resident_bytes: o.resident_bytes,
+        };
+        if let Err(e) = sender.send(&msg).await {
+            tracing::warn!("{e}");
+        }
+    }
+    node.pending = Some(done);
+    machine.render_done(node.epoch.elapsed(), id, t)
 }
 
 /// Carries out the machine's outputs (and those they lead to).
@@ -332,16 +419,25 @@ async fn execute(
                 };
                 let _span =
                     tracing::info_span!("frame", frame_id = spec.frame_id, node = %node.name).entered();
-                let tiles = node
-                    .tiles
-                    .iter()
-                    .filter_map(|t| node.config.tile_view(spec.camera, t).map(|v| (t.clone(), v)))
-                    .collect();
+                let (tiles, settings) = match node.object.as_mut() {
+                    // object space: the brick over its covered window of every tile.
+                    Some(o) => {
+                        let s = o.bound_settings(spec.frame_id, &spec.settings);
+                        (o.views(spec.frame_id, spec.camera, &s), s)
+                    }
+                    None => (
+                        node.tiles
+                            .iter()
+                            .filter_map(|t| node.config.tile_view(spec.camera, t).map(|v| (t.clone(), v)))
+                            .collect(),
+                        spec.settings,
+                    ),
+                };
                 tracing::debug!(accumulate_frame, "render");
                 if let Err(e) = node.renderer.submit(TileJob {
                     frame_id: spec.frame_id,
                     tiles,
-                    settings: spec.settings,
+                    settings,
                     accumulate_frame,
                 }) {
                     tracing::error!("{e}");

@@ -32,6 +32,15 @@ pub struct TileResult {
     pub width: u32,
     pub height: u32,
     pub rgb8: Vec<u8>,
+    /// Distance along the ray per pixel, `+inf` where nothing is hit (object space composites by it).
+    pub depth: Vec<f32>,
+}
+
+/// What the render thread uploads: the whole volume (screen space) or a brick and its halo
+/// (object space, `object.rs`).
+pub enum RenderVolume {
+    Whole(Volume),
+    Brick(Box<crate::object::BrickData>),
 }
 
 pub struct JobResult {
@@ -87,7 +96,7 @@ impl TileRenderer {
     /// Starts the render thread: opens the GPU, uploads the volume and environment, then renders
     /// jobs in order. Returns once the GPU is up (or with its error). Results go to `results`.
     pub fn start(
-        volume: Volume,
+        volume: RenderVolume,
         env: Option<Environment>,
         results: tokio::sync::mpsc::UnboundedSender<Result<JobResult, String>>,
     ) -> Result<TileRenderer> {
@@ -98,7 +107,13 @@ impl TileRenderer {
             .spawn(move || {
                 let setup = (|| -> Result<_, String> {
                     let gpu = GpuRenderer::new().map_err(|e| e.to_string())?;
-                    let gv = gpu.upload(&volume).map_err(|e| e.to_string())?;
+                    let gv = match &volume {
+                        RenderVolume::Whole(v) => gpu.upload(v),
+                        RenderVolume::Brick(b) => {
+                            gpu.upload_brick(&b.region, &b.info, &b.blocks, b.object.clone())
+                        }
+                    }
+                    .map_err(|e| e.to_string())?;
                     let genv = env
                         .as_ref()
                         .map(|e| gpu.upload_environment(e))
@@ -297,5 +312,13 @@ fn accumulate(name: &str, a: &mut Accumulator, mut frame: Frame) -> TileResult {
             c[i] = s[i] / k;
         }
     }
-    TileResult { name: name.to_string(), width: frame.width, height: frame.height, rgb8: srgb8(&frame) }
+    let depth =
+        frame.depth.iter().zip(&frame.hit).map(|(&d, &h)| if h { d } else { f32::INFINITY }).collect();
+    TileResult {
+        name: name.to_string(),
+        width: frame.width,
+        height: frame.height,
+        rgb8: srgb8(&frame),
+        depth,
+    }
 }

@@ -17,12 +17,14 @@
 pub mod blocks;
 pub mod io;
 pub mod procedural;
+pub mod region;
 pub mod source;
 
 use glam::DVec3;
 use std::path::PathBuf;
 
 pub use blocks::BlockMinMax;
+pub use region::{VolumeInfo, VolumeStream, VoxelRange};
 pub use source::VolumeSource;
 
 /// Everything that can go wrong making or reading a volume. File errors carry the path.

@@ -84,28 +84,44 @@ impl Procedural {
     /// Generates the volume; `size` is the largest dimension (default per kind: engine 256 -> 256x256x118).
     pub fn generate(self, size: Option<usize>) -> Volume {
         let dims = self.dims(size);
+        let all = crate::region::VoxelRange::whole(dims);
+        self.generate_region(size, &all)
+    }
+
+    /// Generates only the samples of `range` (global indices) of the volume of `size`: the crop
+    /// of [`Procedural::generate`], sample for sample, without making the rest (object space:
+    /// a node holds its brick and halo only). Its origin is the range's first sample.
+    pub fn generate_region(self, size: Option<usize>, range: &crate::region::VoxelRange) -> Volume {
+        let dims = self.dims(size);
         let n = dims[0];
-        let data = match self {
+        let data = fill_region(range, self.field_fn(dims));
+        let name = format!("procedural:{}:{n}", self.name());
+        let origin = DVec3::new(range.lo[0] as f64, range.lo[1] as f64, range.lo[2] as f64);
+        Volume::new(name, range.dims(), DVec3::ONE, origin, data)
+            .expect("procedural volumes are finite and have valid dims")
+    }
+
+    /// The field at a sample position (world = voxel index) of the volume of `dims`.
+    fn field_fn(self, dims: [usize; 3]) -> Box<dyn Fn(DVec3) -> f64 + Sync> {
+        let n = dims[0];
+        match self {
             Procedural::Sphere => {
                 let c = box_centre(dims);
                 let r = 0.35 * (n - 1) as f64;
-                fill(dims, move |p| r - (p - c).length())
+                Box::new(move |p| r - (p - c).length())
             }
             Procedural::SphereOverPlane => {
                 let g = sphere_over_plane_geometry(Some(n));
-                fill(dims, move |p| g.field(p))
+                Box::new(move |p| g.field(p))
             }
             Procedural::Torus => torus(dims),
             Procedural::MarschnerLobb => {
                 let h = 2.0 / (n - 1) as f64;
-                fill(dims, move |p| marschner_lobb(p * h - DVec3::ONE))
+                Box::new(move |p| marschner_lobb(p * h - DVec3::ONE))
             }
             Procedural::Gyroid => gyroid(dims),
             Procedural::Engine => engine(dims),
-        };
-        let name = format!("procedural:{}:{n}", self.name());
-        Volume::new(name, dims, DVec3::ONE, DVec3::ZERO, data)
-            .expect("procedural volumes are finite and have valid dims")
+        }
     }
 }
 
@@ -195,9 +211,11 @@ fn box_centre(dims: [usize; 3]) -> DVec3 {
     DVec3::new(dims[0] as f64 - 1.0, dims[1] as f64 - 1.0, dims[2] as f64 - 1.0) * 0.5
 }
 
-/// Samples `f` at every voxel (world position = voxel index), z-slices split over a few threads.
-fn fill(dims: [usize; 3], f: impl Fn(DVec3) -> f64 + Sync) -> Vec<f32> {
-    let [nx, ny, nz] = dims;
+/// Samples `f` at every voxel of `range` (world position = global voxel index), z-slices split
+/// over a few threads.
+fn fill_region(range: &crate::region::VoxelRange, f: impl Fn(DVec3) -> f64 + Sync) -> Vec<f32> {
+    let [nx, ny, nz] = range.dims();
+    let [x0, y0, z0] = range.lo;
     let slice = nx * ny;
     let mut data = vec![0f32; slice * nz];
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get()).clamp(1, 8).min(nz);
@@ -207,11 +225,11 @@ fn fill(dims: [usize; 3], f: impl Fn(DVec3) -> f64 + Sync) -> Vec<f32> {
         for (c, chunk) in data.chunks_mut(per * slice).enumerate() {
             s.spawn(move || {
                 for (dk, plane) in chunk.chunks_mut(slice).enumerate() {
-                    let z = (c * per + dk) as f64;
+                    let z = (z0 + c * per + dk) as f64;
                     for (j, row) in plane.chunks_mut(nx).enumerate() {
-                        let y = j as f64;
+                        let y = (y0 + j) as f64;
                         for (i, v) in row.iter_mut().enumerate() {
-                            *v = f(DVec3::new(i as f64, y, z)) as f32;
+                            *v = f(DVec3::new((x0 + i) as f64, y, z)) as f32;
                         }
                     }
                 }
@@ -222,12 +240,12 @@ fn fill(dims: [usize; 3], f: impl Fn(DVec3) -> f64 + Sync) -> Vec<f32> {
 }
 
 /// Torus around the z axis through the box centre, tilted 20 degrees about x.
-fn torus(dims: [usize; 3]) -> Vec<f32> {
+fn torus(dims: [usize; 3]) -> Box<dyn Fn(DVec3) -> f64 + Sync> {
     let m = (dims[0] - 1) as f64;
     let (big, small) = (0.3 * m, 0.12 * m);
     let c = box_centre(dims);
     let (sin, cos) = 20f64.to_radians().sin_cos();
-    fill(dims, move |p| {
+    Box::new(move |p| {
         let d = p - c;
         // Into the torus' frame: rotate by -20 degrees about x.
         let q = DVec3::new(d.x, cos * d.y + sin * d.z, -sin * d.y + cos * d.z);
@@ -237,7 +255,7 @@ fn torus(dims: [usize; 3]) -> Vec<f32> {
 }
 
 /// Sheet gyroid, 3 periods across the box, intersected with a ball of radius 0.45 (n-1).
-fn gyroid(dims: [usize; 3]) -> Vec<f32> {
+fn gyroid(dims: [usize; 3]) -> Box<dyn Fn(DVec3) -> f64 + Sync> {
     const PERIODS: f64 = 3.0;
     /// Half-thickness of the sheet in units of g (g spans [-1.5, 1.5]).
     const THICKNESS: f64 = 0.5;
@@ -245,7 +263,7 @@ fn gyroid(dims: [usize; 3]) -> Vec<f32> {
     let k = 2.0 * PI * PERIODS / m; // radians per voxel
     let radius = 0.45 * m;
     let c = box_centre(dims);
-    fill(dims, move |p| {
+    Box::new(move |p| {
         let d = p - c;
         let (x, y, z) = (d.x * k, d.y * k, d.z * k);
         let g = x.sin() * y.cos() + y.sin() * z.cos() + z.sin() * x.cos();
@@ -353,10 +371,10 @@ fn engine_value(q: DVec3, scale: f64) -> f64 {
     (engine_design(q, ENGINE_CLAMP / scale) * scale).clamp(-ENGINE_CLAMP, ENGINE_CLAMP)
 }
 
-fn engine(dims: [usize; 3]) -> Vec<f32> {
+fn engine(dims: [usize; 3]) -> Box<dyn Fn(DVec3) -> f64 + Sync> {
     let scale = (dims[0] - 1) as f64 / (ENGINE_NX - 1.0);
     let c = box_centre(dims);
-    fill(dims, move |p| engine_value((p - c) / scale, scale))
+    Box::new(move |p| engine_value((p - c) / scale, scale))
 }
 
 #[cfg(test)]

@@ -71,6 +71,15 @@ pub struct NodeFrameStats {
     pub presented_node_time_us: Option<i64>,
     /// Whether it went down during the frame.
     pub went_down: bool,
+    // object space
+    /// Bytes it sent its peers for the frame (object space).
+    pub bytes_sent: Option<u64>,
+    /// Its compositing time (object space).
+    pub composite: Option<Duration>,
+    /// The volume bytes it holds: its brick and halo (object space).
+    pub resident_bytes: Option<u64>,
+    /// The work in its compositing: encoding, decoding, merging (object space).
+    pub merge: Option<Duration>,
 }
 
 /// A finished frame.
@@ -153,6 +162,11 @@ struct Part {
     presented_at: Option<Duration>,
     presented_node_time_us: Option<i64>,
     down: bool,
+    // object space
+    bytes_sent: Option<u64>,
+    composite: Option<Duration>,
+    resident_bytes: Option<u64>,
+    merge: Option<Duration>,
 }
 
 #[derive(Debug)]
@@ -421,6 +435,10 @@ impl FrameController {
                 presented_at: p.presented_at,
                 presented_node_time_us: p.presented_node_time_us,
                 went_down: p.down,
+                bytes_sent: p.bytes_sent,
+                composite: p.composite,
+                resident_bytes: p.resident_bytes,
+                merge: p.merge,
             })
             .collect();
         let times = per_node.iter().filter_map(|s| s.presented_at);
@@ -552,6 +570,25 @@ impl FrameController {
                 Ok(vec![ControllerOutput::Snapshot { node: node.to_string(), tiles }])
             }
             Message::Bye { reason } => Ok(self.node_down(now, node, &format!("said goodbye: {reason}"))),
+            Message::Composited { frame_id, bytes_sent, composite_us, merge_us, resident_bytes } => {
+                let st = self.nodes.get(node).expect("checked");
+                let sent = matches!((st.first_sent, st.last_sent), (Some(a), Some(b)) if (a..=b).contains(&frame_id));
+                if !sent || st.last_ready.is_some_and(|r| frame_id <= r) {
+                    return Err(err(format!(
+                        "Composited for frame {frame_id}, which it is not rendering (sent {:?}..={:?}, ready {:?})",
+                        st.first_sent, st.last_sent, st.last_ready
+                    )));
+                }
+                let part =
+                    self.collecting.as_mut().filter(|f| f.id == frame_id).and_then(|f| f.parts.get_mut(node));
+                if let Some(p) = part {
+                    p.bytes_sent = Some(bytes_sent);
+                    p.composite = Some(Duration::from_micros(composite_us));
+                    p.resident_bytes = Some(resident_bytes);
+                    p.merge = Some(Duration::from_micros(merge_us));
+                }
+                Ok(Vec::new())
+            }
         }
     }
 
@@ -724,6 +761,33 @@ mod tests {
         assert_eq!(stats.per_node[1].ready_after, Some(ms(20)));
         assert_eq!(stats.per_node[1].presented_node_time_us, Some(6));
         assert_eq!(c.poll_timeout(), None);
+    }
+
+    #[test]
+    fn object_space_stats_reach_the_frame_and_a_stray_composited_is_an_error() {
+        let mut c = controller(&["a", "b"]);
+        c.begin_frame(ms(0), state(1)).unwrap();
+        let comp = |id| Message::Composited {
+            frame_id: id,
+            bytes_sent: 1234,
+            composite_us: 2500,
+            merge_us: 700,
+            resident_bytes: 99,
+        };
+        assert!(c.handle(ms(5), "a", comp(1)).unwrap().is_empty());
+        c.handle(ms(6), "a", Message::Ready { frame_id: 1, render_us: 0 }).unwrap();
+        c.handle(ms(7), "b", Message::Ready { frame_id: 1, render_us: 0 }).unwrap();
+        // After its Ready, or for a frame never sent, Composited breaks the protocol.
+        assert!(c.handle(ms(8), "a", comp(1)).is_err());
+        c.handle(ms(9), "a", Message::Presented { frame_id: 1, node_time_us: 0 }).unwrap();
+        let out = c.handle(ms(9), "b", Message::Presented { frame_id: 1, node_time_us: 0 }).unwrap();
+        let ControllerOutput::FrameDone { stats, .. } = &out[0] else { panic!("{out:?}") };
+        assert_eq!(stats.per_node[0].bytes_sent, Some(1234));
+        assert_eq!(stats.per_node[0].composite, Some(Duration::from_micros(2500)));
+        assert_eq!(stats.per_node[0].resident_bytes, Some(99));
+        assert_eq!(stats.per_node[0].merge, Some(Duration::from_micros(700)));
+        assert_eq!(stats.per_node[1].bytes_sent, None);
+        assert!(c.handle(ms(10), "b", comp(7)).is_err());
     }
 
     #[test]

@@ -108,17 +108,19 @@ pub fn frame(msg: &Message) -> Result<Vec<u8>, CodecError> {
 }
 
 /// Decodes `body` with bincode's limit `N`.
-fn decode_limited<const N: usize>(body: &[u8]) -> Result<(Message, usize), DecodeError> {
+fn decode_limited<T: serde::de::DeserializeOwned, const N: usize>(
+    body: &[u8],
+) -> Result<(T, usize), DecodeError> {
     bincode::serde::decode_from_slice(body, config::standard().with_limit::<N>())
 }
 
 /// Decodes `body` with bincode's limit the smallest power of four >= its length (>= 4 KiB).
-fn decode_bounded(body: &[u8]) -> Result<(Message, usize), DecodeError> {
+fn decode_bounded<T: serde::de::DeserializeOwned>(body: &[u8]) -> Result<(T, usize), DecodeError> {
     macro_rules! try_limits {
         ($($shift:literal),*) => {
             $(
                 if body.len() <= (1usize << $shift) {
-                    return decode_limited::<{ 1usize << $shift }>(body);
+                    return decode_limited::<T, { 1usize << $shift }>(body);
                 }
             )*
         };
@@ -130,12 +132,30 @@ fn decode_bounded(body: &[u8]) -> Result<(Message, usize), DecodeError> {
 /// Decodes exactly one message from `body` (a frame without its length prefix): every byte must
 /// belong to the message.
 pub fn decode(body: &[u8]) -> Result<Message, CodecError> {
-    let (msg, used) =
+    let (msg, used): (Message, usize) =
         decode_bounded(body).map_err(|e| CodecError::Malformed { len: body.len(), reason: e.to_string() })?;
     if used != body.len() {
         return Err(CodecError::TrailingBytes { kind: msg.kind(), extra: body.len() - used });
     }
     Ok(msg)
+}
+
+/// Object space: the bytes of one node's pixels for a peer (bincode, no length prefix: they fill
+/// one QUIC stream, which the receiver reads up to the wall's message limit).
+pub fn encode_pixels(p: &crate::composite::PeerPixels) -> Result<Vec<u8>, CodecError> {
+    bincode::serde::encode_to_vec(p, config::standard())
+        .map_err(|e| CodecError::Encode { kind: "PeerPixels", reason: e.to_string() })
+}
+
+/// Object space: decodes exactly one [`crate::composite::PeerPixels`] from a peer's stream, with
+/// the same bounded limits as messages.
+pub fn decode_pixels(body: &[u8]) -> Result<crate::composite::PeerPixels, CodecError> {
+    let (p, used) =
+        decode_bounded(body).map_err(|e| CodecError::Malformed { len: body.len(), reason: e.to_string() })?;
+    if used != body.len() {
+        return Err(CodecError::TrailingBytes { kind: "PeerPixels", extra: body.len() - used });
+    }
+    Ok(p)
 }
 
 /// Splits a byte stream into messages. Feed it what arrives with [`Decoder::push`], then call

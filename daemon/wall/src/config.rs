@@ -117,6 +117,29 @@ pub struct WallSection {
     /// The largest network message accepted, bytes.
     #[serde(default = "default_message_limit_bytes")]
     pub message_limit_bytes: u64,
+    // object space
+    /// `screen` (each node renders its tiles; the default) or `object` (each node renders its
+    /// brick of the volume, composited by depth: `bricks.rs`).
+    #[serde(default)]
+    pub mode: WallMode,
+    /// Object space: compress the pixels nodes send each other (lz4); `false` sends them raw.
+    #[serde(default = "default_compress")]
+    pub compress: bool,
+}
+
+/// How a wall distributes its work (DESIGN.md "Distribution").
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum WallMode {
+    /// Sort-first: each node renders the pixels of its tiles from the whole volume.
+    #[default]
+    Screen,
+    /// Sort-last: each node renders its brick; tile owners keep the nearest hit per pixel.
+    Object,
+}
+
+fn default_compress() -> bool {
+    true
 }
 
 fn default_deadline_ms() -> u64 {
@@ -521,6 +544,18 @@ impl WallConfig {
         }
         if let Some(r) = &render {
             validate_render(&mut doc, r);
+        }
+        // object space: the halo bounds the AO reach.
+        if let (Some(w), Some(r)) = (&wall, &render) {
+            if w.mode == WallMode::Object {
+                let mut s = RenderSettings::new(0.0);
+                s.ao.radius = r.ao_radius;
+                s.ao.method = r.ao_method;
+                if let Err(e) = crate::bricks::ao_reach(&s, DVec3::ONE) {
+                    let key = if r.ao_method == AoMethod::Seed { "ao_method" } else { "ao_radius" };
+                    doc.at(&[Seg::K("render"), Seg::K(key)], format!("render: {key}: {e}"));
+                }
+            }
         }
         if let Some(c) = &certificates {
             if c.dir.trim().is_empty() {
@@ -1220,6 +1255,25 @@ tiles = ["b"]
     fn with(from: &str, to: &str) -> String {
         assert!(GOOD.contains(from), "{from:?} not in GOOD");
         GOOD.replacen(from, to, 1)
+    }
+
+    #[test]
+    fn object_mode_parses_and_refuses_an_unbounded_radius_or_the_seed_method() {
+        let c = WallConfig::parse(
+            &with("name = \"test\"", "name = \"test\"\nmode = \"object\""),
+            Path::new("w.toml"),
+        )
+        .unwrap();
+        assert_eq!(c.wall.mode, WallMode::Object);
+        assert!(c.wall.compress);
+        let plain = WallConfig::parse(GOOD, Path::new("w.toml")).unwrap();
+        assert_eq!(plain.wall.mode, WallMode::Screen);
+        let obj = "name = \"test\"\nmode = \"object\"\ncompress = false";
+        let unbounded = format!("{}\n[render]\nao_radius = \"unbounded\"\n", with("name = \"test\"", obj));
+        expect(&unbounded, Some(35), "object space needs a bounded AO radius");
+        let seed = format!("{}\n[render]\nao_method = \"seed\"\n", with("name = \"test\"", obj));
+        expect(&seed, Some(35), "cannot use the `seed` AO method");
+        expect(&with("name = \"test\"", "name = \"test\"\nmode = \"sideways\""), Some(3), "sideways");
     }
 
     #[test]

@@ -166,7 +166,8 @@ impl NodeMachine {
             Message::Ready { .. }
             | Message::Presented { .. }
             | Message::Pong { .. }
-            | Message::Snapshot { .. } => err("only a daemon sends this".into()),
+            | Message::Snapshot { .. }
+            | Message::Composited { .. } => err("only a daemon sends this".into()),
             Message::FrameState(state) => {
                 if let Some(last) = self.last_frame_id {
                     if state.frame_id <= last {

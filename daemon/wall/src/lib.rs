@@ -13,9 +13,11 @@
 //!   daemon's side).
 
 pub mod barrier;
+pub mod bricks;
 pub mod camera;
 pub mod clock;
 pub mod codec;
+pub mod composite;
 pub mod config;
 pub mod daemon_machine;
 pub mod messages;
@@ -26,7 +28,7 @@ pub use barrier::{ControllerOutput, FrameController, FrameStats, NodeFrameStats}
 pub use camera::{Camera, CameraError, View, Window};
 pub use config::{
     CameraConfig, CertConfig, ConfigErrors, NodeConfig, Problem, RenderConfig, TileConfig, VolumeConfig,
-    WallConfig, WallSection,
+    WallConfig, WallMode, WallSection,
 };
 pub use daemon_machine::{NodeMachine, NodeOutput};
 pub use messages::{Message, ProtocolError, Role, TileImage, PROTOCOL_VERSION};

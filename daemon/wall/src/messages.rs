@@ -96,6 +96,12 @@ pub enum Message {
     Snapshot { tiles: Vec<TileImage> },
     /// Either way, then close.
     Bye { reason: String },
+    // object space
+    /// Daemon -> controller, before Ready in object space: the bytes it sent its peers for the
+    /// frame and its compositing time (its render done to its tiles composited: waiting for the
+    /// peers' pixels and merging them), the part of it spent working (encoding its pixels for the
+    /// peers, decoding theirs, merging), and the volume bytes it holds (its brick and halo).
+    Composited { frame_id: u64, bytes_sent: u64, composite_us: u64, merge_us: u64, resident_bytes: u64 },
 }
 
 impl Message {
@@ -112,6 +118,7 @@ impl Message {
             Message::SnapshotRequest => "SnapshotRequest",
             Message::Snapshot { .. } => "Snapshot",
             Message::Bye { .. } => "Bye",
+            Message::Composited { .. } => "Composited",
         }
     }
 
@@ -126,7 +133,8 @@ impl Message {
             Message::Ready { .. }
             | Message::Presented { .. }
             | Message::Pong { .. }
-            | Message::Snapshot { .. } => Some(Role::Daemon),
+            | Message::Snapshot { .. }
+            | Message::Composited { .. } => Some(Role::Daemon),
         }
     }
 }
@@ -150,7 +158,7 @@ impl ProtocolError {
 }
 
 /// Serde glue for a `Vec<u8>` as one byte string (what `serde_bytes` does, without the crate).
-mod byte_buf {
+pub(crate) mod byte_buf {
     use serde::de::{Deserializer, SeqAccess, Visitor};
     use serde::Serializer;
     use std::fmt;

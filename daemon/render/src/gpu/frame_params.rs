@@ -57,6 +57,12 @@ pub struct FrameParams {
     pub _pad1: u32,
     pub _pad2: u32,
     pub sh: [[f32; 4]; 9],
+    // object space
+    /// xyz: global sample index of the volume buffer's first sample; w: 1 in object space
+    pub data_offset: [f32; 4],
+    /// The brick owns a (box-clamped) point q when `owned_min <= q < owned_max`.
+    pub owned_min: [f32; 4],
+    pub owned_max: [f32; 4],
 }
 
 fn v4(v: glam::DVec3, w: f64) -> [f32; 4] {
@@ -136,6 +142,12 @@ impl FrameParams {
             _pad1: 0,
             _pad2: 0,
             sh,
+            data_offset: match &volume.object {
+                Some(o) => [o.data_offset[0] as f32, o.data_offset[1] as f32, o.data_offset[2] as f32, 1.0],
+                None => [0.0; 4],
+            },
+            owned_min: volume.object.as_ref().map_or([0.0; 4], |o| v4(o.owned_min, 0.0)),
+            owned_max: volume.object.as_ref().map_or([0.0; 4], |o| v4(o.owned_max, 0.0)),
         }
     }
 }
@@ -190,6 +202,9 @@ mod tests {
                     ("_pad1", offset_of!(FrameParams, _pad1)),
                     ("_pad2", offset_of!(FrameParams, _pad2)),
                     ("sh", offset_of!(FrameParams, sh)),
+                    ("data_offset", offset_of!(FrameParams, data_offset)),
+                    ("owned_min", offset_of!(FrameParams, owned_min)),
+                    ("owned_max", offset_of!(FrameParams, owned_max)),
                 ],
             );
         }

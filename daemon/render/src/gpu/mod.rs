@@ -221,6 +221,22 @@ pub struct GpuVolume {
     pub box_min: glam::DVec3,
     pub box_max: glam::DVec3,
     pub name: String,
+    // object space
+    /// Where the buffer holds a brick and its halo, not the whole volume.
+    pub object: Option<ObjectSpace>,
+}
+
+/// Object space: the GPU volume holds a brick and its halo (`isowall_wall::bricks`). The box,
+/// spacing and block grid stay the whole volume's; the voxels are the region starting at
+/// `data_offset`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ObjectSpace {
+    /// Global sample index of the buffer's first sample.
+    pub data_offset: [usize; 3],
+    /// The brick owns a (box-clamped) point q when `owned_min <= q < owned_max` (the brick's
+    /// `owned_planes`).
+    pub owned_min: glam::DVec3,
+    pub owned_max: glam::DVec3,
 }
 
 impl GpuVolume {
@@ -238,6 +254,41 @@ impl GpuVolume {
             box_min: v.box_min(),
             box_max: v.box_max(),
             name: v.name.clone(),
+            object: None,
+        })
+    }
+
+    /// Object space: uploads `region` (a brick and its halo, the samples from `object.data_offset`
+    /// on) of the volume `whole` describes, with the whole volume's block min/max `blocks`.
+    pub fn upload_brick(
+        ctx: &GpuContext,
+        region: &Volume,
+        whole: &isowall_volume::VolumeInfo,
+        blocks: &BlockMinMax,
+        object: ObjectSpace,
+    ) -> Result<GpuVolume, GpuError> {
+        let o = object.data_offset;
+        let d = region.dims();
+        if (0..3).any(|a| o[a] + d[a] > whole.dims[a]) {
+            return Err(GpuError::Settings(format!(
+                "brick region {d:?} at {o:?} does not fit the volume's {:?}",
+                whole.dims
+            )));
+        }
+        let voxels =
+            ctx.storage_init(&format!("brick of {}", whole.name), bytemuck::cast_slice(region.data()))?;
+        let block_minmax = ctx.storage_init("block min/max", bytemuck::cast_slice(&blocks.minmax))?;
+        Ok(GpuVolume {
+            voxels,
+            block_minmax,
+            dims: [d[0] as u32, d[1] as u32, d[2] as u32],
+            block: blocks.block as u32,
+            counts: blocks.counts.map(|c| c as u32),
+            spacing: whole.spacing,
+            box_min: whole.box_min(),
+            box_max: whole.box_max(),
+            name: whole.name.clone(),
+            object: Some(object),
         })
     }
 }
@@ -295,6 +346,17 @@ impl GpuRenderer {
     pub fn upload(&self, volume: &Volume) -> Result<GpuVolume, GpuError> {
         let blocks = BlockMinMax::new(volume, BlockMinMax::DEFAULT_BLOCK);
         GpuVolume::upload(&self.ctx, volume, &blocks)
+    }
+
+    /// Object space: uploads a brick and its halo ([`GpuVolume::upload_brick`]).
+    pub fn upload_brick(
+        &self,
+        region: &Volume,
+        whole: &isowall_volume::VolumeInfo,
+        blocks: &BlockMinMax,
+        object: ObjectSpace,
+    ) -> Result<GpuVolume, GpuError> {
+        GpuVolume::upload_brick(&self.ctx, region, whole, blocks, object)
     }
 
     /// Uploads an environment for IBL.

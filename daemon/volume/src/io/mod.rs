@@ -160,6 +160,41 @@ pub fn load(path: &Path, raw: Option<&RawSpec>) -> Result<Volume, VolumeError> {
     }
 }
 
+/// Where the voxels of a file are, for partial reads ([`crate::region`]): raw files and NRRD
+/// (unless a `space directions` mirrors an axis). `None`: the format is read whole.
+pub(crate) fn plan(
+    path: &Path,
+    raw: Option<&RawSpec>,
+) -> Result<Option<(crate::region::FilePlan, DVec3, DVec3)>, VolumeError> {
+    match FileFormat::of(path) {
+        FileFormat::Nrrd => nrrd::plan(path),
+        FileFormat::Raw => {
+            let Some(spec) = raw else { return load(path, raw).map(|_| None) };
+            let layout = Layout { dims: spec.dims, voxel: spec.voxel, big_endian: spec.big_endian };
+            layout.voxel_count().map_err(|e| format_err(path, format!("--dims {e}")))?;
+            let s = spec.spacing;
+            if !(s.is_finite() && s.min_element() > 0.0) {
+                return Err(format_err(
+                    path,
+                    format!("--spacing {},{},{}: spacings must be finite and positive", s.x, s.y, s.z),
+                ));
+            }
+            let (_, len) = open(path)?;
+            check_raw_size(Files::single(path), len, spec.header_bytes, &layout)?;
+            let plan = crate::region::FilePlan {
+                header: path.to_path_buf(),
+                data: path.to_path_buf(),
+                layout,
+                start: spec.header_bytes,
+                encoding: Encoding::Raw,
+                decoded_skip: 0,
+            };
+            Ok(Some((plan, spec.spacing, DVec3::ZERO)))
+        }
+        FileFormat::MetaImage | FileFormat::Nifti => Ok(None),
+    }
+}
+
 // ---------------------------------------------------------------------------------------------
 // Shared by the readers.
 
@@ -510,7 +545,13 @@ fn reserve_up_to(out: &mut Vec<f32>, more: usize, cap: usize) {
 }
 
 /// Converts whole voxels of `voxel` type in `bytes` to `f32` and appends them to `out`.
-fn decode_into(bytes: &[u8], voxel: VoxelType, big_endian: bool, scale: Option<Scale>, out: &mut Vec<f32>) {
+pub(crate) fn decode_into(
+    bytes: &[u8],
+    voxel: VoxelType,
+    big_endian: bool,
+    scale: Option<Scale>,
+    out: &mut Vec<f32>,
+) {
     macro_rules! decode {
         ($t:ty) => {{
             const N: usize = std::mem::size_of::<$t>();
@@ -658,6 +699,11 @@ impl AxisSteps {
             }
         }
         Ok(AxisSteps { steps })
+    }
+
+    /// Whether a step is negative (the data is mirrored along that axis when read).
+    pub fn mirrors(&self) -> bool {
+        (0..3).any(|a| self.steps[a][a] < 0.0)
     }
 
     /// The steps along the world axes (all positive).

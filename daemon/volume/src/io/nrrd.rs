@@ -78,6 +78,66 @@ pub(crate) fn read(path: &Path) -> Result<Volume, VolumeError> {
     make_volume(path, header.dims, spacing, origin, data)
 }
 
+/// Where the voxels of the NRRD file at `path` are, for partial reads; `None` where a `space
+/// directions` mirrors an axis (such files are read whole).
+pub(crate) fn plan(path: &Path) -> Result<Option<(crate::region::FilePlan, DVec3, DVec3)>, VolumeError> {
+    let (r, file_len) = open(path)?;
+    let mut lines = HeaderLines::new(r, path, "NRRD");
+    let header = Header::read(path, &mut lines)?;
+    let layout = Layout { dims: header.dims, voxel: header.voxel, big_endian: header.big_endian };
+    layout.voxel_count().map_err(|e| format_err(path, format!("line {}: sizes: {e}", header.sizes_line)))?;
+    if header.steps.as_ref().is_some_and(|s| s.mirrors()) {
+        return Ok(None);
+    }
+    let origin = header.origin.unwrap_or(DVec3::ZERO);
+    let spacing = match &header.steps {
+        Some(steps) => steps.spacing(),
+        None => header.spacings.unwrap_or(DVec3::ONE),
+    };
+    let (data_path, pos, len) = match &header.data_file {
+        None => {
+            if !header.blank_line {
+                return Err(format_err(
+                    path,
+                    "the header ends without the blank line before the data and names no 'data file'",
+                ));
+            }
+            let pos = lines.offset;
+            let mut r = lines.into_inner();
+            let pos = pos + skip_lines(Files::single(path), &mut r, header.line_skip)?;
+            (path.to_path_buf(), pos, file_len)
+        }
+        Some(name) => {
+            let data_path = data_file_path(path, name);
+            let files = Files { header: path, data: &data_path };
+            let (mut r, len) = open(&data_path)?;
+            let pos = skip_lines(files, &mut r, header.line_skip)?;
+            (data_path, pos, len)
+        }
+    };
+    let files = Files { header: path, data: &data_path };
+    let (start, decoded_skip) = match header.encoding {
+        Encoding::Raw => {
+            let start = match u64::try_from(header.byte_skip) {
+                Ok(skip) => pos.saturating_add(skip),
+                Err(_) => pos.max(len.saturating_sub(layout.byte_len())),
+            };
+            super::check_raw_size(files, len, start, &layout)?;
+            (start, 0)
+        }
+        _ => (pos, header.byte_skip.max(0) as u64),
+    };
+    let plan = crate::region::FilePlan {
+        header: path.to_path_buf(),
+        data: data_path.clone(),
+        layout,
+        start,
+        encoding: header.encoding,
+        decoded_skip,
+    };
+    Ok(Some((plan, spacing, origin)))
+}
+
 /// What Isowall takes from a NRRD header.
 #[derive(Debug)]
 struct Header {

@@ -1,0 +1,219 @@
+//! Object space on the GPU: bricks with halos, each rendered alone and composited by depth, give
+//! the single-node render (AO whose radius spans the cuts included); each brick reads only its
+//! brick and halo.
+
+mod common;
+
+use glam::DVec3;
+use isowall_render::gpu::ObjectSpace;
+use isowall_render::Frame;
+use isowall_volume::{BlockMinMax, VolumeSource, VoxelRange};
+use isowall_wall::bricks::{self, Occupancy};
+use isowall_wall::{AoRadius, Camera, RenderSettings, View};
+
+/// The single render, the composite of the bricks, each brick's frame, and the bricks.
+type Renders = (Frame, Frame, Vec<(Frame, ObjectSpace)>, Vec<bricks::Brick>);
+
+/// Renders `source` whole and as `n` bricks.
+fn whole_and_bricks(
+    source: &str,
+    n: usize,
+    settings: &RenderSettings,
+    camera: Camera,
+    size: (u32, u32),
+) -> Option<Renders> {
+    let gpu = common::gpu()?;
+    let src: VolumeSource = source.parse().unwrap();
+    let stream = src.stream(None).unwrap();
+    let info = stream.info().clone();
+    let blocks = stream.block_minmax(BlockMinMax::DEFAULT_BLOCK).unwrap();
+    let occ = Occupancy::from_minmax(blocks.block, blocks.counts, &blocks.minmax, settings.iso);
+    let split = bricks::split(&occ, info.dims, info.spacing, n).unwrap();
+    let halo = bricks::halo_voxels(settings, info.spacing).unwrap();
+    let view = View::whole(camera, size.0, size.1);
+
+    let whole = src.load(None).unwrap();
+    let gv = gpu.upload(&whole).unwrap();
+    let single = gpu.render(&gv, &view, settings, None).unwrap().frame;
+
+    let mut composite = Frame::new(size.0, size.1);
+    composite.color = single.color.iter().map(|_| settings.background.map(|c| c as f32)).collect();
+    composite.depth = vec![f32::INFINITY; single.pixel_count()];
+    let mut frames = Vec::new();
+    for b in &split {
+        let (lo, hi) = b.data_range(halo, info.dims);
+        let region = stream.read_region(&VoxelRange { lo, hi }).unwrap();
+        // Resident volume bytes: the brick and its halo, never the whole volume.
+        assert_eq!(region.resident_bytes(), b.data_samples(halo, info.dims) * 4);
+        assert!(region.resident_bytes() < whole.resident_bytes() || n == 1);
+        let (owned_min, owned_max) = b.owned_planes(info.dims, info.origin, info.spacing);
+        let object = ObjectSpace { data_offset: lo, owned_min, owned_max };
+        let gb = gpu.upload_brick(&region, &info, &blocks, object.clone()).unwrap();
+        let f = gpu.render(&gb, &view, settings, None).unwrap().frame;
+        for i in 0..f.pixel_count() {
+            if f.hit[i] && f.depth[i] < composite.depth[i] {
+                composite.depth[i] = f.depth[i];
+                composite.color[i] = f.color[i];
+                composite.hit[i] = true;
+                composite.normal[i] = f.normal[i];
+                composite.occlusion[i] = f.occlusion[i];
+            }
+        }
+        frames.push((f, object));
+    }
+    Some((single, composite, frames, split))
+}
+
+fn settings_with_ao(iso: f64, radius: f64) -> RenderSettings {
+    let mut s = RenderSettings::new(iso);
+    s.ao.samples = 8;
+    s.ao.radius = AoRadius::World(radius);
+    s
+}
+
+/// The largest colour difference and the number of pixels that differ at all.
+fn colour_diff(a: &Frame, b: &Frame) -> (f32, usize) {
+    let mut max = 0f32;
+    let mut n = 0;
+    for (x, y) in a.color.iter().zip(&b.color) {
+        let d = (0..3).map(|c| (x[c] - y[c]).abs()).fold(0f32, f32::max);
+        max = max.max(d);
+        n += usize::from(d > 0.0);
+    }
+    (max, n)
+}
+
+#[test]
+fn two_and_four_bricks_composite_to_the_single_render_bit_for_bit() {
+    // The sphere over a plane: the plane and the sphere are cut, and the AO radius (12 voxels)
+    // spans every cut (the plane is occluded by the sphere across them).
+    for n in [2, 4] {
+        let s = settings_with_ao(0.0, 12.0);
+        let cam = Camera {
+            eye: DVec3::new(-30.0, -60.0, 70.0),
+            target: DVec3::new(24.0, 24.0, 16.0),
+            up: DVec3::Z,
+            fov_y_deg: 40.0,
+        };
+        let Some((single, composite, frames, split)) =
+            whole_and_bricks("procedural:sphere-over-plane:48", n, &s, cam, (96, 72))
+        else {
+            return;
+        };
+        assert_eq!(split.len(), n);
+        let hits = single.hit_count();
+        assert!(hits > 1000, "{hits}");
+        // Every brick contributes: the cuts are in view.
+        for (f, o) in &frames {
+            assert!(f.hit_count() > 50, "brick at {:?} has {} hits", o.data_offset, f.hit_count());
+        }
+        // Tolerance: exact. The bricks march the single render's steps (t, samples, hits and the
+        // AO rays' cells are the same f32 arithmetic), so the composite is the same image.
+        assert_eq!(composite.hit, single.hit, "{n} bricks: hit masks differ");
+        let depth_diff = single
+            .depth
+            .iter()
+            .zip(&composite.depth)
+            .zip(&single.hit)
+            .filter(|(_, &h)| h)
+            .map(|((a, b), _)| (a - b).abs())
+            .fold(0f32, f32::max);
+        assert_eq!(depth_diff, 0.0, "{n} bricks: depth differs");
+        let (max, count) = colour_diff(&single, &composite);
+        assert_eq!((max, count), (0.0, 0), "{n} bricks: colour differs at {count} pixels, by up to {max}");
+        assert!(single.occlusion.iter().filter(|&&a| a > 0.2).count() > 100, "AO is visible");
+    }
+}
+
+#[test]
+fn pixels_along_the_cut_agree_and_a_brick_without_halo_would_differ() {
+    // The sphere over a plane cut in two: look at the pixels whose hit lies within the AO radius
+    // of the cut plane; they match the single render. Then the control: bricks read with a halo
+    // of one sample (less than the stencil and the AO reach) shade those pixels differently (the
+    // test can fail).
+    let s = settings_with_ao(0.0, 12.0);
+    let cam = Camera {
+        eye: DVec3::new(-30.0, -60.0, 70.0),
+        target: DVec3::new(24.0, 24.0, 16.0),
+        up: DVec3::Z,
+        fov_y_deg: 40.0,
+    };
+    let Some((single, composite, _frames, split)) =
+        whole_and_bricks("procedural:sphere-over-plane:48", 2, &s, cam, (96, 72))
+    else {
+        return;
+    };
+    let b = &split[0];
+    let axis = (0..3).find(|&a| b.hi[a] < 47).expect("a cut");
+    let cut = b.hi[axis] as f64;
+    let basis = cam.basis();
+    let view = View::whole(cam, 96, 72);
+    let mut near_cut = Vec::new();
+    for i in 0..single.pixel_count() {
+        if !single.hit[i] {
+            continue;
+        }
+        let (x, y) = ((i % 96) as u32, (i / 96) as u32);
+        let p = cam.eye + view.ray_dir(&basis, x, y) * single.depth[i] as f64;
+        if (p[axis] - cut).abs() <= 12.0 {
+            near_cut.push(i);
+        }
+    }
+    assert!(near_cut.len() > 200, "{} pixels near the cut", near_cut.len());
+    for &i in &near_cut {
+        assert_eq!(composite.color[i], single.color[i], "pixel {i} near the cut");
+    }
+
+    // Control: the same brick with a halo of 1 sample (less than the stencil and the AO reach).
+    let gpu = common::gpu().unwrap();
+    let src: VolumeSource = "procedural:sphere-over-plane:48".parse().unwrap();
+    let stream = src.stream(None).unwrap();
+    let info = stream.info().clone();
+    let blocks = stream.block_minmax(BlockMinMax::DEFAULT_BLOCK).unwrap();
+    let mut nearest = vec![(f32::INFINITY, [0f32; 3]); single.pixel_count()];
+    for brick in &split {
+        let (lo, hi) = brick.data_range([1, 1, 1], info.dims);
+        let region = stream.read_region(&VoxelRange { lo, hi }).unwrap();
+        let (owned_min, owned_max) = brick.owned_planes(info.dims, info.origin, info.spacing);
+        let gb = gpu
+            .upload_brick(&region, &info, &blocks, ObjectSpace { data_offset: lo, owned_min, owned_max })
+            .unwrap();
+        let f = gpu.render(&gb, &view, &s, None).unwrap().frame;
+        for (i, n) in nearest.iter_mut().enumerate() {
+            if f.hit[i] && f.depth[i] < n.0 {
+                *n = (f.depth[i], f.color[i]);
+            }
+        }
+    }
+    let differ = near_cut.iter().filter(|&&i| nearest[i].1 != single.color[i]).count();
+    assert!(differ >= 10, "without a halo only {differ} of {} pixels near the cut differ", near_cut.len());
+}
+
+#[test]
+fn the_covered_window_holds_every_hit_of_a_brick() {
+    let s = settings_with_ao(0.0, 8.0);
+    let cam = Camera {
+        eye: DVec3::new(-40.0, -50.0, 60.0),
+        target: DVec3::new(20.0, 20.0, 20.0),
+        up: DVec3::Z,
+        fov_y_deg: 40.0,
+    };
+    let Some((_single, _c, frames, split)) = whole_and_bricks("procedural:gyroid:40", 4, &s, cam, (80, 64))
+    else {
+        return;
+    };
+    let view = View::whole(cam, 80, 64);
+    for ((f, _), b) in frames.iter().zip(&split) {
+        let (lo, hi) = b.owned_box(DVec3::ZERO, DVec3::ONE);
+        let r = bricks::covered_window(&view, lo, hi).expect("each brick shows");
+        for i in 0..f.pixel_count() {
+            let (x, y) = ((i % 80) as u32, (i / 80) as u32);
+            if f.hit[i] {
+                assert!(
+                    x >= r.x && x < r.x + r.width && y >= r.y && y < r.y + r.height,
+                    "hit ({x},{y}) outside {r:?}"
+                );
+            }
+        }
+    }
+}
