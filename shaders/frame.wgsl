@@ -39,13 +39,19 @@ struct FrameParams {
     _pad1: u32,
     _pad2: u32,
     sh: array<vec4<f32>, 9>, // SH9 of the environment (rgb), for IBL `bent`
+    // performance
+    ao_blocks: vec4<u32>,    // AO rays' block level: counts (xyz), cells per edge (w; 0: the primary level)
+    coarse: vec4<u32>,       // coarse block level of AO rays: counts (xyz), cells per edge (w; 0: none)
+    perf: vec4<u32>,         // x: flags (bit 0: an AO ray entering a block with min >= iso is occluded);
+                             // y, z: offsets of the AO and coarse levels in block_minmax
 }
 
 const FLAG_EMPTY_SPACE_SKIPPING: u32 = 1u;
+const PERF_BLOCK_MIN_EXIT: u32 = 1u;
 
 @group(0) @binding(0) var<uniform> params: FrameParams;
 @group(0) @binding(1) var<storage, read> volume: array<f32>;
-@group(0) @binding(2) var<storage, read> block_minmax: array<vec2<f32>>;
+@group(0) @binding(2) var<storage, read> block_minmax: array<vec2<f32>>; // primary, AO, coarse levels
 
 // Unit ray through the centre of pixel px of the FULL image (DESIGN.md "Camera").
 fn pixel_dir(px: vec2<u32>) -> vec3<f32> {

@@ -11,6 +11,7 @@
 //!   (the one place bytes are made: bincode, length-prefixed frames, limits), [`clock`] (offsets
 //!   from Ping/Pong), [`barrier`] (the controller's swap barrier) and [`daemon_machine`] (a
 //!   daemon's side).
+//! - [`governor`]: the quality governor (frame times in, AO samples per frame out).
 
 pub mod barrier;
 pub mod camera;
@@ -18,6 +19,7 @@ pub mod clock;
 pub mod codec;
 pub mod config;
 pub mod daemon_machine;
+pub mod governor;
 pub mod messages;
 pub mod render_state;
 pub mod wire;
@@ -29,6 +31,7 @@ pub use config::{
     WallConfig, WallSection,
 };
 pub use daemon_machine::{NodeMachine, NodeOutput};
+pub use governor::{Governor, GovernorError, Motion};
 pub use messages::{Message, ProtocolError, Role, TileImage, PROTOCOL_VERSION};
 pub use render_state::{
     AoMethod, AoRadius, AoSettings, Aov, IblMethod, Light, Material, RenderSettings, Shading,

@@ -57,7 +57,18 @@ pub struct FrameParams {
     pub _pad1: u32,
     pub _pad2: u32,
     pub sh: [[f32; 4]; 9],
+    // performance
+    /// The AO rays' block level: counts (xyz), cells per edge (w; 0: the primary level).
+    pub ao_blocks: [u32; 4],
+    /// The coarse level of AO rays: counts (xyz), cells per edge (w; 0: none).
+    pub coarse: [u32; 4],
+    /// x: performance flags (`PERF_*`); y, z: offsets of the AO and coarse levels in the block
+    /// min/max buffer; w: 0.
+    pub perf: [u32; 4],
 }
+
+/// Performance flag: an AO ray that enters a block whose min >= iso is occluded at once (exact).
+pub const PERF_BLOCK_MIN_EXIT: u32 = 1;
 
 fn v4(v: glam::DVec3, w: f64) -> [f32; 4] {
     [v.x as f32, v.y as f32, v.z as f32, w as f32]
@@ -136,6 +147,14 @@ impl FrameParams {
             _pad1: 0,
             _pad2: 0,
             sh,
+            ao_blocks: volume.ao_level.map_or([0; 4], |l| l.params()),
+            coarse: volume.coarse_level.map_or([0; 4], |l| l.params()),
+            perf: [
+                0,
+                volume.ao_level.map_or(0, |l| l.offset),
+                volume.coarse_level.map_or(0, |l| l.offset),
+                0,
+            ],
         }
     }
 }
@@ -190,6 +209,9 @@ mod tests {
                     ("_pad1", offset_of!(FrameParams, _pad1)),
                     ("_pad2", offset_of!(FrameParams, _pad2)),
                     ("sh", offset_of!(FrameParams, sh)),
+                    ("ao_blocks", offset_of!(FrameParams, ao_blocks)),
+                    ("coarse", offset_of!(FrameParams, coarse)),
+                    ("perf", offset_of!(FrameParams, perf)),
                 ],
             );
         }
