@@ -198,6 +198,7 @@ fn exact_occluded(o: vec3<f32>, w: vec3<f32>) -> bool {
     // Voxels per unit t; an axis that (practically) does not move is never stepped: its cell
     // still comes from each segment's midpoint.
     let du = w / params.spacing.xyz;
+    let nudge = 5e-4 * min(min(params.spacing.x, params.spacing.y), params.spacing.z);
     let moving = multi & (abs(du) > vec3<f32>(1e-10));
     let du_safe = select(vec3<f32>(1.0), du, moving);
     let step = select(vec3<f32>(0.0), sign(du), moving);
@@ -218,7 +219,12 @@ fn exact_occluded(o: vec3<f32>, w: vec3<f32>) -> bool {
             let m = level_range(level, b);
             if m.y < iso {
                 // Hierarchical: where the coarse block around it is empty too, leave that instead.
-                let tb = max(empty_exit(level, b, cell, o, inv, iso), t1);
+                // At least a sliver past t: where rounding puts the block's exit at or before t
+                // (a DDA restart a hair before the face), the walk would otherwise stand still
+                // and run out of iterations (found on the CT's anisotropic voxels). The field at
+                // the face is below iso (the face samples are the empty block's), so a sliver of
+                // nudge voxels cannot step over a crossing.
+                let tb = max(max(empty_exit(level, b, cell, o, inv, iso), t1), t + nudge);
                 if tb >= t_end {
                     return false;
                 }

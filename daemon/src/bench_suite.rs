@@ -15,6 +15,7 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use isowall_render::gpu::{GpuRenderer, GpuVolume, PerfOptions};
 use isowall_render::Frame;
+use isowall_volume::VoxelFormat;
 use isowall_wall::{Camera, RenderSettings, View};
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -48,7 +49,7 @@ pub struct SuiteArgs {
     pub save: Option<PathBuf>,
     /// Renderer variants measured per row, comma-separated: `default`, `before` (the options of the
     /// build before the performance work), or changes joined by '+': block=N, ao=N, coarse=N,
-    /// exit=on|off, wg=XxY (e.g. `ao=2+coarse=16`)
+    /// exit=on|off, wg=XxY, format=r32f|r16f|r16|r8 (e.g. `ao=2+coarse=16`)
     #[arg(long, default_value = "default")]
     pub variants: String,
 }
@@ -192,10 +193,12 @@ fn primary_error(f: &Frame, reference: &Frame) -> (f64, f64) {
 /// (the build before the performance work), or changes of the default joined by '+': `block=N`
 /// (cells per block edge, primary rays), `ao=N` (AO rays' block, 0: the primary one), `coarse=N`
 /// (AO rays' coarse block, 0 none), `exit=on|off` (the block min early exit of AO rays), `wg=XxY`
-/// (workgroup shape); e.g. `ao=2+coarse=16+wg=16x4`.
-pub fn variant_options(name: &str) -> Result<PerfOptions> {
+/// (workgroup shape), `format=r32f|r16f|r16|r8` (the voxels rounded as that storage format keeps
+/// them, rendered by the f32 kernels: the format's error, not its speed); e.g. `ao=2+coarse=16`.
+pub fn variant_options(name: &str) -> Result<(PerfOptions, VoxelFormat)> {
     let bad = |what: &str| anyhow::anyhow!("variant '{name}': {what}");
     let mut o = PerfOptions::default();
+    let mut format = VoxelFormat::R32F;
     for part in name.split('+') {
         match part.split_once('=') {
             None if part == "default" => {}
@@ -205,18 +208,19 @@ pub fn variant_options(name: &str) -> Result<PerfOptions> {
             Some(("coarse", v)) => o.coarse = v.parse().map_err(|_| bad("coarse is not a whole number"))?,
             Some(("exit", "on")) => o.block_min_exit = true,
             Some(("exit", "off")) => o.block_min_exit = false,
+            Some(("format", v)) => format = v.parse().map_err(|e: String| bad(&e))?,
             Some(("wg", v)) => {
                 o.workgroup = args::size(v).map_err(|e| bad(&format!("wg: {e}")))?;
             }
             _ => {
                 return Err(bad(&format!(
-                    "unknown part '{part}' (default, before, block=N, ao=N, coarse=N, exit=on|off, wg=XxY)"
+                    "unknown part '{part}' (default, before, block=N, ao=N, coarse=N, exit=on|off, wg=XxY, format=r32f|r16f|r16|r8)"
                 )))
             }
         }
     }
     o.validate().map_err(|e| bad(&e))?;
-    Ok(o)
+    Ok((o, format))
 }
 
 pub fn run(a: &SuiteArgs) -> Result<()> {
@@ -228,7 +232,7 @@ pub fn run(a: &SuiteArgs) -> Result<()> {
         }
         None => None,
     };
-    let variants: Vec<(String, PerfOptions)> = a
+    let variants: Vec<(String, (PerfOptions, VoxelFormat))> = a
         .variants
         .split(',')
         .map(str::trim)
@@ -263,12 +267,12 @@ pub fn run(a: &SuiteArgs) -> Result<()> {
         gpu.set_perf(PerfOptions::default())?;
         let gv = gpu.upload(&volume)?;
         // The volume as each variant's block levels need it.
-        let mut uploads: Vec<((u32, u32, u32), GpuVolume)> = Vec::new();
-        for (_, o) in &variants {
-            let key = (o.block, o.ao_block, o.coarse);
+        let mut uploads: Vec<((u32, u32, u32, VoxelFormat), GpuVolume)> = Vec::new();
+        for (_, (o, format)) in &variants {
+            let key = (o.block, o.ao_block, o.coarse, *format);
             if !uploads.iter().any(|(k, _)| *k == key) {
                 gpu.set_perf(*o)?;
-                uploads.push((key, gpu.upload(&volume)?));
+                uploads.push((key, gpu.upload(&volume.stored_as(*format))?));
             }
         }
         for &(w, h) in &sizes {
@@ -279,13 +283,10 @@ pub fn run(a: &SuiteArgs) -> Result<()> {
             s.ao.frame = 1_000_000; // disjoint from the measured frames' patterns
             let reference = gpu.render_accumulated(&gv, &view, &s, None, a.reference_frames.max(1))?.frame;
             for &n in &samples {
-                for (variant, o) in &variants {
+                for (variant, (o, format)) in &variants {
                     gpu.set_perf(*o)?;
-                    let gv = &uploads
-                        .iter()
-                        .find(|(k, _)| *k == (o.block, o.ao_block, o.coarse))
-                        .expect("uploaded")
-                        .1;
+                    let key = (o.block, o.ao_block, o.coarse, *format);
+                    let gv = &uploads.iter().find(|(k, _)| *k == key).expect("uploaded").1;
                     let mut s = RenderSettings::new(iso);
                     s.ao.samples = n;
                     gpu.render(gv, &view, &s, None)?; // warm-up
@@ -370,15 +371,16 @@ mod tests {
 
     #[test]
     fn variant_names_change_the_default() {
-        assert_eq!(variant_options("default").unwrap(), PerfOptions::default());
-        assert_eq!(variant_options("before").unwrap(), PerfOptions::BEFORE);
-        let o = variant_options("block=4+ao=2+coarse=8+exit=off+wg=16x4").unwrap();
+        assert_eq!(variant_options("default").unwrap(), (PerfOptions::default(), VoxelFormat::R32F));
+        assert_eq!(variant_options("before").unwrap().0, PerfOptions::BEFORE);
+        assert_eq!(variant_options("format=r16").unwrap().1, VoxelFormat::R16);
+        let (o, _) = variant_options("block=4+ao=2+coarse=8+exit=off+wg=16x4").unwrap();
         assert_eq!(
             o,
             PerfOptions { block: 4, ao_block: 2, coarse: 8, block_min_exit: false, workgroup: (16, 4) }
         );
-        assert_eq!(variant_options("before+wg=4x4").unwrap().workgroup, (4, 4));
-        for bad in ["fast", "block=x", "wg=0x8", "wg=32x32", "exit=maybe"] {
+        assert_eq!(variant_options("before+wg=4x4").unwrap().0.workgroup, (4, 4));
+        for bad in ["fast", "block=x", "wg=0x8", "wg=32x32", "exit=maybe", "format=r4"] {
             assert!(variant_options(bad).is_err(), "{bad}");
         }
     }

@@ -15,6 +15,7 @@
 //! `PATH | procedural:NAME[:N]`.
 
 pub mod blocks;
+pub mod format;
 pub mod io;
 pub mod procedural;
 pub mod source;
@@ -23,6 +24,7 @@ use glam::DVec3;
 use std::path::PathBuf;
 
 pub use blocks::BlockMinMax;
+pub use format::VoxelFormat;
 pub use source::VolumeSource;
 
 /// Everything that can go wrong making or reading a volume. File errors carry the path.

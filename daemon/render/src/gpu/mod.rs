@@ -364,7 +364,7 @@ impl GpuRenderer {
         let blocks = BlockMinMax::new(volume, p.block as usize);
         let level = |cells: u32| {
             (cells > 0 && cells != p.block).then(|| {
-                if cells % p.block == 0 {
+                if cells.is_multiple_of(p.block) {
                     blocks.coarsen((cells / p.block) as usize)
                 } else {
                     BlockMinMax::new(volume, cells as usize)
