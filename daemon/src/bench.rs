@@ -137,16 +137,19 @@ pub(crate) fn error_stats(a: &[f32], b: &[f32], hit: &[bool]) -> (f64, f64) {
     (rmse, d[(d.len() - 1) * 99 / 100])
 }
 
-fn ao(a: &AoArgs) -> Result<()> {
-    let gpu = GpuRenderer::new()?;
-    let (w, h) = a.size;
-    let samples: Vec<u32> = a
-        .samples
-        .split(',')
+/// A `--samples` list: whole numbers, comma-separated.
+pub(crate) fn sample_list(list: &str) -> Result<Vec<u32>> {
+    list.split(',')
         .map(|s| {
             s.trim().parse::<u32>().map_err(|_| anyhow::anyhow!("--samples: '{s}' is not a whole number"))
         })
-        .collect::<Result<_>>()?;
+        .collect()
+}
+
+fn ao(a: &AoArgs) -> Result<()> {
+    let gpu = GpuRenderer::new()?;
+    let (w, h) = a.size;
+    let samples = sample_list(&a.samples)?;
     println!(
         "# isowalld bench ao: {w}x{h}, median of {} frames, adapter '{}'; reference: ours, {} frames x 256 samples",
         a.repeats.max(1),

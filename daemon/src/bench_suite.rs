@@ -9,7 +9,7 @@
 //! in degrees over pixels both hit.
 
 use crate::args;
-use crate::bench::{error_stats, median, scene_spec};
+use crate::bench::{error_stats, median, sample_list, scene_spec};
 use crate::render::load_volume;
 use anyhow::{bail, Context, Result};
 use clap::Args;
@@ -245,13 +245,7 @@ pub fn run(a: &SuiteArgs) -> Result<()> {
         .split(',')
         .map(|s| args::size(s.trim()).map_err(|e| anyhow::anyhow!("--sizes: {e}")))
         .collect::<Result<_>>()?;
-    let samples: Vec<u32> = a
-        .samples
-        .split(',')
-        .map(|s| {
-            s.trim().parse::<u32>().map_err(|_| anyhow::anyhow!("--samples: '{s}' is not a whole number"))
-        })
-        .collect::<Result<_>>()?;
+    let samples = sample_list(&a.samples)?;
     let header = format!(
         "# isowalld bench suite: median of {} frames, adapter '{}'; reference: ours, exact, {} frames x 256 samples",
         a.repeats.max(1),
