@@ -6,7 +6,9 @@
 // set shifted per pixel and frame (sampling.wgsl), origin offset along N by `ao_offset`, a ray up
 // to R (`ao_radius`, or to the box exit when unbounded) from where it enters the box; occluded as
 // soon as f >= iso anywhere on it (t = 0 included). Blocks whose max < iso are crossed without
-// looking at them. Two tests of the ray:
+// looking at them (performance: AO rays have their own, finer level, `ao_level`, and a coarse one,
+// `coarse_level`, crossed whole where its max < iso; a ray in a block whose min >= iso is occluded
+// without a fetch, `PERF_BLOCK_MIN_EXIT`). Two tests of the ray:
 // - `ao_exact` 1 (the default, `exact_occluded`): the twin of the reference's `ao_ray_occluded`.
 //   A 3D DDA walks the cells of the sample grid the ray crosses; in each cell the 8 corners are
 //   loaded (one fetch), a cell whose corners are all < iso is passed, and otherwise the trilinear
@@ -73,11 +75,13 @@ fn ours_occluded(o: vec3<f32>, w: vec3<f32>) -> bool {
     let h = params.ao_step;
     let iso = params.iso;
     let ess = skipping();
+    let level = ao_level();
     for (var steps = 0u; steps < params.max_steps; steps += 1u) {
         if ess {
-            let b = block_of(o + (t + 1e-3 * h) * w);
-            if block_max(b) < iso {
-                t = max(block_exit(b, o, inv), t + 1e-3 * h);
+            let c = vec3<i32>(floor(to_global_voxel(o + (t + 1e-3 * h) * w)));
+            let b = level_block(level, c);
+            if level_range(level, b).y < iso {
+                t = max(empty_exit(level, b, c, o, inv, iso), t + 1e-3 * h);
                 if t >= t_end {
                     return false;
                 }
@@ -189,11 +193,12 @@ fn exact_occluded(o: vec3<f32>, w: vec3<f32>) -> bool {
     let multi = n > vec3<i32>(1);
     let top = max(n - 2, vec3<i32>(0));
     let d1 = select(vec3<i32>(0), vec3<i32>(1), multi);
-    let bs = i32(max(params.dims.w, 1u));
-    let nb = max(vec3<i32>(params.block_counts.xyz), vec3<i32>(1));
+    let level = ao_level();
+    let nb = max(vec3<i32>(level.counts), vec3<i32>(1));
     // Voxels per unit t; an axis that (practically) does not move is never stepped: its cell
     // still comes from each segment's midpoint.
     let du = w / params.spacing.xyz;
+    let nudge = 5e-4 * min(min(params.spacing.x, params.spacing.y), params.spacing.z);
     let moving = multi & (abs(du) > vec3<f32>(1e-10));
     let du_safe = select(vec3<f32>(1.0), du, moving);
     let step = select(vec3<f32>(0.0), sign(du), moving);
@@ -210,9 +215,18 @@ fn exact_occluded(o: vec3<f32>, w: vec3<f32>) -> bool {
         let um = u_init + (0.5 * (t + t1) - t_init) * du;
         let cell = clamp(vec3<i32>(floor(um)), vec3<i32>(0), top);
         if ess {
-            let b = min((cell + data_offset_cells()) / bs, nb - 1);
-            if block_max(vec3<u32>(b)) < iso {
-                let tb = max(block_exit(vec3<u32>(b), o, inv), t1);
+            // Blocks are indexed by global cell (object space: the buffer holds a brick).
+            let gcell = cell + data_offset_cells();
+            let b = level_block(level, gcell);
+            let m = level_range(level, b);
+            if m.y < iso {
+                // Hierarchical: where the coarse block around it is empty too, leave that instead.
+                // At least a sliver past t: where rounding puts the block's exit at or before t
+                // (a DDA restart a hair before the face), the walk would otherwise stand still
+                // and run out of iterations (found on the CT's anisotropic voxels). The field at
+                // the face is below iso (the face samples are the empty block's), so a sliver of
+                // nudge voxels cannot step over a crossing.
+                let tb = max(max(empty_exit(level, b, gcell, o, inv, iso), t1), t + nudge);
                 if tb >= t_end {
                     return false;
                 }
@@ -222,6 +236,11 @@ fn exact_occluded(o: vec3<f32>, w: vec3<f32>) -> bool {
                 plane = select(ceil(u_init) - 1.0, floor(u_init) + 1.0, du > vec3<f32>(0.0));
                 next = select(vec3<f32>(T_NEVER), t_init + (plane - u_init) / du_safe, moving);
                 continue;
+            }
+            // Early exit: the segment lies in a block whose every sample is >= iso, so f >= iso
+            // on it (a trilinear blend is at least its smallest corner): occluded, no fetch.
+            if (params.perf.x & PERF_BLOCK_MIN_EXIT) != 0u && m.x >= iso {
+                return true;
             }
         }
         fetches += 1u;

@@ -43,16 +43,22 @@ struct FrameParams {
     data_offset: vec4<f32>,  // xyz: global sample index of the buffer's first sample; w: 1 in object space
     owned_min: vec4<f32>,    // a point q (clamped to the box) is this brick's when
     owned_max: vec4<f32>,    //   owned_min <= q < owned_max on every axis
+    // performance
+    ao_blocks: vec4<u32>,    // AO rays' block level: counts (xyz), cells per edge (w; 0: the primary level)
+    coarse: vec4<u32>,       // coarse block level of AO rays: counts (xyz), cells per edge (w; 0: none)
+    perf: vec4<u32>,         // x: flags (bit 0: an AO ray entering a block with min >= iso is occluded);
+                             // y, z: offsets of the AO and coarse levels in block_minmax
 }
 
 const FLAG_EMPTY_SPACE_SKIPPING: u32 = 1u;
+const PERF_BLOCK_MIN_EXIT: u32 = 1u;
 
 // A read-only storage buffer, not a uniform: Mesa's lavapipe (22.x) inlines uniform values into a
 // new compiled shader variant per uniform buffer it sees and keeps every variant, so a uniform
 // that changes each frame grew a daemon by ~1.5 MB a frame (found by the soak test).
 @group(0) @binding(0) var<storage, read> params: FrameParams;
 @group(0) @binding(1) var<storage, read> volume: array<f32>;
-@group(0) @binding(2) var<storage, read> block_minmax: array<vec2<f32>>;
+@group(0) @binding(2) var<storage, read> block_minmax: array<vec2<f32>>; // primary, AO, coarse levels
 
 // Unit ray through the centre of pixel px of the FULL image (DESIGN.md "Camera").
 fn pixel_dir(px: vec2<u32>) -> vec3<f32> {

@@ -106,9 +106,63 @@ fn block_max(b: vec3<u32>) -> f32 {
     return block_minmax[b.x + n.x * (b.y + n.y * b.z)].y;
 }
 
+// The extra block levels of AO rays (performance), indexed by cell: a level is (counts xyz, cells
+// per edge w) with its min/max at `offset` in `block_minmax`, after the primary rays' level.
+struct Level {
+    counts: vec3<u32>,
+    cells: u32,
+    offset: u32,
+}
+
+// The AO rays' fine level (the primary rays' level where none was uploaded).
+fn ao_level() -> Level {
+    if params.ao_blocks.w == 0u {
+        return Level(params.block_counts.xyz, params.dims.w, 0u);
+    }
+    return Level(params.ao_blocks.xyz, params.ao_blocks.w, params.perf.y);
+}
+
+// The coarse level over it; cells 0 when there is none.
+fn coarse_level() -> Level {
+    return Level(params.coarse.xyz, params.coarse.w, params.perf.z);
+}
+
+// The block of `level` holding cell c.
+fn level_block(level: Level, c: vec3<i32>) -> vec3<u32> {
+    return min(vec3<u32>(max(c, vec3<i32>(0))) / level.cells, level.counts - 1u);
+}
+
+// Min and max of the samples of block b of `level`.
+fn level_range(level: Level, b: vec3<u32>) -> vec2<f32> {
+    let n = level.counts;
+    return block_minmax[level.offset + b.x + n.x * (b.y + n.y * b.z)];
+}
+
+// Ray parameter where the ray o + t dir leaves block b of `level`.
+fn level_block_exit(level: Level, b: vec3<u32>, o: vec3<f32>, inv_dir: vec3<f32>) -> f32 {
+    return level_exit(b, f32(level.cells), o, inv_dir);
+}
+
+// Ray parameter where the ray o + t dir leaves block b (primary level) beyond t, or, where the
+// coarse level exists and cell c's coarse block is empty too, that coarse block (hierarchical).
+fn empty_exit(level: Level, b: vec3<u32>, c: vec3<i32>, o: vec3<f32>, inv_dir: vec3<f32>, iso: f32) -> f32 {
+    let coarse = coarse_level();
+    if coarse.cells > 0u {
+        let cb = level_block(coarse, c);
+        if level_range(coarse, cb).y < iso {
+            return level_block_exit(coarse, cb, o, inv_dir);
+        }
+    }
+    return level_block_exit(level, b, o, inv_dir);
+}
+
 // Ray parameter where the ray o + t dir leaves block b (its box clamped to the volume box).
 fn block_exit(b: vec3<u32>, o: vec3<f32>, inv_dir: vec3<f32>) -> f32 {
-    let bs = f32(params.dims.w);
+    return level_exit(b, f32(params.dims.w), o, inv_dir);
+}
+
+// Ray parameter where the ray leaves block b of a level of `bs` cells per edge (clamped to the box).
+fn level_exit(b: vec3<u32>, bs: f32, o: vec3<f32>, inv_dir: vec3<f32>) -> f32 {
     let lo = params.box_min.xyz + vec3<f32>(b) * bs * params.spacing.xyz;
     let hi = min(lo + bs * params.spacing.xyz, params.box_max.xyz);
     let tmax = max((lo - o) * inv_dir, (hi - o) * inv_dir);

@@ -1,13 +1,13 @@
 //! The controller's commands that talk to a wall: `keygen`, `up`, `orbit`, `snapshot`.
 
 use crate::local::LocalDaemons;
-use crate::wall::{compose, report, Wall};
+use crate::wall::{compose, quantile, report, Wall};
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
 use glam::{DQuat, DVec3};
 use isowall_volume::VolumeSource;
 use isowall_wall::config::WallConfig;
-use isowall_wall::{Camera, RenderSettings};
+use isowall_wall::{Camera, Governor, Motion, RenderSettings};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
@@ -32,6 +32,13 @@ pub struct OrbitOptions {
     /// Frames per second at most (0: as fast as the wall swaps)
     #[arg(long, default_value_t = 0.0)]
     pub fps: f64,
+    /// Quality governor: choose the AO samples per frame for this frame time (ms) while the
+    /// camera moves, then hold them while it is still (overrides `[render] target_frame_ms`)
+    #[arg(long, value_name = "MS")]
+    pub target_frame_ms: Option<f64>,
+    /// After the orbit, this many frames with the camera still: the nodes refine progressively
+    #[arg(long, default_value_t = 0)]
+    pub still_frames: u64,
 }
 
 #[derive(Args)]
@@ -119,24 +126,59 @@ pub fn orbit_camera(base: &Camera, k: u64, degrees_per_frame: f64) -> Camera {
     Camera { eye: base.target + rot * (base.eye - base.target), up: rot * base.up, ..*base }
 }
 
-/// Drives the orbit, calling `after_frame(k, wall)` after frame k's swap; returns how long its frames
-/// took and when the first swap was released.
+/// The governor of a drive, if a target is set (the flag before the config): it starts at the
+/// configured samples (at least 1) and chooses 1 ..= MAX_AO_SAMPLES.
+fn governor(config: &WallConfig, settings: &RenderSettings, o: &OrbitOptions) -> Result<Option<Governor>> {
+    let Some(target) = o.target_frame_ms.or(config.render.target_frame_ms) else {
+        return Ok(None);
+    };
+    let g = Governor::new(target, settings.ao.samples.max(1), 1, isowall_wall::render_state::MAX_AO_SAMPLES)
+        .map_err(|e| anyhow!("--target-frame-ms: {e}"))?;
+    Ok(Some(g))
+}
+
+/// One frame of a governed drive: its samples, its measured frame time (frame state sent -> swap
+/// released) and whether the camera was moving.
+struct GovernedFrame {
+    samples: u32,
+    frame: Duration,
+    motion: Motion,
+}
+
+/// Drives the orbit, then `still_frames` frames at its last camera, calling `after_frame(k, wall)`
+/// after frame k's swap; returns how long its frames took, when the first swap was released, and
+/// the governor's frames (when one is set).
 async fn drive(
     wall: &mut Wall,
     base: &Camera,
     settings: &RenderSettings,
     o: &OrbitOptions,
+    mut governor: Option<Governor>,
     after_frame: &mut dyn FnMut(u64, &Wall),
-) -> Result<(Duration, Option<Instant>)> {
+) -> Result<(Duration, Option<Instant>, Vec<GovernedFrame>)> {
     wall.sync_clocks(5).await;
     let start = Instant::now();
     let period = (o.fps > 0.0).then(|| Duration::from_secs_f64(1.0 / o.fps));
     let mut first_swap = None;
-    for k in 0..o.frames {
+    let mut governed = Vec::new();
+    let mut settings = *settings;
+    let total = o.frames + o.still_frames;
+    for k in 0..total {
         if let Some(p) = period {
             tokio::time::sleep_until((start + p.mul_f64(k as f64)).into()).await;
         }
-        wall.frame(&orbit_camera(base, k, o.degrees_per_frame), settings).await?;
+        let camera = orbit_camera(base, k.min(o.frames.saturating_sub(1)), o.degrees_per_frame);
+        if let Some(g) = &governor {
+            settings.ao.samples = g.samples();
+        }
+        wall.frame(&camera, &settings).await?;
+        if let Some(g) = &mut governor {
+            // The next frame moves while the orbit goes on.
+            let motion = if k + 1 < o.frames { Motion::Moving } else { Motion::Still };
+            let frame = wall.releases.last().map_or(Duration::ZERO, |r| r.1);
+            governed.push(GovernedFrame { samples: settings.ao.samples, frame, motion });
+            g.observe(frame.as_secs_f64() * 1e3, motion);
+        }
         if k == 0 {
             first_swap = Some(Instant::now());
         }
@@ -147,7 +189,36 @@ async fn drive(
     }
     let elapsed = start.elapsed();
     wall.settle().await;
-    Ok((elapsed, first_swap))
+    Ok((elapsed, first_swap, governed))
+}
+
+/// The governor's report: its target, and the frame times it achieved while the camera moved
+/// (after the first five frames, its settling) with the samples it chose.
+fn governor_report(target: Option<&Governor>, frames: &[GovernedFrame]) -> String {
+    let Some(g) = target else {
+        return String::new();
+    };
+    let moving: Vec<&GovernedFrame> = frames.iter().filter(|f| f.motion == Motion::Moving).skip(5).collect();
+    let ms: Vec<Duration> = moving.iter().map(|f| f.frame).collect();
+    let fmt = |d: Option<Duration>| d.map_or("-".to_string(), |d| format!("{:.1} ms", d.as_secs_f64() * 1e3));
+    let samples: Vec<u32> = frames.iter().map(|f| f.samples).collect();
+    let mut s = format!(
+        "governor: target {:.1} ms; moving frames after 5: p50 {} p90 {} ({} frames); samples per frame {}\n",
+        g.target_ms(),
+        fmt(quantile(ms.clone(), 0.5)),
+        fmt(quantile(ms, 0.9)),
+        moving.len(),
+        samples.iter().map(u32::to_string).collect::<Vec<_>>().join(" ")
+    );
+    let still: Vec<&GovernedFrame> = frames.iter().filter(|f| f.motion == Motion::Still).collect();
+    if let Some(last) = still.last() {
+        s += &format!(
+            "governor: {} still frame(s) refined progressively at {} samples\n",
+            still.len(),
+            last.samples
+        );
+    }
+    s
 }
 
 fn runtime() -> Result<tokio::runtime::Runtime> {
@@ -172,6 +243,7 @@ pub fn up(a: &UpArgs) -> Result<()> {
     let started = Instant::now();
     let config = load(&a.config)?;
     let (base, settings) = scene(&config)?;
+    let gov = governor(&config, &settings, &a.orbit)?;
     let log_dir = config.resolve("logs");
     let mut daemons = LocalDaemons::start(&config, &log_dir, &a.display, a.windowed)?;
     eprintln!("isowall: starting wall '{}': {} local node(s)", config.wall.name, daemons.len());
@@ -189,13 +261,15 @@ pub fn up(a: &UpArgs) -> Result<()> {
         eprintln!("isowall: wall up in {:.2} s", started.elapsed().as_secs_f64());
         let mut pids = vec![("controller".to_string(), std::process::id())];
         pids.extend(daemons.pids());
-        let mut watch = ResourceWatch::new(a.orbit.frames, pids);
-        let (elapsed, first_swap) =
-            drive(&mut wall, &base, &settings, &a.orbit, &mut |k, w| watch.after_frame(k, w)).await?;
+        let mut watch = ResourceWatch::new(a.orbit.frames + a.orbit.still_frames, pids);
+        let (elapsed, first_swap, governed) =
+            drive(&mut wall, &base, &settings, &a.orbit, gov.clone(), &mut |k, w| watch.after_frame(k, w))
+                .await?;
         if let Some(t) = first_swap {
             println!("first swap released {:.2} s after `isowall up` started", (t - started).as_secs_f64());
         }
         print!("{}", report(&wall, elapsed));
+        print!("{}", governor_report(gov.as_ref(), &governed));
         print!("{}", watch.report(&wall));
         if let Some(out) = &a.snapshot {
             write_snapshot(&mut wall, out).await?;
@@ -284,10 +358,13 @@ impl ResourceWatch {
 pub fn orbit(a: &OrbitArgs) -> Result<()> {
     let config = load(&a.config)?;
     let (base, settings) = scene(&config)?;
+    let gov = governor(&config, &settings, &a.orbit)?;
     runtime()?.block_on(async {
         let mut wall = Wall::connect(config, Duration::from_secs(10)).await?;
-        let (elapsed, _) = drive(&mut wall, &base, &settings, &a.orbit, &mut |_, _| {}).await?;
+        let (elapsed, _, governed) =
+            drive(&mut wall, &base, &settings, &a.orbit, gov.clone(), &mut |_, _| {}).await?;
         print!("{}", report(&wall, elapsed));
+        print!("{}", governor_report(gov.as_ref(), &governed));
         wall.close("the controller is done").await;
         Ok(())
     })

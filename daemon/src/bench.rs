@@ -27,6 +27,10 @@ pub enum BenchCommand {
     /// point), chart.png and chart.svg (occlusion RMSE against time, log-log, one panel per scene,
     /// Pareto front dashed) into --out; prints the error at fixed time budgets.
     Accuracy(AccuracyArgs),
+    /// A fixed set of scenes, sizes and sample counts: ms per frame, fetches per pixel and error
+    /// per row; `--save FILE` writes them, `--baseline FILE` compares with an earlier build's
+    /// file as ratios (docs/bench/baseline-lavapipe.csv).
+    Suite(crate::bench_suite::SuiteArgs),
 }
 
 #[derive(Args)]
@@ -102,16 +106,17 @@ pub fn run(cmd: &BenchCommand) -> Result<()> {
         BenchCommand::Primary(a) => primary(a),
         BenchCommand::Ao(a) => ao(a),
         BenchCommand::Accuracy(a) => accuracy(a),
+        BenchCommand::Suite(a) => crate::bench_suite::run(a),
     }
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
+pub(crate) fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     v[v.len() / 2]
 }
 
 /// Splits `VOLUME[@ISO]`.
-fn scene_spec(scene: &str) -> Result<(&str, Option<f64>)> {
+pub(crate) fn scene_spec(scene: &str) -> Result<(&str, Option<f64>)> {
     Ok(match scene.rsplit_once('@') {
         Some((s, i)) => {
             (s, Some(i.parse::<f64>().map_err(|_| anyhow::anyhow!("{scene}: iso '{i}' is not a number"))?))
@@ -121,7 +126,7 @@ fn scene_spec(scene: &str) -> Result<(&str, Option<f64>)> {
 }
 
 /// RMSE and 99th percentile of |a - b| over pixels where `hit` holds.
-fn error_stats(a: &[f32], b: &[f32], hit: &[bool]) -> (f64, f64) {
+pub(crate) fn error_stats(a: &[f32], b: &[f32], hit: &[bool]) -> (f64, f64) {
     let mut d: Vec<f64> =
         (0..a.len()).filter(|&i| hit[i]).map(|i| (a[i] as f64 - b[i] as f64).abs()).collect();
     if d.is_empty() {
@@ -132,16 +137,19 @@ fn error_stats(a: &[f32], b: &[f32], hit: &[bool]) -> (f64, f64) {
     (rmse, d[(d.len() - 1) * 99 / 100])
 }
 
-fn ao(a: &AoArgs) -> Result<()> {
-    let gpu = GpuRenderer::new()?;
-    let (w, h) = a.size;
-    let samples: Vec<u32> = a
-        .samples
-        .split(',')
+/// A `--samples` list: whole numbers, comma-separated.
+pub(crate) fn sample_list(list: &str) -> Result<Vec<u32>> {
+    list.split(',')
         .map(|s| {
             s.trim().parse::<u32>().map_err(|_| anyhow::anyhow!("--samples: '{s}' is not a whole number"))
         })
-        .collect::<Result<_>>()?;
+        .collect()
+}
+
+fn ao(a: &AoArgs) -> Result<()> {
+    let gpu = GpuRenderer::new()?;
+    let (w, h) = a.size;
+    let samples = sample_list(&a.samples)?;
     println!(
         "# isowalld bench ao: {w}x{h}, median of {} frames, adapter '{}'; reference: ours, {} frames x 256 samples",
         a.repeats.max(1),

@@ -3,6 +3,7 @@
 
 mod args;
 mod bench;
+mod bench_suite;
 mod chart;
 mod check_config;
 mod display;

@@ -72,6 +72,23 @@ pub fn source(kernel: Kernel) -> String {
     out
 }
 
+/// The WGSL a compute kernel declares its workgroup shape with; [`source_with_workgroup`] replaces it.
+pub const WORKGROUP_DECLARATION: &str = "@workgroup_size(8, 8, 1)";
+
+/// A compute kernel's WGSL with workgroup shape (x, y) instead of the declared 8x8.
+pub fn source_with_workgroup(kernel: Kernel, workgroup: (u32, u32)) -> String {
+    let src = source(kernel);
+    if kernel == Kernel::Present {
+        return src;
+    }
+    assert!(
+        src.contains(WORKGROUP_DECLARATION),
+        "{} declares no {WORKGROUP_DECLARATION}",
+        kernel.file_name()
+    );
+    src.replace(WORKGROUP_DECLARATION, &format!("@workgroup_size({}, {}, 1)", workgroup.0, workgroup.1))
+}
+
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
@@ -97,6 +114,17 @@ pub(crate) mod tests {
             for name in k.entry_points() {
                 assert!(m.entry_points.iter().any(|e| e.name == *name), "{} has no `{name}`", k.file_name());
             }
+        }
+    }
+
+    #[test]
+    fn workgroup_shapes_replace_the_declaration_and_validate() {
+        for k in Kernel::COMPUTE {
+            let src = source_with_workgroup(k, (16, 4));
+            assert!(src.contains("@workgroup_size(16, 4, 1)") && !src.contains(WORKGROUP_DECLARATION));
+            let module = naga::front::wgsl::parse_str(&src).expect("parses");
+            let ep = module.entry_points.iter().find(|e| e.name == "main").expect("main");
+            assert_eq!(ep.workgroup_size, [16, 4, 1]);
         }
     }
 

@@ -57,6 +57,27 @@ impl BlockMinMax {
         self.minmax[bx + self.counts[0] * (by + self.counts[1] * bz)]
     }
 
+    /// The level above: blocks of `factor` x `factor` x `factor` of these blocks (`factor * block`
+    /// cells per edge; fewer at the far edges), each with the min and max of the blocks it holds.
+    /// Those cover exactly the samples of the coarse block's cells, so the coarse min/max bound the
+    /// field in its closed box as the fine ones do in theirs (hierarchical empty-space skipping).
+    pub fn coarsen(&self, factor: usize) -> BlockMinMax {
+        assert!(factor >= 1);
+        let counts = self.counts.map(|c| c.div_ceil(factor));
+        let mut minmax = vec![[f32::INFINITY, f32::NEG_INFINITY]; counts.iter().product()];
+        for bz in 0..self.counts[2] {
+            for by in 0..self.counts[1] {
+                for bx in 0..self.counts[0] {
+                    let [lo, hi] = self.get(bx, by, bz);
+                    let c = &mut minmax[bx / factor + counts[0] * (by / factor + counts[1] * (bz / factor))];
+                    c[0] = c[0].min(lo);
+                    c[1] = c[1].max(hi);
+                }
+            }
+        }
+        BlockMinMax { block: self.block * factor, counts, minmax }
+    }
+
     /// Fraction of blocks that may contain the iso surface or object (max >= iso).
     pub fn occupied_fraction(&self, iso: f32) -> f64 {
         let n = self.minmax.iter().filter(|m| m[1] >= iso).count();
@@ -94,6 +115,20 @@ mod tests {
                     }
                 }
             }
+        }
+    }
+
+    #[test]
+    fn a_coarse_level_equals_blocks_of_its_size() {
+        let dims = [23, 17, 9];
+        let data: Vec<f32> = (0..dims.iter().product::<usize>()).map(|n| ((n * 7919) % 101) as f32).collect();
+        let v = Volume::new("t", dims, DVec3::ONE, DVec3::ZERO, data).unwrap();
+        for (block, factor) in [(2, 2), (4, 4), (3, 2), (8, 4)] {
+            let coarse = BlockMinMax::new(&v, block).coarsen(factor);
+            let direct = BlockMinMax::new(&v, block * factor);
+            assert_eq!(coarse.block, direct.block);
+            assert_eq!(coarse.counts, direct.counts, "block {block} factor {factor}");
+            assert_eq!(coarse.minmax, direct.minmax, "block {block} factor {factor}");
         }
     }
 }

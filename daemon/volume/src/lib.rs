@@ -15,6 +15,7 @@
 //! `PATH | procedural:NAME[:N]`.
 
 pub mod blocks;
+pub mod format;
 pub mod io;
 pub mod procedural;
 pub mod region;
@@ -25,6 +26,7 @@ use std::path::PathBuf;
 
 pub use blocks::BlockMinMax;
 pub use region::{VolumeInfo, VolumeStream, VoxelRange};
+pub use format::VoxelFormat;
 pub use source::VolumeSource;
 
 /// Everything that can go wrong making or reading a volume. File errors carry the path.

@@ -28,6 +28,8 @@
 //! ibl = "bent"                    # none | seed | bent | rays
 //! env = "sky"                     # sky | FILE.hdr | DIR (relative to this file's folder)
 //! exposure = 0.6                  # default 0.6 with an IBL method, else 1
+//! target_frame_ms = 100.0         # quality governor: AO samples chosen per frame for this
+//!                                 # frame time while the camera moves (omitted: off)
 //!
 //! [certificates]
 //! dir = "keys"                    # relative to this file (default "keys")
@@ -205,6 +207,8 @@ pub struct RenderConfig {
     pub env: String,
     /// `None`: 0.6 with an IBL method, else 1 (as `isowalld render`).
     pub exposure: Option<f64>,
+    /// The quality governor's target frame time (ms); `None`: off (`ao_samples` every frame).
+    pub target_frame_ms: Option<f64>,
 }
 
 impl Default for RenderConfig {
@@ -217,6 +221,7 @@ impl Default for RenderConfig {
             ibl: IblMethod::default(),
             env: "sky".into(),
             exposure: None,
+            target_frame_ms: None,
         }
     }
 }
@@ -961,6 +966,11 @@ fn validate_render(doc: &mut Doc<'_>, r: &RenderConfig) {
             doc.at(&at("exposure"), format!("render: `exposure` {x} must be a finite number >= 0"));
         }
     }
+    if let Some(t) = r.target_frame_ms {
+        if let Err(e) = crate::governor::Governor::new(t, 1, 1, 1) {
+            doc.at(&at("target_frame_ms"), format!("render: `target_frame_ms`: {e}"));
+        }
+    }
     if r.env.trim().is_empty() {
         doc.at(&at("env"), "render: `env` is empty (sky, FILE.hdr or DIR)");
     }
@@ -1692,6 +1702,10 @@ tiles = ["b"]
         );
         expect(&render("exposure = -1"), Some(2), "render: `exposure` -1 must be a finite number >= 0");
         expect(&render("ao_samples = 5000"), Some(2), "render: `ao_samples` 5000 is more than 1024");
+        expect(&render("target_frame_ms = 0"), Some(2), "render: `target_frame_ms`: target frame time 0 ms");
+        expect(&render("target_frame_ms = -3.5"), Some(2), "target frame time -3.5 ms");
+        let c = WallConfig::parse(&render("target_frame_ms = 50"), Path::new("w.toml")).unwrap();
+        assert_eq!(c.render.target_frame_ms, Some(50.0));
         expect(&render("shading = \"phong\""), Some(2), "unknown variant `phong`");
         expect(&render("ibl = \"sh\""), Some(2), "unknown variant `sh`");
         expect(&render("ao_method = \"theirs\""), Some(2), "unknown variant `theirs`");

@@ -11,6 +11,7 @@
 //!   (the one place bytes are made: bincode, length-prefixed frames, limits), [`clock`] (offsets
 //!   from Ping/Pong), [`barrier`] (the controller's swap barrier) and [`daemon_machine`] (a
 //!   daemon's side).
+//! - [`governor`]: the quality governor (frame times in, AO samples per frame out).
 
 pub mod barrier;
 pub mod bricks;
@@ -20,6 +21,7 @@ pub mod codec;
 pub mod composite;
 pub mod config;
 pub mod daemon_machine;
+pub mod governor;
 pub mod messages;
 pub mod render_state;
 pub mod wire;
@@ -31,6 +33,7 @@ pub use config::{
     WallConfig, WallMode, WallSection,
 };
 pub use daemon_machine::{NodeMachine, NodeOutput};
+pub use governor::{Governor, GovernorError, Motion};
 pub use messages::{Message, ProtocolError, Role, TileImage, PROTOCOL_VERSION};
 pub use render_state::{
     AoMethod, AoRadius, AoSettings, Aov, IblMethod, Light, Material, RenderSettings, Shading,

@@ -8,10 +8,11 @@ use crate::shaders::Kernel;
 pub struct AoKernel {
     pipeline: wgpu::ComputePipeline,
     layout: wgpu::BindGroupLayout,
+    workgroup: (u32, u32),
 }
 
 impl AoKernel {
-    pub fn new(ctx: &GpuContext) -> Result<AoKernel, GpuError> {
+    pub fn new(ctx: &GpuContext, workgroup: (u32, u32)) -> Result<AoKernel, GpuError> {
         let [e0, e1, e2] = frame_entries();
         let entries = [
             e0,
@@ -24,8 +25,8 @@ impl AoKernel {
             storage_entry(7, false),
             storage_entry(8, false),
         ];
-        let (pipeline, layout) = ctx.pipeline(Kernel::Ao, &entries)?;
-        Ok(AoKernel { pipeline, layout })
+        let (pipeline, layout) = ctx.pipeline(Kernel::Ao, &entries, workgroup)?;
+        Ok(AoKernel { pipeline, layout, workgroup })
     }
 
     /// Records one frame of the kernel over a `size` window. `io` is (direct + hit, N + depth,
@@ -42,6 +43,6 @@ impl AoKernel {
         size: (u32, u32),
     ) {
         let buffers = [params, &volume.voxels, &volume.block_minmax, io[0], io[1], env, io[2], io[3], io[4]];
-        super::dispatch(device, enc, &self.pipeline, &self.layout, "ao", &buffers, size);
+        super::dispatch(device, enc, &self.pipeline, &self.layout, "ao", &buffers, size, self.workgroup);
     }
 }

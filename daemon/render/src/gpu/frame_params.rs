@@ -63,7 +63,18 @@ pub struct FrameParams {
     /// The brick owns a (box-clamped) point q when `owned_min <= q < owned_max`.
     pub owned_min: [f32; 4],
     pub owned_max: [f32; 4],
+    // performance
+    /// The AO rays' block level: counts (xyz), cells per edge (w; 0: the primary level).
+    pub ao_blocks: [u32; 4],
+    /// The coarse level of AO rays: counts (xyz), cells per edge (w; 0: none).
+    pub coarse: [u32; 4],
+    /// x: performance flags (`PERF_*`); y, z: offsets of the AO and coarse levels in the block
+    /// min/max buffer; w: 0.
+    pub perf: [u32; 4],
 }
+
+/// Performance flag: an AO ray that enters a block whose min >= iso is occluded at once (exact).
+pub const PERF_BLOCK_MIN_EXIT: u32 = 1;
 
 fn v4(v: glam::DVec3, w: f64) -> [f32; 4] {
     [v.x as f32, v.y as f32, v.z as f32, w as f32]
@@ -148,6 +159,14 @@ impl FrameParams {
             },
             owned_min: volume.object.as_ref().map_or([0.0; 4], |o| v4(o.owned_min, 0.0)),
             owned_max: volume.object.as_ref().map_or([0.0; 4], |o| v4(o.owned_max, 0.0)),
+            ao_blocks: volume.ao_level.map_or([0; 4], |l| l.params()),
+            coarse: volume.coarse_level.map_or([0; 4], |l| l.params()),
+            perf: [
+                0,
+                volume.ao_level.map_or(0, |l| l.offset),
+                volume.coarse_level.map_or(0, |l| l.offset),
+                0,
+            ],
         }
     }
 }
@@ -205,6 +224,9 @@ mod tests {
                     ("data_offset", offset_of!(FrameParams, data_offset)),
                     ("owned_min", offset_of!(FrameParams, owned_min)),
                     ("owned_max", offset_of!(FrameParams, owned_max)),
+                    ("ao_blocks", offset_of!(FrameParams, ao_blocks)),
+                    ("coarse", offset_of!(FrameParams, coarse)),
+                    ("perf", offset_of!(FrameParams, perf)),
                 ],
             );
         }

@@ -8,14 +8,15 @@ use crate::shaders::Kernel;
 pub struct IsosurfaceKernel {
     pipeline: wgpu::ComputePipeline,
     layout: wgpu::BindGroupLayout,
+    workgroup: (u32, u32),
 }
 
 impl IsosurfaceKernel {
-    pub fn new(ctx: &GpuContext) -> Result<IsosurfaceKernel, GpuError> {
+    pub fn new(ctx: &GpuContext, workgroup: (u32, u32)) -> Result<IsosurfaceKernel, GpuError> {
         let [e0, e1, e2] = frame_entries();
         let entries = [e0, e1, e2, storage_entry(3, false), storage_entry(4, false), storage_entry(5, false)];
-        let (pipeline, layout) = ctx.pipeline(Kernel::Isosurface, &entries)?;
-        Ok(IsosurfaceKernel { pipeline, layout })
+        let (pipeline, layout) = ctx.pipeline(Kernel::Isosurface, &entries, workgroup)?;
+        Ok(IsosurfaceKernel { pipeline, layout, workgroup })
     }
 
     /// Records the kernel over a `size` window: `outputs` are (direct + hit, N + depth, fetches).
@@ -29,6 +30,6 @@ impl IsosurfaceKernel {
         size: (u32, u32),
     ) {
         let io = [params, &volume.voxels, &volume.block_minmax, outputs[0], outputs[1], outputs[2]];
-        super::dispatch(device, enc, &self.pipeline, &self.layout, "isosurface", &io, size);
+        super::dispatch(device, enc, &self.pipeline, &self.layout, "isosurface", &io, size, self.workgroup);
     }
 }

@@ -11,6 +11,7 @@
 pub mod ao;
 pub mod frame_params;
 pub mod isosurface;
+pub mod perf;
 pub mod present;
 
 use crate::environment::Environment;
@@ -24,6 +25,7 @@ use wgpu::util::DeviceExt;
 pub use ao::AoKernel;
 pub use frame_params::FrameParams;
 pub use isosurface::IsosurfaceKernel;
+pub use perf::PerfOptions;
 
 #[derive(Debug, thiserror::Error)]
 pub enum GpuError {
@@ -113,16 +115,19 @@ impl GpuContext {
     }
 
     /// A compute pipeline for `kernel` with one bind group of `entries`.
+    /// `workgroup` is the kernel's workgroup shape (x, y), replacing the `@workgroup_size` the
+    /// WGSL declares.
     pub(crate) fn pipeline(
         &self,
         kernel: Kernel,
         entries: &[wgpu::BindGroupLayoutEntry],
+        workgroup: (u32, u32),
     ) -> Result<(wgpu::ComputePipeline, wgpu::BindGroupLayout), GpuError> {
         self.validated("pipeline", || {
             let device = &self.device;
             let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
                 label: Some(kernel.file_name()),
-                source: wgpu::ShaderSource::Wgsl(shaders::source(kernel).into()),
+                source: wgpu::ShaderSource::Wgsl(shaders::source_with_workgroup(kernel, workgroup).into()),
             });
             let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
                 label: Some(kernel.file_name()),
@@ -179,11 +184,10 @@ pub(crate) fn storage_entry(binding: u32, read_only: bool) -> wgpu::BindGroupLay
     }
 }
 
-/// Workgroup edge of every kernel (`@workgroup_size(8, 8, 1)`).
-pub(crate) const WORKGROUP: u32 = 8;
-
-/// Records one compute pass of `pipeline` over a `size` window, with `buffers` bound in order at
-/// bindings 0, 1, 2, ... of group 0 (every kernel declares its bindings that way).
+/// Records one compute pass of `pipeline` (compiled with workgroup shape `workgroup`) over a `size`
+/// window, with `buffers` bound in order at bindings 0, 1, 2, ... of group 0 (every kernel declares
+/// its bindings that way).
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn dispatch(
     device: &wgpu::Device,
     enc: &mut wgpu::CommandEncoder,
@@ -192,6 +196,7 @@ pub(crate) fn dispatch(
     label: &str,
     buffers: &[&wgpu::Buffer],
     size: (u32, u32),
+    workgroup: (u32, u32),
 ) {
     let entries: Vec<wgpu::BindGroupEntry> = buffers
         .iter()
@@ -207,16 +212,20 @@ pub(crate) fn dispatch(
         enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(label), timestamp_writes: None });
     pass.set_pipeline(pipeline);
     pass.set_bind_group(0, &bind_group, &[]);
-    pass.dispatch_workgroups(size.0.div_ceil(WORKGROUP), size.1.div_ceil(WORKGROUP), 1);
+    pass.dispatch_workgroups(size.0.div_ceil(workgroup.0), size.1.div_ceil(workgroup.1), 1);
 }
 
-/// A volume on the GPU: voxels (f32) and per-block min/max.
+/// A volume on the GPU: voxels (f32) and per-block min/max (the fine level, then the coarse one).
 pub struct GpuVolume {
     voxels: wgpu::Buffer,
     block_minmax: wgpu::Buffer,
     pub dims: [u32; 3],
     pub block: u32,
     pub counts: [u32; 3],
+    /// The AO rays' own block level (performance), if uploaded.
+    pub ao_level: Option<BlockLevel>,
+    /// The coarse level of AO rays, if uploaded.
+    pub coarse_level: Option<BlockLevel>,
     pub spacing: glam::DVec3,
     pub box_min: glam::DVec3,
     pub box_max: glam::DVec3,
@@ -240,9 +249,31 @@ pub struct ObjectSpace {
 }
 
 impl GpuVolume {
-    pub fn upload(ctx: &GpuContext, v: &Volume, blocks: &BlockMinMax) -> Result<GpuVolume, GpuError> {
+    /// Uploads the voxels and the block min/max of the primary rays (`blocks`), then of AO rays'
+    /// own levels where given: `ao` (their fine level) and `coarse` (hierarchical skipping).
+    pub fn upload(
+        ctx: &GpuContext,
+        v: &Volume,
+        blocks: &BlockMinMax,
+        ao: Option<&BlockMinMax>,
+        coarse: Option<&BlockMinMax>,
+    ) -> Result<GpuVolume, GpuError> {
         let voxels = ctx.storage_init(&format!("volume {}", v.name), bytemuck::cast_slice(v.data()))?;
-        let block_minmax = ctx.storage_init("block min/max", bytemuck::cast_slice(&blocks.minmax))?;
+        let mut minmax = blocks.minmax.clone();
+        let mut append = |b: Option<&BlockMinMax>| {
+            b.map(|b| {
+                let level = BlockLevel {
+                    counts: b.counts.map(|c| c as u32),
+                    cells: b.block as u32,
+                    offset: minmax.len() as u32,
+                };
+                minmax.extend_from_slice(&b.minmax);
+                level
+            })
+        };
+        let ao_level = append(ao);
+        let coarse_level = append(coarse);
+        let block_minmax = ctx.storage_init("block min/max", bytemuck::cast_slice(&minmax))?;
         let d = v.dims();
         Ok(GpuVolume {
             voxels,
@@ -250,6 +281,8 @@ impl GpuVolume {
             dims: [d[0] as u32, d[1] as u32, d[2] as u32],
             block: blocks.block as u32,
             counts: blocks.counts.map(|c| c as u32),
+            ao_level,
+            coarse_level,
             spacing: v.spacing(),
             box_min: v.box_min(),
             box_max: v.box_max(),
@@ -288,8 +321,28 @@ impl GpuVolume {
             box_min: whole.box_min(),
             box_max: whole.box_max(),
             name: whole.name.clone(),
+            // A brick's AO rays use the primary block level (the whole volume's grid): the extra
+            // levels are built from a whole volume's voxels, which a brick node does not hold.
+            ao_level: None,
+            coarse_level: None,
             object: Some(object),
         })
+    }
+}
+
+/// A block level uploaded after the primary rays' one: its counts, cells per edge and where its
+/// min/max start in the buffer (in blocks).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct BlockLevel {
+    pub counts: [u32; 3],
+    pub cells: u32,
+    pub offset: u32,
+}
+
+impl BlockLevel {
+    /// (counts, cells) as `FrameParams` carries a level.
+    pub fn params(&self) -> [u32; 4] {
+        [self.counts[0], self.counts[1], self.counts[2], self.cells]
     }
 }
 
@@ -316,6 +369,7 @@ pub struct GpuRenderer {
     pub ctx: GpuContext,
     isosurface: IsosurfaceKernel,
     ao: AoKernel,
+    perf: PerfOptions,
     /// Bound where no environment is given (IBL off): one black texel.
     no_env: GpuEnvironment,
 }
@@ -332,10 +386,28 @@ pub const MAX_FRAMES: u32 = 4096;
 impl GpuRenderer {
     pub fn new() -> Result<GpuRenderer, GpuError> {
         let ctx = GpuContext::new()?;
-        let isosurface = IsosurfaceKernel::new(&ctx)?;
-        let ao = AoKernel::new(&ctx)?;
+        let perf = PerfOptions::default();
+        let isosurface = IsosurfaceKernel::new(&ctx, perf.workgroup)?;
+        let ao = AoKernel::new(&ctx, perf.workgroup)?;
         let no_env = GpuEnvironment::upload(&ctx, &Environment::constant([0.0; 3]))?;
-        Ok(GpuRenderer { ctx, isosurface, ao, no_env })
+        Ok(GpuRenderer { ctx, isosurface, ao, perf, no_env })
+    }
+
+    /// The performance options in use.
+    pub fn perf(&self) -> PerfOptions {
+        self.perf
+    }
+
+    /// Changes the performance options (for benchmarks: the defaults are the measured best). A new
+    /// workgroup shape recompiles the kernels; block sizes apply to volumes uploaded afterwards.
+    pub fn set_perf(&mut self, perf: PerfOptions) -> Result<(), GpuError> {
+        perf.validate().map_err(GpuError::Settings)?;
+        if perf.workgroup != self.perf.workgroup {
+            self.isosurface = IsosurfaceKernel::new(&self.ctx, perf.workgroup)?;
+            self.ao = AoKernel::new(&self.ctx, perf.workgroup)?;
+        }
+        self.perf = perf;
+        Ok(())
     }
 
     pub fn adapter_name(&self) -> &str {
@@ -344,8 +416,20 @@ impl GpuRenderer {
 
     /// Uploads a volume and its block min/max for rendering.
     pub fn upload(&self, volume: &Volume) -> Result<GpuVolume, GpuError> {
-        let blocks = BlockMinMax::new(volume, BlockMinMax::DEFAULT_BLOCK);
-        GpuVolume::upload(&self.ctx, volume, &blocks)
+        let p = self.perf;
+        let blocks = BlockMinMax::new(volume, p.block as usize);
+        let level = |cells: u32| {
+            (cells > 0 && cells != p.block).then(|| {
+                if cells.is_multiple_of(p.block) {
+                    blocks.coarsen((cells / p.block) as usize)
+                } else {
+                    BlockMinMax::new(volume, cells as usize)
+                }
+            })
+        };
+        let ao = level(p.ao_block);
+        let coarse = (p.coarse > 0).then(|| BlockMinMax::new(volume, p.coarse as usize));
+        GpuVolume::upload(&self.ctx, volume, &blocks, ao.as_ref(), coarse.as_ref())
     }
 
     /// Object space: uploads a brick and its halo ([`GpuVolume::upload_brick`]).
@@ -430,6 +514,7 @@ impl GpuRenderer {
         let mut enc = device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
         let mut uniforms = Vec::new();
         let mut params = FrameParams::new(volume, view, settings, env);
+        params.perf[0] = self.perf.flags();
         let uniform = |p: &FrameParams| {
             device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some("frame params"),

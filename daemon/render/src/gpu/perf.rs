@@ -1,0 +1,91 @@
+//! [`PerfOptions`]: how the kernels do their work, never what they compute. Every option leaves
+//! the image unchanged (the skipping is conservative and the early exit exact); they exist so that
+//! `isowalld bench suite` can measure them against each other in one run. The defaults are the
+//! measured best on lavapipe (docs/bench/perf-lavapipe.md).
+
+/// Performance options of a [`GpuRenderer`](super::GpuRenderer).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct PerfOptions {
+    /// Cells per block edge of the primary rays' min/max level (empty-space skipping).
+    pub block: u32,
+    /// Cells per block edge of the AO rays' own level (0: they use the primary rays' level). A
+    /// level of its own keeps the primary rays' march, and so their hits, exactly as before.
+    pub ao_block: u32,
+    /// Cells per block edge of the coarse level AO rays cross whole where its max < iso
+    /// (hierarchical skipping; 0: none).
+    pub coarse: u32,
+    /// An AO ray entering a block whose min >= iso is occluded without loading a cell.
+    pub block_min_exit: bool,
+    /// Workgroup shape (x, y) of the compute kernels.
+    pub workgroup: (u32, u32),
+}
+
+impl Default for PerfOptions {
+    fn default() -> Self {
+        // Measured on lavapipe (docs/bench/perf-lavapipe.md): AO rays on their own level of 4
+        // cells load 0.61-0.67x the cells of the primary rays' blocks of 8 at the same error, and
+        // were as fast or faster (2 cells: fewer still, but 8x the memory of 4 for no measured
+        // gain); the coarse level and the early exit cost nothing; no workgroup shape tried beat
+        // 8x8 beyond the noise.
+        PerfOptions { block: 8, ao_block: 4, coarse: 32, block_min_exit: true, workgroup: (8, 8) }
+    }
+}
+
+impl PerfOptions {
+    /// The options of the build before the performance work (issue 9): blocks of 8 for every ray,
+    /// no coarse level, no early exit, 8x8 workgroups.
+    pub const BEFORE: PerfOptions =
+        PerfOptions { block: 8, ao_block: 0, coarse: 0, block_min_exit: false, workgroup: (8, 8) };
+
+    /// Refuses shapes a device need not support (at most 256 invocations, 256 per axis).
+    pub fn validate(&self) -> Result<(), String> {
+        let (x, y) = self.workgroup;
+        if x == 0 || y == 0 || x * y > 256 {
+            return Err(format!("workgroup {x}x{y}: each side at least 1 and at most 256 invocations"));
+        }
+        if !(1..=256).contains(&self.block) {
+            return Err(format!("block {}: 1 to 256 cells per edge", self.block));
+        }
+        for (name, v) in [("AO block", self.ao_block), ("coarse block", self.coarse)] {
+            if v > 256 {
+                return Err(format!("{name} {v}: at most 256 cells per edge (0: none)"));
+            }
+        }
+        Ok(())
+    }
+
+    /// The `perf.x` flags of `FrameParams`.
+    pub fn flags(&self) -> u32 {
+        if self.block_min_exit {
+            super::frame_params::PERF_BLOCK_MIN_EXIT
+        } else {
+            0
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bad_shapes_are_refused() {
+        assert!(PerfOptions::default().validate().is_ok());
+        assert!(PerfOptions::BEFORE.validate().is_ok());
+        for wg in [(0, 8), (32, 16), (8, 0)] {
+            assert!(PerfOptions { workgroup: wg, ..Default::default() }.validate().is_err(), "{wg:?}");
+        }
+        assert!(PerfOptions { block: 0, ..Default::default() }.validate().is_err());
+        assert!(PerfOptions { coarse: 257, ..Default::default() }.validate().is_err());
+        assert!(PerfOptions { ao_block: 300, ..Default::default() }.validate().is_err());
+    }
+
+    #[test]
+    fn flags_follow_the_options() {
+        assert_eq!(PerfOptions::BEFORE.flags(), 0);
+        assert_eq!(
+            PerfOptions { block_min_exit: true, ..PerfOptions::BEFORE }.flags(),
+            super::super::frame_params::PERF_BLOCK_MIN_EXIT
+        );
+    }
+}

@@ -1,0 +1,419 @@
+//! `isowalld bench suite`: a fixed set of scenes, sizes and AO sample counts, each with ms per frame,
+//! trilinear fetches per pixel and its error; `--save FILE` writes the rows as CSV, `--baseline
+//! FILE` compares them with a CSV an earlier build saved, as ratios (new / baseline) rather than
+//! absolute times, so the comparison survives a different machine load as far as a ratio can.
+//!
+//! Error of a row (against a converged reference rendered in the same run: ours, exact, f32 voxels,
+//! `--reference-frames` x 256 samples accumulated): the occlusion RMSE over the reference's hit
+//! pixels, the share of pixels whose hit differs from the reference's, and the median normal error
+//! in degrees over pixels both hit.
+
+use crate::args;
+use crate::bench::{error_stats, median, sample_list, scene_spec};
+use crate::render::load_volume;
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use isowall_render::gpu::{GpuRenderer, GpuVolume, PerfOptions};
+use isowall_render::Frame;
+use isowall_volume::VoxelFormat;
+use isowall_wall::{Camera, RenderSettings, View};
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+
+/// The CSV header of `--save` and `--baseline` files (comment lines start with '#').
+pub const HEADER: &str =
+    "scene,size,samples,variant,ms_per_frame,fetches_per_pixel,occlusion_rmse,hit_mismatch_percent,normal_error_deg";
+
+#[derive(Args)]
+pub struct SuiteArgs {
+    /// Scenes as VOLUME[@ISO], comma-separated (VOLUME as for `render --volume`)
+    #[arg(long, default_value = "procedural:engine,../shared/data/ct-cranium.nrrd@300")]
+    pub scenes: String,
+    /// Image sizes, comma-separated
+    #[arg(long, default_value = "512x512")]
+    pub sizes: String,
+    /// AO samples per pixel per frame, comma-separated
+    #[arg(long, default_value = "32,256")]
+    pub samples: String,
+    /// Timed frames per row (the median is reported; one untimed warm-up before)
+    #[arg(long, default_value_t = 3)]
+    pub repeats: usize,
+    /// Frames of 256 samples accumulated for the converged reference of each scene and size
+    #[arg(long, default_value_t = 4)]
+    pub reference_frames: u32,
+    /// Compare with the rows of this CSV (an earlier `--save`): ratios new / baseline
+    #[arg(long, value_name = "FILE")]
+    pub baseline: Option<PathBuf>,
+    /// Write the rows to this CSV (e.g. docs/bench/baseline-lavapipe.csv)
+    #[arg(long, value_name = "FILE")]
+    pub save: Option<PathBuf>,
+    /// Renderer variants measured per row, comma-separated: `default`, `before` (the options of the
+    /// build before the performance work), or changes joined by '+': block=N, ao=N, coarse=N,
+    /// exit=on|off, wg=XxY, format=r32f|r16f|r16|r8 (e.g. `ao=2+coarse=16`)
+    #[arg(long, default_value = "default")]
+    pub variants: String,
+}
+
+/// One measured row.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Row {
+    pub scene: String,
+    pub size: String,
+    pub samples: u32,
+    pub variant: String,
+    pub ms: f64,
+    pub fetches_per_pixel: f64,
+    pub occlusion_rmse: f64,
+    pub hit_mismatch_percent: f64,
+    pub normal_error_deg: f64,
+}
+
+impl Row {
+    fn key(&self) -> (String, String, u32, String) {
+        (self.scene.clone(), self.size.clone(), self.samples, self.variant.clone())
+    }
+
+    fn csv(&self) -> String {
+        format!(
+            "{},{},{},{},{:.2},{:.2},{:.5},{:.3},{:.4}",
+            self.scene,
+            self.size,
+            self.samples,
+            self.variant,
+            self.ms,
+            self.fetches_per_pixel,
+            self.occlusion_rmse,
+            self.hit_mismatch_percent,
+            self.normal_error_deg
+        )
+    }
+}
+
+/// Parses rows written by [`Row::csv`] under [`HEADER`]; errors name the file and line.
+pub fn parse_rows(text: &str, file: &str) -> Result<Vec<Row>> {
+    let mut rows = Vec::new();
+    let mut header_seen = false;
+    for (i, line) in text.lines().enumerate() {
+        let line = line.trim();
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        if !header_seen {
+            if line != HEADER {
+                bail!("{file}:{}: expected the header '{HEADER}'", i + 1);
+            }
+            header_seen = true;
+            continue;
+        }
+        let f: Vec<&str> = line.split(',').collect();
+        if f.len() != 9 {
+            bail!("{file}:{}: {} fields, expected 9", i + 1, f.len());
+        }
+        let num = |k: usize, name: &str| -> Result<f64> {
+            f[k].parse::<f64>()
+                .map_err(|_| anyhow::anyhow!("{file}:{}: {name} '{}' is not a number", i + 1, f[k]))
+        };
+        rows.push(Row {
+            scene: f[0].to_string(),
+            size: f[1].to_string(),
+            samples: f[2]
+                .parse()
+                .map_err(|_| anyhow::anyhow!("{file}:{}: samples '{}' is not a whole number", i + 1, f[2]))?,
+            variant: f[3].to_string(),
+            ms: num(4, "ms_per_frame")?,
+            fetches_per_pixel: num(5, "fetches_per_pixel")?,
+            occlusion_rmse: num(6, "occlusion_rmse")?,
+            hit_mismatch_percent: num(7, "hit_mismatch_percent")?,
+            normal_error_deg: num(8, "normal_error_deg")?,
+        });
+    }
+    if !header_seen {
+        bail!("{file}: no header line '{HEADER}'");
+    }
+    Ok(rows)
+}
+
+/// One line of the comparison: a row against the baseline row with the same scene, size, samples
+/// and variant (`None` where the baseline has none; a variant not in the baseline is compared with
+/// the baseline's `default` row of the same scene, size and samples).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Comparison {
+    pub row: Row,
+    pub base_variant: Option<String>,
+    pub ms_ratio: f64,
+    pub fetch_ratio: f64,
+    pub rmse_ratio: f64,
+}
+
+pub fn compare(rows: &[Row], baseline: &[Row]) -> Vec<Comparison> {
+    let base: BTreeMap<_, _> = baseline.iter().map(|r| (r.key(), r)).collect();
+    let ratio = |a: f64, b: f64| if b > 0.0 { a / b } else { f64::NAN };
+    rows.iter()
+        .map(|r| {
+            let b = base
+                .get(&r.key())
+                .or_else(|| base.get(&(r.scene.clone(), r.size.clone(), r.samples, "default".to_string())));
+            match b {
+                Some(b) => Comparison {
+                    row: r.clone(),
+                    base_variant: Some(b.variant.clone()),
+                    ms_ratio: ratio(r.ms, b.ms),
+                    fetch_ratio: ratio(r.fetches_per_pixel, b.fetches_per_pixel),
+                    rmse_ratio: ratio(r.occlusion_rmse, b.occlusion_rmse),
+                },
+                None => Comparison {
+                    row: r.clone(),
+                    base_variant: None,
+                    ms_ratio: f64::NAN,
+                    fetch_ratio: f64::NAN,
+                    rmse_ratio: f64::NAN,
+                },
+            }
+        })
+        .collect()
+}
+
+/// Hit mismatch (percent of pixels) and median normal error (degrees, over pixels both hit).
+fn primary_error(f: &Frame, reference: &Frame) -> (f64, f64) {
+    let n = f.pixel_count();
+    let mismatch = (0..n).filter(|&i| f.hit[i] != reference.hit[i]).count();
+    let angles: Vec<f64> = (0..n)
+        .filter(|&i| f.hit[i] && reference.hit[i])
+        .map(|i| {
+            let a = glam::DVec3::from_array(f.normal[i].map(f64::from));
+            let b = glam::DVec3::from_array(reference.normal[i].map(f64::from));
+            a.dot(b).clamp(-1.0, 1.0).acos().to_degrees()
+        })
+        .collect();
+    let angle = if angles.is_empty() { 0.0 } else { median(angles) };
+    (mismatch as f64 * 100.0 / n.max(1) as f64, angle)
+}
+
+/// The renderer's performance options a variant name stands for: `default` (this build's), `before`
+/// (the build before the performance work), or changes of the default joined by '+': `block=N`
+/// (cells per block edge, primary rays), `ao=N` (AO rays' block, 0: the primary one), `coarse=N`
+/// (AO rays' coarse block, 0 none), `exit=on|off` (the block min early exit of AO rays), `wg=XxY`
+/// (workgroup shape), `format=r32f|r16f|r16|r8` (the voxels rounded as that storage format keeps
+/// them, rendered by the f32 kernels: the format's error, not its speed); e.g. `ao=2+coarse=16`.
+pub fn variant_options(name: &str) -> Result<(PerfOptions, VoxelFormat)> {
+    let bad = |what: &str| anyhow::anyhow!("variant '{name}': {what}");
+    let mut o = PerfOptions::default();
+    let mut format = VoxelFormat::R32F;
+    for part in name.split('+') {
+        match part.split_once('=') {
+            None if part == "default" => {}
+            None if part == "before" => o = PerfOptions::BEFORE,
+            Some(("block", v)) => o.block = v.parse().map_err(|_| bad("block is not a whole number"))?,
+            Some(("ao", v)) => o.ao_block = v.parse().map_err(|_| bad("ao is not a whole number"))?,
+            Some(("coarse", v)) => o.coarse = v.parse().map_err(|_| bad("coarse is not a whole number"))?,
+            Some(("exit", "on")) => o.block_min_exit = true,
+            Some(("exit", "off")) => o.block_min_exit = false,
+            Some(("format", v)) => format = v.parse().map_err(|e: String| bad(&e))?,
+            Some(("wg", v)) => {
+                o.workgroup = args::size(v).map_err(|e| bad(&format!("wg: {e}")))?;
+            }
+            _ => {
+                return Err(bad(&format!(
+                    "unknown part '{part}' (default, before, block=N, ao=N, coarse=N, exit=on|off, wg=XxY, format=r32f|r16f|r16|r8)"
+                )))
+            }
+        }
+    }
+    o.validate().map_err(|e| bad(&e))?;
+    Ok((o, format))
+}
+
+pub fn run(a: &SuiteArgs) -> Result<()> {
+    let baseline = match &a.baseline {
+        Some(p) => {
+            let text = std::fs::read_to_string(p)
+                .with_context(|| format!("reading the baseline {}", p.display()))?;
+            Some(parse_rows(&text, &p.display().to_string())?)
+        }
+        None => None,
+    };
+    let variants: Vec<(String, (PerfOptions, VoxelFormat))> = a
+        .variants
+        .split(',')
+        .map(str::trim)
+        .filter(|v| !v.is_empty())
+        .map(|v| Ok((v.to_string(), variant_options(v)?)))
+        .collect::<Result<_>>()?;
+    let mut gpu = GpuRenderer::new()?;
+    let sizes: Vec<(u32, u32)> = a
+        .sizes
+        .split(',')
+        .map(|s| args::size(s.trim()).map_err(|e| anyhow::anyhow!("--sizes: {e}")))
+        .collect::<Result<_>>()?;
+    let samples = sample_list(&a.samples)?;
+    let header = format!(
+        "# isowalld bench suite: median of {} frames, adapter '{}'; reference: ours, exact, {} frames x 256 samples",
+        a.repeats.max(1),
+        gpu.adapter_name(),
+        a.reference_frames
+    );
+    println!("{header}");
+    println!("{HEADER}");
+    let mut rows = Vec::new();
+    for scene in a.scenes.split(',').map(str::trim).filter(|s| !s.is_empty()) {
+        let (spec, iso) = scene_spec(scene)?;
+        let (volume, iso) = load_volume(Some(spec), None, iso)?;
+        gpu.set_perf(PerfOptions::default())?;
+        let gv = gpu.upload(&volume)?;
+        // The volume as each variant's block levels need it.
+        let mut uploads: Vec<((u32, u32, u32, VoxelFormat), GpuVolume)> = Vec::new();
+        for (_, (o, format)) in &variants {
+            let key = (o.block, o.ao_block, o.coarse, *format);
+            if !uploads.iter().any(|(k, _)| *k == key) {
+                gpu.set_perf(*o)?;
+                uploads.push((key, gpu.upload(&volume.stored_as(*format))?));
+            }
+        }
+        for &(w, h) in &sizes {
+            let view = View::whole(Camera::framing(volume.box_min(), volume.box_max(), w, h), w, h);
+            gpu.set_perf(PerfOptions::default())?;
+            let mut s = RenderSettings::new(iso);
+            s.ao.samples = 256;
+            s.ao.frame = 1_000_000; // disjoint from the measured frames' patterns
+            let reference = gpu.render_accumulated(&gv, &view, &s, None, a.reference_frames.max(1))?.frame;
+            for &n in &samples {
+                for (variant, (o, format)) in &variants {
+                    gpu.set_perf(*o)?;
+                    let key = (o.block, o.ao_block, o.coarse, *format);
+                    let gv = &uploads.iter().find(|(k, _)| *k == key).expect("uploaded").1;
+                    let mut s = RenderSettings::new(iso);
+                    s.ao.samples = n;
+                    gpu.render(gv, &view, &s, None)?; // warm-up
+                    let mut times = Vec::new();
+                    let mut last = None;
+                    for r in 0..a.repeats.max(1) {
+                        s.ao.frame = r as u32;
+                        let out = gpu.render(gv, &view, &s, None)?;
+                        times.push(out.gpu_time.as_secs_f64() * 1e3);
+                        last = Some(out.frame);
+                    }
+                    let f = last.expect("at least one repeat");
+                    let (rmse, _) = error_stats(&f.occlusion, &reference.occlusion, &reference.hit);
+                    let (mismatch, angle) = primary_error(&f, &reference);
+                    let row = Row {
+                        scene: volume.name.clone(),
+                        size: format!("{w}x{h}"),
+                        samples: n,
+                        variant: variant.to_string(),
+                        ms: median(times),
+                        fetches_per_pixel: f.fetches_per_pixel(),
+                        occlusion_rmse: rmse,
+                        hit_mismatch_percent: mismatch,
+                        normal_error_deg: angle,
+                    };
+                    println!("{}", row.csv());
+                    rows.push(row);
+                }
+            }
+        }
+    }
+    if let Some(p) = &a.save {
+        let mut text = format!("{header}\n{HEADER}\n");
+        for r in &rows {
+            text.push_str(&r.csv());
+            text.push('\n');
+        }
+        std::fs::write(p, text).with_context(|| format!("writing {}", p.display()))?;
+        println!("# saved {}", p.display());
+    }
+    if let (Some(base), Some(p)) = (baseline, &a.baseline) {
+        println!(
+            "# against the baseline {} (ratios new / baseline; below 1 is faster, fewer, smaller)",
+            p.display()
+        );
+        println!("scene,size,samples,variant,baseline_variant,ms_ratio,fetch_ratio,occlusion_rmse_ratio");
+        for c in compare(&rows, &base) {
+            let r = &c.row;
+            println!(
+                "{},{},{},{},{},{:.3},{:.3},{:.3}",
+                r.scene,
+                r.size,
+                r.samples,
+                r.variant,
+                c.base_variant.as_deref().unwrap_or("none"),
+                c.ms_ratio,
+                c.fetch_ratio,
+                c.rmse_ratio
+            );
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(variant: &str, ms: f64, fetches: f64, rmse: f64) -> Row {
+        Row {
+            scene: "procedural:engine:256".into(),
+            size: "512x512".into(),
+            samples: 32,
+            variant: variant.into(),
+            ms,
+            fetches_per_pixel: fetches,
+            occlusion_rmse: rmse,
+            hit_mismatch_percent: 0.0,
+            normal_error_deg: 0.0,
+        }
+    }
+
+    #[test]
+    fn variant_names_change_the_default() {
+        assert_eq!(variant_options("default").unwrap(), (PerfOptions::default(), VoxelFormat::R32F));
+        assert_eq!(variant_options("before").unwrap().0, PerfOptions::BEFORE);
+        assert_eq!(variant_options("format=r16").unwrap().1, VoxelFormat::R16);
+        let (o, _) = variant_options("block=4+ao=2+coarse=8+exit=off+wg=16x4").unwrap();
+        assert_eq!(
+            o,
+            PerfOptions { block: 4, ao_block: 2, coarse: 8, block_min_exit: false, workgroup: (16, 4) }
+        );
+        assert_eq!(variant_options("before+wg=4x4").unwrap().0.workgroup, (4, 4));
+        for bad in ["fast", "block=x", "wg=0x8", "wg=32x32", "exit=maybe", "format=r4"] {
+            assert!(variant_options(bad).is_err(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn rows_survive_save_and_parse() {
+        let rows = vec![row("default", 700.0, 53.8, 0.0271), row("r16", 650.5, 50.25, 0.02715)];
+        let mut text = format!("# comment\n{HEADER}\n");
+        for r in &rows {
+            text.push_str(&r.csv());
+            text.push('\n');
+        }
+        assert_eq!(parse_rows(&text, "x.csv").unwrap(), rows);
+    }
+
+    #[test]
+    fn bad_files_name_the_line() {
+        let e = parse_rows("scene,nope\n", "b.csv").unwrap_err().to_string();
+        assert!(e.contains("b.csv:1"), "{e}");
+        let e = parse_rows(&format!("{HEADER}\na,b,1,d,x,1,1,1,1\n"), "c.csv").unwrap_err().to_string();
+        assert!(e.contains("c.csv:2") && e.contains("ms_per_frame"), "{e}");
+        assert!(parse_rows("# only a comment\n", "d.csv").is_err());
+    }
+
+    #[test]
+    fn comparison_is_a_ratio_and_falls_back_to_default() {
+        let base = vec![row("default", 800.0, 60.0, 0.02)];
+        let new = vec![row("default", 400.0, 30.0, 0.02), row("r16", 200.0, 30.0, 0.03), {
+            let mut r = row("default", 1.0, 1.0, 1.0);
+            r.samples = 256;
+            r
+        }];
+        let c = compare(&new, &base);
+        assert_eq!(c[0].base_variant.as_deref(), Some("default"));
+        assert!((c[0].ms_ratio - 0.5).abs() < 1e-12 && (c[0].fetch_ratio - 0.5).abs() < 1e-12);
+        assert!((c[0].rmse_ratio - 1.0).abs() < 1e-12);
+        assert_eq!(c[1].base_variant.as_deref(), Some("default"));
+        assert!((c[1].ms_ratio - 0.25).abs() < 1e-12 && (c[1].rmse_ratio - 1.5).abs() < 1e-12);
+        assert_eq!(c[2].base_variant, None);
+        assert!(c[2].ms_ratio.is_nan());
+    }
+}
