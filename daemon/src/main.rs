@@ -6,6 +6,7 @@ mod bench;
 mod chart;
 mod check_config;
 mod display;
+mod notify;
 mod render;
 mod run;
 mod tiles;
