@@ -73,7 +73,7 @@ pub struct SnapshotArgs {
     pub out: PathBuf,
 }
 
-fn load(config: &std::path::Path) -> Result<WallConfig> {
+pub(crate) fn load(config: &std::path::Path) -> Result<WallConfig> {
     WallConfig::load(config).map_err(|e| anyhow!("{e}"))
 }
 
@@ -92,7 +92,7 @@ pub fn keygen(a: &KeygenArgs) -> Result<()> {
 
 /// The wall camera and render settings for the configured volume (the controller reads the volume
 /// only for its box and default iso).
-fn scene(config: &WallConfig) -> Result<(Camera, RenderSettings)> {
+pub(crate) fn scene(config: &WallConfig) -> Result<(Camera, RenderSettings)> {
     let source: VolumeSource = config.volume_source().parse()?;
     let raw = match (&config.volume.dims, &config.volume.voxel_type) {
         (Some(dims), Some(t)) => Some(isowall_volume::io::RawSpec {
@@ -147,7 +147,7 @@ async fn drive(
     Ok((elapsed, first_swap))
 }
 
-fn runtime() -> Result<tokio::runtime::Runtime> {
+pub(crate) fn runtime() -> Result<tokio::runtime::Runtime> {
     tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
@@ -155,7 +155,7 @@ fn runtime() -> Result<tokio::runtime::Runtime> {
         .context("async runtime")
 }
 
-async fn write_snapshot(wall: &mut Wall, out: &std::path::Path) -> Result<()> {
+pub(crate) async fn write_snapshot(wall: &mut Wall, out: &std::path::Path) -> Result<()> {
     let tiles = wall.snapshot().await;
     let (w, h, rgb) = compose(&wall.config, &tiles);
     image::save_buffer(out, &rgb, w, h, image::ExtendedColorType::Rgb8)

@@ -3,8 +3,11 @@
 //! It never links wgpu: the daemons render.
 
 mod check_config;
+mod demo;
 mod drive;
 mod local;
+mod path;
+mod start;
 mod wall;
 
 use clap::{Parser, Subcommand};
@@ -37,6 +40,8 @@ enum Command {
     Orbit(drive::OrbitArgs),
     /// Gather every tile's last frame of a running wall into one image (bezels dark).
     Snapshot(drive::SnapshotArgs),
+    /// Play a scripted camera path (keyframes in TOML) on the wall; --loop, --record DIR.
+    Demo(demo::DemoArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -54,6 +59,7 @@ fn main() -> std::process::ExitCode {
         Command::Up(args) => drive::up(&args),
         Command::Orbit(args) => drive::orbit(&args),
         Command::Snapshot(args) => drive::snapshot(&args),
+        Command::Demo(args) => demo::demo(&args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

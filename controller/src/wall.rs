@@ -345,6 +345,11 @@ impl Wall {
         Ok(())
     }
 
+    /// The id of the last frame begun (0 before the first).
+    pub fn last_frame_id(&self) -> u64 {
+        self.next_frame - 1
+    }
+
     /// Waits until every begun frame is finished (presented everywhere, or its present deadline).
     pub async fn settle(&mut self) {
         let last = self.next_frame - 1;
