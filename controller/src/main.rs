@@ -2,6 +2,7 @@
 //! (local daemons for loopback nodes), drives it (an orbit), and gathers whole-wall snapshots.
 //! It never links wgpu: the daemons render.
 
+mod bench;
 mod check_config;
 mod demo;
 mod drive;
@@ -40,6 +41,8 @@ enum Command {
     Orbit(drive::OrbitArgs),
     /// Gather every tile's last frame of a running wall into one image (bezels dark).
     Snapshot(drive::SnapshotArgs),
+    /// Benchmarks: `--table` is the report's table (AO samples x nodes, fps, 2008 beside ours).
+    Bench(bench::BenchArgs),
     /// Play a scripted camera path (keyframes in TOML) on the wall; --loop, --record DIR.
     Demo(demo::DemoArgs),
 }
@@ -60,6 +63,7 @@ fn main() -> std::process::ExitCode {
         Command::Orbit(args) => drive::orbit(&args),
         Command::Snapshot(args) => drive::snapshot(&args),
         Command::Demo(args) => demo::demo(&args),
+        Command::Bench(args) => bench::bench(&args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
