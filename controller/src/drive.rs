@@ -93,6 +93,11 @@ pub fn keygen(a: &KeygenArgs) -> Result<()> {
 /// The wall camera and render settings for the configured volume (the controller reads the volume
 /// only for its box and default iso).
 pub(crate) fn scene(config: &WallConfig) -> Result<(Camera, RenderSettings)> {
+    scene_and_range(config).map(|(c, s, _)| (c, s))
+}
+
+/// [`scene`] and the volume's value range.
+pub(crate) fn scene_and_range(config: &WallConfig) -> Result<(Camera, RenderSettings, (f64, f64))> {
     let source: VolumeSource = config.volume_source().parse()?;
     let raw = match (&config.volume.dims, &config.volume.voxel_type) {
         (Some(dims), Some(t)) => Some(isowall_volume::io::RawSpec {
@@ -105,11 +110,13 @@ pub(crate) fn scene(config: &WallConfig) -> Result<(Camera, RenderSettings)> {
         _ => None,
     };
     let volume = source.load(raw.as_ref()).with_context(|| format!("cannot load volume {source}"))?;
-    let iso = config.volume.iso.or(source.natural_iso()).unwrap_or_else(|| {
-        let (lo, hi) = volume.value_range();
-        0.5 * (lo as f64 + hi as f64)
-    });
-    Ok((config.camera_for(volume.box_min(), volume.box_max()), config.render_settings(iso)))
+    let (lo, hi) = volume.value_range();
+    let iso = config.volume.iso.or(source.natural_iso()).unwrap_or(0.5 * (lo as f64 + hi as f64));
+    Ok((
+        config.camera_for(volume.box_min(), volume.box_max()),
+        config.render_settings(iso),
+        (lo as f64, hi as f64),
+    ))
 }
 
 /// The camera of frame `k` of an orbit: the eye turned about the world up axis (+z) through the

@@ -4,10 +4,12 @@
 
 mod bench;
 mod check_config;
+mod controls;
 mod demo;
 mod drive;
 mod local;
 mod path;
+mod session;
 mod start;
 mod wall;
 
@@ -43,6 +45,8 @@ enum Command {
     Snapshot(drive::SnapshotArgs),
     /// Benchmarks: `--table` is the report's table (AO samples x nodes, fps, 2008 beside ours).
     Bench(bench::BenchArgs),
+    /// Drive the wall interactively: terminal keyboard and gamepad, with a live status line.
+    Session(session::SessionArgs),
     /// Play a scripted camera path (keyframes in TOML) on the wall; --loop, --record DIR.
     Demo(demo::DemoArgs),
 }
@@ -64,6 +68,7 @@ fn main() -> std::process::ExitCode {
         Command::Snapshot(args) => drive::snapshot(&args),
         Command::Demo(args) => demo::demo(&args),
         Command::Bench(args) => bench::bench(&args),
+        Command::Session(args) => session::session(&args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -355,7 +355,7 @@ mod tests {
 
     #[test]
     fn the_shipped_engine_demo_loads() {
-        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../wall-configs/demo-engine.toml");
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../wall-configs/demos/engine.toml");
         let p = CameraPath::load(&path, D, 1024).unwrap();
         assert!(p.keys.len() >= 4 && p.duration() > 5.0);
     }

@@ -18,6 +18,7 @@ pub mod clock;
 pub mod codec;
 pub mod config;
 pub mod daemon_machine;
+pub mod joystick;
 pub mod messages;
 pub mod render_state;
 pub mod wire;
