@@ -109,7 +109,10 @@ pub(crate) fn scene_and_range(config: &WallConfig) -> Result<(Camera, RenderSett
         }),
         _ => None,
     };
-    let volume = source.load(raw.as_ref()).with_context(|| format!("cannot load volume {source}"))?;
+    let bar = crate::progress::spinner(format!("loading volume {source}"));
+    let volume = source.load(raw.as_ref()).with_context(|| format!("cannot load volume {source}"));
+    bar.finish_and_clear();
+    let volume = volume?;
     let (lo, hi) = volume.value_range();
     let iso = config.volume.iso.or(source.natural_iso()).unwrap_or(0.5 * (lo as f64 + hi as f64));
     Ok((

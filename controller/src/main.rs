@@ -9,6 +9,7 @@ mod demo;
 mod drive;
 mod local;
 mod path;
+mod progress;
 mod session;
 mod start;
 mod wall;
