@@ -1,6 +1,8 @@
 //! Helpers for the end-to-end tests in `tests/tests/`: they run the real `isowalld` and `isowall`
 //! binaries as separate processes (and, with the wall, over the network on loopback).
 
+pub mod x11;
+
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::OnceLock;
