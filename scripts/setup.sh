@@ -33,6 +33,14 @@ if [ "$have_icd" = no ]; then
     missing_why+=("a Vulkan driver (Mesa's software driver lavapipe, where there is no GPU driver)")
 fi
 
+# Build dependencies: gilrs (gamepads in `isowall session`) reads devices through libudev and
+# links it at build time (pkg-config finds libudev.pc from libudev-dev).
+if ! { command -v pkg-config >/dev/null 2>&1 && pkg-config --exists libudev; }; then
+    command -v pkg-config >/dev/null 2>&1 || { need_pkgs+=(pkg-config); missing_why+=("pkg-config (build)"); }
+    need_pkgs+=(libudev-dev)
+    missing_why+=("libudev's headers (libudev-dev, to build gamepad input)")
+fi
+
 # The test suite (scripts/test.sh sets isowall_tests=yes) also shows a node's tiles in a window:
 # a virtual X server (Xvfb), X screenshots (xwd, in x11-apps) and the X11 libraries that winit
 # loads at run time.

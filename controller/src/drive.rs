@@ -80,7 +80,7 @@ pub struct SnapshotArgs {
     pub out: PathBuf,
 }
 
-fn load(config: &std::path::Path) -> Result<WallConfig> {
+pub(crate) fn load(config: &std::path::Path) -> Result<WallConfig> {
     WallConfig::load(config).map_err(|e| anyhow!("{e}"))
 }
 
@@ -99,7 +99,12 @@ pub fn keygen(a: &KeygenArgs) -> Result<()> {
 
 /// The wall camera and render settings for the configured volume (the controller reads the volume
 /// only for its box and default iso).
-fn scene(config: &WallConfig) -> Result<(Camera, RenderSettings)> {
+pub(crate) fn scene(config: &WallConfig) -> Result<(Camera, RenderSettings)> {
+    scene_and_range(config).map(|(c, s, _)| (c, s))
+}
+
+/// [`scene`] and the volume's value range.
+pub(crate) fn scene_and_range(config: &WallConfig) -> Result<(Camera, RenderSettings, (f64, f64))> {
     let source: VolumeSource = config.volume_source().parse()?;
     let raw = match (&config.volume.dims, &config.volume.voxel_type) {
         (Some(dims), Some(t)) => Some(isowall_volume::io::RawSpec {
@@ -111,12 +116,17 @@ fn scene(config: &WallConfig) -> Result<(Camera, RenderSettings)> {
         }),
         _ => None,
     };
-    let volume = source.load(raw.as_ref()).with_context(|| format!("cannot load volume {source}"))?;
-    let iso = config.volume.iso.or(source.natural_iso()).unwrap_or_else(|| {
-        let (lo, hi) = volume.value_range();
-        0.5 * (lo as f64 + hi as f64)
-    });
-    Ok((config.camera_for(volume.box_min(), volume.box_max()), config.render_settings(iso)))
+    let bar = crate::progress::spinner(format!("loading volume {source}"));
+    let volume = source.load(raw.as_ref()).with_context(|| format!("cannot load volume {source}"));
+    bar.finish_and_clear();
+    let volume = volume?;
+    let (lo, hi) = volume.value_range();
+    let iso = config.volume.iso.or(source.natural_iso()).unwrap_or(0.5 * (lo as f64 + hi as f64));
+    Ok((
+        config.camera_for(volume.box_min(), volume.box_max()),
+        config.render_settings(iso),
+        (lo as f64, hi as f64),
+    ))
 }
 
 /// The camera of frame `k` of an orbit: the eye turned about the world up axis (+z) through the
@@ -221,7 +231,7 @@ fn governor_report(target: Option<&Governor>, frames: &[GovernedFrame]) -> Strin
     s
 }
 
-fn runtime() -> Result<tokio::runtime::Runtime> {
+pub(crate) fn runtime() -> Result<tokio::runtime::Runtime> {
     tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
@@ -229,7 +239,7 @@ fn runtime() -> Result<tokio::runtime::Runtime> {
         .context("async runtime")
 }
 
-async fn write_snapshot(wall: &mut Wall, out: &std::path::Path) -> Result<()> {
+pub(crate) async fn write_snapshot(wall: &mut Wall, out: &std::path::Path) -> Result<()> {
     let tiles = wall.snapshot().await;
     let (w, h, rgb) = compose(&wall.config, &tiles);
     image::save_buffer(out, &rgb, w, h, image::ExtendedColorType::Rgb8)

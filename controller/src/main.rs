@@ -2,9 +2,16 @@
 //! (local daemons for loopback nodes), drives it (an orbit), and gathers whole-wall snapshots.
 //! It never links wgpu: the daemons render.
 
+mod bench;
 mod check_config;
+mod controls;
+mod demo;
 mod drive;
 mod local;
+mod path;
+mod progress;
+mod session;
+mod start;
 mod wall;
 
 use clap::{Parser, Subcommand};
@@ -37,6 +44,12 @@ enum Command {
     Orbit(drive::OrbitArgs),
     /// Gather every tile's last frame of a running wall into one image (bezels dark).
     Snapshot(drive::SnapshotArgs),
+    /// Benchmarks: `--table` is the report's table (AO samples x nodes, fps, 2008 beside ours).
+    Bench(bench::BenchArgs),
+    /// Drive the wall interactively: terminal keyboard and gamepad, with a live status line.
+    Session(session::SessionArgs),
+    /// Play a scripted camera path (keyframes in TOML) on the wall; --loop, --record DIR.
+    Demo(demo::DemoArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -54,6 +67,9 @@ fn main() -> std::process::ExitCode {
         Command::Up(args) => drive::up(&args),
         Command::Orbit(args) => drive::orbit(&args),
         Command::Snapshot(args) => drive::snapshot(&args),
+        Command::Demo(args) => demo::demo(&args),
+        Command::Bench(args) => bench::bench(&args),
+        Command::Session(args) => session::session(&args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

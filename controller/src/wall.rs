@@ -117,6 +117,8 @@ impl Wall {
         let start = Instant::now();
         let mut last_report = Instant::now();
         let mut errors: BTreeMap<String, String> = BTreeMap::new();
+        let bar = crate::progress::nodes(&wall.config.wall.name, names.len());
+        let mut first_round = true;
         loop {
             for node in wall.config.nodes.clone() {
                 if wall.senders.contains_key(&node.name) {
@@ -125,7 +127,16 @@ impl Wall {
                 match wall.connect_node(&node.name, &node.address).await {
                     Ok(()) => {
                         errors.remove(&node.name);
-                        eprintln!("isowall: node {} up ({}/{})", node.name, wall.senders.len(), names.len());
+                        bar.set_position(wall.senders.len() as u64);
+                        crate::progress::say(
+                            &bar,
+                            &format!(
+                                "isowall: node {} up ({}/{})",
+                                node.name,
+                                wall.senders.len(),
+                                names.len()
+                            ),
+                        );
                     }
                     Err(e) => {
                         errors.insert(node.name.clone(), format!("{} ({}): {e:#}", node.name, node.address));
@@ -133,9 +144,20 @@ impl Wall {
                 }
             }
             if errors.is_empty() {
+                bar.finish_and_clear();
                 return Ok(wall);
             }
+            let waiting: Vec<&str> = errors.keys().map(String::as_str).collect();
+            bar.set_message(format!("waiting for {}", waiting.join(", ")));
+            if first_round {
+                // Name the unreachable nodes and why at once, not only at the timeout.
+                for e in errors.values() {
+                    crate::progress::say(&bar, &format!("isowall: cannot reach node {e}; retrying"));
+                }
+                first_round = false;
+            }
             if start.elapsed() > timeout {
+                bar.finish_and_clear();
                 let list: Vec<String> = errors.values().cloned().collect();
                 bail!(
                     "cannot reach {} of {} nodes after {:?}:\n  {}",
@@ -145,8 +167,7 @@ impl Wall {
                     list.join("\n  ")
                 );
             }
-            if last_report.elapsed() > Duration::from_secs(5) {
-                let waiting: Vec<&str> = errors.keys().map(String::as_str).collect();
+            if last_report.elapsed() > Duration::from_secs(5) && bar.is_hidden() {
                 eprintln!("isowall: waiting for {}", waiting.join(", "));
                 last_report = Instant::now();
             }
@@ -361,6 +382,11 @@ impl Wall {
             self.step().await;
         }
         Ok(())
+    }
+
+    /// The id of the last frame begun (0 before the first).
+    pub fn last_frame_id(&self) -> u64 {
+        self.next_frame - 1
     }
 
     /// Waits until every begun frame is finished (presented everywhere, or its present deadline).

@@ -18,7 +18,7 @@ use anyhow::{anyhow, Context, Result};
 use isowall_wall::config::TileConfig;
 use std::sync::Arc;
 use winit::application::ApplicationHandler;
-use winit::dpi::PhysicalSize;
+use winit::dpi::{PhysicalPosition, PhysicalSize};
 use winit::event::WindowEvent;
 use winit::event_loop::{ActiveEventLoop, EventLoop, EventLoopProxy};
 use winit::monitor::MonitorHandle;
@@ -209,7 +209,9 @@ impl App {
                     tile.width,
                     tile.height
                 ),
-                None => {}
+                // Windowed (a wall tried out on one desktop): at the tile's place in the wall, so
+                // the tiles sit side by side as on the wall (a window manager may move them).
+                None => attrs = attrs.with_position(PhysicalPosition::new(tile.x as i32, tile.y as i32)),
             }
             let window = event_loop
                 .create_window(attrs)

@@ -7,6 +7,7 @@ mod bench_suite;
 mod chart;
 mod check_config;
 mod display;
+mod notify;
 mod object;
 mod render;
 mod run;

@@ -92,6 +92,7 @@ pub fn run(a: &RunArgs) -> Result<()> {
     })?;
     // Before the slow set-up, so that `--display window` without a display fails at once.
     let display = display::choose(a.display)?;
+    crate::notify::status("loading the volume");
     let raw = raw_spec(&config)?;
     let limit = usize::try_from(config.wall.message_limit_bytes).unwrap_or(usize::MAX);
     // object space: only the brick and its halo.
@@ -109,6 +110,7 @@ pub fn run(a: &RunArgs) -> Result<()> {
     let env_src: EnvSource = config.env_source().parse().context("[render] env")?;
     let env: Environment = env_src.load().context("cannot load the environment")?;
     let (tx, results) = tokio::sync::mpsc::unbounded_channel();
+    crate::notify::status("opening the GPU device");
     let renderer = TileRenderer::start(volume, Some(env), tx)?;
     let addr = transport::resolve(&node.address)?;
     let setup = WindowSetup {
@@ -168,6 +170,8 @@ fn network(
         tracing::info!(node = %state.name, %addr, "listening for the controller");
         // Systemd (Type=notify) and scripts wait for this line.
         println!("isowalld: node {} ready on {addr}", state.name);
+        // The render thread has its device (TileRenderer::start) and the endpoint is bound.
+        crate::notify::ready(&format!("node {} listening on {addr}, waiting for the controller", state.name));
         // Handshakes run in their own tasks (a slow or silent peer holds up nobody); finished
         // connections queue here, and the session loop takes the next one (cancel-safe).
         let (conn_tx, mut conns) = tokio::sync::mpsc::channel::<quinn::Connection>(4);
@@ -213,6 +217,7 @@ fn network(
         tokio::select! {
             r = serve_all => r,
             _ = stop => {
+                crate::notify::stopping("a window was closed: the node is shutting down");
                 endpoint.close(0u32.into(), b"the node is shutting down");
                 let _ = tokio::time::timeout(std::time::Duration::from_secs(1), endpoint.wait_idle()).await;
                 Ok(())
@@ -269,6 +274,7 @@ async fn serve(
         }
     };
     tracing::info!(%remote, "controller connected");
+    crate::notify::status(&format!("serving the controller at {remote}"));
     let Channel { connection, mut sender, mut receiver } = channel;
     let mut machine = NodeMachine::new(node.name.clone(), node.tiles.clone());
     node.pending = None;

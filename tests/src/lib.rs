@@ -2,6 +2,7 @@
 //! binaries as separate processes (and, with the wall, over the network on loopback).
 
 pub mod relay;
+pub mod x11;
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -193,6 +194,38 @@ pub fn wall_config(
         );
         s += &format!(
             "\n[[nodes]]\nname = \"node{i}\"\naddress = \"127.0.0.1:{port}\"\ntiles = [\"t{cx}{cy}\"]\n"
+        );
+    }
+    let path = dir.join(format!("{name}.toml"));
+    std::fs::write(&path, s).unwrap();
+    path
+}
+
+/// Writes `dir/NAME.toml`: a 2x1 wall of two `w`x`h` tiles side by side (a `bezel`-pixel mullion
+/// on each side of the seam), nodes `node0`, `node1` on the given loopback ports, the torus at
+/// 32^3 with `ao_samples` AO samples and sky light, a fixed camera, certificates in `dir/keys`.
+pub fn wall_config_2x1(
+    dir: &Path,
+    name: &str,
+    ports: &[u16],
+    w: u32,
+    h: u32,
+    bezel: u32,
+    ao_samples: u32,
+) -> PathBuf {
+    let mut s = format!(
+        "[wall]\nname = \"{name}\"\ndeadline_ms = 60000\n\n\
+         [camera]\neye = [45.0, -55.0, 35.0]\ntarget = [15.5, 15.5, 15.5]\nup = [0, 0, 1]\nfov_y = 40.0\n\n\
+         [volume]\nsource = \"procedural:torus:32\"\n\n\
+         [render]\nao_samples = {ao_samples}\nibl = \"bent\"\nenv = \"sky\"\n\n\
+         [certificates]\ndir = \"keys\"\n"
+    );
+    for (i, port) in ports.iter().take(2).enumerate() {
+        let bz = if i == 0 { format!("[0, {bezel}, 0, 0]") } else { format!("[{bezel}, 0, 0, 0]") };
+        s += &format!(
+            "\n[[tiles]]\nname = \"t{i}\"\nx = {}\ny = 0\nwidth = {w}\nheight = {h}\nbezel = {bz}\n\n\
+             [[nodes]]\nname = \"node{i}\"\naddress = \"127.0.0.1:{port}\"\ntiles = [\"t{i}\"]\n",
+            i as u32 * (w + 2 * bezel)
         );
     }
     let path = dir.join(format!("{name}.toml"));

@@ -25,8 +25,8 @@ use glam::DVec3;
 use std::path::PathBuf;
 
 pub use blocks::BlockMinMax;
-pub use region::{VolumeInfo, VolumeStream, VoxelRange};
 pub use format::VoxelFormat;
+pub use region::{VolumeInfo, VolumeStream, VoxelRange};
 pub use source::VolumeSource;
 
 /// Everything that can go wrong making or reading a volume. File errors carry the path.

@@ -103,6 +103,9 @@ pub struct WallConfig {
     pub tiles: Vec<TileConfig>,
     #[serde(default)]
     pub nodes: Vec<NodeConfig>,
+    /// `[joystick]`: the gamepad mapping of `isowall session` (optional).
+    #[serde(default)]
+    pub joystick: crate::joystick::JoystickConfig,
     /// The config file (relative paths in it are relative to its folder).
     #[serde(skip)]
     pub path: PathBuf,
@@ -472,7 +475,8 @@ fn doc_value<'a>(doc: &Doc<'a>, key: &str) -> Option<Spanned<DeValue<'a>>> {
     doc.value(key).cloned()
 }
 
-const SECTIONS: [&str; 7] = ["wall", "camera", "volume", "render", "certificates", "tiles", "nodes"];
+const SECTIONS: [&str; 8] =
+    ["wall", "camera", "volume", "render", "certificates", "tiles", "nodes", "joystick"];
 
 impl WallConfig {
     /// Parses and validates a config, collecting every problem. `path` names the file in messages
@@ -537,6 +541,13 @@ impl WallConfig {
         };
         let tiles = doc_list::<TileConfig>(&mut doc, "tiles");
         let nodes = doc_list::<NodeConfig>(&mut doc, "nodes");
+        let joystick: Option<crate::joystick::JoystickConfig> = match doc_value(&doc, "joystick") {
+            Some(v) => doc.de(&v),
+            None => Some(Default::default()),
+        };
+        for (field, message) in joystick.iter().flat_map(|j| j.problems()) {
+            doc.at(&[Seg::K("joystick"), Seg::K(field)], message);
+        }
 
         if let Some(w) = &wall {
             validate_wall(&mut doc, w);
@@ -570,8 +581,8 @@ impl WallConfig {
         validate_tiles(&mut doc, &tiles);
         validate_nodes(&mut doc, &nodes, &tiles);
 
-        match (wall, camera, volume, render, certificates) {
-            (Some(wall), Some(camera), Some(volume), Some(render), Some(certificates))
+        match (wall, camera, volume, render, certificates, joystick) {
+            (Some(wall), Some(camera), Some(volume), Some(render), Some(certificates), Some(joystick))
                 if doc.problems.is_empty() =>
             {
                 Ok(WallConfig {
@@ -582,6 +593,7 @@ impl WallConfig {
                     certificates,
                     tiles: tiles.items.into_iter().map(|(_, t)| t).collect(),
                     nodes: nodes.items.into_iter().map(|(_, n)| n).collect(),
+                    joystick,
                     path: path.to_path_buf(),
                 })
             }

@@ -22,6 +22,7 @@ pub mod composite;
 pub mod config;
 pub mod daemon_machine;
 pub mod governor;
+pub mod joystick;
 pub mod messages;
 pub mod render_state;
 pub mod wire;

@@ -1,0 +1,353 @@
+//! `isowall bench CONFIG --table`: the report's table. Rows: AO samples (32/64/128/256);
+//! columns: 1..N nodes (N = the wall's node count); each cell the frames per second of a fixed
+//! orbit of the whole wall image (`--size`, default small enough for lavapipe) split into one
+//! vertical strip per node, with the slowest node's median render time beside it and RTPara's
+//! 2008 figure for the same cell where one is published (../shared/DESIGN.md: the 'engine'
+//! volume, 1-4 nodes, 32-256 samples; every other cell "—"). Each column starts its own local
+//! daemons (loopback nodes only) with a derived config: the same nodes, names, certificates,
+//! volume and render settings, the strips as tiles. The render mode is a parameter of every
+//! cell; object space is not built on this branch, so its column says so instead of a number.
+
+use crate::drive::{load, orbit_camera, runtime, scene};
+use crate::local::{is_loopback, LocalDaemons};
+use crate::wall::{quantile, Wall};
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use isowall_wall::config::{TileConfig, WallConfig};
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+#[derive(Args)]
+pub struct BenchArgs {
+    /// The wall config (TOML); its nodes must be on loopback (each column starts local daemons)
+    pub config: PathBuf,
+    /// Print the report's table (AO samples x nodes, fps and render time, 2008 beside ours)
+    #[arg(long)]
+    pub table: bool,
+    /// Timed frames of the orbit per cell (after one untimed warm-up frame)
+    #[arg(long, default_value_t = 3)]
+    pub frames: u64,
+    /// The whole wall image, WIDTHxHEIGHT, split into one strip per node
+    #[arg(long, default_value = "96x64", value_parser = parse_size)]
+    pub size: (u32, u32),
+    /// The rows: AO samples per pixel per frame
+    #[arg(long, value_delimiter = ',', default_value = "32,64,128,256")]
+    pub samples: Vec<u32>,
+    /// The columns: node counts (default 1..N)
+    #[arg(long, value_delimiter = ',')]
+    pub nodes: Vec<usize>,
+    /// Render modes: screen (sort-first), object (sort-last)
+    #[arg(long, value_delimiter = ',', default_value = "screen,object", value_parser = ["screen", "object"])]
+    pub modes: Vec<String>,
+    /// Orbit step per frame, degrees
+    #[arg(long, default_value_t = 4.0)]
+    pub degrees_per_frame: f64,
+    /// How long to wait for each column's nodes, seconds
+    #[arg(long, default_value_t = 120)]
+    pub start_timeout: u64,
+}
+
+fn parse_size(s: &str) -> Result<(u32, u32), String> {
+    let (w, h) = s.split_once('x').ok_or_else(|| format!("`{s}` is not WIDTHxHEIGHT"))?;
+    let p = |v: &str| {
+        v.parse::<u32>().ok().filter(|&n| n > 0).ok_or_else(|| format!("`{s}` is not WIDTHxHEIGHT"))
+    };
+    Ok((p(w)?, p(h)?))
+}
+
+/// How the wall splits the work.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Mode {
+    Screen,
+    Object,
+}
+
+impl Mode {
+    fn parse(s: &str) -> Mode {
+        if s == "object" {
+            Mode::Object
+        } else {
+            Mode::Screen
+        }
+    }
+    fn name(self) -> &'static str {
+        match self {
+            Mode::Screen => "screen space (sort-first: one strip of the image per node)",
+            Mode::Object => "object space (sort-last: one brick of the volume per node)",
+        }
+    }
+}
+
+/// One cell's measurement.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Cell {
+    Measured {
+        fps: f64,
+        slowest_render: Duration,
+        per_node: Vec<(String, Duration)>,
+    },
+    /// Not measured, and why.
+    NotAvailable(String),
+}
+
+/// RTPara's published frames per second (../shared/DESIGN.md, the 'engine' volume 256x256x118,
+/// HP SVA, one GeForce 8600GT per node), by AO samples and node count; `None` where unpublished.
+pub fn rtpara_2008(samples: u32, nodes: usize) -> Option<f64> {
+    let row: [f64; 4] = match samples {
+        32 => [3.6, 6.8, 9.8, 12.9],
+        64 => [1.9, 3.8, 5.4, 7.1],
+        128 => [1.0, 2.0, 2.9, 4.0],
+        256 => [0.5, 1.0, 1.5, 2.0],
+        _ => return None,
+    };
+    nodes.checked_sub(1).and_then(|i| row.get(i).copied())
+}
+
+/// The table as Markdown: one row per sample count, one column per node count; a cell reads
+/// `ours FPS fps (render MS ms) | 2008 FPS` with "—" where 2008 has no figure (or `engine` is
+/// false: another volume than the 2008 one).
+pub fn format_table(
+    mode: Mode,
+    samples: &[u32],
+    nodes: &[usize],
+    cells: &[Vec<Cell>],
+    engine: bool,
+) -> String {
+    let mut s = format!("{}\n\n| AO samples |", mode.name());
+    for n in nodes {
+        s += &format!(" {n} node{}: ours | 2008 |", if *n == 1 { "" } else { "s" });
+    }
+    s += "\n|---|";
+    s += &"---|---|".repeat(nodes.len());
+    s += "\n";
+    for (r, &k) in samples.iter().enumerate() {
+        s += &format!("| {k} |");
+        for (c, &n) in nodes.iter().enumerate() {
+            let ours = match &cells[r][c] {
+                Cell::Measured { fps, slowest_render, .. } => {
+                    format!("{fps:.2} fps (render {:.0} ms)", slowest_render.as_secs_f64() * 1e3)
+                }
+                Cell::NotAvailable(why) => format!("n/a ({why})"),
+            };
+            let then = rtpara_2008(k, n).filter(|_| engine).map_or("—".to_string(), |f| format!("{f}"));
+            s += &format!(" {ours} | {then} |");
+        }
+        s += "\n";
+    }
+    s
+}
+
+/// Vertical strips covering `width` x `height`, one per node, widths differing by at most one.
+pub fn strips(width: u32, height: u32, n: usize) -> Vec<TileConfig> {
+    let n = n as u32;
+    (0..n)
+        .map(|i| {
+            let (x0, x1) = (i * width / n, (i + 1) * width / n);
+            TileConfig { name: format!("strip{i}"), x: x0, y: 0, width: x1 - x0, height, bezel: [0; 4] }
+        })
+        .collect()
+}
+
+/// The wall config of one column: the first `n` nodes, each driving one strip; absolute paths
+/// for the volume, environment and certificates (the file lives in a temporary folder).
+fn column_config(base: &WallConfig, n: usize, (w, h): (u32, u32)) -> Result<WallConfig> {
+    let mut c = base.clone();
+    c.volume.source = base.volume_source();
+    c.render.env = base.env_source();
+    c.certificates.dir = std::path::absolute(base.cert_dir())?.to_string_lossy().into_owned();
+    c.tiles = strips(w, h, n);
+    c.nodes = base.nodes[..n].to_vec();
+    for (node, tile) in c.nodes.iter_mut().zip(&c.tiles) {
+        node.tiles = vec![tile.name.clone()];
+    }
+    c.wall.name = format!("{}-bench-{n}", base.wall.name);
+    Ok(c)
+}
+
+/// Runs one column: starts its daemons, measures every row, stops them.
+fn measure_column(a: &BenchArgs, config: &WallConfig, dir: &Path) -> Result<Vec<Cell>> {
+    let file = dir.join(format!("{}.toml", config.wall.name));
+    std::fs::write(&file, toml::to_string(config)?)
+        .with_context(|| format!("cannot write {}", file.display()))?;
+    let config = load(&file)?;
+    let (base, settings) = scene(&config)?;
+    let daemons = LocalDaemons::start(&config, &dir.join("logs"), "offscreen", false)?;
+    let rt = runtime()?;
+    let cells = rt.block_on(async {
+        let mut wall = Wall::connect(config, Duration::from_secs(a.start_timeout)).await?;
+        let mut cells = Vec::new();
+        for &k in &a.samples {
+            let mut s = settings;
+            s.ao.samples = k;
+            wall.frame(&orbit_camera(&base, 0, a.degrees_per_frame), &s).await?;
+            wall.settle().await;
+            let first = wall.finished.len();
+            let start = Instant::now();
+            for f in 1..=a.frames {
+                wall.frame(&orbit_camera(&base, f, a.degrees_per_frame), &s).await?;
+            }
+            let elapsed = start.elapsed();
+            wall.settle().await;
+            let mut per_node: Vec<(String, Duration)> = wall
+                .config
+                .nodes
+                .iter()
+                .map(|n| {
+                    let times: Vec<Duration> = wall.finished[first..]
+                        .iter()
+                        .flat_map(|f| f.per_node.iter().filter(|p| p.node == n.name).filter_map(|p| p.render))
+                        .collect();
+                    (n.name.clone(), quantile(times, 0.5).unwrap_or_default())
+                })
+                .collect();
+            per_node.sort_by(|x, y| x.0.cmp(&y.0));
+            let slowest = per_node.iter().map(|p| p.1).max().unwrap_or_default();
+            let fps = a.frames as f64 / elapsed.as_secs_f64().max(1e-9);
+            eprintln!(
+                "isowall bench: {} node(s), {k} AO samples: {fps:.2} fps, slowest node render {:.0} ms",
+                wall.config.nodes.len(),
+                slowest.as_secs_f64() * 1e3
+            );
+            cells.push(Cell::Measured { fps, slowest_render: slowest, per_node });
+        }
+        wall.close("the bench is done").await;
+        Ok::<_, anyhow::Error>(cells)
+    });
+    drop(daemons);
+    cells
+}
+
+pub fn bench(a: &BenchArgs) -> Result<()> {
+    if !a.table {
+        bail!("say what to measure: `isowall bench CONFIG --table` (the report's table)");
+    }
+    if a.frames == 0 {
+        bail!("--frames must be at least 1");
+    }
+    let config = load(&a.config)?;
+    if let Some(n) = config.nodes.iter().find(|n| !is_loopback(&n.address)) {
+        bail!(
+            "{}: node {} at {} is not on loopback: `bench --table` starts its own local nodes for every column",
+            config.path.display(),
+            n.name,
+            n.address
+        );
+    }
+    let nodes: Vec<usize> =
+        if a.nodes.is_empty() { (1..=config.nodes.len()).collect() } else { a.nodes.clone() };
+    if let Some(&bad) = nodes.iter().find(|&&n| n == 0 || n > config.nodes.len()) {
+        bail!("--nodes {bad}: the wall has {} node(s)", config.nodes.len());
+    }
+    if let Some(&bad) = a.samples.iter().find(|&&k| k > isowall_wall::render_state::MAX_AO_SAMPLES) {
+        bail!("--samples {bad} is over the limit of {}", isowall_wall::render_state::MAX_AO_SAMPLES);
+    }
+    let engine = config.volume_source() == "procedural:engine";
+    let dir = tempfile_dir()?;
+    println!(
+        "isowall bench --table: wall '{}', volume {}, image {}x{} split over 1..N nodes, {} timed frame(s) \
+         of an orbit ({} degrees/frame) per cell after a warm-up frame; fps = frames / time to the last \
+         swap; render = the slowest node's median render time",
+        config.wall.name,
+        config.volume_source(),
+        a.size.0,
+        a.size.1,
+        a.frames,
+        a.degrees_per_frame
+    );
+    let modes: Vec<Mode> = a.modes.iter().map(|m| Mode::parse(m)).collect();
+    let mut details = String::new();
+    for mode in modes {
+        let columns: Vec<Vec<Cell>> = match mode {
+            Mode::Object => nodes
+                .iter()
+                .map(|_| vec![Cell::NotAvailable("object mode not built".into()); a.samples.len()])
+                .collect(),
+            Mode::Screen => {
+                let mut cols = Vec::new();
+                for &n in &nodes {
+                    let c = column_config(&config, n, a.size)?;
+                    cols.push(measure_column(a, &c, &dir)?);
+                }
+                cols
+            }
+        };
+        // Rows by sample count.
+        let cells: Vec<Vec<Cell>> =
+            (0..a.samples.len()).map(|r| columns.iter().map(|c| c[r].clone()).collect()).collect();
+        println!("\n{}", format_table(mode, &a.samples, &nodes, &cells, engine));
+        for (r, k) in a.samples.iter().enumerate() {
+            for (c, n) in nodes.iter().enumerate() {
+                if let Cell::Measured { per_node, .. } = &cells[r][c] {
+                    let list: Vec<String> = per_node
+                        .iter()
+                        .map(|(name, t)| format!("{name} {:.0} ms", t.as_secs_f64() * 1e3))
+                        .collect();
+                    details += &format!("  {k} samples, {n} node(s): {}\n", list.join(", "));
+                }
+            }
+        }
+    }
+    if !details.is_empty() {
+        println!("per-node median render time:\n{details}");
+    }
+    if engine {
+        println!(
+            "2008: RTPara, HP Scalable Visualization Array, one GeForce 8600GT per node, the 'engine' \
+             volume 256x256x118 (../shared/DESIGN.md; its image size is not stated); \"—\": no published figure."
+        );
+    } else {
+        println!(
+            "2008: \"—\" throughout: RTPara's figures are for the 'engine' volume (procedural:engine here)."
+        );
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+    Ok(())
+}
+
+/// A fresh folder for the columns' configs and logs.
+fn tempfile_dir() -> Result<PathBuf> {
+    let dir = std::env::temp_dir().join(format!("isowall-bench-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    Ok(dir)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_2008_figures_are_the_published_ones_and_nothing_else() {
+        assert_eq!(rtpara_2008(32, 1), Some(3.6));
+        assert_eq!(rtpara_2008(256, 4), Some(2.0));
+        assert_eq!(rtpara_2008(128, 3), Some(2.9));
+        assert_eq!(rtpara_2008(32, 5), None);
+        assert_eq!(rtpara_2008(16, 1), None);
+        assert_eq!(rtpara_2008(64, 0), None);
+    }
+
+    #[test]
+    fn the_table_puts_2008_beside_ours_and_dashes_where_unpublished() {
+        let m =
+            |fps: f64| Cell::Measured { fps, slowest_render: Duration::from_millis(250), per_node: vec![] };
+        let cells =
+            vec![vec![m(1.5), m(2.25)], vec![m(0.5), Cell::NotAvailable("object mode not built".into())]];
+        let t = format_table(Mode::Screen, &[32, 512], &[1, 5], &cells, true);
+        let rows: Vec<&str> = t.lines().filter(|l| l.starts_with("| ")).collect();
+        assert_eq!(rows[0], "| AO samples | 1 node: ours | 2008 | 5 nodes: ours | 2008 |");
+        assert_eq!(rows[1], "| 32 | 1.50 fps (render 250 ms) | 3.6 | 2.25 fps (render 250 ms) | — |");
+        assert_eq!(rows[2], "| 512 | 0.50 fps (render 250 ms) | — | n/a (object mode not built) | — |");
+        let other = format_table(Mode::Screen, &[32], &[1], &[vec![m(1.0)]], false);
+        assert!(other.contains("| 32 | 1.00 fps (render 250 ms) | — |"), "{other}");
+    }
+
+    #[test]
+    fn strips_cover_the_image_exactly() {
+        let s = strips(100, 30, 3);
+        assert_eq!(s.iter().map(|t| t.width).sum::<u32>(), 100);
+        assert_eq!((s[0].x, s[1].x, s[2].x), (0, 33, 66));
+        assert!(s.iter().all(|t| t.height == 30 && t.y == 0));
+        for w in s.windows(2) {
+            assert_eq!(w[0].x + w[0].width, w[1].x);
+        }
+    }
+}
