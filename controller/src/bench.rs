@@ -6,14 +6,15 @@
 //! volume, 1-4 nodes, 32-256 samples; every other cell "—"). Each column starts its own local
 //! daemons (loopback nodes only) with a derived config: the same nodes, names, certificates,
 //! volume and render settings, the strips as tiles. The render mode is a parameter of every
-//! cell; object space is not built on this branch, so its column says so instead of a number.
+//! cell: in object space every node holds one brick and the strips are composited by depth. A
+//! column that fails (a node that does not start, say) prints "n/a" with the reason; the others go on.
 
 use crate::drive::{load, orbit_camera, runtime, scene};
 use crate::local::{is_loopback, LocalDaemons};
 use crate::wall::{quantile, Wall};
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use isowall_wall::config::{TileConfig, WallConfig};
+use isowall_wall::config::{TileConfig, WallConfig, WallMode};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
@@ -257,20 +258,21 @@ pub fn bench(a: &BenchArgs) -> Result<()> {
     let modes: Vec<Mode> = a.modes.iter().map(|m| Mode::parse(m)).collect();
     let mut details = String::new();
     for mode in modes {
-        let columns: Vec<Vec<Cell>> = match mode {
-            Mode::Object => nodes
-                .iter()
-                .map(|_| vec![Cell::NotAvailable("object mode not built".into()); a.samples.len()])
-                .collect(),
-            Mode::Screen => {
-                let mut cols = Vec::new();
-                for &n in &nodes {
-                    let c = column_config(&config, n, a.size)?;
-                    cols.push(measure_column(a, &c, &dir)?);
-                }
-                cols
-            }
-        };
+        let mut columns: Vec<Vec<Cell>> = Vec::new();
+        for &n in &nodes {
+            let mut c = column_config(&config, n, a.size)?;
+            c.wall.mode = match mode {
+                Mode::Screen => WallMode::Screen,
+                Mode::Object => WallMode::Object,
+            };
+            columns.push(measure_column(a, &c, &dir).unwrap_or_else(|e| {
+                eprintln!("isowall bench: {} node(s), {}: {e:#}", n, mode.name());
+                vec![
+                    Cell::NotAvailable(format!("{e:#}").lines().next().unwrap_or("failed").to_string());
+                    a.samples.len()
+                ]
+            }));
+        }
         // Rows by sample count.
         let cells: Vec<Vec<Cell>> =
             (0..a.samples.len()).map(|r| columns.iter().map(|c| c[r].clone()).collect()).collect();
