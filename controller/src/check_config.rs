@@ -1,4 +1,5 @@
-//! `isowall check-config FILE`: reads and validates a wall config
+//! `isowall check-config FILE` and `isowalld check-config FILE` (this one file is compiled into
+//! both binaries): reads and validates a wall config
 //! ([`WallConfig::check_report`](isowall_wall::WallConfig::check_report)). Every problem is printed
 //! to stderr as `FILE:LINE:COL: message` and the exit status is 1; a valid config prints a short
 //! summary (the wall, its image size and the tiles of every node) to stdout.

@@ -5,10 +5,13 @@ mod args;
 mod bench;
 mod bench_suite;
 mod chart;
+// The same front end as `isowall check-config` (one file, compiled into both binaries).
+#[path = "../../controller/src/check_config.rs"]
 mod check_config;
 mod display;
 mod notify;
 mod object;
+mod progress;
 mod render;
 mod run;
 mod tiles;

@@ -57,7 +57,12 @@ pub struct BrickSetup {
 pub fn load_brick(config: &WallConfig, node: &str, raw: Option<&RawSpec>) -> Result<BrickSetup> {
     let start = Instant::now();
     let source: VolumeSource = config.volume_source().parse()?;
-    let stream = source.stream(raw).with_context(|| format!("cannot open volume {source}"))?;
+    let bricking = Arc::new(crate::progress::Bricking::new(node, &source.to_string()));
+    let observer = bricking.clone();
+    let stream = source
+        .stream(raw)
+        .with_context(|| format!("cannot open volume {source}"))?
+        .on_progress(move |p| observer.report(p));
     let info = stream.info().clone();
     let blocks = stream
         .block_minmax(BlockMinMax::DEFAULT_BLOCK)
@@ -79,8 +84,9 @@ pub fn load_brick(config: &WallConfig, node: &str, raw: Option<&RawSpec>) -> Res
     let halo = bricks::halo_voxels(&settings, info.spacing).map_err(|e| anyhow!("[render] {e}"))?;
     let brick = split[index].clone();
     let (lo, hi) = brick.data_range(halo, info.dims);
-    let region =
-        stream.read_region(&VoxelRange { lo, hi }).with_context(|| format!("cannot read volume {source}"))?;
+    let region = stream.read_region(&VoxelRange { lo, hi });
+    bricking.finish();
+    let region = region.with_context(|| format!("cannot read volume {source}"))?;
     let (owned_min, owned_max) = brick.owned_planes(info.dims, info.origin, info.spacing);
     let whole_bytes = info.dims.iter().product::<usize>() * 4;
     tracing::info!(

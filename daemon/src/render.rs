@@ -187,7 +187,10 @@ pub fn load_volume(spec: Option<&str>, raw: Option<&RawSpec>, iso: Option<f64>) 
     };
     let start = Instant::now();
     tracing::info!(volume = %source, "loading volume");
-    let volume = source.load(raw).with_context(|| format!("cannot load volume {source}"))?;
+    let bar = crate::progress::spinner(format!("loading volume {source}"));
+    let volume = source.load(raw).with_context(|| format!("cannot load volume {source}"));
+    bar.finish_and_clear();
+    let volume = volume?;
     let (lo, hi) = volume.value_range();
     let d = volume.dims();
     tracing::info!(

@@ -143,8 +143,20 @@ impl Drop for Daemon {
 /// `None` (skip, after a message) where no Vulkan adapter exists outside CI; panics with the log of
 /// a node that does not start.
 pub fn start_nodes(dir: &Path, config: &Path, count: usize) -> Option<Vec<Daemon>> {
+    start_nodes_on(dir, config, count, &[], None)
+}
+
+/// [`start_nodes`] with `extra` arguments for every node and DISPLAY set to `display` where given
+/// (the window tests' Xvfb).
+pub fn start_nodes_on(
+    dir: &Path,
+    config: &Path,
+    count: usize,
+    extra: &[&str],
+    display: Option<&str>,
+) -> Option<Vec<Daemon>> {
     let mut daemons: Vec<Daemon> =
-        (0..count).map(|i| Daemon::start(dir, config, &format!("node{i}"), &[])).collect();
+        (0..count).map(|i| Daemon::start_on(dir, config, &format!("node{i}"), extra, display)).collect();
     for (i, d) in daemons.iter_mut().enumerate() {
         if !d.wait_ready(std::time::Duration::from_secs(120)) {
             let log = d.log_text();
@@ -152,7 +164,10 @@ pub fn start_nodes(dir: &Path, config: &Path, count: usize) -> Option<Vec<Daemon
                 eprintln!("skipping: no Vulkan adapter");
                 return None;
             }
-            panic!("node{i} did not start:\n{log}");
+            panic!(
+                "node{i} did not start{}:\n{log}",
+                display.map(|d| format!(" on {d}")).unwrap_or_default()
+            );
         }
     }
     Some(daemons)

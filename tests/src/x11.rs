@@ -45,6 +45,31 @@ impl Xvfb {
         }
         Some(Xvfb { display: format!(":{number}"), child, _stdout: stdout })
     }
+
+    /// [`Xvfb::start`] where `xwd` (the screenshots) runs too; `None` (after a message) where
+    /// either is missing outside CI.
+    pub fn start_with_xwd(width: u32, height: u32) -> Option<Xvfb> {
+        let xvfb = Xvfb::start(width, height)?;
+        if let Err(e) = Command::new("xwd").arg("-help").output() {
+            assert!(!in_ci(), "cannot run xwd under CI=true ({e}): scripts/setup.sh installs x11-apps");
+            eprintln!("skipping: cannot run xwd ({e}); install it: apt-get install x11-apps");
+            return None;
+        }
+        Some(xvfb)
+    }
+
+    /// A screenshot with `xwd ARGS` (`-root`: the whole screen; `-name TITLE`: one window).
+    pub fn xwd(&self, args: &[&str]) -> Result<Rgb, String> {
+        let out = Command::new("xwd")
+            .args(["-display", &self.display, "-silent"])
+            .args(args)
+            .output()
+            .map_err(|e| format!("cannot run xwd: {e}"))?;
+        if !out.status.success() {
+            return Err(format!("xwd {}: {}", args.join(" "), String::from_utf8_lossy(&out.stderr)));
+        }
+        parse_xwd(&out.stdout)
+    }
 }
 
 impl Drop for Xvfb {

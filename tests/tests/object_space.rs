@@ -51,6 +51,15 @@ fn object_wall(nodes: usize, compress: bool) {
         logs()
     );
     assert!(stdout.contains("object space"), "no object-space statistics:\n{stdout}");
+    // Bricking reports its progress in each node's log (no terminal there, so no bar): both
+    // passes, to the end.
+    for i in 0..nodes {
+        let log = std::fs::read_to_string(dir.path().join(format!("logs/node{i}.log"))).unwrap_or_default();
+        for line in ["scanning the volume for the brick split: 100%", "reading the brick and its halo: 100%"]
+        {
+            assert!(log.contains(line), "node{i}'s log lacks '{line}':\n{log}");
+        }
+    }
 
     // The split every node computed, recomputed here from the model.
     let src: VolumeSource = VOLUME.parse().unwrap();

@@ -6,24 +6,10 @@
 //! Outside CI the test skips, with a message, where Xvfb or xwd is missing (`scripts/test.sh` has
 //! `scripts/setup.sh` install them: packages xvfb and x11-apps); under CI=true it must run.
 
-use isowall_e2e::x11::{parse_xwd, Rgb, Xvfb};
-use isowall_e2e::{free_udp_ports, in_ci, run_in, Daemon};
+use isowall_e2e::x11::Xvfb;
+use isowall_e2e::{free_udp_ports, run_in, start_nodes_on};
 use std::path::{Path, PathBuf};
-use std::process::Command;
 use std::time::{Duration, Instant};
-
-/// A screenshot of the window named `title` on `display` (`xwd -name`: the window's pixels as
-/// the screen shows them).
-fn screenshot(display: &str, title: &str) -> Result<Rgb, String> {
-    let out = Command::new("xwd")
-        .args(["-display", display, "-silent", "-name", title])
-        .output()
-        .map_err(|e| format!("cannot run xwd: {e}"))?;
-    if !out.status.success() {
-        return Err(format!("xwd failed: {}", String::from_utf8_lossy(&out.stderr)));
-    }
-    parse_xwd(&out.stdout)
-}
 
 /// A one-node wall of one `w`x`h` tile named t00 (the torus, fixed camera, no AO: quick).
 fn one_tile_wall(dir: &Path, port: u16, w: u32, h: u32) -> PathBuf {
@@ -42,12 +28,7 @@ fn one_tile_wall(dir: &Path, port: u16, w: u32, h: u32) -> PathBuf {
 
 #[test]
 fn a_window_shows_the_presented_tile_exactly() {
-    let Some(xvfb) = Xvfb::start(320, 240) else { return };
-    if let Err(e) = Command::new("xwd").arg("-help").output() {
-        assert!(!in_ci(), "cannot run xwd under CI=true ({e}): scripts/setup.sh installs x11-apps");
-        eprintln!("skipping: cannot run xwd ({e}); install it: apt-get install x11-apps");
-        return;
-    }
+    let Some(xvfb) = Xvfb::start_with_xwd(320, 240) else { return };
     let dir = tempfile::tempdir().unwrap();
     let (w, h) = (64u32, 48u32);
     let config = one_tile_wall(dir.path(), free_udp_ports(1)[0], w, h);
@@ -55,21 +36,11 @@ fn a_window_shows_the_presented_tile_exactly() {
     let out = run_in(dir.path(), "isowall", &["keygen", "--config", cfg]);
     assert!(out.status.success(), "keygen: {}", String::from_utf8_lossy(&out.stderr));
 
-    let mut daemon = Daemon::start_on(
-        dir.path(),
-        &config,
-        "node0",
-        &["--display", "window", "--windowed"],
-        Some(&xvfb.display),
-    );
-    if !daemon.wait_ready(Duration::from_secs(120)) {
-        let log = daemon.log_text();
-        if log.contains("no Vulkan adapter") && !in_ci() {
-            eprintln!("skipping: no Vulkan adapter");
-            return;
-        }
-        panic!("node0 did not start on {}:\n{log}", xvfb.display);
-    }
+    let windows = ["--display", "window", "--windowed"];
+    let Some(mut daemons) = start_nodes_on(dir.path(), &config, 1, &windows, Some(&xvfb.display)) else {
+        return;
+    };
+    let daemon = &mut daemons[0];
     let log = daemon.log_text();
     assert!(log.contains(&format!("presenting tile t00 {w}x{h}")), "no window for t00:\n{log}");
 
@@ -92,7 +63,7 @@ fn a_window_shows_the_presented_tile_exactly() {
     let title = "isowall present: t00 (node0)";
     let start = Instant::now();
     let (max_diff, shot) = loop {
-        let shot = screenshot(&xvfb.display, title).unwrap_or_else(|e| panic!("{e}\n{}", daemon.log_text()));
+        let shot = xvfb.xwd(&["-name", title]).unwrap_or_else(|e| panic!("{e}\n{}", daemon.log_text()));
         assert_eq!((shot.width, shot.height), (w, h), "the window is not the tile's size");
         let max_diff = shot
             .pixels

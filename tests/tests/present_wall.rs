@@ -7,9 +7,8 @@
 //! Outside CI the test skips, with a message, where Xvfb or xwd is missing; under CI=true it must
 //! run (`scripts/setup.sh` installs xvfb and x11-apps).
 
-use isowall_e2e::x11::{parse_xwd, Xvfb};
-use isowall_e2e::{free_udp_ports, in_ci, run_in, wall_config_2x1, Daemon};
-use std::process::Command;
+use isowall_e2e::x11::Xvfb;
+use isowall_e2e::{free_udp_ports, run_in, start_nodes_on, wall_config_2x1};
 use std::time::{Duration, Instant};
 
 /// A 2-frame demo at 1 fps: frame 0 shows the first key, frame 1 the second (the eye lower:
@@ -18,40 +17,15 @@ const EYES: [[f64; 3]; 2] = [[45.0, -55.0, 35.0], [50.0, -50.0, 5.0]];
 
 #[test]
 fn both_tiles_of_a_2x1_wall_show_the_same_frame_on_screen() {
-    let Some(xvfb) = Xvfb::start(320, 240) else { return };
-    if let Err(e) = Command::new("xwd").arg("-help").output() {
-        assert!(!in_ci(), "cannot run xwd under CI=true ({e}): scripts/setup.sh installs x11-apps");
-        eprintln!("skipping: cannot run xwd ({e}); install it: apt-get install x11-apps");
-        return;
-    }
+    let Some(xvfb) = Xvfb::start_with_xwd(320, 240) else { return };
     let dir = tempfile::tempdir().unwrap();
     let (w, h, bezel) = (48u32, 40u32, 2u32);
     let config = wall_config_2x1(dir.path(), "screen2x1", &free_udp_ports(2), w, h, bezel, 0);
     let cfg = config.to_str().unwrap();
     let out = run_in(dir.path(), "isowall", &["keygen", "--config", cfg]);
     assert!(out.status.success(), "keygen: {}", String::from_utf8_lossy(&out.stderr));
-    let mut daemons: Vec<Daemon> = ["node0", "node1"]
-        .iter()
-        .map(|n| {
-            Daemon::start_on(
-                dir.path(),
-                &config,
-                n,
-                &["--display", "window", "--windowed"],
-                Some(&xvfb.display),
-            )
-        })
-        .collect();
-    for d in &mut daemons {
-        if !d.wait_ready(Duration::from_secs(120)) {
-            let log = d.log_text();
-            if log.contains("no Vulkan adapter") && !in_ci() {
-                eprintln!("skipping: no Vulkan adapter");
-                return;
-            }
-            panic!("a node did not start on {}:\n{log}", xvfb.display);
-        }
-    }
+    let windows = ["--display", "window", "--windowed"];
+    let Some(daemons) = start_nodes_on(dir.path(), &config, 2, &windows, Some(&xvfb.display)) else { return };
     let path = format!(
         "[[key]]\ntime = 0\neye = {:?}\ntarget = [15.5, 15.5, 15.5]\n\n[[key]]\ntime = 1\neye = {:?}\ntarget = [15.5, 15.5, 15.5]\n",
         EYES[0], EYES[1]
@@ -122,9 +96,7 @@ fn both_tiles_of_a_2x1_wall_show_the_same_frame_on_screen() {
     // The windows show the swap a moment after it was reported: look until they do (20 s).
     let start = Instant::now();
     loop {
-        let out = Command::new("xwd").args(["-display", &xvfb.display, "-silent", "-root"]).output().unwrap();
-        assert!(out.status.success(), "xwd -root: {}", String::from_utf8_lossy(&out.stderr));
-        let screen = parse_xwd(&out.stdout).unwrap();
+        let screen = xvfb.xwd(&["-root"]).unwrap();
         let results: Vec<((u32, u8), (u32, u8))> =
             tile_x.iter().map(|&x0| (compare(&screen, &last, x0), compare(&screen, &before, x0))).collect();
         let ok = results.iter().all(|((off, _), _)| *off <= (w * h) / 100);

@@ -26,7 +26,7 @@ use std::path::PathBuf;
 
 pub use blocks::BlockMinMax;
 pub use format::VoxelFormat;
-pub use region::{VolumeInfo, VolumeStream, VoxelRange};
+pub use region::{Pass, Progress, VolumeInfo, VolumeStream, VoxelRange};
 pub use source::VolumeSource;
 
 /// Everything that can go wrong making or reading a volume. File errors carry the path.

@@ -18,6 +18,9 @@
 //!   once and cropped (it is resident while that happens, then dropped): a documented limit.
 //!
 //! Every region is a [`Volume`] whose origin is the world position of the range's first sample.
+//!
+//! Both passes report their progress, z-slice by z-slice, to an observer set with
+//! [`VolumeStream::on_progress`] (the daemon draws it as a bar, a systemd status and log lines).
 
 use crate::io::RawSpec;
 use crate::{BlockMinMax, Volume, VolumeError, VolumeSource};
@@ -125,10 +128,40 @@ enum Kind {
     Whole(Box<Volume>),
 }
 
+/// Which pass of a [`VolumeStream`] a progress report is about.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Pass {
+    /// [`VolumeStream::block_minmax`]: the whole volume, for the occupancy grid.
+    Scan,
+    /// [`VolumeStream::read_region`]: the samples of one region.
+    Read,
+}
+
+impl Pass {
+    pub fn name(self) -> &'static str {
+        match self {
+            Pass::Scan => "scanning",
+            Pass::Read => "reading",
+        }
+    }
+}
+
+/// Progress of a pass: `done` of `total` z-slices.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Progress {
+    pub pass: Pass,
+    pub done: usize,
+    pub total: usize,
+}
+
+/// The observer of [`VolumeStream::on_progress`].
+pub type ProgressFn = Box<dyn Fn(Progress) + Send + Sync>;
+
 /// A volume source opened for partial reads.
 pub struct VolumeStream {
     info: VolumeInfo,
     kind: Kind,
+    progress: Option<ProgressFn>,
 }
 
 impl VolumeSource {
@@ -144,7 +177,7 @@ impl VolumeSource {
                     spacing: DVec3::ONE,
                     origin: DVec3::ZERO,
                 };
-                Ok(VolumeStream { info, kind: Kind::Procedural(*kind, *size) })
+                Ok(VolumeStream { info, kind: Kind::Procedural(*kind, *size), progress: None })
             }
             VolumeSource::File(path) => match crate::io::plan(path, raw)? {
                 Some((plan, spacing, origin)) => {
@@ -154,7 +187,7 @@ impl VolumeSource {
                         spacing,
                         origin,
                     };
-                    Ok(VolumeStream { info, kind: Kind::File(plan) })
+                    Ok(VolumeStream { info, kind: Kind::File(plan), progress: None })
                 }
                 None => {
                     let v = crate::io::load(path, raw)?;
@@ -164,7 +197,7 @@ impl VolumeSource {
                         spacing: v.spacing(),
                         origin: v.origin(),
                     };
-                    Ok(VolumeStream { info, kind: Kind::Whole(Box::new(v)) })
+                    Ok(VolumeStream { info, kind: Kind::Whole(Box::new(v)), progress: None })
                 }
             },
         }
@@ -172,6 +205,19 @@ impl VolumeSource {
 }
 
 impl VolumeStream {
+    /// Reports every z-slice a pass has done to `f` (from the calling thread, in order; the last
+    /// report of a pass has `done == total`).
+    pub fn on_progress(mut self, f: impl Fn(Progress) + Send + Sync + 'static) -> VolumeStream {
+        self.progress = Some(Box::new(f));
+        self
+    }
+
+    fn report(&self, pass: Pass, done: usize, total: usize) {
+        if let Some(f) = &self.progress {
+            f(Progress { pass, done, total });
+        }
+    }
+
     pub fn info(&self) -> &VolumeInfo {
         &self.info
     }
@@ -197,7 +243,7 @@ impl VolumeStream {
         };
         let [nx, ny, _] = dims;
         let mut bad: Option<(usize, [usize; 3])> = None;
-        self.for_each_slice(&VoxelRange::whole(dims), &mut |k, slice| {
+        self.for_each_slice(Pass::Scan, &VoxelRange::whole(dims), &mut |k, slice| {
             // Min/max of this slice per (bx, by) block column, shared edges in both.
             let mut col = vec![[f32::INFINITY, f32::NEG_INFINITY]; counts[0] * counts[1]];
             for j in 0..ny {
@@ -240,14 +286,23 @@ impl VolumeStream {
                 self.info.name, self.info.dims
             )));
         }
+        let slices = range.dims()[2];
         match &self.kind {
-            Kind::Procedural(p, size) => Ok(p.generate_region(*size, range)),
-            Kind::Whole(v) => v.crop(range),
+            Kind::Procedural(p, size) => {
+                let v = p.generate_region(*size, range);
+                self.report(Pass::Read, slices, slices);
+                Ok(v)
+            }
+            Kind::Whole(v) => {
+                let v = v.crop(range);
+                self.report(Pass::Read, slices, slices);
+                v
+            }
             Kind::File(_) => {
                 let [rx, ry, _] = range.dims();
                 let mut data = Vec::with_capacity(range.count());
                 let nx = self.info.dims[0];
-                self.for_each_slice(range, &mut |_, rows| {
+                self.for_each_slice(Pass::Read, range, &mut |_, rows| {
                     for j in 0..ry {
                         let row = &rows[nx * j..nx * (j + 1)];
                         data.extend_from_slice(&row[range.lo[0]..range.lo[0] + rx]);
@@ -262,12 +317,18 @@ impl VolumeStream {
     }
 
     /// Calls `f(k, rows)` for every z-slice k of `range` in order, with the slice's rows of the
-    /// y-range, whole along x (`nx * (hi.y - lo.y + 1)` values).
+    /// y-range, whole along x (`nx * (hi.y - lo.y + 1)` values), reporting each as `pass`.
     fn for_each_slice(
         &self,
+        pass: Pass,
         range: &VoxelRange,
         f: &mut dyn FnMut(usize, &[f32]),
     ) -> Result<(), VolumeError> {
+        let total = range.dims()[2];
+        let f = &mut |k: usize, rows: &[f32]| {
+            f(k, rows);
+            self.report(pass, k + 1 - range.lo[2], total);
+        };
         let [nx, ny, _] = self.info.dims;
         let rows = range.hi[1] + 1 - range.lo[1];
         match &self.kind {
@@ -410,6 +471,26 @@ mod tests {
     }
 
     #[test]
+    fn passes_report_every_slice_in_order_and_end_at_the_total() {
+        use std::sync::{Arc, Mutex};
+        let seen = Arc::new(Mutex::new(Vec::new()));
+        let log = seen.clone();
+        let src: VolumeSource = "procedural:torus:21".parse().unwrap();
+        let s = src.stream(None).unwrap().on_progress(move |p| log.lock().unwrap().push(p));
+        let nz = s.info().dims[2];
+        s.block_minmax(4).unwrap();
+        let r = VoxelRange { lo: [0, 0, 5], hi: [20, 9, 11] };
+        s.read_region(&r).unwrap();
+        let seen = seen.lock().unwrap();
+        let scan: Vec<usize> = seen.iter().filter(|p| p.pass == Pass::Scan).map(|p| p.done).collect();
+        assert_eq!(scan, (1..=nz).collect::<Vec<_>>());
+        assert!(seen.iter().filter(|p| p.pass == Pass::Scan).all(|p| p.total == nz));
+        // A procedural region is generated at once: one report, done == total == its slices.
+        let read: Vec<Progress> = seen.iter().copied().filter(|p| p.pass == Pass::Read).collect();
+        assert_eq!(read, vec![Progress { pass: Pass::Read, done: 7, total: 7 }]);
+    }
+
+    #[test]
     fn raw_and_nrrd_raw_and_gzip_regions_equal_the_whole() {
         let dims = [13usize, 9, 11];
         let n: usize = dims.iter().product();
@@ -456,6 +537,13 @@ mod tests {
                 check_same(&s.read_region(r).unwrap(), &whole, r);
             }
             blocks_equal(&s.block_minmax(4).unwrap(), &BlockMinMax::new(&whole, 4));
+            // A file region reports each of its slices as it is read.
+            let seen = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+            let log = seen.clone();
+            let s = s.on_progress(move |p| log.lock().unwrap().push((p.pass, p.done, p.total)));
+            s.read_region(&ranges[1]).unwrap();
+            let want: Vec<_> = (1..=3).map(|d| (Pass::Read, d, 3)).collect();
+            assert_eq!(*seen.lock().unwrap(), want, "{}", path.display());
         }
         // A truncated gzip stream is an error naming the file, not a panic.
         let mut f = header("gzip").into_bytes();

@@ -1,0 +1,93 @@
+//! Progress of a node's long start-up work: loading its volume (screen space: the whole volume,
+//! a spinner) and bricking it (object space: the scan of the whole volume for the split, then the
+//! read of the brick and halo, z-slice by z-slice from [`isowall_volume::VolumeStream`]).
+//!
+//! The same news goes three ways, so it reaches whoever is watching: a bar on stderr where stderr
+//! is a terminal (hidden otherwise), `STATUS=` for `systemctl status` whenever the percentage
+//! changes, and, where there is no bar, a `tracing` line at every quarter (the node's log, which
+//! `isowall up` keeps in `wall-configs/logs/` for local walls).
+
+use indicatif::{ProgressBar, ProgressStyle};
+use isowall_volume::{Pass, Progress};
+use std::sync::Mutex;
+use std::time::Duration;
+
+/// A spinner for work of unknown length (a whole volume's load), with indicatif's default style.
+pub fn spinner(message: String) -> ProgressBar {
+    let bar = ProgressBar::new_spinner().with_message(message);
+    bar.enable_steady_tick(Duration::from_millis(120));
+    bar
+}
+
+/// What a pass has last reported: its percentage and quarter, to report only changes.
+#[derive(Default)]
+struct Seen {
+    pass: Option<Pass>,
+    percent: usize,
+    quarter: usize,
+}
+
+/// The observer for [`isowall_volume::VolumeStream::on_progress`] while `node` bricks `volume`.
+pub struct Bricking {
+    node: String,
+    volume: String,
+    bar: ProgressBar,
+    seen: Mutex<Seen>,
+}
+
+impl Bricking {
+    pub fn new(node: &str, volume: &str) -> Bricking {
+        let bar = ProgressBar::new(100).with_message(format!("bricking {volume}"));
+        bar.set_style(
+            ProgressStyle::with_template("{bar:24} {percent:>3}% {msg} ({elapsed})")
+                .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+        Bricking {
+            node: node.to_string(),
+            volume: volume.to_string(),
+            bar,
+            seen: Mutex::new(Seen::default()),
+        }
+    }
+
+    /// One report of a pass (called for every z-slice).
+    pub fn report(&self, p: Progress) {
+        let percent = (p.done * 100).checked_div(p.total).unwrap_or(100);
+        let quarter = percent / 25;
+        let what = match p.pass {
+            Pass::Scan => "scanning the volume for the brick split",
+            Pass::Read => "reading the brick and its halo",
+        };
+        let mut seen = self.seen.lock().unwrap_or_else(|e| e.into_inner());
+        if seen.pass != Some(p.pass) {
+            *seen = Seen { pass: Some(p.pass), percent: usize::MAX, quarter: usize::MAX };
+            self.bar.reset();
+            self.bar.set_message(format!("{what}: {}", self.volume));
+        }
+        if percent == seen.percent {
+            return;
+        }
+        seen.percent = percent;
+        self.bar.set_position(percent as u64);
+        crate::notify::status(&format!("{what}: {percent}% ({} of {} slices)", p.done, p.total));
+        // On a terminal the bar says it; in a log a line at every quarter.
+        if quarter != seen.quarter && self.bar.is_hidden() {
+            seen.quarter = quarter;
+            tracing::info!(
+                node = %self.node, volume = %self.volume, pass = p.pass.name(), done = p.done, total = p.total,
+                "{what}: {percent}%"
+            );
+        }
+    }
+
+    /// Removes the bar (the work is done or failed; the log keeps the news).
+    pub fn finish(&self) {
+        self.bar.finish_and_clear();
+    }
+}
+
+impl Drop for Bricking {
+    fn drop(&mut self) {
+        self.bar.finish_and_clear();
+    }
+}
