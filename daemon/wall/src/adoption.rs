@@ -193,7 +193,10 @@ impl BrickAssigner {
 
     /// The map as it stands, starting at `from_frame`.
     pub fn map(&self, from_frame: u64) -> BrickMap {
-        BrickMap { from_frame, holders: self.holders.iter().map(|h| h.map(|i| self.nodes[i].clone())).collect() }
+        BrickMap {
+            from_frame,
+            holders: self.holders.iter().map(|h| h.map(|i| self.nodes[i].clone())).collect(),
+        }
     }
 
     /// Whether the map changed since the last call (then send it to every up node).
@@ -360,7 +363,12 @@ mod tests {
         let out = a.loaded(ms(1250), "node2", 1, ms(200));
         assert_eq!(
             out,
-            vec![AdoptionOutput::Adopted { node: "node2".into(), brick: 1, load: ms(200), since_down: ms(250) }]
+            vec![AdoptionOutput::Adopted {
+                node: "node2".into(),
+                brick: 1,
+                load: ms(200),
+                since_down: ms(250)
+            }]
         );
         assert!(a.take_changed());
         assert_eq!(a.map(9).bricks_of("node2"), vec![1, 2]);
@@ -401,14 +409,20 @@ mod tests {
     #[test]
     fn a_failed_load_asks_the_next_survivor_and_a_dead_adopter_passes_it_on() {
         let mut a = BrickAssigner::new(names(3));
-        assert_eq!(a.node_down(ms(0), "node2"), vec![AdoptionOutput::Load { node: "node0".into(), brick: 2 }]);
+        assert_eq!(
+            a.node_down(ms(0), "node2"),
+            vec![AdoptionOutput::Load { node: "node0".into(), brick: 2 }]
+        );
         assert_eq!(a.load_failed("node0", 2), vec![AdoptionOutput::Load { node: "node1".into(), brick: 2 }]);
         // node1 dies while loading brick 2: its own brick and brick 2 need a holder; only node0 is
         // up, and it refused brick 2.
         let out = a.node_down(ms(100), "node1");
         assert_eq!(
             out,
-            vec![AdoptionOutput::Load { node: "node0".into(), brick: 1 }, AdoptionOutput::Unheld { brick: 2 }]
+            vec![
+                AdoptionOutput::Load { node: "node0".into(), brick: 1 },
+                AdoptionOutput::Unheld { brick: 2 }
+            ]
         );
         // node1 returns: brick 1 is home, brick 2 is offered again, to node1.
         let out = a.node_up(ms(900), "node1");
@@ -423,7 +437,12 @@ mod tests {
         let out = a.loaded(ms(1000), "node1", 2, ms(80));
         assert_eq!(
             out,
-            vec![AdoptionOutput::Adopted { node: "node1".into(), brick: 2, load: ms(80), since_down: ms(1000) }]
+            vec![AdoptionOutput::Adopted {
+                node: "node1".into(),
+                brick: 2,
+                load: ms(80),
+                since_down: ms(1000)
+            }]
         );
         // Nobody up: every brick unheld.
         let mut b = BrickAssigner::new(names(1));
@@ -435,7 +454,10 @@ mod tests {
         let nodes = names(3);
         let mut h = MapHistory::new(nodes.clone());
         assert_eq!(h.map_for(5).bricks_of("node1"), vec![1]);
-        let gone = h.set(BrickMap { from_frame: 10, holders: vec![Some("node0".into()), None, Some("node2".into())] });
+        let gone = h.set(BrickMap {
+            from_frame: 10,
+            holders: vec![Some("node0".into()), None, Some("node2".into())],
+        });
         assert_eq!(gone, vec!["node1".to_string()]);
         assert_eq!(h.map_for(9).bricks_of("node1"), vec![1]);
         assert_eq!(h.map_for(10).holders[1], None);

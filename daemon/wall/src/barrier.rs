@@ -560,12 +560,14 @@ impl FrameController {
             | Message::SnapshotRequest
             | Message::Bricks { .. }
             | Message::LoadBrick { .. } => Err(err("only the controller sends this".into())),
-            Message::BrickLoaded { brick, load_us, resident_bytes } => Ok(vec![ControllerOutput::BrickLoaded {
-                node: node.to_string(),
-                brick,
-                load: Duration::from_micros(load_us),
-                resident_bytes,
-            }]),
+            Message::BrickLoaded { brick, load_us, resident_bytes } => {
+                Ok(vec![ControllerOutput::BrickLoaded {
+                    node: node.to_string(),
+                    brick,
+                    load: Duration::from_micros(load_us),
+                    resident_bytes,
+                }])
+            }
             Message::BrickFailed { brick, reason } => {
                 Ok(vec![ControllerOutput::BrickFailed { node: node.to_string(), brick, reason }])
             }
