@@ -167,8 +167,11 @@ pub fn spawn_load(
     brick: u64,
     renderer: crate::tiles::RenderHandle,
     done: tokio::sync::mpsc::UnboundedSender<LoadDone>,
+    delay: Duration,
 ) {
     tokio::spawn(async move {
+        tokio::time::sleep(delay).await;
+        // The load time reported leaves out the injected delay.
         let t0 = Instant::now();
         let result = async {
             let index = isowall_wall::adoption::brick_index(brick, plan.split.len())?;
@@ -209,6 +212,8 @@ pub struct ObjectNode {
     /// Adoptions under way (LoadBrick received, not answered).
     loading: std::collections::BTreeSet<u64>,
     load_tx: tokio::sync::mpsc::UnboundedSender<LoadDone>,
+    /// Fault injection (`--adopt-delay-ms`): a wait before reading an adopted brick.
+    pub adopt_delay: Duration,
     spacing: glam::DVec3,
     halo: [usize; 3],
     pub resident_bytes: u64,
@@ -256,6 +261,7 @@ impl ObjectNode {
             maps: MapHistory::new(config.nodes.iter().map(|n| n.name.clone()).collect()),
             loading: Default::default(),
             load_tx,
+            adopt_delay: Duration::ZERO,
             spacing: info.spacing,
             halo: setup.halo,
             resident_bytes: resident,
@@ -386,7 +392,7 @@ impl ObjectNode {
                 self.load_tx.send(LoadDone { brick, result: Ok((b, owned, bytes)), took: Duration::ZERO });
         } else if self.loading.insert(brick) {
             tracing::info!(brick, "object space: adopting a brick: loading it");
-            spawn_load(self.plan.clone(), brick, renderer.clone(), self.load_tx.clone());
+            spawn_load(self.plan.clone(), brick, renderer.clone(), self.load_tx.clone(), self.adopt_delay);
         }
     }
 

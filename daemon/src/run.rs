@@ -37,6 +37,10 @@ pub struct RunArgs {
     /// has rendered before replying Ready (a slow node)
     #[arg(long, value_name = "MS", default_value_t = 0, hide_short_help = true)]
     pub slow_ms: u64,
+    /// Fault injection for tests of object space: wait this long before reading a brick adopted
+    /// from a dead node (a slow disk), so frames run while it loads
+    #[arg(long, value_name = "MS", default_value_t = 0, hide_short_help = true)]
+    pub adopt_delay_ms: u64,
     /// Where to show the tiles: a fullscreen window per tile (`window`), none (`offscreen`: tiles
     /// are kept for snapshots only), or `auto`: windows when a display exists (DISPLAY or
     /// WAYLAND_DISPLAY set and a window opens), else offscreen
@@ -101,7 +105,8 @@ pub fn run(a: &RunArgs) -> Result<()> {
     let (volume, object, peer_rx, inbox, load_rx) = if config.wall.mode == WallMode::Object {
         let setup = crate::object::load_brick(&config, &node.name, raw.as_ref())?;
         let (load_tx, load_rx) = tokio::sync::mpsc::unbounded_channel();
-        let object = ObjectNode::new(&config, &node.name, &setup, load_tx)?;
+        let mut object = ObjectNode::new(&config, &node.name, &setup, load_tx)?;
+        object.adopt_delay = std::time::Duration::from_millis(a.adopt_delay_ms);
         let (tx, rx) = tokio::sync::mpsc::channel(64);
         let nodes = config.nodes.iter().map(|n| n.name.clone()).collect();
         let inbox = Inbox { tx, nodes, own: node.name.clone(), limit };

@@ -4,11 +4,32 @@
 //! camera and no AO (so every frame is the same image, and each recorded frame is compared with
 //! one single render of the wall camera; tolerance as in `object_space.rs`).
 
-use isowall_e2e::{bin, free_udp_ports, gpu_ok, run_in, start_nodes, wall_config, Daemon};
+use isowall_e2e::{bin, free_udp_ports, gpu_ok, in_ci, run_in, wall_config, Daemon};
 use std::collections::BTreeMap;
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+/// Fault injection on every node: an adopted brick waits this long before it is read, so that
+/// frames run while it loads (they must complete without it, and differ from the single render).
+const ADOPT_DELAY: &[&str] = &["--adopt-delay-ms", "1500"];
+
+/// Starts `node0..4` with [`ADOPT_DELAY`]; `None` (skip) without a Vulkan adapter outside CI.
+fn start_nodes(dir: &Path, config: &Path) -> Option<Vec<Daemon>> {
+    let mut daemons: Vec<Daemon> =
+        (0..4).map(|i| Daemon::start(dir, config, &format!("node{i}"), ADOPT_DELAY)).collect();
+    for (i, d) in daemons.iter_mut().enumerate() {
+        if !d.wait_ready(Duration::from_secs(120)) {
+            let log = d.log_text();
+            if log.contains("no Vulkan adapter") && !in_ci() {
+                eprintln!("skipping: no Vulkan adapter");
+                return None;
+            }
+            panic!("node{i} did not start:\n{log}");
+        }
+    }
+    Some(daemons)
+}
 
 /// The controller, killed when dropped.
 struct Controller(Child);
@@ -151,7 +172,7 @@ fn object_space_a_killed_nodes_brick_is_adopted_and_given_back() {
     };
 
     let t0 = Instant::now();
-    let Some(mut daemons) = start_nodes(dir.path(), &config, 4) else { return };
+    let Some(mut daemons) = start_nodes(dir.path(), &config) else { return };
     eprintln!("4 nodes up after {:.1} s", t0.elapsed().as_secs_f64());
     let err = dir.path().join("orbit.err");
     let child = Command::new(bin("isowall"))
@@ -196,7 +217,7 @@ fn object_space_a_killed_nodes_brick_is_adopted_and_given_back() {
 
     // Restart node1: it rejoins and gets its brick back.
     let restarted_at = unix_ms();
-    daemons[1] = Daemon::start(dir.path(), &config, "node1", &[]);
+    daemons[1] = Daemon::start(dir.path(), &config, "node1", ADOPT_DELAY);
     assert!(
         daemons[1].wait_ready(Duration::from_secs(120)),
         "node1 did not restart:\n{}",
@@ -242,8 +263,8 @@ fn object_space_a_killed_nodes_brick_is_adopted_and_given_back() {
         .filter(|r| r.at >= down && r.id < from && survivors.iter().all(|t| current(r, t)))
         .collect();
     assert!(
-        !orphan.is_empty(),
-        "no frame completed between the report and the adoption:\n{}",
+        orphan.len() >= 3,
+        "fewer than 3 frames completed between the report and the adoption:\n{}",
         logs(&err, &daemons)
     );
     let wrong = orphan.iter().filter(|r| survivors.iter().any(|t| !correct(r.id, t))).count();
