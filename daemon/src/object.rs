@@ -26,7 +26,8 @@
 //!   renders both bricks over every tile (one view per brick and tile) and sends their rectangles
 //!   together. Frames are rendered, sent and composited by the map for their frame id, so every
 //!   node agrees. An adopted brick is dropped (its GPU volume freed) at the first frame whose map
-//!   no longer gives it to this node (its home came back); the node's own brick is never dropped.
+//!   gives it to another node (its home came back); the node's own brick is never dropped.
+//!   `--adopt-delay-ms` (hidden) delays the read, so tests can watch frames run while it loads.
 
 use crate::tiles::{JobResult, TileResult};
 use anyhow::{anyhow, Context, Result};
