@@ -387,7 +387,7 @@ impl ObjectNode {
     /// `LoadBrick`: starts loading the brick beside this node's own (an answer comes through
     /// [`ObjectNode::load_done`]); one already loaded is answered at once.
     pub fn load(&mut self, brick: u64, renderer: &crate::tiles::RenderHandle) {
-        let held = usize::try_from(brick).ok().and_then(|b| self.held.get(&b).map(|h| (b, h.clone())));
+        let held = usize::try_from(brick).ok().and_then(|b| self.held.get(&b).map(|h| (b, *h)));
         if let Some((b, (owned, bytes))) = held {
             let _ =
                 self.load_tx.send(LoadDone { brick, result: Ok((b, owned, bytes)), took: Duration::ZERO });
