@@ -108,6 +108,7 @@ fn number_after(text: &str, prefix: &str) -> Option<u64> {
 
 #[test]
 fn object_space_a_killed_nodes_brick_is_adopted_and_given_back() {
+    let started = Instant::now();
     let dir = tempfile::tempdir().unwrap();
     let (w, h, bezel, deadline_ms) = (40u32, 30u32, 2u32, 1000u64);
     let config = wall_config(dir.path(), "objkill", &free_udp_ports(4), w, h, bezel, deadline_ms, "keys");
@@ -149,6 +150,7 @@ fn object_space_a_killed_nodes_brick_is_adopted_and_given_back() {
     if !gpu_ok("isowalld render", &run_in(dir.path(), "isowalld", &args)) {
         return;
     }
+    eprintln!("keygen and the single render after {:.1} s", started.elapsed().as_secs_f64());
     let whole = image::open(dir.path().join("whole.png")).unwrap().to_rgb8();
     // Per tile of a recorded frame: (max difference in levels, mean difference) against it.
     let compare = |id: u64, tile: &str| -> (u8, f64) {
@@ -237,6 +239,7 @@ fn object_space_a_killed_nodes_brick_is_adopted_and_given_back() {
     drop(controller.0.kill());
     let _ = controller.0.wait();
 
+    eprintln!("frames recorded after {:.1} s", started.elapsed().as_secs_f64());
     // The recorded frames, by phase. A tile is current when its image is of the frame itself.
     let frames = recorded(&rec);
     let tiles_of = |node: &str| wall_cfg.tiles_of(node).iter().map(|t| t.name.clone()).collect::<Vec<_>>();
@@ -330,6 +333,7 @@ fn object_space_a_killed_nodes_brick_is_adopted_and_given_back() {
         first_home.at - restarted_at,
         first_home.at - ready_at,
     );
+    eprintln!("checked after {:.1} s", started.elapsed().as_secs_f64());
     let load_line = text.lines().find(|l| l.contains("adopted brick 1")).unwrap_or_default().to_string();
     eprintln!("{load_line}");
 }

@@ -16,6 +16,10 @@
 //!     <---------------------------------------- Pong { id, t0, t1 }
 //! ```
 //!
+//! In object space a daemon also sends Composited before Ready, and when a node dies the
+//! controller sends Bricks (the brick map from a frame on) to every node and LoadBrick to the
+//! survivor that adopts its brick, which answers BrickLoaded or BrickFailed ([`crate::adoption`]).
+//!
 //! The bytes of these messages are [`crate::codec`]'s business; this module knows no encoding.
 
 use serde::{Deserialize, Serialize};
