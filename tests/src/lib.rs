@@ -143,8 +143,13 @@ impl Drop for Daemon {
 /// `None` (skip, after a message) where no Vulkan adapter exists outside CI; panics with the log of
 /// a node that does not start.
 pub fn start_nodes(dir: &Path, config: &Path, count: usize) -> Option<Vec<Daemon>> {
+    start_nodes_with(dir, config, count, &[])
+}
+
+/// [`start_nodes`], each daemon with the `extra` arguments (e.g. fault injection).
+pub fn start_nodes_with(dir: &Path, config: &Path, count: usize, extra: &[&str]) -> Option<Vec<Daemon>> {
     let mut daemons: Vec<Daemon> =
-        (0..count).map(|i| Daemon::start(dir, config, &format!("node{i}"), &[])).collect();
+        (0..count).map(|i| Daemon::start(dir, config, &format!("node{i}"), extra)).collect();
     for (i, d) in daemons.iter_mut().enumerate() {
         if !d.wait_ready(std::time::Duration::from_secs(120)) {
             let log = d.log_text();

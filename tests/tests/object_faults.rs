@@ -4,7 +4,7 @@
 //! camera and no AO (so every frame is the same image, and each recorded frame is compared with
 //! one single render of the wall camera; tolerance as in `object_space.rs`).
 
-use isowall_e2e::{bin, free_udp_ports, gpu_ok, in_ci, run_in, wall_config, Daemon};
+use isowall_e2e::{bin, free_udp_ports, gpu_ok, run_in, start_nodes_with, wall_config, Daemon};
 use std::collections::BTreeMap;
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
@@ -13,23 +13,6 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 /// Fault injection on every node: an adopted brick waits this long before it is read, so that
 /// frames run while it loads (they must complete without it, and differ from the single render).
 const ADOPT_DELAY: &[&str] = &["--adopt-delay-ms", "1500"];
-
-/// Starts `node0..4` with [`ADOPT_DELAY`]; `None` (skip) without a Vulkan adapter outside CI.
-fn start_nodes(dir: &Path, config: &Path) -> Option<Vec<Daemon>> {
-    let mut daemons: Vec<Daemon> =
-        (0..4).map(|i| Daemon::start(dir, config, &format!("node{i}"), ADOPT_DELAY)).collect();
-    for (i, d) in daemons.iter_mut().enumerate() {
-        if !d.wait_ready(Duration::from_secs(120)) {
-            let log = d.log_text();
-            if log.contains("no Vulkan adapter") && !in_ci() {
-                eprintln!("skipping: no Vulkan adapter");
-                return None;
-            }
-            panic!("node{i} did not start:\n{log}");
-        }
-    }
-    Some(daemons)
-}
 
 /// The controller, killed when dropped.
 struct Controller(Child);
@@ -174,7 +157,7 @@ fn object_space_a_killed_nodes_brick_is_adopted_and_given_back() {
     };
 
     let t0 = Instant::now();
-    let Some(mut daemons) = start_nodes(dir.path(), &config) else { return };
+    let Some(mut daemons) = start_nodes_with(dir.path(), &config, 4, ADOPT_DELAY) else { return };
     eprintln!("4 nodes up after {:.1} s", t0.elapsed().as_secs_f64());
     let err = dir.path().join("orbit.err");
     let child = Command::new(bin("isowall"))
