@@ -39,6 +39,11 @@ pub struct OrbitOptions {
     /// After the orbit, this many frames with the camera still: the nodes refine progressively
     #[arg(long, default_value_t = 0)]
     pub still_frames: u64,
+    /// For fault tests: after every frame's swap, the whole-wall snapshot to
+    /// DIR/frame-NNNNNN.png (NNNNNN the frame id; a node down shows its placeholder) and a line
+    /// `ID UNIX_MS TILE=FRAME_ID...` (the tiles that answered) in DIR/frames.txt
+    #[arg(long, value_name = "DIR", hide = true)]
+    pub record_frames: Option<PathBuf>,
 }
 
 #[derive(Args)]
@@ -182,6 +187,9 @@ async fn drive(
             settings.ao.samples = g.samples();
         }
         wall.frame(&camera, &settings).await?;
+        if let Some(dir) = &o.record_frames {
+            record_frame(wall, dir).await?;
+        }
         if let Some(g) = &mut governor {
             // The next frame moves while the orbit goes on.
             let motion = if k + 1 < o.frames { Motion::Moving } else { Motion::Still };
@@ -200,6 +208,32 @@ async fn drive(
     let elapsed = start.elapsed();
     wall.settle().await;
     Ok((elapsed, first_swap, governed))
+}
+
+/// `--record-frames`: the snapshot after the frame just released, and its line in frames.txt.
+async fn record_frame(wall: &mut Wall, dir: &std::path::Path) -> Result<()> {
+    use std::io::Write;
+    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    let id = wall.last_frame_id();
+    let tiles = wall.snapshot().await;
+    let (w, h, rgb) = compose(&wall.config, &tiles);
+    let out = dir.join(format!("frame-{id:06}.png"));
+    image::save_buffer(&out, &rgb, w, h, image::ExtendedColorType::Rgb8)
+        .with_context(|| format!("cannot write {}", out.display()))?;
+    let unix_ms =
+        std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default().as_millis();
+    let mut line = format!("{id} {unix_ms}");
+    for t in tiles.values().flatten() {
+        line += &format!(" {}={}", t.name, t.frame_id);
+    }
+    let list = dir.join("frames.txt");
+    let mut f = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(&list)
+        .with_context(|| format!("cannot write {}", list.display()))?;
+    writeln!(f, "{line}").with_context(|| format!("cannot write {}", list.display()))?;
+    Ok(())
 }
 
 /// The governor's report: its target, and the frame times it achieved while the camera moved

@@ -5,6 +5,7 @@
 use anyhow::{anyhow, bail, Context, Result};
 use isowall_net::transport::{self, Channel, ChannelSender};
 use isowall_net::Identity;
+use isowall_wall::adoption::{AdoptionOutput, BrickAssigner};
 use isowall_wall::barrier::{ControllerOutput, FrameController, FrameStats};
 use isowall_wall::codec;
 use isowall_wall::config::WallConfig;
@@ -84,6 +85,8 @@ pub struct Wall {
     reconnecting: std::collections::HashSet<String>,
     /// When each down node was last tried.
     last_try: HashMap<String, Instant>,
+    /// object space: which node renders each brick (a dead node's goes to a survivor).
+    bricks: Option<BrickAssigner>,
 }
 
 impl Wall {
@@ -113,7 +116,11 @@ impl Wall {
             snapshots: BTreeMap::new(),
             reconnecting: Default::default(),
             last_try: HashMap::new(),
+            bricks: None,
         };
+        if wall.config.wall.mode == isowall_wall::WallMode::Object {
+            wall.bricks = Some(BrickAssigner::new(names.clone()));
+        }
         let start = Instant::now();
         let mut last_report = Instant::now();
         let mut errors: BTreeMap<String, String> = BTreeMap::new();
@@ -214,7 +221,59 @@ impl Wall {
         self.senders.insert(name.to_string(), sender);
         self.connections.insert(name.to_string(), connection);
         self.execute(outputs).await;
+        // object space: its home brick is its own again; it gets the map before its first frame.
+        if let Some(a) = self.bricks.as_mut() {
+            let adoption = a.node_up(now, name);
+            self.adoption(adoption).await;
+            self.send_map(Some(name)).await;
+        }
         Ok(())
+    }
+
+    /// object space: carries out the brick assigner's outputs, then sends a changed map to every
+    /// node (it takes effect at the next frame; frames in flight stop waiting for a dead node).
+    async fn adoption(&mut self, outputs: Vec<AdoptionOutput>) {
+        let next = self.next_frame;
+        for out in outputs {
+            match out {
+                AdoptionOutput::Load { node, brick } => {
+                    eprintln!("isowall: brick {brick} goes to node {node}: it loads it");
+                    self.execute(vec![ControllerOutput::Send {
+                        node,
+                        message: Message::LoadBrick { brick: brick as u64 },
+                    }])
+                    .await;
+                }
+                AdoptionOutput::Adopted { node, brick, load, since_down } => eprintln!(
+                    "isowall: node {node} adopted brick {brick} (loaded in {:.0} ms, {:.0} ms after its node went down); it renders it from frame {next}",
+                    load.as_secs_f64() * 1e3,
+                    since_down.as_secs_f64() * 1e3
+                ),
+                AdoptionOutput::Returned { node, brick } => {
+                    eprintln!("isowall: brick {brick} is back with node {node} from frame {next}")
+                }
+                AdoptionOutput::Unheld { brick } => {
+                    eprintln!("isowall: brick {brick} has no node up to render it")
+                }
+            }
+        }
+        if self.bricks.as_mut().is_some_and(BrickAssigner::take_changed) {
+            self.send_map(None).await;
+        }
+    }
+
+    /// object space: the brick map from the next frame on, to `only` or every up node.
+    async fn send_map(&mut self, only: Option<&str>) {
+        let Some(a) = &self.bricks else { return };
+        let map = a.map(self.next_frame);
+        let message = Message::Bricks { from_frame: map.from_frame, holders: map.holders };
+        let nodes: Vec<String> = match only {
+            Some(n) => vec![n.to_string()],
+            None => self.senders.keys().cloned().collect(),
+        };
+        let sends =
+            nodes.into_iter().map(|node| ControllerOutput::Send { node, message: message.clone() }).collect();
+        Box::pin(self.execute(sends)).await;
     }
 
     /// Tries, in the background and at most once a second each, to reach the nodes that are down;
@@ -275,8 +334,41 @@ impl Wall {
                 ControllerOutput::NodeDown { node, reason } => {
                     eprintln!("isowall: node {node} is down: {reason}");
                     self.drop_node(&node, &reason);
+                    let now = self.now();
+                    if let Some(a) = self.bricks.as_mut() {
+                        let adoption = a.node_down(now, &node);
+                        Box::pin(self.adoption(adoption)).await;
+                    }
+                }
+                ControllerOutput::BrickLoaded { node, brick, load, resident_bytes } => {
+                    let now = self.now();
+                    if let Some(a) = self.bricks.as_mut() {
+                        a.set_resident(&node, resident_bytes);
+                        let adoption = match usize::try_from(brick) {
+                            Ok(b) => a.loaded(now, &node, b, load),
+                            Err(_) => Vec::new(),
+                        };
+                        Box::pin(self.adoption(adoption)).await;
+                    }
+                }
+                ControllerOutput::BrickFailed { node, brick, reason } => {
+                    eprintln!("isowall: node {node} cannot load brick {brick}: {reason}");
+                    if let Some(a) = self.bricks.as_mut() {
+                        let adoption = match usize::try_from(brick) {
+                            Ok(b) => a.load_failed(&node, b),
+                            Err(_) => Vec::new(),
+                        };
+                        Box::pin(self.adoption(adoption)).await;
+                    }
                 }
                 ControllerOutput::FrameDone { stats, .. } => {
+                    if let Some(a) = self.bricks.as_mut() {
+                        for n in &stats.per_node {
+                            if let Some(b) = n.resident_bytes {
+                                a.set_resident(&n.node, b);
+                            }
+                        }
+                    }
                     self.finished.push(stats);
                     trim_history(&mut self.finished);
                 }
@@ -403,10 +495,13 @@ impl Wall {
         self.snapshots.clear();
         let now = self.now();
         let out = self.machine.request_snapshot(now);
-        let expected = out.len();
+        let asked: Vec<String> = self.senders.keys().cloned().collect();
         self.execute(out).await;
         let give_up = Instant::now() + Duration::from_secs(10);
-        while self.snapshots.len() < expected && Instant::now() < give_up && !self.senders.is_empty() {
+        // Until every node asked has answered or is down.
+        while asked.iter().any(|n| !self.snapshots.contains_key(n) && self.senders.contains_key(n))
+            && Instant::now() < give_up
+        {
             self.step().await;
         }
         std::mem::take(&mut self.snapshots)

@@ -17,8 +17,17 @@
 //!   radius bounded by the halo, and `seed` AO with `ours`, with a warning (the config check refuses
 //!   both up front).
 //!
-//! Not done: a node that is down leaves its peers' tiles incomplete (they wait and straggle) rather
-//! than its brick being taken over by the others.
+//! - a node dies ([`isowall_wall::adoption`] has the rules): the controller sends a brick map
+//!   (`Message::Bricks`) that gives its brick to nobody, and each node's pending frames stop waiting
+//!   for it ([`ObjectNode::set_map`]); the survivor it chose gets `LoadBrick` and reads that brick
+//!   and halo with the same partial read as at start-up ([`read_brick`], from the [`BrickPlan`]
+//!   kept since start-up) on a blocking task, the render thread uploads it as a second volume
+//!   between frames ([`spawn_load`]), and the node answers `BrickLoaded`; from the next map on it
+//!   renders both bricks over every tile (one view per brick and tile) and sends their rectangles
+//!   together. Frames are rendered, sent and composited by the map for their frame id, so every
+//!   node agrees. An adopted brick is dropped (its GPU volume freed) at the first frame whose map
+//!   gives it to another node (its home came back); the node's own brick is never dropped.
+//!   `--adopt-delay-ms` (hidden) delays the read, so tests can watch frames run while it loads.
 
 use crate::tiles::{JobResult, TileResult};
 use anyhow::{anyhow, Context, Result};
@@ -26,11 +35,14 @@ use isowall_net::transport;
 use isowall_net::Identity;
 use isowall_render::gpu::ObjectSpace;
 use isowall_volume::io::RawSpec;
+use isowall_volume::region::VolumeStream;
 use isowall_volume::{BlockMinMax, Volume, VolumeInfo, VolumeSource, VoxelRange};
+use isowall_wall::adoption::{AdoptionError, BrickMap, MapHistory};
 use isowall_wall::bricks::{self, Brick, Occupancy};
 use isowall_wall::codec;
 use isowall_wall::composite::{Composited, Compositor, Layer, PeerPixels};
 use isowall_wall::config::WallConfig;
+use isowall_wall::messages::Message;
 use isowall_wall::{AoMethod, AoRadius, Camera, RenderSettings, View};
 use std::collections::HashMap;
 use std::net::SocketAddr;
@@ -39,6 +51,8 @@ use std::time::{Duration, Instant};
 
 /// What the render thread uploads in object space.
 pub struct BrickData {
+    /// The brick's index in the split (= its home node's index in `[[nodes]]`).
+    pub index: usize,
     pub region: Volume,
     pub info: VolumeInfo,
     pub blocks: BlockMinMax,
@@ -50,6 +64,62 @@ pub struct BrickSetup {
     pub data: BrickData,
     pub brick: Brick,
     pub halo: [usize; 3],
+    pub plan: Arc<BrickPlan>,
+}
+
+/// What start-up computed, kept to read any brick later (one adopted from a dead node).
+pub struct BrickPlan {
+    pub source: VolumeSource,
+    pub raw: Option<RawSpec>,
+    pub info: VolumeInfo,
+    /// The whole volume's block grid (every brick's GPU volume gets it).
+    pub blocks: BlockMinMax,
+    pub split: Vec<Brick>,
+    pub halo: [usize; 3],
+}
+
+/// Reads brick `index` and its halo: the partial read of start-up, from `stream` (or the plan's
+/// source opened again).
+pub fn read_brick(plan: &BrickPlan, index: usize, stream: Option<&VolumeStream>) -> Result<BrickData> {
+    let start = Instant::now();
+    let source = &plan.source;
+    let opened;
+    let stream = match stream {
+        Some(s) => s,
+        None => {
+            opened =
+                source.stream(plan.raw.as_ref()).with_context(|| format!("cannot open volume {source}"))?;
+            &opened
+        }
+    };
+    let info = &plan.info;
+    let brick = plan.split.get(index).ok_or_else(|| anyhow!("no brick {index} in the split"))?;
+    let (lo, hi) = brick.data_range(plan.halo, info.dims);
+    let region =
+        stream.read_region(&VoxelRange { lo, hi }).with_context(|| format!("cannot read volume {source}"))?;
+    let (owned_min, owned_max) = brick.owned_planes(info.dims, info.origin, info.spacing);
+    tracing::info!(
+        volume = %source,
+        brick = index,
+        bricks = plan.split.len(),
+        owned = ?(brick.lo, brick.hi),
+        halo = ?plan.halo,
+        data = ?(lo, hi),
+        occupied_blocks = brick.occupied_blocks,
+        resident_volume_bytes = region.resident_bytes(),
+        block_grid_bytes = plan.blocks.minmax.len() * 8,
+        whole_volume_bytes = info.dims.iter().product::<usize>() * 4,
+        partial_reads = stream.partial(),
+        ms = start.elapsed().as_secs_f64() * 1e3,
+        "object space: brick ready"
+    );
+    Ok(BrickData {
+        index,
+        region,
+        info: info.clone(),
+        blocks: plan.blocks.clone(),
+        object: ObjectSpace { data_offset: lo, owned_min, owned_max },
+    })
 }
 
 /// Reads this node's brick and halo (module notes). `iso` is the config's (or the volume's
@@ -83,37 +153,49 @@ pub fn load_brick(config: &WallConfig, node: &str, raw: Option<&RawSpec>) -> Res
     let settings = config.render_settings(iso);
     let halo = bricks::halo_voxels(&settings, info.spacing).map_err(|e| anyhow!("[render] {e}"))?;
     let brick = split[index].clone();
-    let (lo, hi) = brick.data_range(halo, info.dims);
-    let region = stream.read_region(&VoxelRange { lo, hi });
+    let plan = Arc::new(BrickPlan { source, raw: raw.cloned(), info, blocks, split, halo });
+    let data = read_brick(&plan, index, Some(&stream));
     bricking.finish();
-    let region = region.with_context(|| format!("cannot read volume {source}"))?;
-    let (owned_min, owned_max) = brick.owned_planes(info.dims, info.origin, info.spacing);
-    let whole_bytes = info.dims.iter().product::<usize>() * 4;
-    tracing::info!(
-        volume = %source,
-        brick = index,
-        bricks = n,
-        owned = ?(brick.lo, brick.hi),
-        halo = ?halo,
-        data = ?(lo, hi),
-        occupied_blocks = brick.occupied_blocks,
-        resident_volume_bytes = region.resident_bytes(),
-        block_grid_bytes = blocks.minmax.len() * 8,
-        whole_volume_bytes = whole_bytes,
-        partial_reads = stream.partial(),
-        ms = start.elapsed().as_secs_f64() * 1e3,
-        "object space: brick ready"
-    );
-    Ok(BrickSetup {
-        data: BrickData {
-            region,
-            info,
-            blocks,
-            object: ObjectSpace { data_offset: lo, owned_min, owned_max },
-        },
-        brick,
-        halo,
-    })
+    let data = data?;
+    tracing::debug!(ms = start.elapsed().as_secs_f64() * 1e3, "object space: set-up done");
+    Ok(BrickSetup { data, brick, halo, plan })
+}
+
+/// An adoption's outcome ([`spawn_load`]): the brick, its owned box and bytes, or why not.
+pub struct LoadDone {
+    pub brick: u64,
+    pub result: Result<(usize, (glam::DVec3, glam::DVec3), u64), String>,
+    pub took: Duration,
+}
+
+/// Loads brick `brick` beside the node's own (module notes): reads it on a blocking task, then
+/// has the render thread upload it after the jobs already queued; the outcome goes to `done`.
+pub fn spawn_load(
+    plan: Arc<BrickPlan>,
+    brick: u64,
+    renderer: crate::tiles::RenderHandle,
+    done: tokio::sync::mpsc::UnboundedSender<LoadDone>,
+    delay: Duration,
+) {
+    tokio::spawn(async move {
+        tokio::time::sleep(delay).await;
+        // The load time reported leaves out the injected delay.
+        let t0 = Instant::now();
+        let result = async {
+            let index = isowall_wall::adoption::brick_index(brick, plan.split.len())?;
+            let p = plan.clone();
+            let data = tokio::task::spawn_blocking(move || read_brick(&p, index, None))
+                .await
+                .map_err(|e| anyhow!("the reading task failed: {e}"))??;
+            let bytes = data.region.resident_bytes() as u64;
+            let owned = plan.split[index].owned_box(plan.info.origin, plan.info.spacing);
+            renderer.load(data).await?;
+            Ok::<_, anyhow::Error>((index, owned, bytes))
+        }
+        .await
+        .map_err(|e| format!("{e:#}"));
+        let _ = done.send(LoadDone { brick, result, took: t0.elapsed() });
+    });
 }
 
 /// A peer's pixels as they arrive, with the connection they came on (closed on a violation).
@@ -128,8 +210,18 @@ pub struct PeerItem {
 pub struct ObjectNode {
     name: String,
     config: WallConfig,
-    /// The brick's owned box (world) and the volume's spacing.
-    owned: (glam::DVec3, glam::DVec3),
+    /// The bricks loaded (this node's own, and any adopted): owned box (world), volume bytes.
+    held: std::collections::BTreeMap<usize, ((glam::DVec3, glam::DVec3), u64)>,
+    /// This node's own brick (never dropped).
+    own: usize,
+    plan: Arc<BrickPlan>,
+    /// The brick maps by the frame each starts at.
+    maps: MapHistory,
+    /// Adoptions under way (LoadBrick received, not answered).
+    loading: std::collections::BTreeSet<u64>,
+    load_tx: tokio::sync::mpsc::UnboundedSender<LoadDone>,
+    /// Fault injection (`--adopt-delay-ms`): a wait before reading an adopted brick.
+    pub adopt_delay: Duration,
     spacing: glam::DVec3,
     halo: [usize; 3],
     pub resident_bytes: u64,
@@ -147,9 +239,18 @@ pub struct ObjectNode {
 }
 
 impl ObjectNode {
-    pub fn new(config: &WallConfig, name: &str, setup: &BrickSetup) -> Result<ObjectNode> {
+    /// The node's object-space state; adoptions' outcomes go to `load_tx` (the session hands them
+    /// to [`ObjectNode::load_done`]).
+    pub fn new(
+        config: &WallConfig,
+        name: &str,
+        setup: &BrickSetup,
+        load_tx: tokio::sync::mpsc::UnboundedSender<LoadDone>,
+    ) -> Result<ObjectNode> {
         let info = &setup.data.info;
         let owned = setup.brick.owned_box(info.origin, info.spacing);
+        let own = setup.data.index;
+        let resident = setup.data.region.resident_bytes() as u64;
         let tiles: Vec<(String, u32, u32)> =
             config.tiles_of(name).iter().map(|t| (t.name.clone(), t.width, t.height)).collect();
         let peers = config.nodes.iter().map(|n| n.name.clone());
@@ -162,10 +263,16 @@ impl ObjectNode {
         Ok(ObjectNode {
             name: name.to_string(),
             config: config.clone(),
-            owned,
+            held: [(own, (owned, resident))].into(),
+            own,
+            plan: setup.plan.clone(),
+            maps: MapHistory::new(config.nodes.iter().map(|n| n.name.clone()).collect()),
+            loading: Default::default(),
+            load_tx,
+            adopt_delay: Duration::ZERO,
             spacing: info.spacing,
             halo: setup.halo,
-            resident_bytes: setup.data.region.resident_bytes() as u64,
+            resident_bytes: resident,
             compositor: Compositor::new(name, peers, tiles),
             submitted: HashMap::new(),
             outbox: Outbox { endpoint: None, addrs, conns: Arc::new(Mutex::new(HashMap::new())) },
@@ -180,6 +287,7 @@ impl ObjectNode {
     /// A new controller session: its frame ids start afresh.
     pub fn reset(&mut self) {
         self.compositor.reset();
+        self.maps.reset();
         self.submitted.clear();
         self.local.clear();
         self.work.clear();
@@ -220,20 +328,106 @@ impl ObjectNode {
         s
     }
 
-    /// The views this node renders for a frame: its brick's covered window of every wall tile.
-    pub fn views(&mut self, frame_id: u64, camera: Camera, settings: &RenderSettings) -> Vec<(String, View)> {
+    /// The views this node renders for a frame: the covered window of every wall tile for each
+    /// brick the frame's map gives it (its own; adopted ones), with the brick of each view, and
+    /// the adopted bricks to drop first (the map no longer gives them to this node).
+    pub fn views(&mut self, frame_id: u64, camera: Camera, settings: &RenderSettings) -> FrameViews {
         self.background = srgb8_of(settings.background);
-        let mut views = Vec::new();
-        for t in &self.config.tiles {
-            let Some(tile_view) = self.config.tile_view(camera, &t.name) else { continue };
-            if let Some(w) = bricks::covered_window(&tile_view, self.owned.0, self.owned.1) {
-                views.push((t.name.clone(), View { window: w, ..tile_view }));
+        let map = self.maps.map_for(frame_id).clone();
+        let mine = map.bricks_of(&self.name);
+        // Adopted bricks the map gives to another node (their home is back); one loaded and not
+        // given to anybody yet (the adoption takes effect with a later map) stays.
+        let unload: Vec<usize> = self
+            .held
+            .keys()
+            .copied()
+            .filter(|&b| {
+                b != self.own
+                    && map.holders.get(b).is_some_and(|h| h.as_deref().is_some_and(|n| n != self.name))
+            })
+            .collect();
+        for b in &unload {
+            self.held.remove(b);
+            tracing::info!(frame_id, brick = b, "object space: dropping adopted brick (its home is back)");
+        }
+        self.resident_bytes = self.held.values().map(|h| h.1).sum();
+        self.compositor.expect(frame_id, map.participants());
+        let (mut views, mut bricks) = (Vec::new(), Vec::new());
+        for b in mine {
+            let Some(&(owned, _)) = self.held.get(&b) else {
+                tracing::error!(
+                    frame_id,
+                    brick = b,
+                    "object space: the map gives this node a brick it has not loaded"
+                );
+                continue;
+            };
+            for t in &self.config.tiles {
+                let Some(tile_view) = self.config.tile_view(camera, &t.name) else { continue };
+                if let Some(w) = bricks::covered_window(&tile_view, owned.0, owned.1) {
+                    views.push((t.name.clone(), View { window: w, ..tile_view }));
+                    bricks.push(b);
+                }
             }
         }
         self.submitted.insert(frame_id, views.iter().map(|(n, v)| (n.clone(), v.window)).collect());
         // Keep only recent frames' windows.
         self.submitted.retain(|&id, _| id + 16 > frame_id);
-        views
+        FrameViews { views, bricks, unload }
+    }
+
+    /// A brick map from the controller (`Message::Bricks`): frames from `from_frame` on follow
+    /// it; pending frames stop waiting for nodes it leaves without bricks, and those it completes
+    /// are returned. An invalid map is the controller's protocol error.
+    pub fn set_map(
+        &mut self,
+        from_frame: u64,
+        holders: Vec<Option<String>>,
+    ) -> Result<Vec<JobResult>, AdoptionError> {
+        let map = BrickMap::from_wire(from_frame, holders, self.maps.nodes())?;
+        tracing::info!(from_frame, holders = ?map.holders, "object space: brick map");
+        let gone = self.maps.set(map);
+        let done = self.compositor.forget(&gone);
+        Ok(done.into_iter().map(|c| self.finish(c)).collect())
+    }
+
+    /// `LoadBrick`: starts loading the brick beside this node's own (an answer comes through
+    /// [`ObjectNode::load_done`]); one already loaded is answered at once.
+    pub fn load(&mut self, brick: u64, renderer: &crate::tiles::RenderHandle) {
+        let held = usize::try_from(brick).ok().and_then(|b| self.held.get(&b).map(|h| (b, *h)));
+        if let Some((b, (owned, bytes))) = held {
+            let _ =
+                self.load_tx.send(LoadDone { brick, result: Ok((b, owned, bytes)), took: Duration::ZERO });
+        } else if self.loading.insert(brick) {
+            tracing::info!(brick, "object space: adopting a brick: loading it");
+            spawn_load(self.plan.clone(), brick, renderer.clone(), self.load_tx.clone(), self.adopt_delay);
+        }
+    }
+
+    /// An adoption's outcome: the answer for the controller.
+    pub fn load_done(&mut self, done: LoadDone) -> Message {
+        self.loading.remove(&done.brick);
+        match done.result {
+            Ok((b, owned, bytes)) => {
+                self.held.insert(b, (owned, bytes));
+                let resident: u64 = self.held.values().map(|h| h.1).sum();
+                tracing::info!(
+                    brick = b,
+                    ms = done.took.as_secs_f64() * 1e3,
+                    resident_volume_bytes = resident,
+                    "object space: adopted brick loaded"
+                );
+                Message::BrickLoaded {
+                    brick: done.brick,
+                    load_us: done.took.as_micros() as u64,
+                    resident_bytes: resident,
+                }
+            }
+            Err(reason) => {
+                tracing::warn!(brick = done.brick, "object space: cannot adopt the brick: {reason}");
+                Message::BrickFailed { brick: done.brick, reason }
+            }
+        }
     }
 
     /// This node's render of a frame is done: sends each peer its pixels, composites its own.
@@ -263,7 +457,11 @@ impl ObjectNode {
         }
         let mine = by_owner.remove(&self.name).unwrap_or_default();
         let mut sent = 0u64;
-        for peer in self.outbox.addrs.keys().cloned().collect::<Vec<_>>() {
+        // The nodes that take part in the frame (a dead node's tiles get nothing).
+        let participants = self.maps.map_for(id).participants();
+        for peer in
+            self.outbox.addrs.keys().filter(|p| participants.contains(*p)).cloned().collect::<Vec<_>>()
+        {
             let layers = by_owner.remove(&peer).unwrap_or_default();
             let rects = layers.iter().map(|(t, l)| l.encode(t, self.compress)).collect();
             let msg = PeerPixels { frame_id: id, node: self.name.clone(), rects };
@@ -327,6 +525,15 @@ impl ObjectNode {
             .get(&frame_id)
             .map_or((0, Duration::ZERO, work), |(at, sent, _)| (*sent, at.elapsed(), work))
     }
+}
+
+/// A frame's views ([`ObjectNode::views`]).
+pub struct FrameViews {
+    pub views: Vec<(String, View)>,
+    /// The brick of each view.
+    pub bricks: Vec<usize>,
+    /// Adopted bricks to drop before rendering.
+    pub unload: Vec<usize>,
 }
 
 /// The sRGB8 of a linear background colour, as the renderer writes misses.

@@ -8,7 +8,7 @@
 //! alone touches the GPU.
 
 use crate::display::{self, Display, DisplayMode, WindowSetup};
-use crate::object::{Inbox, ObjectNode, PeerItem};
+use crate::object::{Inbox, LoadDone, ObjectNode, PeerItem};
 use crate::render::load_volume;
 use crate::tiles::{JobResult, RenderHandle, RenderVolume, TileJob, TileRenderer, TileResult};
 use anyhow::{anyhow, Context, Result};
@@ -37,6 +37,10 @@ pub struct RunArgs {
     /// has rendered before replying Ready (a slow node)
     #[arg(long, value_name = "MS", default_value_t = 0, hide_short_help = true)]
     pub slow_ms: u64,
+    /// Fault injection for tests of object space: wait this long before reading a brick adopted
+    /// from a dead node (a slow disk), so frames run while it loads
+    #[arg(long, value_name = "MS", default_value_t = 0, hide_short_help = true)]
+    pub adopt_delay_ms: u64,
     /// Where to show the tiles: a fullscreen window per tile (`window`), none (`offscreen`: tiles
     /// are kept for snapshots only), or `auto`: windows when a display exists (DISPLAY or
     /// WAYLAND_DISPLAY set and a window opens), else offscreen
@@ -72,6 +76,8 @@ struct Node {
     /// Peers' pixels as they arrive, and who hands their connections over.
     peer_rx: Option<tokio::sync::mpsc::Receiver<PeerItem>>,
     inbox: Option<Inbox>,
+    /// Adopted bricks loaded (or not), for the controller.
+    load_rx: Option<UnboundedReceiver<LoadDone>>,
 }
 
 pub fn run(a: &RunArgs) -> Result<()> {
@@ -96,16 +102,18 @@ pub fn run(a: &RunArgs) -> Result<()> {
     let raw = raw_spec(&config)?;
     let limit = usize::try_from(config.wall.message_limit_bytes).unwrap_or(usize::MAX);
     // object space: only the brick and its halo.
-    let (volume, object, peer_rx, inbox) = if config.wall.mode == WallMode::Object {
+    let (volume, object, peer_rx, inbox, load_rx) = if config.wall.mode == WallMode::Object {
         let setup = crate::object::load_brick(&config, &node.name, raw.as_ref())?;
-        let object = ObjectNode::new(&config, &node.name, &setup)?;
+        let (load_tx, load_rx) = tokio::sync::mpsc::unbounded_channel();
+        let mut object = ObjectNode::new(&config, &node.name, &setup, load_tx)?;
+        object.adopt_delay = std::time::Duration::from_millis(a.adopt_delay_ms);
         let (tx, rx) = tokio::sync::mpsc::channel(64);
         let nodes = config.nodes.iter().map(|n| n.name.clone()).collect();
         let inbox = Inbox { tx, nodes, own: node.name.clone(), limit };
-        (RenderVolume::Brick(Box::new(setup.data)), Some(object), Some(rx), Some(inbox))
+        (RenderVolume::Brick(Box::new(setup.data)), Some(object), Some(rx), Some(inbox), Some(load_rx))
     } else {
         let (volume, _iso) = load_volume(Some(&config.volume_source()), raw.as_ref(), config.volume.iso)?;
-        (RenderVolume::Whole(volume), None, None, None)
+        (RenderVolume::Whole(volume), None, None, None, None)
     };
     let env_src: EnvSource = config.env_source().parse().context("[render] env")?;
     let env: Environment = env_src.load().context("cannot load the environment")?;
@@ -136,6 +144,7 @@ pub fn run(a: &RunArgs) -> Result<()> {
         object,
         peer_rx,
         inbox,
+        load_rx,
     };
     match display {
         Display::Offscreen => network(state, addr, identity, None),
@@ -345,6 +354,15 @@ async fn serve(
                     None => Vec::new(),
                 }
             }
+            Some(done) = recv_load(&mut node.load_rx) => {
+                if let Some(o) = node.object.as_mut() {
+                    let msg = o.load_done(done);
+                    if let Err(e) = sender.send(&msg).await {
+                        tracing::warn!("{e}");
+                    }
+                }
+                Vec::new()
+            }
             c = conns.recv() => {
                 tracing::info!("a new controller connected; it takes over");
                 transport::close(&connection, "another controller took over");
@@ -366,6 +384,14 @@ async fn serve(
 
 /// object space: the next peer's pixels (never, in screen space).
 async fn recv_peer(rx: &mut Option<tokio::sync::mpsc::Receiver<PeerItem>>) -> Option<PeerItem> {
+    match rx {
+        Some(rx) => rx.recv().await,
+        None => std::future::pending().await,
+    }
+}
+
+/// object space: the next adoption's outcome (never, in screen space).
+async fn recv_load(rx: &mut Option<UnboundedReceiver<LoadDone>>) -> Option<LoadDone> {
     match rx {
         Some(rx) => rx.recv().await,
         None => std::future::pending().await,
@@ -425,11 +451,15 @@ async fn execute(
                 };
                 let _span =
                     tracing::info_span!("frame", frame_id = spec.frame_id, node = %node.name).entered();
-                let (tiles, settings) = match node.object.as_mut() {
-                    // object space: the brick over its covered window of every tile.
+                let (tiles, settings, bricks) = match node.object.as_mut() {
+                    // object space: each brick it holds over its covered window of every tile.
                     Some(o) => {
                         let s = o.bound_settings(spec.frame_id, &spec.settings);
-                        (o.views(spec.frame_id, spec.camera, &s), s)
+                        let v = o.views(spec.frame_id, spec.camera, &s);
+                        for b in v.unload {
+                            let _ = node.renderer.unload(b);
+                        }
+                        (v.views, s, v.bricks)
                     }
                     None => (
                         node.tiles
@@ -437,6 +467,7 @@ async fn execute(
                             .filter_map(|t| node.config.tile_view(spec.camera, t).map(|v| (t.clone(), v)))
                             .collect(),
                         spec.settings,
+                        Vec::new(),
                     ),
                 };
                 tracing::debug!(accumulate_frame, "render");
@@ -445,6 +476,7 @@ async fn execute(
                     tiles,
                     settings,
                     accumulate_frame,
+                    bricks,
                 }) {
                     tracing::error!("{e}");
                     node.render_dead = true;
@@ -483,6 +515,29 @@ async fn execute(
                 };
                 sender.send(&Message::Snapshot { tiles }).await?;
             }
+            // object space: a brick map, an adoption (`object.rs`).
+            NodeOutput::Bricks { from_frame, holders } => match node.object.as_mut() {
+                Some(o) => match o.set_map(from_frame, holders) {
+                    Ok(done) => {
+                        for d in done {
+                            queue.extend(frame_done(node, machine, sender, d).await);
+                        }
+                    }
+                    Err(e) => {
+                        let reason = format!("protocol violation by `controller` (Bricks): {e}");
+                        tracing::warn!("closing the controller connection: {reason}");
+                        return Err(NetError::Connection { peer: "controller".into(), reason });
+                    }
+                },
+                None => tracing::warn!("ignoring a brick map: this wall is not in object mode"),
+            },
+            NodeOutput::LoadBrick { brick } => match node.object.as_mut() {
+                Some(o) => o.load(brick, &node.renderer),
+                None => {
+                    let reason = "this wall is not in object mode".to_string();
+                    sender.send(&Message::BrickFailed { brick, reason }).await?;
+                }
+            },
             NodeOutput::Closed { reason } => {
                 tracing::info!("the controller said goodbye: {reason}");
                 return Err(NetError::Connection { peer: "controller".into(), reason });

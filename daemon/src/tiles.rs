@@ -23,6 +23,9 @@ pub struct TileJob {
     pub tiles: Vec<(String, View)>,
     pub settings: RenderSettings,
     pub accumulate_frame: u32,
+    /// object space: the brick each view renders, by index (a node renders an adopted brick
+    /// beside its own, `object.rs`); empty: the one volume.
+    pub bricks: Vec<usize>,
 }
 
 /// A tile's image of a frame: 8-bit sRGB, rows top to bottom.
@@ -60,6 +63,10 @@ pub struct TileWindow {
 enum Job {
     Render(Box<TileJob>),
     Window(WindowJob),
+    /// object space: upload another brick (an adopted one); replies when it is on the GPU.
+    Load(Box<crate::object::BrickData>, tokio::sync::oneshot::Sender<Result<(), String>>),
+    /// object space: drop a brick's volume (no longer this node's).
+    Unload(usize),
 }
 
 /// The presentation jobs.
@@ -121,7 +128,7 @@ impl TileRenderer {
                         .map_err(|e| e.to_string())?;
                     Ok((gpu, gv, genv))
                 })();
-                let (gpu, gv, genv) = match setup {
+                let (gpu, first, genv) = match setup {
                     Ok(s) => {
                         let _ = ready_tx.send(Ok(s.0.adapter_name().to_string()));
                         s
@@ -131,6 +138,12 @@ impl TileRenderer {
                         return;
                     }
                 };
+                // By brick index (0: the whole volume in screen space).
+                let index = match &volume {
+                    RenderVolume::Whole(_) => 0,
+                    RenderVolume::Brick(b) => b.index,
+                };
+                let mut volumes = vec![(index, first)];
                 drop(volume);
                 let mut acc: Vec<Accumulator> = Vec::new();
                 let mut surfaces: Vec<TileSurface> = Vec::new();
@@ -141,6 +154,22 @@ impl TileRenderer {
                             window_job(&gpu, &mut surfaces, w);
                             continue;
                         }
+                        Job::Load(b, reply) => {
+                            let r = gpu.upload_brick(&b.region, &b.info, &b.blocks, b.object.clone());
+                            let r = r.map(|gv| {
+                                volumes.retain(|v| v.0 != b.index);
+                                volumes.push((b.index, gv));
+                            });
+                            let _ = reply.send(r.map_err(|e| format!("brick {}: {e}", b.index)));
+                            continue;
+                        }
+                        Job::Unload(index) => {
+                            // Never the first: the node's own brick stays.
+                            if volumes.len() > 1 {
+                                volumes.retain(|v| v.0 != index);
+                            }
+                            continue;
+                        }
                     };
                     let start = Instant::now();
                     let mut out = Vec::new();
@@ -148,10 +177,19 @@ impl TileRenderer {
                     if job.accumulate_frame == 0 || acc.len() != job.tiles.len() {
                         acc = job.tiles.iter().map(|_| Accumulator { sum: Vec::new(), frames: 0 }).collect();
                     }
-                    for ((name, view), a) in job.tiles.iter().zip(acc.iter_mut()) {
+                    for (k, ((name, view), a)) in job.tiles.iter().zip(acc.iter_mut()).enumerate() {
                         let mut s = job.settings;
                         s.ao.frame = s.ao.frame.wrapping_add(job.accumulate_frame);
-                        match gpu.render(&gv, view, &s, genv.as_ref()) {
+                        let gv = match job.bricks.get(k) {
+                            None => Some(&volumes[0].1),
+                            Some(b) => volumes.iter().find(|v| v.0 == *b).map(|v| &v.1),
+                        };
+                        let Some(gv) = gv else {
+                            failed =
+                                Some(format!("tile {name}: brick {:?} is not loaded", job.bricks.get(k)));
+                            break;
+                        };
+                        match gpu.render(gv, view, &s, genv.as_ref()) {
                             Ok(r) => out.push(accumulate(name, a, r.frame)),
                             Err(e) => {
                                 failed = Some(format!("tile {name}: {e}"));
@@ -205,6 +243,19 @@ impl RenderHandle {
 
     pub fn submit(&self, job: TileJob) -> Result<()> {
         self.send(Job::Render(Box::new(job)))
+    }
+
+    /// object space: uploads another brick beside the node's own (after the jobs already sent);
+    /// resolves once it is on the GPU.
+    pub async fn load(&self, brick: crate::object::BrickData) -> Result<()> {
+        let (tx, rx) = tokio::sync::oneshot::channel();
+        self.send(Job::Load(Box::new(brick), tx))?;
+        rx.await.map_err(|_| anyhow::anyhow!("the render thread has stopped"))?.map_err(anyhow::Error::msg)
+    }
+
+    /// object space: drops a brick uploaded by [`RenderHandle::load`] (after the jobs already sent).
+    pub fn unload(&self, brick: usize) -> Result<()> {
+        self.send(Job::Unload(brick))
     }
 
     /// Creates the windows' surfaces on the render thread and waits for them: one line per

@@ -138,7 +138,11 @@ fn drive(machine: &mut NodeMachine, t: Duration, outputs: Vec<NodeOutput>) {
                 queue.extend(machine.render_done(t, state.frame_id, Duration::from_micros(10)));
             }
             NodeOutput::Present { frame_id } => queue.extend(machine.presented(t, frame_id)),
-            NodeOutput::Send(_) | NodeOutput::SnapshotWanted | NodeOutput::Closed { .. } => {}
+            NodeOutput::Send(_)
+            | NodeOutput::SnapshotWanted
+            | NodeOutput::Closed { .. }
+            | NodeOutput::Bricks { .. }
+            | NodeOutput::LoadBrick { .. } => {}
         }
     }
 }

@@ -54,6 +54,10 @@ pub enum ControllerOutput {
     FrameDone { frame_id: u64, stats: FrameStats },
     /// A node's answer to [`FrameController::request_snapshot`].
     Snapshot { node: String, tiles: Vec<TileImage> },
+    /// object space: `node` loaded `brick` (`crate::adoption::BrickAssigner::loaded`).
+    BrickLoaded { node: String, brick: u64, load: Duration, resident_bytes: u64 },
+    /// object space: `node` could not load `brick` (`crate::adoption::BrickAssigner::load_failed`).
+    BrickFailed { node: String, brick: u64, reason: String },
 }
 
 /// One node's part in one frame.
@@ -553,7 +557,20 @@ impl FrameController {
             Message::FrameState(_)
             | Message::Swap { .. }
             | Message::Ping { .. }
-            | Message::SnapshotRequest => Err(err("only the controller sends this".into())),
+            | Message::SnapshotRequest
+            | Message::Bricks { .. }
+            | Message::LoadBrick { .. } => Err(err("only the controller sends this".into())),
+            Message::BrickLoaded { brick, load_us, resident_bytes } => {
+                Ok(vec![ControllerOutput::BrickLoaded {
+                    node: node.to_string(),
+                    brick,
+                    load: Duration::from_micros(load_us),
+                    resident_bytes,
+                }])
+            }
+            Message::BrickFailed { brick, reason } => {
+                Ok(vec![ControllerOutput::BrickFailed { node: node.to_string(), brick, reason }])
+            }
             Message::Ready { frame_id, render_us } => self.handle_ready(now, node, frame_id, render_us),
             Message::Presented { frame_id, node_time_us } => {
                 self.handle_presented(now, node, frame_id, node_time_us)

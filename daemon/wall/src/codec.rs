@@ -511,8 +511,15 @@ mod tests {
         assert_eq!(check_hello(&hello("n1", Role::Daemon), Role::Daemon), Ok("n1".into()));
         let old = Message::Hello { version: PROTOCOL_VERSION + 1, name: "n1".into(), role: Role::Daemon };
         let e = check_hello(&old, Role::Daemon).unwrap_err();
-        assert_eq!(e, HandshakeError::Version { name: "n1".into(), ours: PROTOCOL_VERSION, theirs: 2 });
-        assert!(e.to_string().contains("version 2"));
+        assert_eq!(
+            e,
+            HandshakeError::Version {
+                name: "n1".into(),
+                ours: PROTOCOL_VERSION,
+                theirs: PROTOCOL_VERSION + 1
+            }
+        );
+        assert!(e.to_string().contains(&format!("version {}", PROTOCOL_VERSION + 1)));
         // Through the codec, as a peer would send it.
         let mut d = Decoder::new(DAEMON_LIMIT);
         d.push(&frame(&old).unwrap());

@@ -238,6 +238,9 @@ struct Pending {
     from: BTreeSet<String>,
     /// This node's own render is in, with the frame's background.
     local: Option<[u8; 3]>,
+    /// The nodes whose pixels the frame needs, where set ([`Compositor::expect`]); all peers
+    /// otherwise.
+    expect: Option<BTreeSet<String>>,
 }
 
 /// A frame whose tiles are composited.
@@ -281,6 +284,7 @@ impl Compositor {
             canvases: tiles.iter().map(|(n, w, h)| TileCanvas::new(n, *w, *h)).collect(),
             from: BTreeSet::new(),
             local: None,
+            expect: None,
         })
     }
 
@@ -307,6 +311,28 @@ impl Compositor {
         }
         p.local = Some(background);
         self.poll(frame_id)
+    }
+
+    /// The nodes whose pixels `frame_id` needs (object space after a node died: the nodes that
+    /// hold bricks in the frame's map, `crate::adoption`); other peers are not waited for. This
+    /// node and names that are not peers are left out.
+    pub fn expect(&mut self, frame_id: u64, nodes: impl IntoIterator<Item = String>) {
+        if self.stale(frame_id) {
+            return;
+        }
+        let want = nodes.into_iter().filter(|n| self.peers.contains(n)).collect();
+        self.frame(frame_id).expect = Some(want);
+    }
+
+    /// `gone` render nothing any more (down): pending frames stop waiting for them. Returns the
+    /// frames that this completes, oldest first (each drops the older ones, as always).
+    pub fn forget(&mut self, gone: &[String]) -> Vec<Composited> {
+        let ids: Vec<u64> = self.pending.keys().copied().collect();
+        for p in self.pending.values_mut() {
+            let want = p.expect.get_or_insert_with(|| self.peers.clone());
+            want.retain(|n| !gone.contains(n));
+        }
+        ids.into_iter().filter_map(|id| self.poll(id)).collect()
     }
 
     /// A peer's pixels, from the connection whose certificate names `cert`.
@@ -357,7 +383,7 @@ impl Compositor {
     fn poll(&mut self, frame_id: u64) -> Option<Composited> {
         let p = self.pending.get(&frame_id)?;
         let background = p.local?;
-        if p.from.len() < self.peers.len() {
+        if !p.expect.as_ref().unwrap_or(&self.peers).iter().all(|n| p.from.contains(n)) {
             return None;
         }
         let mut p = self.pending.remove(&frame_id).expect("present");
@@ -483,5 +509,41 @@ mod tests {
         }
         let e = c.peer("b", PeerPixels { frame_id: 99, node: "b".into(), rects: vec![] }).unwrap_err();
         assert!(matches!(e, CompositeError::TooManyFrames { .. }));
+    }
+
+    #[test]
+    fn a_frame_waits_only_for_the_nodes_its_map_names_and_stops_waiting_for_the_dead() {
+        let mut c = Compositor::new("a", ["a", "b", "c"].map(String::from), vec![("t".into(), 4, 2)]);
+        let near = layer(0, 0, 2, 2, |_, _| (1.0, 10));
+        let far = layer(0, 0, 4, 2, |_, _| (2.0, 20));
+        // Frame 1 by the home map: a waits for b and c; c dies: b's pixels do not complete it.
+        assert_eq!(c.local(1, &[], [0, 0, 0]), None);
+        let b1 = PeerPixels { frame_id: 1, node: "b".into(), rects: vec![far.encode("t", true)] };
+        assert_eq!(c.peer("b", b1).unwrap(), None);
+        // The map that leaves c without bricks ends the wait: frame 1 completes without c.
+        let done = c.forget(&["c".to_string()]);
+        assert_eq!(done.len(), 1);
+        assert_eq!(done[0].frame_id, 1);
+        assert!(done[0].tiles[0].rgb8.chunks(3).all(|p| p[0] == 20));
+        // Frame 2: b holds c's brick too (two rectangles of the same tile in one message); the map
+        // names only b (c, and names that are no peers, are not waited for).
+        c.expect(2, ["b".to_string(), "a".to_string(), "zz".to_string()]);
+        let b2 = PeerPixels {
+            frame_id: 2,
+            node: "b".into(),
+            rects: vec![far.encode("t", false), near.encode("t", true)],
+        };
+        assert_eq!(c.peer("b", b2).unwrap(), None);
+        let done = c.local(2, &[], [0, 0, 0]).expect("only b was expected");
+        let colours: Vec<u8> = done.tiles[0].rgb8.chunks(3).map(|p| p[0]).collect();
+        assert_eq!(colours, vec![10, 10, 20, 20, 10, 10, 20, 20]);
+        // Frame 3 expects c again (it came back): b alone does not complete it.
+        c.expect(3, ["b".to_string(), "c".to_string()]);
+        c.peer("b", PeerPixels { frame_id: 3, node: "b".into(), rects: vec![] }).unwrap();
+        assert_eq!(c.local(3, &[], [0, 0, 0]), None);
+        assert!(c.peer("c", PeerPixels { frame_id: 3, node: "c".into(), rects: vec![] }).unwrap().is_some());
+        // Stale frames are not revived by expect.
+        c.expect(2, ["b".to_string()]);
+        assert_eq!(c.pending(), 0);
     }
 }

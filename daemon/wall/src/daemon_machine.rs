@@ -38,6 +38,12 @@ pub enum NodeOutput {
     SnapshotWanted,
     /// The controller said Bye: close the connection.
     Closed { reason: String },
+    // object space (`crate::adoption`)
+    /// Render, send and composite frames from `from_frame` on by this brick map (validate it
+    /// with `BrickMap::from_wire`).
+    Bricks { from_frame: u64, holders: Vec<Option<String>> },
+    /// Load this brick beside the node's own, then send `BrickLoaded` (or `BrickFailed`).
+    LoadBrick { brick: u64 },
 }
 
 /// Running counts of a daemon.
@@ -167,7 +173,11 @@ impl NodeMachine {
             | Message::Presented { .. }
             | Message::Pong { .. }
             | Message::Snapshot { .. }
-            | Message::Composited { .. } => err("only a daemon sends this".into()),
+            | Message::Composited { .. }
+            | Message::BrickLoaded { .. }
+            | Message::BrickFailed { .. } => err("only a daemon sends this".into()),
+            Message::Bricks { from_frame, holders } => Ok(vec![NodeOutput::Bricks { from_frame, holders }]),
+            Message::LoadBrick { brick } => Ok(vec![NodeOutput::LoadBrick { brick }]),
             Message::FrameState(state) => {
                 if let Some(last) = self.last_frame_id {
                     if state.frame_id <= last {

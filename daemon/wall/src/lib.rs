@@ -11,8 +11,11 @@
 //!   (the one place bytes are made: bincode, length-prefixed frames, limits), [`clock`] (offsets
 //!   from Ping/Pong), [`barrier`] (the controller's swap barrier) and [`daemon_machine`] (a
 //!   daemon's side).
+//! - object space: [`bricks`] (the split, halos, covered windows), [`composite`] (depth
+//!   compositing of peers' pixels), [`adoption`] (which node renders each brick when nodes die).
 //! - [`governor`]: the quality governor (frame times in, AO samples per frame out).
 
+pub mod adoption;
 pub mod barrier;
 pub mod bricks;
 pub mod camera;

@@ -16,6 +16,10 @@
 //!     <---------------------------------------- Pong { id, t0, t1 }
 //! ```
 //!
+//! In object space a daemon also sends Composited before Ready, and when a node dies the
+//! controller sends Bricks (the brick map from a frame on) to every node and LoadBrick to the
+//! survivor that adopts its brick, which answers BrickLoaded or BrickFailed ([`crate::adoption`]).
+//!
 //! The bytes of these messages are [`crate::codec`]'s business; this module knows no encoding.
 
 use serde::{Deserialize, Serialize};
@@ -23,7 +27,7 @@ use serde::{Deserialize, Serialize};
 use crate::wire::FrameState;
 
 /// The protocol version of this build; a peer's [`Message::Hello`] must carry the same.
-pub const PROTOCOL_VERSION: u16 = 1;
+pub const PROTOCOL_VERSION: u16 = 2;
 
 /// Which side of a connection a peer is.
 #[derive(Serialize, Deserialize, Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -102,6 +106,17 @@ pub enum Message {
     /// peers' pixels and merging them), the part of it spent working (encoding its pixels for the
     /// peers, decoding theirs, merging), and the volume bytes it holds (its brick and halo).
     Composited { frame_id: u64, bytes_sent: u64, composite_us: u64, merge_us: u64, resident_bytes: u64 },
+    /// Controller -> daemon (object space): from frame `from_frame` on, brick i is rendered by
+    /// node `holders[i]` (nobody where `None`); see `crate::adoption`.
+    Bricks { from_frame: u64, holders: Vec<Option<String>> },
+    /// Controller -> daemon (object space): load brick `brick` (with its halo) beside your own,
+    /// and say when it is loaded; it becomes yours by a later `Bricks`.
+    LoadBrick { brick: u64 },
+    /// Daemon -> controller (object space): `brick` is loaded (`load_us` to read and upload it);
+    /// `resident_bytes` is all the volume bytes the node holds now.
+    BrickLoaded { brick: u64, load_us: u64, resident_bytes: u64 },
+    /// Daemon -> controller (object space): `brick` could not be loaded, and why.
+    BrickFailed { brick: u64, reason: String },
 }
 
 impl Message {
@@ -119,6 +134,10 @@ impl Message {
             Message::Snapshot { .. } => "Snapshot",
             Message::Bye { .. } => "Bye",
             Message::Composited { .. } => "Composited",
+            Message::Bricks { .. } => "Bricks",
+            Message::LoadBrick { .. } => "LoadBrick",
+            Message::BrickLoaded { .. } => "BrickLoaded",
+            Message::BrickFailed { .. } => "BrickFailed",
         }
     }
 
@@ -129,12 +148,16 @@ impl Message {
             Message::FrameState(_)
             | Message::Swap { .. }
             | Message::Ping { .. }
-            | Message::SnapshotRequest => Some(Role::Controller),
+            | Message::SnapshotRequest
+            | Message::Bricks { .. }
+            | Message::LoadBrick { .. } => Some(Role::Controller),
             Message::Ready { .. }
             | Message::Presented { .. }
             | Message::Pong { .. }
             | Message::Snapshot { .. }
-            | Message::Composited { .. } => Some(Role::Daemon),
+            | Message::Composited { .. }
+            | Message::BrickLoaded { .. }
+            | Message::BrickFailed { .. } => Some(Role::Daemon),
         }
     }
 }

@@ -298,6 +298,8 @@ impl Sim {
                     self.done.insert(frame_id, stats);
                 }
                 ControllerOutput::Snapshot { node, tiles } => self.snapshots.push((node, tiles)),
+                // Object space only; these nodes never send them.
+                ControllerOutput::BrickLoaded { .. } | ControllerOutput::BrickFailed { .. } => {}
             }
         }
     }
@@ -390,6 +392,8 @@ impl Sim {
                     self.send_up(i, &Message::Snapshot { tiles });
                 }
                 NodeOutput::Closed { reason } => self.close(i, &format!("controller said bye: {reason}")),
+                // Object space only; this controller never sends them.
+                NodeOutput::Bricks { .. } | NodeOutput::LoadBrick { .. } => {}
             }
         }
     }
