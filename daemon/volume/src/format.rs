@@ -95,7 +95,7 @@ impl VoxelFormat {
         }
     }
 
-    /// The value a code stands for, as the kernels decode it (`unpack2x16float`,
+    /// The value a code stands for, as the kernels decode it (the bits of a half,
     /// `unpack2x16unorm`/`unpack4x8unorm` then `lo * (1 - t) + hi * t`): the CPU twin of
     /// `voxel()` in shaders/volume.wgsl.
     pub fn decode(self, code: u32, range: (f32, f32)) -> f32 {
