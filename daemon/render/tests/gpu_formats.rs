@@ -5,7 +5,7 @@
 
 mod common;
 
-use isowall_render::gpu::PerfOptions;
+use isowall_render::gpu::{ObjectSpace, PerfOptions};
 use isowall_render::reference;
 use isowall_volume::procedural::Procedural;
 use isowall_volume::{VolumeSource, VoxelFormat};
@@ -81,4 +81,39 @@ fn a_volume_stored_in_another_format_is_refused() {
     // Uploaded again for the kernels in use, it renders.
     let f32_volume = gpu.upload(&volume).unwrap();
     assert!(gpu.render(&f32_volume, &view, &s, None).unwrap().frame.hit_count() > 0);
+}
+
+#[test]
+fn a_brick_packs_r16f_and_refuses_the_unorm_formats() {
+    let Some(mut gpu) = common::gpu() else { return };
+    let volume = VolumeSource::Procedural { kind: Procedural::Engine, size: Some(48) }.load(None).unwrap();
+    let info = isowall_volume::VolumeInfo {
+        name: volume.name.clone(),
+        dims: volume.dims(),
+        spacing: volume.spacing(),
+        origin: volume.box_min(),
+    };
+    let blocks = isowall_volume::BlockMinMax::new(&volume, 8);
+    // One brick holding the whole volume: its render is the whole volume's in the same format.
+    let object = ObjectSpace {
+        data_offset: [0, 0, 0],
+        owned_min: volume.box_min() - 1.0,
+        owned_max: volume.box_max() + 1.0,
+    };
+    let view = View::whole(Camera::framing(volume.box_min(), volume.box_max(), 48, 48), 48, 48);
+    let s = RenderSettings::new(Procedural::Engine.natural_iso());
+    for format in [VoxelFormat::R16, VoxelFormat::R8] {
+        gpu.set_perf(PerfOptions { format, ..Default::default() }).unwrap();
+        let e = gpu.upload_brick(&volume, &info, &blocks, object.clone()).err().expect("refused");
+        assert!(e.to_string().contains(format.name()), "{e}");
+    }
+    gpu.set_perf(PerfOptions { format: VoxelFormat::R16F, ..PerfOptions::BEFORE }).unwrap();
+    let brick = gpu.upload_brick(&volume, &info, &blocks, object).unwrap();
+    assert_eq!(brick.voxel_bytes, (volume.data().len().div_ceil(2) * 4) as u64);
+    let whole = gpu.upload(&volume).unwrap();
+    let a = gpu.render(&brick, &view, &s, None).unwrap().frame;
+    let b = gpu.render(&whole, &view, &s, None).unwrap().frame;
+    assert!(b.hit_count() > 300);
+    assert_eq!(a.hit, b.hit);
+    assert_eq!(a.depth, b.depth);
 }

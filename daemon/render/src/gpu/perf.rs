@@ -33,9 +33,9 @@ impl Default for PerfOptions {
         // cells load 0.61-0.67x the cells of the primary rays' blocks of 8 at the same error, and
         // were as fast or faster (2 cells: fewer still, but 8x the memory of 4 for no measured
         // gain); the coarse level and the early exit cost nothing; no workgroup shape tried beat
-        // 8x8 beyond the noise. Voxels stay f32: packed r16/r16f keep the error but were
-        // 1.07-1.25x slower on lavapipe (unpacking costs a CPU more than the bytes saved), and r8
-        // raises the AO error 2.5-9x at 256 samples; a GPU is unmeasured.
+        // 8x8 beyond the noise. Voxels stay f32: packed r16/r16f keep the error but were not
+        // faster on lavapipe (engine 1.07-1.42x slower in three runs, CT within the noise), and
+        // r8 raises the AO error 2.5-9x at 256 samples; a GPU is unmeasured.
         PerfOptions {
             block: 8,
             ao_block: 4,
