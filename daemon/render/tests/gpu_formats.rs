@@ -9,21 +9,14 @@ use isowall_render::gpu::{ObjectSpace, PerfOptions};
 use isowall_render::reference;
 use isowall_volume::procedural::Procedural;
 use isowall_volume::{VolumeSource, VoxelFormat};
-use isowall_wall::{AoRadius, Camera, RenderSettings, View};
+use isowall_wall::{Camera, RenderSettings, View};
 
 const PACKED: [VoxelFormat; 3] = [VoxelFormat::R16F, VoxelFormat::R16, VoxelFormat::R8];
 
 #[test]
 fn packed_voxels_render_as_the_rounded_volume() {
     let Some(mut gpu) = common::gpu() else { return };
-    for (kind, n, radius) in
-        [(Procedural::Engine, 96, AoRadius::Default), (Procedural::SphereOverPlane, 48, AoRadius::Unbounded)]
-    {
-        let volume = VolumeSource::Procedural { kind, size: Some(n) }.load(None).unwrap();
-        let view = View::whole(Camera::framing(volume.box_min(), volume.box_max(), 64, 64), 64, 64);
-        let mut s = RenderSettings::new(kind.natural_iso());
-        s.ao.samples = 16;
-        s.ao.radius = radius;
+    for (kind, volume, view, s) in common::perf_scenes() {
         gpu.set_perf(PerfOptions::default()).unwrap();
         let gv = gpu.upload(&volume).unwrap();
         let full = gpu.render(&gv, &view, &s, None).unwrap().frame;
@@ -36,7 +29,7 @@ fn packed_voxels_render_as_the_rounded_volume() {
             let gv = gpu.upload(&volume).unwrap();
             assert_eq!(gv.voxel_bytes, (volume.data().len().div_ceil(format.per_word()) * 4) as u64);
             let packed = gpu.render(&gv, &view, &s, None).unwrap().frame;
-            let name = format!("{} {}", kind.name(), format.name());
+            let name = format!("{kind} {}", format.name());
             // The same voxel values (up to the last bit of the GPU's unpacking): the same hits, the
             // same depth within a hair, occlusion within one ray on at most 1% of the pixels.
             let hits = (0..packed.pixel_count()).filter(|&i| packed.hit[i] != twin.hit[i]).count();
@@ -57,7 +50,7 @@ fn packed_voxels_render_as_the_rounded_volume() {
             assert!(a.depth_median < 0.05, "{name}: median depth error {} voxel", a.depth_median);
             assert!(a.normal_median_deg < 1.0, "{name}: median normal error {} deg", a.normal_median_deg);
             // r8 rounds the field visibly: the packed path is really the one rendered.
-            if format == VoxelFormat::R8 && kind == Procedural::Engine {
+            if format == VoxelFormat::R8 && kind == Procedural::Engine.name() {
                 let moved = (0..packed.pixel_count())
                     .filter(|&i| packed.hit[i] && full.hit[i] && packed.depth[i] != full.depth[i])
                     .count();
