@@ -48,6 +48,7 @@ struct FrameParams {
     coarse: vec4<u32>,       // coarse block level of AO rays: counts (xyz), cells per edge (w; 0: none)
     perf: vec4<u32>,         // x: flags (bit 0: an AO ray entering a block with min >= iso is occluded);
                              // y, z: offsets of the AO and coarse levels in block_minmax
+    voxel_range: vec4<f32>,  // xy: the value range the unorm voxel formats span (lo, hi); zw: 0
 }
 
 const FLAG_EMPTY_SPACE_SKIPPING: u32 = 1u;
@@ -57,7 +58,9 @@ const PERF_BLOCK_MIN_EXIT: u32 = 1u;
 // new compiled shader variant per uniform buffer it sees and keeps every variant, so a uniform
 // that changes each frame grew a daemon by ~1.5 MB a frame (found by the soak test).
 @group(0) @binding(0) var<storage, read> params: FrameParams;
-@group(0) @binding(1) var<storage, read> volume: array<f32>;
+// The voxels packed as `VOXEL_FORMAT` (volume.wgsl) stores them: one f32's bits, two halves or two
+// unorm16, or four unorm8 per word, the first voxel in the lowest bits.
+@group(0) @binding(1) var<storage, read> volume: array<u32>;
 @group(0) @binding(2) var<storage, read> block_minmax: array<vec2<f32>>; // primary, AO, coarse levels
 
 // Unit ray through the centre of pixel px of the FULL image (DESIGN.md "Camera").

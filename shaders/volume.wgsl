@@ -7,9 +7,40 @@
 // Trilinear field evaluations made by this invocation ("trilinear fetches", 8 voxel reads each).
 var<private> fetches: u32 = 0u;
 
+// How the voxels are stored (`VoxelFormat::code` in daemon/volume/src/format.rs, whose
+// `decode` is the CPU twin): 0 r32f, 1 r16f, 2 r16 unorm, 3 r8 unorm (both over
+// `params.voxel_range`). A pipeline constant, so each pipeline holds only its own branch.
+override VOXEL_FORMAT: u32 = 0u;
+
+// An IEEE half's bits as f32, exactly (`half::f16::to_f32`), by bit operations: `unpack2x16float`
+// needs the SHADER_FLOAT16_IN_FLOAT32 capability, which would make every pipeline of the kernel,
+// the r32f one included, depend on it. Infinities and NaNs never occur (r16f clamps to +-65504).
+fn half_to_f32(h: u32) -> f32 {
+    let sign = (h & 0x8000u) << 16u;
+    let e = (h >> 10u) & 0x1fu;
+    let m = h & 0x3ffu;
+    if e == 0u {
+        // zero or subnormal: m * 2^-24, exact in f32
+        return bitcast<f32>(sign | bitcast<u32>(f32(m) * 5.9604645e-8));
+    }
+    return bitcast<f32>(sign | ((e + 112u) << 23u) | (m << 13u));
+}
+
 fn voxel(i: i32, j: i32, k: i32) -> f32 {
     let n = vec3<i32>(params.dims.xyz);
-    return volume[u32(i + n.x * (j + n.y * k))];
+    let idx = u32(i + n.x * (j + n.y * k));
+    if VOXEL_FORMAT == 1u {
+        return half_to_f32((volume[idx >> 1u] >> (16u * (idx & 1u))) & 0xffffu);
+    }
+    if VOXEL_FORMAT == 2u {
+        let t = unpack2x16unorm(volume[idx >> 1u])[idx & 1u];
+        return params.voxel_range.x * (1.0 - t) + params.voxel_range.y * t;
+    }
+    if VOXEL_FORMAT == 3u {
+        let t = unpack4x8unorm(volume[idx >> 2u])[idx & 3u];
+        return params.voxel_range.x * (1.0 - t) + params.voxel_range.y * t;
+    }
+    return bitcast<f32>(volume[idx]);
 }
 
 // The trilinear interpolant at continuous voxel coordinates `u`, clamped to the box; an axis with a

@@ -152,12 +152,71 @@ fn governor(config: &WallConfig, settings: &RenderSettings, o: &OrbitOptions) ->
     Ok(Some(g))
 }
 
-/// One frame of a governed drive: its samples, its measured frame time (frame state sent -> swap
-/// released) and whether the camera was moving.
-struct GovernedFrame {
-    samples: u32,
-    frame: Duration,
-    motion: Motion,
+/// What a governed drive did, in memory bounded however long it runs (a demo loops for hours): the
+/// frame times of the last [`HISTORY`](crate::wall::HISTORY) moving frames after the first five
+/// (the governor's settling), the samples of the first and the last [`GovernorLog::SAMPLES_SHOWN`]
+/// frames, and counts.
+#[derive(Default)]
+struct GovernorLog {
+    /// Frames seen, and moving frames after the first five.
+    frames: u64,
+    moving: u64,
+    /// Frame times (frame state sent -> swap released) of the last moving frames after five.
+    moving_ms: std::collections::VecDeque<Duration>,
+    first_samples: Vec<u32>,
+    last_samples: std::collections::VecDeque<u32>,
+    /// Still frames, and the samples of the last one.
+    still: u64,
+    still_samples: u32,
+}
+
+impl GovernorLog {
+    /// Samples of this many frames at each end of the drive are reported.
+    const SAMPLES_SHOWN: usize = 40;
+    /// Moving frames the governor settles in (left out of the quantiles).
+    const SETTLING: u64 = 5;
+
+    fn push(&mut self, samples: u32, frame: Duration, motion: Motion) {
+        self.frames += 1;
+        if self.first_samples.len() < Self::SAMPLES_SHOWN {
+            self.first_samples.push(samples);
+        } else {
+            if self.last_samples.len() == Self::SAMPLES_SHOWN {
+                self.last_samples.pop_front();
+            }
+            self.last_samples.push_back(samples);
+        }
+        match motion {
+            Motion::Moving => {
+                self.moving += 1;
+                if self.moving > Self::SETTLING {
+                    if self.moving_ms.len() == crate::wall::HISTORY {
+                        self.moving_ms.pop_front();
+                    }
+                    self.moving_ms.push_back(frame);
+                }
+            }
+            Motion::Still => {
+                self.still += 1;
+                self.still_samples = samples;
+            }
+        }
+    }
+
+    /// The samples per frame, the frames between the first and the last ones shown elided.
+    fn samples_text(&self) -> String {
+        let list = |v: &mut dyn Iterator<Item = &u32>| v.map(u32::to_string).collect::<Vec<_>>().join(" ");
+        let skipped = self.frames - (self.first_samples.len() + self.last_samples.len()) as u64;
+        let mut s = list(&mut self.first_samples.iter());
+        if skipped > 0 {
+            s += &format!(" ... ({skipped} frames) ...");
+        }
+        if !self.last_samples.is_empty() {
+            s += " ";
+            s += &list(&mut self.last_samples.iter());
+        }
+        s
+    }
 }
 
 /// Drives the orbit, then `still_frames` frames at its last camera, calling `after_frame(k, wall)`
@@ -170,12 +229,12 @@ async fn drive(
     o: &OrbitOptions,
     mut governor: Option<Governor>,
     after_frame: &mut dyn FnMut(u64, &Wall),
-) -> Result<(Duration, Option<Instant>, Vec<GovernedFrame>)> {
+) -> Result<(Duration, Option<Instant>, GovernorLog)> {
     wall.sync_clocks(5).await;
     let start = Instant::now();
     let period = (o.fps > 0.0).then(|| Duration::from_secs_f64(1.0 / o.fps));
     let mut first_swap = None;
-    let mut governed = Vec::new();
+    let mut governed = GovernorLog::default();
     let mut settings = *settings;
     let total = o.frames + o.still_frames;
     for k in 0..total {
@@ -194,7 +253,7 @@ async fn drive(
             // The next frame moves while the orbit goes on.
             let motion = if k + 1 < o.frames { Motion::Moving } else { Motion::Still };
             let frame = wall.releases.last().map_or(Duration::ZERO, |r| r.1);
-            governed.push(GovernedFrame { samples: settings.ao.samples, frame, motion });
+            governed.push(settings.ao.samples, frame, motion);
             g.observe(frame.as_secs_f64() * 1e3, motion);
         }
         if k == 0 {
@@ -237,29 +296,31 @@ async fn record_frame(wall: &mut Wall, dir: &std::path::Path) -> Result<()> {
 }
 
 /// The governor's report: its target, and the frame times it achieved while the camera moved
-/// (after the first five frames, its settling) with the samples it chose.
-fn governor_report(target: Option<&Governor>, frames: &[GovernedFrame]) -> String {
+/// (after the first five frames, its settling; the last [`HISTORY`](crate::wall::HISTORY) of
+/// them) with the samples it chose.
+fn governor_report(target: Option<&Governor>, log: &GovernorLog) -> String {
     let Some(g) = target else {
         return String::new();
     };
-    let moving: Vec<&GovernedFrame> = frames.iter().filter(|f| f.motion == Motion::Moving).skip(5).collect();
-    let ms: Vec<Duration> = moving.iter().map(|f| f.frame).collect();
+    let ms: Vec<Duration> = log.moving_ms.iter().copied().collect();
     let fmt = |d: Option<Duration>| d.map_or("-".to_string(), |d| format!("{:.1} ms", d.as_secs_f64() * 1e3));
-    let samples: Vec<u32> = frames.iter().map(|f| f.samples).collect();
+    let kept = if ms.len() as u64 + GovernorLog::SETTLING < log.moving {
+        format!("last {} of {} frames", ms.len(), log.moving.saturating_sub(GovernorLog::SETTLING))
+    } else {
+        format!("{} frames", ms.len())
+    };
     let mut s = format!(
-        "governor: target {:.1} ms; moving frames after 5: p50 {} p90 {} ({} frames); samples per frame {}\n",
+        "governor: target {:.1} ms; moving frames after {}: p50 {} p90 {} ({kept}); samples per frame {}\n",
         g.target_ms(),
+        GovernorLog::SETTLING,
         fmt(quantile(ms.clone(), 0.5)),
         fmt(quantile(ms, 0.9)),
-        moving.len(),
-        samples.iter().map(u32::to_string).collect::<Vec<_>>().join(" ")
+        log.samples_text()
     );
-    let still: Vec<&GovernedFrame> = frames.iter().filter(|f| f.motion == Motion::Still).collect();
-    if let Some(last) = still.last() {
+    if log.still > 0 {
         s += &format!(
             "governor: {} still frame(s) refined progressively at {} samples\n",
-            still.len(),
-            last.samples
+            log.still, log.still_samples
         );
     }
     s
@@ -422,4 +483,46 @@ pub fn snapshot(a: &SnapshotArgs) -> Result<()> {
         wall.close("snapshot taken").await;
         Ok(())
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_governor_log_stays_bounded_on_long_runs() {
+        let mut log = GovernorLog::default();
+        let n = 10 * crate::wall::HISTORY as u64;
+        for k in 0..n {
+            // Frame k takes k ms and uses k % 7 + 1 samples.
+            log.push((k % 7 + 1) as u32, Duration::from_millis(k), Motion::Moving);
+        }
+        for _ in 0..3 {
+            log.push(9, Duration::from_millis(1), Motion::Still);
+        }
+        assert_eq!(log.moving_ms.len(), crate::wall::HISTORY);
+        assert_eq!(log.first_samples.len() + log.last_samples.len(), 2 * GovernorLog::SAMPLES_SHOWN);
+        // The quantiles are of the last HISTORY moving frames: n - HISTORY .. n ms.
+        assert_eq!(log.moving_ms.front(), Some(&Duration::from_millis(n - crate::wall::HISTORY as u64)));
+        let g = Governor::new(100.0, 1, 1, 64).unwrap();
+        let r = governor_report(Some(&g), &log);
+        assert!(r.contains(&format!("last {} of {} frames", crate::wall::HISTORY, n - 5)), "{r}");
+        assert!(r.contains(&format!("({} frames) ...", n + 3 - 80)), "{r}");
+        assert!(r.starts_with("governor: target 100.0 ms; moving frames after 5: p50 9"), "{r}");
+        assert!(r.contains("3 still frame(s) refined progressively at 9 samples"), "{r}");
+        assert!(r.lines().next().unwrap().ends_with("9 9 9"), "{r}");
+    }
+
+    #[test]
+    fn a_short_run_reports_every_frame() {
+        let mut log = GovernorLog::default();
+        for k in 0..8u64 {
+            log.push(k as u32 + 1, Duration::from_millis(10 * (k + 1)), Motion::Moving);
+        }
+        let g = Governor::new(100.0, 1, 1, 64).unwrap();
+        let r = governor_report(Some(&g), &log);
+        assert!(r.contains("(3 frames); samples per frame 1 2 3 4 5 6 7 8\n"), "{r}");
+        assert!(r.contains("p50 70.0 ms"), "{r}");
+        assert!(!r.contains("still"), "{r}");
+    }
 }

@@ -193,12 +193,11 @@ fn primary_error(f: &Frame, reference: &Frame) -> (f64, f64) {
 /// (the build before the performance work), or changes of the default joined by '+': `block=N`
 /// (cells per block edge, primary rays), `ao=N` (AO rays' block, 0: the primary one), `coarse=N`
 /// (AO rays' coarse block, 0 none), `exit=on|off` (the block min early exit of AO rays), `wg=XxY`
-/// (workgroup shape), `format=r32f|r16f|r16|r8` (the voxels rounded as that storage format keeps
-/// them, rendered by the f32 kernels: the format's error, not its speed); e.g. `ao=2+coarse=16`.
-pub fn variant_options(name: &str) -> Result<(PerfOptions, VoxelFormat)> {
+/// (workgroup shape), `format=r32f|r16f|r16|r8` (the voxels stored packed in that format on the
+/// GPU and read by kernels compiled for it: its speed and its error); e.g. `ao=2+coarse=16`.
+pub fn variant_options(name: &str) -> Result<PerfOptions> {
     let bad = |what: &str| anyhow::anyhow!("variant '{name}': {what}");
     let mut o = PerfOptions::default();
-    let mut format = VoxelFormat::R32F;
     for part in name.split('+') {
         match part.split_once('=') {
             None if part == "default" => {}
@@ -208,7 +207,7 @@ pub fn variant_options(name: &str) -> Result<(PerfOptions, VoxelFormat)> {
             Some(("coarse", v)) => o.coarse = v.parse().map_err(|_| bad("coarse is not a whole number"))?,
             Some(("exit", "on")) => o.block_min_exit = true,
             Some(("exit", "off")) => o.block_min_exit = false,
-            Some(("format", v)) => format = v.parse().map_err(|e: String| bad(&e))?,
+            Some(("format", v)) => o.format = v.parse::<VoxelFormat>().map_err(|e| bad(&e))?,
             Some(("wg", v)) => {
                 o.workgroup = args::size(v).map_err(|e| bad(&format!("wg: {e}")))?;
             }
@@ -220,7 +219,7 @@ pub fn variant_options(name: &str) -> Result<(PerfOptions, VoxelFormat)> {
         }
     }
     o.validate().map_err(|e| bad(&e))?;
-    Ok((o, format))
+    Ok(o)
 }
 
 pub fn run(a: &SuiteArgs) -> Result<()> {
@@ -232,7 +231,7 @@ pub fn run(a: &SuiteArgs) -> Result<()> {
         }
         None => None,
     };
-    let variants: Vec<(String, (PerfOptions, VoxelFormat))> = a
+    let variants: Vec<(String, PerfOptions)> = a
         .variants
         .split(',')
         .map(str::trim)
@@ -260,13 +259,22 @@ pub fn run(a: &SuiteArgs) -> Result<()> {
         let (volume, iso) = load_volume(Some(spec), None, iso)?;
         gpu.set_perf(PerfOptions::default())?;
         let gv = gpu.upload(&volume)?;
-        // The volume as each variant's block levels need it.
+        // The volume as each variant's block levels and voxel format need it.
         let mut uploads: Vec<((u32, u32, u32, VoxelFormat), GpuVolume)> = Vec::new();
-        for (_, (o, format)) in &variants {
-            let key = (o.block, o.ao_block, o.coarse, *format);
+        for (variant, o) in &variants {
+            let key = (o.block, o.ao_block, o.coarse, o.format);
             if !uploads.iter().any(|(k, _)| *k == key) {
                 gpu.set_perf(*o)?;
-                uploads.push((key, gpu.upload(&volume.stored_as(*format))?));
+                let gv = gpu.upload(&volume)?;
+                println!(
+                    "# resident on the GPU, {} as {variant}: voxels {} bytes ({} per voxel, {}), block min/max {} bytes",
+                    volume.name,
+                    gv.voxel_bytes,
+                    o.format.bytes(),
+                    o.format.name(),
+                    gv.minmax_bytes
+                );
+                uploads.push((key, gv));
             }
         }
         for &(w, h) in &sizes {
@@ -277,9 +285,9 @@ pub fn run(a: &SuiteArgs) -> Result<()> {
             s.ao.frame = 1_000_000; // disjoint from the measured frames' patterns
             let reference = gpu.render_accumulated(&gv, &view, &s, None, a.reference_frames.max(1))?.frame;
             for &n in &samples {
-                for (variant, (o, format)) in &variants {
+                for (variant, o) in &variants {
                     gpu.set_perf(*o)?;
-                    let key = (o.block, o.ao_block, o.coarse, *format);
+                    let key = (o.block, o.ao_block, o.coarse, o.format);
                     let gv = &uploads.iter().find(|(k, _)| *k == key).expect("uploaded").1;
                     let mut s = RenderSettings::new(iso);
                     s.ao.samples = n;
@@ -365,15 +373,22 @@ mod tests {
 
     #[test]
     fn variant_names_change_the_default() {
-        assert_eq!(variant_options("default").unwrap(), (PerfOptions::default(), VoxelFormat::R32F));
-        assert_eq!(variant_options("before").unwrap().0, PerfOptions::BEFORE);
-        assert_eq!(variant_options("format=r16").unwrap().1, VoxelFormat::R16);
-        let (o, _) = variant_options("block=4+ao=2+coarse=8+exit=off+wg=16x4").unwrap();
+        assert_eq!(variant_options("default").unwrap(), PerfOptions::default());
+        assert_eq!(variant_options("before").unwrap(), PerfOptions::BEFORE);
+        assert_eq!(variant_options("format=r16").unwrap().format, VoxelFormat::R16);
+        let o = variant_options("block=4+ao=2+coarse=8+exit=off+wg=16x4+format=r8").unwrap();
         assert_eq!(
             o,
-            PerfOptions { block: 4, ao_block: 2, coarse: 8, block_min_exit: false, workgroup: (16, 4) }
+            PerfOptions {
+                block: 4,
+                ao_block: 2,
+                coarse: 8,
+                block_min_exit: false,
+                workgroup: (16, 4),
+                format: VoxelFormat::R8
+            }
         );
-        assert_eq!(variant_options("before+wg=4x4").unwrap().0.workgroup, (4, 4));
+        assert_eq!(variant_options("before+wg=4x4").unwrap().workgroup, (4, 4));
         for bad in ["fast", "block=x", "wg=0x8", "wg=32x32", "exit=maybe", "format=r4"] {
             assert!(variant_options(bad).is_err(), "{bad}");
         }

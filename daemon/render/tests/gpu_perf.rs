@@ -7,9 +7,6 @@ mod common;
 
 use isowall_render::gpu::PerfOptions;
 use isowall_render::Frame;
-use isowall_volume::procedural::Procedural;
-use isowall_volume::VolumeSource;
-use isowall_wall::{AoRadius, Camera, RenderSettings, View};
 
 /// Pixels whose hit differs, and pixels both hit whose occlusion differs by more than `tol`.
 fn differences(a: &Frame, b: &Frame, tol: f32) -> (usize, usize) {
@@ -23,18 +20,11 @@ fn differences(a: &Frame, b: &Frame, tol: f32) -> (usize, usize) {
 #[test]
 fn performance_options_leave_the_image_unchanged() {
     let Some(mut gpu) = common::gpu() else { return };
-    for (kind, n, radius) in
-        [(Procedural::Engine, 96, AoRadius::Default), (Procedural::SphereOverPlane, 48, AoRadius::Unbounded)]
-    {
-        let volume = VolumeSource::Procedural { kind, size: Some(n) }.load(None).unwrap();
-        let view = View::whole(Camera::framing(volume.box_min(), volume.box_max(), 64, 64), 64, 64);
-        let mut s = RenderSettings::new(kind.natural_iso());
-        s.ao.samples = 16;
-        s.ao.radius = radius;
+    for (name, volume, view, s) in common::perf_scenes() {
         gpu.set_perf(PerfOptions::BEFORE).unwrap();
         let gv = gpu.upload(&volume).unwrap();
         let before = gpu.render(&gv, &view, &s, None).unwrap().frame;
-        assert!(before.hit_count() > 500, "{}: too few hits", kind.name());
+        assert!(before.hit_count() > 500, "{}: too few hits", name);
         for o in [
             PerfOptions::default(),
             PerfOptions { ao_block: 4, ..PerfOptions::BEFORE },
@@ -49,18 +39,18 @@ fn performance_options_leave_the_image_unchanged() {
             let f = gpu.render(&gv, &view, &s, None).unwrap().frame;
             let (hits, ao) = differences(&f, &before, 0.5 / 16.0);
             // Primary rays are untouched by every option: the same hits, the same depth.
-            assert_eq!(hits, 0, "{} {o:?}: hits differ", kind.name());
-            assert_eq!(f.depth, before.depth, "{} {o:?}: depth differs", kind.name());
+            assert_eq!(hits, 0, "{} {o:?}: hits differ", name);
+            assert_eq!(f.depth, before.depth, "{} {o:?}: depth differs", name);
             // The AO tests are exact either way; a ray grazing a cell corner may flip within f32
             // rounding where a DDA restarts at a block face: at most 1% of pixels by one ray.
-            assert!(ao * 100 <= f.hit_count(), "{} {o:?}: occlusion differs at {ao} pixels", kind.name());
+            assert!(ao * 100 <= f.hit_count(), "{} {o:?}: occlusion differs at {ao} pixels", name);
             let (_, ao2) = differences(&f, &before, 1.5 / 16.0);
-            assert_eq!(ao2, 0, "{} {o:?}: occlusion differs by more than one ray", kind.name());
+            assert_eq!(ao2, 0, "{} {o:?}: occlusion differs by more than one ray", name);
             if o.ao_block > 0 && o.ao_block < 8 {
                 assert!(
                     f.fetches < before.fetches,
                     "{} {o:?}: a finer AO level should load fewer cells ({} >= {})",
-                    kind.name(),
+                    name,
                     f.fetches,
                     before.fetches
                 );

@@ -51,22 +51,95 @@ impl std::str::FromStr for VoxelFormat {
     }
 }
 
+impl VoxelFormat {
+    /// The code the kernels' `VOXEL_FORMAT` constant takes for this format (shaders/volume.wgsl).
+    pub fn code(self) -> u32 {
+        match self {
+            VoxelFormat::R32F => 0,
+            VoxelFormat::R16F => 1,
+            VoxelFormat::R16 => 2,
+            VoxelFormat::R8 => 3,
+        }
+    }
+
+    /// Voxels per 32-bit word of the packed storage.
+    pub fn per_word(self) -> usize {
+        4 / self.bytes()
+    }
+
+    /// Whether the format maps a value range onto 0..=1 (and so needs the whole volume's range:
+    /// two bricks of one volume must round alike).
+    pub fn is_unorm(self) -> bool {
+        matches!(self, VoxelFormat::R16 | VoxelFormat::R8)
+    }
+
+    fn levels(self) -> f64 {
+        match self {
+            VoxelFormat::R16 => 65535.0,
+            VoxelFormat::R8 => 255.0,
+            _ => 1.0,
+        }
+    }
+
+    /// The stored code of value `v` (`range`: the volume's value range, for the unorm formats).
+    pub fn encode(self, v: f32, range: (f32, f32)) -> u32 {
+        match self {
+            VoxelFormat::R32F => v.to_bits(),
+            VoxelFormat::R16F => half::f16::from_f32(v.clamp(-65504.0, 65504.0)).to_bits() as u32,
+            VoxelFormat::R16 | VoxelFormat::R8 => {
+                let (lo, hi) = (range.0 as f64, range.1 as f64);
+                let levels = self.levels();
+                let t = if hi > lo { (v as f64 - lo) / (hi - lo) } else { 0.0 };
+                (t * levels).round().clamp(0.0, levels) as u32
+            }
+        }
+    }
+
+    /// The value a code stands for, as the kernels decode it (the bits of a half,
+    /// `unpack2x16unorm`/`unpack4x8unorm` then `lo * (1 - t) + hi * t`): the CPU twin of
+    /// `voxel()` in shaders/volume.wgsl.
+    pub fn decode(self, code: u32, range: (f32, f32)) -> f32 {
+        match self {
+            VoxelFormat::R32F => f32::from_bits(code),
+            VoxelFormat::R16F => half::f16::from_bits(code as u16).to_f32(),
+            VoxelFormat::R16 | VoxelFormat::R8 => {
+                let t = code as f32 / self.levels() as f32;
+                range.0 * (1.0 - t) + range.1 * t
+            }
+        }
+    }
+
+    /// `data` packed as the GPU stores it: [`Self::per_word`] codes per little-endian u32, the
+    /// first voxel in the lowest bits; the last word padded with zeros.
+    pub fn pack(self, data: &[f32], range: (f32, f32)) -> Vec<u32> {
+        let per = self.per_word();
+        let bits = 32 / per as u32;
+        data.chunks(per)
+            .map(|c| {
+                c.iter().enumerate().fold(0u32, |w, (k, &v)| w | self.encode(v, range) << (bits * k as u32))
+            })
+            .collect()
+    }
+
+    /// The value of voxel `i` of words made by [`Self::pack`].
+    pub fn unpack(self, words: &[u32], i: usize, range: (f32, f32)) -> f32 {
+        let per = self.per_word();
+        let bits = 32 / per;
+        let w = words[i / per] >> (bits * (i % per));
+        let mask = if bits == 32 { u32::MAX } else { (1u32 << bits) - 1 };
+        self.decode(w & mask, range)
+    }
+}
+
 impl Volume {
-    /// The volume with every voxel rounded as `format` stores it.
+    /// The volume with every voxel rounded as `format` stores it and decoded as the kernels decode
+    /// it (unorm formats over this volume's value range): the CPU twin of the GPU's packed volume.
     pub fn stored_as(&self, format: VoxelFormat) -> Volume {
-        let (lo, hi) = self.value_range();
-        let (lo, range) = (lo as f64, (hi as f64 - lo as f64).max(f64::MIN_POSITIVE));
-        let unorm = |levels: f64| {
-            move |v: f32| (lo + ((v as f64 - lo) / range * levels).round() / levels * range) as f32
-        };
-        let data: Vec<f32> = match format {
-            VoxelFormat::R32F => self.data().to_vec(),
-            VoxelFormat::R16F => self.data().iter().map(|&v| half::f16::from_f32(v).to_f32()).collect(),
-            VoxelFormat::R16 => self.data().iter().map(|&v| unorm(65535.0)(v)).collect(),
-            VoxelFormat::R8 => self.data().iter().map(|&v| unorm(255.0)(v)).collect(),
-        };
+        let range = self.value_range();
         let mut out = self.clone();
-        out.data = data.into_iter().map(|v| if v.is_finite() { v } else { f32::MAX.copysign(v) }).collect();
+        if format != VoxelFormat::R32F {
+            out.data = self.data().iter().map(|&v| format.decode(format.encode(v, range), range)).collect();
+        }
         out
     }
 }
@@ -112,5 +185,32 @@ mod tests {
             assert_eq!(f.name().parse::<VoxelFormat>(), Ok(f));
         }
         assert!("r4".parse::<VoxelFormat>().is_err());
+    }
+
+    #[test]
+    fn packed_words_unpack_to_the_stored_volume() {
+        // 1000 voxels: not a multiple of 3 bytes' worth, and odd counts per word are padded.
+        let v = ramp();
+        let range = v.value_range();
+        for f in VoxelFormat::ALL {
+            let words = f.pack(v.data(), range);
+            assert_eq!(words.len(), v.data().len().div_ceil(f.per_word()), "{}", f.name());
+            let stored = v.stored_as(f);
+            for i in 0..v.data().len() {
+                assert_eq!(
+                    f.unpack(&words, i, range).to_bits(),
+                    stored.data()[i].to_bits(),
+                    "{} voxel {i}",
+                    f.name()
+                );
+            }
+        }
+        // The first voxel sits in the lowest bits; the range ends are the extreme codes.
+        let (lo, hi) = range;
+        assert_eq!(VoxelFormat::R16.pack(&[lo, hi], range), vec![0xFFFF_0000]);
+        assert_eq!(VoxelFormat::R8.pack(&[hi, lo, lo], range), vec![0x0000_00FF]);
+        assert_eq!(VoxelFormat::R16F.pack(&[1.0, -2.0], range), vec![0xC000_3C00]);
+        // Values beyond half's range stay finite.
+        assert_eq!(VoxelFormat::R16F.decode(VoxelFormat::R16F.encode(1e6, range), range), 65504.0);
     }
 }

@@ -3,6 +3,7 @@
 
 use super::{frame_entries, storage_entry, GpuContext, GpuError, GpuVolume};
 use crate::shaders::Kernel;
+use isowall_volume::VoxelFormat;
 
 /// The compiled kernel.
 pub struct AoKernel {
@@ -12,7 +13,7 @@ pub struct AoKernel {
 }
 
 impl AoKernel {
-    pub fn new(ctx: &GpuContext, workgroup: (u32, u32)) -> Result<AoKernel, GpuError> {
+    pub fn new(ctx: &GpuContext, workgroup: (u32, u32), format: VoxelFormat) -> Result<AoKernel, GpuError> {
         let [e0, e1, e2] = frame_entries();
         let entries = [
             e0,
@@ -25,7 +26,7 @@ impl AoKernel {
             storage_entry(7, false),
             storage_entry(8, false),
         ];
-        let (pipeline, layout) = ctx.pipeline(Kernel::Ao, &entries, workgroup)?;
+        let (pipeline, layout) = ctx.pipeline(Kernel::Ao, &entries, workgroup, format)?;
         Ok(AoKernel { pipeline, layout, workgroup })
     }
 

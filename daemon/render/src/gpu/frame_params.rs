@@ -71,6 +71,8 @@ pub struct FrameParams {
     /// x: performance flags (`PERF_*`); y, z: offsets of the AO and coarse levels in the block
     /// min/max buffer; w: 0.
     pub perf: [u32; 4],
+    /// xy: the value range the unorm voxel formats span (lo, hi); zw: 0.
+    pub voxel_range: [f32; 4],
 }
 
 /// Performance flag: an AO ray that enters a block whose min >= iso is occluded at once (exact).
@@ -167,6 +169,7 @@ impl FrameParams {
                 volume.coarse_level.map_or(0, |l| l.offset),
                 0,
             ],
+            voxel_range: [volume.value_range.0, volume.value_range.1, 0.0, 0.0],
         }
     }
 }
@@ -227,6 +230,7 @@ mod tests {
                     ("ao_blocks", offset_of!(FrameParams, ao_blocks)),
                     ("coarse", offset_of!(FrameParams, coarse)),
                     ("perf", offset_of!(FrameParams, perf)),
+                    ("voxel_range", offset_of!(FrameParams, voxel_range)),
                 ],
             );
         }

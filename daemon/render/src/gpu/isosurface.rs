@@ -3,6 +3,7 @@
 
 use super::{frame_entries, storage_entry, GpuContext, GpuError, GpuVolume};
 use crate::shaders::Kernel;
+use isowall_volume::VoxelFormat;
 
 /// The compiled kernel.
 pub struct IsosurfaceKernel {
@@ -12,10 +13,14 @@ pub struct IsosurfaceKernel {
 }
 
 impl IsosurfaceKernel {
-    pub fn new(ctx: &GpuContext, workgroup: (u32, u32)) -> Result<IsosurfaceKernel, GpuError> {
+    pub fn new(
+        ctx: &GpuContext,
+        workgroup: (u32, u32),
+        format: VoxelFormat,
+    ) -> Result<IsosurfaceKernel, GpuError> {
         let [e0, e1, e2] = frame_entries();
         let entries = [e0, e1, e2, storage_entry(3, false), storage_entry(4, false), storage_entry(5, false)];
-        let (pipeline, layout) = ctx.pipeline(Kernel::Isosurface, &entries, workgroup)?;
+        let (pipeline, layout) = ctx.pipeline(Kernel::Isosurface, &entries, workgroup, format)?;
         Ok(IsosurfaceKernel { pipeline, layout, workgroup })
     }
 

@@ -17,7 +17,7 @@ pub mod present;
 use crate::environment::Environment;
 use crate::shaders::{self, Kernel};
 use crate::Frame;
-use isowall_volume::{BlockMinMax, Volume};
+use isowall_volume::{BlockMinMax, Volume, VoxelFormat};
 use isowall_wall::{IblMethod, RenderSettings, View};
 use std::time::{Duration, Instant};
 use wgpu::util::DeviceExt;
@@ -116,12 +116,13 @@ impl GpuContext {
 
     /// A compute pipeline for `kernel` with one bind group of `entries`.
     /// `workgroup` is the kernel's workgroup shape (x, y), replacing the `@workgroup_size` the
-    /// WGSL declares.
+    /// WGSL declares; `format` the voxel storage the kernel reads (`VOXEL_FORMAT`).
     pub(crate) fn pipeline(
         &self,
         kernel: Kernel,
         entries: &[wgpu::BindGroupLayoutEntry],
         workgroup: (u32, u32),
+        format: VoxelFormat,
     ) -> Result<(wgpu::ComputePipeline, wgpu::BindGroupLayout), GpuError> {
         self.validated("pipeline", || {
             let device = &self.device;
@@ -143,7 +144,10 @@ impl GpuContext {
                 layout: Some(&pipeline_layout),
                 module: &module,
                 entry_point: Some("main"),
-                compilation_options: Default::default(),
+                compilation_options: wgpu::PipelineCompilationOptions {
+                    constants: &[("VOXEL_FORMAT", format.code() as f64)],
+                    ..Default::default()
+                },
                 cache: None,
             });
             (pipeline, layout)
@@ -215,10 +219,18 @@ pub(crate) fn dispatch(
     pass.dispatch_workgroups(size.0.div_ceil(workgroup.0), size.1.div_ceil(workgroup.1), 1);
 }
 
-/// A volume on the GPU: voxels (f32) and per-block min/max (the fine level, then the coarse one).
+/// A volume on the GPU: voxels (packed as `format`) and per-block min/max (the fine level, then the
+/// coarse one).
 pub struct GpuVolume {
     voxels: wgpu::Buffer,
     block_minmax: wgpu::Buffer,
+    /// How the voxels are stored; the kernels that read them must be compiled for it.
+    pub format: VoxelFormat,
+    /// The value range the unorm formats span (the whole volume's).
+    pub value_range: (f32, f32),
+    /// Bytes resident on the GPU: the packed voxels, and every block level's min/max.
+    pub voxel_bytes: u64,
+    pub minmax_bytes: u64,
     pub dims: [u32; 3],
     pub block: u32,
     pub counts: [u32; 3],
@@ -249,16 +261,21 @@ pub struct ObjectSpace {
 }
 
 impl GpuVolume {
-    /// Uploads the voxels and the block min/max of the primary rays (`blocks`), then of AO rays'
-    /// own levels where given: `ao` (their fine level) and `coarse` (hierarchical skipping).
+    /// Uploads the voxels packed as `format` and the block min/max of the primary rays (`blocks`),
+    /// then of AO rays' own levels where given: `ao` (their fine level) and `coarse`
+    /// (hierarchical skipping). The block levels must be those of the voxels as `format` stores
+    /// them (`Volume::stored_as`), so that skipping stays conservative.
     pub fn upload(
         ctx: &GpuContext,
         v: &Volume,
+        format: VoxelFormat,
         blocks: &BlockMinMax,
         ao: Option<&BlockMinMax>,
         coarse: Option<&BlockMinMax>,
     ) -> Result<GpuVolume, GpuError> {
-        let voxels = ctx.storage_init(&format!("volume {}", v.name), bytemuck::cast_slice(v.data()))?;
+        let value_range = v.value_range();
+        let words = format.pack(v.data(), value_range);
+        let voxels = ctx.storage_init(&format!("volume {}", v.name), bytemuck::cast_slice(&words))?;
         let mut minmax = blocks.minmax.clone();
         let mut append = |b: Option<&BlockMinMax>| {
             b.map(|b| {
@@ -278,6 +295,10 @@ impl GpuVolume {
         Ok(GpuVolume {
             voxels,
             block_minmax,
+            format,
+            value_range,
+            voxel_bytes: words.len() as u64 * 4,
+            minmax_bytes: minmax.len() as u64 * 8,
             dims: [d[0] as u32, d[1] as u32, d[2] as u32],
             block: blocks.block as u32,
             counts: blocks.counts.map(|c| c as u32),
@@ -292,14 +313,24 @@ impl GpuVolume {
     }
 
     /// Object space: uploads `region` (a brick and its halo, the samples from `object.data_offset`
-    /// on) of the volume `whole` describes, with the whole volume's block min/max `blocks`.
+    /// on) of the volume `whole` describes, with the whole volume's block min/max `blocks`, the
+    /// voxels packed as `format`. The unorm formats are refused: they span the whole volume's
+    /// value range, which a brick node does not know, and bricks rounding alike is what keeps
+    /// their seams invisible.
     pub fn upload_brick(
         ctx: &GpuContext,
         region: &Volume,
         whole: &isowall_volume::VolumeInfo,
         blocks: &BlockMinMax,
         object: ObjectSpace,
+        format: VoxelFormat,
     ) -> Result<GpuVolume, GpuError> {
+        if format.is_unorm() {
+            return Err(GpuError::Settings(format!(
+                "object space: voxel format {} spans the whole volume's value range, which a brick does not know (use r32f or r16f)",
+                format.name()
+            )));
+        }
         let o = object.data_offset;
         let d = region.dims();
         if (0..3).any(|a| o[a] + d[a] > whole.dims[a]) {
@@ -308,12 +339,20 @@ impl GpuVolume {
                 whole.dims
             )));
         }
-        let voxels =
-            ctx.storage_init(&format!("brick of {}", whole.name), bytemuck::cast_slice(region.data()))?;
-        let block_minmax = ctx.storage_init("block min/max", bytemuck::cast_slice(&blocks.minmax))?;
+        let value_range = (0.0, 0.0); // r32f and r16f need none
+        let words = format.pack(region.data(), value_range);
+        let voxels = ctx.storage_init(&format!("brick of {}", whole.name), bytemuck::cast_slice(&words))?;
+        // Rounding is monotone, so the stored voxels' block min/max are the rounded min/max.
+        let round = |v: f32| format.decode(format.encode(v, value_range), value_range);
+        let minmax: Vec<[f32; 2]> = blocks.minmax.iter().map(|m| [round(m[0]), round(m[1])]).collect();
+        let block_minmax = ctx.storage_init("block min/max", bytemuck::cast_slice(&minmax))?;
         Ok(GpuVolume {
             voxels,
             block_minmax,
+            format,
+            value_range,
+            voxel_bytes: words.len() as u64 * 4,
+            minmax_bytes: minmax.len() as u64 * 8,
             dims: [d[0] as u32, d[1] as u32, d[2] as u32],
             block: blocks.block as u32,
             counts: blocks.counts.map(|c| c as u32),
@@ -387,8 +426,8 @@ impl GpuRenderer {
     pub fn new() -> Result<GpuRenderer, GpuError> {
         let ctx = GpuContext::new()?;
         let perf = PerfOptions::default();
-        let isosurface = IsosurfaceKernel::new(&ctx, perf.workgroup)?;
-        let ao = AoKernel::new(&ctx, perf.workgroup)?;
+        let isosurface = IsosurfaceKernel::new(&ctx, perf.workgroup, perf.format)?;
+        let ao = AoKernel::new(&ctx, perf.workgroup, perf.format)?;
         let no_env = GpuEnvironment::upload(&ctx, &Environment::constant([0.0; 3]))?;
         Ok(GpuRenderer { ctx, isosurface, ao, perf, no_env })
     }
@@ -399,12 +438,14 @@ impl GpuRenderer {
     }
 
     /// Changes the performance options (for benchmarks: the defaults are the measured best). A new
-    /// workgroup shape recompiles the kernels; block sizes apply to volumes uploaded afterwards.
+    /// workgroup shape or voxel format recompiles the kernels; block sizes and the format apply to
+    /// volumes uploaded afterwards (a volume stored in another format than the kernels read is
+    /// refused at render).
     pub fn set_perf(&mut self, perf: PerfOptions) -> Result<(), GpuError> {
         perf.validate().map_err(GpuError::Settings)?;
-        if perf.workgroup != self.perf.workgroup {
-            self.isosurface = IsosurfaceKernel::new(&self.ctx, perf.workgroup)?;
-            self.ao = AoKernel::new(&self.ctx, perf.workgroup)?;
+        if (perf.workgroup, perf.format) != (self.perf.workgroup, self.perf.format) {
+            self.isosurface = IsosurfaceKernel::new(&self.ctx, perf.workgroup, perf.format)?;
+            self.ao = AoKernel::new(&self.ctx, perf.workgroup, perf.format)?;
         }
         self.perf = perf;
         Ok(())
@@ -414,9 +455,17 @@ impl GpuRenderer {
         &self.ctx.info.name
     }
 
-    /// Uploads a volume and its block min/max for rendering.
+    /// Uploads a volume (voxels packed as the options' format) and its block min/max for rendering.
     pub fn upload(&self, volume: &Volume) -> Result<GpuVolume, GpuError> {
         let p = self.perf;
+        // The block levels of the voxels as stored, so that skipping stays conservative.
+        let stored;
+        let volume = if p.format == VoxelFormat::R32F {
+            volume
+        } else {
+            stored = volume.stored_as(p.format);
+            &stored
+        };
         let blocks = BlockMinMax::new(volume, p.block as usize);
         let level = |cells: u32| {
             (cells > 0 && cells != p.block).then(|| {
@@ -429,7 +478,7 @@ impl GpuRenderer {
         };
         let ao = level(p.ao_block);
         let coarse = (p.coarse > 0).then(|| BlockMinMax::new(volume, p.coarse as usize));
-        GpuVolume::upload(&self.ctx, volume, &blocks, ao.as_ref(), coarse.as_ref())
+        GpuVolume::upload(&self.ctx, volume, p.format, &blocks, ao.as_ref(), coarse.as_ref())
     }
 
     /// Object space: uploads a brick and its halo ([`GpuVolume::upload_brick`]).
@@ -440,7 +489,7 @@ impl GpuRenderer {
         blocks: &BlockMinMax,
         object: ObjectSpace,
     ) -> Result<GpuVolume, GpuError> {
-        GpuVolume::upload_brick(&self.ctx, region, whole, blocks, object)
+        GpuVolume::upload_brick(&self.ctx, region, whole, blocks, object, self.perf.format)
     }
 
     /// Uploads an environment for IBL.
@@ -484,6 +533,14 @@ impl GpuRenderer {
         view.camera.validate().map_err(|e| GpuError::View(e.to_string()))?;
         if !(1..=MAX_FRAMES).contains(&frames) {
             return Err(GpuError::Settings(format!("frames {frames} is outside 1..={MAX_FRAMES}")));
+        }
+        if volume.format != self.perf.format {
+            return Err(GpuError::Settings(format!(
+                "volume {} is stored as {} but the kernels read {} (upload it after set_perf)",
+                volume.name,
+                volume.format.name(),
+                self.perf.format.name()
+            )));
         }
         if settings.ibl_needs_environment() && env.is_none() {
             return Err(GpuError::Settings(format!("IBL method {:?} needs an environment", settings.ao.ibl)));

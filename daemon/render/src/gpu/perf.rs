@@ -1,7 +1,10 @@
 //! [`PerfOptions`]: how the kernels do their work, never what they compute. Every option leaves
 //! the image unchanged (the skipping is conservative and the early exit exact); they exist so that
 //! `isowalld bench suite` can measure them against each other in one run. The defaults are the
-//! measured best on lavapipe (docs/bench/perf-lavapipe.md).
+//! measured best on lavapipe (docs/bench/perf-lavapipe.md). The one exception is the voxel
+//! `format`, which rounds the voxels (its error is measured by the same bench).
+
+use isowall_volume::VoxelFormat;
 
 /// Performance options of a [`GpuRenderer`](super::GpuRenderer).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -18,6 +21,10 @@ pub struct PerfOptions {
     pub block_min_exit: bool,
     /// Workgroup shape (x, y) of the compute kernels.
     pub workgroup: (u32, u32),
+    /// How volumes uploaded afterwards store their voxels on the GPU (the kernels are compiled
+    /// for it: `VOXEL_FORMAT` in shaders/volume.wgsl). Not exact like the others: the voxels are
+    /// rounded, and the CPU twin is `Volume::stored_as`.
+    pub format: VoxelFormat,
 }
 
 impl Default for PerfOptions {
@@ -26,16 +33,31 @@ impl Default for PerfOptions {
         // cells load 0.61-0.67x the cells of the primary rays' blocks of 8 at the same error, and
         // were as fast or faster (2 cells: fewer still, but 8x the memory of 4 for no measured
         // gain); the coarse level and the early exit cost nothing; no workgroup shape tried beat
-        // 8x8 beyond the noise.
-        PerfOptions { block: 8, ao_block: 4, coarse: 32, block_min_exit: true, workgroup: (8, 8) }
+        // 8x8 beyond the noise. Voxels stay f32: packed r16/r16f keep the error but were not
+        // faster on lavapipe (engine 1.07-1.42x slower in three runs, CT within the noise), and
+        // r8 raises the AO error 2.5-9x at 256 samples; a GPU is unmeasured.
+        PerfOptions {
+            block: 8,
+            ao_block: 4,
+            coarse: 32,
+            block_min_exit: true,
+            workgroup: (8, 8),
+            format: VoxelFormat::R32F,
+        }
     }
 }
 
 impl PerfOptions {
     /// The options of the build before the performance work (issue 9): blocks of 8 for every ray,
     /// no coarse level, no early exit, 8x8 workgroups.
-    pub const BEFORE: PerfOptions =
-        PerfOptions { block: 8, ao_block: 0, coarse: 0, block_min_exit: false, workgroup: (8, 8) };
+    pub const BEFORE: PerfOptions = PerfOptions {
+        block: 8,
+        ao_block: 0,
+        coarse: 0,
+        block_min_exit: false,
+        workgroup: (8, 8),
+        format: VoxelFormat::R32F,
+    };
 
     /// Refuses shapes a device need not support (at most 256 invocations, 256 per axis).
     pub fn validate(&self) -> Result<(), String> {

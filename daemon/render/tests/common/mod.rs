@@ -150,3 +150,21 @@ pub fn sampled(name: &str, dims: [usize; 3], spacing: DVec3, f: impl Fn(DVec3) -
     }
     Volume::new(name, dims, spacing, DVec3::ZERO, data).unwrap()
 }
+
+/// The scenes of the performance tests: the engine (96^3-ish, default radius) and a sphere over a
+/// plane (unbounded radius), framed at 64x64 with 16 AO samples: (name, volume, view, settings).
+pub fn perf_scenes() -> Vec<(&'static str, Volume, View, RenderSettings)> {
+    use isowall_volume::procedural::Procedural;
+    use isowall_wall::{AoRadius, Camera};
+    [(Procedural::Engine, 96, AoRadius::Default), (Procedural::SphereOverPlane, 48, AoRadius::Unbounded)]
+        .into_iter()
+        .map(|(kind, n, radius)| {
+            let volume = isowall_volume::VolumeSource::Procedural { kind, size: Some(n) }.load(None).unwrap();
+            let view = View::whole(Camera::framing(volume.box_min(), volume.box_max(), 64, 64), 64, 64);
+            let mut s = RenderSettings::new(kind.natural_iso());
+            s.ao.samples = 16;
+            s.ao.radius = radius;
+            (kind.name(), volume, view, s)
+        })
+        .collect()
+}
