@@ -9,6 +9,7 @@ mod check_config;
 mod display;
 mod notify;
 mod object;
+mod peer_addr;
 mod render;
 mod run;
 mod tiles;

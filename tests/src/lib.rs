@@ -1,6 +1,7 @@
 //! Helpers for the end-to-end tests in `tests/tests/`: they run the real `isowalld` and `isowall`
 //! binaries as separate processes (and, with the wall, over the network on loopback).
 
+pub mod orbit;
 pub mod relay;
 pub mod x11;
 
@@ -143,8 +144,23 @@ impl Drop for Daemon {
 /// `None` (skip, after a message) where no Vulkan adapter exists outside CI; panics with the log of
 /// a node that does not start.
 pub fn start_nodes(dir: &Path, config: &Path, count: usize) -> Option<Vec<Daemon>> {
-    let mut daemons: Vec<Daemon> =
-        (0..count).map(|i| Daemon::start(dir, config, &format!("node{i}"), &[])).collect();
+    start_nodes_with(dir, config, count, |_| Vec::new())
+}
+
+/// [`start_nodes`] with extra `isowalld run` arguments for node `i` (e.g. `--peer-addr`).
+pub fn start_nodes_with(
+    dir: &Path,
+    config: &Path,
+    count: usize,
+    extra: impl Fn(usize) -> Vec<String>,
+) -> Option<Vec<Daemon>> {
+    let mut daemons: Vec<Daemon> = (0..count)
+        .map(|i| {
+            let args = extra(i);
+            let args: Vec<&str> = args.iter().map(String::as_str).collect();
+            Daemon::start(dir, config, &format!("node{i}"), &args)
+        })
+        .collect();
     for (i, d) in daemons.iter_mut().enumerate() {
         if !d.wait_ready(std::time::Duration::from_secs(120)) {
             let log = d.log_text();
@@ -199,6 +215,14 @@ pub fn wall_config(
     let path = dir.join(format!("{name}.toml"));
     std::fs::write(&path, s).unwrap();
     path
+}
+
+/// Makes the wall config at `path` an object-space wall (`[wall] mode = "object"`).
+pub fn set_object_mode(path: &Path) {
+    let text = std::fs::read_to_string(path).expect("the wall config");
+    assert!(!text.contains("mode = "), "{} already sets a mode", path.display());
+    std::fs::write(path, text.replacen("[wall]\n", "[wall]\nmode = \"object\"\n", 1))
+        .expect("write the config");
 }
 
 /// Writes `dir/NAME.toml`: a 2x1 wall of two `w`x`h` tiles side by side (a `bezel`-pixel mullion

@@ -60,7 +60,7 @@ impl Ord for Due {
 
 /// State shared by the relay's threads.
 struct Shared {
-    impairment: Impairment,
+    impairment: Mutex<Impairment>,
     rng: Mutex<u64>,
     queue: Mutex<BinaryHeap<Due>>,
     wake: Condvar,
@@ -84,7 +84,7 @@ impl Shared {
 
     /// Drops the datagram or queues it for delivery from `socket` to `to`.
     fn pass(&self, socket: &Arc<UdpSocket>, to: SocketAddr, bytes: &[u8]) {
-        let imp = self.impairment;
+        let imp = *self.impairment.lock().unwrap();
         if self.uniform() < imp.loss {
             self.dropped.fetch_add(1, Ordering::Relaxed);
             return;
@@ -119,7 +119,7 @@ impl Relay {
         listen.set_read_timeout(Some(POLL))?;
         let addr = listen.local_addr()?;
         let shared = Arc::new(Shared {
-            impairment,
+            impairment: Mutex::new(impairment),
             rng: Mutex::new(impairment.seed),
             queue: Mutex::new(BinaryHeap::new()),
             wake: Condvar::new(),
@@ -167,6 +167,17 @@ impl Relay {
             }
         }));
         Ok(Relay { addr, shared, threads })
+    }
+
+    /// Changes what the relay does from now on (datagrams already queued keep their delivery
+    /// time), restarting its drop/delay sequence from the new seed; the counts start again at 0.
+    /// Connections through the relay stay up, so one set of daemons can be tried at several
+    /// loss rates.
+    pub fn set_impairment(&self, impairment: Impairment) {
+        *self.shared.impairment.lock().unwrap() = impairment;
+        *self.shared.rng.lock().unwrap() = impairment.seed;
+        self.shared.forwarded.store(0, Ordering::Relaxed);
+        self.shared.dropped.store(0, Ordering::Relaxed);
     }
 
     pub fn counts(&self) -> RelayCounts {
