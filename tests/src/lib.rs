@@ -42,6 +42,23 @@ pub fn bin(name: &str) -> PathBuf {
         let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
         let mut cmd = Command::new(cargo);
         cmd.current_dir(repo_root()).args(["build", "--quiet", "--bins", "-p", "isowalld", "-p", "isowall"]);
+        // What `cargo test` sets for this package would reach build scripts' rerun-if-env-changed
+        // checks (ring's reads CARGO_PKG_NAME) and rebuild them here and again at the next
+        // `cargo test`.
+        for (key, _) in std::env::vars_os().filter_map(|(k, v)| Some((k.into_string().ok()?, v))) {
+            if key.starts_with("CARGO_PKG_")
+                || [
+                    "CARGO_MANIFEST_DIR",
+                    "CARGO_MANIFEST_PATH",
+                    "CARGO_CRATE_NAME",
+                    "CARGO_PRIMARY_PACKAGE",
+                    "OUT_DIR",
+                ]
+                .contains(&key.as_str())
+            {
+                cmd.env_remove(key);
+            }
+        }
         if target_dir.file_name().is_some_and(|n| n == "release") {
             cmd.arg("--release");
         }

@@ -25,9 +25,9 @@ pub struct OrbitRun {
     pub report: String,
 }
 
-/// `isowall orbit` of `frames` (3 degrees a frame) then `isowall snapshot` to `dir/png`, both over
-/// `config`; asserts that every frame completed and the snapshot has all `tiles` tiles.
-pub fn orbit_and_snapshot(dir: &Path, config: &Path, frames: u32, png: &str, tiles: usize) -> OrbitRun {
+/// `isowall orbit` of `frames` (3 degrees a frame) over `config`; asserts that every frame
+/// completed.
+pub fn orbit(dir: &Path, config: &Path, frames: u32) -> OrbitRun {
     let c = config.to_str().unwrap();
     let out =
         run_in(dir, "isowall", &["orbit", c, "--frames", &frames.to_string(), "--degrees-per-frame", "3"]);
@@ -35,12 +35,18 @@ pub fn orbit_and_snapshot(dir: &Path, config: &Path, frames: u32, png: &str, til
     assert!(out.status.success(), "orbit over {c} failed:\n{stdout}\n{stderr}");
     assert!(stdout.contains(&format!("frames: {frames} ")), "not every frame completed:\n{stdout}\n{stderr}");
     let barrier = stdout.lines().find(|l| l.starts_with("barrier")).unwrap_or_default();
-    let run = OrbitRun {
+    OrbitRun {
         fps: number_before(&stdout, " fps)").expect("fps in the report"),
         barrier_p50_ms: number_after(barrier, "p50").expect("barrier p50"),
         barrier_p99_ms: number_after(barrier, "p99").expect("barrier p99"),
         report: stdout.to_string(),
-    };
+    }
+}
+
+/// [`orbit`], then `isowall snapshot` to `dir/png`; asserts the snapshot has all `tiles` tiles.
+pub fn orbit_and_snapshot(dir: &Path, config: &Path, frames: u32, png: &str, tiles: usize) -> OrbitRun {
+    let run = orbit(dir, config, frames);
+    let c = config.to_str().unwrap();
     let out = run_in(dir, "isowall", &["snapshot", c, "--out", png]);
     let text = String::from_utf8_lossy(&out.stdout);
     assert!(

@@ -298,6 +298,27 @@ mod tests {
     }
 
     #[test]
+    fn a_new_impairment_applies_to_the_next_datagrams_and_restarts_the_counts() {
+        let (target, stop, t) = echo();
+        let clean = Impairment { loss: 0.0, delay: Duration::ZERO, jitter: Duration::ZERO, seed: 5 };
+        let relay = Relay::start(target, clean).unwrap();
+        let client = UdpSocket::bind("127.0.0.1:0").unwrap();
+        client.set_read_timeout(Some(Duration::from_millis(300))).unwrap();
+        let mut buf = [0u8; 16];
+        client.send_to(b"ping", relay.addr).unwrap();
+        assert!(client.recv_from(&mut buf).is_ok(), "a clean relay answers");
+        assert_eq!(relay.counts(), RelayCounts { forwarded: 2, dropped: 0 });
+        relay.set_impairment(Impairment { loss: 1.0, ..clean });
+        assert_eq!(relay.counts(), RelayCounts::default());
+        client.send_to(b"ping", relay.addr).unwrap();
+        assert!(client.recv_from(&mut buf).is_err(), "a relay that drops everything answers nothing");
+        assert_eq!(relay.counts(), RelayCounts { forwarded: 0, dropped: 1 });
+        drop(relay);
+        stop.store(true, Ordering::Relaxed);
+        t.join().unwrap();
+    }
+
+    #[test]
     fn delay_and_jitter_delay_and_reorder() {
         let imp = Impairment {
             loss: 0.0,

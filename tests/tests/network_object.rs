@@ -9,7 +9,7 @@
 //! NODE=HOST:PORT`), so there are 4 + 4 x 3 relays. One set of relayed daemons serves all loss
 //! rates: the relays change their impairment between orbits while the connections stay up.
 
-use isowall_e2e::orbit::{orbit_and_snapshot, OrbitRun};
+use isowall_e2e::orbit::{orbit, orbit_and_snapshot, OrbitRun};
 use isowall_e2e::relay::{Impairment, Relay, RelayCounts};
 use isowall_e2e::{
     free_udp_ports, run_in, set_object_mode, start_nodes, start_nodes_with, wall_config, Daemon,
@@ -19,7 +19,9 @@ use std::path::Path;
 use std::time::Duration;
 
 const NODES: usize = 4;
-const FRAMES: u32 = 40;
+const FRAMES: u32 = 100;
+/// Frames before the measured orbits: pipelines compiled, peer connections open.
+const WARM_UP: u32 = 3;
 
 fn assert_alive(daemons: &mut [Daemon]) {
     for (i, d) in daemons.iter_mut().enumerate() {
@@ -52,7 +54,7 @@ fn an_object_wall_with_lossy_relays_between_all_processes_completes_every_frame_
     // (after a short warm-up orbit: pipelines, peer connections).
     let clean: OrbitRun = {
         let Some(mut daemons) = start_nodes(dir.path(), &config, NODES) else { return };
-        orbit_and_snapshot(dir.path(), &config, 5, "direct-warm.png", NODES);
+        orbit(dir.path(), &config, WARM_UP);
         let run = orbit_and_snapshot(dir.path(), &config, FRAMES, "direct.png", NODES);
         assert!(run.report.contains("object space"), "no object-space statistics:\n{}", run.report);
         assert_alive(&mut daemons);
@@ -82,7 +84,7 @@ fn an_object_wall_with_lossy_relays_between_all_processes_completes_every_frame_
     }
     let relayed = dir.path().join("onet-relayed.toml");
     std::fs::write(&relayed, text).unwrap();
-    orbit_and_snapshot(dir.path(), &relayed, 5, "relayed-warm.png", NODES);
+    orbit(dir.path(), &relayed, WARM_UP);
 
     let controller_relays: Vec<&Relay> = controller.iter().collect();
     let peer_relays: Vec<&Relay> = peers.iter().flatten().flatten().collect();

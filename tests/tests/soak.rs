@@ -14,7 +14,7 @@ use isowall_e2e::{free_udp_ports, gpu_ok, run_in, set_object_mode, wall_config};
 const RSS_SLACK_KIB: i64 = 6 * 1024;
 
 /// Object-space frames in CI (the object soak's cost is kept near a minute on lavapipe).
-const OBJECT_CI_FRAMES: u64 = 600;
+const OBJECT_CI_FRAMES: u64 = 2000;
 
 /// Runs `frames` frames of `config` through `isowall up` and checks the resource report: every one
 /// of the `processes` sampled grew by at most [`RSS_SLACK_KIB`] and kept its descriptors.
