@@ -3,7 +3,8 @@
 //! completes, and the image on the wall is the same as after the same orbit driven without the
 //! relays. The frame time each loss rate costs is printed (run with `--nocapture`).
 //!
-//! In screen space the only traffic is controller <-> daemons; daemons do not talk to each other.
+//! In screen space the only traffic is controller <-> daemons; daemons do not talk to each other
+//! (object space, where they do, is `network_object.rs`).
 
 use isowall_e2e::orbit::orbit_and_snapshot;
 use isowall_e2e::relay::{Impairment, Relay};
