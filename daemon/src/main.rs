@@ -11,6 +11,7 @@ mod check_config;
 mod display;
 mod notify;
 mod object;
+mod peer_addr;
 mod progress;
 mod render;
 mod run;

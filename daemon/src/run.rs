@@ -49,6 +49,10 @@ pub struct RunArgs {
     /// Windows at the tiles' sizes instead of fullscreen (testing a wall on a desktop)
     #[arg(long)]
     pub windowed: bool,
+    /// Reach peer NODE at HOST:PORT instead of its address in the wall config (object space sends
+    /// pixels node to node): an override for NAT, relays and tests. Repeatable, one per peer
+    #[arg(long = "peer-addr", value_name = "NODE=HOST:PORT", value_parser = crate::peer_addr::parse)]
+    pub peer_addr: Vec<crate::peer_addr::PeerAddr>,
 }
 
 /// What the node needs beyond the network.
@@ -81,7 +85,7 @@ struct Node {
 }
 
 pub fn run(a: &RunArgs) -> Result<()> {
-    let config = WallConfig::load(&a.config).map_err(|e| anyhow!("{e}"))?;
+    let mut config = WallConfig::load(&a.config).map_err(|e| anyhow!("{e}"))?;
     let node = config
         .node(&a.node)
         .ok_or_else(|| {
@@ -89,6 +93,7 @@ pub fn run(a: &RunArgs) -> Result<()> {
             anyhow!("{}: no node '{}' (nodes: {})", a.config.display(), a.node, names.join(", "))
         })?
         .clone();
+    crate::peer_addr::apply(&mut config, &node.name, &a.peer_addr)?;
     let identity = Identity::load(&config.cert_dir(), &node.name).with_context(|| {
         format!(
             "no certificate for node '{}': run `isowall keygen --config {}`",

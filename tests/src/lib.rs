@@ -1,6 +1,7 @@
 //! Helpers for the end-to-end tests in `tests/tests/`: they run the real `isowalld` and `isowall`
 //! binaries as separate processes (and, with the wall, over the network on loopback).
 
+pub mod orbit;
 pub mod relay;
 pub mod x11;
 
@@ -41,6 +42,23 @@ pub fn bin(name: &str) -> PathBuf {
         let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
         let mut cmd = Command::new(cargo);
         cmd.current_dir(repo_root()).args(["build", "--quiet", "--bins", "-p", "isowalld", "-p", "isowall"]);
+        // What `cargo test` sets for this package would reach build scripts' rerun-if-env-changed
+        // checks (ring's reads CARGO_PKG_NAME) and rebuild them here and again at the next
+        // `cargo test`.
+        for (key, _) in std::env::vars_os().filter_map(|(k, v)| Some((k.into_string().ok()?, v))) {
+            if key.starts_with("CARGO_PKG_")
+                || [
+                    "CARGO_MANIFEST_DIR",
+                    "CARGO_MANIFEST_PATH",
+                    "CARGO_CRATE_NAME",
+                    "CARGO_PRIMARY_PACKAGE",
+                    "OUT_DIR",
+                ]
+                .contains(&key.as_str())
+            {
+                cmd.env_remove(key);
+            }
+        }
         if target_dir.file_name().is_some_and(|n| n == "release") {
             cmd.arg("--release");
         }
@@ -143,20 +161,25 @@ impl Drop for Daemon {
 /// `None` (skip, after a message) where no Vulkan adapter exists outside CI; panics with the log of
 /// a node that does not start.
 pub fn start_nodes(dir: &Path, config: &Path, count: usize) -> Option<Vec<Daemon>> {
-    start_nodes_on(dir, config, count, &[], None)
+    start_nodes_with(dir, config, count, |_| Vec::new(), None)
 }
 
-/// [`start_nodes`] with `extra` arguments for every node and DISPLAY set to `display` where given
-/// (the window tests' Xvfb).
-pub fn start_nodes_on(
+/// [`start_nodes`] with extra `isowalld run` arguments for node `i` (e.g. `--peer-addr`, fault
+/// injection, `--display window`) and DISPLAY set to `display` where given (the window tests' Xvfb).
+pub fn start_nodes_with(
     dir: &Path,
     config: &Path,
     count: usize,
-    extra: &[&str],
+    extra: impl Fn(usize) -> Vec<String>,
     display: Option<&str>,
 ) -> Option<Vec<Daemon>> {
-    let mut daemons: Vec<Daemon> =
-        (0..count).map(|i| Daemon::start_on(dir, config, &format!("node{i}"), extra, display)).collect();
+    let mut daemons: Vec<Daemon> = (0..count)
+        .map(|i| {
+            let args = extra(i);
+            let args: Vec<&str> = args.iter().map(String::as_str).collect();
+            Daemon::start_on(dir, config, &format!("node{i}"), &args, display)
+        })
+        .collect();
     for (i, d) in daemons.iter_mut().enumerate() {
         if !d.wait_ready(std::time::Duration::from_secs(120)) {
             let log = d.log_text();
@@ -214,6 +237,14 @@ pub fn wall_config(
     let path = dir.join(format!("{name}.toml"));
     std::fs::write(&path, s).unwrap();
     path
+}
+
+/// Makes the wall config at `path` an object-space wall (`[wall] mode = "object"`).
+pub fn set_object_mode(path: &Path) {
+    let text = std::fs::read_to_string(path).expect("the wall config");
+    assert!(!text.contains("mode = "), "{} already sets a mode", path.display());
+    std::fs::write(path, text.replacen("[wall]\n", "[wall]\nmode = \"object\"\n", 1))
+        .expect("write the config");
 }
 
 /// Writes `dir/NAME.toml`: a 2x1 wall of two `w`x`h` tiles side by side (a `bezel`-pixel mullion

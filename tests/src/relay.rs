@@ -60,7 +60,7 @@ impl Ord for Due {
 
 /// State shared by the relay's threads.
 struct Shared {
-    impairment: Impairment,
+    impairment: Mutex<Impairment>,
     rng: Mutex<u64>,
     queue: Mutex<BinaryHeap<Due>>,
     wake: Condvar,
@@ -84,7 +84,7 @@ impl Shared {
 
     /// Drops the datagram or queues it for delivery from `socket` to `to`.
     fn pass(&self, socket: &Arc<UdpSocket>, to: SocketAddr, bytes: &[u8]) {
-        let imp = self.impairment;
+        let imp = *self.impairment.lock().unwrap();
         if self.uniform() < imp.loss {
             self.dropped.fetch_add(1, Ordering::Relaxed);
             return;
@@ -119,7 +119,7 @@ impl Relay {
         listen.set_read_timeout(Some(POLL))?;
         let addr = listen.local_addr()?;
         let shared = Arc::new(Shared {
-            impairment,
+            impairment: Mutex::new(impairment),
             rng: Mutex::new(impairment.seed),
             queue: Mutex::new(BinaryHeap::new()),
             wake: Condvar::new(),
@@ -167,6 +167,17 @@ impl Relay {
             }
         }));
         Ok(Relay { addr, shared, threads })
+    }
+
+    /// Changes what the relay does from now on (datagrams already queued keep their delivery
+    /// time), restarting its drop/delay sequence from the new seed; the counts start again at 0.
+    /// Connections through the relay stay up, so one set of daemons can be tried at several
+    /// loss rates.
+    pub fn set_impairment(&self, impairment: Impairment) {
+        *self.shared.impairment.lock().unwrap() = impairment;
+        *self.shared.rng.lock().unwrap() = impairment.seed;
+        self.shared.forwarded.store(0, Ordering::Relaxed);
+        self.shared.dropped.store(0, Ordering::Relaxed);
     }
 
     pub fn counts(&self) -> RelayCounts {
@@ -284,6 +295,27 @@ mod tests {
         // Forwarded: every returned datagram twice, plus those dropped on the way back once.
         let returned = 2 * got.len() as u64;
         assert!((returned..=returned + counts.dropped).contains(&counts.forwarded), "{counts:?}");
+    }
+
+    #[test]
+    fn a_new_impairment_applies_to_the_next_datagrams_and_restarts_the_counts() {
+        let (target, stop, t) = echo();
+        let clean = Impairment { loss: 0.0, delay: Duration::ZERO, jitter: Duration::ZERO, seed: 5 };
+        let relay = Relay::start(target, clean).unwrap();
+        let client = UdpSocket::bind("127.0.0.1:0").unwrap();
+        client.set_read_timeout(Some(Duration::from_millis(300))).unwrap();
+        let mut buf = [0u8; 16];
+        client.send_to(b"ping", relay.addr).unwrap();
+        assert!(client.recv_from(&mut buf).is_ok(), "a clean relay answers");
+        assert_eq!(relay.counts(), RelayCounts { forwarded: 2, dropped: 0 });
+        relay.set_impairment(Impairment { loss: 1.0, ..clean });
+        assert_eq!(relay.counts(), RelayCounts::default());
+        client.send_to(b"ping", relay.addr).unwrap();
+        assert!(client.recv_from(&mut buf).is_err(), "a relay that drops everything answers nothing");
+        assert_eq!(relay.counts(), RelayCounts { forwarded: 0, dropped: 1 });
+        drop(relay);
+        stop.store(true, Ordering::Relaxed);
+        t.join().unwrap();
     }
 
     #[test]

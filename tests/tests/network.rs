@@ -3,53 +3,13 @@
 //! completes, and the image on the wall is the same as after the same orbit driven without the
 //! relays. The frame time each loss rate costs is printed (run with `--nocapture`).
 //!
-//! In screen space the only traffic is controller <-> daemons; daemons do not talk to each other.
+//! In screen space the only traffic is controller <-> daemons; daemons do not talk to each other
+//! (object space, where they do, is `network_object.rs`).
 
+use isowall_e2e::orbit::orbit_and_snapshot;
 use isowall_e2e::relay::{Impairment, Relay};
 use isowall_e2e::{free_udp_ports, run_in, start_nodes, wall_config};
-use std::path::Path;
 use std::time::Duration;
-
-/// The value after `key` in `text` as a number (`"fps"` in "(12.3 fps)" takes the number before).
-fn number_before(text: &str, unit: &str) -> Option<f64> {
-    let at = text.find(unit)?;
-    text[..at].split_whitespace().last()?.trim_start_matches('(').parse().ok()
-}
-
-fn number_after(text: &str, key: &str) -> Option<f64> {
-    let at = text.find(key)? + key.len();
-    text[at..].split_whitespace().next()?.parse().ok()
-}
-
-struct Run {
-    fps: f64,
-    barrier_p50_ms: f64,
-    barrier_p99_ms: f64,
-}
-
-/// `isowall orbit` of `frames` then `isowall snapshot` to `png`, both over `config`.
-fn orbit_and_snapshot(dir: &Path, config: &Path, frames: u32, png: &str) -> Run {
-    let c = config.to_str().unwrap();
-    let out =
-        run_in(dir, "isowall", &["orbit", c, "--frames", &frames.to_string(), "--degrees-per-frame", "3"]);
-    let (stdout, stderr) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
-    assert!(out.status.success(), "orbit over {c} failed:\n{stdout}\n{stderr}");
-    assert!(stdout.contains(&format!("frames: {frames} ")), "not every frame completed:\n{stdout}\n{stderr}");
-    let barrier = stdout.lines().find(|l| l.starts_with("barrier")).unwrap_or_default();
-    let run = Run {
-        fps: number_before(&stdout, " fps)").expect("fps in the report"),
-        barrier_p50_ms: number_after(barrier, "p50").expect("barrier p50"),
-        barrier_p99_ms: number_after(barrier, "p99").expect("barrier p99"),
-    };
-    let out = run_in(dir, "isowall", &["snapshot", c, "--out", png]);
-    let text = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success() && text.contains("4 of 4 tiles"),
-        "snapshot over {c}:\n{text}\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    run
-}
 
 #[test]
 fn a_wall_behind_lossy_relays_completes_every_frame_with_the_same_image() {
@@ -63,7 +23,7 @@ fn a_wall_behind_lossy_relays_completes_every_frame_with_the_same_image() {
     let frames = 100;
     // First without relays: warms the daemons up (pipelines, connections) and gives the image the
     // wall must show after this orbit; it runs again at the end for the frame-time comparison.
-    orbit_and_snapshot(dir.path(), &direct, frames, "direct.png");
+    orbit_and_snapshot(dir.path(), &direct, frames, "direct.png", 4);
     let text = std::fs::read_to_string(&direct).unwrap();
     let mut rows = Vec::new();
     for (i, loss) in [0.0, 0.01, 0.05].into_iter().enumerate() {
@@ -85,7 +45,7 @@ fn a_wall_behind_lossy_relays_completes_every_frame_with_the_same_image() {
         let config = dir.path().join(format!("net-loss{i}.toml"));
         std::fs::write(&config, relayed).unwrap();
         let png = format!("loss{i}.png");
-        let run = orbit_and_snapshot(dir.path(), &config, frames, &png);
+        let run = orbit_and_snapshot(dir.path(), &config, frames, &png, 4);
         let (fwd, dropped) = relays.iter().fold((0, 0), |(f, d), r| {
             let c = r.counts();
             (f + c.forwarded, d + c.dropped)
@@ -96,7 +56,7 @@ fn a_wall_behind_lossy_relays_completes_every_frame_with_the_same_image() {
         rows.push((loss, run, fwd, dropped, png));
     }
     // The same orbit without relays: the wall must show the same image after each run.
-    let clean = orbit_and_snapshot(dir.path(), &direct, frames, "direct-again.png");
+    let clean = orbit_and_snapshot(dir.path(), &direct, frames, "direct-again.png", 4);
     let reference = image::open(dir.path().join("direct.png")).unwrap().to_rgb8();
     let colours: std::collections::HashSet<[u8; 3]> = reference.pixels().map(|p| p.0).collect();
     assert!(colours.len() > 10, "the direct snapshot is nearly blank ({} colours)", colours.len());

@@ -4,7 +4,7 @@
 //! camera and no AO (so every frame is the same image, and each recorded frame is compared with
 //! one single render of the wall camera; tolerance as in `object_space.rs`).
 
-use isowall_e2e::{bin, free_udp_ports, gpu_ok, run_in, start_nodes_on, wall_config, Daemon};
+use isowall_e2e::{bin, free_udp_ports, gpu_ok, run_in, start_nodes_with, wall_config, Daemon};
 use std::collections::BTreeMap;
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
@@ -157,7 +157,7 @@ fn object_space_a_killed_nodes_brick_is_adopted_and_given_back() {
     };
 
     let t0 = Instant::now();
-    let Some(mut daemons) = start_nodes_on(dir.path(), &config, 4, ADOPT_DELAY, None) else { return };
+    let Some(mut daemons) = start_nodes_with(dir.path(), &config, 4, |_| ADOPT_DELAY.iter().map(|a| a.to_string()).collect(), None) else { return };
     eprintln!("4 nodes up after {:.1} s", t0.elapsed().as_secs_f64());
     let err = dir.path().join("orbit.err");
     let child = Command::new(bin("isowall"))

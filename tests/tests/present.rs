@@ -7,7 +7,7 @@
 //! `scripts/setup.sh` install them: packages xvfb and x11-apps); under CI=true it must run.
 
 use isowall_e2e::x11::Xvfb;
-use isowall_e2e::{free_udp_ports, run_in, start_nodes_on};
+use isowall_e2e::{free_udp_ports, run_in, start_nodes_with};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
@@ -36,8 +36,8 @@ fn a_window_shows_the_presented_tile_exactly() {
     let out = run_in(dir.path(), "isowall", &["keygen", "--config", cfg]);
     assert!(out.status.success(), "keygen: {}", String::from_utf8_lossy(&out.stderr));
 
-    let windows = ["--display", "window", "--windowed"];
-    let Some(mut daemons) = start_nodes_on(dir.path(), &config, 1, &windows, Some(&xvfb.display)) else {
+    let windows = |_| ["--display", "window", "--windowed"].map(String::from).to_vec();
+    let Some(mut daemons) = start_nodes_with(dir.path(), &config, 1, windows, Some(&xvfb.display)) else {
         return;
     };
     let daemon = &mut daemons[0];

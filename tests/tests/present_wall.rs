@@ -8,7 +8,7 @@
 //! run (`scripts/setup.sh` installs xvfb and x11-apps).
 
 use isowall_e2e::x11::Xvfb;
-use isowall_e2e::{free_udp_ports, run_in, start_nodes_on, wall_config_2x1};
+use isowall_e2e::{free_udp_ports, run_in, start_nodes_with, wall_config_2x1};
 use std::time::{Duration, Instant};
 
 /// A 2-frame demo at 1 fps: frame 0 shows the first key, frame 1 the second (the eye lower:
@@ -24,8 +24,8 @@ fn both_tiles_of_a_2x1_wall_show_the_same_frame_on_screen() {
     let cfg = config.to_str().unwrap();
     let out = run_in(dir.path(), "isowall", &["keygen", "--config", cfg]);
     assert!(out.status.success(), "keygen: {}", String::from_utf8_lossy(&out.stderr));
-    let windows = ["--display", "window", "--windowed"];
-    let Some(daemons) = start_nodes_on(dir.path(), &config, 2, &windows, Some(&xvfb.display)) else { return };
+    let windows = |_| ["--display", "window", "--windowed"].map(String::from).to_vec();
+    let Some(daemons) = start_nodes_with(dir.path(), &config, 2, windows, Some(&xvfb.display)) else { return };
     let path = format!(
         "[[key]]\ntime = 0\neye = {:?}\ntarget = [15.5, 15.5, 15.5]\n\n[[key]]\ntime = 1\neye = {:?}\ntarget = [15.5, 15.5, 15.5]\n",
         EYES[0], EYES[1]
