@@ -196,6 +196,24 @@ pub fn start_nodes_with(
     Some(daemons)
 }
 
+/// `isowalld render` (in `dir`) of the whole image of a [`wall_config`] wall: its fixed camera, sky
+/// light and bent-normal IBL, `volume` at `width`x`height` with `ao_samples`, then `extra`
+/// arguments (`--out`, `--aov`, `--ao-radius` ...). The single render the wall tests compare with.
+pub fn render_whole(
+    dir: &Path,
+    volume: &str,
+    (width, height): (u32, u32),
+    ao_samples: u32,
+    extra: &[&str],
+) -> std::process::Output {
+    let (size, ao) = (format!("{width}x{height}"), ao_samples.to_string());
+    let mut args = vec!["render", "--volume", volume, "--size", &size];
+    args.extend(["--eye", "60,-70,45", "--target", "23.5,23.5,23.5", "--up", "0,0,1", "--fov-y", "40"]);
+    args.extend(["--ao-samples", &ao, "--ibl", "bent", "--env", "sky"]);
+    args.extend_from_slice(extra);
+    run_in(dir, "isowalld", &args)
+}
+
 /// Writes `dir/NAME.toml`: a 2x2 wall of `w`x`h` tiles with `bezel`-pixel mullions, nodes
 /// `node0..3` on the given loopback ports, the torus at 48^3 with 4 AO samples and sky light, a
 /// fixed camera, and the certificates in `dir/CERTS`.

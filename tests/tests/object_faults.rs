@@ -4,7 +4,7 @@
 //! camera and no AO (so every frame is the same image, and each recorded frame is compared with
 //! one single render of the wall camera; tolerance as in `object_space.rs`).
 
-use isowall_e2e::{bin, free_udp_ports, gpu_ok, run_in, start_nodes_with, wall_config, Daemon};
+use isowall_e2e::{bin, free_udp_ports, gpu_ok, render_whole, run_in, start_nodes_with, wall_config, Daemon};
 use std::collections::BTreeMap;
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
@@ -106,31 +106,8 @@ fn object_space_a_killed_nodes_brick_is_adopted_and_given_back() {
     let (fw, fh) = wall_cfg.wall_size();
 
     // The single render of the wall camera.
-    let size = format!("{fw}x{fh}");
-    let args = [
-        "render",
-        "--volume",
-        "procedural:torus:48",
-        "--size",
-        &size,
-        "--eye",
-        "60,-70,45",
-        "--target",
-        "23.5,23.5,23.5",
-        "--up",
-        "0,0,1",
-        "--fov-y",
-        "40",
-        "--ao-samples",
-        "0",
-        "--ibl",
-        "bent",
-        "--env",
-        "sky",
-        "--out",
-        "whole.png",
-    ];
-    if !gpu_ok("isowalld render", &run_in(dir.path(), "isowalld", &args)) {
+    let whole = render_whole(dir.path(), "procedural:torus:48", (fw, fh), 0, &["--out", "whole.png"]);
+    if !gpu_ok("isowalld render", &whole) {
         return;
     }
     eprintln!("keygen and the single render after {:.1} s", started.elapsed().as_secs_f64());
@@ -157,7 +134,15 @@ fn object_space_a_killed_nodes_brick_is_adopted_and_given_back() {
     };
 
     let t0 = Instant::now();
-    let Some(mut daemons) = start_nodes_with(dir.path(), &config, 4, |_| ADOPT_DELAY.iter().map(|a| a.to_string()).collect(), None) else { return };
+    let Some(mut daemons) = start_nodes_with(
+        dir.path(),
+        &config,
+        4,
+        |_| ADOPT_DELAY.iter().map(|a| a.to_string()).collect(),
+        None,
+    ) else {
+        return;
+    };
     eprintln!("4 nodes up after {:.1} s", t0.elapsed().as_secs_f64());
     let err = dir.path().join("orbit.err");
     let child = Command::new(bin("isowall"))

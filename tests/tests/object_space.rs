@@ -4,7 +4,7 @@
 //! cuts included, and each node must hold no more volume than its brick and halo.
 
 use glam::DVec3;
-use isowall_e2e::{free_udp_ports, gpu_ok, run_in, wall_config};
+use isowall_e2e::{free_udp_ports, gpu_ok, render_whole, run_in, wall_config};
 use isowall_volume::{BlockMinMax, VolumeSource};
 use isowall_wall::bricks::{self, Occupancy};
 use isowall_wall::{AoRadius, RenderSettings};
@@ -97,36 +97,9 @@ fn object_wall(nodes: usize, compress: bool) {
     let wall_cfg = isowall_wall::WallConfig::load(&config).unwrap();
     let (fw, fh) = wall_cfg.wall_size();
     let render = |aov: &str, out: &str| {
-        let size = format!("{fw}x{fh}");
         let radius = AO_RADIUS.to_string();
-        let args = [
-            "render",
-            "--volume",
-            VOLUME,
-            "--size",
-            &size,
-            "--eye",
-            "60,-70,45",
-            "--target",
-            "23.5,23.5,23.5",
-            "--up",
-            "0,0,1",
-            "--fov-y",
-            "40",
-            "--ao-samples",
-            "4",
-            "--ao-radius",
-            &radius,
-            "--ibl",
-            "bent",
-            "--env",
-            "sky",
-            "--aov",
-            aov,
-            "--out",
-            out,
-        ];
-        assert!(gpu_ok("isowalld render", &run_in(dir.path(), "isowalld", &args)));
+        let extra = ["--ao-radius", &radius, "--aov", aov, "--out", out];
+        assert!(gpu_ok("isowalld render", &render_whole(dir.path(), VOLUME, (fw, fh), 4, &extra)));
     };
     render("color", "whole.png");
     render("depth", "depth.pfm");

@@ -2,7 +2,7 @@
 //! controller, whose snapshot must equal a single render of the whole wall camera; a slow daemon
 //! reported by name while the others go on; a peer with another CA's certificate refused.
 
-use isowall_e2e::{free_udp_ports, gpu_ok, in_ci, run_in, wall_config, Daemon};
+use isowall_e2e::{free_udp_ports, gpu_ok, in_ci, render_whole, run_in, wall_config, Daemon};
 use std::time::Duration;
 
 #[test]
@@ -33,33 +33,7 @@ fn a_2x2_wall_snapshot_equals_the_single_render_of_the_whole_wall() {
     assert!(stdout.contains("4 of 4 tiles"), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
     // The whole wall image: tiles plus two mullions each way.
     let (fw, fh) = (2 * w + 2 * bezel, 2 * h + 2 * bezel);
-    let out = run_in(
-        dir.path(),
-        "isowalld",
-        &[
-            "render",
-            "--volume",
-            "procedural:torus:48",
-            "--size",
-            &format!("{fw}x{fh}"),
-            "--eye",
-            "60,-70,45",
-            "--target",
-            "23.5,23.5,23.5",
-            "--up",
-            "0,0,1",
-            "--fov-y",
-            "40",
-            "--ao-samples",
-            "4",
-            "--ibl",
-            "bent",
-            "--env",
-            "sky",
-            "--out",
-            "whole.png",
-        ],
-    );
+    let out = render_whole(dir.path(), "procedural:torus:48", (fw, fh), 4, &["--out", "whole.png"]);
     assert!(gpu_ok("isowalld render", &out));
     let wall = image::open(dir.path().join("wall.png")).unwrap().to_rgb8();
     let whole = image::open(dir.path().join("whole.png")).unwrap().to_rgb8();
