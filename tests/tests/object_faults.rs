@@ -157,15 +157,7 @@ fn object_space_a_killed_nodes_brick_is_adopted_and_given_back() {
     };
 
     let t0 = Instant::now();
-    let Some(mut daemons) = start_nodes_with(
-        dir.path(),
-        &config,
-        4,
-        |_| ADOPT_DELAY.iter().map(|a| a.to_string()).collect(),
-        None,
-    ) else {
-        return;
-    };
+    let Some(mut daemons) = start_nodes_with(dir.path(), &config, 4, |_| ADOPT_DELAY.iter().map(|a| a.to_string()).collect(), None) else { return };
     eprintln!("4 nodes up after {:.1} s", t0.elapsed().as_secs_f64());
     let err = dir.path().join("orbit.err");
     let child = Command::new(bin("isowall"))

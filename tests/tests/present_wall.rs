@@ -25,9 +25,7 @@ fn both_tiles_of_a_2x1_wall_show_the_same_frame_on_screen() {
     let out = run_in(dir.path(), "isowall", &["keygen", "--config", cfg]);
     assert!(out.status.success(), "keygen: {}", String::from_utf8_lossy(&out.stderr));
     let windows = |_| ["--display", "window", "--windowed"].map(String::from).to_vec();
-    let Some(daemons) = start_nodes_with(dir.path(), &config, 2, windows, Some(&xvfb.display)) else {
-        return;
-    };
+    let Some(daemons) = start_nodes_with(dir.path(), &config, 2, windows, Some(&xvfb.display)) else { return };
     let path = format!(
         "[[key]]\ntime = 0\neye = {:?}\ntarget = [15.5, 15.5, 15.5]\n\n[[key]]\ntime = 1\neye = {:?}\ntarget = [15.5, 15.5, 15.5]\n",
         EYES[0], EYES[1]
