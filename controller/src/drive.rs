@@ -506,10 +506,10 @@ mod tests {
         let n = 10 * crate::wall::HISTORY as u64;
         for k in 0..n {
             // Frame k takes k ms and uses k % 7 + 1 samples.
-            log.push((k % 7 + 1) as u32, Duration::from_millis(k), Motion::Moving);
+            log.push((k % 7 + 1) as u32, 1, Duration::from_millis(k), Motion::Moving);
         }
         for _ in 0..3 {
-            log.push(9, Duration::from_millis(1), Motion::Still);
+            log.push(9, 1, Duration::from_millis(1), Motion::Still);
         }
         assert_eq!(log.moving_ms.len(), crate::wall::HISTORY);
         assert_eq!(log.first_samples.len() + log.last_samples.len(), 2 * GovernorLog::SAMPLES_SHOWN);
@@ -528,11 +528,16 @@ mod tests {
     fn a_short_run_reports_every_frame() {
         let mut log = GovernorLog::default();
         for k in 0..8u64 {
-            log.push(k as u32 + 1, Duration::from_millis(10 * (k + 1)), Motion::Moving);
+            // The last two frames at half resolution.
+            let scale = if k >= 6 { 2 } else { 1 };
+            log.push(k as u32 + 1, scale, Duration::from_millis(10 * (k + 1)), Motion::Moving);
         }
         let g = Governor::new(100.0, 1, 1, 64).unwrap();
         let r = governor_report(Some(&g), &log);
-        assert!(r.contains("(3 frames); samples per frame 1 2 3 4 5 6 7 8\n"), "{r}");
+        assert!(
+            r.contains("(3 frames); samples per frame (/N: at 1/N resolution) 1 2 3 4 5 6 7/2 8/2\n"),
+            "{r}"
+        );
         assert!(r.contains("p50 70.0 ms"), "{r}");
         assert!(!r.contains("still"), "{r}");
     }
