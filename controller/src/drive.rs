@@ -32,8 +32,9 @@ pub struct OrbitOptions {
     /// Frames per second at most (0: as fast as the wall swaps)
     #[arg(long, default_value_t = 0.0)]
     pub fps: f64,
-    /// Quality governor: choose the AO samples per frame for this frame time (ms) while the
-    /// camera moves, then hold them while it is still (overrides `[render] target_frame_ms`)
+    /// Quality governor: choose the AO samples per frame (at 1 sample, a lower internal
+    /// resolution, 1/2 to 1/4) for this frame time (ms) while the camera moves, then hold them
+    /// at full resolution while it is still (overrides `[render] target_frame_ms`)
     #[arg(long, value_name = "MS")]
     pub target_frame_ms: Option<f64>,
     /// After the orbit, this many frames with the camera still: the nodes refine progressively
@@ -163,8 +164,9 @@ struct GovernorLog {
     moving: u64,
     /// Frame times (frame state sent -> swap released) of the last moving frames after five.
     moving_ms: std::collections::VecDeque<Duration>,
-    first_samples: Vec<u32>,
-    last_samples: std::collections::VecDeque<u32>,
+    /// (samples, internal resolution divisor) per frame.
+    first_samples: Vec<(u32, u32)>,
+    last_samples: std::collections::VecDeque<(u32, u32)>,
     /// Still frames, and the samples of the last one.
     still: u64,
     still_samples: u32,
@@ -176,15 +178,15 @@ impl GovernorLog {
     /// Moving frames the governor settles in (left out of the quantiles).
     const SETTLING: u64 = 5;
 
-    fn push(&mut self, samples: u32, frame: Duration, motion: Motion) {
+    fn push(&mut self, samples: u32, scale: u32, frame: Duration, motion: Motion) {
         self.frames += 1;
         if self.first_samples.len() < Self::SAMPLES_SHOWN {
-            self.first_samples.push(samples);
+            self.first_samples.push((samples, scale));
         } else {
             if self.last_samples.len() == Self::SAMPLES_SHOWN {
                 self.last_samples.pop_front();
             }
-            self.last_samples.push_back(samples);
+            self.last_samples.push_back((samples, scale));
         }
         match motion {
             Motion::Moving => {
@@ -203,9 +205,17 @@ impl GovernorLog {
         }
     }
 
-    /// The samples per frame, the frames between the first and the last ones shown elided.
+    /// The samples per frame (`/N`: rendered at 1/N resolution), the frames between the first and
+    /// the last ones shown elided.
     fn samples_text(&self) -> String {
-        let list = |v: &mut dyn Iterator<Item = &u32>| v.map(u32::to_string).collect::<Vec<_>>().join(" ");
+        let one = |&(samples, scale): &(u32, u32)| {
+            if scale > 1 {
+                format!("{samples}/{scale}")
+            } else {
+                samples.to_string()
+            }
+        };
+        let list = |v: &mut dyn Iterator<Item = &(u32, u32)>| v.map(one).collect::<Vec<_>>().join(" ");
         let skipped = self.frames - (self.first_samples.len() + self.last_samples.len()) as u64;
         let mut s = list(&mut self.first_samples.iter());
         if skipped > 0 {
@@ -244,6 +254,7 @@ async fn drive(
         let camera = orbit_camera(base, k.min(o.frames.saturating_sub(1)), o.degrees_per_frame);
         if let Some(g) = &governor {
             settings.ao.samples = g.samples();
+            wall.scale = g.scale();
         }
         wall.frame(&camera, &settings).await?;
         if let Some(dir) = &o.record_frames {
@@ -253,7 +264,7 @@ async fn drive(
             // The next frame moves while the orbit goes on.
             let motion = if k + 1 < o.frames { Motion::Moving } else { Motion::Still };
             let frame = wall.releases.last().map_or(Duration::ZERO, |r| r.1);
-            governed.push(settings.ao.samples, frame, motion);
+            governed.push(settings.ao.samples, wall.scale, frame, motion);
             g.observe(frame.as_secs_f64() * 1e3, motion);
         }
         if k == 0 {
@@ -310,7 +321,7 @@ fn governor_report(target: Option<&Governor>, log: &GovernorLog) -> String {
         format!("{} frames", ms.len())
     };
     let mut s = format!(
-        "governor: target {:.1} ms; moving frames after {}: p50 {} p90 {} ({kept}); samples per frame {}\n",
+        "governor: target {:.1} ms; moving frames after {}: p50 {} p90 {} ({kept}); samples per frame (/N: at 1/N resolution) {}\n",
         g.target_ms(),
         GovernorLog::SETTLING,
         fmt(quantile(ms.clone(), 0.5)),
@@ -495,10 +506,10 @@ mod tests {
         let n = 10 * crate::wall::HISTORY as u64;
         for k in 0..n {
             // Frame k takes k ms and uses k % 7 + 1 samples.
-            log.push((k % 7 + 1) as u32, Duration::from_millis(k), Motion::Moving);
+            log.push((k % 7 + 1) as u32, 1, Duration::from_millis(k), Motion::Moving);
         }
         for _ in 0..3 {
-            log.push(9, Duration::from_millis(1), Motion::Still);
+            log.push(9, 1, Duration::from_millis(1), Motion::Still);
         }
         assert_eq!(log.moving_ms.len(), crate::wall::HISTORY);
         assert_eq!(log.first_samples.len() + log.last_samples.len(), 2 * GovernorLog::SAMPLES_SHOWN);
@@ -517,11 +528,16 @@ mod tests {
     fn a_short_run_reports_every_frame() {
         let mut log = GovernorLog::default();
         for k in 0..8u64 {
-            log.push(k as u32 + 1, Duration::from_millis(10 * (k + 1)), Motion::Moving);
+            // The last two frames at half resolution.
+            let scale = if k >= 6 { 2 } else { 1 };
+            log.push(k as u32 + 1, scale, Duration::from_millis(10 * (k + 1)), Motion::Moving);
         }
         let g = Governor::new(100.0, 1, 1, 64).unwrap();
         let r = governor_report(Some(&g), &log);
-        assert!(r.contains("(3 frames); samples per frame 1 2 3 4 5 6 7 8\n"), "{r}");
+        assert!(
+            r.contains("(3 frames); samples per frame (/N: at 1/N resolution) 1 2 3 4 5 6 7/2 8/2\n"),
+            "{r}"
+        );
         assert!(r.contains("p50 70.0 ms"), "{r}");
         assert!(!r.contains("still"), "{r}");
     }

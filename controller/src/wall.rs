@@ -74,6 +74,8 @@ pub struct Wall {
     endpoint: quinn::Endpoint,
     epoch: Instant,
     next_frame: u64,
+    /// The internal resolution divisor sent with the next frame states (the governor's; 1: full).
+    pub scale: u32,
     /// Statistics of the last finished frames (at most [`HISTORY`]..2 x [`HISTORY`]).
     pub finished: Vec<FrameStats>,
     /// The last releases: (frame, barrier time, stragglers), bounded like `finished`.
@@ -110,6 +112,7 @@ impl Wall {
             endpoint,
             epoch: Instant::now(),
             next_frame: 1,
+            scale: 1,
             finished: Vec::new(),
             releases: Vec::new(),
             released: 0,
@@ -463,7 +466,7 @@ impl Wall {
         self.retry_down_nodes();
         let id = self.next_frame;
         self.next_frame += 1;
-        let state = FrameState::new(id, camera, settings, 0);
+        let state = FrameState::new(id, camera, settings, self.scale);
         let now = self.now();
         let out = self.machine.begin_frame(now, state).map_err(|e| anyhow!("{e}"))?;
         self.execute(out).await;

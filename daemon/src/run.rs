@@ -475,13 +475,16 @@ async fn execute(
                         Vec::new(),
                     ),
                 };
-                tracing::debug!(accumulate_frame, "render");
+                // object space composites full-resolution depth: it always renders at scale 1.
+                let scale = if node.object.is_some() { 1 } else { spec.scale };
+                tracing::debug!(accumulate_frame, scale, "render");
                 if let Err(e) = node.renderer.submit(TileJob {
                     frame_id: spec.frame_id,
                     tiles,
                     settings,
                     accumulate_frame,
                     bricks,
+                    scale,
                 }) {
                     tracing::error!("{e}");
                     node.render_dead = true;

@@ -12,7 +12,7 @@ use isowall_render::gpu::GpuRenderer;
 use isowall_render::output::srgb8;
 use isowall_render::Frame;
 use isowall_volume::Volume;
-use isowall_wall::{RenderSettings, View};
+use isowall_wall::{lowres, RenderSettings, View};
 use std::sync::{mpsc, Arc};
 use std::time::{Duration, Instant};
 
@@ -26,6 +26,9 @@ pub struct TileJob {
     /// object space: the brick each view renders, by index (a node renders an adopted brick
     /// beside its own, `object.rs`); empty: the one volume.
     pub bricks: Vec<usize>,
+    /// The internal resolution divisor (1 ..= 4, `isowall_wall::lowres`): each tile renders its
+    /// view of the image divided by it and is upsampled (nearest) to its full size.
+    pub scale: u32,
 }
 
 /// A tile's image of a frame: 8-bit sRGB, rows top to bottom.
@@ -189,8 +192,9 @@ impl TileRenderer {
                                 Some(format!("tile {name}: brick {:?} is not loaded", job.bricks.get(k)));
                             break;
                         };
-                        match gpu.render(gv, view, &s, genv.as_ref()) {
-                            Ok(r) => out.push(accumulate(name, a, r.frame)),
+                        let low = lowres::scaled_view(view, job.scale);
+                        match gpu.render(gv, &low, &s, genv.as_ref()) {
+                            Ok(r) => out.push(accumulate(name, a, upsample(r.frame, view, job.scale))),
                             Err(e) => {
                                 failed = Some(format!("tile {name}: {e}"));
                                 break;
@@ -349,6 +353,25 @@ fn window_job(gpu: &GpuRenderer, surfaces: &mut Vec<TileSurface>, job: WindowJob
     }
 }
 
+/// A frame rendered at `lowres::scaled_view(view, scale)`, upsampled (nearest) to `view`.
+pub fn upsample(frame: Frame, view: &View, scale: u32) -> Frame {
+    if scale <= 1 {
+        return frame;
+    }
+    Frame {
+        width: view.window.width,
+        height: view.window.height,
+        color: lowres::upsample_nearest(&frame.color, view, scale),
+        depth: lowres::upsample_nearest(&frame.depth, view, scale),
+        normal: lowres::upsample_nearest(&frame.normal, view, scale),
+        hit: lowres::upsample_nearest(&frame.hit, view, scale),
+        occlusion: lowres::upsample_nearest(&frame.occlusion, view, scale),
+        bent_normal: lowres::upsample_nearest(&frame.bent_normal, view, scale),
+        ibl: lowres::upsample_nearest(&frame.ibl, view, scale),
+        fetches: frame.fetches,
+    }
+}
+
 /// Adds a frame to the tile's running sum and returns the averaged image.
 fn accumulate(name: &str, a: &mut Accumulator, mut frame: Frame) -> TileResult {
     if a.sum.len() != frame.color.len() {
@@ -371,5 +394,102 @@ fn accumulate(name: &str, a: &mut Accumulator, mut frame: Frame) -> TileResult {
         height: frame.height,
         rgb8: srgb8(&frame),
         depth,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use isowall_render::gpu::GpuError;
+    use isowall_wall::{Camera, Window};
+
+    /// The render thread on a small scene, or `None` (after a message) where no Vulkan adapter
+    /// exists; under `CI=true` a missing adapter fails instead (GPU tests never skip silently).
+    fn renderer() -> Option<(TileRenderer, tokio::sync::mpsc::UnboundedReceiver<Result<JobResult, String>>)> {
+        match GpuRenderer::new() {
+            Ok(_) => {}
+            Err(e @ GpuError::NoAdapter(_)) if std::env::var("CI").as_deref() != Ok("true") => {
+                eprintln!("skipping GPU test: {e}");
+                return None;
+            }
+            Err(e) => panic!("GPU set-up failed: {e}"),
+        }
+        let src: isowall_volume::VolumeSource = "procedural:sphere-over-plane:48".parse().unwrap();
+        let volume = src.load(None).unwrap();
+        let (tx, rx) = tokio::sync::mpsc::unbounded_channel();
+        Some((TileRenderer::start(RenderVolume::Whole(volume), None, tx).unwrap(), rx))
+    }
+
+    /// The whole image of 96 x 72 pixels as two tiles split at an odd column (not a multiple of
+    /// the scale), rendered by the render thread at `scale` and put back together.
+    fn wall_image(
+        r: &TileRenderer,
+        rx: &mut tokio::sync::mpsc::UnboundedReceiver<Result<JobResult, String>>,
+        whole: &View,
+        settings: &RenderSettings,
+        scale: u32,
+    ) -> Vec<u8> {
+        let (w, h) = whole.full;
+        let left = View { window: Window { x: 0, y: 0, width: 47, height: h }, ..*whole };
+        let right = View { window: Window { x: 47, y: 0, width: w - 47, height: h }, ..*whole };
+        let job = TileJob {
+            frame_id: scale as u64,
+            tiles: vec![("left".into(), left), ("right".into(), right)],
+            settings: *settings,
+            accumulate_frame: 0,
+            bricks: Vec::new(),
+            scale,
+        };
+        r.handle().submit(job).unwrap();
+        let result = rx.blocking_recv().unwrap().unwrap();
+        let mut image = vec![0u8; (w * h * 3) as usize];
+        for (t, x0) in result.tiles.iter().zip([0, 47]) {
+            assert_eq!(t.height, h);
+            for y in 0..h {
+                for x in 0..t.width {
+                    let (src, dst) = (((y * t.width + x) * 3) as usize, ((y * w + x0 + x) * 3) as usize);
+                    image[dst..dst + 3].copy_from_slice(&t.rgb8[src..src + 3]);
+                }
+            }
+        }
+        image
+    }
+
+    #[test]
+    fn a_frame_at_scale_2_is_the_half_size_image_upsampled() {
+        let Some((r, mut rx)) = renderer() else { return };
+        let camera = Camera {
+            eye: glam::DVec3::new(-30.0, -60.0, 70.0),
+            target: glam::DVec3::new(24.0, 24.0, 16.0),
+            up: glam::DVec3::Z,
+            fov_y_deg: 40.0,
+        };
+        let mut settings = RenderSettings::new(0.0);
+        settings.ao.samples = 2;
+        let whole = View::whole(camera, 96, 72);
+        let full = wall_image(&r, &mut rx, &whole, &settings, 1);
+        let halved = wall_image(&r, &mut rx, &whole, &settings, 2);
+
+        // The half-size image rendered alone (48 x 36, same camera, same sample pattern seeding),
+        // upsampled nearest: every full pixel (x, y) takes the half pixel (x / 2, y / 2).
+        let gpu = GpuRenderer::new().unwrap();
+        let src: isowall_volume::VolumeSource = "procedural:sphere-over-plane:48".parse().unwrap();
+        let gv = gpu.upload(&src.load(None).unwrap()).unwrap();
+        let half = gpu.render(&gv, &View::whole(camera, 48, 36), &settings, None).unwrap().frame;
+        let half = srgb8(&half);
+        let mut want = vec![0u8; 96 * 72 * 3];
+        for y in 0..72 {
+            for x in 0..96 {
+                let (s, d) = (((y / 2) * 48 + x / 2) * 3, (y * 96 + x) * 3);
+                want[d..d + 3].copy_from_slice(&half[s..s + 3]);
+            }
+        }
+        let differ = halved.iter().zip(&want).filter(|(a, b)| a != b).count();
+        assert_eq!(differ, 0, "{differ} channel values differ from the upsampled half-size render");
+        // And it is not the full-resolution image: the scale reached the render.
+        let differ = halved.iter().zip(&full).filter(|(a, b)| a != b).count();
+        assert!(differ > 96 * 72 / 10, "only {differ} channel values differ from the full-resolution frame");
+        drop(rx);
+        r.join();
     }
 }

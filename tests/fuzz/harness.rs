@@ -175,7 +175,7 @@ pub fn parse_config(data: &[u8]) -> Outcome {
             let (box_min, box_max) = (glam::DVec3::ZERO, glam::DVec3::new(47.0, 47.0, 23.0));
             let camera = c.camera_for(box_min, box_max);
             let settings = c.render_settings(c.volume.iso.unwrap_or(0.5));
-            let state = FrameState::new(1, &camera, &settings, 0);
+            let state = FrameState::new(1, &camera, &settings, 1);
             // A config whose camera is unusable still parses; the daemon refuses its frames.
             let frames_ok = FrameSpec::try_from(&state).is_ok();
             for t in &c.tiles {

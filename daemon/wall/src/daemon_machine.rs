@@ -273,7 +273,7 @@ mod tests {
     fn state(id: u64, eye_y: f64) -> FrameState {
         let cam =
             Camera { eye: DVec3::new(0.0, eye_y, 0.0), target: DVec3::ZERO, up: DVec3::Z, fov_y_deg: 30.0 };
-        FrameState::new(id, &cam, &RenderSettings::new(0.5), 0)
+        FrameState::new(id, &cam, &RenderSettings::new(0.5), 1)
     }
 
     fn machine() -> NodeMachine {

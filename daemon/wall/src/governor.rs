@@ -19,6 +19,14 @@
 //! - a frame faster than `target * (1 - UNDER)`: samples scaled up by that ratio too, at most
 //!   doubled per frame (a cheap frame is a weak estimate of the next);
 //! - in between, or while the state is still: unchanged.
+//!
+//! When the samples are already at their minimum and a frame is still over the band, it lowers
+//! the internal resolution instead: the divisor [`scale`](Governor::scale) (1 = full resolution,
+//! at most [`MAX_SCALE`]) rises by one per slow frame; while it is over 1 the samples stay at
+//! their minimum, and a frame under the band that would still fit at the next finer resolution
+//! lowers it by one (resolution returns before any sample is added back). A still frame is always
+//! rendered at scale 1: progressive refinement happens at full resolution (the moving scale is
+//! remembered for when the camera moves again).
 
 /// A frame more than this fraction over the target lowers the count.
 pub const OVER: f64 = 0.10;
@@ -26,6 +34,8 @@ pub const OVER: f64 = 0.10;
 pub const UNDER: f64 = 0.25;
 /// Safety factor of a cut: aim a little under the target.
 pub const SHRINK: f64 = 0.9;
+/// The largest internal resolution divisor the governor chooses (and the wire accepts).
+pub const MAX_SCALE: u32 = 4;
 /// The largest target accepted (ms): above it a wall is not interactive anyway.
 pub const MAX_TARGET_MS: f64 = 60_000.0;
 
@@ -45,6 +55,10 @@ pub struct Governor {
     min: u32,
     max: u32,
     samples: u32,
+    /// The resolution divisor while moving (1 ..= MAX_SCALE).
+    scale: u32,
+    /// Whether the next frame is still (then [`Governor::scale`] is 1).
+    still: bool,
 }
 
 /// Whether the frame state changed since the previous frame (the camera moved, settings changed)
@@ -65,7 +79,7 @@ impl Governor {
         if min == 0 || min > max {
             return Err(GovernorError::Samples { min, max });
         }
-        Ok(Governor { target_ms, min, max, samples: start.clamp(min, max) })
+        Ok(Governor { target_ms, min, max, samples: start.clamp(min, max), scale: 1, still: false })
     }
 
     pub fn target_ms(&self) -> f64 {
@@ -77,11 +91,42 @@ impl Governor {
         self.samples
     }
 
+    /// The internal resolution divisor for the next frame: 1 for a still frame.
+    pub fn scale(&self) -> u32 {
+        if self.still {
+            1
+        } else {
+            self.scale
+        }
+    }
+
     /// A frame rendered with [`samples`](Self::samples) took `frame_ms`; `motion` says whether
     /// the *next* frame's state differs from it. Returns the samples for the next frame. A
     /// measurement that is not a finite positive number is ignored.
     pub fn observe(&mut self, frame_ms: f64, motion: Motion) -> u32 {
+        let was_still = self.still;
+        self.still = motion == Motion::Still;
         if motion == Motion::Still || !frame_ms.is_finite() || frame_ms <= 0.0 {
+            return self.samples;
+        }
+        if was_still && self.scale > 1 {
+            // A still frame was at full resolution: it says nothing about one at this scale.
+            return self.samples;
+        }
+        let slow = frame_ms > self.target_ms * (1.0 + OVER);
+        let fast = frame_ms < self.target_ms * (1.0 - UNDER);
+        if slow && self.samples == self.min {
+            self.scale = (self.scale + 1).min(MAX_SCALE);
+            return self.samples;
+        }
+        if self.scale > 1 {
+            // Resolution comes back before any sample is added: samples stay at their minimum
+            // while the scale is over 1. Back one step once the frame would still fit the band at
+            // the finer resolution (time goes with pixels, 1 / scale squared).
+            let finer = (self.scale as f64 / (self.scale - 1) as f64).powi(2);
+            if fast && frame_ms * finer <= self.target_ms * (1.0 + OVER) {
+                self.scale -= 1;
+            }
             return self.samples;
         }
         let ratio = self.target_ms / frame_ms;
@@ -171,6 +216,75 @@ mod tests {
         assert_eq!(g.observe(10.0, Motion::Still), 32);
         // Moving again, it reacts.
         assert!(g.observe(400.0, Motion::Moving) < 32);
+    }
+
+    /// A wall whose frame costs `base + per_sample * samples` ms at full resolution, divided by
+    /// the scale squared (pixels).
+    fn scaled(g: &Governor, base: f64, per_sample: f64) -> f64 {
+        let s = g.scale() as f64;
+        (base + per_sample * g.samples() as f64) / (s * s)
+    }
+
+    #[test]
+    fn the_scale_rises_only_at_the_minimum_samples() {
+        // 200 ms per sample at full resolution: a 100 ms target needs a lower resolution.
+        let mut g = Governor::new(100.0, 8, 1, 1024).unwrap();
+        let mut trace = Vec::new();
+        for _ in 0..10 {
+            let ms = scaled(&g, 0.0, 200.0);
+            let (samples, scale) = (g.samples(), g.scale());
+            g.observe(ms, Motion::Moving);
+            if g.scale() > scale {
+                assert_eq!(samples, 1, "scale rose from {scale} at {samples} samples");
+            }
+            trace.push((g.samples(), g.scale()));
+        }
+        // Settled at half resolution and 1 sample, under the target (no flicker back to full
+        // resolution, where it would be 200 ms; no sample added while the resolution is low).
+        assert!(trace[5..].iter().all(|&st| st == (1, 2)), "{trace:?}");
+        assert!(scaled(&g, 0.0, 200.0) <= 100.0 * (1.0 + OVER));
+        // Never past the largest divisor, however slow.
+        let mut g = Governor::new(10.0, 1, 1, 64).unwrap();
+        for _ in 0..10 {
+            g.observe(1000.0, Motion::Moving);
+        }
+        assert_eq!(g.scale(), MAX_SCALE);
+        // Not while samples can still be cut.
+        let mut g = Governor::new(100.0, 64, 1, 1024).unwrap();
+        g.observe(300.0, Motion::Moving);
+        assert_eq!(g.scale(), 1);
+        assert!(g.samples() < 64);
+    }
+
+    #[test]
+    fn the_scale_falls_back_before_samples_rise() {
+        let mut g = Governor::new(100.0, 1, 1, 1024).unwrap();
+        for _ in 0..3 {
+            g.observe(1000.0, Motion::Moving);
+        }
+        assert_eq!((g.samples(), g.scale()), (1, 4));
+        // Fast frames: first the resolution comes back, one step each, samples unchanged.
+        for want in [3, 2, 1] {
+            g.observe(10.0, Motion::Moving);
+            assert_eq!((g.samples(), g.scale()), (1, want));
+        }
+        g.observe(10.0, Motion::Moving);
+        assert_eq!(g.scale(), 1);
+        assert!(g.samples() > 1);
+    }
+
+    #[test]
+    fn still_frames_are_at_full_resolution() {
+        let mut g = Governor::new(100.0, 1, 1, 1024).unwrap();
+        g.observe(1000.0, Motion::Moving);
+        assert_eq!(g.scale(), 2);
+        g.observe(1000.0, Motion::Still);
+        assert_eq!(g.scale(), 1);
+        g.observe(1000.0, Motion::Still);
+        assert_eq!(g.scale(), 1);
+        // Moving again: the moving scale comes back, and the slow still frame did not raise it.
+        g.observe(1000.0, Motion::Moving);
+        assert_eq!(g.scale(), 2);
     }
 
     #[test]

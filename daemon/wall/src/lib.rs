@@ -26,6 +26,7 @@ pub mod config;
 pub mod daemon_machine;
 pub mod governor;
 pub mod joystick;
+pub mod lowres;
 pub mod messages;
 pub mod render_state;
 pub mod wire;
@@ -37,7 +38,7 @@ pub use config::{
     WallConfig, WallMode, WallSection,
 };
 pub use daemon_machine::{NodeMachine, NodeOutput};
-pub use governor::{Governor, GovernorError, Motion};
+pub use governor::{Governor, GovernorError, Motion, MAX_SCALE};
 pub use messages::{Message, ProtocolError, Role, TileImage, PROTOCOL_VERSION};
 pub use render_state::{
     AoMethod, AoRadius, AoSettings, Aov, IblMethod, Light, Material, RenderSettings, Shading,

@@ -85,20 +85,22 @@ pub struct FrameState {
     pub frame_id: u64,
     pub camera: WireCamera,
     pub settings: WireSettings,
-    /// The quality level chosen by the controller's governor (0 = the cheapest).
-    pub quality: u32,
+    /// The internal resolution divisor chosen by the controller's governor (1 = full resolution,
+    /// 1 ..= [`MAX_SCALE`](crate::governor::MAX_SCALE); `lowres.rs`): the same for every node.
+    /// (Protocol 3: this u32 was `quality`, unused, in protocol 2.)
+    pub scale: u32,
 }
 
 impl FrameState {
     /// The frame state of a model frame.
-    pub fn new(frame_id: u64, camera: &Camera, settings: &RenderSettings, quality: u32) -> Self {
-        FrameState { frame_id, camera: camera.into(), settings: settings.into(), quality }
+    pub fn new(frame_id: u64, camera: &Camera, settings: &RenderSettings, scale: u32) -> Self {
+        FrameState { frame_id, camera: camera.into(), settings: settings.into(), scale }
     }
 
     /// Whether `other` asks for the same image (everything but the frame id is equal): a daemon
     /// keeps accumulating progressive AO while this holds.
     pub fn same_image(&self, other: &FrameState) -> bool {
-        self.camera == other.camera && self.settings == other.settings && self.quality == other.quality
+        self.camera == other.camera && self.settings == other.settings && self.scale == other.scale
     }
 }
 
@@ -108,12 +110,13 @@ pub struct FrameSpec {
     pub frame_id: u64,
     pub camera: Camera,
     pub settings: RenderSettings,
-    pub quality: u32,
+    /// The internal resolution divisor, 1 ..= [`MAX_SCALE`](crate::governor::MAX_SCALE).
+    pub scale: u32,
 }
 
 impl From<&FrameSpec> for FrameState {
     fn from(f: &FrameSpec) -> Self {
-        FrameState::new(f.frame_id, &f.camera, &f.settings, f.quality)
+        FrameState::new(f.frame_id, &f.camera, &f.settings, f.scale)
     }
 }
 
@@ -124,7 +127,15 @@ impl TryFrom<&FrameState> for FrameSpec {
             frame_id: s.frame_id,
             camera: Camera::try_from(s.camera)?,
             settings: RenderSettings::try_from(s.settings)?,
-            quality: s.quality,
+            scale: if (1..=crate::governor::MAX_SCALE).contains(&s.scale) {
+                s.scale
+            } else {
+                return Err(WireError::OutOfRange {
+                    field: "scale",
+                    value: s.scale as f64,
+                    expected: "an internal resolution divisor in 1..=4",
+                });
+            },
         })
     }
 }
@@ -433,7 +444,7 @@ mod tests {
 
     #[test]
     fn model_wire_model_round_trips() {
-        let spec = FrameSpec { frame_id: 42, camera: camera(), settings: settings(), quality: 3 };
+        let spec = FrameSpec { frame_id: 42, camera: camera(), settings: settings(), scale: 3 };
         let wire = FrameState::from(&spec);
         assert_eq!(FrameSpec::try_from(&wire).unwrap(), spec);
         // Every enum value survives.
@@ -455,7 +466,7 @@ mod tests {
 
     #[test]
     fn invalid_wire_values_name_their_field() {
-        let good = FrameState::new(1, &camera(), &settings(), 0);
+        let good = FrameState::new(1, &camera(), &settings(), 1);
         let check = |f: &dyn Fn(&mut FrameState), field: &str| {
             let mut s = good;
             f(&mut s);
@@ -486,6 +497,11 @@ mod tests {
         check(&|s| s.settings.ao.ibl = 4, "settings.ao.ibl");
         check(&|s| s.settings.ao.step_voxels = f64::NAN, "settings.ao.step_voxels");
         check(&|s| s.settings.ao.offset_voxels = -0.1, "settings.ao.offset_voxels");
+        check(&|s| s.scale = 0, "scale");
+        check(&|s| s.scale = 5, "scale");
+        for scale in 1..=4 {
+            assert_eq!(FrameSpec::try_from(&FrameState { scale, ..good }).unwrap().scale, scale);
+        }
     }
 
     #[test]
@@ -494,7 +510,7 @@ mod tests {
         let mut b = a;
         b.frame_id = 2;
         assert!(a.same_image(&b));
-        b.quality = 3;
+        b.scale = 3;
         assert!(!a.same_image(&b));
         let mut c = a;
         c.settings.ao.frame += 1;

@@ -481,7 +481,7 @@ impl Sim {
         self.next_frame += 1;
         self.last_begin = Some(self.now);
         self.begins.insert(id, self.now);
-        let state = FrameState::new(id, &self.camera, &self.settings, 0);
+        let state = FrameState::new(id, &self.camera, &self.settings, 1);
         let outs = self.ctrl.begin_frame(self.now, state).expect("no frame in flight");
         self.ctrl_outputs(outs);
     }
