@@ -194,7 +194,7 @@ impl TileRenderer {
                         };
                         let low = lowres::scaled_view(view, job.scale);
                         match gpu.render(gv, &low, &s, genv.as_ref()) {
-                            Ok(r) => out.push(accumulate(name, a, upsample(r.frame, view, job.scale))),
+                            Ok(r) => out.push(upsample(accumulate(name, a, r.frame), view, job.scale)),
                             Err(e) => {
                                 failed = Some(format!("tile {name}: {e}"));
                                 break;
@@ -353,22 +353,21 @@ fn window_job(gpu: &GpuRenderer, surfaces: &mut Vec<TileSurface>, job: WindowJob
     }
 }
 
-/// A frame rendered at `lowres::scaled_view(view, scale)`, upsampled (nearest) to `view`.
-pub fn upsample(frame: Frame, view: &View, scale: u32) -> Frame {
+/// A tile's image rendered (and accumulated) at `lowres::scaled_view(view, scale)`, upsampled
+/// (nearest) to `view`. Only what leaves the render thread is upsampled (colour and depth), after
+/// accumulation, so the running sum stays at the low resolution; nearest upsampling commutes with
+/// the per-pixel average and the sRGB encoding, so the result is the same as upsampling first.
+pub fn upsample(tile: TileResult, view: &View, scale: u32) -> TileResult {
     if scale <= 1 {
-        return frame;
+        return tile;
     }
-    Frame {
+    let rgb: Vec<[u8; 3]> = tile.rgb8.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+    TileResult {
+        name: tile.name,
         width: view.window.width,
         height: view.window.height,
-        color: lowres::upsample_nearest(&frame.color, view, scale),
-        depth: lowres::upsample_nearest(&frame.depth, view, scale),
-        normal: lowres::upsample_nearest(&frame.normal, view, scale),
-        hit: lowres::upsample_nearest(&frame.hit, view, scale),
-        occlusion: lowres::upsample_nearest(&frame.occlusion, view, scale),
-        bent_normal: lowres::upsample_nearest(&frame.bent_normal, view, scale),
-        ibl: lowres::upsample_nearest(&frame.ibl, view, scale),
-        fetches: frame.fetches,
+        rgb8: lowres::upsample_nearest(&rgb, view, scale).into_iter().flatten().collect(),
+        depth: lowres::upsample_nearest(&tile.depth, view, scale),
     }
 }
 

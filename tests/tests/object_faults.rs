@@ -4,7 +4,9 @@
 //! camera and no AO (so every frame is the same image, and each recorded frame is compared with
 //! one single render of the wall camera; tolerance as in `object_space.rs`).
 
-use isowall_e2e::{bin, free_udp_ports, gpu_ok, render_whole, run_in, start_nodes_with, wall_config, Daemon};
+use isowall_e2e::{
+    bin, free_udp_ports, gpu_ok, render_whole, run_in, set_object_mode, start_nodes_with, wall_config, Daemon,
+};
 use std::collections::BTreeMap;
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
@@ -95,11 +97,9 @@ fn object_space_a_killed_nodes_brick_is_adopted_and_given_back() {
     let dir = tempfile::tempdir().unwrap();
     let (w, h, bezel, deadline_ms) = (40u32, 30u32, 2u32, 1000u64);
     let config = wall_config(dir.path(), "objkill", &free_udp_ports(4), w, h, bezel, deadline_ms, "keys");
+    set_object_mode(&config);
     let text = std::fs::read_to_string(&config).unwrap();
-    let text = text
-        .replacen("[wall]\n", "[wall]\nmode = \"object\"\n", 1)
-        .replace("ao_samples = 4", "ao_samples = 0");
-    std::fs::write(&config, text).unwrap();
+    std::fs::write(&config, text.replace("ao_samples = 4", "ao_samples = 0")).unwrap();
     let cfg = config.to_str().unwrap();
     assert!(run_in(dir.path(), "isowall", &["keygen", "--config", cfg]).status.success());
     let wall_cfg = isowall_wall::WallConfig::load(&config).unwrap();
