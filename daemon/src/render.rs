@@ -9,7 +9,7 @@ use isowall_render::gpu::GpuRenderer;
 use isowall_render::{output, reference, Frame};
 use isowall_volume::io::{RawSpec, VoxelType};
 use isowall_volume::{Volume, VolumeSource};
-use isowall_wall::{AoMethod, AoRadius, Aov, Camera, IblMethod, RenderSettings, Shading, View};
+use isowall_wall::{AoMethod, AoRadius, AoSequence, Aov, Camera, IblMethod, RenderSettings, Shading, View};
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -41,10 +41,27 @@ pub enum AovArg {
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub enum AoMethodArg {
-    /// Cosine-weighted R2 directions, decorrelated per pixel and frame, exact-enough march
+    /// Cosine-weighted directions (`--ao-sequence`), decorrelated per pixel and frame, from the surface, every cell tested exactly
     Ours,
     /// The 2008 RTPara shader, ported faithfully as the baseline (biased; not our method)
     Seed,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum AoSequenceArg {
+    /// The R2 sequence, shifted per pixel and frame
+    R2,
+    /// Sobol with hash-based Owen scrambling, seeded per pixel and frame (the default)
+    Sobol,
+}
+
+impl From<AoSequenceArg> for AoSequence {
+    fn from(a: AoSequenceArg) -> AoSequence {
+        match a {
+            AoSequenceArg::R2 => AoSequence::R2,
+            AoSequenceArg::Sobol => AoSequence::Sobol,
+        }
+    }
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -144,6 +161,9 @@ pub struct RenderArgs {
     /// AO method [default: ours]
     #[arg(long = "ao-method", value_enum)]
     pub ao_method: Option<AoMethodArg>,
+    /// The 2D point set of ours' AO directions [default: sobol]
+    #[arg(long = "ao-sequence", value_enum)]
+    pub ao_sequence: Option<AoSequenceArg>,
     /// Ambient/image-based lighting [default: none]
     #[arg(long, value_enum)]
     pub ibl: Option<IblArg>,
@@ -251,6 +271,9 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             AoMethodArg::Ours => AoMethod::Ours,
             AoMethodArg::Seed => AoMethod::Seed,
         };
+    }
+    if let Some(q) = a.ao_sequence {
+        settings.ao.sequence = q.into();
     }
     if let Some(i) = a.ibl {
         settings.ao.ibl = match i {

@@ -54,6 +54,11 @@ const INCLUDES: &[(&str, &str)] = &[
     ("shading.wgsl", include_str!("../../../shaders/shading.wgsl")),
 ];
 
+/// The text of a shared include (`sampling.wgsl`, ...), for tests that run one on the GPU.
+pub fn include(name: &str) -> Option<&'static str> {
+    INCLUDES.iter().find(|(n, _)| *n == name).map(|(_, text)| *text)
+}
+
 /// The complete WGSL of a kernel, includes spliced in.
 pub fn source(kernel: Kernel) -> String {
     let mut out = String::new();

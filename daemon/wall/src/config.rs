@@ -25,6 +25,7 @@
 //! ao_samples = 16
 //! ao_radius = 8.0                 # world units or "unbounded"; omitted: 8 voxels
 //! ao_method = "ours"              # ours | seed
+//! ao_sequence = "sobol"           # sobol | r2: the 2D set of ours' directions
 //! ibl = "bent"                    # none | seed | bent | rays
 //! env = "sky"                     # sky | FILE.hdr | DIR (relative to this file's folder)
 //! exposure = 0.6                  # default 0.6 with an IBL method, else 1
@@ -53,7 +54,7 @@
 //! [`WallConfig::parse`] takes the text; [`WallConfig::load`] is a thin helper that only reads it.
 
 use crate::camera::{Camera, View, Window};
-use crate::render_state::{AoMethod, AoRadius, IblMethod, RenderSettings, Shading};
+use crate::render_state::{AoMethod, AoRadius, AoSequence, IblMethod, RenderSettings, Shading};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 use std::fmt;
@@ -205,6 +206,7 @@ pub struct RenderConfig {
     #[serde(with = "ao_radius_serde")]
     pub ao_radius: AoRadius,
     pub ao_method: AoMethod,
+    pub ao_sequence: AoSequence,
     pub ibl: IblMethod,
     /// `sky`, an equirectangular `FILE.hdr` or a cube-map `DIR` (relative to the config's folder).
     pub env: String,
@@ -221,6 +223,7 @@ impl Default for RenderConfig {
             ao_samples: 0,
             ao_radius: AoRadius::Default,
             ao_method: AoMethod::default(),
+            ao_sequence: AoSequence::default(),
             ibl: IblMethod::default(),
             env: "sky".into(),
             exposure: None,
@@ -666,6 +669,7 @@ impl WallConfig {
         s.ao.samples = r.ao_samples;
         s.ao.radius = r.ao_radius;
         s.ao.method = r.ao_method;
+        s.ao.sequence = r.ao_sequence;
         s.ao.ibl = r.ibl;
         s.exposure = r.exposure.unwrap_or(if s.ibl_needs_environment() { 0.6 } else { 1.0 });
         s
@@ -1818,9 +1822,10 @@ tiles = ["b"]
     fn render_settings_take_the_render_defaults() {
         let c = WallConfig::parse(GOOD, Path::new("w.toml")).unwrap();
         assert_eq!(c.render_settings(2.0), RenderSettings::new(2.0));
-        let text = format!("[render]\nshading = \"lambert\"\nao_samples = 16\nao_radius = 4\nao_method = \"seed\"\nibl = \"rays\"\nexposure = 0.8\n\n{GOOD}");
+        let text = format!("[render]\nshading = \"lambert\"\nao_samples = 16\nao_radius = 4\nao_method = \"seed\"\nao_sequence = \"r2\"\nibl = \"rays\"\nexposure = 0.8\n\n{GOOD}");
         let s = WallConfig::parse(&text, Path::new("w.toml")).unwrap().render_settings(1.0);
         assert_eq!((s.shading, s.ao.samples, s.ao.radius), (Shading::Lambert, 16, AoRadius::World(4.0)));
+        assert_eq!(s.ao.sequence, AoSequence::R2);
         assert_eq!((s.ao.method, s.ao.ibl, s.exposure), (AoMethod::Seed, IblMethod::Rays, 0.8));
     }
 

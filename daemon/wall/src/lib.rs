@@ -41,6 +41,6 @@ pub use daemon_machine::{NodeMachine, NodeOutput};
 pub use governor::{Governor, GovernorError, Motion, MAX_SCALE};
 pub use messages::{Message, ProtocolError, Role, TileImage, PROTOCOL_VERSION};
 pub use render_state::{
-    AoMethod, AoRadius, AoSettings, Aov, IblMethod, Light, Material, RenderSettings, Shading,
+    AoMethod, AoRadius, AoSequence, AoSettings, Aov, IblMethod, Light, Material, RenderSettings, Shading,
 };
 pub use wire::{FrameSpec, FrameState};
