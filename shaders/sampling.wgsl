@@ -40,15 +40,13 @@ fn owen_scramble(x: u32, seed: u32) -> u32 {
     return reverseBits(owen_permute(reverseBits(x), seed));
 }
 
+// A fixed 32-step loop: a `while bits != 0` form gave wrong points inside the AO kernel's sample
+// loop on lavapipe past ~800 samples (found by tests/ao_truth.rs), though right on its own.
 fn sobol_2d(i: u32) -> vec2<u32> {
     var v = 0x80000000u;
     var y = 0u;
-    var bits = i;
-    while bits != 0u {
-        if (bits & 1u) != 0u {
-            y ^= v;
-        }
-        bits >>= 1u;
+    for (var k = 0u; k < 32u; k += 1u) {
+        y ^= select(0u, v, ((i >> k) & 1u) != 0u);
         v ^= v >> 1u;
     }
     return vec2<u32>(reverseBits(i), y);

@@ -9,7 +9,7 @@ use isowall_render::sampling::{cosine_direction, pixel_key, r2_point, sobol_poin
 use isowall_render::shaders;
 use wgpu::util::DeviceExt;
 
-const PER_KEY: u32 = 64;
+const PER_KEY: u32 = 1024;
 
 #[test]
 fn gpu_sample_points_are_the_cpu_points_bit_for_bit() {
@@ -30,11 +30,11 @@ fn gpu_sample_points_are_the_cpu_points_bit_for_bit() {
 @compute @workgroup_size(64, 1, 1)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let idx = gid.x;
-    if idx >= arrayLength(&keys) * 64u {
+    if idx >= arrayLength(&keys) * 1024u {
         return;
     }
-    let key = keys[idx / 64u];
-    let i = idx % 64u;
+    let key = keys[idx / 1024u];
+    let i = idx % 1024u;
     let r = r2_point(i, key);
     let s = sobol_point(i, key);
     points[idx] = vec4<u32>(bitcast<u32>(r.x), bitcast<u32>(r.y), bitcast<u32>(s.x), bitcast<u32>(s.y));
@@ -88,7 +88,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: None, timestamp_writes: None });
         pass.set_pipeline(&pipeline);
         pass.set_bind_group(0, &bind, &[]);
-        pass.dispatch_workgroups(keys.len() as u32, 1, 1);
+        pass.dispatch_workgroups(keys.len() as u32 * PER_KEY / 64, 1, 1);
     }
     enc.copy_buffer_to_buffer(&points, 0, &points_r, 0, None);
     enc.copy_buffer_to_buffer(&dirs, 0, &dirs_r, 0, None);
