@@ -717,7 +717,11 @@ fn one_sample() {
                     let ns = if nv.dot(-dir) < 0.0 { -nv } else { nv };
                     let axis = if p.variant == Variant::SeedRays { ns } else { nv };
                     let bent = DVec3::from(f.bent_normal[i].map(f64::from));
-                    assert!(bent.distance(axis) < 1e-4, "{:?} {name}: bent {bent:?} vs axis {axis:?}", p.variant);
+                    assert!(
+                        bent.distance(axis) < 1e-4,
+                        "{:?} {name}: bent {bent:?} vs axis {axis:?}",
+                        p.variant
+                    );
                     if p.variant == Variant::OursRays {
                         assert_eq!(f.ibl[i], [0.0; 3]);
                     }
