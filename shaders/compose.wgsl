@@ -14,8 +14,8 @@
 // - Depth per full pixel (distance along the ray, +inf without a hit: the bits of f32 infinity),
 //   what object space composites by.
 // - Per-frame counters of the low window (each low pixel counted once): trilinear fetches as a
-//   64-bit sum (low word, high word) and hits, summed per workgroup, then once per workgroup into
-//   `counters`.
+//   64-bit sum (low word, high word), hits and pixels, summed per row of the low window, then once
+//   per row into `counters`.
 
 struct ComposeParams {
     background: vec4<f32>, // rgb: linear background; w: exposure
@@ -48,10 +48,6 @@ struct ComposeParams {
 // fetches (low word, high word), hits, pixels counted.
 @group(0) @binding(7) var<storage, read_write> counters: array<atomic<u32>, 4>;
 
-var<workgroup> wg_fetches: atomic<u32>;
-var<workgroup> wg_hits: atomic<u32>;
-var<workgroup> wg_pixels: atomic<u32>;
-
 const INFINITY_BITS: u32 = 0x7f800000u;
 
 // `isowall_wall::render_state::linear_to_srgb` in f32: non-finite values are 0.
@@ -72,33 +68,26 @@ fn encode(x: f32) -> f32 {
 }
 
 @compute @workgroup_size(8, 8, 1)
-fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) li: u32) {
-    if li == 0u {
-        atomicStore(&wg_fetches, 0u);
-        atomicStore(&wg_hits, 0u);
-        atomicStore(&wg_pixels, 0u);
-    }
-    workgroupBarrier();
-    // The counters: invocation (x, y) counts low pixel (x, y) where it exists.
-    if gid.x < params.low_size.x && gid.y < params.low_size.y {
-        let i = gid.x + gid.y * params.low_size.x;
-        atomicAdd(&wg_fetches, in_fetches[i]);
-        atomicAdd(&wg_pixels, 1u);
-        if in_color[i].w >= 0.5 {
-            atomicAdd(&wg_hits, 1u);
+fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
+    // The counters: the first invocation of each row of the low window sums that row and adds it
+    // once (no workgroup barrier: llvmpipe runs a workgroup that has one as coroutines).
+    if gid.x == 0u && gid.y < params.low_size.y {
+        var lo = 0u;
+        var hi = 0u;
+        var hits = 0u;
+        let row = gid.y * params.low_size.x;
+        for (var x = 0u; x < params.low_size.x; x += 1u) {
+            let f = in_fetches[row + x];
+            let sum = lo + f;
+            hi += select(0u, 1u, sum < lo);
+            lo = sum;
+            hits += select(0u, 1u, in_color[row + x].w >= 0.5);
         }
-    }
-    workgroupBarrier();
-    if li == 0u {
-        let f = atomicLoad(&wg_fetches);
-        if f > 0u {
-            let old = atomicAdd(&counters[0], f);
-            if old + f < old {
-                atomicAdd(&counters[1], 1u); // carry into the high word
-            }
-        }
-        atomicAdd(&counters[2], atomicLoad(&wg_hits));
-        atomicAdd(&counters[3], atomicLoad(&wg_pixels));
+        let old = atomicAdd(&counters[0], lo);
+        hi += select(0u, 1u, old + lo < old); // carry into the high word
+        atomicAdd(&counters[1], hi);
+        atomicAdd(&counters[2], hits);
+        atomicAdd(&counters[3], params.low_size.x);
     }
 
     if gid.x >= params.size.x || gid.y >= params.size.y {
