@@ -485,6 +485,8 @@ async fn execute(
                     accumulate_frame,
                     bricks,
                     scale,
+                    // object space: the shares travel to the tiles' owners.
+                    read_pixels: node.object.is_some(),
                 }) {
                     tracing::error!("{e}");
                     node.render_dead = true;
@@ -508,17 +510,26 @@ async fn execute(
                 queue.extend(machine.presented(at, frame_id));
             }
             NodeOutput::SnapshotWanted => {
+                let image = |t: &TileResult, id: u64| TileImage {
+                    name: t.name.clone(),
+                    width: t.width,
+                    height: t.height,
+                    frame_id: id,
+                    rgb8: t.rgb8.clone(),
+                };
                 let tiles = match &node.shown {
-                    Some((id, tiles)) => tiles
-                        .iter()
-                        .map(|t| TileImage {
-                            name: t.name.clone(),
-                            width: t.width,
-                            height: t.height,
-                            frame_id: *id,
-                            rgb8: t.rgb8.clone(),
-                        })
-                        .collect(),
+                    // object space: the composited tiles, on the CPU.
+                    Some((id, tiles)) if node.object.is_some() => {
+                        tiles.iter().map(|t| image(t, *id)).collect()
+                    }
+                    // screen space: the images stayed on the GPU; read them now.
+                    Some((id, _)) => match node.renderer.snapshot(*id).await {
+                        Ok(tiles) => tiles.iter().map(|t| image(t, *id)).collect(),
+                        Err(e) => {
+                            tracing::warn!(frame_id = id, "snapshot: {e:#}");
+                            Vec::new()
+                        }
+                    },
                     None => Vec::new(),
                 };
                 sender.send(&Message::Snapshot { tiles }).await?;

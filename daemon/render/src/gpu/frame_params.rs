@@ -192,7 +192,7 @@ mod tests {
 
     #[test]
     fn frame_params_layout_matches_the_wgsl_of_every_kernel() {
-        for kernel in Kernel::COMPUTE {
+        for kernel in Kernel::FRAME {
             crate::shaders::tests::check_layout(
                 kernel,
                 "FrameParams",
