@@ -61,7 +61,6 @@ pub struct BrickData {
 /// This node's brick, as set up.
 pub struct BrickSetup {
     pub data: BrickData,
-    pub brick: Brick,
     pub halo: [usize; 3],
     pub plan: Arc<BrickPlan>,
 }
@@ -151,13 +150,12 @@ pub fn load_brick(config: &WallConfig, node: &str, raw: Option<&RawSpec>) -> Res
     let split = bricks::split(&occ, info.dims, info.spacing, n).map_err(|e| anyhow!("{source}: {e}"))?;
     let settings = config.render_settings(iso);
     let halo = bricks::halo_voxels(&settings, info.spacing).map_err(|e| anyhow!("[render] {e}"))?;
-    let brick = split[index].clone();
     let plan = Arc::new(BrickPlan { source, raw: raw.cloned(), info, blocks, split, halo });
     let data = read_brick(&plan, index, Some(&stream));
     bricking.finish();
     let data = data?;
     tracing::debug!(ms = start.elapsed().as_secs_f64() * 1e3, "object space: set-up done");
-    Ok(BrickSetup { data, brick, halo, plan })
+    Ok(BrickSetup { data, halo, plan })
 }
 
 /// An adoption's outcome ([`spawn_load`]): the brick, its owned box and bytes, or why not.
@@ -272,10 +270,6 @@ impl ObjectNode {
     /// The wall's deadline: each wait for a peer's stream ends there.
     pub fn deadline(&self) -> Duration {
         self.deadline
-    }
-
-    pub fn resident_bytes(&self) -> u64 {
-        self.machine.resident_bytes()
     }
 
     /// A new controller session: its frame ids start afresh.

@@ -285,7 +285,7 @@ impl ObjectMachine {
             }
         }
         self.submitted.insert(frame_id, views.iter().map(|(n, v)| (n.clone(), v.window)).collect());
-        self.submitted.retain(|&id, _| id + FRAMES_KEPT > frame_id);
+        self.submitted.retain(|&id, _| id.saturating_add(FRAMES_KEPT) > frame_id);
         (FrameViews { views, bricks, unload, not_loaded }, refused.into_iter().map(close).collect())
     }
 
@@ -388,7 +388,7 @@ impl ObjectMachine {
         }
         // Compositing time runs from here: this node's render is done (encoding included).
         self.local.insert(frame_id, LocalDone { at: now, sent, render });
-        self.local.retain(|&k, _| k + FRAMES_KEPT > frame_id);
+        self.local.retain(|&k, _| k.saturating_add(FRAMES_KEPT) > frame_id);
         let done = self.compositor.local(now, frame_id, &mine, self.background);
         out.extend(self.compositor.take_refused().into_iter().map(close));
         out.extend(done.map(ObjectOutput::Composited));
@@ -419,13 +419,13 @@ impl ObjectMachine {
     }
 
     /// Time the caller spent on a frame's pixels (encoding, decoding, merging: the calls above).
+    /// Only frames this node rendered count (a peer's frame id can be anything).
     pub fn add_work(&mut self, frame_id: u64, work: Duration) {
-        if self.work.contains_key(&frame_id) || self.work.len() < FRAMES_KEPT as usize * 4 {
-            *self.work.entry(frame_id).or_default() += work;
+        if !self.local.contains_key(&frame_id) && !self.submitted.contains_key(&frame_id) {
+            return;
         }
-        if let Some(&last) = self.work.keys().next_back() {
-            self.work.retain(|&k, _| k + FRAMES_KEPT > last);
-        }
+        *self.work.entry(frame_id).or_default() += work;
+        self.work.retain(|&k, _| k.saturating_add(FRAMES_KEPT) > frame_id);
     }
 
     /// The controller's `Composited` for a composited frame at `now`: bytes sent to peers,
