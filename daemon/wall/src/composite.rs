@@ -576,6 +576,14 @@ impl Compositor {
         ids.into_iter().filter_map(|id| self.poll(now, id)).collect()
     }
 
+    /// `nodes` are back (a brick map gives them bricks again): waited for again even if they
+    /// missed a deadline before.
+    pub fn wait_again(&mut self, nodes: &[String]) {
+        for n in nodes {
+            self.late.remove(n);
+        }
+    }
+
     /// A peer's pixels, from the connection whose certificate names `cert`.
     pub fn peer(
         &mut self,

@@ -299,6 +299,10 @@ impl ObjectMachine {
         holders: Vec<Option<String>>,
     ) -> Result<(BrickMap, Vec<ObjectOutput>), AdoptionError> {
         let map = BrickMap::from_wire(from_frame, holders, self.maps.nodes())?;
+        // Nodes that hold bricks again (back from the dead) are waited for again.
+        let before = self.maps.latest().participants();
+        let back: Vec<String> = map.participants().difference(&before).cloned().collect();
+        self.compositor.wait_again(&back);
         let gone = self.maps.set(map.clone());
         let done = self.compositor.forget(now, &gone);
         Ok((map, done.into_iter().map(ObjectOutput::Composited).collect()))
