@@ -378,6 +378,18 @@ impl Wall {
                 ControllerOutput::Snapshot { node, tiles } => {
                     self.snapshots.insert(node, tiles);
                 }
+                ControllerOutput::PixelsMissing { node, frame_id, peers } => {
+                    if peers.is_empty() {
+                        eprintln!(
+                            "isowall: node {node} composites every peer's pixels again from frame {frame_id}"
+                        );
+                    } else {
+                        eprintln!(
+                            "isowall: node {node} composited frame {frame_id} without the pixels of {} (not in by its compositing deadline)",
+                            peers.join(", ")
+                        );
+                    }
+                }
             }
         }
     }

@@ -8,11 +8,12 @@
 //! alone touches the GPU.
 
 use crate::display::{self, Display, DisplayMode, WindowSetup};
-use crate::object::{Inbox, LoadDone, ObjectNode, PeerItem};
+use crate::object::{Done, LoadDone, ObjectNode};
 use crate::render::load_volume;
 use crate::tiles::{JobResult, RenderHandle, RenderVolume, TileJob, TileRenderer, TileResult};
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
+use isowall_net::pixels::{PeerPixelsIn, PixelInbox};
 use isowall_net::transport::{self, Channel, NetError};
 use isowall_net::Identity;
 use isowall_render::environment::{EnvSource, Environment};
@@ -78,8 +79,8 @@ struct Node {
     /// The brick's compositing and peers (`object.rs`); `None` in screen space.
     object: Option<ObjectNode>,
     /// Peers' pixels as they arrive, and who hands their connections over.
-    peer_rx: Option<tokio::sync::mpsc::Receiver<PeerItem>>,
-    inbox: Option<Inbox>,
+    peer_rx: Option<tokio::sync::mpsc::Receiver<PeerPixelsIn>>,
+    inbox: Option<PixelInbox>,
     /// Adopted bricks loaded (or not), for the controller.
     load_rx: Option<UnboundedReceiver<LoadDone>>,
 }
@@ -114,7 +115,9 @@ pub fn run(a: &RunArgs) -> Result<()> {
         object.adopt_delay = std::time::Duration::from_millis(a.adopt_delay_ms);
         let (tx, rx) = tokio::sync::mpsc::channel(64);
         let nodes = config.nodes.iter().map(|n| n.name.clone()).collect();
-        let inbox = Inbox { tx, nodes, own: node.name.clone(), limit };
+        // A peer's stream may be no longer than what its bricks can send this node's tiles.
+        let inbox =
+            PixelInbox::new(tx, nodes, &node.name, limit.min(object.max_pixels_bytes()), object.deadline());
         (RenderVolume::Brick(Box::new(setup.data)), Some(object), Some(rx), Some(inbox), Some(load_rx))
     } else {
         let (volume, _iso) = load_volume(Some(&config.volume_source()), raw.as_ref(), config.volume.iso)?;
@@ -310,9 +313,15 @@ async fn serve(
         }
     });
     let outcome = loop {
+        let composite_deadline = node.object.as_ref().and_then(|o| o.next_timeout());
         let outputs = tokio::select! {
             m = msg_rx.recv() => match m {
-                Some(Ok(Some(msg))) => match machine.handle(node.epoch.elapsed(), msg) {
+                Some(Ok(Some(msg))) => match {
+                    if let (Some(o), Message::FrameState(s)) = (node.object.as_mut(), &msg) {
+                        o.announce(s.frame_id);
+                    }
+                    machine.handle(node.epoch.elapsed(), msg)
+                } {
                     Ok(out) => out,
                     Err(e) => {
                         tracing::warn!("closing the controller connection: {e}");
@@ -336,14 +345,14 @@ async fn serve(
                     if !node.slow.is_zero() {
                         tokio::time::sleep(node.slow).await;
                     }
-                    // object space: the tiles are done once the peers' pixels are in.
-                    let done = match node.object.as_mut() {
-                        Some(o) => o.local_done(done),
-                        None => Some(done),
-                    };
-                    match done {
-                        Some(done) => frame_done(node, &mut machine, &mut sender, done).await,
-                        None => Vec::new(),
+                    // object space: the tiles are done once the peers' pixels are in (or their
+                    // deadline passed).
+                    match node.object.as_mut() {
+                        Some(o) => {
+                            let done = o.local_done(done);
+                            composited(node, &mut machine, &mut sender, done).await
+                        }
+                        None => frame_done(node, &mut machine, &mut sender, done, None).await,
                     }
                 }
                 Some(Err(e)) => {
@@ -354,10 +363,12 @@ async fn serve(
                 None => break Err(anyhow!("the render thread has stopped")),
             },
             Some(item) = recv_peer(&mut node.peer_rx) => {
-                match node.object.as_mut().and_then(|o| o.peer(item)) {
-                    Some(done) => frame_done(node, &mut machine, &mut sender, done).await,
-                    None => Vec::new(),
-                }
+                let done = node.object.as_mut().map(|o| o.peer(item)).unwrap_or_default();
+                composited(node, &mut machine, &mut sender, done).await
+            }
+            _ = sleep_until(composite_deadline) => {
+                let done = node.object.as_mut().map(|o| o.handle_timeout()).unwrap_or_default();
+                composited(node, &mut machine, &mut sender, done).await
             }
             Some(done) = recv_load(&mut node.load_rx) => {
                 if let Some(o) = node.object.as_mut() {
@@ -388,11 +399,33 @@ async fn serve(
 }
 
 /// object space: the next peer's pixels (never, in screen space).
-async fn recv_peer(rx: &mut Option<tokio::sync::mpsc::Receiver<PeerItem>>) -> Option<PeerItem> {
+async fn recv_peer(rx: &mut Option<tokio::sync::mpsc::Receiver<PeerPixelsIn>>) -> Option<PeerPixelsIn> {
     match rx {
         Some(rx) => rx.recv().await,
         None => std::future::pending().await,
     }
+}
+
+/// object space: the next compositing deadline (never when none is pending).
+async fn sleep_until(at: Option<tokio::time::Instant>) {
+    match at {
+        Some(at) => tokio::time::sleep_until(at).await,
+        None => std::future::pending().await,
+    }
+}
+
+/// object space: frames composited, in order.
+async fn composited(
+    node: &mut Node,
+    machine: &mut NodeMachine,
+    sender: &mut transport::ChannelSender,
+    done: Vec<Done>,
+) -> Vec<NodeOutput> {
+    let mut out = Vec::new();
+    for d in done {
+        out.extend(frame_done(node, machine, sender, d.job, Some(d.report)).await);
+    }
+    out
 }
 
 /// object space: the next adoption's outcome (never, in screen space).
@@ -404,29 +437,21 @@ async fn recv_load(rx: &mut Option<UnboundedReceiver<LoadDone>>) -> Option<LoadD
 }
 
 /// A frame's tiles are done (rendered; in object space, composited): keep them for the swap and
-/// tell the controller (object space: Composited first, with the bytes sent and compositing time).
+/// tell the controller (object space: `report`, the machine's Composited, first).
 async fn frame_done(
     node: &mut Node,
     machine: &mut NodeMachine,
     sender: &mut transport::ChannelSender,
     done: JobResult,
+    report: Option<Message>,
 ) -> Vec<NodeOutput> {
     let (id, t) = (done.frame_id, done.render_time);
-    if let Some(o) = &node.object {
-        let (bytes_sent, composite, work) = o.frame_stats(id);
-        tracing::debug!(
-            frame_id = id,
-            bytes_sent,
-            composite_ms = composite.as_secs_f64() * 1e3,
-            "composited"
-        );
-        let msg = Message::Composited {
-            frame_id: id,
-            bytes_sent,
-            composite_us: composite.as_micros() as u64,
-            merge_us: work.as_micros() as u64,
-            resident_bytes: o.resident_bytes,
-        };
+    if machine.rendering() != Some(id) {
+        // A frame the frame machine no longer waits for (superseded, or of an older session).
+        return Vec::new();
+    }
+    if let Some(msg) = report {
+        tracing::debug!(frame_id = id, ?msg, "composited");
         if let Err(e) = sender.send(&msg).await {
             tracing::warn!("{e}");
         }
@@ -537,11 +562,7 @@ async fn execute(
             // object space: a brick map, an adoption (`object.rs`).
             NodeOutput::Bricks { from_frame, holders } => match node.object.as_mut() {
                 Some(o) => match o.set_map(from_frame, holders) {
-                    Ok(done) => {
-                        for d in done {
-                            queue.extend(frame_done(node, machine, sender, d).await);
-                        }
-                    }
+                    Ok(done) => queue.extend(composited(node, machine, sender, done).await),
                     Err(e) => {
                         let reason = format!("protocol violation by `controller` (Bricks): {e}");
                         tracing::warn!("closing the controller connection: {reason}");
@@ -551,7 +572,11 @@ async fn execute(
                 None => tracing::warn!("ignoring a brick map: this wall is not in object mode"),
             },
             NodeOutput::LoadBrick { brick } => match node.object.as_mut() {
-                Some(o) => o.load(brick, &node.renderer),
+                Some(o) => {
+                    if let Some(answer) = o.load(brick, &node.renderer) {
+                        sender.send(&answer).await?;
+                    }
+                }
                 None => {
                     let reason = "this wall is not in object mode".to_string();
                     sender.send(&Message::BrickFailed { brick, reason }).await?;

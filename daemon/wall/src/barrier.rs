@@ -58,6 +58,9 @@ pub enum ControllerOutput {
     BrickLoaded { node: String, brick: u64, load: Duration, resident_bytes: u64 },
     /// object space: `node` could not load `brick` (`crate::adoption::BrickAssigner::load_failed`).
     BrickFailed { node: String, brick: u64, reason: String },
+    /// object space: from `frame_id` on, `node` composites without the pixels of `peers` (they
+    /// missed its compositing deadline); empty when they are back. Told when the set changes.
+    PixelsMissing { node: String, frame_id: u64, peers: Vec<String> },
 }
 
 /// One node's part in one frame.
@@ -142,6 +145,8 @@ struct NodeState {
     swapped: VecDeque<u64>,
     snapshot_wanted: bool,
     counters: NodeCounters,
+    /// object space: the peers whose pixels its last Composited went without.
+    missing: Vec<String>,
 }
 
 impl NodeState {
@@ -154,6 +159,7 @@ impl NodeState {
         self.last_ready = None;
         self.swapped.clear();
         self.snapshot_wanted = false;
+        self.missing.clear();
     }
 }
 
@@ -587,7 +593,7 @@ impl FrameController {
                 Ok(vec![ControllerOutput::Snapshot { node: node.to_string(), tiles }])
             }
             Message::Bye { reason } => Ok(self.node_down(now, node, &format!("said goodbye: {reason}"))),
-            Message::Composited { frame_id, bytes_sent, composite_us, merge_us, resident_bytes } => {
+            Message::Composited { frame_id, bytes_sent, composite_us, merge_us, resident_bytes, missing } => {
                 let st = self.nodes.get(node).expect("checked");
                 let sent = matches!((st.first_sent, st.last_sent), (Some(a), Some(b)) if (a..=b).contains(&frame_id));
                 if !sent || st.last_ready.is_some_and(|r| frame_id <= r) {
@@ -604,7 +610,23 @@ impl FrameController {
                     p.resident_bytes = Some(resident_bytes);
                     p.merge = Some(Duration::from_micros(merge_us));
                 }
-                Ok(Vec::new())
+                // Names only the wall's other nodes, each once (it is printed).
+                let unique: std::collections::BTreeSet<&String> = missing.iter().collect();
+                if let Some(n) = missing.iter().find(|n| n.as_str() == node || !self.nodes.contains_key(*n)) {
+                    return Err(err(format!(
+                        "Composited names `{}` as missing, not another node of the wall",
+                        n.escape_debug()
+                    )));
+                }
+                if unique.len() != missing.len() {
+                    return Err(err("Composited names a missing node twice".into()));
+                }
+                let st = self.nodes.get_mut(node).expect("checked");
+                if st.missing == missing {
+                    return Ok(Vec::new());
+                }
+                st.missing = missing.clone();
+                Ok(vec![ControllerOutput::PixelsMissing { node: node.to_string(), frame_id, peers: missing }])
             }
         }
     }
@@ -790,6 +812,7 @@ mod tests {
             composite_us: 2500,
             merge_us: 700,
             resident_bytes: 99,
+            missing: vec![],
         };
         assert!(c.handle(ms(5), "a", comp(1)).unwrap().is_empty());
         c.handle(ms(6), "a", Message::Ready { frame_id: 1, render_us: 0 }).unwrap();
@@ -805,6 +828,43 @@ mod tests {
         assert_eq!(stats.per_node[0].merge, Some(Duration::from_micros(700)));
         assert_eq!(stats.per_node[1].bytes_sent, None);
         assert!(c.handle(ms(10), "b", comp(7)).is_err());
+    }
+
+    #[test]
+    fn missing_pixels_are_told_when_they_change_and_name_only_other_nodes() {
+        let mut c = controller(&["a", "b", "c"]);
+        let comp = |id, missing: &[&str]| Message::Composited {
+            frame_id: id,
+            bytes_sent: 0,
+            composite_us: 0,
+            merge_us: 0,
+            resident_bytes: 0,
+            missing: missing.iter().map(|s| s.to_string()).collect(),
+        };
+        let mut told = Vec::new();
+        for id in 1..=4 {
+            c.begin_frame(ms(id * 100), state(id)).unwrap();
+            let missing: &[&str] = if id == 2 || id == 3 { &["c"] } else { &[] };
+            told.extend(c.handle(ms(id * 100 + 5), "a", comp(id, missing)).unwrap());
+            for n in ["a", "b", "c"] {
+                c.handle(ms(id * 100 + 6), n, Message::Ready { frame_id: id, render_us: 0 }).unwrap();
+            }
+            for n in ["a", "b", "c"] {
+                c.handle(ms(id * 100 + 7), n, Message::Presented { frame_id: id, node_time_us: 0 }).unwrap();
+            }
+        }
+        assert_eq!(
+            told,
+            vec![
+                ControllerOutput::PixelsMissing { node: "a".into(), frame_id: 2, peers: vec!["c".into()] },
+                ControllerOutput::PixelsMissing { node: "a".into(), frame_id: 4, peers: vec![] },
+            ]
+        );
+        c.begin_frame(ms(500), state(5)).unwrap();
+        for bad in [&["a"][..], &["zz"], &["b", "b"]] {
+            let e = c.handle(ms(501), "a", comp(5, bad)).unwrap_err();
+            assert!(e.to_string().contains("missing"), "{e}");
+        }
     }
 
     #[test]

@@ -12,7 +12,9 @@
 //!   from Ping/Pong), [`barrier`] (the controller's swap barrier) and [`daemon_machine`] (a
 //!   daemon's side).
 //! - object space: [`bricks`] (the split, halos, covered windows), [`composite`] (depth
-//!   compositing of peers' pixels), [`adoption`] (which node renders each brick when nodes die).
+//!   compositing of peers' pixels, its caps and deadline), [`adoption`] (which node renders each
+//!   brick when nodes die), [`object_machine`] (a node's object space: views, brick maps,
+//!   compositing and its messages).
 //! - [`governor`]: the quality governor (frame times in, AO samples per frame out).
 
 pub mod adoption;
@@ -28,6 +30,7 @@ pub mod governor;
 pub mod joystick;
 pub mod lowres;
 pub mod messages;
+pub mod object_machine;
 pub mod render_state;
 pub mod wire;
 

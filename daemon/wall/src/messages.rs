@@ -104,8 +104,16 @@ pub enum Message {
     /// Daemon -> controller, before Ready in object space: the bytes it sent its peers for the
     /// frame and its compositing time (its render done to its tiles composited: waiting for the
     /// peers' pixels and merging them), the part of it spent working (encoding its pixels for the
-    /// peers, decoding theirs, merging), and the volume bytes it holds (its brick and halo).
-    Composited { frame_id: u64, bytes_sent: u64, composite_us: u64, merge_us: u64, resident_bytes: u64 },
+    /// peers, decoding theirs, merging), the volume bytes it holds (its brick and halo), and the
+    /// peers whose pixels the frame went without (not in by its compositing deadline).
+    Composited {
+        frame_id: u64,
+        bytes_sent: u64,
+        composite_us: u64,
+        merge_us: u64,
+        resident_bytes: u64,
+        missing: Vec<String>,
+    },
     /// Controller -> daemon (object space): from frame `from_frame` on, brick i is rendered by
     /// node `holders[i]` (nobody where `None`); see `crate::adoption`.
     Bricks { from_frame: u64, holders: Vec<Option<String>> },
