@@ -54,7 +54,7 @@ async fn establish(endpoint: quinn::Endpoint, name: String, address: String, lim
     Ok(Link { connection, sender, receiver })
 }
 
-/// An object-space node silent for this many deadlines is down.
+/// An object-space node that dies is reported down within this many deadlines.
 pub const SILENT_DEADLINES: u32 = 3;
 
 /// Events queued from the nodes' readers at most: a node that sends faster than the controller
@@ -122,8 +122,12 @@ impl Wall {
         if config.wall.mode == isowall_wall::WallMode::Object {
             // A dead node stalls every frame of an object-space wall (every node waits for its
             // pixels): it is down once silent for 3 deadlines, pinged often enough to tell.
-            machine.set_ping_interval(Some(FrameController::DEFAULT_PING_INTERVAL.min(deadline / 2)));
-            machine.set_silence_limit(Some(deadline * SILENT_DEADLINES));
+            // The controller asks every node something at least every ping interval, so the
+            // silence counted from the first unanswered question is 3 deadlines less one ping
+            // interval (at least 2.5 deadlines).
+            let ping = FrameController::DEFAULT_PING_INTERVAL.min(deadline / 2);
+            machine.set_ping_interval(Some(ping));
+            machine.set_silence_limit(Some(deadline * SILENT_DEADLINES - ping));
         }
         let mut wall = Wall {
             machine,
