@@ -223,7 +223,7 @@ fn a_node_certificate_or_a_silent_controller_never_disturbs_the_running_session(
         let silent = transport::connect(&controller, addr(ports[0]), "node0").await.unwrap();
         let mut reasons = std::collections::BTreeSet::new();
         let mut attempts = 0;
-        // Like the attacker: node1's certificate retrying against node0 for 10 s.
+        // An attacker with node1's certificate retrying against node0 for 10 s.
         while started.elapsed() < Duration::from_secs(10) {
             attempts += 1;
             match hello_as_controller(&node, addr(ports[0]), "node0").await {
@@ -468,10 +468,15 @@ async fn fake_node(keys: PathBuf, name: String, port: u16, tiles: Vec<(String, u
 
 #[test]
 fn a_node_cannot_send_another_nodes_tile_nor_write_to_the_operators_terminal() {
-    // No GPU: both nodes are played by the test.
+    // No GPU: both nodes are played by the test, which answer at once (a short deadline bounds
+    // what a lost message costs).
+    let short = |config: &Path| {
+        std::fs::write(config, text(config).replace("deadline_ms = 60000", "deadline_ms = 2000")).unwrap()
+    };
     let dir = tempfile::tempdir().unwrap();
     let ports = free_udp_ports(2);
     let config = wall_config_2x1(dir.path(), "fakes", &ports, 8, 4, 0, 0);
+    short(&config);
     keygen(dir.path(), &config);
     let keys = dir.path().join("keys");
     let rt = runtime();
@@ -503,6 +508,7 @@ fn a_node_cannot_send_another_nodes_tile_nor_write_to_the_operators_terminal() {
     // (b) node1 says goodbye with terminal escapes and a forged line: printed escaped.
     let ports = free_udp_ports(2);
     let config = wall_config_2x1(dir.path(), "fakes2", &ports, 8, 4, 0, 0);
+    short(&config);
     let evil = "\u{1b}[2J\u{1b}[31mowned\r\nisowall: frame 9: all good";
     let fakes = [
         rt.spawn(fake_node(keys.clone(), "node0".into(), ports[0], t(0), Act::Honest)),
