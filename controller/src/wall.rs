@@ -585,6 +585,8 @@ impl Wall {
         for c in self.connections.values() {
             transport::close(c, reason);
         }
+        // Reconnections still under way or queued hold connections too: close them all.
+        self.endpoint.close(quinn::VarInt::from_u32(0), reason.as_bytes());
         self.endpoint.wait_idle().await;
     }
 }
