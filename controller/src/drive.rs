@@ -337,6 +337,10 @@ fn governor_report(target: Option<&Governor>, log: &GovernorLog) -> String {
     s
 }
 
+/// Once a node is up, how long the others have before the wall starts without them (`up` and
+/// `start --local` first wait until their local daemons listen or have exited).
+pub const START_GRACE: Duration = Duration::from_secs(3);
+
 pub(crate) fn runtime() -> Result<tokio::runtime::Runtime> {
     tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
@@ -363,17 +367,23 @@ pub fn up(a: &UpArgs) -> Result<()> {
     let log_dir = config.resolve("logs");
     let mut daemons = LocalDaemons::start(&config, &log_dir, &a.display, a.windowed)?;
     eprintln!("isowall: starting wall '{}': {} local node(s)", config.wall.name, daemons.len());
+    daemons.wait_started(Duration::from_secs(a.start_timeout));
     let rt = runtime()?;
     let result = rt.block_on(async {
-        let mut wall = Wall::connect(config, Duration::from_secs(a.start_timeout)).await.map_err(|e| {
-            let dead = daemons.exited();
-            if dead.is_empty() {
-                e
-            } else {
-                let list: Vec<String> = dead.iter().map(|(n, s)| format!("{n} ({s})")).collect();
-                anyhow!("{e:#}\nlocal daemons that exited: {} (see {})", list.join(", "), log_dir.display())
-            }
-        })?;
+        let mut wall =
+            Wall::connect(config, Duration::from_secs(a.start_timeout), START_GRACE).await.map_err(|e| {
+                let dead = daemons.exited();
+                if dead.is_empty() {
+                    e
+                } else {
+                    let list: Vec<String> = dead.iter().map(|(n, s)| format!("{n} ({s})")).collect();
+                    anyhow!(
+                        "{e:#}\nlocal daemons that exited: {} (see {})",
+                        list.join(", "),
+                        log_dir.display()
+                    )
+                }
+            })?;
         eprintln!("isowall: wall up in {:.2} s", started.elapsed().as_secs_f64());
         let mut pids = vec![("controller".to_string(), std::process::id())];
         pids.extend(daemons.pids());
@@ -476,7 +486,7 @@ pub fn orbit(a: &OrbitArgs) -> Result<()> {
     let (base, settings) = scene(&config)?;
     let gov = governor(&config, &settings, &a.orbit)?;
     runtime()?.block_on(async {
-        let mut wall = Wall::connect(config, Duration::from_secs(10)).await?;
+        let mut wall = Wall::connect(config, Duration::from_secs(10), START_GRACE).await?;
         let (elapsed, _, governed) =
             drive(&mut wall, &base, &settings, &a.orbit, gov.clone(), &mut |_, _| {}).await?;
         print!("{}", report(&wall, elapsed));
@@ -489,7 +499,7 @@ pub fn orbit(a: &OrbitArgs) -> Result<()> {
 pub fn snapshot(a: &SnapshotArgs) -> Result<()> {
     let config = load(&a.config)?;
     runtime()?.block_on(async {
-        let mut wall = Wall::connect(config, Duration::from_secs(10)).await?;
+        let mut wall = Wall::connect(config, Duration::from_secs(10), START_GRACE).await?;
         write_snapshot(&mut wall, &a.out).await?;
         wall.close("snapshot taken").await;
         Ok(())

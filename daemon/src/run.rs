@@ -14,6 +14,7 @@ use crate::tiles::{JobResult, RenderHandle, RenderVolume, TileJob, TileRenderer,
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
 use isowall_net::pixels::{PeerPixelsIn, PixelInbox};
+use isowall_net::tls::PeerIdentity;
 use isowall_net::transport::{self, Channel, NetError};
 use isowall_net::Identity;
 use isowall_render::environment::{EnvSource, Environment};
@@ -189,36 +190,23 @@ fn network(
         println!("isowalld: node {} ready on {addr}", state.name);
         // The render thread has its device (TileRenderer::start) and the endpoint is bound.
         crate::notify::ready(&format!("node {} listening on {addr}, waiting for the controller", state.name));
-        // Handshakes run in their own tasks (a slow or silent peer holds up nobody); finished
-        // connections queue here, and the session loop takes the next one (cancel-safe).
-        let (conn_tx, mut conns) = tokio::sync::mpsc::channel::<quinn::Connection>(4);
+        // Handshakes run in their own tasks (a slow or silent peer holds up nobody). Only a
+        // connection whose certificate is the controller's and whose Hello is checked queues
+        // here, and only such a one may take over the session (cancel-safe); nodes' connections
+        // go to the object-space inbox, everything else is refused without touching the session.
+        let (conn_tx, mut conns) = tokio::sync::mpsc::channel::<Greeted>(2);
         let acceptor = endpoint.clone();
         let inbox = state.inbox.clone();
+        let limit = state.limit;
+        let live = LiveConnections::default();
         tokio::spawn(async move {
             while let Some(incoming) = acceptor.accept().await {
-                let tx = conn_tx.clone();
-                let inbox = inbox.clone();
-                tokio::spawn(async move {
-                    let remote = incoming.remote_address();
-                    match tokio::time::timeout(std::time::Duration::from_secs(10), incoming).await {
-                        // object space: other nodes' connections carry pixels.
-                        Ok(Ok(c))
-                            if inbox.is_some()
-                                && !isowall_net::tls::peer_is(&c, isowall_net::tls::CONTROLLER) =>
-                        {
-                            inbox.as_ref().expect("checked").accept(c);
-                        }
-                        Ok(Ok(c)) => {
-                            let _ = tx.send(c).await;
-                        }
-                        Ok(Err(e)) => tracing::warn!(%remote, "refused a connection: {e}"),
-                        Err(_) => tracing::warn!(%remote, "refused a connection: handshake timed out"),
-                    }
-                });
+                let (tx, inbox, live) = (conn_tx.clone(), inbox.clone(), live.clone());
+                tokio::spawn(async move { admit(incoming, tx, inbox, live, limit).await });
             }
         });
         let serve_all = async {
-            let mut next: Option<quinn::Connection> = None;
+            let mut next: Option<Greeted> = None;
             loop {
                 let conn = match next.take() {
                     Some(c) => c,
@@ -257,39 +245,124 @@ fn raw_spec(config: &WallConfig) -> Result<Option<RawSpec>> {
     }
 }
 
-/// Serves one controller until its connection ends; returns a newer controller's connection if
-/// one arrived meanwhile (the newer controller takes over). An error means the node cannot go on
-/// (its render thread is gone): the process exits and its supervisor restarts it.
-async fn serve(
-    node: &mut Node,
-    conns: &mut tokio::sync::mpsc::Receiver<quinn::Connection>,
-    conn: quinn::Connection,
-) -> Result<Option<quinn::Connection>> {
-    let remote = conn.remote_address();
-    // The wall CA signed it, but only the controller's certificate may drive the node.
-    if !isowall_net::tls::peer_is(&conn, isowall_net::tls::CONTROLLER) {
-        tracing::warn!(%remote, "refused a connection: its certificate is not the controller's");
-        transport::close(&conn, "only the wall's controller certificate may drive a node");
-        return Ok(None);
+/// How long a peer has for its QUIC handshake, and a controller then for its stream and Hello.
+const HANDSHAKE_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(10);
+const HELLO_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(5);
+
+/// Live connections a daemon keeps per identity, at most: the controller's session and one that
+/// takes over (a restarted controller's old connection lives until its idle timeout); a peer node
+/// connects once and again after a failure.
+const MAX_CONNECTIONS_PER_IDENTITY: usize = 2;
+
+/// A controller's connection whose certificate is the controller's and whose first message is
+/// its Hello (checked): only such a connection may take over the node's session.
+struct Greeted {
+    channel: Channel,
+    hello: Message,
+}
+
+/// Live verified connections per identity.
+#[derive(Clone, Default)]
+struct LiveConnections(std::sync::Arc<std::sync::Mutex<std::collections::HashMap<PeerIdentity, usize>>>);
+
+impl LiveConnections {
+    /// Counts `connection` for `who` until it closes; `false` (not counted) past the limit.
+    fn admit(&self, who: &PeerIdentity, connection: &quinn::Connection) -> bool {
+        {
+            let mut live = self.0.lock().expect("not poisoned");
+            let n = live.entry(who.clone()).or_default();
+            if *n >= MAX_CONNECTIONS_PER_IDENTITY {
+                return false;
+            }
+            *n += 1;
+        }
+        let (me, who, connection) = (self.clone(), who.clone(), connection.clone());
+        tokio::spawn(async move {
+            connection.closed().await;
+            if let Some(n) = me.0.lock().expect("not poisoned").get_mut(&who) {
+                *n = n.saturating_sub(1);
+            }
+        });
+        true
     }
-    // A peer that completes the handshake but never opens the stream does not hold the node.
-    let opened = tokio::time::timeout(
-        std::time::Duration::from_secs(5),
-        Channel::accept(conn.clone(), "controller", node.limit),
-    )
-    .await;
-    let channel = match opened {
+}
+
+/// One incoming connection, in its own task: the handshake, then who it is. The controller's
+/// queues for the session once its Hello is checked; another node's goes to the object-space
+/// inbox; anything else is closed with the reason. Nothing here touches the running session.
+async fn admit(
+    incoming: quinn::Incoming,
+    session: tokio::sync::mpsc::Sender<Greeted>,
+    inbox: Option<Inbox>,
+    live: LiveConnections,
+    limit: usize,
+) {
+    let remote = incoming.remote_address();
+    let conn = match tokio::time::timeout(HANDSHAKE_TIMEOUT, incoming).await {
         Ok(Ok(c)) => c,
         Ok(Err(e)) => {
-            tracing::warn!(%remote, "controller connection failed: {e}");
-            return Ok(None);
+            tracing::warn!(%remote, "refused a connection: {e}");
+            return;
         }
         Err(_) => {
-            tracing::warn!(%remote, "closing a connection that opened no stream within 5 s");
-            transport::close(&conn, "no stream opened within 5 s");
-            return Ok(None);
+            tracing::warn!(%remote, "refused a connection: handshake timed out");
+            return;
         }
     };
+    let refuse = |peer: &dyn std::fmt::Display, reason: String| {
+        tracing::warn!(%remote, %peer, "refused a connection: {reason}");
+        transport::close(&conn, &reason);
+    };
+    let who = match isowall_net::tls::peer_identity(&conn) {
+        Ok(who) => who,
+        Err(e) => return refuse(&"unknown", e),
+    };
+    if !live.admit(&who, &conn) {
+        let reason = format!("{who} already has {MAX_CONNECTIONS_PER_IDENTITY} connections open");
+        return refuse(&who, reason);
+    }
+    match (&who, inbox) {
+        (PeerIdentity::Node(_), Some(inbox)) => inbox.accept(conn),
+        (PeerIdentity::Node(_), None) => {
+            refuse(&who, format!("{who}'s certificate is not the controller's: it may not drive a node"))
+        }
+        (PeerIdentity::Controller, _) => match tokio::time::timeout(HELLO_TIMEOUT, greet(&conn, limit)).await
+        {
+            Ok(Ok(greeted)) => {
+                let _ = session.send(greeted).await;
+            }
+            Ok(Err(reason)) => refuse(&who, reason),
+            Err(_) => refuse(&who, format!("no stream and Hello within {} s", HELLO_TIMEOUT.as_secs())),
+        },
+    }
+}
+
+/// The controller's stream and its Hello (the first message), checked.
+async fn greet(conn: &quinn::Connection, limit: usize) -> Result<Greeted, String> {
+    let peer = isowall_net::tls::CONTROLLER;
+    let mut channel = Channel::accept(conn.clone(), peer, limit).await.map_err(|e| e.to_string())?;
+    let hello = match channel.receiver.recv().await {
+        Ok(Some(m)) => m,
+        Ok(None) => return Err(format!("`{peer}` ended its stream before its Hello")),
+        Err(e) => return Err(e.to_string()),
+    };
+    if let Err(e) = isowall_wall::codec::check_hello(&hello, isowall_wall::messages::Role::Controller) {
+        return Err(isowall_wall::messages::ProtocolError::new(peer, hello.kind(), e.to_string()).to_string());
+    }
+    Ok(Greeted { channel, hello })
+}
+
+/// Serves one controller until its connection ends; returns a newer controller's connection if
+/// one arrived meanwhile (the newer controller, its identity and Hello checked, takes over). An
+/// error means the node cannot go on (its render thread is gone): the process exits and its
+/// supervisor restarts it.
+async fn serve(
+    node: &mut Node,
+    conns: &mut tokio::sync::mpsc::Receiver<Greeted>,
+    greeted: Greeted,
+) -> Result<Option<Greeted>> {
+    let Greeted { channel, hello } = greeted;
+    let remote = channel.connection.remote_address();
     tracing::info!(%remote, "controller connected");
     crate::notify::status(&format!("serving the controller at {remote}"));
     let Channel { connection, mut sender, mut receiver } = channel;
@@ -300,6 +373,10 @@ async fn serve(
     }
     if let Err(e) = sender.send(&machine.hello()).await {
         tracing::warn!("{e}");
+        return Ok(None);
+    }
+    if let Err(e) = machine.handle(node.epoch.elapsed(), hello) {
+        transport::close(&connection, &e.to_string());
         return Ok(None);
     }
     let (msg_tx, mut msg_rx) = tokio::sync::mpsc::channel::<Result<Option<Message>, NetError>>(16);
@@ -583,7 +660,7 @@ async fn execute(
                 }
             },
             NodeOutput::Closed { reason } => {
-                tracing::info!("the controller said goodbye: {reason}");
+                tracing::info!("the controller said goodbye: {}", isowall_wall::messages::printable(&reason));
                 return Err(NetError::Connection { peer: "controller".into(), reason });
             }
         }

@@ -1140,7 +1140,7 @@ fn validate_nodes(doc: &mut Doc<'_>, nodes: &Parsed<NodeConfig>, tiles: &Parsed<
         let i = *i;
         if let Some(p) = name_problem(&n.name) {
             doc.at(&at(i, "name"), format!("node name {p}"));
-        } else if RESERVED_NODE_NAMES.contains(&n.name.as_str()) {
+        } else if RESERVED_NODE_NAMES.iter().any(|r| r.eq_ignore_ascii_case(&n.name)) {
             doc.at(
                 &at(i, "name"),
                 format!("node name '{}' is reserved (its certificate files would clash)", n.name),
@@ -1151,10 +1151,16 @@ fn validate_nodes(doc: &mut Doc<'_>, nodes: &Parsed<NodeConfig>, tiles: &Parsed<
         }
     }
     for (a, (i, n)) in nodes.items.iter().enumerate() {
-        if let Some((j, _)) = nodes.items[..a].iter().find(|(_, m)| m.name == n.name) {
+        // TLS compares names without regard to case: `NODE0` beside `node0` could pose as it.
+        if let Some((j, m)) = nodes.items[..a].iter().find(|(_, m)| m.name.eq_ignore_ascii_case(&n.name)) {
             let first =
                 doc.line_of(&at(*j, "name")).map(|l| format!(" (first at line {l})")).unwrap_or_default();
-            doc.at(&at(*i, "name"), format!("duplicate node name '{}'{first}", n.name));
+            let same = if m.name == n.name {
+                String::new()
+            } else {
+                format!(" (the same as '{}' without regard to case)", m.name)
+            };
+            doc.at(&at(*i, "name"), format!("duplicate node name '{}'{same}{first}", n.name));
         }
         if let Some((j, m)) = nodes.items[..a].iter().find(|(_, m)| m.address == n.address) {
             let first = doc.line_of(&at(*j, "address")).map(|l| format!(" (line {l})")).unwrap_or_default();
@@ -1525,6 +1531,14 @@ tiles = ["b"]
         );
         expect(&with("name = \"n1\"", "name = \"controller\""), Some(28), "reserved");
         expect(&with("name = \"n1\"", "name = \"ca\""), Some(28), "reserved");
+        // Without regard to case: TLS name matching ignores it.
+        expect(&with("name = \"n1\"", "name = \"Controller\""), Some(28), "reserved");
+        expect(&with("name = \"n1\"", "name = \"CA\""), Some(28), "reserved");
+        expect(
+            &with("name = \"n1\"", "name = \"N0\""),
+            Some(28),
+            "duplicate node name 'N0' (the same as 'n0' without regard to case) (first at line 23)",
+        );
         expect(&with("name = \"n1\"", "name = \"../n1\""), Some(28), "may hold only");
     }
 

@@ -182,6 +182,28 @@ pub struct ProtocolError {
     pub problem: String,
 }
 
+/// Most characters of a peer's text shown: a reason is a line, not a document.
+pub const PRINTABLE_CHARS: usize = 300;
+
+/// A peer's text (a reason, a name) made safe to print on a terminal or in a log line: control
+/// characters (escape sequences, newlines, carriage returns) written as escapes, at most
+/// [`PRINTABLE_CHARS`] characters kept.
+pub fn printable(text: &str) -> String {
+    let mut out = String::new();
+    for (i, c) in text.chars().enumerate() {
+        if i == PRINTABLE_CHARS {
+            out.push_str("...");
+            break;
+        }
+        if c.is_control() {
+            out.extend(c.escape_default());
+        } else {
+            out.push(c);
+        }
+    }
+    out
+}
+
 impl ProtocolError {
     pub fn new(peer: &str, message: &'static str, problem: impl Into<String>) -> Self {
         ProtocolError { peer: peer.to_string(), message, problem: problem.into() }
