@@ -13,6 +13,7 @@
 //!   daemon's side).
 //! - object space: [`bricks`] (the split, halos, covered windows), [`composite`] (depth
 //!   compositing of peers' pixels), [`adoption`] (which node renders each brick when nodes die).
+//! - [`names`]: the one rule for node and tile names (a node's name is its certificate's name).
 //! - [`governor`]: the quality governor (frame times in, AO samples per frame out).
 
 pub mod adoption;
@@ -28,6 +29,7 @@ pub mod governor;
 pub mod joystick;
 pub mod lowres;
 pub mod messages;
+pub mod names;
 pub mod render_state;
 pub mod wire;
 
