@@ -5,6 +5,7 @@ use crate::wall::{compose, quantile, report, Wall};
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
 use glam::{DQuat, DVec3};
+use isowall_net::CaMode;
 use isowall_volume::VolumeSource;
 use isowall_wall::config::WallConfig;
 use isowall_wall::{Camera, Governor, Motion, RenderSettings};
@@ -19,6 +20,17 @@ pub struct KeygenArgs {
     /// Write here instead of the config's certificate folder
     #[arg(long, value_name = "DIR")]
     pub out: Option<PathBuf>,
+    /// Days the node and controller certificates are valid, from now
+    #[arg(long, value_name = "N", default_value_t = isowall_net::keygen::DEFAULT_DAYS)]
+    pub days: u32,
+    /// Keep the folder's CA and issue the node and controller certificates again from it (new
+    /// keys), e.g. before they expire; copy each node its new NODE.pem and NODE.key
+    #[arg(long, conflicts_with = "force")]
+    pub renew: bool,
+    /// Replace the folder's CA: every certificate it signed stops working (copy every node's new
+    /// files). Without it keygen refuses to touch a folder that holds a CA
+    #[arg(long)]
+    pub force: bool,
 }
 
 #[derive(Args)]
@@ -94,11 +106,20 @@ pub fn keygen(a: &KeygenArgs) -> Result<()> {
     let config = load(&a.config)?;
     let dir = a.out.clone().unwrap_or_else(|| config.cert_dir());
     let names: Vec<String> = config.nodes.iter().map(|n| n.name.clone()).collect();
-    let files = isowall_net::keygen(&dir, &config.wall.name, &names)?;
+    let mode = match (a.renew, a.force) {
+        (true, _) => CaMode::Renew,
+        (false, true) => CaMode::Replace,
+        (false, false) => CaMode::New,
+    };
+    let report = isowall_net::keygen(&dir, &config.wall.name, &names, mode, a.days)?;
+    let what = if mode == CaMode::Renew { "renewed the certificates: wrote" } else { "wrote" };
     println!(
-        "wrote {} files to {} (keep ca.key off the wall: it signs certificates)",
-        files.len(),
-        dir.display()
+        "{what} {} files to {}; certificates valid until {}, the CA until {} (keep ca.key off the \
+         wall: it signs certificates)",
+        report.files.len(),
+        dir.display(),
+        report.valid_until,
+        report.ca_valid_until
     );
     Ok(())
 }
@@ -123,7 +144,12 @@ pub(crate) fn scene_and_range(config: &WallConfig) -> Result<(Camera, RenderSett
         _ => None,
     };
     let bar = crate::progress::spinner(format!("loading volume {source}"));
-    let volume = source.load(raw.as_ref()).with_context(|| format!("cannot load volume {source}"));
+    let limit = match config.volume.max_bytes {
+        Some(bytes) => isowall_volume::io::VolumeLimit::new(bytes, "[volume] max_bytes"),
+        None => isowall_volume::io::VolumeLimit::default(),
+    };
+    let volume =
+        source.load_within(raw.as_ref(), &limit).with_context(|| format!("cannot load volume {source}"));
     bar.finish_and_clear();
     let volume = volume?;
     let (lo, hi) = volume.value_range();

@@ -7,7 +7,7 @@ use glam::DVec3;
 use isowall_render::environment::{EnvSource, Environment};
 use isowall_render::gpu::GpuRenderer;
 use isowall_render::{output, reference, Frame};
-use isowall_volume::io::{RawSpec, VoxelType};
+use isowall_volume::io::{RawSpec, VolumeLimit, VoxelType};
 use isowall_volume::{Volume, VolumeSource};
 use isowall_wall::{AoMethod, AoRadius, AoSequence, Aov, Camera, IblMethod, RenderSettings, Shading, View};
 use std::path::PathBuf;
@@ -141,6 +141,11 @@ pub struct RenderArgs {
     /// Which renderer [default: gpu]
     #[arg(long, value_enum)]
     pub renderer: Option<RendererKind>,
+    /// The most bytes the volume may take as float32 (4 a voxel), checked from the file's header
+    /// before it is read [default: 2 GiB, and for the GPU renderer at most the GPU's largest
+    /// storage binding]
+    #[arg(long, value_name = "BYTES")]
+    pub max_volume_bytes: Option<u64>,
     /// Raw volumes: dimensions
     #[arg(long, value_name = "NX,NY,NZ", value_parser = args::dims)]
     pub dims: Option<[usize; 3]>,
@@ -199,8 +204,35 @@ impl RenderArgs {
     }
 }
 
-/// Loads the volume named by `--volume` (or the default) and the iso value to use.
+/// Loads the volume named by `--volume` (or the default) and the iso value to use, within the
+/// default [`VolumeLimit`].
 pub fn load_volume(spec: Option<&str>, raw: Option<&RawSpec>, iso: Option<f64>) -> Result<(Volume, f64)> {
+    load_volume_within(spec, raw, iso, &VolumeLimit::default())
+}
+
+/// The most a node's volume may take: `configured` (`--max-volume-bytes`, `[volume] max_bytes`;
+/// else the default) and, for the GPU renderer, the adapter's largest storage binding, the
+/// tighter of the two. Asking the adapter opens no device.
+pub fn volume_limit(configured: Option<(u64, &str)>, gpu: bool) -> Result<VolumeLimit> {
+    let mut limit = match configured {
+        Some((bytes, source)) => VolumeLimit::new(bytes, source),
+        None => VolumeLimit::default(),
+    };
+    if gpu {
+        let (adapter, bytes) = isowall_render::gpu::adapter_storage_limit()?;
+        limit =
+            limit.min(VolumeLimit::new(bytes, format!("the largest storage binding of the GPU '{adapter}'")));
+    }
+    Ok(limit)
+}
+
+/// [`load_volume`] within `limit`, checked from the file's header before any voxel is read.
+pub fn load_volume_within(
+    spec: Option<&str>,
+    raw: Option<&RawSpec>,
+    iso: Option<f64>,
+    limit: &VolumeLimit,
+) -> Result<(Volume, f64)> {
     let source: VolumeSource = match spec {
         Some(s) => s.parse()?,
         None => VolumeSource::default_engine(),
@@ -208,7 +240,7 @@ pub fn load_volume(spec: Option<&str>, raw: Option<&RawSpec>, iso: Option<f64>) 
     let start = Instant::now();
     tracing::info!(volume = %source, "loading volume");
     let bar = crate::progress::spinner(format!("loading volume {source}"));
-    let volume = source.load(raw).with_context(|| format!("cannot load volume {source}"));
+    let volume = source.load_within(raw, limit).with_context(|| format!("cannot load volume {source}"));
     bar.finish_and_clear();
     let volume = volume?;
     let (lo, hi) = volume.value_range();
@@ -233,7 +265,9 @@ pub fn load_volume(spec: Option<&str>, raw: Option<&RawSpec>, iso: Option<f64>) 
 
 pub fn run(a: &RenderArgs) -> Result<()> {
     let raw = a.raw_spec()?;
-    let (volume, iso) = load_volume(a.volume.as_deref(), raw.as_ref(), a.iso)?;
+    let gpu = a.renderer.unwrap_or_default() == RendererKind::Gpu;
+    let limit = volume_limit(a.max_volume_bytes.map(|b| (b, "--max-volume-bytes")), gpu)?;
+    let (volume, iso) = load_volume_within(a.volume.as_deref(), raw.as_ref(), a.iso, &limit)?;
     let (w, h) = a.size.unwrap_or((800, 600));
     let framing = Camera::framing(volume.box_min(), volume.box_max(), w, h);
     let centre = 0.5 * (volume.box_min() + volume.box_max());

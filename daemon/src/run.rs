@@ -9,7 +9,7 @@
 
 use crate::display::{self, Display, DisplayMode, WindowSetup};
 use crate::object::{Done, LoadDone, ObjectNode};
-use crate::render::load_volume;
+use crate::render::load_volume_within;
 use crate::tiles::{JobResult, RenderHandle, RenderVolume, TileJob, TileRenderer, TileResult};
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
@@ -121,7 +121,10 @@ pub fn run(a: &RunArgs) -> Result<()> {
             PixelInbox::new(tx, nodes, &node.name, limit.min(object.max_pixels_bytes()), object.deadline());
         (RenderVolume::Brick(Box::new(setup.data)), Some(object), Some(rx), Some(inbox), Some(load_rx))
     } else {
-        let (volume, _iso) = load_volume(Some(&config.volume_source()), raw.as_ref(), config.volume.iso)?;
+        let configured = config.volume.max_bytes.map(|b| (b, "[volume] max_bytes"));
+        let limit = crate::render::volume_limit(configured, true)?;
+        let (volume, _iso) =
+            load_volume_within(Some(&config.volume_source()), raw.as_ref(), config.volume.iso, &limit)?;
         (RenderVolume::Whole(volume), None, None, None, None)
     };
     let env_src: EnvSource = config.env_source().parse().context("[render] env")?;

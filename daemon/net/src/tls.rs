@@ -1,5 +1,5 @@
 //! The wall's certificates: `isowall keygen` makes a CA and one certificate per node and for the
-//! controller ([`keygen`]); every connection presents one and accepts only peers whose certificate
+//! controller ([`crate::keygen`]); every connection presents one and accepts only peers whose certificate
 //! the wall CA signed ([`Identity::server_config`], [`Identity::client_config`]).
 //!
 //! Files in the certificate folder: `ca.pem` (the CA certificate, on every machine), `ca.key` (the
@@ -11,8 +11,11 @@
 //! has no DNS name at all, only the URI SAN [`CONTROLLER_URI`], which keygen never writes into a
 //! node's certificate (a node name cannot be a URI), so no node certificate can act as the
 //! controller. Names are compared exactly, byte for byte: TLS's own DNS matching ignores case,
-//! which is why a wall's node names must also be unique without regard to case ([`keygen`]
+//! which is why a wall's node names must also be unique without regard to case ([`crate::keygen`]
 //! refuses names that are not).
+//!
+//! A private key is loaded only when no one but its owner may read or write it (mode 0600 or
+//! 0400): [`Identity::load`] refuses a key open to its group or to others, naming the file.
 
 use rustls::pki_types::pem::PemObject;
 use rustls::pki_types::{CertificateDer, PrivateKeyDer};
@@ -35,31 +38,45 @@ pub enum TlsError {
     Generate { name: String, reason: String },
     #[error("TLS configuration: {0}")]
     Config(String),
-    #[error("'{0}' cannot name a certificate: use letters, digits, '-' and '.' only")]
+    #[error("certificate name {0}")]
     BadName(String),
     #[error("node name '{0}' is the same as '{1}' without regard to case: TLS could not tell them apart")]
     SameName(String, String),
+    #[error(
+        "{}: a wall CA is already here, and a new one would stop every certificate it signed from \
+         working: `--renew` issues the node and controller certificates again from it, `--force` \
+         replaces it (then copy every node's new files)", .0.display()
+    )]
+    CaExists(PathBuf),
+    #[error("{}: no wall CA to renew from (run keygen without --renew to make one)", .0.display())]
+    NoCa(PathBuf),
+    #[error("certificate validity: {0}")]
+    Validity(String),
+    #[error(
+        "{}: the private key is open to its group or to others (mode {mode:04o}): only its owner may \
+         read it, `chmod 600 {}`", path.display(), path.display()
+    )]
+    KeyOpen { path: PathBuf, mode: u32 },
+    #[error("{}: the private key does not belong to the certificate {}", key.display(), cert.display())]
+    KeyMismatch { cert: PathBuf, key: PathBuf },
 }
 
-fn io(path: &Path) -> impl FnOnce(std::io::Error) -> TlsError + '_ {
+pub(crate) fn io(path: &Path) -> impl FnOnce(std::io::Error) -> TlsError + '_ {
     move |source| TlsError::Io { path: path.to_owned(), source }
 }
 
-fn check_name(name: &str) -> Result<(), TlsError> {
-    let ok = !name.is_empty()
-        && name.len() <= 63
-        && name.chars().all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '.')
-        && !name.starts_with(['-', '.']);
-    if ok {
-        Ok(())
-    } else {
-        Err(TlsError::BadName(name.to_string()))
+/// A certificate name: a node's name or `controller`, by the config's rule
+/// ([`isowall_wall::names`]).
+pub(crate) fn check_name(name: &str) -> Result<(), TlsError> {
+    match isowall_wall::names::name_problem(name) {
+        None => Ok(()),
+        Some(problem) => Err(TlsError::BadName(problem)),
     }
 }
 
 /// Node names a wall may hold together: each a certificate name, none the same as another (or
 /// as `ca` or `controller`, whose files they would take) without regard to case.
-fn check_node_names(names: &[String]) -> Result<(), TlsError> {
+pub(crate) fn check_node_names(names: &[String]) -> Result<(), TlsError> {
     for (i, name) in names.iter().enumerate() {
         check_name(name)?;
         if let Some(r) = ["ca", CONTROLLER].into_iter().find(|r| r.eq_ignore_ascii_case(name)) {
@@ -73,7 +90,7 @@ fn check_node_names(names: &[String]) -> Result<(), TlsError> {
 }
 
 /// The subject names of `name`'s certificate: the controller's URI alone, or a node's DNS name.
-fn certificate_params(name: &str) -> Result<rcgen::CertificateParams, rcgen::Error> {
+pub(crate) fn certificate_params(name: &str) -> Result<rcgen::CertificateParams, rcgen::Error> {
     let mut params = rcgen::CertificateParams::default();
     params.subject_alt_names = if name == CONTROLLER {
         vec![rcgen::SanType::URI(CONTROLLER_URI.try_into()?)]
@@ -84,48 +101,14 @@ fn certificate_params(name: &str) -> Result<rcgen::CertificateParams, rcgen::Err
     Ok(params)
 }
 
-/// Writes a new wall CA and a certificate + key for each of `names` and for the controller into
-/// `dir` (created if needed). Existing files are overwritten; returns the files written.
-pub fn keygen(dir: &Path, wall: &str, names: &[String]) -> Result<Vec<PathBuf>, TlsError> {
-    use rcgen::{BasicConstraints, CertificateParams, DnType, IsCa, Issuer, KeyPair, KeyUsagePurpose};
-    check_node_names(names)?;
-    std::fs::create_dir_all(dir).map_err(io(dir))?;
-    let gen_err = |name: &str| {
-        let name = name.to_string();
-        move |e: rcgen::Error| TlsError::Generate { name, reason: e.to_string() }
-    };
-    let ca_key = KeyPair::generate().map_err(gen_err("ca"))?;
-    let mut ca_params = CertificateParams::new(Vec::<String>::new()).map_err(gen_err("ca"))?;
-    ca_params.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
-    ca_params.distinguished_name.push(DnType::CommonName, format!("Isowall wall CA: {wall}"));
-    ca_params.key_usages = vec![KeyUsagePurpose::KeyCertSign, KeyUsagePurpose::DigitalSignature];
-    let ca_cert = ca_params.self_signed(&ca_key).map_err(gen_err("ca"))?;
-    let mut written = Vec::new();
-    let mut write = |name: &str, text: String| -> Result<(), TlsError> {
-        let path = dir.join(name);
-        std::fs::write(&path, text).map_err(io(&path))?;
-        if name.ends_with(".key") {
-            // Private keys: readable by their owner only.
-            use std::os::unix::fs::PermissionsExt;
-            std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o600)).map_err(io(&path))?;
-        }
-        written.push(path);
-        Ok(())
-    };
-    write("ca.pem", ca_cert.pem())?;
-    write("ca.key", ca_key.serialize_pem())?;
-    let issuer = Issuer::new(ca_params, ca_key);
-    let mut all: Vec<&str> = names.iter().map(String::as_str).collect();
-    all.push(CONTROLLER);
-    for name in all {
-        check_name(name)?;
-        let key = KeyPair::generate().map_err(gen_err(name))?;
-        let params = certificate_params(name).map_err(gen_err(name))?;
-        let cert = params.signed_by(&key, &issuer).map_err(gen_err(name))?;
-        write(&format!("{name}.pem"), cert.pem())?;
-        write(&format!("{name}.key"), key.serialize_pem())?;
+/// Refuses a private key file that its group or others may read or write.
+pub(crate) fn key_mode_problem(path: &Path) -> Result<(), TlsError> {
+    use std::os::unix::fs::PermissionsExt;
+    let mode = std::fs::metadata(path).map_err(io(path))?.permissions().mode() & 0o7777;
+    if mode & 0o077 != 0 {
+        return Err(TlsError::KeyOpen { path: path.to_owned(), mode });
     }
-    Ok(written)
+    Ok(())
 }
 
 /// One party's credentials: the wall CA, its certificate chain and private key.
@@ -150,12 +133,14 @@ fn provider() -> Arc<rustls::crypto::CryptoProvider> {
 }
 
 impl Identity {
-    /// Loads `ca.pem`, `NAME.pem` and `NAME.key` from the certificate folder.
+    /// Loads `ca.pem`, `NAME.pem` and `NAME.key` from the certificate folder; the key only when
+    /// no one but its owner may read it.
     pub fn load(dir: &Path, name: &str) -> Result<Identity, TlsError> {
         check_name(name)?;
         let ca = read_cert(&dir.join("ca.pem"))?;
         let cert = read_cert(&dir.join(format!("{name}.pem")))?;
         let key_path = dir.join(format!("{name}.key"));
+        key_mode_problem(&key_path)?;
         let bytes = std::fs::read(&key_path).map_err(io(&key_path))?;
         let key = PrivateKeyDer::from_pem_slice(&bytes).map_err(|e| TlsError::Pem {
             path: key_path.clone(),
@@ -271,7 +256,7 @@ mod tests {
     #[test]
     fn the_controller_and_each_node_have_distinct_exact_identities() {
         let dir = tempfile::tempdir().unwrap();
-        keygen(dir.path(), "w", &["node0".into(), "Node-1".into()]).unwrap();
+        crate::keygen::keygen(dir.path(), "w", &["node0".into(), "Node-1".into()], crate::keygen::CaMode::New, 30).unwrap();
         assert_eq!(certificate_identity(&leaf(dir.path(), CONTROLLER)), Ok(PeerIdentity::Controller));
         assert_eq!(certificate_identity(&leaf(dir.path(), "node0")), Ok(PeerIdentity::Node("node0".into())));
         // Case is kept: `Node-1` is not `node-1`.
@@ -288,7 +273,7 @@ mod tests {
         for names in [vec!["Controller"], vec!["node0", "NODE0"], vec!["CA"], vec!["controller"]] {
             let dir = tempfile::tempdir().unwrap();
             let names: Vec<String> = names.into_iter().map(String::from).collect();
-            let e = keygen(dir.path(), "w", &names).unwrap_err();
+            let e = crate::keygen::keygen(dir.path(), "w", &names, crate::keygen::CaMode::New, 30).unwrap_err();
             assert!(matches!(e, TlsError::SameName(..)), "{names:?}: {e}");
             assert!(e.to_string().contains("without regard to case"), "{e}");
             assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0, "{names:?}: files written");

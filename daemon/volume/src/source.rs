@@ -1,7 +1,7 @@
 //! Where a volume comes from: `PATH` or `procedural:NAME[:N]`, as given on the command line and in
 //! wall configs.
 
-use crate::io::RawSpec;
+use crate::io::{RawSpec, VolumeLimit};
 use crate::procedural::Procedural;
 use crate::{Volume, VolumeError};
 use std::path::PathBuf;
@@ -47,11 +47,24 @@ impl VolumeSource {
         VolumeSource::Procedural { kind: Procedural::Engine, size: None }
     }
 
-    /// Loads or generates the volume.
+    /// Loads or generates the volume, within the default [`VolumeLimit`].
     pub fn load(&self, raw: Option<&RawSpec>) -> Result<Volume, VolumeError> {
+        self.load_within(raw, &VolumeLimit::default())
+    }
+
+    /// Loads or generates the volume if it fits `limit` (checked from a file's header, or from a
+    /// procedural volume's size, before anything is allocated).
+    pub fn load_within(&self, raw: Option<&RawSpec>, limit: &VolumeLimit) -> Result<Volume, VolumeError> {
         match self {
-            VolumeSource::File(p) => crate::io::load(p, raw),
-            VolumeSource::Procedural { kind, size } => Ok(kind.generate(*size)),
+            VolumeSource::File(p) => crate::io::load_within(p, raw, limit),
+            VolumeSource::Procedural { kind, size } => {
+                let [nx, ny, nz] = kind.dims(*size);
+                let voxels = (nx as u64) * (ny as u64) * (nz as u64);
+                limit
+                    .check(voxels, &format!("{nx}x{ny}x{nz}"))
+                    .map_err(|e| VolumeError::Source(format!("{self}: {e}")))?;
+                Ok(kind.generate(*size))
+            }
         }
     }
 

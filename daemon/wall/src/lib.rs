@@ -15,6 +15,8 @@
 //!   compositing of peers' pixels, its caps and deadline), [`adoption`] (which node renders each
 //!   brick when nodes die), [`object_machine`] (a node's object space: views, brick maps,
 //!   compositing and its messages).
+//!   compositing of peers' pixels), [`adoption`] (which node renders each brick when nodes die).
+//! - [`names`]: the one rule for node and tile names (a node's name is its certificate's name).
 //! - [`governor`]: the quality governor (frame times in, AO samples per frame out).
 
 pub mod adoption;
@@ -31,6 +33,7 @@ pub mod joystick;
 pub mod lowres;
 pub mod messages;
 pub mod object_machine;
+pub mod names;
 pub mod render_state;
 pub mod wire;
 

@@ -72,6 +72,19 @@ impl TileImage {
         }
         Ok(())
     }
+
+    /// The most bytes a [`Message::Snapshot`] of tiles with these names and sizes can take once
+    /// encoded ([`crate::codec`]: bincode's variable-length integers at their longest), for
+    /// checking that a wall's message limit lets a node send its snapshot.
+    pub fn snapshot_len_bound<'a>(tiles: impl IntoIterator<Item = (&'a str, u32, u32)>) -> u64 {
+        // Variant index (a u32) and tile count (a u64).
+        let mut bytes = 5 + 9;
+        for (name, width, height) in tiles {
+            // Name (length + bytes), width, height, frame id, pixels (length + bytes).
+            bytes += 9 + name.len() as u64 + 5 + 5 + 9 + 9 + u64::from(width) * u64::from(height) * 3;
+        }
+        bytes
+    }
 }
 
 /// Everything said on a wall connection.
@@ -271,6 +284,29 @@ mod tests {
         assert!(t.validate().is_ok());
         t.rgb8.pop();
         assert!(t.validate().unwrap_err().contains("17 bytes instead of 18"));
+    }
+
+    #[test]
+    fn a_snapshot_never_encodes_longer_than_its_bound() {
+        // Sizes and frame ids at varint boundaries, where each integer takes its most bytes.
+        for (w, h, id, name) in
+            [(1, 1, 0, "a"), (251, 3, 250, "t00"), (300, 200, u64::MAX, "x"), (16, 12, 1 << 40, "t")]
+        {
+            let tiles: Vec<TileImage> = (0..3)
+                .map(|i| TileImage {
+                    name: format!("{name}{i}"),
+                    width: w,
+                    height: h,
+                    frame_id: id,
+                    rgb8: vec![7; (w * h * 3) as usize],
+                })
+                .collect();
+            let bound =
+                TileImage::snapshot_len_bound(tiles.iter().map(|t| (t.name.as_str(), t.width, t.height)));
+            let len = crate::codec::encode(&Message::Snapshot { tiles }).unwrap().len() as u64;
+            assert!(len <= bound, "{w}x{h}: {len} > {bound}");
+            assert!(bound - len <= 3 * 46 + 14, "{w}x{h}: the bound {bound} is loose against {len}");
+        }
     }
 
     #[test]

@@ -119,6 +119,23 @@ impl std::ops::Sub for TrafficCount {
     }
 }
 
+/// The largest storage buffer a kernel can bind under `limits`, in bytes.
+pub fn storage_binding_limit(limits: &wgpu::Limits) -> u64 {
+    limits.max_storage_buffer_binding_size.min(limits.max_buffer_size)
+}
+
+/// The adapter [`GpuContext::new`] would open, by name, and its [`storage_binding_limit`]: asked
+/// without opening a device, so that a volume too large to bind is refused before it is read.
+pub fn adapter_storage_limit() -> Result<(String, u64), GpuError> {
+    let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+    let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+        power_preference: wgpu::PowerPreference::HighPerformance,
+        ..Default::default()
+    }))
+    .map_err(|e| GpuError::NoAdapter(e.to_string()))?;
+    Ok((adapter.get_info().name, storage_binding_limit(&adapter.limits())))
+}
+
 impl GpuContext {
     /// Opens the best Vulkan adapter (a real GPU before a software one) with its full limits.
     /// `WGPU_ADAPTER_NAME` and the other wgpu environment variables are honoured.
@@ -205,8 +222,7 @@ impl GpuContext {
 
     /// A storage buffer initialised with `contents`, refused with a clear error past the limits.
     fn storage_init(&self, name: &str, contents: &[u8]) -> Result<wgpu::Buffer, GpuError> {
-        let limits = self.device.limits();
-        let limit = limits.max_storage_buffer_binding_size.min(limits.max_buffer_size);
+        let limit = storage_binding_limit(&self.device.limits());
         if contents.len() as u64 > limit {
             return Err(GpuError::TooLarge { name: name.to_string(), bytes: contents.len() as u64, limit });
         }

@@ -22,7 +22,7 @@
 
 use super::{
     format_err, io_err, make_volume, open, read_data, read_full, read_voxels, DataSpec, Encoding, Files,
-    Layout, Scale, VoxelType,
+    Layout, Scale, VolumeLimit, VoxelType,
 };
 use crate::{Volume, VolumeError};
 use glam::DVec3;
@@ -33,14 +33,14 @@ use std::path::{Path, PathBuf};
 const HEADER_LEN: usize = 348;
 
 /// Reads the NIfTI-1 file (`.nii`, `.nii.gz`, or the `.hdr` of a pair) at `path`.
-pub(crate) fn read(path: &Path) -> Result<Volume, VolumeError> {
+pub(crate) fn read(path: &Path, limit: &VolumeLimit) -> Result<Volume, VolumeError> {
     let (mut r, file_len) = open(path)?;
     let gzipped = r.fill_buf().map_err(|e| io_err(path, e))?.starts_with(&[0x1f, 0x8b]);
     let files = Files::single(path);
     if gzipped {
         // The whole file is compressed: the header, any extensions, then the voxels.
         let mut r = BufReader::new(flate2::bufread::MultiGzDecoder::new(r));
-        let header = Header::read(path, &mut r, Encoding::Gzip)?;
+        let header = Header::read(path, &mut r, Encoding::Gzip, limit)?;
         if !header.single_file {
             return Err(format_err(
                 path,
@@ -52,7 +52,7 @@ pub(crate) fn read(path: &Path) -> Result<Volume, VolumeError> {
         return header.volume(path, data);
     }
 
-    let header = Header::read(path, &mut r, Encoding::Raw)?;
+    let header = Header::read(path, &mut r, Encoding::Raw, limit)?;
     let is_hdr = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("hdr"));
     let data = match (header.single_file, is_hdr) {
         (true, false) => {
@@ -104,7 +104,12 @@ struct Header {
 
 impl Header {
     /// Reads and checks the 348-byte header from `r` (data decoded from `enc`).
-    fn read(path: &Path, r: &mut dyn Read, enc: Encoding) -> Result<Header, VolumeError> {
+    fn read(
+        path: &Path,
+        r: &mut dyn Read,
+        enc: Encoding,
+        limit: &VolumeLimit,
+    ) -> Result<Header, VolumeError> {
         let files = Files::single(path);
         let mut h = [0u8; HEADER_LEN];
         let n = read_full(r, &mut h).map_err(|e| files.read_error(enc, e))?;
@@ -206,7 +211,7 @@ impl Header {
             );
         }
         let layout = Layout { dims, voxel, big_endian: big };
-        layout.voxel_count().map_err(|e| err(format!("dim: {e}")))?;
+        layout.check_within(limit).map_err(|e| err(format!("dim: {e}")))?;
 
         let mut spacing = DVec3::ZERO;
         for a in 0..3 {
