@@ -84,6 +84,12 @@ struct Node {
     load_rx: Option<UnboundedReceiver<LoadDone>>,
 }
 
+/// The tiles on show (the last presented frame), each downscaled by `divisor` (1: as shown).
+fn shown_tiles(node: &Node, divisor: u32) -> Vec<TileImage> {
+    let Some((id, tiles)) = &node.shown else { return Vec::new() };
+    tiles.iter().map(|t| TileImage::downscale(&t.name, t.width, t.height, *id, &t.rgb8, divisor)).collect()
+}
+
 pub fn run(a: &RunArgs) -> Result<()> {
     let mut config = WallConfig::load(&a.config).map_err(|e| anyhow!("{e}"))?;
     let node = config
@@ -508,20 +514,11 @@ async fn execute(
                 queue.extend(machine.presented(at, frame_id));
             }
             NodeOutput::SnapshotWanted => {
-                let tiles = match &node.shown {
-                    Some((id, tiles)) => tiles
-                        .iter()
-                        .map(|t| TileImage {
-                            name: t.name.clone(),
-                            width: t.width,
-                            height: t.height,
-                            frame_id: *id,
-                            rgb8: t.rgb8.clone(),
-                        })
-                        .collect(),
-                    None => Vec::new(),
-                };
-                sender.send(&Message::Snapshot { tiles }).await?;
+                sender.send(&Message::Snapshot { tiles: shown_tiles(node, 1) }).await?;
+            }
+            // A live thumbnail: downscaled here, so the link carries 1/divisor^2 of the pixels.
+            NodeOutput::ThumbnailWanted { divisor } => {
+                sender.send(&Message::Snapshot { tiles: shown_tiles(node, divisor) }).await?;
             }
             // object space: a brick map, an adoption (`object.rs`).
             NodeOutput::Bricks { from_frame, holders } => match node.object.as_mut() {
