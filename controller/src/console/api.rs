@@ -20,6 +20,7 @@ use super::status::Status;
 use super::Access;
 use axum::body::Body;
 use axum::extract::rejection::{JsonRejection, QueryRejection};
+use axum::extract::ws::rejection::WebSocketUpgradeRejection;
 use axum::extract::ws::{Message, WebSocket, WebSocketUpgrade};
 use axum::extract::{Query, Request, State};
 use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
@@ -324,7 +325,7 @@ struct LiveQuery {
 async fn live(
     State(shared): State<Arc<Shared>>,
     q: Result<Query<LiveQuery>, QueryRejection>,
-    ws: WebSocketUpgrade,
+    ws: Result<WebSocketUpgrade, WebSocketUpgradeRejection>,
 ) -> Result<Response, ApiError> {
     let Query(q) = q.map_err(bad_query)?;
     let hz = q.hz.unwrap_or(LIVE_DEFAULT_HZ);
@@ -335,6 +336,8 @@ async fn live(
             message: format!("hz {hz} is not in 0.1..={LIVE_MAX_HZ}"),
         });
     }
+    let ws =
+        ws.map_err(|e| ApiError::new(e.status(), format!("/api/live is a WebSocket: {}", e.body_text())))?;
     Ok(ws.max_message_size(4096).on_upgrade(move |socket| push_status(socket, shared, hz)))
 }
 
