@@ -119,8 +119,8 @@ function showControls(s) {
   if (!touched("target-frame-ms") && document.activeElement !== $("target-frame-ms")) {
     $("target-frame-ms").value = r.target_frame_ms === null ? "" : r.target_frame_ms;
   }
-  $("orbit").textContent = s.orbit.playing ? "⏸ orbit" : "▶ orbit";
-  $("demo").textContent = s.demo.playing ? "⏹ demo path" : "▶ demo path";
+  $("orbit").textContent = s.orbit.playing ? "pause orbit" : "play orbit";
+  $("demo").textContent = s.demo.playing ? "stop demo path" : "start demo path";
   $("demo").disabled = !s.demo.path;
   $("demo").title = s.demo.path ? s.demo.path : "start the console with --demo-path FILE";
   $("download").href = withToken("/api/snapshot.png?download=1");
