@@ -91,6 +91,10 @@ pub struct Wall {
     /// Swaps released since the wall came up (all of them, unlike `releases`).
     pub released: u64,
     snapshots: BTreeMap<String, Vec<TileImage>>,
+    /// A thumbnail asked for and not yet complete: the nodes asked, and when to give up on them.
+    thumbnail: Option<(Vec<String>, Instant)>,
+    /// Bytes of tile images the nodes sent in snapshots and thumbnails, since the wall came up.
+    pub snapshot_bytes: u64,
     /// Nodes with a reconnection attempt under way.
     reconnecting: std::collections::HashSet<String>,
     /// When each down node was last tried.
@@ -144,6 +148,8 @@ impl Wall {
             releases: Vec::new(),
             released: 0,
             snapshots: BTreeMap::new(),
+            thumbnail: None,
+            snapshot_bytes: 0,
             reconnecting: Default::default(),
             last_try: HashMap::new(),
             bricks: None,
@@ -425,6 +431,7 @@ impl Wall {
                     trim_history(&mut self.finished);
                 }
                 ControllerOutput::Snapshot { node, tiles } => {
+                    self.snapshot_bytes += tiles.iter().map(|t| t.rgb8.len() as u64).sum::<u64>();
                     self.snapshots.insert(node, tiles);
                 }
                 ControllerOutput::PixelsMissing { node, frame_id, peers } => {
@@ -569,8 +576,53 @@ impl Wall {
         }
     }
 
-    /// Gathers every node's last presented tiles.
+    /// object space: the bricks `node` renders from the next frame on (empty in screen space).
+    pub fn bricks_of(&self, node: &str) -> Vec<usize> {
+        self.bricks.as_ref().map(|a| a.map(self.next_frame).bricks_of(node)).unwrap_or_default()
+    }
+
+    /// Whether `node` is connected (it takes part in the next frame).
+    pub fn is_up(&self, node: &str) -> bool {
+        self.senders.contains_key(node)
+    }
+
+    /// Asks every up node for its last presented tiles downscaled by `divisor`, without waiting:
+    /// the answers arrive while frames go on, and [`Wall::take_thumbnail`] hands them over once
+    /// every node asked has answered or is down (or after `give_up`). Nothing is asked while a
+    /// thumbnail is still pending.
+    pub async fn request_thumbnail(&mut self, divisor: u32, give_up: Duration) {
+        if self.thumbnail.is_some() {
+            return;
+        }
+        self.snapshots.clear();
+        let now = self.now();
+        let out = self.machine.request_thumbnail(now, divisor);
+        let asked: Vec<String> = self.senders.keys().cloned().collect();
+        self.thumbnail = Some((asked, Instant::now() + give_up));
+        self.execute(out).await;
+    }
+
+    /// Whether a thumbnail is asked for and not yet taken.
+    pub fn thumbnail_pending(&self) -> bool {
+        self.thumbnail.is_some()
+    }
+
+    /// The tiles of the pending thumbnail, once complete (see [`Wall::request_thumbnail`]).
+    pub fn take_thumbnail(&mut self) -> Option<BTreeMap<String, Vec<TileImage>>> {
+        let (asked, give_up) = self.thumbnail.as_ref()?;
+        let waiting = asked.iter().any(|n| !self.snapshots.contains_key(n) && self.senders.contains_key(n));
+        if waiting && Instant::now() < *give_up {
+            return None;
+        }
+        self.thumbnail = None;
+        Some(std::mem::take(&mut self.snapshots))
+    }
+
+    /// Gathers every node's last presented tiles (a pending thumbnail is finished first).
     pub async fn snapshot(&mut self) -> BTreeMap<String, Vec<TileImage>> {
+        while self.thumbnail.is_some() && self.take_thumbnail().is_none() {
+            self.step().await;
+        }
         self.snapshots.clear();
         let now = self.now();
         let out = self.machine.request_snapshot(now);
@@ -606,12 +658,32 @@ impl Wall {
 /// Places every tile's image by the wall geometry into one RGB image; bezels and gaps dark, tiles
 /// with no image (a node down) a grey placeholder.
 pub fn compose(config: &WallConfig, tiles: &BTreeMap<String, Vec<TileImage>>) -> (u32, u32, Vec<u8>) {
+    compose_scaled(config, tiles, 1)
+}
+
+/// [`compose`] of tiles downscaled by `divisor` (`TileImage::downscaled`): the wall image
+/// `ceil(w / divisor)` x `ceil(h / divisor)`, tile (x, y) placed at (x / divisor, y / divisor).
+pub fn compose_scaled(
+    config: &WallConfig,
+    tiles: &BTreeMap<String, Vec<TileImage>>,
+    divisor: u32,
+) -> (u32, u32, Vec<u8>) {
+    let d = divisor.max(1);
     let (w, h) = config.wall_size();
+    let (w, h) = (w.div_ceil(d), h.div_ceil(d));
     let mut img = vec![12u8; w as usize * h as usize * 3];
     let by_name: HashMap<&str, &TileImage> = tiles.values().flatten().map(|t| (t.name.as_str(), t)).collect();
-    for tile in &config.tiles {
-        let image =
-            by_name.get(tile.name.as_str()).filter(|t| t.width == tile.width && t.height == tile.height);
+    for full in &config.tiles {
+        let tile = isowall_wall::config::TileConfig {
+            x: full.x / d,
+            y: full.y / d,
+            width: full.width.div_ceil(d).min(w - full.x / d),
+            height: full.height.div_ceil(d).min(h - full.y / d),
+            ..full.clone()
+        };
+        let image = by_name
+            .get(tile.name.as_str())
+            .filter(|t| t.width == full.width.div_ceil(d) && t.height == full.height.div_ceil(d));
         for y in 0..tile.height {
             let row = (tile.y + y) as usize * w as usize;
             for x in 0..tile.width {

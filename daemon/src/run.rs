@@ -86,6 +86,24 @@ struct Node {
     load_rx: Option<UnboundedReceiver<LoadDone>>,
 }
 
+/// The tiles on show (the last presented frame), each downscaled by `divisor` (1: as shown).
+async fn shown_tiles(node: &Node, divisor: u32) -> Vec<TileImage> {
+    let image = |t: &TileResult, id: u64| TileImage::downscale(&t.name, t.width, t.height, id, &t.rgb8, divisor);
+    match &node.shown {
+        // object space: the composited tiles, on the CPU.
+        Some((id, tiles)) if node.object.is_some() => tiles.iter().map(|t| image(t, *id)).collect(),
+        // screen space: the images stayed on the GPU; read them now.
+        Some((id, _)) => match node.renderer.snapshot(*id).await {
+            Ok(tiles) => tiles.iter().map(|t| image(t, *id)).collect(),
+            Err(e) => {
+                tracing::warn!(frame_id = id, "snapshot: {e:#}");
+                Vec::new()
+            }
+        },
+        None => Vec::new(),
+    }
+}
+
 pub fn run(a: &RunArgs) -> Result<()> {
     let mut config = WallConfig::load(&a.config).map_err(|e| anyhow!("{e}"))?;
     let node = config
@@ -615,29 +633,11 @@ async fn execute(
                 queue.extend(machine.presented(at, frame_id));
             }
             NodeOutput::SnapshotWanted => {
-                let image = |t: &TileResult, id: u64| TileImage {
-                    name: t.name.clone(),
-                    width: t.width,
-                    height: t.height,
-                    frame_id: id,
-                    rgb8: t.rgb8.clone(),
-                };
-                let tiles = match &node.shown {
-                    // object space: the composited tiles, on the CPU.
-                    Some((id, tiles)) if node.object.is_some() => {
-                        tiles.iter().map(|t| image(t, *id)).collect()
-                    }
-                    // screen space: the images stayed on the GPU; read them now.
-                    Some((id, _)) => match node.renderer.snapshot(*id).await {
-                        Ok(tiles) => tiles.iter().map(|t| image(t, *id)).collect(),
-                        Err(e) => {
-                            tracing::warn!(frame_id = id, "snapshot: {e:#}");
-                            Vec::new()
-                        }
-                    },
-                    None => Vec::new(),
-                };
-                sender.send(&Message::Snapshot { tiles }).await?;
+                sender.send(&Message::Snapshot { tiles: shown_tiles(node, 1).await }).await?;
+            }
+            // A live thumbnail: downscaled here, so the link carries 1/divisor^2 of the pixels.
+            NodeOutput::ThumbnailWanted { divisor } => {
+                sender.send(&Message::Snapshot { tiles: shown_tiles(node, divisor).await }).await?;
             }
             // object space: a brick map, an adoption (`object.rs`).
             NodeOutput::Bricks { from_frame, holders } => match node.object.as_mut() {

@@ -585,6 +585,24 @@ impl FrameController {
         out
     }
 
+    /// [`FrameController::request_snapshot`] with every tile downscaled by `divisor` at the
+    /// nodes (1..=[`crate::messages::MAX_THUMBNAIL_DIVISOR`]): a live thumbnail. A node that still
+    /// owes the answer to an earlier request is not asked again (that answer will do), so a slow
+    /// node's late answer is never one too many.
+    pub fn request_thumbnail(&mut self, _now: Duration, divisor: u32) -> Vec<ControllerOutput> {
+        let mut out = Vec::new();
+        for (name, st) in &mut self.nodes {
+            if st.up && !st.snapshot_wanted {
+                st.snapshot_wanted = true;
+                out.push(ControllerOutput::Send {
+                    node: name.clone(),
+                    message: Message::ThumbnailRequest { divisor },
+                });
+            }
+        }
+        out
+    }
+
     // ---- messages ----
 
     /// A message from `node` (whose Hello was handled by the caller before `node_up`). On
@@ -610,6 +628,7 @@ impl FrameController {
             | Message::Swap { .. }
             | Message::Ping { .. }
             | Message::SnapshotRequest
+            | Message::ThumbnailRequest { .. }
             | Message::Bricks { .. }
             | Message::LoadBrick { .. } => Err(err("only the controller sends this".into())),
             Message::BrickLoaded { brick, load_us, resident_bytes } => {
@@ -839,6 +858,25 @@ mod tests {
             assert_eq!(sends(&out), vec![(n.to_string(), "Ping")]);
         }
         c
+    }
+
+    #[test]
+    fn a_thumbnail_asks_each_node_once_until_it_answers() {
+        let mut c = controller(&["a", "b"]);
+        let out = c.request_thumbnail(ms(1), 8);
+        assert_eq!(sends(&out), vec![("a".into(), "ThumbnailRequest"), ("b".into(), "ThumbnailRequest")]);
+        assert!(matches!(
+            &out[0],
+            ControllerOutput::Send { message: Message::ThumbnailRequest { divisor: 8 }, .. }
+        ));
+        let tile = TileImage { name: "ta".into(), width: 2, height: 1, frame_id: 0, rgb8: vec![0; 6] };
+        let out = c.handle(ms(2), "a", Message::Snapshot { tiles: vec![tile.clone()] }).unwrap();
+        assert_eq!(out, vec![ControllerOutput::Snapshot { node: "a".into(), tiles: vec![tile.clone()] }]);
+        // b still owes its answer: only a is asked again, and b's late answer is no protocol error.
+        let out = c.request_thumbnail(ms(3), 8);
+        assert_eq!(sends(&out), vec![("a".into(), "ThumbnailRequest")]);
+        assert!(c.handle(ms(4), "b", Message::Snapshot { tiles: vec![] }).is_ok());
+        assert!(c.handle(ms(5), "b", Message::Snapshot { tiles: vec![] }).is_err(), "one answer per request");
     }
 
     #[test]

@@ -342,6 +342,7 @@ mod tests {
             Message::Ping { id: 7, t0_us: i64::MIN },
             Message::Pong { id: 7, t0_us: 1, t1_us: i64::MAX },
             Message::SnapshotRequest,
+            Message::ThumbnailRequest { divisor: 8 },
             Message::Snapshot {
                 tiles: vec![
                     TileImage {

@@ -1050,35 +1050,45 @@ fn validate_volume(doc: &mut Doc<'_>, v: &VolumeConfig) {
 }
 
 fn validate_render(doc: &mut Doc<'_>, r: &RenderConfig) {
-    let at = |f| [Seg::K("render"), Seg::K(f)];
+    for (field, message) in render_problems(r) {
+        doc.at(&[Seg::K("render"), Seg::K(field)], message);
+    }
+}
+
+/// The problems of a `[render]` table, each with the field it is about: the rules of the config
+/// file, also applied to render settings changed while the wall runs (the operator console).
+pub fn render_problems(r: &RenderConfig) -> Vec<(&'static str, String)> {
+    let mut problems = Vec::new();
     if let AoRadius::World(radius) = r.ao_radius {
         if !(radius.is_finite() && radius > 0.0) {
-            doc.at(&at("ao_radius"), format!("render: `ao_radius` {radius} must be > 0 (or \"unbounded\")"));
+            problems
+                .push(("ao_radius", format!("render: `ao_radius` {radius} must be > 0 (or \"unbounded\")")));
         }
     }
     if r.ao_samples > crate::render_state::MAX_AO_SAMPLES {
-        doc.at(
-            &at("ao_samples"),
+        problems.push((
+            "ao_samples",
             format!(
                 "render: `ao_samples` {} is more than {} per frame (accumulate frames instead)",
                 r.ao_samples,
                 crate::render_state::MAX_AO_SAMPLES
             ),
-        );
+        ));
     }
     if let Some(x) = r.exposure {
         if !(x.is_finite() && x >= 0.0) {
-            doc.at(&at("exposure"), format!("render: `exposure` {x} must be a finite number >= 0"));
+            problems.push(("exposure", format!("render: `exposure` {x} must be a finite number >= 0")));
         }
     }
     if let Some(t) = r.target_frame_ms {
         if let Err(e) = crate::governor::Governor::new(t, 1, 1, 1) {
-            doc.at(&at("target_frame_ms"), format!("render: `target_frame_ms`: {e}"));
+            problems.push(("target_frame_ms", format!("render: `target_frame_ms`: {e}")));
         }
     }
     if r.env.trim().is_empty() {
-        doc.at(&at("env"), "render: `env` is empty (sky, FILE.hdr or DIR)");
+        problems.push(("env", "render: `env` is empty (sky, FILE.hdr or DIR)".to_string()));
     }
+    problems
 }
 
 fn validate_tiles(doc: &mut Doc<'_>, tiles: &Parsed<TileConfig>) {

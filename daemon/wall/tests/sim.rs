@@ -334,7 +334,7 @@ impl Sim {
                     };
                     self.schedule(at, Ev::Shown { node: i, conn, frame_id });
                 }
-                NodeOutput::SnapshotWanted => {
+                NodeOutput::SnapshotWanted | NodeOutput::ThumbnailWanted { .. } => {
                     let tiles = self.nodes[i]
                         .machine
                         .tiles()
