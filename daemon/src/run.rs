@@ -88,7 +88,8 @@ struct Node {
 
 /// The tiles on show (the last presented frame), each downscaled by `divisor` (1: as shown).
 async fn shown_tiles(node: &Node, divisor: u32) -> Vec<TileImage> {
-    let image = |t: &TileResult, id: u64| TileImage::downscale(&t.name, t.width, t.height, id, &t.rgb8, divisor);
+    let image =
+        |t: &TileResult, id: u64| TileImage::downscale(&t.name, t.width, t.height, id, &t.rgb8, divisor);
     match &node.shown {
         // object space: the composited tiles, on the CPU.
         Some((id, tiles)) if node.object.is_some() => tiles.iter().map(|t| image(t, *id)).collect(),
@@ -314,7 +315,7 @@ impl LiveConnections {
 async fn admit(
     incoming: quinn::Incoming,
     session: tokio::sync::mpsc::Sender<Greeted>,
-    inbox: Option<Inbox>,
+    inbox: Option<PixelInbox>,
     live: LiveConnections,
     limit: usize,
 ) {

@@ -371,6 +371,9 @@ async fn silent_node(identity: Identity, addr: SocketAddr, stop: Arc<AtomicBool>
                             Ok(())
                         }
                         NodeOutput::SnapshotWanted => sender.send(&Message::Snapshot { tiles: vec![] }).await,
+                        NodeOutput::ThumbnailWanted { .. } => {
+                            sender.send(&Message::Snapshot { tiles: vec![] }).await
+                        }
                         NodeOutput::LoadBrick { brick } => {
                             let reason = "a silent test peer".to_string();
                             sender.send(&Message::BrickFailed { brick, reason }).await

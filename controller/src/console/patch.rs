@@ -140,6 +140,7 @@ impl Controls {
             ao_samples: s.ao.samples,
             ao_radius: s.ao.radius,
             ao_method: s.ao.method,
+            ao_sequence: s.ao.sequence,
             ibl: s.ao.ibl,
             env: self.env.clone(),
             exposure: Some(s.exposure),

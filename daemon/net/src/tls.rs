@@ -256,7 +256,14 @@ mod tests {
     #[test]
     fn the_controller_and_each_node_have_distinct_exact_identities() {
         let dir = tempfile::tempdir().unwrap();
-        crate::keygen::keygen(dir.path(), "w", &["node0".into(), "Node-1".into()], crate::keygen::CaMode::New, 30).unwrap();
+        crate::keygen::keygen(
+            dir.path(),
+            "w",
+            &["node0".into(), "Node-1".into()],
+            crate::keygen::CaMode::New,
+            30,
+        )
+        .unwrap();
         assert_eq!(certificate_identity(&leaf(dir.path(), CONTROLLER)), Ok(PeerIdentity::Controller));
         assert_eq!(certificate_identity(&leaf(dir.path(), "node0")), Ok(PeerIdentity::Node("node0".into())));
         // Case is kept: `Node-1` is not `node-1`.
@@ -273,7 +280,8 @@ mod tests {
         for names in [vec!["Controller"], vec!["node0", "NODE0"], vec!["CA"], vec!["controller"]] {
             let dir = tempfile::tempdir().unwrap();
             let names: Vec<String> = names.into_iter().map(String::from).collect();
-            let e = crate::keygen::keygen(dir.path(), "w", &names, crate::keygen::CaMode::New, 30).unwrap_err();
+            let e =
+                crate::keygen::keygen(dir.path(), "w", &names, crate::keygen::CaMode::New, 30).unwrap_err();
             assert!(matches!(e, TlsError::SameName(..)), "{names:?}: {e}");
             assert!(e.to_string().contains("without regard to case"), "{e}");
             assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0, "{names:?}: files written");

@@ -32,8 +32,8 @@ pub mod governor;
 pub mod joystick;
 pub mod lowres;
 pub mod messages;
-pub mod object_machine;
 pub mod names;
+pub mod object_machine;
 pub mod render_state;
 pub mod wire;
 
