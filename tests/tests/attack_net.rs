@@ -111,6 +111,12 @@ fn forge(keys: &Path, wall: &str, dns: &str, out: &Path, file_name: &str) {
     let cert = params.signed_by(&key, &issuer).unwrap();
     std::fs::write(out.join(format!("{file_name}.pem")), cert.pem()).unwrap();
     std::fs::write(out.join(format!("{file_name}.key")), key.serialize_pem()).unwrap();
+    // Private keys are loaded only when no one but their owner may read them.
+    {
+        use std::os::unix::fs::PermissionsExt;
+        let p = out.join(format!("{file_name}.key"));
+        std::fs::set_permissions(p, std::fs::Permissions::from_mode(0o600)).unwrap();
+    }
 }
 
 /// The application close reason of `conn` once the daemon closes it, or how it ended otherwise.

@@ -289,6 +289,8 @@ fn bad_json(e: JsonRejection) -> ApiError {
     let status = match e.status() {
         StatusCode::UNSUPPORTED_MEDIA_TYPE => StatusCode::UNSUPPORTED_MEDIA_TYPE,
         StatusCode::PAYLOAD_TOO_LARGE => StatusCode::PAYLOAD_TOO_LARGE,
+        // Well-formed JSON that does not fit (an unknown field, a wrong type or variant).
+        StatusCode::UNPROCESSABLE_ENTITY => StatusCode::UNPROCESSABLE_ENTITY,
         _ => StatusCode::BAD_REQUEST,
     };
     ApiError::new(status, e.body_text())
