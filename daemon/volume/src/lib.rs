@@ -144,10 +144,10 @@ impl Volume {
         p.cmpge(lo).all() && p.cmple(hi).all()
     }
 
-    /// The trilinear interpolant at continuous voxel coordinates `u`, clamped to the box.
-    /// An axis with a single sample is constant along that axis.
+    /// The cell that holds continuous voxel coordinates `u` (clamped to the box): its lowest
+    /// corner and the fraction along each axis; an axis with a single sample has cell 0, fraction 0.
     #[inline]
-    pub fn trilinear_voxel(&self, u: DVec3) -> f64 {
+    fn cell_of(&self, u: DVec3) -> ([usize; 3], [f64; 3]) {
         let mut i0 = [0usize; 3];
         let mut fr = [0f64; 3];
         for a in 0..3 {
@@ -160,6 +160,14 @@ impl Volume {
             i0[a] = i;
             fr[a] = x - i as f64;
         }
+        (i0, fr)
+    }
+
+    /// The trilinear interpolant at continuous voxel coordinates `u`, clamped to the box.
+    /// An axis with a single sample is constant along that axis.
+    #[inline]
+    pub fn trilinear_voxel(&self, u: DVec3) -> f64 {
+        let (i0, fr) = self.cell_of(u);
         let step = |a: usize| usize::from(self.dims[a] > 1);
         let (i, j, k) = (i0[0], i0[1], i0[2]);
         let (di, dj, dk) = (step(0), step(1), step(2));
@@ -197,18 +205,7 @@ impl Volume {
     /// `cell_gradient` in shaders/volume.wgsl.
     pub fn cell_gradient(&self, p: DVec3) -> DVec3 {
         let u = self.to_voxel(p);
-        let mut i0 = [0usize; 3];
-        let mut fr = [0f64; 3];
-        for a in 0..3 {
-            let n = self.dims[a];
-            if n == 1 {
-                continue;
-            }
-            let x = u[a].clamp(0.0, (n - 1) as f64);
-            let i = (x.floor() as usize).min(n - 2);
-            i0[a] = i;
-            fr[a] = x - i as f64;
-        }
+        let (i0, fr) = self.cell_of(u);
         let step = |a: usize| usize::from(self.dims[a] > 1);
         let (d, (i, j, k)) = ([step(0), step(1), step(2)], (i0[0], i0[1], i0[2]));
         // Corner c[dx + 2 dy + 4 dz].
