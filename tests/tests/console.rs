@@ -191,8 +191,6 @@ fn a_console_off_loopback_needs_a_token() {
 }
 
 #[test]
-#[ignore = "its refusals pass, but `?width=16` on the 32x24 test wall returns a 12x9 thumbnail \
-            since tiles are read back from the GPU: the thumbnail's size must be traced; run with --ignored"]
 fn the_api_refuses_missing_tokens_and_bad_input_and_changes_nothing() {
     let dir = tempfile::tempdir().unwrap();
     let config = wall(dir.path(), 1, (32, 24), 20000);
@@ -253,15 +251,24 @@ fn the_api_refuses_missing_tokens_and_bad_input_and_changes_nothing() {
         assert!(Instant::now() < give_up, "the change never showed in the status");
         std::thread::sleep(Duration::from_millis(100));
     }
-    let r = con.get("/api/snapshot.png?width=16");
-    assert_eq!(r.status, 200);
-    assert_eq!(r.header("content-type"), Some("image/png"));
-    let img = image::load_from_memory(&r.body).unwrap();
-    assert_eq!((img.width(), img.height()), (16, 12), "32x24 over 2");
-    assert!(r.header("x-isowall-frame").is_some() && r.header("x-isowall-frame-age-ms").is_some());
+    // The wall is its 32x24 tile and the tile's 2-pixel bezels on the right and at the bottom:
+    // 34x26. A thumbnail is the wall over the smallest divisor whose width fits.
+    for (width, size, why) in [(17, (17, 13), "34x26 over 2"), (16, (12, 9), "34 / 2 > 16: over 3")] {
+        let r = con.get(&format!("/api/snapshot.png?width={width}"));
+        assert_eq!(r.status, 200);
+        assert_eq!(r.header("content-type"), Some("image/png"));
+        let img = image::load_from_memory(&r.body).unwrap();
+        assert_eq!((img.width(), img.height()), size, "?width={width}: {why}");
+        // The tile's own pixels, not the grey placeholder of a tile that did not fit.
+        let rgb = img.to_rgb8();
+        let placeholder = rgb.pixels().filter(|p| p.0 == [96, 96, 96] || p.0 == [40, 40, 40]).count();
+        assert!(placeholder < rgb.pixels().len() / 4, "?width={width}: {placeholder} placeholder pixels");
+        assert_eq!(r.header("x-isowall-size"), Some(format!("{}x{}", size.0, size.1).as_str()));
+        assert!(r.header("x-isowall-frame").is_some() && r.header("x-isowall-frame-age-ms").is_some());
+    }
     let full = con.get("/api/snapshot.png?download=1");
     let img = image::load_from_memory(&full.body).unwrap();
-    assert_eq!((img.width(), img.height()), (32, 24));
+    assert_eq!((img.width(), img.height()), (34, 26), "the whole wall, bezels included");
     assert!(full.header("content-disposition").is_some_and(|d| d.contains("attachment")));
 }
 

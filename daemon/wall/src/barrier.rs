@@ -143,7 +143,9 @@ struct NodeState {
     last_ready: Option<u64>,
     /// Frames it was told to swap and has not reported presented.
     swapped: VecDeque<u64>,
-    snapshot_wanted: bool,
+    /// The downscale divisors of the snapshots it was asked for and owes, oldest first (1: a
+    /// full snapshot); it answers them in order.
+    snapshots_owed: VecDeque<u32>,
     counters: NodeCounters,
     /// object space: the peers whose pixels its last Composited went without.
     missing: Vec<String>,
@@ -162,7 +164,7 @@ impl NodeState {
         self.last_sent = None;
         self.last_ready = None;
         self.swapped.clear();
-        self.snapshot_wanted = false;
+        self.snapshots_owed.clear();
         self.missing.clear();
         self.waiting_since = None;
     }
@@ -577,8 +579,8 @@ impl FrameController {
     pub fn request_snapshot(&mut self, _now: Duration) -> Vec<ControllerOutput> {
         let mut out = Vec::new();
         for (name, st) in &mut self.nodes {
-            if st.up {
-                st.snapshot_wanted = true;
+            if st.up && !st.snapshots_owed.contains(&1) {
+                st.snapshots_owed.push_back(1);
                 out.push(ControllerOutput::Send { node: name.clone(), message: Message::SnapshotRequest });
             }
         }
@@ -587,13 +589,14 @@ impl FrameController {
 
     /// [`FrameController::request_snapshot`] with every tile downscaled by `divisor` at the
     /// nodes (1..=[`crate::messages::MAX_THUMBNAIL_DIVISOR`]): a live thumbnail. A node that still
-    /// owes the answer to an earlier request is not asked again (that answer will do), so a slow
-    /// node's late answer is never one too many.
+    /// owes the answer to an earlier request at the same divisor is not asked again (that answer
+    /// will do), so a slow node's late answer is never one too many. Each answer is checked
+    /// against the divisor of the request it answers (a node answers in order).
     pub fn request_thumbnail(&mut self, _now: Duration, divisor: u32) -> Vec<ControllerOutput> {
         let mut out = Vec::new();
         for (name, st) in &mut self.nodes {
-            if st.up && !st.snapshot_wanted {
-                st.snapshot_wanted = true;
+            if st.up && !st.snapshots_owed.contains(&divisor) {
+                st.snapshots_owed.push_back(divisor);
                 out.push(ControllerOutput::Send {
                     node: name.clone(),
                     message: Message::ThumbnailRequest { divisor },
@@ -651,20 +654,24 @@ impl FrameController {
             Message::Pong { id, t0_us, t1_us } => self.handle_pong(now, node, id, t0_us, t1_us),
             Message::Snapshot { tiles } => {
                 let st = self.nodes.get_mut(node).expect("checked");
-                if !std::mem::take(&mut st.snapshot_wanted) {
+                let Some(divisor) = st.snapshots_owed.pop_front() else {
                     return Err(err("a Snapshot nobody asked for".into()));
-                }
+                };
                 for (i, t) in tiles.iter().enumerate() {
                     t.validate().map_err(err)?;
                     if tiles[..i].iter().any(|u| u.name == t.name) {
                         return Err(err(format!("tile `{}` twice in one Snapshot", printable(&t.name))));
                     }
+                    // A thumbnail's tiles are its own over the divisor asked for.
                     let shown = st.tiles.as_ref().map(|own| {
-                        own.iter().any(|(name, w, h)| *name == t.name && (*w, *h) == (t.width, t.height))
+                        own.iter().any(|(name, w, h)| {
+                            *name == t.name
+                                && (w.div_ceil(divisor), h.div_ceil(divisor)) == (t.width, t.height)
+                        })
                     });
                     if shown == Some(false) {
                         return Err(err(format!(
-                            "a {}x{} tile `{}`, which is not one of its tiles",
+                            "a {}x{} tile `{}`, which is not one of its tiles over {divisor}",
                             t.width,
                             t.height,
                             printable(&t.name)
@@ -877,6 +884,31 @@ mod tests {
         assert_eq!(sends(&out), vec![("a".into(), "ThumbnailRequest")]);
         assert!(c.handle(ms(4), "b", Message::Snapshot { tiles: vec![] }).is_ok());
         assert!(c.handle(ms(5), "b", Message::Snapshot { tiles: vec![] }).is_err(), "one answer per request");
+    }
+
+    #[test]
+    fn a_thumbnails_tiles_are_the_nodes_own_over_the_divisor_and_answers_come_in_order() {
+        let mut c = controller(&["a"]);
+        c.set_node_tiles("a", vec![("ta".into(), 5, 3)]);
+        let tile = |w: u32, h: u32| TileImage {
+            name: "ta".into(),
+            width: w,
+            height: h,
+            frame_id: 0,
+            rgb8: vec![0; (w * h * 3) as usize],
+        };
+        // 5x3 over 2 is 3x2; the full tile answers a thumbnail wrongly, and the reverse.
+        c.request_thumbnail(ms(1), 2);
+        let e = c.handle(ms(2), "a", Message::Snapshot { tiles: vec![tile(5, 3)] }).unwrap_err();
+        assert!(e.to_string().contains("not one of its tiles over 2"), "{e}");
+        c.request_snapshot(ms(3));
+        assert!(c.handle(ms(4), "a", Message::Snapshot { tiles: vec![tile(3, 2)] }).is_err());
+        // A thumbnail, then a full snapshot before the first answer: each answer in its turn.
+        let asked = [c.request_thumbnail(ms(5), 2), c.request_snapshot(ms(6))];
+        assert_eq!(asked.iter().map(|o| sends(o).len()).sum::<usize>(), 2);
+        assert!(c.handle(ms(7), "a", Message::Snapshot { tiles: vec![tile(3, 2)] }).is_ok());
+        assert!(c.handle(ms(8), "a", Message::Snapshot { tiles: vec![tile(5, 3)] }).is_ok());
+        assert!(c.handle(ms(9), "a", Message::Snapshot { tiles: vec![] }).is_err(), "nobody asked");
     }
 
     #[test]
