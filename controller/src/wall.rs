@@ -17,9 +17,11 @@ use std::time::{Duration, Instant};
 use tokio::sync::mpsc;
 
 /// What arrives from a node's connection (or a reconnection attempt).
+/// Messages and closes carry the connection they came on (`quinn::Connection::stable_id`): a
+/// late one from a node's previous connection is not about its current one.
 enum Event {
-    Message(String, Message),
-    Closed(String, String),
+    Message(String, usize, Message),
+    Closed(String, usize, String),
     /// A node that was down is reachable again (handshake done).
     Reconnected(String, Link),
     /// A reconnection attempt failed; another may start.
@@ -254,21 +256,22 @@ impl Wall {
         let Link { connection, sender, mut receiver } = link;
         let tx = self.events_tx.clone();
         let node = name.to_string();
+        let id = connection.stable_id();
         tokio::spawn(async move {
             loop {
                 // Waits while the queue is full: the node's stream is read no faster than handled.
                 match receiver.recv().await {
                     Ok(Some(m)) => {
-                        if tx.send(Event::Message(node.clone(), m)).await.is_err() {
+                        if tx.send(Event::Message(node.clone(), id, m)).await.is_err() {
                             break;
                         }
                     }
                     Ok(None) => {
-                        let _ = tx.send(Event::Closed(node.clone(), "connection closed".into())).await;
+                        let _ = tx.send(Event::Closed(node.clone(), id, "connection closed".into())).await;
                         break;
                     }
                     Err(e) => {
-                        let _ = tx.send(Event::Closed(node.clone(), printable(&e.to_string()))).await;
+                        let _ = tx.send(Event::Closed(node.clone(), id, printable(&e.to_string()))).await;
                         break;
                     }
                 }
@@ -450,6 +453,11 @@ impl Wall {
         }
     }
 
+    /// Whether connection `id` is `node`'s current one.
+    fn is_current(&self, node: &str, id: usize) -> bool {
+        self.senders.contains_key(node) && self.connections.get(node).is_some_and(|c| c.stable_id() == id)
+    }
+
     fn drop_node(&mut self, node: &str, reason: &str) {
         self.senders.remove(node);
         if let Some(c) = self.connections.remove(node) {
@@ -490,7 +498,10 @@ impl Wall {
     /// Lets the machine handle what arrived from a node (or a reconnection attempt).
     async fn on_event(&mut self, event: Option<Event>) -> Vec<ControllerOutput> {
         match event {
-            Some(Event::Message(node, msg)) => {
+            Some(Event::Message(node, id, _) | Event::Closed(node, id, _)) if !self.is_current(&node, id) => {
+                Vec::new()
+            }
+            Some(Event::Message(node, _, msg)) => {
                 let now = self.now();
                 match self.machine.handle(now, &node, msg) {
                     Ok(out) => out,
@@ -501,13 +512,9 @@ impl Wall {
                     }
                 }
             }
-            Some(Event::Closed(node, reason)) => {
+            Some(Event::Closed(node, _, reason)) => {
                 let now = self.now();
-                if self.senders.contains_key(&node) {
-                    self.machine.node_down(now, &node, &reason)
-                } else {
-                    Vec::new()
-                }
+                self.machine.node_down(now, &node, &reason)
             }
             Some(Event::Reconnected(node, link)) => {
                 self.reconnecting.remove(&node);

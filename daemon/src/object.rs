@@ -33,7 +33,7 @@ use isowall_net::pixels::{PeerConnection, PeerPixelsIn, PixelOutbox};
 use isowall_net::transport;
 use isowall_net::Identity;
 use isowall_render::gpu::ObjectSpace;
-use isowall_volume::io::RawSpec;
+use isowall_volume::io::{RawSpec, VolumeLimit};
 use isowall_volume::region::VolumeStream;
 use isowall_volume::{BlockMinMax, Volume, VolumeInfo, VolumeSource, VoxelRange};
 use isowall_wall::adoption::AdoptionError;
@@ -74,6 +74,8 @@ pub struct BrickPlan {
     pub blocks: BlockMinMax,
     pub split: Vec<Brick>,
     pub halo: [usize; 3],
+    /// What a brick and its halo may hold (`[volume] max_bytes` and the GPU's binding limit).
+    pub limit: VolumeLimit,
 }
 
 /// Reads brick `index` and its halo: the partial read of start-up, from `stream` (or the plan's
@@ -93,6 +95,11 @@ pub fn read_brick(plan: &BrickPlan, index: usize, stream: Option<&VolumeStream>)
     let info = &plan.info;
     let brick = plan.split.get(index).ok_or_else(|| anyhow!("no brick {index} in the split"))?;
     let (lo, hi) = brick.data_range(plan.halo, info.dims);
+    let extent = (0..3).map(|a| (hi[a] + 1 - lo[a]).to_string()).collect::<Vec<_>>().join("x");
+    let voxels = brick.data_samples(plan.halo, info.dims) as u64;
+    plan.limit
+        .check(voxels, &format!("brick {index} and its halo ({extent} samples of {source})"))
+        .map_err(|e| anyhow!("{e}"))?;
     let region =
         stream.read_region(&VoxelRange { lo, hi }).with_context(|| format!("cannot read volume {source}"))?;
     let (owned_min, owned_max) = brick.owned_planes(info.dims, info.origin, info.spacing);
@@ -122,7 +129,12 @@ pub fn read_brick(plan: &BrickPlan, index: usize, stream: Option<&VolumeStream>)
 
 /// Reads this node's brick and halo (module notes). `iso` is the config's (or the volume's
 /// natural) iso value; `None`: the middle of the data range, from the block grid.
-pub fn load_brick(config: &WallConfig, node: &str, raw: Option<&RawSpec>) -> Result<BrickSetup> {
+pub fn load_brick(
+    config: &WallConfig,
+    node: &str,
+    raw: Option<&RawSpec>,
+    limit: VolumeLimit,
+) -> Result<BrickSetup> {
     let start = Instant::now();
     let source: VolumeSource = config.volume_source().parse()?;
     let bricking = Arc::new(crate::progress::Bricking::new(node, &source.to_string()));
@@ -150,7 +162,7 @@ pub fn load_brick(config: &WallConfig, node: &str, raw: Option<&RawSpec>) -> Res
     let split = bricks::split(&occ, info.dims, info.spacing, n).map_err(|e| anyhow!("{source}: {e}"))?;
     let settings = config.render_settings(iso);
     let halo = bricks::halo_voxels(&settings, info.spacing).map_err(|e| anyhow!("[render] {e}"))?;
-    let plan = Arc::new(BrickPlan { source, raw: raw.cloned(), info, blocks, split, halo });
+    let plan = Arc::new(BrickPlan { source, raw: raw.cloned(), info, blocks, split, halo, limit });
     let data = read_brick(&plan, index, Some(&stream));
     bricking.finish();
     let data = data?;

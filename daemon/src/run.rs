@@ -127,9 +127,12 @@ pub fn run(a: &RunArgs) -> Result<()> {
     crate::notify::status("loading the volume");
     let raw = raw_spec(&config)?;
     let limit = usize::try_from(config.wall.message_limit_bytes).unwrap_or(usize::MAX);
+    // What the node's volume (or its brick and halo) may hold.
+    let volume_limit =
+        crate::render::volume_limit(config.volume.max_bytes.map(|b| (b, "[volume] max_bytes")), true)?;
     // object space: only the brick and its halo.
     let (volume, object, peer_rx, inbox, load_rx) = if config.wall.mode == WallMode::Object {
-        let setup = crate::object::load_brick(&config, &node.name, raw.as_ref())?;
+        let setup = crate::object::load_brick(&config, &node.name, raw.as_ref(), volume_limit)?;
         let (load_tx, load_rx) = tokio::sync::mpsc::unbounded_channel();
         let mut object = ObjectNode::new(&config, &node.name, &setup, load_tx)?;
         object.adopt_delay = std::time::Duration::from_millis(a.adopt_delay_ms);
@@ -140,10 +143,12 @@ pub fn run(a: &RunArgs) -> Result<()> {
             PixelInbox::new(tx, nodes, &node.name, limit.min(object.max_pixels_bytes()), object.deadline());
         (RenderVolume::Brick(Box::new(setup.data)), Some(object), Some(rx), Some(inbox), Some(load_rx))
     } else {
-        let configured = config.volume.max_bytes.map(|b| (b, "[volume] max_bytes"));
-        let limit = crate::render::volume_limit(configured, true)?;
-        let (volume, _iso) =
-            load_volume_within(Some(&config.volume_source()), raw.as_ref(), config.volume.iso, &limit)?;
+        let (volume, _iso) = load_volume_within(
+            Some(&config.volume_source()),
+            raw.as_ref(),
+            config.volume.iso,
+            &volume_limit,
+        )?;
         (RenderVolume::Whole(volume), None, None, None, None)
     };
     let env_src: EnvSource = config.env_source().parse().context("[render] env")?;

@@ -217,6 +217,45 @@ fn a_wall_node_refuses_a_bomb_before_reading_it() {
     assert!(r.peak_kib < 400 * 1024, "node peak resident {} KiB", r.peak_kib);
 }
 
+#[test]
+fn an_object_space_node_holds_its_brick_to_the_volume_limit() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let ports = isowall_e2e::free_udp_ports(2);
+    // The 48^3 torus is 442,368 bytes as float32; each of two bricks with its halo is well over
+    // the 100,000 bytes allowed.
+    let mut config = "[wall]\nname = \"brick-limit\"\nmode = \"object\"\n\
+                      [volume]\nsource = \"procedural:torus:48\"\nmax_bytes = 100000\n"
+        .to_string();
+    for (i, port) in ports.iter().enumerate() {
+        config += &format!(
+            "[[tiles]]\nname = \"t{i}\"\nx = {}\ny = 0\nwidth = 16\nheight = 12\n\
+             [[nodes]]\nname = \"node{i}\"\naddress = \"127.0.0.1:{port}\"\ntiles = [\"t{i}\"]\n",
+            i * 16
+        );
+    }
+    std::fs::write(d.join("wall.toml"), config).unwrap();
+    assert!(run_in(d, "isowall", &["keygen", "--config", "wall.toml"]).status.success());
+    let r = run_bounded(
+        d,
+        "isowalld",
+        &["run", "--config", "wall.toml", "--node", "node0", "--display", "offscreen"],
+        0,
+        Duration::from_secs(60),
+    );
+    eprintln!("isowalld run: exit {:?}: {}", r.code, r.stderr.trim());
+    if r.stderr.contains("no Vulkan adapter") && !in_ci() {
+        eprintln!("skipping: no Vulkan adapter");
+        return;
+    }
+    assert_eq!(r.code, Some(1), "{}", r.stderr);
+    assert!(
+        r.stderr.contains("brick 0 and its halo") && r.stderr.contains("[volume] max_bytes"),
+        "{}",
+        r.stderr
+    );
+}
+
 /// `mkfifo PATH`.
 fn mkfifo(path: &Path) {
     assert!(Command::new("mkfifo").arg(path).status().unwrap().success(), "mkfifo {}", path.display());
