@@ -38,7 +38,7 @@ struct Series {
 
 /// A line chart, log2 x axis, linear or log10 y axis, written as text.
 fn svg(title: &str, x_label: &str, y_label: &str, series: &[Series], log_y: bool) -> String {
-    let (w, h, l, r, t, b) = (720.0, 440.0, 80.0, 200.0, 40.0, 60.0);
+    let (w, h, l, r, t, b) = (760.0, 440.0, 70.0, 220.0, 40.0, 60.0);
     let pts = series.iter().flat_map(|s| s.points.iter().copied());
     let fy = |y: f64| if log_y { y.max(1e-9).log10() } else { y };
     let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
@@ -82,11 +82,20 @@ fn svg(title: &str, x_label: &str, y_label: &str, series: &[Series], log_y: bool
         );
         xe += if x1 - x0 > 8.0 { 2 } else { 1 };
     }
-    for i in 0..=5 {
-        let v = y0 + (y1 - y0) * f64::from(i) / 5.0;
-        let (y, label) =
-            if log_y { (10f64.powf(v), format!("{}", 10f64.powf(v))) } else { (v, format!("{v:.3}")) };
-        let label = if log_y { label } else { label.trim_end_matches('0').trim_end_matches('.').to_string() };
+    // Ticks: every power of ten (log), or a 1-2-5 step (linear).
+    let ticks: Vec<(f64, String)> = if log_y {
+        (y0 as i32..=y1 as i32).map(|e| (10f64.powi(e), format!("{}", 10f64.powi(e)))).collect()
+    } else {
+        let raw = (y1 - y0) / 5.0;
+        let mag = 10f64.powf(raw.log10().floor());
+        let step = [1.0, 2.0, 5.0, 10.0].into_iter().map(|m| m * mag).find(|s| *s >= raw).unwrap_or(raw);
+        (0..)
+            .map(|i| f64::from(i) * step)
+            .take_while(|v| *v <= y1 + 1e-9)
+            .map(|v| (v, format!("{}", (v * 1e6).round() / 1e6)))
+            .collect()
+    };
+    for (y, label) in ticks {
         let _ = writeln!(
             s,
             "<line x1=\"{l}\" y1=\"{0}\" x2=\"{1}\" y2=\"{0}\" stroke=\"#ddd\"/><text x=\"{2}\" y=\"{3}\" text-anchor=\"end\">{label}</text>",
@@ -104,7 +113,7 @@ fn svg(title: &str, x_label: &str, y_label: &str, series: &[Series], log_y: bool
     );
     let _ = writeln!(
         s,
-        "<text x=\"18\" y=\"{0}\" text-anchor=\"middle\" transform=\"rotate(-90 18 {0})\">{y_label}</text>",
+        "<text x=\"14\" y=\"{0}\" text-anchor=\"middle\" transform=\"rotate(-90 14 {0})\">{y_label}</text>",
         (h - b + t) / 2.0
     );
     for (i, se) in series.iter().enumerate() {
@@ -211,19 +220,28 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         skew_series.1.push((n as f64, ms(tm)));
     }
     std::fs::write(out.join("screen.csv"), &csv)?;
-    let screen_svg = svg(
-        "Screen space: barrier and swap skew (10 GbE model)",
+    let barrier_svg = svg(
+        "Screen space: barrier time per frame (10 GbE model)",
         "nodes",
         "milliseconds",
         &[
             Series { name: "barrier median".into(), points: barrier_series.0 },
             Series { name: "barrier p99".into(), points: barrier_series.1 },
-            Series { name: "swap skew (measured)".into(), points: skew_series.0 },
-            Series { name: "swap skew (true)".into(), points: skew_series.1 },
         ],
         false,
     );
-    std::fs::write(out.join("screen.svg"), screen_svg)?;
+    std::fs::write(out.join("screen_barrier.svg"), barrier_svg)?;
+    let skew_svg = svg(
+        "Screen space: swap skew per frame (10 GbE model)",
+        "nodes",
+        "milliseconds",
+        &[
+            Series { name: "measured (median)".into(), points: skew_series.0 },
+            Series { name: "true (median)".into(), points: skew_series.1 },
+        ],
+        false,
+    );
+    std::fs::write(out.join("screen_skew.svg"), skew_svg)?;
 
     // ---- object space: the machines, direct send ----
     println!(
