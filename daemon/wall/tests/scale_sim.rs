@@ -195,3 +195,15 @@ fn radix_k_takes_log_k_rounds_and_every_byte_sent_arrives() {
         assert_eq!(r.lan.messages, r.nodes.iter().map(|x| x.sent_messages).sum::<u64>());
     }
 }
+
+#[test]
+fn object_space_at_64_nodes_composites_every_tile_and_a_seed_decides_everything() {
+    let spec = ObjectSpec { frames: 1, ..ObjectSpec::new(64, 24, 11) };
+    let a = run_object(&spec).unwrap();
+    assert!(a.errors.is_empty(), "{:?}", &a.errors[..a.errors.len().min(3)]);
+    assert_eq!(a.frames.len(), 1);
+    assert!(a.frames[0].iter().all(|s| s.missing == 0 && s.composite > Duration::ZERO));
+    assert_eq!(a.lan.messages, 64 + 64 * 63, "the frame states and one message per peer");
+    let b = run_object(&spec).unwrap();
+    assert_eq!(a, b, "the same seed, the same run");
+}
