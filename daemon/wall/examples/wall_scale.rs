@@ -220,28 +220,24 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         skew_series.1.push((n as f64, ms(tm)));
     }
     std::fs::write(out.join("screen.csv"), &csv)?;
-    let barrier_svg = svg(
-        "Screen space: barrier time per frame (10 GbE model)",
-        "nodes",
-        "milliseconds",
-        &[
-            Series { name: "barrier median".into(), points: barrier_series.0 },
-            Series { name: "barrier p99".into(), points: barrier_series.1 },
-        ],
-        false,
-    );
-    std::fs::write(out.join("screen_barrier.svg"), barrier_svg)?;
-    let skew_svg = svg(
-        "Screen space: swap skew per frame (10 GbE model)",
-        "nodes",
-        "milliseconds",
-        &[
-            Series { name: "measured (median)".into(), points: skew_series.0 },
-            Series { name: "true (median)".into(), points: skew_series.1 },
-        ],
-        false,
-    );
-    std::fs::write(out.join("screen_skew.svg"), skew_svg)?;
+    let charts = [
+        (
+            "screen_barrier.svg",
+            "barrier time",
+            [("barrier median", barrier_series.0), ("barrier p99", barrier_series.1)],
+        ),
+        (
+            "screen_skew.svg",
+            "swap skew",
+            [("measured (median)", skew_series.0), ("true (median)", skew_series.1)],
+        ),
+    ];
+    for (file, what, lines) in charts {
+        let series: Vec<Series> =
+            lines.into_iter().map(|(name, points)| Series { name: name.into(), points }).collect();
+        let title = format!("Screen space: {what} per frame (10 GbE model)");
+        std::fs::write(out.join(file), svg(&title, "nodes", "milliseconds", &series, false))?;
+    }
 
     // ---- object space: the machines, direct send ----
     println!(
