@@ -286,10 +286,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .iter()
         .map(|n| Series { name: format!("{n}: max sent"), points: Vec::new() })
         .collect();
-    let mut time_series: Vec<Series> = ["direct-send", "binary swap", "radix-k (k=8)"]
-        .iter()
-        .map(|n| Series { name: n.to_string(), points: Vec::new() })
-        .collect();
+    let mut time_series: Vec<Series> =
+        ["direct-send", "binary swap", "radix-k (k=8)", "direct-send on 1 GbE"]
+            .iter()
+            .map(|n| Series { name: n.to_string(), points: Vec::new() })
+            .collect();
     for n in [4usize, 16, 64, 256, 1024] {
         let scene = Scene::wall(&ObjectWall::new(n, 1)?);
         for (i, (name, f)) in
@@ -302,6 +303,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             bytes_series[i].points.push((n as f64, bytes));
             time_series[i].points.push((n as f64, t));
         }
+        let r = run_radix(&scene, &[n], LanModel::one_gbe(), cost, SEED);
+        let (_, t) = radix_row(n, "direct-send on 1 GbE", &r, &mut csv);
+        time_series[3].points.push((n as f64, t));
     }
     bytes_series.push(Series {
         name: "machines: max sent".into(),
