@@ -329,7 +329,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     std::fs::write(
         out.join("object_time.svg"),
         svg(
-            "Object space: compositing time per frame (10 GbE model)",
+            "Object space: compositing time per frame (10 GbE unless named)",
             "nodes",
             "ms (log scale)",
             &time_series,
