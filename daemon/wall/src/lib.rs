@@ -15,9 +15,9 @@
 //!   compositing of peers' pixels, its caps and deadline), [`adoption`] (which node renders each
 //!   brick when nodes die), [`object_machine`] (a node's object space: views, brick maps,
 //!   compositing and its messages).
-//!   compositing of peers' pixels), [`adoption`] (which node renders each brick when nodes die).
 //! - [`names`]: the one rule for node and tile names (a node's name is its certificate's name).
 //! - [`governor`]: the quality governor (frame times in, AO samples per frame out).
+//! - [`sim`]: the wall at scale: a LAN model on a virtual clock driving the machines above.
 
 pub mod adoption;
 pub mod barrier;
@@ -35,6 +35,7 @@ pub mod messages;
 pub mod names;
 pub mod object_machine;
 pub mod render_state;
+pub mod sim;
 pub mod wire;
 
 pub use barrier::{ControllerOutput, FrameController, FrameStats, NodeFrameStats};
