@@ -50,6 +50,8 @@ if [ "${isowall_tests:-}" = yes ]; then
     # The operator console's browser test drives Debian's chromium through chromedriver.
     command -v chromium >/dev/null 2>&1 || { need_pkgs+=(chromium); missing_why+=("chromium (for the console's browser test)"); }
     command -v chromedriver >/dev/null 2>&1 || { need_pkgs+=(chromium-driver); missing_why+=("chromedriver (for the console's browser test)"); }
+    # The packaged units are checked with systemd-analyze verify.
+    command -v systemd-analyze >/dev/null 2>&1 || { need_pkgs+=(systemd); missing_why+=("systemd-analyze (for the units' test)"); }
     for lib in libX11-xcb.so.1:libx11-xcb1 libXcursor.so.1:libxcursor1 libXi.so.6:libxi6 \
                libxkbcommon-x11.so.0:libxkbcommon-x11-0; do
         if ! ldconfig -p 2>/dev/null | grep -q "${lib%%:*}"; then
