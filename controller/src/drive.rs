@@ -4,9 +4,9 @@ use crate::local::LocalDaemons;
 use crate::wall::{compose, quantile, report, Wall};
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
-use glam::{DQuat, DVec3};
+use glam::DQuat;
 use isowall_net::CaMode;
-use isowall_volume::VolumeSource;
+use isowall_volume::{BlockMinMax, VolumeSource};
 use isowall_wall::config::WallConfig;
 use isowall_wall::{Camera, Governor, Motion, RenderSettings};
 use std::path::PathBuf;
@@ -125,7 +125,7 @@ pub fn keygen(a: &KeygenArgs) -> Result<()> {
 }
 
 /// The wall camera and render settings for the configured volume (the controller reads the volume
-/// only for its box and default iso).
+/// only for its box, from the header, and its value range, a z-slice at a time).
 pub(crate) fn scene(config: &WallConfig) -> Result<(Camera, RenderSettings)> {
     scene_and_range(config).map(|(c, s, _)| (c, s))
 }
@@ -133,29 +133,27 @@ pub(crate) fn scene(config: &WallConfig) -> Result<(Camera, RenderSettings)> {
 /// [`scene`] and the volume's value range.
 pub(crate) fn scene_and_range(config: &WallConfig) -> Result<(Camera, RenderSettings, (f64, f64))> {
     let source: VolumeSource = config.volume_source().parse()?;
-    let raw = match (&config.volume.dims, &config.volume.voxel_type) {
-        (Some(dims), Some(t)) => Some(isowall_volume::io::RawSpec {
-            dims: *dims,
-            voxel: t.parse().map_err(|e: String| anyhow!("[volume] type: {e}"))?,
-            spacing: DVec3::from_array(config.volume.spacing.unwrap_or([1.0; 3])),
-            big_endian: false,
-            header_bytes: 0,
-        }),
-        _ => None,
-    };
-    let bar = crate::progress::spinner(format!("loading volume {source}"));
+    let raw = config.raw_spec().map_err(|e| anyhow!("{e}"))?;
+    let bar = crate::progress::spinner(format!("reading volume {source}"));
     let limit = match config.volume.max_bytes {
         Some(bytes) => isowall_volume::io::VolumeLimit::new(bytes, "[volume] max_bytes"),
         None => isowall_volume::io::VolumeLimit::default(),
     };
-    let volume =
-        source.load_within(raw.as_ref(), &limit).with_context(|| format!("cannot load volume {source}"));
+    // What the nodes would refuse, refused here from the header too; then only the value range
+    // is kept of the data (the block grid), never the whole volume.
+    let scanned = source.stream(raw.as_ref()).map_err(anyhow::Error::from).and_then(|stream| {
+        let info = stream.info().clone();
+        let [x, y, z] = info.dims;
+        let voxels = (x as u64).saturating_mul(y as u64).saturating_mul(z as u64);
+        limit.check(voxels, &format!("{source} ({x}x{y}x{z})")).map_err(|e| anyhow!("{e}"))?;
+        let blocks = stream.block_minmax(BlockMinMax::DEFAULT_BLOCK)?;
+        Ok((info, blocks.value_range()))
+    });
     bar.finish_and_clear();
-    let volume = volume?;
-    let (lo, hi) = volume.value_range();
-    let iso = config.volume.iso.or(source.natural_iso()).unwrap_or(0.5 * (lo as f64 + hi as f64));
+    let (info, (lo, hi)) = scanned.with_context(|| format!("cannot read volume {source}"))?;
+    let iso = source.iso_or_default(config.volume.iso, (lo, hi));
     Ok((
-        config.camera_for(volume.box_min(), volume.box_max()),
+        config.camera_for(info.box_min(), info.box_max()),
         config.render_settings(iso),
         (lo as f64, hi as f64),
     ))

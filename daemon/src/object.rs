@@ -147,11 +147,7 @@ pub fn load_brick(
     let blocks = stream
         .block_minmax(BlockMinMax::DEFAULT_BLOCK)
         .with_context(|| format!("cannot read volume {source}"))?;
-    let iso = config.volume.iso.or(source.natural_iso()).unwrap_or_else(|| {
-        let lo = blocks.minmax.iter().map(|m| m[0]).fold(f32::INFINITY, f32::min);
-        let hi = blocks.minmax.iter().map(|m| m[1]).fold(f32::NEG_INFINITY, f32::max);
-        0.5 * (lo as f64 + hi as f64)
-    });
+    let iso = source.iso_or_default(config.volume.iso, blocks.value_range());
     let occ = Occupancy::from_minmax(blocks.block, blocks.counts, &blocks.minmax, iso);
     let n = config.nodes.len();
     let index = config

@@ -249,18 +249,16 @@ pub fn load_volume_within(
         volume = %source, dims = ?d, spacing = ?volume.spacing().to_array(), range = ?(lo, hi),
         ms = start.elapsed().as_secs_f64() * 1e3, "volume ready"
     );
-    let iso = match iso.or(source.natural_iso()) {
-        Some(v) if v.is_finite() => v,
-        Some(v) => bail!("--iso {v} is not a finite number"),
-        None => {
-            let mid = 0.5 * (lo as f64 + hi as f64);
-            tracing::warn!(
-                "no --iso given for {source}: using {mid}, the middle of the data range [{lo}, {hi}]"
-            );
-            mid
-        }
-    };
-    Ok((volume, iso))
+    if let Some(v) = iso.filter(|v| !v.is_finite()) {
+        bail!("--iso {v} is not a finite number");
+    }
+    let chosen = source.iso_or_default(iso, (lo, hi));
+    if iso.or(source.natural_iso()).is_none() {
+        tracing::warn!(
+            "no --iso given for {source}: using {chosen}, the middle of the data range [{lo}, {hi}]"
+        );
+    }
+    Ok((volume, chosen))
 }
 
 pub fn run(a: &RenderArgs) -> Result<()> {

@@ -18,7 +18,6 @@ use isowall_net::tls::PeerIdentity;
 use isowall_net::transport::{self, Channel, NetError};
 use isowall_net::Identity;
 use isowall_render::environment::{EnvSource, Environment};
-use isowall_volume::io::RawSpec;
 use isowall_wall::config::{WallConfig, WallMode};
 use isowall_wall::daemon_machine::{NodeMachine, NodeOutput};
 use isowall_wall::messages::{Message, TileImage};
@@ -125,7 +124,7 @@ pub fn run(a: &RunArgs) -> Result<()> {
     // Before the slow set-up, so that `--display window` without a display fails at once.
     let display = display::choose(a.display)?;
     crate::notify::status("loading the volume");
-    let raw = raw_spec(&config)?;
+    let raw = config.raw_spec().map_err(|e| anyhow!("{e}"))?;
     let limit = usize::try_from(config.wall.message_limit_bytes).unwrap_or(usize::MAX);
     // What the node's volume (or its brick and halo) may hold.
     let volume_limit =
@@ -256,20 +255,6 @@ fn network(
             }
         }
     })
-}
-
-fn raw_spec(config: &WallConfig) -> Result<Option<RawSpec>> {
-    let v = &config.volume;
-    match (v.dims, &v.voxel_type) {
-        (Some(dims), Some(t)) => Ok(Some(RawSpec {
-            dims,
-            voxel: t.parse().map_err(|e: String| anyhow!("[volume] type: {e}"))?,
-            spacing: glam::DVec3::from_array(v.spacing.unwrap_or([1.0; 3])),
-            big_endian: false,
-            header_bytes: 0,
-        })),
-        _ => Ok(None),
-    }
 }
 
 /// How long a peer has for its QUIC handshake, and a controller then for its stream and Hello.

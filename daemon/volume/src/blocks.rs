@@ -21,6 +21,13 @@ impl BlockMinMax {
     /// Default cells per block edge.
     pub const DEFAULT_BLOCK: usize = 8;
 
+    /// The smallest and largest value of the whole volume (every sample is in some block).
+    pub fn value_range(&self) -> (f32, f32) {
+        let lo = self.minmax.iter().map(|m| m[0]).fold(f32::INFINITY, f32::min);
+        let hi = self.minmax.iter().map(|m| m[1]).fold(f32::NEG_INFINITY, f32::max);
+        (lo, hi)
+    }
+
     pub fn new(v: &Volume, block: usize) -> BlockMinMax {
         assert!(block >= 1);
         let dims = v.dims();

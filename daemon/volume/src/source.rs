@@ -75,6 +75,12 @@ impl VolumeSource {
             VolumeSource::File(_) => None,
         }
     }
+
+    /// The iso value a render of this volume uses: the one `given`, else the volume's natural
+    /// one ([`VolumeSource::natural_iso`]), else the middle of its data range `(lo, hi)`.
+    pub fn iso_or_default(&self, given: Option<f64>, (lo, hi): (f32, f32)) -> f64 {
+        given.or(self.natural_iso()).unwrap_or(0.5 * (f64::from(lo) + f64::from(hi)))
+    }
 }
 
 impl std::fmt::Display for VolumeSource {
