@@ -3,9 +3,6 @@
 
 mod args;
 mod bench;
-mod bench_frame;
-mod bench_suite;
-mod chart;
 // The same front end as `isowall check-config` (one file, compiled into both binaries).
 #[path = "../../controller/src/check_config.rs"]
 mod check_config;

@@ -156,8 +156,9 @@ impl Identity {
         Ok(Arc::new(roots))
     }
 
-    /// A QUIC server configuration that requires a client certificate signed by the wall CA.
-    pub fn server_config(&self) -> Result<quinn::ServerConfig, TlsError> {
+    /// The TLS 1.3 server side of this identity: it requires a client certificate signed by the
+    /// wall CA and speaks only the wall's ALPN ([`crate::transport`] makes it a QUIC endpoint).
+    pub fn server_tls(&self) -> Result<rustls::ServerConfig, TlsError> {
         let verifier = rustls::server::WebPkiClientVerifier::builder_with_provider(self.roots()?, provider())
             .build()
             .map_err(|e| TlsError::Config(e.to_string()))?;
@@ -168,16 +169,12 @@ impl Identity {
             .with_single_cert(self.chain.clone(), self.key.clone_key())
             .map_err(|e| TlsError::Config(e.to_string()))?;
         tls.alpn_protocols = vec![crate::ALPN.to_vec()];
-        let quic = quinn::crypto::rustls::QuicServerConfig::try_from(tls)
-            .map_err(|e| TlsError::Config(e.to_string()))?;
-        let mut config = quinn::ServerConfig::with_crypto(Arc::new(quic));
-        config.transport_config(Arc::new(crate::transport::transport_config()));
-        config.max_incoming(crate::transport::MAX_INCOMING);
-        Ok(config)
+        Ok(tls)
     }
 
-    /// A QUIC client configuration that presents this identity and trusts only the wall CA.
-    pub fn client_config(&self) -> Result<quinn::ClientConfig, TlsError> {
+    /// The TLS 1.3 client side of this identity: it presents this certificate and trusts only
+    /// the wall CA.
+    pub fn client_tls(&self) -> Result<rustls::ClientConfig, TlsError> {
         let mut tls = rustls::ClientConfig::builder_with_provider(provider())
             .with_protocol_versions(&[&rustls::version::TLS13])
             .map_err(|e| TlsError::Config(e.to_string()))?
@@ -185,11 +182,7 @@ impl Identity {
             .with_client_auth_cert(self.chain.clone(), self.key.clone_key())
             .map_err(|e| TlsError::Config(e.to_string()))?;
         tls.alpn_protocols = vec![crate::ALPN.to_vec()];
-        let quic = quinn::crypto::rustls::QuicClientConfig::try_from(tls)
-            .map_err(|e| TlsError::Config(e.to_string()))?;
-        let mut config = quinn::ClientConfig::new(Arc::new(quic));
-        config.transport_config(Arc::new(crate::transport::transport_config()));
-        Ok(config)
+        Ok(tls)
     }
 }
 

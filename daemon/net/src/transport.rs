@@ -37,6 +37,27 @@ pub const CONNECTION_WINDOW: u32 = 16 << 20;
 /// Connections a server endpoint lets wait for their handshake at once, at most.
 pub const MAX_INCOMING: usize = 64;
 
+/// A QUIC server configuration of `identity`'s TLS ([`Identity::server_tls`]) with the wall's
+/// transport settings and at most [`MAX_INCOMING`] handshakes waiting.
+fn server_config(identity: &Identity) -> Result<quinn::ServerConfig, TlsError> {
+    let quic = quinn::crypto::rustls::QuicServerConfig::try_from(identity.server_tls()?)
+        .map_err(|e| TlsError::Config(e.to_string()))?;
+    let mut config = quinn::ServerConfig::with_crypto(Arc::new(quic));
+    config.transport_config(Arc::new(transport_config()));
+    config.max_incoming(MAX_INCOMING);
+    Ok(config)
+}
+
+/// A QUIC client configuration of `identity`'s TLS ([`Identity::client_tls`]) with the wall's
+/// transport settings.
+fn client_config(identity: &Identity) -> Result<quinn::ClientConfig, TlsError> {
+    let quic = quinn::crypto::rustls::QuicClientConfig::try_from(identity.client_tls()?)
+        .map_err(|e| TlsError::Config(e.to_string()))?;
+    let mut config = quinn::ClientConfig::new(Arc::new(quic));
+    config.transport_config(Arc::new(transport_config()));
+    Ok(config)
+}
+
 /// Transport settings: keep-alives so a dead peer is noticed within the idle timeout, and prompt
 /// acknowledgements for a LAN.
 ///
@@ -81,14 +102,14 @@ pub fn resolve(address: &str) -> Result<SocketAddr, NetError> {
 
 /// A server endpoint on `addr` that accepts only peers with a wall certificate.
 pub fn server(addr: SocketAddr, identity: &Identity) -> Result<quinn::Endpoint, NetError> {
-    quinn::Endpoint::server(identity.server_config()?, addr).map_err(|source| NetError::Bind { addr, source })
+    quinn::Endpoint::server(server_config(identity)?, addr).map_err(|source| NetError::Bind { addr, source })
 }
 
 /// A client endpoint presenting `identity`.
 pub fn client(identity: &Identity) -> Result<quinn::Endpoint, NetError> {
     let bind: SocketAddr = "0.0.0.0:0".parse().expect("valid address");
     let mut ep = quinn::Endpoint::client(bind).map_err(|source| NetError::Bind { addr: bind, source })?;
-    ep.set_default_client_config(identity.client_config()?);
+    ep.set_default_client_config(client_config(identity)?);
     Ok(ep)
 }
 

@@ -7,8 +7,8 @@
 //! frame stayed on the GPU (every AOV made and read back each frame, composed, accumulated and
 //! encoded on the CPU, uploaded again to present) in the same run, for ratios.
 
+use super::stats::{median, sample_list, scene_spec};
 use crate::args;
-use crate::bench::{median, sample_list, scene_spec};
 use crate::render::load_volume;
 use anyhow::{bail, Context, Result};
 use clap::Args;

@@ -8,8 +8,8 @@
 //! pixels, the share of pixels whose hit differs from the reference's, and the median normal error
 //! in degrees over pixels both hit.
 
+use super::stats::{error_stats, median, sample_list, scene_spec};
 use crate::args;
-use crate::bench::{error_stats, median, sample_list, scene_spec};
 use crate::render::load_volume;
 use anyhow::{bail, Context, Result};
 use clap::Args;

@@ -10,7 +10,7 @@ use plotters::prelude::*;
 use std::path::Path;
 
 /// DejaVu Sans, Basic Latin and a few symbols (licence: daemon/assets/DejaVuSans-LICENSE.txt).
-const FONT: &[u8] = include_bytes!("../assets/DejaVuSans-subset.ttf");
+const FONT: &[u8] = include_bytes!("../../assets/DejaVuSans-subset.ttf");
 const FAMILY: &str = "sans-serif";
 
 /// How a series' points are marked.
