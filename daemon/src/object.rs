@@ -27,7 +27,7 @@
 //!   gives it to another node. `--adopt-delay-ms` (hidden) delays the read, so tests can watch
 //!   frames run while it loads.
 
-use crate::tiles::{JobResult, TileResult};
+use crate::tiles::{BrickData, JobResult, TileResult};
 use anyhow::{anyhow, Context, Result};
 use isowall_net::pixels::{PeerConnection, PeerPixelsIn, PixelOutbox};
 use isowall_net::transport;
@@ -35,7 +35,7 @@ use isowall_net::Identity;
 use isowall_render::gpu::ObjectSpace;
 use isowall_volume::io::{RawSpec, VolumeLimit};
 use isowall_volume::region::VolumeStream;
-use isowall_volume::{BlockMinMax, Volume, VolumeInfo, VolumeSource, VoxelRange};
+use isowall_volume::{BlockMinMax, VolumeInfo, VolumeSource, VoxelRange};
 use isowall_wall::adoption::AdoptionError;
 use isowall_wall::bricks::{self, Brick, Occupancy};
 use isowall_wall::composite::{Composited, TileCanvas};
@@ -47,16 +47,6 @@ use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
-
-/// What the render thread uploads in object space.
-pub struct BrickData {
-    /// The brick's index in the split (= its home node's index in `[[nodes]]`).
-    pub index: usize,
-    pub region: Volume,
-    pub info: VolumeInfo,
-    pub blocks: BlockMinMax,
-    pub object: ObjectSpace,
-}
 
 /// This node's brick, as set up.
 pub struct BrickSetup {

@@ -12,8 +12,9 @@
 use anyhow::{Context, Result};
 use isowall_render::environment::Environment;
 use isowall_render::gpu::present::{Presented, TileSurface};
+use isowall_render::gpu::ObjectSpace;
 use isowall_render::gpu::{FrameRead, GpuRenderer, ReadbackRing, TileFrame, TileTarget};
-use isowall_volume::Volume;
+use isowall_volume::{BlockMinMax, Volume, VolumeInfo};
 use isowall_wall::{RenderSettings, View};
 use std::collections::VecDeque;
 use std::sync::{mpsc, Arc};
@@ -51,10 +52,20 @@ pub struct TileResult {
 }
 
 /// What the render thread uploads: the whole volume (screen space) or a brick and its halo
-/// (object space, `object.rs`).
+/// (object space, `object.rs` reads it).
 pub enum RenderVolume {
     Whole(Volume),
-    Brick(Box<crate::object::BrickData>),
+    Brick(Box<BrickData>),
+}
+
+/// What the render thread uploads in object space.
+pub struct BrickData {
+    /// The brick's index in the split (= its home node's index in `[[nodes]]`).
+    pub index: usize,
+    pub region: Volume,
+    pub info: VolumeInfo,
+    pub blocks: BlockMinMax,
+    pub object: ObjectSpace,
 }
 
 pub struct JobResult {
@@ -77,7 +88,7 @@ enum Job {
     /// The images of a frame's tiles (a snapshot), read back.
     Snapshot(u64, tokio::sync::oneshot::Sender<Result<Vec<TileResult>, String>>),
     /// object space: upload another brick (an adopted one); replies when it is on the GPU.
-    Load(Box<crate::object::BrickData>, tokio::sync::oneshot::Sender<Result<(), String>>),
+    Load(Box<BrickData>, tokio::sync::oneshot::Sender<Result<(), String>>),
     /// object space: drop a brick's volume (no longer this node's).
     Unload(usize),
 }
@@ -275,7 +286,7 @@ impl RenderHandle {
 
     /// object space: uploads another brick beside the node's own (after the jobs already sent);
     /// resolves once it is on the GPU.
-    pub async fn load(&self, brick: crate::object::BrickData) -> Result<()> {
+    pub async fn load(&self, brick: BrickData) -> Result<()> {
         let (tx, rx) = tokio::sync::oneshot::channel();
         self.send(Job::Load(Box::new(brick), tx))?;
         rx.await.map_err(|_| anyhow::anyhow!("the render thread has stopped"))?.map_err(anyhow::Error::msg)
