@@ -7,7 +7,7 @@
 //! frame stayed on the GPU (every AOV made and read back each frame, composed, accumulated and
 //! encoded on the CPU, uploaded again to present) in the same run, for ratios.
 
-use super::stats::{median, sample_list, scene_spec};
+use super::stats::{csv_records, median, sample_list, scene_spec};
 use crate::args;
 use crate::render::load_volume;
 use anyhow::{bail, Context, Result};
@@ -102,36 +102,20 @@ impl Row {
 /// Parses rows written by [`Row::csv`] under [`HEADER`]; errors name the file and line.
 pub fn parse_rows(text: &str, file: &str) -> Result<Vec<Row>> {
     let mut rows = Vec::new();
-    let mut header_seen = false;
-    for (i, line) in text.lines().enumerate() {
-        let line = line.trim();
-        if line.is_empty() || line.starts_with('#') {
-            continue;
-        }
-        if !header_seen {
-            if line != HEADER {
-                bail!("{file}:{}: expected the header '{HEADER}'", i + 1);
-            }
-            header_seen = true;
-            continue;
-        }
-        let f: Vec<&str> = line.split(',').collect();
-        if f.len() != 14 {
-            bail!("{file}:{}: {} fields, expected 14", i + 1, f.len());
-        }
+    for (i, f) in csv_records(text, file, HEADER, 14)? {
         let num = |k: usize| -> Result<f64> {
             if f[k].is_empty() && (7..=9).contains(&k) {
                 return Ok(f64::NAN);
             }
             f[k].parse::<f64>()
-                .map_err(|_| anyhow::anyhow!("{file}:{}: field {} '{}' is not a number", i + 1, k + 1, f[k]))
+                .map_err(|_| anyhow::anyhow!("{file}:{i}: field {} '{}' is not a number", k + 1, f[k]))
         };
         rows.push(Row {
             scene: f[0].to_string(),
             size: f[1].to_string(),
             samples: f[2]
                 .parse()
-                .map_err(|_| anyhow::anyhow!("{file}:{}: samples '{}' is not a whole number", i + 1, f[2]))?,
+                .map_err(|_| anyhow::anyhow!("{file}:{i}: samples '{}' is not a whole number", f[2]))?,
             path: f[3].to_string(),
             variant: f[4].to_string(),
             ms: num(5)?,
@@ -142,9 +126,6 @@ pub fn parse_rows(text: &str, file: &str) -> Result<Vec<Row>> {
             read_back: num(12)?,
             uploaded: num(13)?,
         });
-    }
-    if !header_seen {
-        bail!("{file}: no header line '{HEADER}'");
     }
     Ok(rows)
 }

@@ -1,7 +1,42 @@
 //! What the benchmarks share: medians, error statistics and the scene and sample lists of their
 //! flags. It imports nothing of its sibling modules.
 
-use anyhow::Result;
+use anyhow::{bail, Result};
+
+/// The records of a CSV file a bench wrote: its `header` line first (blank lines and `#` comments
+/// anywhere are passed over), then `fields` comma-separated fields a line, each with its line
+/// number (from 1); errors name the file and the line.
+pub fn csv_records<'a>(
+    text: &'a str,
+    file: &str,
+    header: &str,
+    fields: usize,
+) -> Result<Vec<(usize, Vec<&'a str>)>> {
+    let mut records = Vec::new();
+    let mut header_seen = false;
+    for (i, line) in text.lines().enumerate() {
+        let line = line.trim();
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        if !header_seen {
+            if line != header {
+                bail!("{file}:{}: expected the header '{header}'", i + 1);
+            }
+            header_seen = true;
+            continue;
+        }
+        let f: Vec<&str> = line.split(',').collect();
+        if f.len() != fields {
+            bail!("{file}:{}: {} fields, expected {fields}", i + 1, f.len());
+        }
+        records.push((i + 1, f));
+    }
+    if !header_seen {
+        bail!("{file}: no header line '{header}'");
+    }
+    Ok(records)
+}
 
 pub fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);

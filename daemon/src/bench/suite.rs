@@ -8,10 +8,10 @@
 //! pixels, the share of pixels whose hit differs from the reference's, and the median normal error
 //! in degrees over pixels both hit.
 
-use super::stats::{error_stats, median, sample_list, scene_spec};
+use super::stats::{csv_records, error_stats, median, sample_list, scene_spec};
 use crate::args;
 use crate::render::load_volume;
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use clap::Args;
 use isowall_render::gpu::{GpuRenderer, GpuVolume, PerfOptions};
 use isowall_render::Frame;
@@ -93,33 +93,16 @@ impl Row {
 /// Parses rows written by [`Row::csv`] under [`HEADER`]; errors name the file and line.
 pub fn parse_rows(text: &str, file: &str) -> Result<Vec<Row>> {
     let mut rows = Vec::new();
-    let mut header_seen = false;
-    for (i, line) in text.lines().enumerate() {
-        let line = line.trim();
-        if line.is_empty() || line.starts_with('#') {
-            continue;
-        }
-        if !header_seen {
-            if line != HEADER {
-                bail!("{file}:{}: expected the header '{HEADER}'", i + 1);
-            }
-            header_seen = true;
-            continue;
-        }
-        let f: Vec<&str> = line.split(',').collect();
-        if f.len() != 9 {
-            bail!("{file}:{}: {} fields, expected 9", i + 1, f.len());
-        }
+    for (i, f) in csv_records(text, file, HEADER, 9)? {
         let num = |k: usize, name: &str| -> Result<f64> {
-            f[k].parse::<f64>()
-                .map_err(|_| anyhow::anyhow!("{file}:{}: {name} '{}' is not a number", i + 1, f[k]))
+            f[k].parse::<f64>().map_err(|_| anyhow::anyhow!("{file}:{i}: {name} '{}' is not a number", f[k]))
         };
         rows.push(Row {
             scene: f[0].to_string(),
             size: f[1].to_string(),
             samples: f[2]
                 .parse()
-                .map_err(|_| anyhow::anyhow!("{file}:{}: samples '{}' is not a whole number", i + 1, f[2]))?,
+                .map_err(|_| anyhow::anyhow!("{file}:{i}: samples '{}' is not a whole number", f[2]))?,
             variant: f[3].to_string(),
             ms: num(4, "ms_per_frame")?,
             fetches_per_pixel: num(5, "fetches_per_pixel")?,
@@ -127,9 +110,6 @@ pub fn parse_rows(text: &str, file: &str) -> Result<Vec<Row>> {
             hit_mismatch_percent: num(7, "hit_mismatch_percent")?,
             normal_error_deg: num(8, "normal_error_deg")?,
         });
-    }
-    if !header_seen {
-        bail!("{file}: no header line '{HEADER}'");
     }
     Ok(rows)
 }
