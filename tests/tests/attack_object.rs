@@ -208,7 +208,7 @@ fn start_both(w: &Wall) -> Option<Vec<Daemon>> {
 }
 
 /// Runs the orbit while `attack` runs (from the orbit's start to its end); prints and checks
-/// what the issue asks: node0's memory, frames, the refusal naming `node1`.
+/// what each attack must leave: node0's memory, frames, the refusal naming `node1`.
 fn under_attack<F, Fut>(what: &str, w: &Wall, node0: &mut Daemon, run_attack: F) -> (OrbitRun, Vec<String>)
 where
     F: FnOnce(Arc<AtomicBool>) -> Fut + Send,

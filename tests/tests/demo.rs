@@ -1,4 +1,4 @@
-//! Scripted demos (issue "Operations", item 3): `isowall demo --record` on a small local 2x1
+//! Scripted demos: `isowall demo --record` on a small local 2x1
 //! wall, run twice, writes the same files byte for byte (the frame clock is the frame index, the
 //! sample patterns are seeded by pixel and frame, never the clock), and its frames are the moving
 //! camera's (no two alike). A bad path is refused with FILE:LINE:COL before any node starts.

@@ -1,6 +1,5 @@
-//! The fuzz targets' code on stable, in the normal suite (issue "Reliability and security", item
-//! "Bad input"): every file of the committed corpus (`tests/fuzz/corpus/<target>/`) goes through
-//! the very harness the cargo-fuzz targets run (`tests/fuzz/harness.rs`, shared by `#[path]`),
+//! The fuzz targets' code on stable, in the normal suite: every file of the committed corpus
+//! (`tests/fuzz/corpus/<target>/`) goes through the very harness the cargo-fuzz targets run (`tests/fuzz/harness.rs`, shared by `#[path]`),
 //! then a seeded mini-fuzzer mutates the valid examples a few thousand times per target. No input
 //! may panic (a panic is caught and reported with the input); errors must be typed and say
 //! something; the harness checks its invariants (bounded buffering, round trips, sane volumes).

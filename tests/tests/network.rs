@@ -1,4 +1,4 @@
-//! A bad network (issue "Reliability and security", item 3): the controller drives a 2x2 wall
+//! A bad network: the controller drives a 2x2 wall
 //! through lossy UDP relays (loss 0, 1 and 5 percent each way, 2 ms ± 1 ms delay), every frame
 //! completes, and the image on the wall is the same as after the same orbit driven without the
 //! relays. The frame time each loss rate costs is printed (run with `--nocapture`).

@@ -1,4 +1,4 @@
-//! A bad network in object space (issue "Reliability and security", item 3): a 4-node object-space
+//! A bad network in object space: a 4-node object-space
 //! wall where every datagram, the controller's to each node and each node's pixels to each other
 //! node, crosses a lossy UDP relay (loss 0, 1 and 5 percent each way, 2 ms ± 1 ms delay). Every frame
 //! completes and the wall's image equals the one the same orbit gives without relays; the frame

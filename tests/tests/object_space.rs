@@ -1,4 +1,4 @@
-//! Object space over real processes on loopback (issue "Object space"): 2 and 4 nodes each render
+//! Object space over real processes on loopback: 2 and 4 nodes each render
 //! their brick of the volume (with an AO halo) and send each tile's pixels to the node that shows
 //! it; the wall snapshot must equal a single render of the whole wall camera, pixels along the
 //! cuts included, and each node must hold no more volume than its brick and halo.

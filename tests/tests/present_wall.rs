@@ -1,4 +1,4 @@
-//! A 2x1 wall in real windows (issue "Operations", item 6): two nodes under one virtual X server
+//! A 2x1 wall in real windows: two nodes under one virtual X server
 //! (Xvfb), each presenting its tile with wgpu (lavapipe) in a window placed at the tile's spot
 //! (`--display window --windowed`). After a 2-frame `isowall demo`, a screenshot of the whole X screen
 //! (`xwd -root`) must show, in both tiles' places, the last frame: each part equal to the same

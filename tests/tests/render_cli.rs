@@ -96,7 +96,7 @@ fn both(
     Some((res.pop().unwrap(), r))
 }
 
-/// Issue "First light", done when: `--aov depth|normal|hit` of ct-cranium agree with the exact
+/// `--aov depth|normal|hit` of ct-cranium agree with the exact
 /// reference renderer: hit masks except on silhouette pixels, median depth error under 0.05 voxel,
 /// median normal error under 1 degree.
 #[test]

@@ -1,4 +1,4 @@
-//! The systemd units and readiness (issue "Operations", item 1):
+//! The systemd units and readiness:
 //! (a) `systemd-analyze verify` accepts both units in `wall-configs/systemd/` without a single
 //!     warning (their ExecStart paths pointed at the built binaries in a temporary copy, since
 //!     verify wants the executables to exist);

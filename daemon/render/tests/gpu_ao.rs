@@ -1,4 +1,4 @@
-//! The GPU's AO, bent normal and IBL against the CPU reference and the exact answer (issue 3):
+//! The GPU's AO, bent normal and IBL against the CPU reference and the exact answer:
 //! same sample patterns on both sides (sampling.rs and its WGSL twin). Ours is exact on both sides
 //! (`ao.exact`, the default: every cell a ray crosses is tested exactly), so the AO kernel differs
 //! from the reference only by f32 against f64; what is left of the difference comes from the

@@ -1,4 +1,4 @@
-//! Packed voxel formats (issue 9): kernels compiled for r16f, r16 or r8 read the packed voxels as
+//! Packed voxel formats: kernels compiled for r16f, r16 or r8 read the packed voxels as
 //! the CPU twin `Volume::stored_as` rounds them. The packed GPU render equals the f32 kernels on the
 //! rounded volume, agrees with the exact CPU reference on the rounded volume, and a volume stored
 //! in another format than the kernels read is refused.
@@ -100,7 +100,7 @@ fn a_brick_packs_r16f_and_refuses_the_unorm_formats() {
         let e = gpu.upload_brick(&volume, &info, &blocks, object.clone()).err().expect("refused");
         assert!(e.to_string().contains(format.name()), "{e}");
     }
-    gpu.set_perf(PerfOptions { format: VoxelFormat::R16F, ..PerfOptions::BEFORE }).unwrap();
+    gpu.set_perf(PerfOptions { format: VoxelFormat::R16F, ..PerfOptions::PLAIN }).unwrap();
     let brick = gpu.upload_brick(&volume, &info, &blocks, object).unwrap();
     assert_eq!(brick.voxel_bytes, (volume.data().len().div_ceil(2) * 4) as u64);
     let whole = gpu.upload(&volume).unwrap();

@@ -1,6 +1,6 @@
-//! Performance options (issue 9) change how the kernels work, never what they compute: AO block
+//! Performance options change how the kernels work, never what they compute: AO block
 //! levels (an AO level of its own, a coarse level), the block-min early exit and the workgroup
-//! shape all give the occlusion and the primary hits of the build before them (`PerfOptions::BEFORE`),
+//! shape all give the occlusion and the primary hits of the build before them (`PerfOptions::PLAIN`),
 //! and the finer AO levels load fewer cells.
 
 mod common;
@@ -21,17 +21,17 @@ fn differences(a: &Frame, b: &Frame, tol: f32) -> (usize, usize) {
 fn performance_options_leave_the_image_unchanged() {
     let Some(mut gpu) = common::gpu() else { return };
     for (name, volume, view, s) in common::perf_scenes() {
-        gpu.set_perf(PerfOptions::BEFORE).unwrap();
+        gpu.set_perf(PerfOptions::PLAIN).unwrap();
         let gv = gpu.upload(&volume).unwrap();
         let before = gpu.render(&gv, &view, &s, None).unwrap().frame;
         assert!(before.hit_count() > 500, "{}: too few hits", name);
         for o in [
             PerfOptions::default(),
-            PerfOptions { ao_block: 4, ..PerfOptions::BEFORE },
+            PerfOptions { ao_block: 4, ..PerfOptions::PLAIN },
             PerfOptions { ao_block: 2, coarse: 16, ..PerfOptions::default() },
-            PerfOptions { coarse: 32, ..PerfOptions::BEFORE },
-            PerfOptions { block_min_exit: true, ..PerfOptions::BEFORE },
-            PerfOptions { workgroup: (16, 4), ..PerfOptions::BEFORE },
+            PerfOptions { coarse: 32, ..PerfOptions::PLAIN },
+            PerfOptions { block_min_exit: true, ..PerfOptions::PLAIN },
+            PerfOptions { workgroup: (16, 4), ..PerfOptions::PLAIN },
             PerfOptions { workgroup: (16, 16), ..PerfOptions::default() },
         ] {
             gpu.set_perf(o).unwrap();

@@ -1,4 +1,4 @@
-//! The GPU renderer against the exact CPU reference (issue "First light"): hit masks agree except on
+//! The GPU renderer against the exact CPU reference: hit masks agree except on
 //! silhouette pixels, median depth error under 0.05 voxel, median normal error under 1 degree.
 //! Also: empty-space skipping changes nothing but the work done; a tile renders exactly the pixels
 //! of the whole image; every AOV is 0 where there is no hit.

@@ -1,4 +1,4 @@
-//! The exact reference's ambient occlusion, bent normal and IBL (issue 3, DESIGN.md "AO", "IBL"):
+//! The exact reference's ambient occlusion, bent normal and IBL (DESIGN.md "AO", "IBL"):
 //!
 //! - on `sphere-over-plane` the AO of plane pixels matches the analytic form factor of the sphere
 //!   (computed at the actual AO ray origin) and its error falls with the sample count;

@@ -182,7 +182,7 @@ pub fn variant_options(name: &str) -> Result<PerfOptions> {
     for part in name.split('+') {
         match part.split_once('=') {
             None if part == "default" => {}
-            None if part == "before" => o = PerfOptions::BEFORE,
+            None if part == "before" => o = PerfOptions::PLAIN,
             Some(("block", v)) => o.block = v.parse().map_err(|_| bad("block is not a whole number"))?,
             Some(("ao", v)) => o.ao_block = v.parse().map_err(|_| bad("ao is not a whole number"))?,
             Some(("coarse", v)) => o.coarse = v.parse().map_err(|_| bad("coarse is not a whole number"))?,
@@ -387,7 +387,7 @@ mod tests {
     #[test]
     fn variant_names_change_the_default() {
         assert_eq!(variant_options("default").unwrap(), PerfOptions::default());
-        assert_eq!(variant_options("before").unwrap(), PerfOptions::BEFORE);
+        assert_eq!(variant_options("before").unwrap(), PerfOptions::PLAIN);
         assert_eq!(variant_options("format=r16").unwrap().format, VoxelFormat::R16);
         let o = variant_options("block=4+ao=2+coarse=8+exit=off+wg=16x4+format=r8").unwrap();
         assert_eq!(

@@ -48,9 +48,9 @@ impl Default for PerfOptions {
 }
 
 impl PerfOptions {
-    /// The options of the build before the performance work (issue 9): blocks of 8 for every ray,
-    /// no coarse level, no early exit, 8x8 workgroups.
-    pub const BEFORE: PerfOptions = PerfOptions {
+    /// The plain kernels, no speed option on: blocks of 8 for every ray, no coarse level, no
+    /// early exit, 8x8 workgroups (`bench suite --variants before` measures them).
+    pub const PLAIN: PerfOptions = PerfOptions {
         block: 8,
         ao_block: 0,
         coarse: 0,
@@ -93,7 +93,7 @@ mod tests {
     #[test]
     fn bad_shapes_are_refused() {
         assert!(PerfOptions::default().validate().is_ok());
-        assert!(PerfOptions::BEFORE.validate().is_ok());
+        assert!(PerfOptions::PLAIN.validate().is_ok());
         for wg in [(0, 8), (32, 16), (8, 0)] {
             assert!(PerfOptions { workgroup: wg, ..Default::default() }.validate().is_err(), "{wg:?}");
         }
@@ -104,9 +104,9 @@ mod tests {
 
     #[test]
     fn flags_follow_the_options() {
-        assert_eq!(PerfOptions::BEFORE.flags(), 0);
+        assert_eq!(PerfOptions::PLAIN.flags(), 0);
         assert_eq!(
-            PerfOptions { block_min_exit: true, ..PerfOptions::BEFORE }.flags(),
+            PerfOptions { block_min_exit: true, ..PerfOptions::PLAIN }.flags(),
             super::super::frame_params::PERF_BLOCK_MIN_EXIT
         );
     }
