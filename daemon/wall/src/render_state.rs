@@ -14,6 +14,11 @@ pub enum Shading {
     BlinnPhong,
 }
 
+impl Shading {
+    /// Every shading model.
+    pub const ALL: [Shading; 2] = [Shading::Lambert, Shading::BlinnPhong];
+}
+
 /// A directional light. `direction` points *towards* the light. When `camera_relative` is set,
 /// `direction` is given in the camera frame (x right, y up, z towards the viewer), so the light
 /// follows the camera: the default, a key light above-left of the viewer.
@@ -137,6 +142,11 @@ pub enum AoMethod {
     Seed,
 }
 
+impl AoMethod {
+    /// Every AO method.
+    pub const ALL: [AoMethod; 2] = [AoMethod::Ours, AoMethod::Seed];
+}
+
 /// The 2D point set the AO directions of ours come from (DESIGN.md "AO"; the formulas are in
 /// `isowall_render::sampling`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
@@ -187,6 +197,11 @@ pub enum IblMethod {
     Bent,
     /// Every escaping AO ray looks up L_env in its own direction: unbiased, no extra tracing.
     Rays,
+}
+
+impl IblMethod {
+    /// Every IBL method.
+    pub const ALL: [IblMethod; 4] = [IblMethod::None, IblMethod::Seed, IblMethod::Bent, IblMethod::Rays];
 }
 
 /// Ambient occlusion and image-based lighting parameters.

@@ -265,6 +265,23 @@ impl TryFrom<WireCamera> for Camera {
     }
 }
 
+// Each enum's wire codes have one home, the encoding `match` below (the compiler checks it names
+// every variant); decoding searches the variants for the code.
+
+/// The variant of `all` whose code is `value`, or the error naming `field`.
+fn decode_code<T: Copy>(
+    all: &[T],
+    code: fn(T) -> u8,
+    field: &'static str,
+    value: u8,
+) -> Result<T, WireError> {
+    all.iter().copied().find(|&v| code(v) == value).ok_or(WireError::UnknownCode {
+        field,
+        value,
+        max: all.iter().map(|&v| code(v)).max().unwrap_or(0),
+    })
+}
+
 fn shading_code(s: Shading) -> u8 {
     match s {
         Shading::Lambert => 0,
@@ -327,18 +344,8 @@ impl TryFrom<WireAo> for AoSettings {
             2 => AoRadius::Unbounded,
             value => return Err(WireError::UnknownCode { field: "settings.ao.radius_kind", value, max: 2 }),
         };
-        let method = match w.method {
-            0 => AoMethod::Ours,
-            1 => AoMethod::Seed,
-            value => return Err(WireError::UnknownCode { field: "settings.ao.method", value, max: 1 }),
-        };
-        let ibl = match w.ibl {
-            0 => IblMethod::None,
-            1 => IblMethod::Seed,
-            2 => IblMethod::Bent,
-            3 => IblMethod::Rays,
-            value => return Err(WireError::UnknownCode { field: "settings.ao.ibl", value, max: 3 }),
-        };
+        let method = decode_code(&AoMethod::ALL, ao_method_code, "settings.ao.method", w.method)?;
+        let ibl = decode_code(&IblMethod::ALL, ibl_code, "settings.ao.ibl", w.ibl)?;
         Ok(AoSettings {
             samples: if w.samples <= crate::render_state::MAX_AO_SAMPLES {
                 w.samples
@@ -355,11 +362,7 @@ impl TryFrom<WireAo> for AoSettings {
             exact: w.exact,
             step_voxels: step("settings.ao.step_voxels", w.step_voxels)?,
             offset_voxels: non_negative("settings.ao.offset_voxels", w.offset_voxels)?,
-            sequence: match w.sequence {
-                0 => AoSequence::R2,
-                1 => AoSequence::Sobol,
-                value => return Err(WireError::UnknownCode { field: "settings.ao.sequence", value, max: 1 }),
-            },
+            sequence: decode_code(&AoSequence::ALL, ao_sequence_code, "settings.ao.sequence", w.sequence)?,
             frame: w.frame,
             seed: w.seed,
         })
@@ -400,11 +403,7 @@ impl From<RenderSettings> for WireSettings {
 impl TryFrom<WireSettings> for RenderSettings {
     type Error = WireError;
     fn try_from(w: WireSettings) -> Result<Self, WireError> {
-        let shading = match w.shading {
-            0 => Shading::Lambert,
-            1 => Shading::BlinnPhong,
-            value => return Err(WireError::UnknownCode { field: "settings.shading", value, max: 1 }),
-        };
+        let shading = decode_code(&Shading::ALL, shading_code, "settings.shading", w.shading)?;
         Ok(RenderSettings {
             iso: finite("settings.iso", w.iso)?,
             step_voxels: step("settings.step_voxels", w.step_voxels)?,
@@ -431,6 +430,23 @@ impl TryFrom<WireSettings> for RenderSettings {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn every_variant_has_its_own_code_and_decodes_back() {
+        fn check<T: Copy + PartialEq + std::fmt::Debug>(all: &[T], code: fn(T) -> u8) {
+            for (i, &v) in all.iter().enumerate() {
+                assert_eq!(decode_code(all, code, "f", code(v)).unwrap(), v);
+                assert!(all[..i].iter().all(|&u| code(u) != code(v)), "{v:?} shares its code");
+            }
+            let max = all.iter().map(|&v| code(v)).max().unwrap();
+            let e = decode_code(all, code, "f", max + 1).unwrap_err();
+            assert!(matches!(e, WireError::UnknownCode { field: "f", max: m, .. } if m == max), "{e:?}");
+        }
+        check(&Shading::ALL, shading_code);
+        check(&AoMethod::ALL, ao_method_code);
+        check(&AoSequence::ALL, ao_sequence_code);
+        check(&IblMethod::ALL, ibl_code);
+    }
 
     fn camera() -> Camera {
         Camera {

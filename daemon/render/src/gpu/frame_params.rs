@@ -80,11 +80,40 @@ pub struct FrameParams {
 /// Performance flag: an AO ray that enters a block whose min >= iso is occluded at once (exact).
 pub const PERF_BLOCK_MIN_EXIT: u32 = 1;
 
-/// The kernels' code of an AO sequence (`ao_point` in shaders/sampling.wgsl).
+// The kernels' enum codes have one home each, these functions; the WGSL constants that name them
+// are checked against them (the tests below).
+
+/// The kernels' code of an AO sequence (`ao_point` in shaders/sampling.wgsl: `AO_SEQUENCE_*`).
 pub fn ao_sequence_code(q: AoSequence) -> u32 {
     match q {
         AoSequence::R2 => 0,
         AoSequence::Sobol => 1,
+    }
+}
+
+/// The kernels' code of a shading model (shaders/shading.wgsl: `SHADING_*`).
+pub fn shading_code(s: Shading) -> u32 {
+    match s {
+        Shading::Lambert => 0,
+        Shading::BlinnPhong => 1,
+    }
+}
+
+/// The kernels' code of an AO method (shaders/ao.wgsl: `AO_*`).
+pub fn ao_method_code(m: AoMethod) -> u32 {
+    match m {
+        AoMethod::Ours => 0,
+        AoMethod::Seed => 1,
+    }
+}
+
+/// The kernels' code of an IBL method (shaders/ao.wgsl: `IBL_*`).
+pub fn ibl_code(m: IblMethod) -> u32 {
+    match m {
+        IblMethod::None => 0,
+        IblMethod::Seed => 1,
+        IblMethod::Bent => 2,
+        IblMethod::Rays => 3,
     }
 }
 
@@ -135,25 +164,14 @@ impl FrameParams {
             full_size: [view.full.0, view.full.1],
             window_origin: [view.window.x, view.window.y],
             window_size: [view.window.width, view.window.height],
-            shading: match s.shading {
-                Shading::Lambert => 0,
-                Shading::BlinnPhong => 1,
-            },
+            shading: shading_code(s.shading),
             iso: s.iso as f32,
             shininess: s.material.shininess as f32,
             refine_steps: REFINE_STEPS,
             max_steps: max_steps.min(u32::MAX as u64) as u32,
             ao_samples: s.ao.samples,
-            ao_method: match s.ao.method {
-                AoMethod::Ours => 0,
-                AoMethod::Seed => 1,
-            },
-            ibl: match s.ao.ibl {
-                IblMethod::None => 0,
-                IblMethod::Seed => 1,
-                IblMethod::Bent => 2,
-                IblMethod::Rays => 3,
-            },
+            ao_method: ao_method_code(s.ao.method),
+            ibl: ibl_code(s.ao.ibl),
             frame: s.ao.frame,
             seed: s.ao.seed,
             ao_radius: s.ao.radius_world(volume.spacing).map_or(-1.0, |r| r as f32),
@@ -189,6 +207,48 @@ mod tests {
     use super::*;
     use crate::shaders::Kernel;
     use std::mem::offset_of;
+
+    /// The u32 value of every named module-scope `const` of `kernel`'s WGSL.
+    fn wgsl_constants(kernel: Kernel) -> std::collections::BTreeMap<String, u32> {
+        let module = crate::shaders::tests::parse(kernel);
+        module
+            .constants
+            .iter()
+            .filter_map(|(_, c)| match module.global_expressions[c.init] {
+                naga::Expression::Literal(naga::Literal::U32(v)) => Some((c.name.clone()?, v)),
+                _ => None,
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_wgsl_constants_carry_the_codes_of_this_module() {
+        let ao = wgsl_constants(Kernel::Ao);
+        let iso = wgsl_constants(Kernel::Isosurface);
+        let mut expected = vec![
+            ("AO_OURS", ao_method_code(AoMethod::Ours)),
+            ("AO_SEED", ao_method_code(AoMethod::Seed)),
+            ("IBL_NONE", ibl_code(IblMethod::None)),
+            ("IBL_SEED", ibl_code(IblMethod::Seed)),
+            ("IBL_BENT", ibl_code(IblMethod::Bent)),
+            ("IBL_RAYS", ibl_code(IblMethod::Rays)),
+            ("AO_SEQUENCE_R2", ao_sequence_code(AoSequence::R2)),
+            ("PERF_BLOCK_MIN_EXIT", PERF_BLOCK_MIN_EXIT),
+        ];
+        for (name, code) in expected.drain(..) {
+            assert_eq!(ao.get(name), Some(&code), "{name} in the AO kernel");
+        }
+        for (name, code) in [
+            ("SHADING_LAMBERT", shading_code(Shading::Lambert)),
+            ("SHADING_BLINN_PHONG", shading_code(Shading::BlinnPhong)),
+            ("FLAG_EMPTY_SPACE_SKIPPING", FLAG_EMPTY_SPACE_SKIPPING),
+        ] {
+            assert_eq!(iso.get(name), Some(&code), "{name} in the isosurface kernel");
+        }
+        // Every variant has its own code.
+        let codes: Vec<u32> = IblMethod::ALL.map(ibl_code).to_vec();
+        assert!(codes.iter().enumerate().all(|(i, c)| !codes[..i].contains(c)), "{codes:?}");
+    }
 
     #[test]
     fn frame_params_layout_matches_the_wgsl_of_every_kernel() {
