@@ -40,8 +40,10 @@ fn owen_scramble(x: u32, seed: u32) -> u32 {
     return reverseBits(owen_permute(reverseBits(x), seed));
 }
 
-// A fixed 32-step loop: a `while bits != 0` form gave wrong points inside the AO kernel's sample
-// loop on lavapipe past ~800 samples (found by tests/ao_truth.rs), though right on its own.
+// A fixed 32-step loop (unrolled by the driver): a `while bits != 0` form gave wrong points inside
+// the AO kernel's sample loop on lavapipe past ~800 samples (found by tests/ao_truth.rs), though
+// right on its own: its iterations counted against lavapipe's budget of 65535 loop iterations per
+// invocation (`AoDispatches` in daemon/render/src/gpu/ao.rs).
 fn sobol_2d(i: u32) -> vec2<u32> {
     var v = 0x80000000u;
     var y = 0u;

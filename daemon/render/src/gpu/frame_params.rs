@@ -75,10 +75,22 @@ pub struct FrameParams {
     pub perf: [u32; 4],
     /// xy: the value range the unorm voxel formats span (lo, hi); zw: 0.
     pub voxel_range: [f32; 4],
+    /// AO dispatches ([`super::ao::AoDispatches`]): x: samples per dispatch (the frame's
+    /// `ao_samples` are split over `ceil(ao_samples / x)` dispatches); y: the exact walk's
+    /// iteration cap per ray; zw: 0.
+    pub ao_pass: [u32; 4],
 }
 
 /// Performance flag: an AO ray that enters a block whose min >= iso is occluded at once (exact).
 pub const PERF_BLOCK_MIN_EXIT: u32 = 1;
+
+/// The kernels' code of an AO method (`AO_OURS`, `AO_SEED` in shaders/ao.wgsl).
+pub fn ao_method_code(m: AoMethod) -> u32 {
+    match m {
+        AoMethod::Ours => 0,
+        AoMethod::Seed => 1,
+    }
+}
 
 /// The kernels' code of an AO sequence (`ao_point` in shaders/sampling.wgsl).
 pub fn ao_sequence_code(q: AoSequence) -> u32 {
@@ -144,10 +156,7 @@ impl FrameParams {
             refine_steps: REFINE_STEPS,
             max_steps: max_steps.min(u32::MAX as u64) as u32,
             ao_samples: s.ao.samples,
-            ao_method: match s.ao.method {
-                AoMethod::Ours => 0,
-                AoMethod::Seed => 1,
-            },
+            ao_method: ao_method_code(s.ao.method),
             ibl: match s.ao.ibl {
                 IblMethod::None => 0,
                 IblMethod::Seed => 1,
@@ -180,6 +189,7 @@ impl FrameParams {
                 0,
             ],
             voxel_range: [volume.value_range.0, volume.value_range.1, 0.0, 0.0],
+            ao_pass: [s.ao.samples.max(1), super::ao::exact_walk_cap(volume, s), 0, 0],
         }
     }
 }
@@ -241,6 +251,7 @@ mod tests {
                     ("coarse", offset_of!(FrameParams, coarse)),
                     ("perf", offset_of!(FrameParams, perf)),
                     ("voxel_range", offset_of!(FrameParams, voxel_range)),
+                    ("ao_pass", offset_of!(FrameParams, ao_pass)),
                 ],
             );
         }
