@@ -10,7 +10,7 @@ use isowall_wall::{AoMethod, RenderSettings};
 pub const MAX_AO_DISPATCHES: u32 = 256;
 
 /// Loop iterations per sample besides the ray's own walk, counted generously: the sample loop's
-/// own, the Sobol point's fixed 32-step loop where the driver does not unroll it, slack.
+/// own and slack (the sampling itself has no loop).
 const SAMPLE_LOOP_EXTRA: u32 = 40;
 
 /// Iterations an invocation may use before the budget's end, kept free (the set-up's loops).
@@ -207,5 +207,58 @@ impl AoKernel {
     ) {
         let bind_group = self.bind(ctx, params, volume, env, io);
         self.pass(enc, &bind_group, size, dispatches, None);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn params(samples: u32, method: AoMethod, exact: bool, walk_cap: u32) -> FrameParams {
+        let mut p: FrameParams = bytemuck::Zeroable::zeroed();
+        p.ao_samples = samples;
+        p.ao_method = super::super::frame_params::ao_method_code(method);
+        p.ao_exact = u32::from(exact);
+        p.ao_pass = [samples.max(1), walk_cap, 0, 0];
+        p.max_steps = 900;
+        p
+    }
+
+    #[test]
+    fn dispatches_fit_the_loop_budget_and_cover_every_sample() {
+        // No budget: one dispatch of every sample, whatever the walk.
+        let mut p = params(1024, AoMethod::Ours, true, 2496);
+        assert_eq!(AoDispatches::split(&mut p, None), AoDispatches { samples: 1024, count: 1 });
+        assert_eq!(p.ao_pass[0], 1024);
+        // lavapipe's budget, the CT's whole-box cap: (65535 - 1024) / (2496 + 40) = 25 per dispatch.
+        let d = AoDispatches::split(&mut p, Some(65535));
+        assert_eq!(d, AoDispatches { samples: 25, count: 41 });
+        assert_eq!(p.ao_pass[0], 25);
+        for (samples, method, exact, cap) in [
+            (32, AoMethod::Ours, true, 172),
+            (256, AoMethod::Ours, true, 172),
+            (4096, AoMethod::Ours, true, 2496),
+            (1000, AoMethod::Ours, false, 0),
+            (1024, AoMethod::Seed, true, 0),
+            (0, AoMethod::Ours, true, 172),
+        ] {
+            let mut p = params(samples, method, exact, cap);
+            let d = AoDispatches::split(&mut p, Some(65535));
+            // Every sample is in exactly one dispatch, none empty, within the cap on dispatches.
+            assert!(d.count >= 1 && d.count <= MAX_AO_DISPATCHES, "{samples} {method:?}: {d:?}");
+            assert!(d.samples * d.count >= samples.max(1) && d.samples * (d.count - 1) < samples.max(1));
+            let per_ray = match (method, exact) {
+                (AoMethod::Seed, _) => SEED_STEPS,
+                (_, true) => cap,
+                (_, false) => 900,
+            };
+            // The worst case fits the budget unless the dispatch cap forced more per dispatch.
+            if d.count < MAX_AO_DISPATCHES {
+                assert!(d.samples * (per_ray + SAMPLE_LOOP_EXTRA) + LOOP_BUDGET_RESERVE <= 65535, "{d:?}");
+            }
+        }
+        // The default radius on a unit-spacing volume fits 256 samples in one dispatch.
+        let mut p = params(256, AoMethod::Ours, true, 172);
+        assert_eq!(AoDispatches::split(&mut p, Some(65535)).count, 1);
     }
 }
