@@ -48,6 +48,11 @@
 @group(0) @binding(7) var<storage, read_write> acc_ibl: array<vec4<f32>>;
 // Trilinear fetches, added to the isosurface kernel's.
 @group(0) @binding(8) var<storage, read_write> out_fetches: array<u32>;
+// x: which of the frame's dispatches this is (a dynamic offset into 0, 1, 2, ...): it takes the
+// samples [x * params.ao_pass.x, (x + 1) * params.ao_pass.x) of the frame's params.ao_samples and
+// adds its share (its samples / all samples) of the frame's estimate (`AoDispatches` in
+// daemon/render/src/gpu/ao.rs: lavapipe ends an invocation's loops past 65535 iterations in all).
+@group(0) @binding(9) var<storage, read> ao_dispatch: vec4<u32>;
 
 const AO_OURS: u32 = 0u;
 const AO_SEED: u32 = 1u;
@@ -165,13 +170,10 @@ fn cell_reaches(c: array<f32, 8>, x0: vec3<f32>, d: vec3<f32>, iso: f32) -> bool
             r.y = select(r.x, g1 / select(1.0, qq, qq != 0.0), qq != 0.0);
         }
     }
-    for (var k = 0u; k < 2u; k += 1u) {
-        let s = r[k];
-        if s > 0.0 && s < 1.0 && cell_blend(c, x0 + s * d) >= iso {
-            return true;
-        }
-    }
-    return false;
+    // Both roots, written out (no loop: lavapipe counts loop iterations against a budget).
+    let in0 = r.x > 0.0 && r.x < 1.0 && cell_blend(c, x0 + r.x * d) >= iso;
+    let in1 = r.y > 0.0 && r.y < 1.0 && cell_blend(c, x0 + r.y * d) >= iso;
+    return in0 || in1;
 }
 
 // A value no ray parameter reaches (WGSL has no infinity).
@@ -198,7 +200,6 @@ fn exact_occluded(o: vec3<f32>, w: vec3<f32>) -> bool {
     let top = max(n - 2, vec3<i32>(0));
     let d1 = select(vec3<i32>(0), vec3<i32>(1), multi);
     let level = ao_level();
-    let nb = max(vec3<i32>(level.counts), vec3<i32>(1));
     // Voxels per unit t; an axis that (practically) does not move is never stepped: its cell
     // still comes from each segment's midpoint.
     let du = w / params.spacing.xyz;
@@ -213,7 +214,8 @@ fn exact_occluded(o: vec3<f32>, w: vec3<f32>) -> bool {
     var next = select(vec3<f32>(T_NEVER), t_init + (plane - u_init) / du_safe, moving);
     // Each pass enters a new cell or leaves a block (plus the odd empty segment where two planes
     // are crossed a rounding error apart).
-    let max_iter = 2u * u32(n.x + n.y + n.z + 4 * (nb.x + nb.y + nb.z)) + 16u;
+    // The host's cap (`exact_walk_cap`: the whole box's, or the radius' where tighter).
+    let max_iter = params.ao_pass.y;
     for (var it = 0u; it < max_iter; it += 1u) {
         let t1 = max(min(min(next.x, next.y), min(next.z, t_end)), t);
         let um = u_init + (0.5 * (t + t1) - t_init) * du;
@@ -358,6 +360,12 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let ns = select(-g.xyz, g.xyz, dot(g.xyz, -dir) >= 0.0);
     let basis = onb(ns);
     let n_samples = params.ao_samples;
+    // This dispatch's samples [first, last) of the frame's n_samples.
+    let first = min(ao_dispatch.x * params.ao_pass.x, n_samples);
+    let last = min(first + params.ao_pass.x, n_samples);
+    if n_samples > 0u && first >= last {
+        return;
+    }
     let want_rays = params.ibl == IBL_RAYS;
     // The bent normal where no ray is open: the hemisphere's axis (N_s for the seed and AO off).
     var axis = ns;
@@ -367,7 +375,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     var rays = vec3<f32>(0.0);
     if params.ao_method == AO_SEED {
         let f_p = field(p);
-        for (var i = 0u; i < n_samples; i += 1u) {
+        for (var i = first; i < last; i += 1u) {
             let u = -1.0 + 2.0 * f32(i) / f32(n_samples);
             let x0 = 2.0 * u - 1.0;
             let r2 = 2.0 * x0 * x0;
@@ -394,7 +402,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         let axis_basis = onb(axis);
         let key = pixel_key(px.x, px.y, params.frame, params.seed);
         let o = p + params.ao_offset * ng;
-        for (var i = 0u; i < n_samples; i += 1u) {
+        for (var i = first; i < last; i += 1u) {
             let w = cosine_direction(axis, axis_basis, ao_point(params.ao_sequence, i, key));
             var hit: bool;
             if params.ao_exact == 1u {
@@ -412,9 +420,14 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             }
         }
     }
+    // This dispatch's A over its own samples; its share of the frame (the dispatches' shares
+    // add up to 1; a single dispatch has share 1 exactly).
+    let taken = last - first;
     var a = 0.0;
+    var share = 1.0;
     if n_samples > 0u {
-        a = f32(occluded) / f32(n_samples);
+        a = f32(occluded) / f32(taken);
+        share = f32(taken) / f32(n_samples);
     }
     let bl = length(bent);
     let bent_n = select(axis, bent / bl, bl > 0.0);
@@ -428,7 +441,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         }
         case IBL_RAYS: {
             if n_samples > 0u {
-                e = rays / f32(n_samples);
+                e = rays / f32(taken);
             } else {
                 e = sh_irradiance(ns);
             }
@@ -437,7 +450,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             e = params.ambient.xyz * (1.0 - a);
         }
     }
-    acc_ao[idx] += vec4<f32>(bent_n, a);
-    acc_ibl[idx] += vec4<f32>(e, 0.0);
+    acc_ao[idx] += share * vec4<f32>(bent_n, a);
+    acc_ibl[idx] += vec4<f32>(share * e, 0.0);
     out_fetches[idx] += fetches;
 }

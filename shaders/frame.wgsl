@@ -49,6 +49,8 @@ struct FrameParams {
     perf: vec4<u32>,         // x: flags (bit 0: an AO ray entering a block with min >= iso is occluded);
                              // y, z: offsets of the AO and coarse levels in block_minmax
     voxel_range: vec4<f32>,  // xy: the value range the unorm voxel formats span (lo, hi); zw: 0
+    ao_pass: vec4<u32>,      // x: AO samples per dispatch (ao.wgsl); y: the exact AO walk's
+                             // iteration cap per ray; zw: 0
 }
 
 const FLAG_EMPTY_SPACE_SKIPPING: u32 = 1u;

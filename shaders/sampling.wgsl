@@ -40,16 +40,19 @@ fn owen_scramble(x: u32, seed: u32) -> u32 {
     return reverseBits(owen_permute(reverseBits(x), seed));
 }
 
-// A fixed 32-step loop: a `while bits != 0` form gave wrong points inside the AO kernel's sample
-// loop on lavapipe past ~800 samples (found by tests/ao_truth.rs), though right on its own.
+// The first two Sobol dimensions of index i: (bit-reversed i, the second dimension), the twin
+// of `sampling::sobol_2d`. The second dimension's direction numbers v_k = (1 + shift)^k of the top
+// bit make its value reverseBits(the superset XOR (GF(2) Moebius) transform of i's bits): five
+// masked shift-xors instead of a loop over 32 bits (no loop: lavapipe counts loop iterations
+// against a budget, see `AoDispatches` in daemon/render/src/gpu/ao.rs).
 fn sobol_2d(i: u32) -> vec2<u32> {
-    var v = 0x80000000u;
-    var y = 0u;
-    for (var k = 0u; k < 32u; k += 1u) {
-        y ^= select(0u, v, ((i >> k) & 1u) != 0u);
-        v ^= v >> 1u;
-    }
-    return vec2<u32>(reverseBits(i), y);
+    var x = i;
+    x ^= (x >> 1u) & 0x55555555u;
+    x ^= (x >> 2u) & 0x33333333u;
+    x ^= (x >> 4u) & 0x0f0f0f0fu;
+    x ^= (x >> 8u) & 0x00ff00ffu;
+    x ^= (x >> 16u) & 0x0000ffffu;
+    return vec2<u32>(reverseBits(i), reverseBits(x));
 }
 
 fn sobol_point(i: u32, key: u32) -> vec2<f32> {

@@ -107,17 +107,17 @@ pub fn owen_scramble(x: u32, seed: u32) -> u32 {
 /// The first two dimensions of the Sobol sequence at index `i`, in 0.32 fixed point.
 #[inline]
 pub fn sobol_2d(i: u32) -> (u32, u32) {
-    let mut v = 0x8000_0000u32;
-    let mut y = 0u32;
-    let mut bits = i;
-    while bits != 0 {
-        if bits & 1 != 0 {
-            y ^= v;
-        }
-        bits >>= 1;
-        v ^= v >> 1;
-    }
-    (i.reverse_bits(), y)
+    // The second dimension is the sum of v_k = (1 + shift)^k (top bit) over i's set bits k, i.e.
+    // I(1 + shift) (top bit) for I(z) = the polynomial of i's bits: over GF(2) the coefficient of
+    // shift^j is the XOR of i's bits k with j a bit-subset of k (Lucas), a superset-XOR transform
+    // in five masked steps; shift^j of the top bit is bit 31 - j, hence the final reversal.
+    let mut x = i;
+    x ^= (x >> 1) & 0x5555_5555;
+    x ^= (x >> 2) & 0x3333_3333;
+    x ^= (x >> 4) & 0x0f0f_0f0f;
+    x ^= (x >> 8) & 0x00ff_00ff;
+    x ^= (x >> 16) & 0x0000_ffff;
+    (i.reverse_bits(), x.reverse_bits())
 }
 
 /// Point `i` of the Owen-scrambled Sobol set of a pixel `key` (module documentation): both
@@ -239,6 +239,25 @@ mod tests {
         assert_eq!(sobol_point(7, 4_225_011_718), p(10_949_349, 12_418_055));
         assert_eq!(ao_point(AoSequence::Sobol, 7, 4_225_011_718), sobol_point(7, 4_225_011_718));
         assert_eq!(ao_point(AoSequence::R2, 7, 4_225_011_718), r2_point(7, 4_225_011_718));
+    }
+
+    #[test]
+    fn sobol_2d_is_the_direction_number_definition() {
+        // The module documentation's XOR of SOBOL_Y[k] over the set bits k, at every index of
+        // 16 bits and at spread-out larger ones.
+        let by_definition = |i: u32| {
+            let (mut v, mut y) = (0x8000_0000u32, 0u32);
+            for k in 0..32 {
+                if (i >> k) & 1 != 0 {
+                    y ^= v;
+                }
+                v ^= v >> 1;
+            }
+            y
+        };
+        for i in (0..=0xffffu32).chain((0..4096u32).map(|k| k.wrapping_mul(0x9e37_79b9))) {
+            assert_eq!(sobol_2d(i), (i.reverse_bits(), by_definition(i)), "index {i}");
+        }
     }
 
     #[test]

@@ -1,15 +1,98 @@
 //! `Kernel::Ao` (shaders/ao.wgsl): ambient occlusion (ours, or the 2008 `seed` baseline), bent
 //! normal and the IBL term of one frame at every hit, added into accumulators.
 
-use super::{frame_entries, storage_entry, GpuContext, GpuError, GpuVolume};
+use super::{frame_entries, storage_entry, FrameParams, GpuContext, GpuError, GpuVolume};
 use crate::shaders::Kernel;
 use isowall_volume::VoxelFormat;
+use isowall_wall::{AoMethod, RenderSettings};
+
+/// The most dispatches one frame's AO samples are split over.
+pub const MAX_AO_DISPATCHES: u32 = 256;
+
+/// Loop iterations per sample besides the ray's own walk, counted generously: the sample loop's
+/// own and slack (the sampling itself has no loop).
+const SAMPLE_LOOP_EXTRA: u32 = 40;
+
+/// Iterations an invocation may use before the budget's end, kept free (the set-up's loops).
+const LOOP_BUDGET_RESERVE: u32 = 1024;
+
+/// The iteration cap of the exact AO walk (`exact_occluded` in shaders/ao.wgsl) for one ray: each
+/// iteration enters a new cell or leaves an empty block (plus the odd empty segment where two cell
+/// planes are crossed a rounding error apart, hence the factor 2). The whole box bounds it; a
+/// radius R bounds it tighter: a segment of length R crosses at most ceil(R / s) + 1 planes of an
+/// axis of spacing s, of cells and of blocks alike.
+pub fn exact_walk_cap(volume: &GpuVolume, s: &RenderSettings) -> u32 {
+    let level_cells = volume.ao_level.map_or(volume.block, |l| l.cells).max(1);
+    let counts = volume.ao_level.map_or(volume.counts, |l| l.counts);
+    let n: u64 = volume.dims.iter().map(|&d| d as u64).sum();
+    let nb: u64 = counts.iter().map(|&c| c.max(1) as u64).sum();
+    let whole_box = 2 * (n + 4 * nb) + 16;
+    let cap = match s.ao.radius_world(volume.spacing) {
+        Some(r) if r.is_finite() && r >= 0.0 => {
+            let planes = |cells: f64| -> u64 {
+                (0..3).map(|a| (r / (volume.spacing[a] * cells)).ceil() as u64 + 2).sum()
+            };
+            whole_box.min(2 * (planes(1.0) + 4 * planes(level_cells as f64)) + 16)
+        }
+        _ => whole_box,
+    };
+    cap.min(u32::MAX as u64) as u32
+}
+
+/// How a frame's AO samples are split over dispatches of the kernel. Mesa's lavapipe (llvmpipe)
+/// ends every loop of an invocation once the invocation's loops together have iterated 65535
+/// times (gallivm's `LP_MAX_TGSI_LOOP_ITERATIONS`, one counter shared by all loops of the
+/// shader): past it, each loop runs its body once and leaves, silently. A pixel with many samples
+/// of long rays (the CT at an unbounded radius: ~1024 samples of ~60 cells) reached it, its later
+/// rays came back "open" and its occlusion low. Where the device has such a budget, each dispatch
+/// takes only as many samples as the budget holds in the worst case (every ray at its iteration
+/// cap); the dispatches add their share of the frame's estimate, so the sum is the frame's.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct AoDispatches {
+    /// Samples per dispatch (the last may take fewer).
+    pub samples: u32,
+    /// Dispatches per frame.
+    pub count: u32,
+}
+
+impl AoDispatches {
+    /// Splits `params`' samples for a device whose invocations may iterate `budget` times in all
+    /// (`None`: no limit, one dispatch), and writes the samples per dispatch into `params`.
+    pub fn split(params: &mut FrameParams, budget: Option<u32>) -> AoDispatches {
+        let total = params.ao_samples.max(1);
+        let per_ray = if params.ao_method == super::frame_params::ao_method_code(AoMethod::Seed) {
+            SEED_STEPS
+        } else if params.ao_exact == 1 {
+            params.ao_pass[1]
+        } else {
+            params.max_steps
+        };
+        let samples = match budget {
+            None => total,
+            Some(b) => {
+                let per_sample = per_ray.saturating_add(SAMPLE_LOOP_EXTRA).max(1);
+                (b.saturating_sub(LOOP_BUDGET_RESERVE) / per_sample).max(1)
+            }
+        };
+        // At most MAX_AO_DISPATCHES (past it the budget may run out on the worst rays).
+        let samples = samples.max(total.div_ceil(MAX_AO_DISPATCHES)).min(total);
+        params.ao_pass[0] = samples;
+        AoDispatches { samples, count: total.div_ceil(samples) }
+    }
+}
+
+/// The seed's march length per ray (shaders/ao.wgsl `seed_occluded`), plus one.
+const SEED_STEPS: u32 = 91;
 
 /// The compiled kernel.
 pub struct AoKernel {
     pipeline: wgpu::ComputePipeline,
     layout: wgpu::BindGroupLayout,
     workgroup: (u32, u32),
+    /// The dispatch indices 0..MAX_AO_DISPATCHES, one per `dispatch_stride` bytes, bound at 9
+    /// with a dynamic offset.
+    dispatch_index: wgpu::Buffer,
+    dispatch_stride: u32,
 }
 
 impl AoKernel {
@@ -25,9 +108,30 @@ impl AoKernel {
             storage_entry(6, false),
             storage_entry(7, false),
             storage_entry(8, false),
+            wgpu::BindGroupLayoutEntry {
+                binding: 9,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Buffer {
+                    ty: wgpu::BufferBindingType::Storage { read_only: true },
+                    has_dynamic_offset: true,
+                    min_binding_size: wgpu::BufferSize::new(16),
+                },
+                count: None,
+            },
         ];
         let (pipeline, layout) = ctx.pipeline(Kernel::Ao, &entries, workgroup, format)?;
-        Ok(AoKernel { pipeline, layout, workgroup })
+        let dispatch_stride = ctx.device.limits().min_storage_buffer_offset_alignment.max(16);
+        let mut indices = vec![0u8; (dispatch_stride * MAX_AO_DISPATCHES) as usize];
+        for k in 0..MAX_AO_DISPATCHES {
+            let at = (k * dispatch_stride) as usize;
+            indices[at..at + 4].copy_from_slice(&k.to_le_bytes());
+        }
+        let dispatch_index = ctx.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("ao dispatch index"),
+            contents: &indices,
+            usage: wgpu::BufferUsages::STORAGE,
+        });
+        Ok(AoKernel { pipeline, layout, workgroup, dispatch_index, dispatch_stride })
     }
 
     /// The bind group of the kernel's inputs and `io` (as [`AoKernel::encode`] takes them), made
@@ -41,18 +145,50 @@ impl AoKernel {
         io: [&wgpu::Buffer; 5],
     ) -> wgpu::BindGroup {
         let buffers = [params, &volume.voxels, &volume.block_minmax, io[0], io[1], env, io[2], io[3], io[4]];
-        super::bind_buffers(ctx, &self.layout, "ao", &buffers)
+        let mut entries: Vec<wgpu::BindGroupEntry> = buffers
+            .iter()
+            .enumerate()
+            .map(|(i, b)| wgpu::BindGroupEntry { binding: i as u32, resource: b.as_entire_binding() })
+            .collect();
+        entries.push(wgpu::BindGroupEntry {
+            binding: 9,
+            resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                buffer: &self.dispatch_index,
+                offset: 0,
+                size: wgpu::BufferSize::new(16),
+            }),
+        });
+        ctx.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("ao"),
+            layout: &self.layout,
+            entries: &entries,
+        })
     }
 
-    /// Records one frame of the kernel over a `size` window with a bind group from [`AoKernel::bind`].
+    /// Records one frame of the kernel over a `size` window with a bind group from
+    /// [`AoKernel::bind`]: `dispatches.count` dispatches, each adding its share of the samples.
+    /// `timestamps` bracket them all (the first's beginning, the last's end).
     pub(crate) fn pass(
         &self,
         enc: &mut wgpu::CommandEncoder,
         bind_group: &wgpu::BindGroup,
         size: (u32, u32),
+        dispatches: AoDispatches,
         timestamps: Option<wgpu::ComputePassTimestampWrites>,
     ) {
-        super::pass(enc, &self.pipeline, bind_group, "ao", size, self.workgroup, timestamps);
+        let count = dispatches.count.clamp(1, MAX_AO_DISPATCHES);
+        for k in 0..count {
+            let timestamp_writes = timestamps.as_ref().map(|t| wgpu::ComputePassTimestampWrites {
+                query_set: t.query_set,
+                beginning_of_pass_write_index: if k == 0 { t.beginning_of_pass_write_index } else { None },
+                end_of_pass_write_index: if k + 1 == count { t.end_of_pass_write_index } else { None },
+            });
+            let mut pass =
+                enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("ao"), timestamp_writes });
+            pass.set_pipeline(&self.pipeline);
+            pass.set_bind_group(0, bind_group, &[k * self.dispatch_stride]);
+            pass.dispatch_workgroups(size.0.div_ceil(self.workgroup.0), size.1.div_ceil(self.workgroup.1), 1);
+        }
     }
 
     /// Records one frame of the kernel over a `size` window. `io` is (direct + hit, N + depth,
@@ -67,8 +203,62 @@ impl AoKernel {
         env: &wgpu::Buffer,
         io: [&wgpu::Buffer; 5],
         size: (u32, u32),
+        dispatches: AoDispatches,
     ) {
         let bind_group = self.bind(ctx, params, volume, env, io);
-        self.pass(enc, &bind_group, size, None);
+        self.pass(enc, &bind_group, size, dispatches, None);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn params(samples: u32, method: AoMethod, exact: bool, walk_cap: u32) -> FrameParams {
+        let mut p: FrameParams = bytemuck::Zeroable::zeroed();
+        p.ao_samples = samples;
+        p.ao_method = super::super::frame_params::ao_method_code(method);
+        p.ao_exact = u32::from(exact);
+        p.ao_pass = [samples.max(1), walk_cap, 0, 0];
+        p.max_steps = 900;
+        p
+    }
+
+    #[test]
+    fn dispatches_fit_the_loop_budget_and_cover_every_sample() {
+        // No budget: one dispatch of every sample, whatever the walk.
+        let mut p = params(1024, AoMethod::Ours, true, 2496);
+        assert_eq!(AoDispatches::split(&mut p, None), AoDispatches { samples: 1024, count: 1 });
+        assert_eq!(p.ao_pass[0], 1024);
+        // lavapipe's budget, the CT's whole-box cap: (65535 - 1024) / (2496 + 40) = 25 per dispatch.
+        let d = AoDispatches::split(&mut p, Some(65535));
+        assert_eq!(d, AoDispatches { samples: 25, count: 41 });
+        assert_eq!(p.ao_pass[0], 25);
+        for (samples, method, exact, cap) in [
+            (32, AoMethod::Ours, true, 172),
+            (256, AoMethod::Ours, true, 172),
+            (4096, AoMethod::Ours, true, 2496),
+            (1000, AoMethod::Ours, false, 0),
+            (1024, AoMethod::Seed, true, 0),
+            (0, AoMethod::Ours, true, 172),
+        ] {
+            let mut p = params(samples, method, exact, cap);
+            let d = AoDispatches::split(&mut p, Some(65535));
+            // Every sample is in exactly one dispatch, none empty, within the cap on dispatches.
+            assert!(d.count >= 1 && d.count <= MAX_AO_DISPATCHES, "{samples} {method:?}: {d:?}");
+            assert!(d.samples * d.count >= samples.max(1) && d.samples * (d.count - 1) < samples.max(1));
+            let per_ray = match (method, exact) {
+                (AoMethod::Seed, _) => SEED_STEPS,
+                (_, true) => cap,
+                (_, false) => 900,
+            };
+            // The worst case fits the budget unless the dispatch cap forced more per dispatch.
+            if d.count < MAX_AO_DISPATCHES {
+                assert!(d.samples * (per_ray + SAMPLE_LOOP_EXTRA) + LOOP_BUDGET_RESERVE <= 65535, "{d:?}");
+            }
+        }
+        // The default radius on a unit-spacing volume fits 256 samples in one dispatch.
+        let mut p = params(256, AoMethod::Ours, true, 172);
+        assert_eq!(AoDispatches::split(&mut p, Some(65535)).count, 1);
     }
 }

@@ -75,6 +75,10 @@ pub struct FrameParams {
     pub perf: [u32; 4],
     /// xy: the value range the unorm voxel formats span (lo, hi); zw: 0.
     pub voxel_range: [f32; 4],
+    /// AO dispatches ([`super::ao::AoDispatches`]): x: samples per dispatch (the frame's
+    /// `ao_samples` are split over `ceil(ao_samples / x)` dispatches); y: the exact walk's
+    /// iteration cap per ray; zw: 0.
+    pub ao_pass: [u32; 4],
 }
 
 /// Performance flag: an AO ray that enters a block whose min >= iso is occluded at once (exact).
@@ -198,6 +202,7 @@ impl FrameParams {
                 0,
             ],
             voxel_range: [volume.value_range.0, volume.value_range.1, 0.0, 0.0],
+            ao_pass: [s.ao.samples.max(1), super::ao::exact_walk_cap(volume, s), 0, 0],
         }
     }
 }
@@ -301,6 +306,7 @@ mod tests {
                     ("coarse", offset_of!(FrameParams, coarse)),
                     ("perf", offset_of!(FrameParams, perf)),
                     ("voxel_range", offset_of!(FrameParams, voxel_range)),
+                    ("ao_pass", offset_of!(FrameParams, ao_pass)),
                 ],
             );
         }

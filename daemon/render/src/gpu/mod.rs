@@ -159,6 +159,16 @@ impl GpuContext {
         Ok(GpuContext { device, queue, info, instance, adapter, traffic: GpuTraffic::default() })
     }
 
+    /// How many loop iterations one invocation of a kernel may make in all, where the driver
+    /// ends its loops past a budget: Mesa's llvmpipe (lavapipe) does at 65535 (gallivm's
+    /// `LP_MAX_TGSI_LOOP_ITERATIONS`, shared by every loop of the shader), silently. `None`: no
+    /// such limit (every other driver: Vulkan requires loops to run to their end).
+    pub fn loop_budget(&self) -> Option<u32> {
+        let llvmpipe =
+            self.info.driver.eq_ignore_ascii_case("llvmpipe") || self.info.name.starts_with("llvmpipe");
+        llvmpipe.then_some(65535)
+    }
+
     /// `device.create_buffer`, counted.
     pub fn create_buffer(&self, desc: &wgpu::BufferDescriptor) -> wgpu::Buffer {
         self.traffic.allocations.fetch_add(1, Ordering::Relaxed);
@@ -756,6 +766,7 @@ impl GpuRenderer {
             if with_ao {
                 for k in 0..frames {
                     params.frame = settings.ao.frame.wrapping_add(k);
+                    let dispatches = ao::AoDispatches::split(&mut params, self.ctx.loop_budget());
                     uniforms.push(uniform(&params));
                     let u = uniforms.last().expect("just pushed");
                     self.ao.encode(
@@ -766,6 +777,7 @@ impl GpuRenderer {
                         &env.texels,
                         [&buffers[0], &buffers[1], &buffers[3], &buffers[4], &buffers[2]],
                         (w, h),
+                        dispatches,
                     );
                 }
             }

@@ -331,6 +331,7 @@ impl GpuRenderer {
         let with_ao = s.ao.samples > 0 || s.ao.ibl != IblMethod::None;
         let mut params = FrameParams::new(frame.volume, &low, s, env);
         params.perf[0] = self.perf.flags();
+        let dispatches = super::ao::AoDispatches::split(&mut params, ctx.loop_budget());
         let mut key = params;
         key.frame = 0;
         let state = (key, frame.volume.id, env.id);
@@ -389,7 +390,7 @@ impl GpuRenderer {
                 enc.clear_buffer(&tile.aov[2], 0, None);
             }
             if with_ao {
-                self.ao.pass(&mut enc, &bound.ao, low_size, ts(1));
+                self.ao.pass(&mut enc, &bound.ao, low_size, dispatches, ts(1));
             }
             enc.clear_buffer(&tile.counters, 0, None);
             self.compose.pass(&mut enc, &tile.compose[back], tile.size, ts(2));
