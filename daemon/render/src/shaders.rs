@@ -105,6 +105,78 @@ pub fn source_with_workgroup(kernel: Kernel, workgroup: (u32, u32)) -> String {
 pub(crate) mod tests {
     use super::*;
 
+    /// What a binding holds, as a layout entry or naga's reflection of the WGSL says.
+    #[derive(Debug, PartialEq)]
+    enum BindingKind {
+        Storage { read_only: bool },
+        Uniform,
+        StorageTexture,
+        Texture,
+        Sampler,
+    }
+
+    /// The bindings of group 0 that `kernel`'s WGSL declares, by naga.
+    fn reflected(kernel: Kernel) -> std::collections::BTreeMap<u32, BindingKind> {
+        let module = parse(kernel);
+        module
+            .global_variables
+            .iter()
+            .filter_map(|(_, g)| {
+                let rb = g.binding.as_ref()?;
+                assert_eq!(rb.group, 0, "{}: group {}", kernel.file_name(), rb.group);
+                let kind = match g.space {
+                    naga::AddressSpace::Storage { access } => {
+                        BindingKind::Storage { read_only: !access.contains(naga::StorageAccess::STORE) }
+                    }
+                    naga::AddressSpace::Uniform => BindingKind::Uniform,
+                    _ => match module.types[g.ty].inner {
+                        naga::TypeInner::Image { class: naga::ImageClass::Storage { .. }, .. } => {
+                            BindingKind::StorageTexture
+                        }
+                        naga::TypeInner::Image { .. } => BindingKind::Texture,
+                        naga::TypeInner::Sampler { .. } => BindingKind::Sampler,
+                        ref other => panic!("{}: binding {} is a {other:?}", kernel.file_name(), rb.binding),
+                    },
+                };
+                Some((rb.binding, kind))
+            })
+            .collect()
+    }
+
+    /// The bindings a layout's entries declare.
+    fn declared(entries: &[wgpu::BindGroupLayoutEntry]) -> std::collections::BTreeMap<u32, BindingKind> {
+        entries
+            .iter()
+            .map(|e| {
+                let kind = match e.ty {
+                    wgpu::BindingType::Buffer {
+                        ty: wgpu::BufferBindingType::Storage { read_only }, ..
+                    } => BindingKind::Storage { read_only },
+                    wgpu::BindingType::Buffer { ty: wgpu::BufferBindingType::Uniform, .. } => {
+                        BindingKind::Uniform
+                    }
+                    wgpu::BindingType::StorageTexture { .. } => BindingKind::StorageTexture,
+                    wgpu::BindingType::Texture { .. } => BindingKind::Texture,
+                    wgpu::BindingType::Sampler(_) => BindingKind::Sampler,
+                    ref other => panic!("binding {}: {other:?}", e.binding),
+                };
+                (e.binding, kind)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn every_compute_kernels_bind_group_layout_is_what_its_wgsl_declares() {
+        use crate::gpu::{ao::AoKernel, compose::ComposeKernel, isosurface::IsosurfaceKernel};
+        for (kernel, entries) in [
+            (Kernel::Isosurface, IsosurfaceKernel::entries()),
+            (Kernel::Ao, AoKernel::entries()),
+            (Kernel::Compose, ComposeKernel::entries()),
+        ] {
+            assert_eq!(declared(&entries), reflected(kernel), "{}", kernel.file_name());
+        }
+    }
+
     /// Parses and validates a kernel with naga, panicking with the shader's own diagnostics.
     pub(crate) fn parse(kernel: Kernel) -> naga::Module {
         let src = source(kernel);

@@ -96,9 +96,11 @@ pub struct AoKernel {
 }
 
 impl AoKernel {
-    pub fn new(ctx: &GpuContext, workgroup: (u32, u32), format: VoxelFormat) -> Result<AoKernel, GpuError> {
+    /// The bind group layout: the frame's inputs (0-2), the primary hits, the accumulators and the
+    /// pass's sample range (a test holds it to naga's reflection of the WGSL).
+    pub(crate) fn entries() -> Vec<wgpu::BindGroupLayoutEntry> {
         let [e0, e1, e2] = frame_entries();
-        let entries = [
+        vec![
             e0,
             e1,
             e2,
@@ -118,7 +120,11 @@ impl AoKernel {
                 },
                 count: None,
             },
-        ];
+        ]
+    }
+
+    pub fn new(ctx: &GpuContext, workgroup: (u32, u32), format: VoxelFormat) -> Result<AoKernel, GpuError> {
+        let entries = Self::entries();
         let (pipeline, layout) = ctx.pipeline(Kernel::Ao, &entries, workgroup, format)?;
         let dispatch_stride = ctx.device.limits().min_storage_buffer_offset_alignment.max(16);
         let mut indices = vec![0u8; (dispatch_stride * MAX_AO_DISPATCHES) as usize];

@@ -58,8 +58,10 @@ pub struct ComposeKernel {
 }
 
 impl ComposeKernel {
-    pub fn new(ctx: &GpuContext, workgroup: (u32, u32)) -> Result<ComposeKernel, GpuError> {
-        let entries = [
+    /// The bind group layout: the low window's inputs, the image written, depth and counters (a
+    /// test holds it to naga's reflection of the WGSL).
+    pub(crate) fn entries() -> Vec<wgpu::BindGroupLayoutEntry> {
+        vec![
             storage_entry(0, true),
             storage_entry(1, true),
             storage_entry(2, true),
@@ -77,7 +79,11 @@ impl ComposeKernel {
             },
             storage_entry(6, false),
             storage_entry(7, false),
-        ];
+        ]
+    }
+
+    pub fn new(ctx: &GpuContext, workgroup: (u32, u32)) -> Result<ComposeKernel, GpuError> {
+        let entries = Self::entries();
         // The voxel format is a constant of the volume kernels only.
         let (pipeline, layout) = ctx.pipeline(Kernel::Compose, &entries, workgroup, VoxelFormat::R32F)?;
         Ok(ComposeKernel { pipeline, layout, workgroup })

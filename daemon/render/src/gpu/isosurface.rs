@@ -13,14 +13,19 @@ pub struct IsosurfaceKernel {
 }
 
 impl IsosurfaceKernel {
+    /// The bind group layout: the frame's inputs (0-2), then the three outputs (a test holds it
+    /// to naga's reflection of the WGSL).
+    pub(crate) fn entries() -> Vec<wgpu::BindGroupLayoutEntry> {
+        let [e0, e1, e2] = frame_entries();
+        vec![e0, e1, e2, storage_entry(3, false), storage_entry(4, false), storage_entry(5, false)]
+    }
+
     pub fn new(
         ctx: &GpuContext,
         workgroup: (u32, u32),
         format: VoxelFormat,
     ) -> Result<IsosurfaceKernel, GpuError> {
-        let [e0, e1, e2] = frame_entries();
-        let entries = [e0, e1, e2, storage_entry(3, false), storage_entry(4, false), storage_entry(5, false)];
-        let (pipeline, layout) = ctx.pipeline(Kernel::Isosurface, &entries, workgroup, format)?;
+        let (pipeline, layout) = ctx.pipeline(Kernel::Isosurface, &Self::entries(), workgroup, format)?;
         Ok(IsosurfaceKernel { pipeline, layout, workgroup })
     }
 
