@@ -1,5 +1,6 @@
 //! Volume file readers. The format is chosen by the file name: `.nrrd`/`.nhdr` (NRRD), `.mhd`/`.mha`
-//! (MetaImage), `.nii`/`.nii.gz`/`.hdr` (NIfTI-1); anything else is raw and needs a [`RawSpec`].
+//! (MetaImage), `.nii`/`.nii.gz`/`.hdr` (NIfTI-1), a folder, `.dcm`/`.dicom`/`.ima` or a file with
+//! DICOM's magic (a DICOM series, [`dicom`]); anything else is raw and needs a [`RawSpec`].
 //! Every error names the file and what is wrong with it; nothing here panics on bad input.
 //! Voxel values are kept in the data's own units (no rescaling except NIfTI's scl_slope/inter),
 //! converted to `f32`: 32-bit integers beyond 2^24 and doubles lose precision, doubles beyond the
@@ -19,6 +20,8 @@
 //!   compression bomb costs no more than the data really there;
 //! - NaN and Inf voxels are refused ([`VolumeError::NonFinite`], naming the file).
 
+pub mod dicom;
+pub mod dicom_write;
 pub mod metaimage;
 pub mod nifti;
 pub mod nrrd;
@@ -116,11 +119,20 @@ enum FileFormat {
     Nrrd,
     MetaImage,
     Nifti,
+    Dicom,
 }
 
 impl FileFormat {
-    /// The format a file name says (case-insensitive); anything unknown is raw.
+    /// The format a file name says (case-insensitive); a folder or a file with DICOM's magic is
+    /// DICOM; anything else unknown is raw.
     fn of(path: &Path) -> FileFormat {
+        match FileFormat::by_name(path) {
+            FileFormat::Raw if dicom::is_dicom(path) => FileFormat::Dicom,
+            f => f,
+        }
+    }
+
+    fn by_name(path: &Path) -> FileFormat {
         let name = path.file_name().map(|n| n.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
         let ends = |exts: &[&str]| exts.iter().any(|e| name.ends_with(e));
         if ends(&[".nrrd", ".nhdr"]) {
@@ -129,6 +141,8 @@ impl FileFormat {
             FileFormat::MetaImage
         } else if ends(&[".nii", ".nii.gz", ".hdr"]) {
             FileFormat::Nifti
+        } else if ends(&[".dcm", ".dicom", ".ima"]) {
+            FileFormat::Dicom
         } else {
             FileFormat::Raw
         }
@@ -149,11 +163,12 @@ pub fn load(path: &Path, raw: Option<&RawSpec>) -> Result<Volume, VolumeError> {
         FileFormat::Nrrd => nrrd::read(path),
         FileFormat::MetaImage => metaimage::read(path),
         FileFormat::Nifti => nifti::read(path),
+        FileFormat::Dicom => dicom::read(path, None),
         FileFormat::Raw => match raw {
             Some(spec) => raw::read(path, spec),
             None => Err(format_err(
                 path,
-                "not a known volume format (.nrrd, .nhdr, .mhd, .mha, .nii, .nii.gz, .hdr), so it is read as \
+                "not a known volume format (.nrrd, .nhdr, .mhd, .mha, .nii, .nii.gz, .hdr, DICOM), so it is read as \
                  raw voxels; a raw volume needs --dims NX,NY,NZ, --type and --spacing SX,SY,SZ",
             )),
         },
@@ -192,6 +207,8 @@ pub(crate) fn plan(
             Ok(Some((plan, spec.spacing, DVec3::ZERO)))
         }
         FileFormat::MetaImage | FileFormat::Nifti => Ok(None),
+        // Read slice by slice through `Series` (crate::region), not through a file plan.
+        FileFormat::Dicom => Ok(None),
     }
 }
 
@@ -872,6 +889,7 @@ mod tests {
         assert_eq!(of("engine.raw"), FileFormat::Raw);
         assert_eq!(of("nrrd"), FileFormat::Raw);
         assert_eq!(of("x.nii.gz.bak"), FileFormat::Raw);
+        assert_eq!(of("ct/IM0001.DCM"), FileFormat::Dicom);
     }
 
     #[test]
