@@ -186,6 +186,8 @@ impl VolumeSource {
             VolumeSource::DicomSeries { path, series } => {
                 Ok(VolumeStream::dicom(crate::io::dicom::Series::open(path, Some(series))?, path))
             }
+            VolumeSource::Steps(_) => Err(time_series_refused(self)),
+            VolumeSource::File(path) if crate::io::time_steps(path)? > 1 => Err(time_series_refused(self)),
             VolumeSource::File(path) if crate::io::dicom::is_dicom(path) => {
                 Ok(VolumeStream::dicom(crate::io::dicom::Series::open(path, None)?, path))
             }
@@ -212,6 +214,14 @@ impl VolumeSource {
             },
         }
     }
+}
+
+/// Object space reads one volume: time-varying sources are refused.
+fn time_series_refused(source: &VolumeSource) -> VolumeError {
+    VolumeError::Source(format!(
+        "{source}: a time-varying volume cannot be split into bricks (object space); render it on a \
+         screen-space wall or choose one step"
+    ))
 }
 
 impl VolumeStream {

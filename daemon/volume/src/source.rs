@@ -1,5 +1,9 @@
-//! Where a volume comes from: `PATH`, `PATH?series=UID` (one series of a DICOM folder) or
+//! Where a volume comes from: `PATH`, `PATH?series=UID` (one series of a DICOM folder),
+//! `DIR/step_*.nrrd` (time steps: the files matching a glob, sorted by name) or
 //! `procedural:NAME[:N]`, as given on the command line and in wall configs.
+//!
+//! Time-varying volumes: a glob names one file per time step; a 4-D NIfTI or NRRD file holds its
+//! steps itself. [`VolumeSource::time_steps`] counts them, [`VolumeSource::load_step`] reads one.
 
 use crate::io::RawSpec;
 use crate::procedural::Procedural;
@@ -13,6 +17,9 @@ pub enum VolumeSource {
     File(PathBuf),
     /// One series of a DICOM folder (or of the folder of the file named): `PATH?series=UID`.
     DicomSeries { path: PathBuf, series: String },
+    /// Time steps: the files matching a glob pattern (`*`, `?`, `[...]`), sorted by name, one step
+    /// each.
+    Steps(String),
     /// A built-in volume, with an optional size (the largest dimension; default per volume).
     Procedural { kind: Procedural, size: Option<usize> },
 }
@@ -37,6 +44,8 @@ impl FromStr for VolumeSource {
             Ok(VolumeSource::Procedural { kind, size })
         } else if s.is_empty() {
             Err(VolumeError::Source("empty volume source".into()))
+        } else if s.contains('*') {
+            Ok(VolumeSource::Steps(s.to_string()))
         } else if let Some((path, series)) = s.rsplit_once(SERIES_SELECTOR) {
             if path.is_empty() || series.is_empty() {
                 return Err(VolumeError::Source(format!("{s}: expected PATH?series=UID")));
@@ -71,20 +80,77 @@ impl VolumeSource {
         VolumeSource::Procedural { kind: Procedural::Engine, size: None }
     }
 
-    /// Loads or generates the volume.
+    /// Loads or generates the volume (its first time step).
     pub fn load(&self, raw: Option<&RawSpec>) -> Result<Volume, VolumeError> {
+        self.load_step(raw, 0)
+    }
+
+    /// Loads time step `step` (see the module's notes); a source without time steps has step 0.
+    pub fn load_step(&self, raw: Option<&RawSpec>, step: usize) -> Result<Volume, VolumeError> {
+        let only_one = |name: &str| {
+            if step == 0 {
+                Ok(())
+            } else {
+                Err(VolumeError::Source(format!("{name} has no time step {step}: it has one (0)")))
+            }
+        };
         match self {
-            VolumeSource::File(p) => crate::io::load(p, raw),
-            VolumeSource::DicomSeries { path, series } => crate::io::dicom::read(path, Some(series)),
-            VolumeSource::Procedural { kind, size } => Ok(kind.generate(*size)),
+            VolumeSource::File(p) => crate::io::load_step(p, raw, step),
+            VolumeSource::DicomSeries { path, series } => {
+                only_one(&self.to_string())?;
+                crate::io::dicom::read(path, Some(series))
+            }
+            VolumeSource::Steps(pattern) => {
+                let files = self.step_files()?;
+                let Some(file) = files.get(step) else {
+                    return Err(VolumeError::Source(format!(
+                        "{pattern} has no time step {step}: it matches {} files (steps 0 to {})",
+                        files.len(),
+                        files.len() - 1
+                    )));
+                };
+                crate::io::load(file, raw)
+            }
+            VolumeSource::Procedural { kind, size } => {
+                only_one(&self.to_string())?;
+                Ok(kind.generate(*size))
+            }
         }
+    }
+
+    /// The number of time steps (1 for a volume that does not change).
+    pub fn time_steps(&self) -> Result<usize, VolumeError> {
+        match self {
+            VolumeSource::File(p) => crate::io::time_steps(p),
+            VolumeSource::Steps(_) => Ok(self.step_files()?.len()),
+            VolumeSource::DicomSeries { .. } | VolumeSource::Procedural { .. } => Ok(1),
+        }
+    }
+
+    /// The files of a [`VolumeSource::Steps`] glob, sorted by name (at least one).
+    pub fn step_files(&self) -> Result<Vec<PathBuf>, VolumeError> {
+        let VolumeSource::Steps(pattern) = self else { return Ok(Vec::new()) };
+        let paths = glob::glob(pattern)
+            .map_err(|e| VolumeError::Source(format!("{pattern}: not a valid file pattern: {e}")))?;
+        let mut files = Vec::new();
+        for p in paths {
+            let p = p.map_err(|e| VolumeError::Io { path: e.path().to_path_buf(), source: e.into() })?;
+            if p.is_file() {
+                files.push(p);
+            }
+        }
+        files.sort();
+        if files.is_empty() {
+            return Err(VolumeError::Source(format!("{pattern}: no file matches the pattern")));
+        }
+        Ok(files)
     }
 
     /// The iso value to use when none is given: the procedural volume's own, else `None`.
     pub fn natural_iso(&self) -> Option<f64> {
         match self {
             VolumeSource::Procedural { kind, .. } => Some(kind.natural_iso()),
-            VolumeSource::File(_) | VolumeSource::DicomSeries { .. } => None,
+            VolumeSource::File(_) | VolumeSource::DicomSeries { .. } | VolumeSource::Steps(_) => None,
         }
     }
 }
@@ -93,6 +159,7 @@ impl std::fmt::Display for VolumeSource {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
             VolumeSource::File(p) => write!(f, "{}", p.display()),
+            VolumeSource::Steps(pattern) => write!(f, "{pattern}"),
             VolumeSource::DicomSeries { path, series } => {
                 write!(f, "{}{SERIES_SELECTOR}{series}", path.display())
             }
@@ -128,5 +195,31 @@ mod tests {
         let chosen = VolumeSource::File("ct".into()).with_series(Some("9.8")).unwrap();
         assert_eq!(chosen.to_string(), "ct?series=9.8");
         assert!(VolumeSource::default_engine().with_series(Some("9.8")).is_err());
+    }
+
+    #[test]
+    fn a_glob_names_time_steps_in_file_name_order() {
+        let dir = tempfile::tempdir().unwrap();
+        for (name, value) in
+            [("step_0010.nrrd", 3u8), ("step_0002.nrrd", 1), ("step_0003.nrrd", 2), ("other.nrrd", 9)]
+        {
+            let text = format!("NRRD0004\ntype: uchar\ndimension: 3\nsizes: 2 1 1\nencoding: raw\n\n");
+            let mut bytes = text.into_bytes();
+            bytes.extend([value, value]);
+            std::fs::write(dir.path().join(name), bytes).unwrap();
+        }
+        let pattern = format!("{}/step_*.nrrd", dir.path().display());
+        let s: VolumeSource = pattern.parse().unwrap();
+        assert_eq!(s, VolumeSource::Steps(pattern.clone()));
+        assert_eq!(s.time_steps().unwrap(), 3);
+        let firsts: Vec<f32> = (0..3).map(|k| s.load_step(None, k).unwrap().data()[0]).collect();
+        assert_eq!(firsts, [1.0, 2.0, 3.0]);
+        let e = s.load_step(None, 3).unwrap_err().to_string();
+        assert!(e.contains("no time step 3: it matches 3 files"), "{e}");
+        let none: VolumeSource = format!("{}/nothing_*.nrrd", dir.path().display()).parse().unwrap();
+        assert!(none.time_steps().unwrap_err().to_string().contains("no file matches"));
+        let e = VolumeSource::default_engine().load_step(None, 1).unwrap_err().to_string();
+        assert!(e.contains("has no time step 1"), "{e}");
+        assert!(s.stream(None).err().unwrap().to_string().contains("time-varying"));
     }
 }

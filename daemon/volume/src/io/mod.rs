@@ -150,8 +150,14 @@ impl FileFormat {
 }
 
 /// Reads a volume file, choosing the reader by the file name. `raw` is needed for raw files and
-/// ignored (with a warning) for the self-describing formats.
+/// ignored (with a warning) for the self-describing formats. A 4-D file gives its first time step.
 pub fn load(path: &Path, raw: Option<&RawSpec>) -> Result<Volume, VolumeError> {
+    load_step(path, raw, 0)
+}
+
+/// Reads time step `step` of a volume file: a 4-D NIfTI or NRRD holds `dim[4]` steps (read whole,
+/// then the step cut out), every other file one (step 0).
+pub fn load_step(path: &Path, raw: Option<&RawSpec>, step: usize) -> Result<Volume, VolumeError> {
     let format = FileFormat::of(path);
     if format != FileFormat::Raw && raw.is_some() {
         tracing::warn!(
@@ -159,20 +165,52 @@ pub fn load(path: &Path, raw: Option<&RawSpec>) -> Result<Volume, VolumeError> {
             path.display()
         );
     }
-    match format {
-        FileFormat::Nrrd => nrrd::read(path),
-        FileFormat::MetaImage => metaimage::read(path),
-        FileFormat::Nifti => nifti::read(path),
-        FileFormat::Dicom => dicom::read(path, None),
+    let (volume, steps) = match format {
+        FileFormat::Nrrd => nrrd::read(path)?,
+        FileFormat::MetaImage => (metaimage::read(path)?, 1),
+        FileFormat::Nifti => nifti::read(path)?,
+        FileFormat::Dicom => (dicom::read(path, None)?, 1),
         FileFormat::Raw => match raw {
-            Some(spec) => raw::read(path, spec),
-            None => Err(format_err(
-                path,
-                "not a known volume format (.nrrd, .nhdr, .mhd, .mha, .nii, .nii.gz, .hdr, DICOM), so it is read as \
-                 raw voxels; a raw volume needs --dims NX,NY,NZ, --type and --spacing SX,SY,SZ",
-            )),
+            Some(spec) => (raw::read(path, spec)?, 1),
+            None => {
+                return Err(format_err(
+                    path,
+                    "not a known volume format (.nrrd, .nhdr, .mhd, .mha, .nii, .nii.gz, .hdr, DICOM), so it is read as \
+                     raw voxels; a raw volume needs --dims NX,NY,NZ, --type and --spacing SX,SY,SZ",
+                ))
+            }
         },
+    };
+    time_step(path, volume, steps, step)
+}
+
+/// The number of time steps of a volume file, from its header: `dim[4]` of a 4-D NIfTI, the 4th
+/// size of a 4-D NRRD, 1 for every other file.
+pub fn time_steps(path: &Path) -> Result<usize, VolumeError> {
+    match FileFormat::of(path) {
+        FileFormat::Nrrd => nrrd::time_steps(path),
+        FileFormat::Nifti => nifti::time_steps(path),
+        _ => Ok(1),
     }
+}
+
+/// Step `step` of `steps` stacked along z in `v`.
+fn time_step(path: &Path, v: Volume, steps: usize, step: usize) -> Result<Volume, VolumeError> {
+    if step >= steps {
+        return Err(format_err(
+            path,
+            format!("has no time step {step}: it holds {steps} (0 to {})", steps - 1),
+        ));
+    }
+    if steps == 1 {
+        return Ok(v);
+    }
+    let [nx, ny, nzt] = v.dims;
+    let nz = nzt / steps;
+    let mut data = v.data;
+    data.truncate(nx * ny * nz * (step + 1));
+    data.drain(..nx * ny * nz * step);
+    Volume::new(v.name, [nx, ny, nz], v.spacing, v.origin, data)
 }
 
 /// Where the voxels of a file are, for partial reads ([`crate::region`]): raw files and NRRD
@@ -716,6 +754,11 @@ impl AxisSteps {
             }
         }
         Ok(AxisSteps { steps })
+    }
+
+    /// Whether the z step is negative.
+    pub fn mirrors_z(&self) -> bool {
+        self.steps[2][2] < 0.0
     }
 
     /// Whether a step is negative (the data is mirrored along that axis when read).
