@@ -16,7 +16,7 @@
 //!   coordinates are the patient's (LPS) millimetres, and for any other orientation they are the
 //!   patient's rotated into the grid (Isowall's grids are axis-aligned);
 //! - the spacing is PixelSpacing (0028,0030) (row spacing, then column spacing: y first) and the
-//!   step between slice positions; a series of one slice takes SpacingBetweenSlices (0018,0088),
+//!   step between slice positions (the median step, rounded to 1e-6); a series of one slice takes SpacingBetweenSlices (0018,0088),
 //!   SliceThickness (0018,0050) or 1;
 //! - refused, with the reason and the files: slices of different sizes, pixel spacings or
 //!   orientations; two slices at one position (a duplicate); a gap (a step of about twice or more
@@ -550,7 +550,9 @@ fn check_steps(path: &Path, uid: &str, slices: &[Slice], normal: DVec3) -> Resul
             ));
         }
     }
-    Ok(median)
+    // Positions are decimal strings (at most 16 characters): the step is known to about 1e-6 mm,
+    // and rounding it there gives back the exact step a series was written with.
+    Ok((median * 1e6).round() / 1e6)
 }
 
 /// Decodes one slice's stored values (no rescaling) as `f64`, `nx * ny` of them.
