@@ -86,11 +86,20 @@ impl From<AovArg> for Aov {
 
 #[derive(Args, Debug, Default, Clone)]
 pub struct RenderArgs {
-    /// Volume: a file (.nrrd .nhdr .mhd .mha .nii .nii.gz, or raw with --dims/--type/--spacing) or
+    /// Volume: a file (.nrrd .nhdr .mhd .mha .nii .nii.gz, a DICOM folder or one file of the series,
+    /// or raw with --dims/--type/--spacing) or
     /// procedural:NAME[:N] with NAME one of sphere, sphere-over-plane, torus, marschner-lobb, gyroid,
     /// engine and N the largest dimension [default: procedural:engine, 256x256x118]
     #[arg(long, value_name = "PATH|procedural:NAME[:N]")]
     pub volume: Option<String>,
+    /// DICOM: the SeriesInstanceUID to read where the folder holds several (the error without it
+    /// lists them)
+    #[arg(long, value_name = "UID")]
+    pub series: Option<String>,
+    /// Time-varying volumes (a `step_*.nrrd` glob, a 4-D NIfTI or NRRD): the time step to render,
+    /// from 0 [default: 0]
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    pub step: usize,
     /// Iso value in the data's own units (Hounsfield for CT) [default: the procedural volume's own;
     /// for files the middle of the data range, with a warning]
     #[arg(long, value_name = "V", allow_negative_numbers = true)]
@@ -181,14 +190,24 @@ impl RenderArgs {
 
 /// Loads the volume named by `--volume` (or the default) and the iso value to use.
 pub fn load_volume(spec: Option<&str>, raw: Option<&RawSpec>, iso: Option<f64>) -> Result<(Volume, f64)> {
+    load_volume_step(spec, raw, iso, 0)
+}
+
+/// [`load_volume`] of time step `step`.
+pub fn load_volume_step(
+    spec: Option<&str>,
+    raw: Option<&RawSpec>,
+    iso: Option<f64>,
+    step: usize,
+) -> Result<(Volume, f64)> {
     let source: VolumeSource = match spec {
         Some(s) => s.parse()?,
         None => VolumeSource::default_engine(),
     };
     let start = Instant::now();
-    tracing::info!(volume = %source, "loading volume");
+    tracing::info!(volume = %source, step, "loading volume");
     let bar = crate::progress::spinner(format!("loading volume {source}"));
-    let volume = source.load(raw).with_context(|| format!("cannot load volume {source}"));
+    let volume = source.load_step(raw, step).with_context(|| format!("cannot load volume {source}"));
     bar.finish_and_clear();
     let volume = volume?;
     let (lo, hi) = volume.value_range();
@@ -213,7 +232,12 @@ pub fn load_volume(spec: Option<&str>, raw: Option<&RawSpec>, iso: Option<f64>) 
 
 pub fn run(a: &RenderArgs) -> Result<()> {
     let raw = a.raw_spec()?;
-    let (volume, iso) = load_volume(a.volume.as_deref(), raw.as_ref(), a.iso)?;
+    let spec = match (&a.volume, &a.series) {
+        (v, None) => v.clone(),
+        (Some(v), Some(uid)) => Some(v.parse::<VolumeSource>()?.with_series(Some(uid))?.to_string()),
+        (None, Some(_)) => bail!("--series needs --volume (a DICOM folder or one file of it)"),
+    };
+    let (volume, iso) = load_volume_step(spec.as_deref(), raw.as_ref(), a.iso, a.step)?;
     let (w, h) = a.size.unwrap_or((800, 600));
     let framing = Camera::framing(volume.box_min(), volume.box_max(), w, h);
     let centre = 0.5 * (volume.box_min() + volume.box_max());

@@ -16,9 +16,11 @@
 //! fov_y = 35.0                    # vertical, over the whole wall image, degrees (default 35)
 //!
 //! [volume]
-//! source = "procedural:engine"    # PATH (relative to this file's folder) or procedural:NAME[:N]
+//! source = "procedural:engine"    # PATH (relative to this file's folder; a DICOM folder or file)
+//!                                 # or procedural:NAME[:N]
 //! iso = 0.0                       # optional, data units
 //! # raw files only: dims = [nx, ny, nz], type = "int16", spacing = [sx, sy, sz]
+//! # DICOM only: series = "UID"    # the SeriesInstanceUID, where the folder holds several
 //!
 //! [render]      # render-state defaults, all optional
 //! shading = "blinn-phong"         # lambert | blinn-phong
@@ -76,6 +78,9 @@ pub const MAX_TILE_SIZE: u32 = 16384;
 pub const MAX_WALL_EXTENT: u64 = 1 << 20;
 /// Default vertical field of view of the wall camera, degrees (that of [`Camera::framing`]).
 pub const DEFAULT_FOV_Y_DEG: f64 = 35.0;
+/// What joins a DICOM source and its series in a volume source string (the volume crate's
+/// `source::SERIES_SELECTOR`; a test checks they agree).
+pub const SERIES_SELECTOR: &str = "?series=";
 /// The built-in procedural volumes (`procedural:NAME[:N]`), as `isowall-volume` names them.
 pub const PROCEDURAL_NAMES: [&str; 6] =
     ["sphere", "sphere-over-plane", "torus", "marschner-lobb", "gyroid", "engine"];
@@ -193,6 +198,9 @@ pub struct VolumeConfig {
     /// Raw files only: the spacing (world units per voxel; default 1).
     #[serde(default)]
     pub spacing: Option<[f64; 3]>,
+    /// DICOM only: the SeriesInstanceUID to read where the folder holds several series.
+    #[serde(default)]
+    pub series: Option<String>,
 }
 
 /// `[render]`: the defaults of the render state (the controller may change them per frame).
@@ -688,13 +696,18 @@ impl WallConfig {
         self.resolve(&self.certificates.dir)
     }
 
-    /// The volume source with a relative PATH resolved (`procedural:...` unchanged).
+    /// The volume source with a relative PATH resolved (`procedural:...` unchanged) and the
+    /// DICOM `series` chosen (`PATH?series=UID`).
     pub fn volume_source(&self) -> String {
         let s = &self.volume.source;
         if s.starts_with("procedural:") {
             s.clone()
         } else {
-            self.resolve(s).to_string_lossy().into_owned()
+            let path = self.resolve(s).to_string_lossy().into_owned();
+            match &self.volume.series {
+                Some(uid) => format!("{path}{SERIES_SELECTOR}{uid}"),
+                None => path,
+            }
         }
     }
 
@@ -918,6 +931,9 @@ fn validate_volume(doc: &mut Doc<'_>, v: &VolumeConfig) {
                     format!("volume: `{field}` is for raw files only, not a procedural volume"),
                 );
             }
+        }
+        if v.series.is_some() {
+            doc.at(&at("series"), "volume: `series` is for DICOM folders only, not a procedural volume");
         }
     } else if v.dims.is_some() != v.voxel_type.is_some() || (v.spacing.is_some() && v.dims.is_none()) {
         let field = if v.dims.is_some() {
@@ -1852,6 +1868,7 @@ tiles = ["b"]
         use isowall_volume::procedural::Procedural;
         let ours: Vec<&str> = Procedural::ALL.iter().map(|p| p.name()).collect();
         assert_eq!(ours, PROCEDURAL_NAMES);
+        assert_eq!(SERIES_SELECTOR, isowall_volume::source::SERIES_SELECTOR);
         for t in VOXEL_TYPE_NAMES {
             assert!(t.parse::<VoxelType>().is_ok(), "{t}");
         }
