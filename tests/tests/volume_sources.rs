@@ -82,7 +82,8 @@ fn render_step_n_of_a_glob_is_the_render_of_that_file() {
 #[test]
 fn check_config_reads_a_dicom_folders_headers() {
     let dir = tempfile::tempdir().unwrap();
-    let v = Volume::new("v", [6, 5, 4], DVec3::new(0.5, 0.5, 2.0), DVec3::ZERO, vec![-1000.0; 120]).unwrap();
+    // Six slices, so that with one removed the usual step is still the median.
+    let v = Volume::new("v", [6, 5, 6], DVec3::new(0.5, 0.5, 2.0), DVec3::ZERO, vec![-1000.0; 180]).unwrap();
     let files = SeriesWriter::new("1.2.3.4.5").write(&v, &dir.path().join("series")).unwrap();
     let config = "[wall]\nname = \"d\"\n\n[volume]\nsource = \"series\"\nseries = \"1.2.3.4.5\"\n\n\
                   [[tiles]]\nname = \"t\"\nx = 0\ny = 0\nwidth = 64\nheight = 48\n\n\
@@ -91,7 +92,7 @@ fn check_config_reads_a_dicom_folders_headers() {
     let o = run_in(dir.path(), "isowall", &["check-config", "d.toml"]);
     let out = String::from_utf8_lossy(&o.stdout);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    assert!(out.contains("volume: DICOM series 1.2.3.4.5 of 6x5x4 slices, spacing 0.5 0.5 2"), "{out}");
+    assert!(out.contains("volume: DICOM series 1.2.3.4.5 of 6x5x6 slices, spacing 0.5 0.5 2"), "{out}");
     // A missing slice: exit 1, naming the neighbours of the gap.
     std::fs::remove_file(&files[2]).unwrap();
     let o = run_in(dir.path(), "isowalld", &["check-config", "d.toml"]);
