@@ -2,10 +2,14 @@
 // frame at every hit of the isosurface kernel's output, added into accumulators (progressive
 // accumulation: frame k of K adds its estimate; the host divides by K).
 //
-// Ours (DESIGN.md "AO"): cosine-weighted directions around N (turned to the viewer) from the R2
-// set shifted per pixel and frame (sampling.wgsl), origin offset along N by `ao_offset`, a ray up
-// to R (`ao_radius`, or to the box exit when unbounded) from where it enters the box; occluded as
-// soon as f >= iso anywhere on it (t = 0 included). Blocks whose max < iso are crossed without
+// Ours (DESIGN.md "AO"; the CPU twin is the reference's `AoSurface` and `ambient_at`):
+// cosine-weighted directions around N as it is (the central-difference normal, NOT turned to the
+// viewer; Ng where its gradient vanished, i.e. where N is the viewer fallback -dir) from the 2D set
+// `ao_sequence` (R2 shifted, or Owen-scrambled Sobol, per pixel and frame: sampling.wgsl); origin on
+// the surface, o = p + eps Ng (`ao_offset` = eps), Ng the trilinear field's own gradient in p's
+// cell turned towards the arriving ray (a cap's face normal); a ray up to R (`ao_radius`, or to the
+// box exit when unbounded) from where it enters the box; occluded as soon as f >= iso anywhere on
+// it (t = 0 included), so a direction under the surface finds the object within a few eps. Blocks whose max < iso are crossed without
 // looking at them (performance: AO rays have their own, finer level, `ao_level`, and a coarse one,
 // `coarse_level`, crossed whole where its max < iso; a ray in a block whose min >= iso is occluded
 // without a fetch, `PERF_BLOCK_MIN_EXIT`). Two tests of the ray:
@@ -273,6 +277,50 @@ fn exact_occluded(o: vec3<f32>, w: vec3<f32>) -> bool {
     return false;
 }
 
+// The trilinear interpolant's own gradient at p inside p's cell (world units): the twin of
+// `Volume::cell_gradient`. One fetch (the cell's 8 corners).
+fn cell_gradient(p: vec3<f32>) -> vec3<f32> {
+    fetches += 1u;
+    let n = vec3<i32>(params.dims.xyz);
+    let x = clamp(to_voxel(p).xyz, vec3<f32>(0.0), vec3<f32>(max(n - 1, vec3<i32>(0))));
+    let i0 = min(vec3<i32>(floor(x)), max(n - 2, vec3<i32>(0)));
+    let f = x - vec3<f32>(i0);
+    let i1 = i0 + select(vec3<i32>(0), vec3<i32>(1), n > vec3<i32>(1));
+    let c0 = voxel(i0.x, i0.y, i0.z);
+    let c1 = voxel(i1.x, i0.y, i0.z);
+    let c2 = voxel(i0.x, i1.y, i0.z);
+    let c3 = voxel(i1.x, i1.y, i0.z);
+    let c4 = voxel(i0.x, i0.y, i1.z);
+    let c5 = voxel(i1.x, i0.y, i1.z);
+    let c6 = voxel(i0.x, i1.y, i1.z);
+    let c7 = voxel(i1.x, i1.y, i1.z);
+    let gx = mix(mix(c1 - c0, c3 - c2, f.y), mix(c5 - c4, c7 - c6, f.y), f.z);
+    let gy = mix(mix(c2 - c0, c3 - c1, f.x), mix(c6 - c4, c7 - c5, f.x), f.z);
+    let gz = mix(mix(c4 - c0, c5 - c1, f.x), mix(c6 - c2, c7 - c3, f.x), f.y);
+    return vec3<f32>(gx, gy, gz) / params.spacing.xyz;
+}
+
+// Whether the hit at p with normal n is a cap: n is a box face's outward normal exactly (as the
+// isosurface kernel writes it) and p lies on that face.
+fn is_cap(p: vec3<f32>, n: vec3<f32>) -> bool {
+    let tol = 1e-3 * params.spacing.xyz;
+    let lo = (n == vec3<f32>(-1.0)) & (abs(p - params.box_min.xyz) <= tol);
+    let hi = (n == vec3<f32>(1.0)) & (abs(p - params.box_max.xyz) <= tol);
+    return dot(abs(n), vec3<f32>(1.0)) == 1.0 && any(lo | hi);
+}
+
+// Ng at p reached along dir: -grad / |grad| of the cell's own gradient, turned so Ng . dir <= 0;
+// -dir where it vanishes.
+fn geometric_normal(p: vec3<f32>, dir: vec3<f32>) -> vec3<f32> {
+    let g = cell_gradient(p);
+    let len = length(g);
+    if !(len > 0.0) || len != len || len > 3.4e38 {
+        return -dir;
+    }
+    let ng = -g / len;
+    return select(ng, -ng, dot(ng, dir) > 0.0);
+}
+
 // The 2008 march (baseline): texture-space steps of 0.01 from the hit point p itself.
 fn seed_occluded(p: vec3<f32>, w: vec3<f32>, f_p: f32) -> bool {
     let size = params.box_max.xyz - params.box_min.xyz;
@@ -311,6 +359,8 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let basis = onb(ns);
     let n_samples = params.ao_samples;
     let want_rays = params.ibl == IBL_RAYS;
+    // The bent normal where no ray is open: the hemisphere's axis (N_s for the seed and AO off).
+    var axis = ns;
 
     var occluded = 0u;
     var bent = vec3<f32>(0.0);
@@ -334,11 +384,18 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
                 }
             }
         }
-    } else {
+    } else if n_samples > 0u {
+        var ng = g.xyz;
+        if !is_cap(p, g.xyz) {
+            ng = geometric_normal(p, dir);
+        }
+        // The hemisphere's axis: N as it is; Ng where N is the vanished gradient's fallback -dir.
+        axis = select(g.xyz, ng, all(g.xyz == -dir));
+        let axis_basis = onb(axis);
         let key = pixel_key(px.x, px.y, params.frame, params.seed);
-        let o = p + params.ao_offset * ns;
+        let o = p + params.ao_offset * ng;
         for (var i = 0u; i < n_samples; i += 1u) {
-            let w = cosine_direction(ns, basis, r2_point(i, key));
+            let w = cosine_direction(axis, axis_basis, ao_point(params.ao_sequence, i, key));
             var hit: bool;
             if params.ao_exact == 1u {
                 hit = exact_occluded(o, w);
@@ -360,7 +417,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         a = f32(occluded) / f32(n_samples);
     }
     let bl = length(bent);
-    let bent_n = select(ns, bent / bl, bl > 0.0);
+    let bent_n = select(axis, bent / bl, bl > 0.0);
     var e: vec3<f32>;
     switch params.ibl {
         case IBL_SEED: {

@@ -31,12 +31,12 @@ struct FrameParams {
     frame: u32,
     seed: u32,
     ao_radius: f32,          // world units; < 0: unbounded (to the box)
-    ao_offset: f32,          // AO ray origin offset along N, world units
+    ao_offset: f32,          // eps: AO rays start at p + eps Ng, world units
     ao_step: f32,            // AO march step, world units
     env_width: u32,
     env_height: u32,
     ao_exact: u32,           // ours: 1 exact per-cell test, 0 march with ao_step
-    _pad1: u32,
+    ao_sequence: u32,        // ours' 2D set: 0 R2, 1 Sobol (Owen-scrambled)
     _pad2: u32,
     sh: array<vec4<f32>, 9>, // SH9 of the environment (rgb), for IBL `bent`
     // object space (bricks.rs): the volume buffer holds a brick and its halo.

@@ -1,15 +1,23 @@
 // Kernel::Present (daemon/render/src/gpu/present.rs): draws a tile's image over its whole window,
 // one triangle that covers the viewport. Not a compute kernel: a vertex and a fragment stage.
 //
-// The image holds 8-bit sRGB-encoded values already (what the PNG and the snapshot hold). The host
-// binds it through a plain `Rgba8Unorm` view when the window's surface format is not sRGB (values
-// pass through untouched), or through an `Rgba8UnormSrgb` view when it is (decoded here, encoded
-// again by the surface): either way the window shows the snapshot's values. Nearest sampling:
+// The image is the tile's presentable image (compose.wgsl): 8-bit sRGB-encoded values already
+// (what the PNG and the snapshot hold). Where the window's surface format is not sRGB the values
+// pass through untouched; where it is (`SRGB_SURFACE`), they are decoded here and encoded again by
+// the surface: either way the window shows the snapshot's values. Nearest sampling:
 // where the window has the tile's size, every pixel is its own texel (pixel centres map to texel
 // centres); elsewhere the image is stretched to fill the window.
 
 @group(0) @binding(0) var tile: texture_2d<f32>;
 @group(0) @binding(1) var nearest: sampler;
+// 1: the surface is sRGB (it encodes what the fragment stage returns).
+override SRGB_SURFACE: u32 = 0u;
+
+fn srgb_to_linear(c: vec3<f32>) -> vec3<f32> {
+    let lo = c / 12.92;
+    let hi = pow((c + 0.055) / 1.055, vec3<f32>(2.4));
+    return select(hi, lo, c <= vec3<f32>(0.04045));
+}
 
 struct VertexOut {
     @builtin(position) position: vec4<f32>,
@@ -29,5 +37,9 @@ fn vs_main(@builtin(vertex_index) index: u32) -> VertexOut {
 
 @fragment
 fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
-    return vec4<f32>(textureSample(tile, nearest, in.uv).rgb, 1.0);
+    let c = textureSample(tile, nearest, in.uv).rgb;
+    if SRGB_SURFACE == 1u {
+        return vec4<f32>(srgb_to_linear(c), 1.0);
+    }
+    return vec4<f32>(c, 1.0);
 }

@@ -25,6 +25,51 @@ fn r2_point(i: u32, key: u32) -> vec2<f32> {
     return vec2<f32>(f32(x >> 8u), f32(y >> 8u)) * (1.0 / 16777216.0);
 }
 
+// Hash-based Owen scrambling (Laine-Karras permutation with Burley's 2020 constants on the
+// bit-reversed coordinate) of the first two Sobol dimensions, with the index shuffled per pixel.
+fn owen_permute(x0: u32, seed: u32) -> u32 {
+    var x = x0 + seed;
+    x ^= x * 0x6c50b47cu;
+    x ^= x * 0xb82f1e52u;
+    x ^= x * 0xc7afe638u;
+    x ^= x * 0x8d22f6e6u;
+    return x;
+}
+
+fn owen_scramble(x: u32, seed: u32) -> u32 {
+    return reverseBits(owen_permute(reverseBits(x), seed));
+}
+
+// A fixed 32-step loop: a `while bits != 0` form gave wrong points inside the AO kernel's sample
+// loop on lavapipe past ~800 samples (found by tests/ao_truth.rs), though right on its own.
+fn sobol_2d(i: u32) -> vec2<u32> {
+    var v = 0x80000000u;
+    var y = 0u;
+    for (var k = 0u; k < 32u; k += 1u) {
+        y ^= select(0u, v, ((i >> k) & 1u) != 0u);
+        v ^= v >> 1u;
+    }
+    return vec2<u32>(reverseBits(i), y);
+}
+
+fn sobol_point(i: u32, key: u32) -> vec2<f32> {
+    let j = owen_scramble(i, hash(key));
+    let s = sobol_2d(j);
+    let x = owen_scramble(s.x, hash(key ^ 0x2c1b3c6du));
+    let y = owen_scramble(s.y, hash(key ^ 0x297a2d39u));
+    return vec2<f32>(f32(x >> 8u), f32(y >> 8u)) * (1.0 / 16777216.0);
+}
+
+// `AoSequence`: 0 R2, 1 Sobol (the wire's codes).
+const AO_SEQUENCE_R2: u32 = 0u;
+
+fn ao_point(sequence: u32, i: u32, key: u32) -> vec2<f32> {
+    if sequence == AO_SEQUENCE_R2 {
+        return r2_point(i, key);
+    }
+    return sobol_point(i, key);
+}
+
 const QUARTER_PI: f32 = 0.78539816339744830962;
 const HALF_PI: f32 = 1.57079632679489661923;
 

@@ -175,7 +175,9 @@ fn measure_column(a: &BenchArgs, config: &WallConfig, dir: &Path) -> Result<Vec<
     let daemons = LocalDaemons::start(&config, &dir.join("logs"), "offscreen", false)?;
     let rt = runtime()?;
     let cells = rt.block_on(async {
-        let mut wall = Wall::connect(config, Duration::from_secs(a.start_timeout)).await?;
+        let mut wall =
+            Wall::connect(config, Duration::from_secs(a.start_timeout), Duration::from_secs(a.start_timeout))
+                .await?;
         let mut cells = Vec::new();
         for &k in &a.samples {
             let mut s = settings;

@@ -3,7 +3,8 @@
 //! ([`WallConfig::check_report`](isowall_wall::WallConfig::check_report)). Every problem is printed
 //! to stderr as `FILE:LINE:COL: message` and the exit status is 1; a valid config prints a short
 //! summary (the wall, its image size and the tiles of every node) to stdout. A DICOM volume's
-//! headers are read too (no pixels): the series chosen, its grid, or why it cannot be read.
+//! headers are read too (no pixels): the series chosen, its grid, or why it cannot be read
+//! (including a series over `[volume] max_bytes`).
 
 use isowall_wall::WallConfig;
 use std::path::PathBuf;
@@ -47,6 +48,10 @@ fn check_dicom(config: &WallConfig) -> Result<Option<String>, String> {
         _ => return Ok(None),
     };
     let s = Series::open(&path, series.as_deref()).map_err(|e| e.to_string())?;
+    if let Some(bytes) = config.volume.max_bytes {
+        let limit = isowall_volume::io::VolumeLimit::new(bytes, "[volume] max_bytes");
+        s.check_within(&limit).map_err(|e| e.to_string())?;
+    }
     let [nx, ny, nz] = s.dims;
     Ok(Some(format!(
         "volume: DICOM series {} of {nx}x{ny}x{nz} slices, spacing {} {} {}",

@@ -5,6 +5,7 @@ use crate::wall::{compose, quantile, report, Wall};
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
 use glam::{DQuat, DVec3};
+use isowall_net::CaMode;
 use isowall_volume::VolumeSource;
 use isowall_wall::config::WallConfig;
 use isowall_wall::{Camera, Governor, Motion, RenderSettings};
@@ -19,6 +20,17 @@ pub struct KeygenArgs {
     /// Write here instead of the config's certificate folder
     #[arg(long, value_name = "DIR")]
     pub out: Option<PathBuf>,
+    /// Days the node and controller certificates are valid, from now
+    #[arg(long, value_name = "N", default_value_t = isowall_net::keygen::DEFAULT_DAYS)]
+    pub days: u32,
+    /// Keep the folder's CA and issue the node and controller certificates again from it (new
+    /// keys), e.g. before they expire; copy each node its new NODE.pem and NODE.key
+    #[arg(long, conflicts_with = "force")]
+    pub renew: bool,
+    /// Replace the folder's CA: every certificate it signed stops working (copy every node's new
+    /// files). Without it keygen refuses to touch a folder that holds a CA
+    #[arg(long)]
+    pub force: bool,
 }
 
 #[derive(Args)]
@@ -94,11 +106,20 @@ pub fn keygen(a: &KeygenArgs) -> Result<()> {
     let config = load(&a.config)?;
     let dir = a.out.clone().unwrap_or_else(|| config.cert_dir());
     let names: Vec<String> = config.nodes.iter().map(|n| n.name.clone()).collect();
-    let files = isowall_net::keygen(&dir, &config.wall.name, &names)?;
+    let mode = match (a.renew, a.force) {
+        (true, _) => CaMode::Renew,
+        (false, true) => CaMode::Replace,
+        (false, false) => CaMode::New,
+    };
+    let report = isowall_net::keygen(&dir, &config.wall.name, &names, mode, a.days)?;
+    let what = if mode == CaMode::Renew { "renewed the certificates: wrote" } else { "wrote" };
     println!(
-        "wrote {} files to {} (keep ca.key off the wall: it signs certificates)",
-        files.len(),
-        dir.display()
+        "{what} {} files to {}; certificates valid until {}, the CA until {} (keep ca.key off the \
+         wall: it signs certificates)",
+        report.files.len(),
+        dir.display(),
+        report.valid_until,
+        report.ca_valid_until
     );
     Ok(())
 }
@@ -123,7 +144,12 @@ pub(crate) fn scene_and_range(config: &WallConfig) -> Result<(Camera, RenderSett
         _ => None,
     };
     let bar = crate::progress::spinner(format!("loading volume {source}"));
-    let volume = source.load(raw.as_ref()).with_context(|| format!("cannot load volume {source}"));
+    let limit = match config.volume.max_bytes {
+        Some(bytes) => isowall_volume::io::VolumeLimit::new(bytes, "[volume] max_bytes"),
+        None => isowall_volume::io::VolumeLimit::default(),
+    };
+    let volume =
+        source.load_within(raw.as_ref(), &limit).with_context(|| format!("cannot load volume {source}"));
     bar.finish_and_clear();
     let volume = volume?;
     let (lo, hi) = volume.value_range();
@@ -337,6 +363,10 @@ fn governor_report(target: Option<&Governor>, log: &GovernorLog) -> String {
     s
 }
 
+/// Once a node is up, how long the others have before the wall starts without them (`up` and
+/// `start --local` first wait until their local daemons listen or have exited).
+pub const START_GRACE: Duration = Duration::from_secs(3);
+
 pub(crate) fn runtime() -> Result<tokio::runtime::Runtime> {
     tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
@@ -363,17 +393,23 @@ pub fn up(a: &UpArgs) -> Result<()> {
     let log_dir = config.resolve("logs");
     let mut daemons = LocalDaemons::start(&config, &log_dir, &a.display, a.windowed)?;
     eprintln!("isowall: starting wall '{}': {} local node(s)", config.wall.name, daemons.len());
+    daemons.wait_started(Duration::from_secs(a.start_timeout));
     let rt = runtime()?;
     let result = rt.block_on(async {
-        let mut wall = Wall::connect(config, Duration::from_secs(a.start_timeout)).await.map_err(|e| {
-            let dead = daemons.exited();
-            if dead.is_empty() {
-                e
-            } else {
-                let list: Vec<String> = dead.iter().map(|(n, s)| format!("{n} ({s})")).collect();
-                anyhow!("{e:#}\nlocal daemons that exited: {} (see {})", list.join(", "), log_dir.display())
-            }
-        })?;
+        let mut wall =
+            Wall::connect(config, Duration::from_secs(a.start_timeout), START_GRACE).await.map_err(|e| {
+                let dead = daemons.exited();
+                if dead.is_empty() {
+                    e
+                } else {
+                    let list: Vec<String> = dead.iter().map(|(n, s)| format!("{n} ({s})")).collect();
+                    anyhow!(
+                        "{e:#}\nlocal daemons that exited: {} (see {})",
+                        list.join(", "),
+                        log_dir.display()
+                    )
+                }
+            })?;
         eprintln!("isowall: wall up in {:.2} s", started.elapsed().as_secs_f64());
         let mut pids = vec![("controller".to_string(), std::process::id())];
         pids.extend(daemons.pids());
@@ -476,7 +512,7 @@ pub fn orbit(a: &OrbitArgs) -> Result<()> {
     let (base, settings) = scene(&config)?;
     let gov = governor(&config, &settings, &a.orbit)?;
     runtime()?.block_on(async {
-        let mut wall = Wall::connect(config, Duration::from_secs(10)).await?;
+        let mut wall = Wall::connect(config, Duration::from_secs(10), START_GRACE).await?;
         let (elapsed, _, governed) =
             drive(&mut wall, &base, &settings, &a.orbit, gov.clone(), &mut |_, _| {}).await?;
         print!("{}", report(&wall, elapsed));
@@ -489,7 +525,7 @@ pub fn orbit(a: &OrbitArgs) -> Result<()> {
 pub fn snapshot(a: &SnapshotArgs) -> Result<()> {
     let config = load(&a.config)?;
     runtime()?.block_on(async {
-        let mut wall = Wall::connect(config, Duration::from_secs(10)).await?;
+        let mut wall = Wall::connect(config, Duration::from_secs(10), START_GRACE).await?;
         write_snapshot(&mut wall, &a.out).await?;
         wall.close("snapshot taken").await;
         Ok(())

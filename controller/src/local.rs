@@ -25,6 +25,8 @@ pub fn is_loopback(address: &str) -> bool {
 /// Running local daemons; killed when dropped.
 pub struct LocalDaemons {
     children: Vec<(String, Child)>,
+    /// Each daemon's log, in the order of `children`.
+    logs: Vec<PathBuf>,
 }
 
 impl LocalDaemons {
@@ -33,7 +35,7 @@ impl LocalDaemons {
     pub fn start(config: &WallConfig, log_dir: &Path, display: &str, windowed: bool) -> Result<LocalDaemons> {
         let bin = daemon_binary();
         std::fs::create_dir_all(log_dir).with_context(|| format!("cannot create {}", log_dir.display()))?;
-        let mut me = LocalDaemons { children: Vec::new() };
+        let mut me = LocalDaemons { children: Vec::new(), logs: Vec::new() };
         for node in config.nodes.iter().filter(|n| is_loopback(&n.address)) {
             let log_path = log_dir.join(format!("{}.log", node.name));
             let log = std::fs::File::create(&log_path)
@@ -53,8 +55,25 @@ impl LocalDaemons {
                 .with_context(|| format!("cannot start {} for node {}", bin.display(), node.name))?;
             eprintln!("isowall: started node {} (pid {}, log {})", node.name, child.id(), log_path.display());
             me.children.push((node.name.clone(), child));
+            me.logs.push(log_path);
         }
         Ok(me)
+    }
+
+    /// Waits until every daemon listens (its log says `ready on`) or has exited, at most
+    /// `timeout`: then a wall started with the nodes it has waits for no daemon still loading.
+    pub fn wait_started(&mut self, timeout: std::time::Duration) {
+        let start = std::time::Instant::now();
+        while start.elapsed() < timeout {
+            let starting = self.children.iter_mut().zip(&self.logs).any(|((_, c), log)| {
+                c.try_wait().ok().flatten().is_none()
+                    && !std::fs::read_to_string(log).is_ok_and(|t| t.contains("ready on"))
+            });
+            if !starting {
+                return;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(100));
+        }
     }
 
     /// Nodes whose daemon has exited, with its status.

@@ -4,6 +4,7 @@
 
 mod bench;
 mod check_config;
+mod console;
 mod controls;
 mod demo;
 mod drive;
@@ -50,6 +51,8 @@ enum Command {
     Session(session::SessionArgs),
     /// Play a scripted camera path (keyframes in TOML) on the wall; --loop, --record DIR.
     Demo(demo::DemoArgs),
+    /// Serve the operator console: a web page and a JSON API (status, thumbnail, controls).
+    Console(console::ConsoleArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -70,6 +73,7 @@ fn main() -> std::process::ExitCode {
         Command::Demo(args) => demo::demo(&args),
         Command::Bench(args) => bench::bench(&args),
         Command::Session(args) => session::session(&args),
+        Command::Console(args) => console::console(&args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

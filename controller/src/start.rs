@@ -29,14 +29,15 @@ pub struct StartArgs {
 pub async fn open(config: WallConfig, a: &StartArgs) -> Result<(Option<LocalDaemons>, Wall)> {
     let mut daemons = if a.local {
         let log_dir = config.resolve("logs");
-        let d = LocalDaemons::start(&config, &log_dir, &a.display, a.windowed)?;
+        let mut d = LocalDaemons::start(&config, &log_dir, &a.display, a.windowed)?;
         eprintln!("isowall: starting wall '{}': {} local node(s)", config.wall.name, d.len());
+        tokio::task::block_in_place(|| d.wait_started(Duration::from_secs(a.start_timeout)));
         Some(d)
     } else {
         None
     };
     let log_dir = config.resolve("logs");
-    match Wall::connect(config, Duration::from_secs(a.start_timeout)).await {
+    match Wall::connect(config, Duration::from_secs(a.start_timeout), crate::drive::START_GRACE).await {
         Ok(wall) => Ok((daemons, wall)),
         Err(e) => {
             let dead = daemons.as_mut().map(|d| d.exited()).unwrap_or_default();

@@ -9,7 +9,7 @@ use isowall_wall::adoption::{AdoptionOutput, BrickAssigner};
 use isowall_wall::barrier::{ControllerOutput, FrameController, FrameStats};
 use isowall_wall::codec;
 use isowall_wall::config::WallConfig;
-use isowall_wall::messages::{Message, Role, TileImage};
+use isowall_wall::messages::{printable, Message, Role, TileImage};
 use isowall_wall::wire::FrameState;
 use isowall_wall::{Camera, RenderSettings};
 use std::collections::{BTreeMap, HashMap};
@@ -45,13 +45,21 @@ async fn establish(endpoint: quinn::Endpoint, name: String, address: String, lim
         .await
         .map_err(|_| anyhow!("no Hello"))??
         .ok_or_else(|| anyhow!("closed before Hello"))?;
-    let said = codec::check_hello(&first, Role::Daemon).map_err(|e| anyhow!("{e}"))?;
+    let said =
+        codec::check_hello(&first, Role::Daemon).map_err(|e| anyhow!("{}", printable(&e.to_string())))?;
     if said != name {
         transport::close(&connection, "wrong node");
-        bail!("the node at {address} says it is '{said}'");
+        bail!("the node at {address} says it is '{}'", printable(&said));
     }
     Ok(Link { connection, sender, receiver })
 }
+
+/// An object-space node that dies is reported down within this many deadlines.
+pub const SILENT_DEADLINES: u32 = 3;
+
+/// Events queued from the nodes' readers at most: a node that sends faster than the controller
+/// handles waits (its QUIC stream's flow control holds it back), and memory stays bounded.
+const EVENT_QUEUE: usize = 256;
 
 /// Frames of statistics the controller keeps (a demo loops for hours: memory stays flat).
 pub const HISTORY: usize = 1024;
@@ -69,8 +77,8 @@ pub struct Wall {
     machine: FrameController,
     senders: HashMap<String, ChannelSender>,
     connections: HashMap<String, quinn::Connection>,
-    events: mpsc::UnboundedReceiver<Event>,
-    events_tx: mpsc::UnboundedSender<Event>,
+    events: mpsc::Receiver<Event>,
+    events_tx: mpsc::Sender<Event>,
     endpoint: quinn::Endpoint,
     epoch: Instant,
     next_frame: u64,
@@ -83,6 +91,10 @@ pub struct Wall {
     /// Swaps released since the wall came up (all of them, unlike `releases`).
     pub released: u64,
     snapshots: BTreeMap<String, Vec<TileImage>>,
+    /// A thumbnail asked for and not yet complete: the nodes asked, and when to give up on them.
+    thumbnail: Option<(Vec<String>, Instant)>,
+    /// Bytes of tile images the nodes sent in snapshots and thumbnails, since the wall came up.
+    pub snapshot_bytes: u64,
     /// Nodes with a reconnection attempt under way.
     reconnecting: std::collections::HashSet<String>,
     /// When each down node was last tried.
@@ -92,8 +104,11 @@ pub struct Wall {
 }
 
 impl Wall {
-    /// Connects to every node, retrying until `timeout`; names the nodes that cannot be reached.
-    pub async fn connect(config: WallConfig, timeout: Duration) -> Result<Wall> {
+    /// Connects to every node at once and starts with the nodes it has: once one is up, the
+    /// others have `grace` to answer; those that do not are named and tried again in the
+    /// background (once a second each), and each joins at the frame after it answers. Fails only
+    /// when no node answers within `timeout`.
+    pub async fn connect(config: WallConfig, timeout: Duration, grace: Duration) -> Result<Wall> {
         let identity =
             Identity::load(&config.cert_dir(), isowall_net::tls::CONTROLLER).with_context(|| {
                 format!("no controller certificate: run `isowall keygen --config {}`", config.path.display())
@@ -101,9 +116,25 @@ impl Wall {
         let endpoint = transport::client(&identity)?;
         let deadline = Duration::from_millis(config.wall.deadline_ms);
         let names: Vec<String> = config.nodes.iter().map(|n| n.name.clone()).collect();
-        let (events_tx, events) = mpsc::unbounded_channel();
+        let (events_tx, events) = mpsc::channel(EVENT_QUEUE);
+        let mut machine = FrameController::new(names.clone(), deadline);
+        for node in &config.nodes {
+            let tiles =
+                config.tiles_of(&node.name).iter().map(|t| (t.name.clone(), t.width, t.height)).collect();
+            machine.set_node_tiles(&node.name, tiles);
+        }
+        if config.wall.mode == isowall_wall::WallMode::Object {
+            // A dead node stalls every frame of an object-space wall (every node waits for its
+            // pixels): it is down once silent for 3 deadlines, pinged often enough to tell.
+            // The controller asks every node something at least every ping interval, so the
+            // silence counted from the first unanswered question is 3 deadlines less one ping
+            // interval (at least 2.5 deadlines).
+            let ping = FrameController::DEFAULT_PING_INTERVAL.min(deadline / 2);
+            machine.set_ping_interval(Some(ping));
+            machine.set_silence_limit(Some(deadline * SILENT_DEADLINES - ping));
+        }
         let mut wall = Wall {
-            machine: FrameController::new(names.clone(), deadline),
+            machine,
             config,
             senders: HashMap::new(),
             connections: HashMap::new(),
@@ -117,6 +148,8 @@ impl Wall {
             releases: Vec::new(),
             released: 0,
             snapshots: BTreeMap::new(),
+            thumbnail: None,
+            snapshot_bytes: 0,
             reconnecting: Default::default(),
             last_try: HashMap::new(),
             bricks: None,
@@ -125,31 +158,51 @@ impl Wall {
             wall.bricks = Some(BrickAssigner::new(names.clone()));
         }
         let start = Instant::now();
-        let mut last_report = Instant::now();
+        let mut first_up: Option<Instant> = None;
         let mut errors: BTreeMap<String, String> = BTreeMap::new();
         let bar = crate::progress::nodes(&wall.config.wall.name, names.len());
         let mut first_round = true;
         loop {
+            // Every node not up yet, at once: a dead one costs its timeout once, not per node.
+            let mut tries = tokio::task::JoinSet::new();
             for node in wall.config.nodes.clone() {
                 if wall.senders.contains_key(&node.name) {
                     continue;
                 }
-                match wall.connect_node(&node.name, &node.address).await {
-                    Ok(()) => {
-                        errors.remove(&node.name);
-                        bar.set_position(wall.senders.len() as u64);
-                        crate::progress::say(
-                            &bar,
-                            &format!(
-                                "isowall: node {} up ({}/{})",
-                                node.name,
-                                wall.senders.len(),
-                                names.len()
-                            ),
-                        );
-                    }
+                let (ep, limit) = (wall.endpoint.clone(), wall.limit());
+                tries.spawn(async move {
+                    let r = establish(ep, node.name.clone(), node.address.clone(), limit).await;
+                    (node, r)
+                });
+            }
+            while let Some(done) = tries.join_next().await {
+                let Ok((node, r)) = done else { continue };
+                match r {
+                    Ok(link) => match wall.attach(&node.name, link).await {
+                        Ok(()) => {
+                            errors.remove(&node.name);
+                            first_up.get_or_insert_with(Instant::now);
+                            bar.set_position(wall.senders.len() as u64);
+                            crate::progress::say(
+                                &bar,
+                                &format!(
+                                    "isowall: node {} up ({}/{})",
+                                    node.name,
+                                    wall.senders.len(),
+                                    names.len()
+                                ),
+                            );
+                        }
+                        Err(e) => {
+                            errors.insert(
+                                node.name.clone(),
+                                format!("{} ({}): {e:#}", node.name, node.address),
+                            );
+                        }
+                    },
                     Err(e) => {
-                        errors.insert(node.name.clone(), format!("{} ({}): {e:#}", node.name, node.address));
+                        let e = printable(&format!("{e:#}"));
+                        errors.insert(node.name.clone(), format!("{} ({}): {e}", node.name, node.address));
                     }
                 }
             }
@@ -166,6 +219,17 @@ impl Wall {
                 }
                 first_round = false;
             }
+            if first_up.is_some_and(|t| t.elapsed() >= grace) {
+                bar.finish_and_clear();
+                for e in errors.values() {
+                    eprintln!("isowall: starting without node {e}; it joins when it answers");
+                }
+                let now = Instant::now();
+                for node in errors.keys() {
+                    wall.last_try.insert(node.clone(), now);
+                }
+                return Ok(wall);
+            }
             if start.elapsed() > timeout {
                 bar.finish_and_clear();
                 let list: Vec<String> = errors.values().cloned().collect();
@@ -177,22 +241,12 @@ impl Wall {
                     list.join("\n  ")
                 );
             }
-            if last_report.elapsed() > Duration::from_secs(5) && bar.is_hidden() {
-                eprintln!("isowall: waiting for {}", waiting.join(", "));
-                last_report = Instant::now();
-            }
             tokio::time::sleep(Duration::from_millis(200)).await;
         }
     }
 
     fn limit(&self) -> usize {
         usize::try_from(self.config.wall.message_limit_bytes).unwrap_or(usize::MAX)
-    }
-
-    async fn connect_node(&mut self, name: &str, address: &str) -> Result<()> {
-        let link =
-            establish(self.endpoint.clone(), name.to_string(), address.to_string(), self.limit()).await?;
-        self.attach(name, link).await
     }
 
     /// Starts reading a greeted link and tells the machine the node is up.
@@ -202,18 +256,19 @@ impl Wall {
         let node = name.to_string();
         tokio::spawn(async move {
             loop {
+                // Waits while the queue is full: the node's stream is read no faster than handled.
                 match receiver.recv().await {
                     Ok(Some(m)) => {
-                        if tx.send(Event::Message(node.clone(), m)).is_err() {
+                        if tx.send(Event::Message(node.clone(), m)).await.is_err() {
                             break;
                         }
                     }
                     Ok(None) => {
-                        let _ = tx.send(Event::Closed(node.clone(), "connection closed".into()));
+                        let _ = tx.send(Event::Closed(node.clone(), "connection closed".into())).await;
                         break;
                     }
                     Err(e) => {
-                        let _ = tx.send(Event::Closed(node.clone(), e.to_string()));
+                        let _ = tx.send(Event::Closed(node.clone(), printable(&e.to_string()))).await;
                         break;
                     }
                 }
@@ -298,7 +353,7 @@ impl Wall {
                     Ok(link) => Event::Reconnected(node.name.clone(), link),
                     Err(_) => Event::Unreachable(node.name.clone()),
                 };
-                let _ = tx.send(ev);
+                let _ = tx.send(ev).await;
             });
         }
     }
@@ -335,7 +390,7 @@ impl Wall {
                     trim_history(&mut self.releases);
                 }
                 ControllerOutput::NodeDown { node, reason } => {
-                    eprintln!("isowall: node {node} is down: {reason}");
+                    eprintln!("isowall: node {node} is down: {}", printable(&reason));
                     self.drop_node(&node, &reason);
                     let now = self.now();
                     if let Some(a) = self.bricks.as_mut() {
@@ -376,7 +431,20 @@ impl Wall {
                     trim_history(&mut self.finished);
                 }
                 ControllerOutput::Snapshot { node, tiles } => {
+                    self.snapshot_bytes += tiles.iter().map(|t| t.rgb8.len() as u64).sum::<u64>();
                     self.snapshots.insert(node, tiles);
+                }
+                ControllerOutput::PixelsMissing { node, frame_id, peers } => {
+                    if peers.is_empty() {
+                        eprintln!(
+                            "isowall: node {node} composites every peer's pixels again from frame {frame_id}"
+                        );
+                    } else {
+                        eprintln!(
+                            "isowall: node {node} composited frame {frame_id} without the pixels of {} (not in by its compositing deadline)",
+                            peers.join(", ")
+                        );
+                    }
                 }
             }
         }
@@ -396,53 +464,68 @@ impl Wall {
             Some(t) => t.saturating_sub(self.now()),
             None => Duration::from_millis(200),
         };
-        let outputs = tokio::select! {
-            e = self.events.recv() => match e {
-                Some(Event::Message(node, msg)) => {
-                    let now = self.now();
-                    match self.machine.handle(now, &node, msg) {
-                        Ok(out) => out,
-                        Err(err) => {
-                            eprintln!("isowall: closing {node}: {err}");
-                            self.drop_node(&node, &err.to_string());
-                            self.machine.node_down(now, &node, &err.to_string())
-                        }
-                    }
-                }
-                Some(Event::Closed(node, reason)) => {
-                    let now = self.now();
-                    if self.senders.contains_key(&node) {
-                        self.machine.node_down(now, &node, &reason)
-                    } else {
-                        Vec::new()
-                    }
-                }
-                Some(Event::Reconnected(node, link)) => {
-                    self.reconnecting.remove(&node);
-                    if self.senders.contains_key(&node) {
-                        transport::close(&link.connection, "already connected");
-                    } else if let Err(e) = self.attach(&node, link).await {
-                        eprintln!("isowall: node {node} came back but: {e:#}");
-                    } else {
-                        eprintln!("isowall: node {node} is back; it rejoins at frame {}", self.next_frame);
-                    }
-                    Vec::new()
-                }
-                Some(Event::Unreachable(node)) => {
-                    self.reconnecting.remove(&node);
-                    Vec::new()
-                }
-                None => Vec::new(),
-            },
-            _ = tokio::time::sleep(sleep) => {
+        let event = tokio::select! {
+            biased;
+            e = self.events.recv() => Some(e),
+            _ = tokio::time::sleep(sleep) => None,
+        };
+        if let Some(e) = event {
+            let outputs = self.on_event(e).await;
+            self.execute(outputs).await;
+            // What is queued already counts before any timer (a node is not silent because the
+            // controller was busy), and timers still fire under a flood of events.
+            for _ in 0..EVENT_QUEUE {
+                let Ok(e) = self.events.try_recv() else { break };
+                let outputs = self.on_event(Some(e)).await;
+                self.execute(outputs).await;
+            }
+        }
+        let now = self.now();
+        if self.machine.poll_timeout().is_some_and(|t| now >= t) {
+            let outputs = self.machine.handle_timeout(now);
+            self.execute(outputs).await;
+        }
+    }
+
+    /// Lets the machine handle what arrived from a node (or a reconnection attempt).
+    async fn on_event(&mut self, event: Option<Event>) -> Vec<ControllerOutput> {
+        match event {
+            Some(Event::Message(node, msg)) => {
                 let now = self.now();
-                match timeout {
-                    Some(t) if now >= t => self.machine.handle_timeout(now),
-                    _ => Vec::new(),
+                match self.machine.handle(now, &node, msg) {
+                    Ok(out) => out,
+                    Err(err) => {
+                        eprintln!("isowall: closing {node}: {}", printable(&err.to_string()));
+                        self.drop_node(&node, &err.to_string());
+                        self.machine.node_down(now, &node, &err.to_string())
+                    }
                 }
             }
-        };
-        self.execute(outputs).await;
+            Some(Event::Closed(node, reason)) => {
+                let now = self.now();
+                if self.senders.contains_key(&node) {
+                    self.machine.node_down(now, &node, &reason)
+                } else {
+                    Vec::new()
+                }
+            }
+            Some(Event::Reconnected(node, link)) => {
+                self.reconnecting.remove(&node);
+                if self.senders.contains_key(&node) {
+                    transport::close(&link.connection, "already connected");
+                } else if let Err(e) = self.attach(&node, link).await {
+                    eprintln!("isowall: node {node} came back but: {e:#}");
+                } else {
+                    eprintln!("isowall: node {node} is back; it rejoins at frame {}", self.next_frame);
+                }
+                Vec::new()
+            }
+            Some(Event::Unreachable(node)) => {
+                self.reconnecting.remove(&node);
+                Vec::new()
+            }
+            None => Vec::new(),
+        }
     }
 
     /// Pings every node a few times so present times can be compared across nodes.
@@ -493,8 +576,53 @@ impl Wall {
         }
     }
 
-    /// Gathers every node's last presented tiles.
+    /// object space: the bricks `node` renders from the next frame on (empty in screen space).
+    pub fn bricks_of(&self, node: &str) -> Vec<usize> {
+        self.bricks.as_ref().map(|a| a.map(self.next_frame).bricks_of(node)).unwrap_or_default()
+    }
+
+    /// Whether `node` is connected (it takes part in the next frame).
+    pub fn is_up(&self, node: &str) -> bool {
+        self.senders.contains_key(node)
+    }
+
+    /// Asks every up node for its last presented tiles downscaled by `divisor`, without waiting:
+    /// the answers arrive while frames go on, and [`Wall::take_thumbnail`] hands them over once
+    /// every node asked has answered or is down (or after `give_up`). Nothing is asked while a
+    /// thumbnail is still pending.
+    pub async fn request_thumbnail(&mut self, divisor: u32, give_up: Duration) {
+        if self.thumbnail.is_some() {
+            return;
+        }
+        self.snapshots.clear();
+        let now = self.now();
+        let out = self.machine.request_thumbnail(now, divisor);
+        let asked: Vec<String> = self.senders.keys().cloned().collect();
+        self.thumbnail = Some((asked, Instant::now() + give_up));
+        self.execute(out).await;
+    }
+
+    /// Whether a thumbnail is asked for and not yet taken.
+    pub fn thumbnail_pending(&self) -> bool {
+        self.thumbnail.is_some()
+    }
+
+    /// The tiles of the pending thumbnail, once complete (see [`Wall::request_thumbnail`]).
+    pub fn take_thumbnail(&mut self) -> Option<BTreeMap<String, Vec<TileImage>>> {
+        let (asked, give_up) = self.thumbnail.as_ref()?;
+        let waiting = asked.iter().any(|n| !self.snapshots.contains_key(n) && self.senders.contains_key(n));
+        if waiting && Instant::now() < *give_up {
+            return None;
+        }
+        self.thumbnail = None;
+        Some(std::mem::take(&mut self.snapshots))
+    }
+
+    /// Gathers every node's last presented tiles (a pending thumbnail is finished first).
     pub async fn snapshot(&mut self) -> BTreeMap<String, Vec<TileImage>> {
+        while self.thumbnail.is_some() && self.take_thumbnail().is_none() {
+            self.step().await;
+        }
         self.snapshots.clear();
         let now = self.now();
         let out = self.machine.request_snapshot(now);
@@ -521,6 +649,8 @@ impl Wall {
         for c in self.connections.values() {
             transport::close(c, reason);
         }
+        // Reconnections still under way or queued hold connections too: close them all.
+        self.endpoint.close(quinn::VarInt::from_u32(0), reason.as_bytes());
         self.endpoint.wait_idle().await;
     }
 }
@@ -528,12 +658,32 @@ impl Wall {
 /// Places every tile's image by the wall geometry into one RGB image; bezels and gaps dark, tiles
 /// with no image (a node down) a grey placeholder.
 pub fn compose(config: &WallConfig, tiles: &BTreeMap<String, Vec<TileImage>>) -> (u32, u32, Vec<u8>) {
+    compose_scaled(config, tiles, 1)
+}
+
+/// [`compose`] of tiles downscaled by `divisor` (`TileImage::downscaled`): the wall image
+/// `ceil(w / divisor)` x `ceil(h / divisor)`, tile (x, y) placed at (x / divisor, y / divisor).
+pub fn compose_scaled(
+    config: &WallConfig,
+    tiles: &BTreeMap<String, Vec<TileImage>>,
+    divisor: u32,
+) -> (u32, u32, Vec<u8>) {
+    let d = divisor.max(1);
     let (w, h) = config.wall_size();
+    let (w, h) = (w.div_ceil(d), h.div_ceil(d));
     let mut img = vec![12u8; w as usize * h as usize * 3];
     let by_name: HashMap<&str, &TileImage> = tiles.values().flatten().map(|t| (t.name.as_str(), t)).collect();
-    for tile in &config.tiles {
-        let image =
-            by_name.get(tile.name.as_str()).filter(|t| t.width == tile.width && t.height == tile.height);
+    for full in &config.tiles {
+        let tile = isowall_wall::config::TileConfig {
+            x: full.x / d,
+            y: full.y / d,
+            width: full.width.div_ceil(d).min(w - full.x / d),
+            height: full.height.div_ceil(d).min(h - full.y / d),
+            ..full.clone()
+        };
+        let image = by_name
+            .get(tile.name.as_str())
+            .filter(|t| t.width == full.width.div_ceil(d) && t.height == full.height.div_ceil(d));
         for y in 0..tile.height {
             let row = (tile.y + y) as usize * w as usize;
             for x in 0..tile.width {

@@ -31,6 +31,12 @@ pub enum BenchCommand {
     /// per row; `--save FILE` writes them, `--baseline FILE` compares with an earlier build's
     /// file as ratios (docs/bench/baseline-lavapipe.csv).
     Suite(crate::bench_suite::SuiteArgs),
+    /// One frame of a wall tile (default 1920x1080) by the node's frame path, in screen space
+    /// (presented offscreen, then a snapshot) and object space (the share read back): per frame
+    /// GPU allocations, bytes read back and uploaded, CPU ms outside GPU waits, ms per frame and
+    /// GPU ms per kernel; `--variants before` measures the earlier path in the same run; `--save`
+    /// and `--baseline` as `bench suite` has them.
+    Frame(crate::bench_frame::FrameArgs),
 }
 
 #[derive(Args)]
@@ -107,6 +113,7 @@ pub fn run(cmd: &BenchCommand) -> Result<()> {
         BenchCommand::Ao(a) => ao(a),
         BenchCommand::Accuracy(a) => accuracy(a),
         BenchCommand::Suite(a) => crate::bench_suite::run(a),
+        BenchCommand::Frame(a) => crate::bench_frame::run(a),
     }
 }
 

@@ -16,7 +16,7 @@ use clap::Args;
 use isowall_render::gpu::{GpuRenderer, GpuVolume, PerfOptions};
 use isowall_render::Frame;
 use isowall_volume::VoxelFormat;
-use isowall_wall::{Camera, RenderSettings, View};
+use isowall_wall::{AoSequence, Camera, RenderSettings, View};
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 
@@ -49,7 +49,8 @@ pub struct SuiteArgs {
     pub save: Option<PathBuf>,
     /// Renderer variants measured per row, comma-separated: `default`, `before` (the options of the
     /// build before the performance work), or changes joined by '+': block=N, ao=N, coarse=N,
-    /// exit=on|off, wg=XxY, format=r32f|r16f|r16|r8 (e.g. `ao=2+coarse=16`)
+    /// exit=on|off, wg=XxY, format=r32f|r16f|r16|r8, and the AO settings eps=V (origin off the
+    /// surface, voxels; 0.5 the old one), seq=r2|sobol (e.g. `ao=2+coarse=16`, `eps=0.5+seq=r2`)
     #[arg(long, default_value = "default")]
     pub variants: String,
 }
@@ -222,6 +223,29 @@ pub fn variant_options(name: &str) -> Result<PerfOptions> {
     Ok(o)
 }
 
+/// The AO settings a variant changes besides the performance options: `eps=V` (the AO rays' start
+/// off the surface in voxels; `eps=0.5` is the old origin, half a voxel out) and `seq=r2|sobol`
+/// (the 2D set of the directions). Returns them and the variant name without them (for
+/// [`variant_options`]; `default` where nothing is left).
+pub fn variant_ao(name: &str) -> Result<(String, Option<f64>, Option<AoSequence>)> {
+    let bad = |what: &str| anyhow::anyhow!("variant '{name}': {what}");
+    let (mut rest, mut eps, mut seq) = (Vec::new(), None, None);
+    for part in name.split('+') {
+        match part.split_once('=') {
+            Some(("eps", v)) => match v.parse::<f64>() {
+                Ok(e) if e.is_finite() && e >= 0.0 => eps = Some(e),
+                _ => return Err(bad("eps is not a number >= 0")),
+            },
+            Some(("seq", "r2")) => seq = Some(AoSequence::R2),
+            Some(("seq", "sobol")) => seq = Some(AoSequence::Sobol),
+            Some(("seq", _)) => return Err(bad("seq is r2 or sobol")),
+            _ => rest.push(part),
+        }
+    }
+    let rest = if rest.is_empty() { "default".to_string() } else { rest.join("+") };
+    Ok((rest, eps, seq))
+}
+
 pub fn run(a: &SuiteArgs) -> Result<()> {
     let baseline = match &a.baseline {
         Some(p) => {
@@ -231,12 +255,15 @@ pub fn run(a: &SuiteArgs) -> Result<()> {
         }
         None => None,
     };
-    let variants: Vec<(String, PerfOptions)> = a
+    let variants: Vec<(String, PerfOptions, Option<f64>, Option<AoSequence>)> = a
         .variants
         .split(',')
         .map(str::trim)
         .filter(|v| !v.is_empty())
-        .map(|v| Ok((v.to_string(), variant_options(v)?)))
+        .map(|v| {
+            let (perf, eps, seq) = variant_ao(v)?;
+            Ok((v.to_string(), variant_options(&perf)?, eps, seq))
+        })
         .collect::<Result<_>>()?;
     let mut gpu = GpuRenderer::new()?;
     let sizes: Vec<(u32, u32)> = a
@@ -261,7 +288,7 @@ pub fn run(a: &SuiteArgs) -> Result<()> {
         let gv = gpu.upload(&volume)?;
         // The volume as each variant's block levels and voxel format need it.
         let mut uploads: Vec<((u32, u32, u32, VoxelFormat), GpuVolume)> = Vec::new();
-        for (variant, o) in &variants {
+        for (variant, o, _, _) in &variants {
             let key = (o.block, o.ao_block, o.coarse, o.format);
             if !uploads.iter().any(|(k, _)| *k == key) {
                 gpu.set_perf(*o)?;
@@ -285,12 +312,18 @@ pub fn run(a: &SuiteArgs) -> Result<()> {
             s.ao.frame = 1_000_000; // disjoint from the measured frames' patterns
             let reference = gpu.render_accumulated(&gv, &view, &s, None, a.reference_frames.max(1))?.frame;
             for &n in &samples {
-                for (variant, o) in &variants {
+                for (variant, o, eps, seq) in &variants {
                     gpu.set_perf(*o)?;
                     let key = (o.block, o.ao_block, o.coarse, o.format);
                     let gv = &uploads.iter().find(|(k, _)| *k == key).expect("uploaded").1;
                     let mut s = RenderSettings::new(iso);
                     s.ao.samples = n;
+                    if let Some(e) = eps {
+                        s.ao.offset_voxels = *e;
+                    }
+                    if let Some(q) = seq {
+                        s.ao.sequence = *q;
+                    }
                     gpu.render(gv, &view, &s, None)?; // warm-up
                     let mut times = Vec::new();
                     let mut last = None;
@@ -391,6 +424,14 @@ mod tests {
         assert_eq!(variant_options("before+wg=4x4").unwrap().workgroup, (4, 4));
         for bad in ["fast", "block=x", "wg=0x8", "wg=32x32", "exit=maybe", "format=r4"] {
             assert!(variant_options(bad).is_err(), "{bad}");
+        }
+        assert_eq!(
+            variant_ao("eps=0.5+seq=r2").unwrap(),
+            ("default".into(), Some(0.5), Some(AoSequence::R2))
+        );
+        assert_eq!(variant_ao("ao=2+seq=sobol").unwrap(), ("ao=2".into(), None, Some(AoSequence::Sobol)));
+        for bad in ["eps=-1", "eps=x", "seq=halton"] {
+            assert!(variant_ao(bad).is_err(), "{bad}");
         }
     }
 

@@ -50,6 +50,26 @@ pub enum NodeEvent {
     NetworkEnded,
 }
 
+/// Called first in `main`, before anything opens Vulkan (and before any other thread exists, as
+/// changing the environment needs). Mesa's device-select layer (an implicit Vulkan layer) asks
+/// the Wayland compositor for the default GPU whenever the instance enables
+/// `VK_KHR_wayland_surface` (wgpu always does, where available), and libwayland prints
+/// `error: XDG_RUNTIME_DIR is invalid or not set in the environment.` where there is no runtime
+/// directory: on every headless node, for every command. No Wayland compositor can be reached
+/// there, so the probe can only fail: the layer is disabled (`NODEVICE_SELECT=1`, its own switch)
+/// unless the user chose a device through it (`MESA_VK_DEVICE_SELECT`) or set the switch already.
+/// The adapter is chosen by wgpu in any case (`GpuContext::new`).
+pub fn quiet_vulkan_without_wayland() {
+    let runtime_dir = std::env::var_os("XDG_RUNTIME_DIR").filter(|d| !d.is_empty());
+    let reachable = runtime_dir.is_some_and(|d| std::path::Path::new(&d).is_dir());
+    if !reachable
+        && std::env::var_os("MESA_VK_DEVICE_SELECT").is_none()
+        && std::env::var_os("NODEVICE_SELECT").is_none()
+    {
+        std::env::set_var("NODEVICE_SELECT", "1");
+    }
+}
+
 /// The value of an environment variable that names a display, if set and not empty.
 fn display_var(name: &str) -> Option<String> {
     std::env::var(name).ok().filter(|v| !v.is_empty())

@@ -3,6 +3,7 @@
 
 mod args;
 mod bench;
+mod bench_frame;
 mod bench_suite;
 mod chart;
 // The same front end as `isowall check-config` (one file, compiled into both binaries).
@@ -49,6 +50,7 @@ enum Command {
 }
 
 fn main() -> std::process::ExitCode {
+    display::quiet_vulkan_without_wayland();
     tracing_subscriber::fmt()
         .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| {
             tracing_subscriber::EnvFilter::new("info,wgpu_core=warn,wgpu_hal=warn,naga=warn,winit=error")

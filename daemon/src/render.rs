@@ -7,9 +7,9 @@ use glam::DVec3;
 use isowall_render::environment::{EnvSource, Environment};
 use isowall_render::gpu::GpuRenderer;
 use isowall_render::{output, reference, Frame};
-use isowall_volume::io::{RawSpec, VoxelType};
+use isowall_volume::io::{RawSpec, VolumeLimit, VoxelType};
 use isowall_volume::{Volume, VolumeSource};
-use isowall_wall::{AoMethod, AoRadius, Aov, Camera, IblMethod, RenderSettings, Shading, View};
+use isowall_wall::{AoMethod, AoRadius, AoSequence, Aov, Camera, IblMethod, RenderSettings, Shading, View};
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -41,10 +41,27 @@ pub enum AovArg {
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub enum AoMethodArg {
-    /// Cosine-weighted R2 directions, decorrelated per pixel and frame, exact-enough march
+    /// Cosine-weighted directions (`--ao-sequence`), decorrelated per pixel and frame, from the surface, every cell tested exactly
     Ours,
     /// The 2008 RTPara shader, ported faithfully as the baseline (biased; not our method)
     Seed,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum AoSequenceArg {
+    /// The R2 sequence, shifted per pixel and frame
+    R2,
+    /// Sobol with hash-based Owen scrambling, seeded per pixel and frame (the default)
+    Sobol,
+}
+
+impl From<AoSequenceArg> for AoSequence {
+    fn from(a: AoSequenceArg) -> AoSequence {
+        match a {
+            AoSequenceArg::R2 => AoSequence::R2,
+            AoSequenceArg::Sobol => AoSequence::Sobol,
+        }
+    }
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -133,6 +150,11 @@ pub struct RenderArgs {
     /// Which renderer [default: gpu]
     #[arg(long, value_enum)]
     pub renderer: Option<RendererKind>,
+    /// The most bytes the volume may take as float32 (4 a voxel), checked from the file's header
+    /// before it is read [default: 2 GiB, and for the GPU renderer at most the GPU's largest
+    /// storage binding]
+    #[arg(long, value_name = "BYTES")]
+    pub max_volume_bytes: Option<u64>,
     /// Raw volumes: dimensions
     #[arg(long, value_name = "NX,NY,NZ", value_parser = args::dims)]
     pub dims: Option<[usize; 3]>,
@@ -153,6 +175,9 @@ pub struct RenderArgs {
     /// AO method [default: ours]
     #[arg(long = "ao-method", value_enum)]
     pub ao_method: Option<AoMethodArg>,
+    /// The 2D point set of ours' AO directions [default: sobol]
+    #[arg(long = "ao-sequence", value_enum)]
+    pub ao_sequence: Option<AoSequenceArg>,
     /// Ambient/image-based lighting [default: none]
     #[arg(long, value_enum)]
     pub ibl: Option<IblArg>,
@@ -188,17 +213,45 @@ impl RenderArgs {
     }
 }
 
-/// Loads the volume named by `--volume` (or the default) and the iso value to use.
+/// Loads the volume named by `--volume` (or the default) and the iso value to use, within the
+/// default [`VolumeLimit`].
 pub fn load_volume(spec: Option<&str>, raw: Option<&RawSpec>, iso: Option<f64>) -> Result<(Volume, f64)> {
-    load_volume_step(spec, raw, iso, 0)
+    load_volume_within(spec, raw, iso, &VolumeLimit::default())
 }
 
-/// [`load_volume`] of time step `step`.
-pub fn load_volume_step(
+/// The most a node's volume may take: `configured` (`--max-volume-bytes`, `[volume] max_bytes`;
+/// else the default) and, for the GPU renderer, the adapter's largest storage binding, the
+/// tighter of the two. Asking the adapter opens no device.
+pub fn volume_limit(configured: Option<(u64, &str)>, gpu: bool) -> Result<VolumeLimit> {
+    let mut limit = match configured {
+        Some((bytes, source)) => VolumeLimit::new(bytes, source),
+        None => VolumeLimit::default(),
+    };
+    if gpu {
+        let (adapter, bytes) = isowall_render::gpu::adapter_storage_limit()?;
+        limit =
+            limit.min(VolumeLimit::new(bytes, format!("the largest storage binding of the GPU '{adapter}'")));
+    }
+    Ok(limit)
+}
+
+/// [`load_volume`] within `limit`, checked from the file's header before any voxel is read.
+pub fn load_volume_within(
+    spec: Option<&str>,
+    raw: Option<&RawSpec>,
+    iso: Option<f64>,
+    limit: &VolumeLimit,
+) -> Result<(Volume, f64)> {
+    load_volume_step_within(spec, raw, iso, 0, limit)
+}
+
+/// [`load_volume_within`] of time step `step`.
+pub fn load_volume_step_within(
     spec: Option<&str>,
     raw: Option<&RawSpec>,
     iso: Option<f64>,
     step: usize,
+    limit: &VolumeLimit,
 ) -> Result<(Volume, f64)> {
     let source: VolumeSource = match spec {
         Some(s) => s.parse()?,
@@ -207,7 +260,8 @@ pub fn load_volume_step(
     let start = Instant::now();
     tracing::info!(volume = %source, step, "loading volume");
     let bar = crate::progress::spinner(format!("loading volume {source}"));
-    let volume = source.load_step(raw, step).with_context(|| format!("cannot load volume {source}"));
+    let volume =
+        source.load_step_within(raw, step, limit).with_context(|| format!("cannot load volume {source}"));
     bar.finish_and_clear();
     let volume = volume?;
     let (lo, hi) = volume.value_range();
@@ -237,7 +291,9 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         (Some(v), Some(uid)) => Some(v.parse::<VolumeSource>()?.with_series(Some(uid))?.to_string()),
         (None, Some(_)) => bail!("--series needs --volume (a DICOM folder or one file of it)"),
     };
-    let (volume, iso) = load_volume_step(spec.as_deref(), raw.as_ref(), a.iso, a.step)?;
+    let gpu = a.renderer.unwrap_or_default() == RendererKind::Gpu;
+    let limit = volume_limit(a.max_volume_bytes.map(|b| (b, "--max-volume-bytes")), gpu)?;
+    let (volume, iso) = load_volume_step_within(spec.as_deref(), raw.as_ref(), a.iso, a.step, &limit)?;
     let (w, h) = a.size.unwrap_or((800, 600));
     let framing = Camera::framing(volume.box_min(), volume.box_max(), w, h);
     let centre = 0.5 * (volume.box_min() + volume.box_max());
@@ -275,6 +331,9 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             AoMethodArg::Ours => AoMethod::Ours,
             AoMethodArg::Seed => AoMethod::Seed,
         };
+    }
+    if let Some(q) = a.ao_sequence {
+        settings.ao.sequence = q.into();
     }
     if let Some(i) = a.ibl {
         settings.ao.ibl = match i {

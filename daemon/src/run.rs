@@ -8,11 +8,13 @@
 //! alone touches the GPU.
 
 use crate::display::{self, Display, DisplayMode, WindowSetup};
-use crate::object::{Inbox, LoadDone, ObjectNode, PeerItem};
-use crate::render::load_volume;
+use crate::object::{Done, LoadDone, ObjectNode};
+use crate::render::load_volume_within;
 use crate::tiles::{JobResult, RenderHandle, RenderVolume, TileJob, TileRenderer, TileResult};
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
+use isowall_net::pixels::{PeerPixelsIn, PixelInbox};
+use isowall_net::tls::PeerIdentity;
 use isowall_net::transport::{self, Channel, NetError};
 use isowall_net::Identity;
 use isowall_render::environment::{EnvSource, Environment};
@@ -78,10 +80,29 @@ struct Node {
     /// The brick's compositing and peers (`object.rs`); `None` in screen space.
     object: Option<ObjectNode>,
     /// Peers' pixels as they arrive, and who hands their connections over.
-    peer_rx: Option<tokio::sync::mpsc::Receiver<PeerItem>>,
-    inbox: Option<Inbox>,
+    peer_rx: Option<tokio::sync::mpsc::Receiver<PeerPixelsIn>>,
+    inbox: Option<PixelInbox>,
     /// Adopted bricks loaded (or not), for the controller.
     load_rx: Option<UnboundedReceiver<LoadDone>>,
+}
+
+/// The tiles on show (the last presented frame), each downscaled by `divisor` (1: as shown).
+async fn shown_tiles(node: &Node, divisor: u32) -> Vec<TileImage> {
+    let image =
+        |t: &TileResult, id: u64| TileImage::downscale(&t.name, t.width, t.height, id, &t.rgb8, divisor);
+    match &node.shown {
+        // object space: the composited tiles, on the CPU.
+        Some((id, tiles)) if node.object.is_some() => tiles.iter().map(|t| image(t, *id)).collect(),
+        // screen space: the images stayed on the GPU; read them now.
+        Some((id, _)) => match node.renderer.snapshot(*id).await {
+            Ok(tiles) => tiles.iter().map(|t| image(t, *id)).collect(),
+            Err(e) => {
+                tracing::warn!(frame_id = id, "snapshot: {e:#}");
+                Vec::new()
+            }
+        },
+        None => Vec::new(),
+    }
 }
 
 pub fn run(a: &RunArgs) -> Result<()> {
@@ -114,10 +135,15 @@ pub fn run(a: &RunArgs) -> Result<()> {
         object.adopt_delay = std::time::Duration::from_millis(a.adopt_delay_ms);
         let (tx, rx) = tokio::sync::mpsc::channel(64);
         let nodes = config.nodes.iter().map(|n| n.name.clone()).collect();
-        let inbox = Inbox { tx, nodes, own: node.name.clone(), limit };
+        // A peer's stream may be no longer than what its bricks can send this node's tiles.
+        let inbox =
+            PixelInbox::new(tx, nodes, &node.name, limit.min(object.max_pixels_bytes()), object.deadline());
         (RenderVolume::Brick(Box::new(setup.data)), Some(object), Some(rx), Some(inbox), Some(load_rx))
     } else {
-        let (volume, _iso) = load_volume(Some(&config.volume_source()), raw.as_ref(), config.volume.iso)?;
+        let configured = config.volume.max_bytes.map(|b| (b, "[volume] max_bytes"));
+        let limit = crate::render::volume_limit(configured, true)?;
+        let (volume, _iso) =
+            load_volume_within(Some(&config.volume_source()), raw.as_ref(), config.volume.iso, &limit)?;
         (RenderVolume::Whole(volume), None, None, None, None)
     };
     let env_src: EnvSource = config.env_source().parse().context("[render] env")?;
@@ -186,36 +212,23 @@ fn network(
         println!("isowalld: node {} ready on {addr}", state.name);
         // The render thread has its device (TileRenderer::start) and the endpoint is bound.
         crate::notify::ready(&format!("node {} listening on {addr}, waiting for the controller", state.name));
-        // Handshakes run in their own tasks (a slow or silent peer holds up nobody); finished
-        // connections queue here, and the session loop takes the next one (cancel-safe).
-        let (conn_tx, mut conns) = tokio::sync::mpsc::channel::<quinn::Connection>(4);
+        // Handshakes run in their own tasks (a slow or silent peer holds up nobody). Only a
+        // connection whose certificate is the controller's and whose Hello is checked queues
+        // here, and only such a one may take over the session (cancel-safe); nodes' connections
+        // go to the object-space inbox, everything else is refused without touching the session.
+        let (conn_tx, mut conns) = tokio::sync::mpsc::channel::<Greeted>(2);
         let acceptor = endpoint.clone();
         let inbox = state.inbox.clone();
+        let limit = state.limit;
+        let live = LiveConnections::default();
         tokio::spawn(async move {
             while let Some(incoming) = acceptor.accept().await {
-                let tx = conn_tx.clone();
-                let inbox = inbox.clone();
-                tokio::spawn(async move {
-                    let remote = incoming.remote_address();
-                    match tokio::time::timeout(std::time::Duration::from_secs(10), incoming).await {
-                        // object space: other nodes' connections carry pixels.
-                        Ok(Ok(c))
-                            if inbox.is_some()
-                                && !isowall_net::tls::peer_is(&c, isowall_net::tls::CONTROLLER) =>
-                        {
-                            inbox.as_ref().expect("checked").accept(c);
-                        }
-                        Ok(Ok(c)) => {
-                            let _ = tx.send(c).await;
-                        }
-                        Ok(Err(e)) => tracing::warn!(%remote, "refused a connection: {e}"),
-                        Err(_) => tracing::warn!(%remote, "refused a connection: handshake timed out"),
-                    }
-                });
+                let (tx, inbox, live) = (conn_tx.clone(), inbox.clone(), live.clone());
+                tokio::spawn(async move { admit(incoming, tx, inbox, live, limit).await });
             }
         });
         let serve_all = async {
-            let mut next: Option<quinn::Connection> = None;
+            let mut next: Option<Greeted> = None;
             loop {
                 let conn = match next.take() {
                     Some(c) => c,
@@ -254,39 +267,124 @@ fn raw_spec(config: &WallConfig) -> Result<Option<RawSpec>> {
     }
 }
 
-/// Serves one controller until its connection ends; returns a newer controller's connection if
-/// one arrived meanwhile (the newer controller takes over). An error means the node cannot go on
-/// (its render thread is gone): the process exits and its supervisor restarts it.
-async fn serve(
-    node: &mut Node,
-    conns: &mut tokio::sync::mpsc::Receiver<quinn::Connection>,
-    conn: quinn::Connection,
-) -> Result<Option<quinn::Connection>> {
-    let remote = conn.remote_address();
-    // The wall CA signed it, but only the controller's certificate may drive the node.
-    if !isowall_net::tls::peer_is(&conn, isowall_net::tls::CONTROLLER) {
-        tracing::warn!(%remote, "refused a connection: its certificate is not the controller's");
-        transport::close(&conn, "only the wall's controller certificate may drive a node");
-        return Ok(None);
+/// How long a peer has for its QUIC handshake, and a controller then for its stream and Hello.
+const HANDSHAKE_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(10);
+const HELLO_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(5);
+
+/// Live connections a daemon keeps per identity, at most: the controller's session and one that
+/// takes over (a restarted controller's old connection lives until its idle timeout); a peer node
+/// connects once and again after a failure.
+const MAX_CONNECTIONS_PER_IDENTITY: usize = 2;
+
+/// A controller's connection whose certificate is the controller's and whose first message is
+/// its Hello (checked): only such a connection may take over the node's session.
+struct Greeted {
+    channel: Channel,
+    hello: Message,
+}
+
+/// Live verified connections per identity.
+#[derive(Clone, Default)]
+struct LiveConnections(std::sync::Arc<std::sync::Mutex<std::collections::HashMap<PeerIdentity, usize>>>);
+
+impl LiveConnections {
+    /// Counts `connection` for `who` until it closes; `false` (not counted) past the limit.
+    fn admit(&self, who: &PeerIdentity, connection: &quinn::Connection) -> bool {
+        {
+            let mut live = self.0.lock().expect("not poisoned");
+            let n = live.entry(who.clone()).or_default();
+            if *n >= MAX_CONNECTIONS_PER_IDENTITY {
+                return false;
+            }
+            *n += 1;
+        }
+        let (me, who, connection) = (self.clone(), who.clone(), connection.clone());
+        tokio::spawn(async move {
+            connection.closed().await;
+            if let Some(n) = me.0.lock().expect("not poisoned").get_mut(&who) {
+                *n = n.saturating_sub(1);
+            }
+        });
+        true
     }
-    // A peer that completes the handshake but never opens the stream does not hold the node.
-    let opened = tokio::time::timeout(
-        std::time::Duration::from_secs(5),
-        Channel::accept(conn.clone(), "controller", node.limit),
-    )
-    .await;
-    let channel = match opened {
+}
+
+/// One incoming connection, in its own task: the handshake, then who it is. The controller's
+/// queues for the session once its Hello is checked; another node's goes to the object-space
+/// inbox; anything else is closed with the reason. Nothing here touches the running session.
+async fn admit(
+    incoming: quinn::Incoming,
+    session: tokio::sync::mpsc::Sender<Greeted>,
+    inbox: Option<PixelInbox>,
+    live: LiveConnections,
+    limit: usize,
+) {
+    let remote = incoming.remote_address();
+    let conn = match tokio::time::timeout(HANDSHAKE_TIMEOUT, incoming).await {
         Ok(Ok(c)) => c,
         Ok(Err(e)) => {
-            tracing::warn!(%remote, "controller connection failed: {e}");
-            return Ok(None);
+            tracing::warn!(%remote, "refused a connection: {e}");
+            return;
         }
         Err(_) => {
-            tracing::warn!(%remote, "closing a connection that opened no stream within 5 s");
-            transport::close(&conn, "no stream opened within 5 s");
-            return Ok(None);
+            tracing::warn!(%remote, "refused a connection: handshake timed out");
+            return;
         }
     };
+    let refuse = |peer: &dyn std::fmt::Display, reason: String| {
+        tracing::warn!(%remote, %peer, "refused a connection: {reason}");
+        transport::close(&conn, &reason);
+    };
+    let who = match isowall_net::tls::peer_identity(&conn) {
+        Ok(who) => who,
+        Err(e) => return refuse(&"unknown", e),
+    };
+    if !live.admit(&who, &conn) {
+        let reason = format!("{who} already has {MAX_CONNECTIONS_PER_IDENTITY} connections open");
+        return refuse(&who, reason);
+    }
+    match (&who, inbox) {
+        (PeerIdentity::Node(_), Some(inbox)) => inbox.accept(conn),
+        (PeerIdentity::Node(_), None) => {
+            refuse(&who, format!("{who}'s certificate is not the controller's: it may not drive a node"))
+        }
+        (PeerIdentity::Controller, _) => match tokio::time::timeout(HELLO_TIMEOUT, greet(&conn, limit)).await
+        {
+            Ok(Ok(greeted)) => {
+                let _ = session.send(greeted).await;
+            }
+            Ok(Err(reason)) => refuse(&who, reason),
+            Err(_) => refuse(&who, format!("no stream and Hello within {} s", HELLO_TIMEOUT.as_secs())),
+        },
+    }
+}
+
+/// The controller's stream and its Hello (the first message), checked.
+async fn greet(conn: &quinn::Connection, limit: usize) -> Result<Greeted, String> {
+    let peer = isowall_net::tls::CONTROLLER;
+    let mut channel = Channel::accept(conn.clone(), peer, limit).await.map_err(|e| e.to_string())?;
+    let hello = match channel.receiver.recv().await {
+        Ok(Some(m)) => m,
+        Ok(None) => return Err(format!("`{peer}` ended its stream before its Hello")),
+        Err(e) => return Err(e.to_string()),
+    };
+    if let Err(e) = isowall_wall::codec::check_hello(&hello, isowall_wall::messages::Role::Controller) {
+        return Err(isowall_wall::messages::ProtocolError::new(peer, hello.kind(), e.to_string()).to_string());
+    }
+    Ok(Greeted { channel, hello })
+}
+
+/// Serves one controller until its connection ends; returns a newer controller's connection if
+/// one arrived meanwhile (the newer controller, its identity and Hello checked, takes over). An
+/// error means the node cannot go on (its render thread is gone): the process exits and its
+/// supervisor restarts it.
+async fn serve(
+    node: &mut Node,
+    conns: &mut tokio::sync::mpsc::Receiver<Greeted>,
+    greeted: Greeted,
+) -> Result<Option<Greeted>> {
+    let Greeted { channel, hello } = greeted;
+    let remote = channel.connection.remote_address();
     tracing::info!(%remote, "controller connected");
     crate::notify::status(&format!("serving the controller at {remote}"));
     let Channel { connection, mut sender, mut receiver } = channel;
@@ -297,6 +395,10 @@ async fn serve(
     }
     if let Err(e) = sender.send(&machine.hello()).await {
         tracing::warn!("{e}");
+        return Ok(None);
+    }
+    if let Err(e) = machine.handle(node.epoch.elapsed(), hello) {
+        transport::close(&connection, &e.to_string());
         return Ok(None);
     }
     let (msg_tx, mut msg_rx) = tokio::sync::mpsc::channel::<Result<Option<Message>, NetError>>(16);
@@ -310,9 +412,15 @@ async fn serve(
         }
     });
     let outcome = loop {
+        let composite_deadline = node.object.as_ref().and_then(|o| o.next_timeout());
         let outputs = tokio::select! {
             m = msg_rx.recv() => match m {
-                Some(Ok(Some(msg))) => match machine.handle(node.epoch.elapsed(), msg) {
+                Some(Ok(Some(msg))) => match {
+                    if let (Some(o), Message::FrameState(s)) = (node.object.as_mut(), &msg) {
+                        o.announce(s.frame_id);
+                    }
+                    machine.handle(node.epoch.elapsed(), msg)
+                } {
                     Ok(out) => out,
                     Err(e) => {
                         tracing::warn!("closing the controller connection: {e}");
@@ -336,14 +444,14 @@ async fn serve(
                     if !node.slow.is_zero() {
                         tokio::time::sleep(node.slow).await;
                     }
-                    // object space: the tiles are done once the peers' pixels are in.
-                    let done = match node.object.as_mut() {
-                        Some(o) => o.local_done(done),
-                        None => Some(done),
-                    };
-                    match done {
-                        Some(done) => frame_done(node, &mut machine, &mut sender, done).await,
-                        None => Vec::new(),
+                    // object space: the tiles are done once the peers' pixels are in (or their
+                    // deadline passed).
+                    match node.object.as_mut() {
+                        Some(o) => {
+                            let done = o.local_done(done);
+                            composited(node, &mut machine, &mut sender, done).await
+                        }
+                        None => frame_done(node, &mut machine, &mut sender, done, None).await,
                     }
                 }
                 Some(Err(e)) => {
@@ -354,10 +462,12 @@ async fn serve(
                 None => break Err(anyhow!("the render thread has stopped")),
             },
             Some(item) = recv_peer(&mut node.peer_rx) => {
-                match node.object.as_mut().and_then(|o| o.peer(item)) {
-                    Some(done) => frame_done(node, &mut machine, &mut sender, done).await,
-                    None => Vec::new(),
-                }
+                let done = node.object.as_mut().map(|o| o.peer(item)).unwrap_or_default();
+                composited(node, &mut machine, &mut sender, done).await
+            }
+            _ = sleep_until(composite_deadline) => {
+                let done = node.object.as_mut().map(|o| o.handle_timeout()).unwrap_or_default();
+                composited(node, &mut machine, &mut sender, done).await
             }
             Some(done) = recv_load(&mut node.load_rx) => {
                 if let Some(o) = node.object.as_mut() {
@@ -388,11 +498,33 @@ async fn serve(
 }
 
 /// object space: the next peer's pixels (never, in screen space).
-async fn recv_peer(rx: &mut Option<tokio::sync::mpsc::Receiver<PeerItem>>) -> Option<PeerItem> {
+async fn recv_peer(rx: &mut Option<tokio::sync::mpsc::Receiver<PeerPixelsIn>>) -> Option<PeerPixelsIn> {
     match rx {
         Some(rx) => rx.recv().await,
         None => std::future::pending().await,
     }
+}
+
+/// object space: the next compositing deadline (never when none is pending).
+async fn sleep_until(at: Option<tokio::time::Instant>) {
+    match at {
+        Some(at) => tokio::time::sleep_until(at).await,
+        None => std::future::pending().await,
+    }
+}
+
+/// object space: frames composited, in order.
+async fn composited(
+    node: &mut Node,
+    machine: &mut NodeMachine,
+    sender: &mut transport::ChannelSender,
+    done: Vec<Done>,
+) -> Vec<NodeOutput> {
+    let mut out = Vec::new();
+    for d in done {
+        out.extend(frame_done(node, machine, sender, d.job, Some(d.report)).await);
+    }
+    out
 }
 
 /// object space: the next adoption's outcome (never, in screen space).
@@ -404,29 +536,21 @@ async fn recv_load(rx: &mut Option<UnboundedReceiver<LoadDone>>) -> Option<LoadD
 }
 
 /// A frame's tiles are done (rendered; in object space, composited): keep them for the swap and
-/// tell the controller (object space: Composited first, with the bytes sent and compositing time).
+/// tell the controller (object space: `report`, the machine's Composited, first).
 async fn frame_done(
     node: &mut Node,
     machine: &mut NodeMachine,
     sender: &mut transport::ChannelSender,
     done: JobResult,
+    report: Option<Message>,
 ) -> Vec<NodeOutput> {
     let (id, t) = (done.frame_id, done.render_time);
-    if let Some(o) = &node.object {
-        let (bytes_sent, composite, work) = o.frame_stats(id);
-        tracing::debug!(
-            frame_id = id,
-            bytes_sent,
-            composite_ms = composite.as_secs_f64() * 1e3,
-            "composited"
-        );
-        let msg = Message::Composited {
-            frame_id: id,
-            bytes_sent,
-            composite_us: composite.as_micros() as u64,
-            merge_us: work.as_micros() as u64,
-            resident_bytes: o.resident_bytes,
-        };
+    if machine.rendering() != Some(id) {
+        // A frame the frame machine no longer waits for (superseded, or of an older session).
+        return Vec::new();
+    }
+    if let Some(msg) = report {
+        tracing::debug!(frame_id = id, ?msg, "composited");
         if let Err(e) = sender.send(&msg).await {
             tracing::warn!("{e}");
         }
@@ -485,6 +609,8 @@ async fn execute(
                     accumulate_frame,
                     bricks,
                     scale,
+                    // object space: the shares travel to the tiles' owners.
+                    read_pixels: node.object.is_some(),
                 }) {
                     tracing::error!("{e}");
                     node.render_dead = true;
@@ -508,29 +634,16 @@ async fn execute(
                 queue.extend(machine.presented(at, frame_id));
             }
             NodeOutput::SnapshotWanted => {
-                let tiles = match &node.shown {
-                    Some((id, tiles)) => tiles
-                        .iter()
-                        .map(|t| TileImage {
-                            name: t.name.clone(),
-                            width: t.width,
-                            height: t.height,
-                            frame_id: *id,
-                            rgb8: t.rgb8.clone(),
-                        })
-                        .collect(),
-                    None => Vec::new(),
-                };
-                sender.send(&Message::Snapshot { tiles }).await?;
+                sender.send(&Message::Snapshot { tiles: shown_tiles(node, 1).await }).await?;
+            }
+            // A live thumbnail: downscaled here, so the link carries 1/divisor^2 of the pixels.
+            NodeOutput::ThumbnailWanted { divisor } => {
+                sender.send(&Message::Snapshot { tiles: shown_tiles(node, divisor).await }).await?;
             }
             // object space: a brick map, an adoption (`object.rs`).
             NodeOutput::Bricks { from_frame, holders } => match node.object.as_mut() {
                 Some(o) => match o.set_map(from_frame, holders) {
-                    Ok(done) => {
-                        for d in done {
-                            queue.extend(frame_done(node, machine, sender, d).await);
-                        }
-                    }
+                    Ok(done) => queue.extend(composited(node, machine, sender, done).await),
                     Err(e) => {
                         let reason = format!("protocol violation by `controller` (Bricks): {e}");
                         tracing::warn!("closing the controller connection: {reason}");
@@ -540,14 +653,18 @@ async fn execute(
                 None => tracing::warn!("ignoring a brick map: this wall is not in object mode"),
             },
             NodeOutput::LoadBrick { brick } => match node.object.as_mut() {
-                Some(o) => o.load(brick, &node.renderer),
+                Some(o) => {
+                    if let Some(answer) = o.load(brick, &node.renderer) {
+                        sender.send(&answer).await?;
+                    }
+                }
                 None => {
                     let reason = "this wall is not in object mode".to_string();
                     sender.send(&Message::BrickFailed { brick, reason }).await?;
                 }
             },
             NodeOutput::Closed { reason } => {
-                tracing::info!("the controller said goodbye: {reason}");
+                tracing::info!("the controller said goodbye: {}", isowall_wall::messages::printable(&reason));
                 return Err(NetError::Connection { peer: "controller".into(), reason });
             }
         }

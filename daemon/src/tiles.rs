@@ -1,18 +1,21 @@
 //! The render thread of a wall node: it alone owns the GPU device. It renders the node's tiles for
-//! each frame state it is sent, keeps progressive accumulation going while the state is unchanged
-//! (the frame index advances the sample pattern; any change restarts the average), and hands back
-//! 8-bit sRGB images of the tiles. Where the node presents in windows, it also owns their surfaces
-//! (created from its own wgpu instance): a rendered frame is staged on them at once, and the swap
-//! ([`RenderHandle::present`]) only draws and presents.
+//! each frame state it is sent, on the GPU from start to finish: each tile has its resources made
+//! once ([`TileTarget`]: remade on a resize or a change of internal scale), progressive
+//! accumulation runs on the GPU while the state is unchanged (the frame index advances the sample
+//! pattern; any change restarts the running sums), and the compose kernel writes the tile's
+//! presentable image. Where the node presents in windows, it also owns their surfaces (created
+//! from its own wgpu instance): the swap ([`RenderHandle::present`]) draws the tile's image of the
+//! frame. Only what leaves the node is read back, through a small ring of staging buffers mapped
+//! without stalling the next frame: per-frame counters, colour and depth of object-space shares,
+//! and the images of a snapshot ([`RenderHandle::snapshot`]).
 
 use anyhow::{Context, Result};
 use isowall_render::environment::Environment;
 use isowall_render::gpu::present::{Presented, TileSurface};
-use isowall_render::gpu::GpuRenderer;
-use isowall_render::output::srgb8;
-use isowall_render::Frame;
+use isowall_render::gpu::{FrameRead, GpuRenderer, ReadbackRing, TileFrame, TileTarget};
 use isowall_volume::Volume;
-use isowall_wall::{lowres, RenderSettings, View};
+use isowall_wall::{RenderSettings, View};
+use std::collections::VecDeque;
 use std::sync::{mpsc, Arc};
 use std::time::{Duration, Instant};
 
@@ -27,11 +30,16 @@ pub struct TileJob {
     /// beside its own, `object.rs`); empty: the one volume.
     pub bricks: Vec<usize>,
     /// The internal resolution divisor (1 ..= 4, `isowall_wall::lowres`): each tile renders its
-    /// view of the image divided by it and is upsampled (nearest) to its full size.
+    /// view of the image divided by it and is upsampled (nearest) to its full size on the GPU.
     pub scale: u32,
+    /// Read each view's colour and depth back (object space: its pixels travel to the tile's
+    /// owner); otherwise the frame stays on the GPU and the results carry no pixels.
+    pub read_pixels: bool,
 }
 
-/// A tile's image of a frame: 8-bit sRGB, rows top to bottom.
+/// A tile's image of a frame: 8-bit sRGB, rows top to bottom. Where the frame stayed on the GPU
+/// (screen space), `rgb8` and `depth` are empty: presentation draws from the GPU and snapshots
+/// read the image when asked.
 #[derive(Clone)]
 pub struct TileResult {
     pub name: String,
@@ -66,6 +74,8 @@ pub struct TileWindow {
 enum Job {
     Render(Box<TileJob>),
     Window(WindowJob),
+    /// The images of a frame's tiles (a snapshot), read back.
+    Snapshot(u64, tokio::sync::oneshot::Sender<Result<Vec<TileResult>, String>>),
     /// object space: upload another brick (an adopted one); replies when it is on the GPU.
     Load(Box<crate::object::BrickData>, tokio::sync::oneshot::Sender<Result<(), String>>),
     /// object space: drop a brick's volume (no longer this node's).
@@ -76,11 +86,44 @@ enum Job {
 enum WindowJob {
     /// Create a surface per window (replacing any); replies with one line per surface.
     Attach(Vec<TileWindow>, mpsc::Sender<Result<Vec<String>, String>>),
-    /// The swap: present `frame_id` (staged when it rendered) on every surface; replies with the
-    /// moment the last surface was presented.
+    /// The swap: present `frame_id` on every surface; replies with the moment the last surface
+    /// was presented.
     Present(u64, tokio::sync::oneshot::Sender<Result<Instant, String>>),
     Resize(String, u32, u32),
     Redraw(String),
+}
+
+/// A frame submitted to the GPU whose reads have not all arrived.
+struct InFlight {
+    frame_id: u64,
+    started: Instant,
+    tiles: Vec<Option<TileResult>>,
+    fetches: u64,
+    hits: u64,
+}
+
+/// A snapshot whose images have not all arrived.
+struct SnapshotWait {
+    frame_id: u64,
+    reply: tokio::sync::oneshot::Sender<Result<Vec<TileResult>, String>>,
+    tiles: Vec<Option<TileResult>>,
+}
+
+/// Staging buffers of the ring: enough for a few frames of a node's tiles in flight.
+const READ_SLOTS: usize = 8;
+
+/// The render thread's state between jobs.
+struct RenderLoop {
+    gpu: GpuRenderer,
+    /// By brick index (0: the whole volume in screen space).
+    volumes: Vec<(usize, isowall_render::gpu::GpuVolume)>,
+    env: Option<isowall_render::gpu::GpuEnvironment>,
+    targets: Vec<TileTarget>,
+    surfaces: Vec<TileSurface>,
+    ring: ReadbackRing<FrameRead>,
+    frames: VecDeque<InFlight>,
+    snapshots: Vec<SnapshotWait>,
+    results: tokio::sync::mpsc::UnboundedSender<Result<JobResult, String>>,
 }
 
 /// The render thread: a [`RenderHandle`] to it and the thread to join.
@@ -94,12 +137,6 @@ pub struct TileRenderer {
 #[derive(Clone)]
 pub struct RenderHandle {
     jobs: mpsc::Sender<Job>,
-}
-
-/// Running sum of a tile's linear colour over the accumulated frames.
-struct Accumulator {
-    sum: Vec<[f32; 3]>,
-    frames: u32,
 }
 
 impl TileRenderer {
@@ -141,76 +178,63 @@ impl TileRenderer {
                         return;
                     }
                 };
-                // By brick index (0: the whole volume in screen space).
                 let index = match &volume {
                     RenderVolume::Whole(_) => 0,
                     RenderVolume::Brick(b) => b.index,
                 };
-                let mut volumes = vec![(index, first)];
                 drop(volume);
-                let mut acc: Vec<Accumulator> = Vec::new();
-                let mut surfaces: Vec<TileSurface> = Vec::new();
-                for job in rx {
-                    let job = match job {
-                        Job::Render(job) => job,
-                        Job::Window(w) => {
-                            window_job(&gpu, &mut surfaces, w);
-                            continue;
-                        }
-                        Job::Load(b, reply) => {
-                            let r = gpu.upload_brick(&b.region, &b.info, &b.blocks, b.object.clone());
-                            let r = r.map(|gv| {
-                                volumes.retain(|v| v.0 != b.index);
-                                volumes.push((b.index, gv));
-                            });
-                            let _ = reply.send(r.map_err(|e| format!("brick {}: {e}", b.index)));
-                            continue;
-                        }
-                        Job::Unload(index) => {
-                            // Never the first: the node's own brick stays.
-                            if volumes.len() > 1 {
-                                volumes.retain(|v| v.0 != index);
+                let mut r = RenderLoop {
+                    gpu,
+                    volumes: vec![(index, first)],
+                    env: genv,
+                    targets: Vec::new(),
+                    surfaces: Vec::new(),
+                    ring: ReadbackRing::new(READ_SLOTS),
+                    frames: VecDeque::new(),
+                    snapshots: Vec::new(),
+                    results,
+                };
+                loop {
+                    // Reads in flight: take the next job if there is one, else wait for the GPU.
+                    let job = if r.waiting() {
+                        match rx.try_recv() {
+                            Ok(job) => job,
+                            Err(mpsc::TryRecvError::Empty) => {
+                                if !r.wait() {
+                                    break;
+                                }
+                                continue;
                             }
-                            continue;
+                            Err(mpsc::TryRecvError::Disconnected) => break,
+                        }
+                    } else {
+                        match rx.recv() {
+                            Ok(job) => job,
+                            Err(_) => break,
                         }
                     };
-                    let start = Instant::now();
-                    let mut out = Vec::new();
-                    let mut failed = None;
-                    if job.accumulate_frame == 0 || acc.len() != job.tiles.len() {
-                        acc = job.tiles.iter().map(|_| Accumulator { sum: Vec::new(), frames: 0 }).collect();
-                    }
-                    for (k, ((name, view), a)) in job.tiles.iter().zip(acc.iter_mut()).enumerate() {
-                        let mut s = job.settings;
-                        s.ao.frame = s.ao.frame.wrapping_add(job.accumulate_frame);
-                        let gv = match job.bricks.get(k) {
-                            None => Some(&volumes[0].1),
-                            Some(b) => volumes.iter().find(|v| v.0 == *b).map(|v| &v.1),
-                        };
-                        let Some(gv) = gv else {
-                            failed =
-                                Some(format!("tile {name}: brick {:?} is not loaded", job.bricks.get(k)));
-                            break;
-                        };
-                        let low = lowres::scaled_view(view, job.scale);
-                        match gpu.render(gv, &low, &s, genv.as_ref()) {
-                            Ok(r) => out.push(upsample(accumulate(name, a, r.frame), view, job.scale)),
-                            Err(e) => {
-                                failed = Some(format!("tile {name}: {e}"));
+                    match job {
+                        Job::Render(job) => {
+                            if !r.render(&job) {
                                 break;
                             }
                         }
-                    }
-                    let msg = match failed {
-                        Some(e) => Err(e),
-                        None => {
-                            let render_time = start.elapsed();
-                            stage(&gpu, &mut surfaces, job.frame_id, &out);
-                            Ok(JobResult { frame_id: job.frame_id, tiles: out, render_time })
+                        Job::Window(w) => window_job(&r.gpu, &mut r.surfaces, &r.targets, w),
+                        Job::Snapshot(frame_id, reply) => r.snapshot(frame_id, reply),
+                        Job::Load(b, reply) => {
+                            let gv = r.gpu.upload_brick(&b.region, &b.info, &b.blocks, b.object.clone());
+                            let gv = gv.map(|gv| {
+                                r.volumes.retain(|v| v.0 != b.index);
+                                r.volumes.push((b.index, gv));
+                            });
+                            let _ = reply.send(gv.map_err(|e| format!("brick {}: {e}", b.index)));
                         }
-                    };
-                    if results.send(msg).is_err() {
-                        break;
+                        Job::Unload(index) => {
+                            // Never the first: the node's own brick stays.
+                            if r.volumes.len() > 1 {
+                                r.volumes.retain(|v| v.0 != index);
+                            }
+                        }
                     }
                 }
             })
@@ -270,6 +294,14 @@ impl RenderHandle {
         rx.recv().map_err(|_| anyhow::anyhow!("the render thread has stopped"))?.map_err(anyhow::Error::msg)
     }
 
+    /// The images of `frame_id`'s tiles (8-bit sRGB), read back from the GPU; an error where the
+    /// tiles no longer hold that frame.
+    pub async fn snapshot(&self, frame_id: u64) -> Result<Vec<TileResult>> {
+        let (tx, rx) = tokio::sync::oneshot::channel();
+        self.send(Job::Snapshot(frame_id, tx))?;
+        rx.await.map_err(|_| anyhow::anyhow!("the render thread has stopped"))?.map_err(anyhow::Error::msg)
+    }
+
     /// The swap: presents `frame_id` in every window; resolves to when it was presented.
     pub async fn present(&self, frame_id: u64) -> Result<Instant> {
         let (tx, rx) = tokio::sync::oneshot::channel();
@@ -288,19 +320,9 @@ impl RenderHandle {
     }
 }
 
-/// Uploads a rendered frame's tiles to their windows' surfaces, ready for the swap.
-fn stage(gpu: &GpuRenderer, surfaces: &mut [TileSurface], frame_id: u64, tiles: &[TileResult]) {
-    for s in surfaces.iter_mut() {
-        if let Some(t) = tiles.iter().find(|t| t.name == s.name) {
-            if let Err(e) = s.stage(&gpu.ctx, frame_id, t.width, t.height, &t.rgb8) {
-                tracing::warn!("{e}");
-            }
-        }
-    }
-}
-
 /// The presentation jobs of the render thread.
-fn window_job(gpu: &GpuRenderer, surfaces: &mut Vec<TileSurface>, job: WindowJob) {
+fn window_job(gpu: &GpuRenderer, surfaces: &mut Vec<TileSurface>, targets: &[TileTarget], job: WindowJob) {
+    let target = |name: &str| targets.iter().find(|t| t.name == name);
     match job {
         WindowJob::Attach(windows, reply) => {
             surfaces.clear();
@@ -314,7 +336,7 @@ fn window_job(gpu: &GpuRenderer, surfaces: &mut Vec<TileSurface>, job: WindowJob
                     .iter_mut()
                     .map(|s| {
                         // Black until the first frame.
-                        if let Err(e) = s.redraw(&gpu.ctx) {
+                        if let Err(e) = s.redraw(&gpu.ctx, None) {
                             tracing::warn!("{e}");
                         }
                         let (w, h) = s.size();
@@ -327,7 +349,7 @@ fn window_job(gpu: &GpuRenderer, surfaces: &mut Vec<TileSurface>, job: WindowJob
         WindowJob::Present(frame_id, reply) => {
             let mut result = Ok(());
             for s in surfaces.iter_mut() {
-                match s.present(&gpu.ctx, frame_id) {
+                match s.present(&gpu.ctx, target(&s.name), frame_id) {
                     Ok(Presented::Frame) => {}
                     Ok(p) => tracing::debug!(tile = %s.name, frame_id, ?p, "presented without the frame"),
                     Err(e) => result = Err(e.to_string()),
@@ -337,7 +359,9 @@ fn window_job(gpu: &GpuRenderer, surfaces: &mut Vec<TileSurface>, job: WindowJob
         }
         WindowJob::Resize(tile, width, height) => {
             for s in surfaces.iter_mut().filter(|s| s.name == tile) {
-                if let Err(e) = s.resize(&gpu.ctx, width, height).and_then(|()| s.redraw(&gpu.ctx).map(drop))
+                if let Err(e) = s
+                    .resize(&gpu.ctx, width, height)
+                    .and_then(|()| s.redraw(&gpu.ctx, target(&tile)).map(drop))
                 {
                     tracing::warn!("{e}");
                 }
@@ -345,7 +369,7 @@ fn window_job(gpu: &GpuRenderer, surfaces: &mut Vec<TileSurface>, job: WindowJob
         }
         WindowJob::Redraw(tile) => {
             for s in surfaces.iter_mut().filter(|s| s.name == tile) {
-                if let Err(e) = s.redraw(&gpu.ctx) {
+                if let Err(e) = s.redraw(&gpu.ctx, target(&tile)) {
                     tracing::warn!("{e}");
                 }
             }
@@ -353,46 +377,179 @@ fn window_job(gpu: &GpuRenderer, surfaces: &mut Vec<TileSurface>, job: WindowJob
     }
 }
 
-/// A tile's image rendered (and accumulated) at `lowres::scaled_view(view, scale)`, upsampled
-/// (nearest) to `view`. Only what leaves the render thread is upsampled (colour and depth), after
-/// accumulation, so the running sum stays at the low resolution; nearest upsampling commutes with
-/// the per-pixel average and the sRGB encoding, so the result is the same as upsampling first.
-pub fn upsample(tile: TileResult, view: &View, scale: u32) -> TileResult {
-    if scale <= 1 {
-        return tile;
-    }
-    let rgb: Vec<[u8; 3]> = tile.rgb8.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
-    TileResult {
-        name: tile.name,
-        width: view.window.width,
-        height: view.window.height,
-        rgb8: lowres::upsample_nearest(&rgb, view, scale).into_iter().flatten().collect(),
-        depth: lowres::upsample_nearest(&tile.depth, view, scale),
-    }
-}
-
-/// Adds a frame to the tile's running sum and returns the averaged image.
-fn accumulate(name: &str, a: &mut Accumulator, mut frame: Frame) -> TileResult {
-    if a.sum.len() != frame.color.len() {
-        a.sum = vec![[0.0; 3]; frame.color.len()];
-        a.frames = 0;
-    }
-    a.frames += 1;
-    let k = a.frames as f32;
-    for (s, c) in a.sum.iter_mut().zip(frame.color.iter_mut()) {
-        for i in 0..3 {
-            s[i] += c[i];
-            c[i] = s[i] / k;
+impl RenderLoop {
+    /// Renders a job's tiles (each submitted as soon as it is recorded); its result is sent once
+    /// its reads arrive. False when the results' receiver is gone.
+    fn render(&mut self, job: &TileJob) -> bool {
+        let started = Instant::now();
+        match self.submit(job) {
+            Ok(()) => {
+                let n = job.tiles.len();
+                self.frames.push_back(InFlight {
+                    frame_id: job.frame_id,
+                    started,
+                    tiles: vec![None; n],
+                    fetches: 0,
+                    hits: 0,
+                });
+                self.deliver_ready()
+            }
+            Err(e) => self.results.send(Err(e)).is_ok(),
         }
     }
-    let depth =
-        frame.depth.iter().zip(&frame.hit).map(|(&d, &h)| if h { d } else { f32::INFINITY }).collect();
-    TileResult {
-        name: name.to_string(),
-        width: frame.width,
-        height: frame.height,
-        rgb8: srgb8(&frame),
-        depth,
+
+    fn submit(&mut self, job: &TileJob) -> Result<(), String> {
+        // The tiles' resources, kept where they fit, made where they do not (start, resize, scale).
+        let mut targets = std::mem::take(&mut self.targets);
+        let mut kept = Vec::with_capacity(job.tiles.len());
+        for (name, view) in &job.tiles {
+            let reuse = targets.iter().position(|t| t.name == *name && t.fits(view, job.scale));
+            let target = match reuse {
+                Some(i) => targets.swap_remove(i),
+                None => TileTarget::new(&self.gpu, name, view, job.scale)
+                    .map_err(|e| format!("tile {name}: {e}"))?,
+            };
+            kept.push(target);
+        }
+        self.targets = kept;
+        for k in 0..job.tiles.len() {
+            while !self.ring.has_free_slot() {
+                self.ring.wait_oldest(&self.gpu.ctx).map_err(|e| e.to_string())?;
+                self.take_reads();
+            }
+            let (name, view) = &job.tiles[k];
+            let gv = match job.bricks.get(k) {
+                None => Some(&self.volumes[0].1),
+                Some(b) => self.volumes.iter().find(|v| v.0 == *b).map(|v| &v.1),
+            };
+            let Some(gv) = gv else {
+                return Err(format!("tile {name}: brick {:?} is not loaded", job.bricks.get(k)));
+            };
+            let mut settings = job.settings;
+            settings.ao.frame = settings.ao.frame.wrapping_add(job.accumulate_frame);
+            let frame = TileFrame {
+                frame_id: job.frame_id,
+                volume: gv,
+                view,
+                settings: &settings,
+                env: self.env.as_ref(),
+                accumulate: job.accumulate_frame > 0,
+                share: job.read_pixels,
+            };
+            self.gpu
+                .render_tile(&mut self.targets[k], &frame, &mut self.ring)
+                .map_err(|e| format!("tile {name}: {e}"))?;
+        }
+        Ok(())
+    }
+
+    /// Asks for the images of `frame_id`'s tiles; the reply goes once they arrive.
+    fn snapshot(
+        &mut self,
+        frame_id: u64,
+        reply: tokio::sync::oneshot::Sender<Result<Vec<TileResult>, String>>,
+    ) {
+        let mut asked = 0;
+        for i in 0..self.targets.len() {
+            while !self.ring.has_free_slot() {
+                if let Err(e) = self.ring.wait_oldest(&self.gpu.ctx) {
+                    let _ = reply.send(Err(e.to_string()));
+                    return;
+                }
+                self.take_reads();
+            }
+            if let Err(e) = self.gpu.read_tile_image(&self.targets[i], frame_id, &mut self.ring) {
+                let _ = reply.send(Err(e.to_string()));
+                return;
+            }
+            asked += 1;
+        }
+        if asked == 0 {
+            let _ = reply.send(Ok(Vec::new()));
+            return;
+        }
+        self.snapshots.push(SnapshotWait { frame_id, reply, tiles: vec![None; asked] });
+    }
+
+    /// Moves arrived reads into their frames and snapshots; answers completed snapshots.
+    fn take_reads(&mut self) {
+        let period = self.gpu.ctx.queue.get_timestamp_period();
+        for read in self.ring.take_ready() {
+            let (tag, out) = match FrameRead::decode(read, period) {
+                Ok(r) => r,
+                Err(e) => {
+                    tracing::warn!("{e}");
+                    continue;
+                }
+            };
+            let result = TileResult {
+                name: tag.tile.clone(),
+                width: tag.width,
+                height: tag.height,
+                rgb8: out.rgb8.unwrap_or_default(),
+                depth: out.depth.unwrap_or_default(),
+            };
+            let tiles = if tag.image_only {
+                self.snapshots.iter_mut().find(|s| s.frame_id == tag.frame_id).map(|s| &mut s.tiles)
+            } else {
+                self.frames.iter_mut().find(|f| f.frame_id == tag.frame_id).map(|f| {
+                    f.fetches += out.counters.fetches;
+                    f.hits += out.counters.hits;
+                    &mut f.tiles
+                })
+            };
+            // Reads arrive in the order they were recorded: the tiles' order.
+            if let Some(slot) = tiles.and_then(|t| t.iter_mut().find(|t| t.is_none())) {
+                *slot = Some(result);
+            }
+        }
+        let mut i = 0;
+        while i < self.snapshots.len() {
+            if self.snapshots[i].tiles.iter().all(Option::is_some) {
+                let s = self.snapshots.swap_remove(i);
+                let _ = s.reply.send(Ok(s.tiles.into_iter().flatten().collect()));
+            } else {
+                i += 1;
+            }
+        }
+    }
+
+    /// Sends the results of frames whose reads have all arrived, in order. False when the
+    /// results' receiver is gone.
+    fn deliver_ready(&mut self) -> bool {
+        if let Err(e) = self.ring.poll(&self.gpu.ctx) {
+            tracing::warn!("{e}");
+        }
+        self.take_reads();
+        while self.frames.front().is_some_and(|f| f.tiles.iter().all(Option::is_some)) {
+            let f = self.frames.pop_front().expect("front");
+            let render_time = f.started.elapsed();
+            tracing::debug!(
+                frame_id = f.frame_id,
+                fetches = f.fetches,
+                hits = f.hits,
+                render_ms = render_time.as_secs_f64() * 1e3,
+                "frame rendered"
+            );
+            let tiles = f.tiles.into_iter().flatten().collect();
+            if self.results.send(Ok(JobResult { frame_id: f.frame_id, tiles, render_time })).is_err() {
+                return false;
+            }
+        }
+        true
+    }
+
+    /// Whether reads are awaited.
+    fn waiting(&self) -> bool {
+        self.ring.in_flight() > 0
+    }
+
+    /// Blocks until the oldest read arrives, then delivers what is complete.
+    fn wait(&mut self) -> bool {
+        if let Err(e) = self.ring.wait_oldest(&self.gpu.ctx) {
+            tracing::warn!("{e}");
+        }
+        self.deliver_ready()
     }
 }
 
@@ -402,9 +559,11 @@ mod tests {
     use isowall_render::gpu::GpuError;
     use isowall_wall::{Camera, Window};
 
+    type Results = tokio::sync::mpsc::UnboundedReceiver<Result<JobResult, String>>;
+
     /// The render thread on a small scene, or `None` (after a message) where no Vulkan adapter
     /// exists; under `CI=true` a missing adapter fails instead (GPU tests never skip silently).
-    fn renderer() -> Option<(TileRenderer, tokio::sync::mpsc::UnboundedReceiver<Result<JobResult, String>>)> {
+    fn renderer() -> Option<(TileRenderer, Results)> {
         match GpuRenderer::new() {
             Ok(_) => {}
             Err(e @ GpuError::NoAdapter(_)) if std::env::var("CI").as_deref() != Ok("true") => {
@@ -419,11 +578,45 @@ mod tests {
         Some((TileRenderer::start(RenderVolume::Whole(volume), None, tx).unwrap(), rx))
     }
 
+    fn camera() -> Camera {
+        Camera {
+            eye: glam::DVec3::new(-30.0, -60.0, 70.0),
+            target: glam::DVec3::new(24.0, 24.0, 16.0),
+            up: glam::DVec3::Z,
+            fov_y_deg: 40.0,
+        }
+    }
+
+    /// Renders `tiles` as frame `frame_id` and returns the result.
+    fn render(
+        r: &TileRenderer,
+        rx: &mut Results,
+        frame_id: u64,
+        tiles: Vec<(String, View)>,
+        settings: &RenderSettings,
+        scale: u32,
+        read_pixels: bool,
+    ) -> JobResult {
+        let job = TileJob {
+            frame_id,
+            tiles,
+            settings: *settings,
+            accumulate_frame: 0,
+            bricks: Vec::new(),
+            scale,
+            read_pixels,
+        };
+        r.handle().submit(job).unwrap();
+        let result = rx.blocking_recv().unwrap().unwrap();
+        assert_eq!(result.frame_id, frame_id);
+        result
+    }
+
     /// The whole image of 96 x 72 pixels as two tiles split at an odd column (not a multiple of
     /// the scale), rendered by the render thread at `scale` and put back together.
     fn wall_image(
         r: &TileRenderer,
-        rx: &mut tokio::sync::mpsc::UnboundedReceiver<Result<JobResult, String>>,
+        rx: &mut Results,
         whole: &View,
         settings: &RenderSettings,
         scale: u32,
@@ -431,16 +624,8 @@ mod tests {
         let (w, h) = whole.full;
         let left = View { window: Window { x: 0, y: 0, width: 47, height: h }, ..*whole };
         let right = View { window: Window { x: 47, y: 0, width: w - 47, height: h }, ..*whole };
-        let job = TileJob {
-            frame_id: scale as u64,
-            tiles: vec![("left".into(), left), ("right".into(), right)],
-            settings: *settings,
-            accumulate_frame: 0,
-            bricks: Vec::new(),
-            scale,
-        };
-        r.handle().submit(job).unwrap();
-        let result = rx.blocking_recv().unwrap().unwrap();
+        let tiles = vec![("left".into(), left), ("right".into(), right)];
+        let result = render(r, rx, scale as u64, tiles, settings, scale, true);
         let mut image = vec![0u8; (w * h * 3) as usize];
         for (t, x0) in result.tiles.iter().zip([0, 47]) {
             assert_eq!(t.height, h);
@@ -457,25 +642,17 @@ mod tests {
     #[test]
     fn a_frame_at_scale_2_is_the_half_size_image_upsampled() {
         let Some((r, mut rx)) = renderer() else { return };
-        let camera = Camera {
-            eye: glam::DVec3::new(-30.0, -60.0, 70.0),
-            target: glam::DVec3::new(24.0, 24.0, 16.0),
-            up: glam::DVec3::Z,
-            fov_y_deg: 40.0,
-        };
         let mut settings = RenderSettings::new(0.0);
         settings.ao.samples = 2;
-        let whole = View::whole(camera, 96, 72);
+        let whole = View::whole(camera(), 96, 72);
         let full = wall_image(&r, &mut rx, &whole, &settings, 1);
         let halved = wall_image(&r, &mut rx, &whole, &settings, 2);
 
         // The half-size image rendered alone (48 x 36, same camera, same sample pattern seeding),
         // upsampled nearest: every full pixel (x, y) takes the half pixel (x / 2, y / 2).
-        let gpu = GpuRenderer::new().unwrap();
-        let src: isowall_volume::VolumeSource = "procedural:sphere-over-plane:48".parse().unwrap();
-        let gv = gpu.upload(&src.load(None).unwrap()).unwrap();
-        let half = gpu.render(&gv, &View::whole(camera, 48, 36), &settings, None).unwrap().frame;
-        let half = srgb8(&half);
+        let half =
+            render(&r, &mut rx, 10, vec![("half".into(), View::whole(camera(), 48, 36))], &settings, 1, true);
+        let half = &half.tiles[0].rgb8;
         let mut want = vec![0u8; 96 * 72 * 3];
         for y in 0..72 {
             for x in 0..96 {
@@ -488,6 +665,37 @@ mod tests {
         // And it is not the full-resolution image: the scale reached the render.
         let differ = halved.iter().zip(&full).filter(|(a, b)| a != b).count();
         assert!(differ > 96 * 72 / 10, "only {differ} channel values differ from the full-resolution frame");
+        drop(rx);
+        r.join();
+    }
+
+    #[test]
+    fn screen_space_frames_stay_on_the_gpu_and_a_snapshot_reads_the_image() {
+        let Some((r, mut rx)) = renderer() else { return };
+        let mut settings = RenderSettings::new(0.0);
+        settings.ao.samples = 2;
+        let view = View::whole(camera(), 64, 48);
+        let shared = render(&r, &mut rx, 1, vec![("t".into(), view)], &settings, 1, true);
+        let kept = render(&r, &mut rx, 2, vec![("t".into(), view)], &settings, 1, false);
+        assert!(
+            kept.tiles[0].rgb8.is_empty() && kept.tiles[0].depth.is_empty(),
+            "screen space read pixels back"
+        );
+        let snap = tokio::runtime::Builder::new_current_thread()
+            .build()
+            .unwrap()
+            .block_on(r.handle().snapshot(2))
+            .unwrap();
+        assert_eq!(snap.len(), 1);
+        assert_eq!((snap[0].width, snap[0].height), (64, 48));
+        // Frames 1 and 2 are the same state and both restart (accumulate_frame 0): same image.
+        assert_eq!(snap[0].rgb8, shared.tiles[0].rgb8, "the snapshot is not the frame's image");
+        let lit = shared.tiles[0].depth.iter().filter(|d| d.is_finite()).count();
+        assert!(lit > 64 * 48 / 10, "only {lit} pixels hit");
+        // A frame no longer held is refused, not answered with another frame's image.
+        let gone =
+            tokio::runtime::Builder::new_current_thread().build().unwrap().block_on(r.handle().snapshot(99));
+        assert!(gone.is_err());
         drop(rx);
         r.join();
     }

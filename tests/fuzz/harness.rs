@@ -140,6 +140,7 @@ fn drive(machine: &mut NodeMachine, t: Duration, outputs: Vec<NodeOutput>) {
             NodeOutput::Present { frame_id } => queue.extend(machine.presented(t, frame_id)),
             NodeOutput::Send(_)
             | NodeOutput::SnapshotWanted
+            | NodeOutput::ThumbnailWanted { .. }
             | NodeOutput::Closed { .. }
             | NodeOutput::Bricks { .. }
             | NodeOutput::LoadBrick { .. } => {}

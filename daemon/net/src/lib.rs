@@ -1,13 +1,18 @@
 //! Isowall's transport. It only moves bytes: QUIC connections (quinn) with mutual TLS against the
-//! wall's own certificate authority ([`tls`]), and length-prefixed [`Message`]s on one
-//! bidirectional stream per connection ([`transport`]), encoded by the model's one codec module.
-//! The protocol logic lives in the model's state machines (`isowall_wall::barrier`,
-//! `isowall_wall::daemon_machine`); the binaries drive them with what arrives here.
+//! wall's own certificate authority ([`tls`]; the certificates made by [`keygen`]), and
+//! length-prefixed [`Message`]s on one bidirectional stream per connection ([`transport`]),
+//! encoded by the model's one codec module; in object space, nodes' pixels to each other on a
+//! stream per frame ([`pixels`]). The protocol logic lives in the model's state machines
+//! (`isowall_wall::barrier`, `isowall_wall::daemon_machine`); the binaries drive them with what
+//! arrives here.
 
+pub mod keygen;
+pub mod pixels;
 pub mod tls;
 pub mod transport;
 
-pub use tls::{keygen, Identity, TlsError};
+pub use keygen::{keygen, CaMode, KeygenReport};
+pub use tls::{Identity, TlsError};
 pub use transport::{Channel, NetError, ALPN};
 
 use isowall_wall::messages::Message;

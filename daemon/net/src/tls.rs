@@ -1,19 +1,32 @@
 //! The wall's certificates: `isowall keygen` makes a CA and one certificate per node and for the
-//! controller ([`keygen`]); every connection presents one and accepts only peers whose certificate
+//! controller ([`crate::keygen`]); every connection presents one and accepts only peers whose certificate
 //! the wall CA signed ([`Identity::server_config`], [`Identity::client_config`]).
 //!
 //! Files in the certificate folder: `ca.pem` (the CA certificate, on every machine), `ca.key` (the
 //! CA's private key: keep it off the wall, it signs new certificates), `NAME.pem` + `NAME.key` for
-//! every node NAME and for `controller`. A node's certificate names the node (DNS SAN), and a
-//! client connecting to a node checks that name. TLS 1.3 only (QUIC), ring provider only.
+//! every node NAME and for `controller`. TLS 1.3 only (QUIC), ring provider only.
+//!
+//! Identities ([`PeerIdentity`], [`peer_identity`]): a node's certificate names the node in its
+//! one DNS SAN, and a client connecting to a node checks that name; the controller's certificate
+//! has no DNS name at all, only the URI SAN [`CONTROLLER_URI`], which keygen never writes into a
+//! node's certificate (a node name cannot be a URI), so no node certificate can act as the
+//! controller. Names are compared exactly, byte for byte: TLS's own DNS matching ignores case,
+//! which is why a wall's node names must also be unique without regard to case ([`crate::keygen`]
+//! refuses names that are not).
+//!
+//! A private key is loaded only when no one but its owner may read or write it (mode 0600 or
+//! 0400): [`Identity::load`] refuses a key open to its group or to others, naming the file.
 
 use rustls::pki_types::pem::PemObject;
 use rustls::pki_types::{CertificateDer, PrivateKeyDer};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-/// The controller's certificate name.
+/// The controller's certificate name (its files are `controller.pem` and `controller.key`).
 pub const CONTROLLER: &str = "controller";
+
+/// The controller's identity: the one URI SAN of its certificate (and of no node's).
+pub const CONTROLLER_URI: &str = "urn:isowall:controller";
 
 #[derive(Debug, thiserror::Error)]
 pub enum TlsError {
@@ -25,68 +38,77 @@ pub enum TlsError {
     Generate { name: String, reason: String },
     #[error("TLS configuration: {0}")]
     Config(String),
-    #[error("'{0}' cannot name a certificate: use letters, digits, '-' and '.' only")]
+    #[error("certificate name {0}")]
     BadName(String),
+    #[error("node name '{0}' is the same as '{1}' without regard to case: TLS could not tell them apart")]
+    SameName(String, String),
+    #[error(
+        "{}: a wall CA is already here, and a new one would stop every certificate it signed from \
+         working: `--renew` issues the node and controller certificates again from it, `--force` \
+         replaces it (then copy every node's new files)", .0.display()
+    )]
+    CaExists(PathBuf),
+    #[error("{}: no wall CA to renew from (run keygen without --renew to make one)", .0.display())]
+    NoCa(PathBuf),
+    #[error("certificate validity: {0}")]
+    Validity(String),
+    #[error(
+        "{}: the private key is open to its group or to others (mode {mode:04o}): only its owner may \
+         read it, `chmod 600 {}`", path.display(), path.display()
+    )]
+    KeyOpen { path: PathBuf, mode: u32 },
+    #[error("{}: the private key does not belong to the certificate {}", key.display(), cert.display())]
+    KeyMismatch { cert: PathBuf, key: PathBuf },
 }
 
-fn io(path: &Path) -> impl FnOnce(std::io::Error) -> TlsError + '_ {
+pub(crate) fn io(path: &Path) -> impl FnOnce(std::io::Error) -> TlsError + '_ {
     move |source| TlsError::Io { path: path.to_owned(), source }
 }
 
-fn check_name(name: &str) -> Result<(), TlsError> {
-    let ok = !name.is_empty()
-        && name.len() <= 63
-        && name.chars().all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '.')
-        && !name.starts_with(['-', '.']);
-    if ok {
-        Ok(())
-    } else {
-        Err(TlsError::BadName(name.to_string()))
+/// A certificate name: a node's name or `controller`, by the config's rule
+/// ([`isowall_wall::names`]).
+pub(crate) fn check_name(name: &str) -> Result<(), TlsError> {
+    match isowall_wall::names::name_problem(name) {
+        None => Ok(()),
+        Some(problem) => Err(TlsError::BadName(problem)),
     }
 }
 
-/// Writes a new wall CA and a certificate + key for each of `names` and for the controller into
-/// `dir` (created if needed). Existing files are overwritten; returns the files written.
-pub fn keygen(dir: &Path, wall: &str, names: &[String]) -> Result<Vec<PathBuf>, TlsError> {
-    use rcgen::{BasicConstraints, CertificateParams, DnType, IsCa, Issuer, KeyPair, KeyUsagePurpose};
-    std::fs::create_dir_all(dir).map_err(io(dir))?;
-    let gen_err = |name: &str| {
-        let name = name.to_string();
-        move |e: rcgen::Error| TlsError::Generate { name, reason: e.to_string() }
-    };
-    let ca_key = KeyPair::generate().map_err(gen_err("ca"))?;
-    let mut ca_params = CertificateParams::new(Vec::<String>::new()).map_err(gen_err("ca"))?;
-    ca_params.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
-    ca_params.distinguished_name.push(DnType::CommonName, format!("Isowall wall CA: {wall}"));
-    ca_params.key_usages = vec![KeyUsagePurpose::KeyCertSign, KeyUsagePurpose::DigitalSignature];
-    let ca_cert = ca_params.self_signed(&ca_key).map_err(gen_err("ca"))?;
-    let mut written = Vec::new();
-    let mut write = |name: &str, text: String| -> Result<(), TlsError> {
-        let path = dir.join(name);
-        std::fs::write(&path, text).map_err(io(&path))?;
-        if name.ends_with(".key") {
-            // Private keys: readable by their owner only.
-            use std::os::unix::fs::PermissionsExt;
-            std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o600)).map_err(io(&path))?;
-        }
-        written.push(path);
-        Ok(())
-    };
-    write("ca.pem", ca_cert.pem())?;
-    write("ca.key", ca_key.serialize_pem())?;
-    let issuer = Issuer::new(ca_params, ca_key);
-    let mut all: Vec<&str> = names.iter().map(String::as_str).collect();
-    all.push(CONTROLLER);
-    for name in all {
+/// Node names a wall may hold together: each a certificate name, none the same as another (or
+/// as `ca` or `controller`, whose files they would take) without regard to case.
+pub(crate) fn check_node_names(names: &[String]) -> Result<(), TlsError> {
+    for (i, name) in names.iter().enumerate() {
         check_name(name)?;
-        let key = KeyPair::generate().map_err(gen_err(name))?;
-        let mut params = CertificateParams::new(vec![name.to_string()]).map_err(gen_err(name))?;
-        params.distinguished_name.push(DnType::CommonName, name);
-        let cert = params.signed_by(&key, &issuer).map_err(gen_err(name))?;
-        write(&format!("{name}.pem"), cert.pem())?;
-        write(&format!("{name}.key"), key.serialize_pem())?;
+        if let Some(r) = ["ca", CONTROLLER].into_iter().find(|r| r.eq_ignore_ascii_case(name)) {
+            return Err(TlsError::SameName(name.clone(), r.to_string()));
+        }
+        if let Some(first) = names[..i].iter().find(|n| n.eq_ignore_ascii_case(name)) {
+            return Err(TlsError::SameName(name.clone(), first.clone()));
+        }
     }
-    Ok(written)
+    Ok(())
+}
+
+/// The subject names of `name`'s certificate: the controller's URI alone, or a node's DNS name.
+pub(crate) fn certificate_params(name: &str) -> Result<rcgen::CertificateParams, rcgen::Error> {
+    let mut params = rcgen::CertificateParams::default();
+    params.subject_alt_names = if name == CONTROLLER {
+        vec![rcgen::SanType::URI(CONTROLLER_URI.try_into()?)]
+    } else {
+        vec![rcgen::SanType::DnsName(name.try_into()?)]
+    };
+    params.distinguished_name.push(rcgen::DnType::CommonName, name);
+    Ok(params)
+}
+
+/// Refuses a private key file that its group or others may read or write.
+pub(crate) fn key_mode_problem(path: &Path) -> Result<(), TlsError> {
+    use std::os::unix::fs::PermissionsExt;
+    let mode = std::fs::metadata(path).map_err(io(path))?.permissions().mode() & 0o7777;
+    if mode & 0o077 != 0 {
+        return Err(TlsError::KeyOpen { path: path.to_owned(), mode });
+    }
+    Ok(())
 }
 
 /// One party's credentials: the wall CA, its certificate chain and private key.
@@ -111,12 +133,14 @@ fn provider() -> Arc<rustls::crypto::CryptoProvider> {
 }
 
 impl Identity {
-    /// Loads `ca.pem`, `NAME.pem` and `NAME.key` from the certificate folder.
+    /// Loads `ca.pem`, `NAME.pem` and `NAME.key` from the certificate folder; the key only when
+    /// no one but its owner may read it.
     pub fn load(dir: &Path, name: &str) -> Result<Identity, TlsError> {
         check_name(name)?;
         let ca = read_cert(&dir.join("ca.pem"))?;
         let cert = read_cert(&dir.join(format!("{name}.pem")))?;
         let key_path = dir.join(format!("{name}.key"));
+        key_mode_problem(&key_path)?;
         let bytes = std::fs::read(&key_path).map_err(io(&key_path))?;
         let key = PrivateKeyDer::from_pem_slice(&bytes).map_err(|e| TlsError::Pem {
             path: key_path.clone(),
@@ -148,6 +172,7 @@ impl Identity {
             .map_err(|e| TlsError::Config(e.to_string()))?;
         let mut config = quinn::ServerConfig::with_crypto(Arc::new(quic));
         config.transport_config(Arc::new(crate::transport::transport_config()));
+        config.max_incoming(crate::transport::MAX_INCOMING);
         Ok(config)
     }
 
@@ -168,14 +193,98 @@ impl Identity {
     }
 }
 
-/// Whether the peer of `connection` presented a certificate (already verified against the wall CA
-/// by the handshake) that names `name`: a daemon uses it to accept only the controller's
-/// certificate as a controller, not another node's.
+/// Who a peer is, by the certificate it presented (the handshake verified it against the wall CA).
+#[derive(Debug, Clone, PartialEq, Eq, Hash)]
+pub enum PeerIdentity {
+    /// The controller's certificate: the URI SAN [`CONTROLLER_URI`] and no DNS name.
+    Controller,
+    /// A node's certificate: exactly one DNS SAN, its name as written (case kept), and no URI.
+    Node(String),
+}
+
+impl std::fmt::Display for PeerIdentity {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            PeerIdentity::Controller => f.write_str(CONTROLLER),
+            PeerIdentity::Node(n) => write!(f, "node `{n}`"),
+        }
+    }
+}
+
+/// The identity a DER certificate carries, or why it carries none of the wall's.
+pub fn certificate_identity(der: &CertificateDer<'_>) -> Result<PeerIdentity, String> {
+    let cert = webpki::EndEntityCert::try_from(der).map_err(|e| format!("not a certificate: {e:?}"))?;
+    let uris: Vec<&str> = cert.valid_uri_names().collect();
+    let dns: Vec<&str> = cert.valid_dns_names().collect();
+    match (uris.as_slice(), dns.as_slice()) {
+        ([uri], []) if *uri == CONTROLLER_URI => Ok(PeerIdentity::Controller),
+        ([], [name]) => Ok(PeerIdentity::Node((*name).to_string())),
+        _ => Err(format!(
+            "its certificate names neither the controller nor one node (URIs {uris:?}, DNS names {dns:?})"
+        )),
+    }
+}
+
+/// The identity of `connection`'s peer (its leaf certificate), or why it has none of the wall's.
+pub fn peer_identity(connection: &quinn::Connection) -> Result<PeerIdentity, String> {
+    let identity = connection.peer_identity().ok_or("it presented no certificate")?;
+    let chain = identity
+        .downcast::<Vec<CertificateDer<'static>>>()
+        .map_err(|_| "its certificate chain is not X.509".to_string())?;
+    certificate_identity(chain.first().ok_or("its certificate chain is empty")?)
+}
+
+/// Whether the peer of `connection` is `name`, compared exactly: [`CONTROLLER`] for the
+/// controller's certificate ([`PeerIdentity::Controller`]), else the node `name`'s. A daemon uses
+/// it to accept only the controller's certificate as a controller, and each node's as itself.
 pub fn peer_is(connection: &quinn::Connection, name: &str) -> bool {
-    let Some(identity) = connection.peer_identity() else { return false };
-    let Ok(chain) = identity.downcast::<Vec<CertificateDer<'static>>>() else { return false };
-    let Some(leaf) = chain.first() else { return false };
-    let Ok(cert) = webpki::EndEntityCert::try_from(leaf) else { return false };
-    let Ok(server_name) = rustls::pki_types::ServerName::try_from(name) else { return false };
-    cert.verify_is_valid_for_subject_name(&server_name).is_ok()
+    match peer_identity(connection) {
+        Ok(PeerIdentity::Controller) => name == CONTROLLER,
+        Ok(PeerIdentity::Node(n)) => n == name && name != CONTROLLER,
+        Err(_) => false,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn leaf(dir: &Path, name: &str) -> CertificateDer<'static> {
+        read_cert(&dir.join(format!("{name}.pem"))).unwrap()
+    }
+
+    #[test]
+    fn the_controller_and_each_node_have_distinct_exact_identities() {
+        let dir = tempfile::tempdir().unwrap();
+        crate::keygen::keygen(
+            dir.path(),
+            "w",
+            &["node0".into(), "Node-1".into()],
+            crate::keygen::CaMode::New,
+            30,
+        )
+        .unwrap();
+        assert_eq!(certificate_identity(&leaf(dir.path(), CONTROLLER)), Ok(PeerIdentity::Controller));
+        assert_eq!(certificate_identity(&leaf(dir.path(), "node0")), Ok(PeerIdentity::Node("node0".into())));
+        // Case is kept: `Node-1` is not `node-1`.
+        assert_eq!(
+            certificate_identity(&leaf(dir.path(), "Node-1")),
+            Ok(PeerIdentity::Node("Node-1".into()))
+        );
+        // The CA's own certificate is neither.
+        assert!(certificate_identity(&leaf(dir.path(), "ca")).is_err());
+    }
+
+    #[test]
+    fn keygen_refuses_names_that_differ_only_in_case_before_writing_anything() {
+        for names in [vec!["Controller"], vec!["node0", "NODE0"], vec!["CA"], vec!["controller"]] {
+            let dir = tempfile::tempdir().unwrap();
+            let names: Vec<String> = names.into_iter().map(String::from).collect();
+            let e =
+                crate::keygen::keygen(dir.path(), "w", &names, crate::keygen::CaMode::New, 30).unwrap_err();
+            assert!(matches!(e, TlsError::SameName(..)), "{names:?}: {e}");
+            assert!(e.to_string().contains("without regard to case"), "{e}");
+            assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0, "{names:?}: files written");
+        }
+    }
 }

@@ -28,6 +28,15 @@ pub enum NetError {
     Codec { peer: String, source: CodecError },
 }
 
+/// Unidirectional streams a peer may have open at once (object space: frames of pixels).
+pub const MAX_UNI_STREAMS: u32 = 8;
+/// Bytes a peer may have in flight on one stream (flow control), at most.
+pub const STREAM_WINDOW: u32 = 4 << 20;
+/// Bytes a peer may have in flight on one connection, all streams together, at most.
+pub const CONNECTION_WINDOW: u32 = 16 << 20;
+/// Connections a server endpoint lets wait for their handshake at once, at most.
+pub const MAX_INCOMING: usize = 64;
+
 /// Transport settings: keep-alives so a dead peer is noticed within the idle timeout, and prompt
 /// acknowledgements for a LAN.
 ///
@@ -37,8 +46,21 @@ pub enum NetError {
 /// barrier's p99 under 1-5 % loss (`tests/tests/network.rs`). Through the ACK frequency extension
 /// (both ends are quinn) every ack-eliciting packet is acknowledged at once and the delay asked
 /// of the peer is 1 ms; acknowledgements for a few messages per frame cost little.
+///
+/// Limits, set here rather than left to quinn's defaults (which allow 100 streams of each kind, an
+/// unlimited connection window and datagrams): a peer may open one bidirectional stream at a time
+/// (the message channel) and [`MAX_UNI_STREAMS`] unidirectional ones (object space: one per frame
+/// of pixels), and have at most [`STREAM_WINDOW`] bytes in flight per stream and
+/// [`CONNECTION_WINDOW`] per connection, so what a connection can make the receiver buffer is
+/// bounded whatever the peer does; no datagrams.
 pub fn transport_config() -> quinn::TransportConfig {
     let mut t = quinn::TransportConfig::default();
+    t.max_concurrent_bidi_streams(quinn::VarInt::from_u32(1));
+    t.max_concurrent_uni_streams(quinn::VarInt::from_u32(MAX_UNI_STREAMS));
+    t.stream_receive_window(quinn::VarInt::from_u32(STREAM_WINDOW));
+    t.receive_window(quinn::VarInt::from_u32(CONNECTION_WINDOW));
+    t.send_window(u64::from(CONNECTION_WINDOW));
+    t.datagram_receive_buffer_size(None);
     t.keep_alive_interval(Some(Duration::from_millis(500)));
     t.max_idle_timeout(Some(Duration::from_secs(5).try_into().expect("5 s is a valid idle timeout")));
     let mut acks = quinn::AckFrequencyConfig::default();
@@ -70,14 +92,31 @@ pub fn client(identity: &Identity) -> Result<quinn::Endpoint, NetError> {
     Ok(ep)
 }
 
-/// Connects to the node `name` at `addr`; its certificate must name it and be signed by the wall CA.
+/// Connects to the node `name` at `addr`; its certificate must be signed by the wall CA and name
+/// exactly `name` (TLS's own check ignores case).
 pub async fn connect(
     endpoint: &quinn::Endpoint,
     addr: SocketAddr,
     name: &str,
 ) -> Result<quinn::Connection, NetError> {
     let err = |reason: String| NetError::Connect { peer: format!("{name} ({addr})"), reason };
-    endpoint.connect(addr, name).map_err(|e| err(e.to_string()))?.await.map_err(|e| err(e.to_string()))
+    let conn = endpoint
+        .connect(addr, name)
+        .map_err(|e| err(e.to_string()))?
+        .await
+        .map_err(|e| err(e.to_string()))?;
+    match crate::tls::peer_identity(&conn) {
+        Ok(crate::tls::PeerIdentity::Node(n)) if n == name => Ok(conn),
+        Ok(other) => {
+            let reason = format!("its certificate is {other}'s, not node `{name}`'s");
+            close(&conn, &reason);
+            Err(err(reason))
+        }
+        Err(e) => {
+            close(&conn, &e);
+            Err(err(e))
+        }
+    }
 }
 
 /// The sending half of a channel.

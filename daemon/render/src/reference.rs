@@ -34,19 +34,22 @@
 //!
 //! # Ambient occlusion (DESIGN.md "AO"), `AoMethod::Ours`, exact
 //!
-//! With `ao.samples = N > 0`, every hit `p` casts N rays from `o = p + offset * N_s`
-//! (`offset = ao.offset_voxels * min spacing`) in the directions
-//! `w_i = cosine_direction(N_s, r2_point(i, pixel_key(px, py, ao.frame, ao.seed)))` of
-//! [`crate::sampling`] (px, py: the pixel in the *full* image). Ray i is occluded (`V_i = 1`) when
-//! the exact trilinear field reaches `f >= iso` at some `t` in `[0, R]`, `R` the AO radius
+//! With `ao.samples = N > 0`, every hit `p` casts N rays from the surface ([`AoSurface`]):
+//! from `o = p + eps * Ng` (`eps = ao.offset_voxels * min spacing`, 0.01 voxel), Ng the trilinear
+//! field's own gradient in p's cell turned towards where the primary ray came from (a cap's face
+//! normal), in the directions `w_i = cosine_direction(N, ao_point(ao.sequence, i, pixel_key(px,
+//! py, ao.frame, ao.seed)))` of [`crate::sampling`] (px, py: the pixel in the *full* image), N the
+//! central-difference normal as it is, *not* turned towards the viewer (Ng where its gradient
+//! vanished). Ray i is occluded (`V_i = 1`) when the exact trilinear field reaches `f >= iso` at
+//! some `t` in `[0, R]`, `R` the AO radius
 //! ([`AoSettings::radius_world`](isowall_wall::AoSettings::radius_world)) or the box exit when
-//! unbounded; `t = 0` is included, so an origin inside the object is occluded. Outside the box the
-//! field is empty, so a ray that leaves the box is open (and one whose origin lies outside the box
-//! is tested from where it enters it, if it does). Exact: the ray walks the cells like a primary
-//! ray and each segment's cubic is tested for `max >= iso` (its ends and the roots of its
+//! unbounded; `t = 0` is included, so an origin inside the object is occluded. A direction under
+//! the surface meets the object within a few eps by the same test; no other rule. Outside the box
+//! the field is empty, so a ray that leaves the box is open (and one whose origin lies outside the
+//! box is tested from where it enters it, if it does). Exact: the ray walks the cells like a
+//! primary ray and each segment's cubic is tested for `max >= iso` (its ends and the roots of its
 //! derivative), no step, no up-crossing needed. `A = (1/N) sum V_i`; the bent normal is the
-//! normalized sum of the unoccluded `w_i`, and `N_s` when none is (or when AO is off) — DESIGN.md's
-//! "N", on the side facing the viewer as in shading.
+//! normalized sum of the unoccluded `w_i`, and N when none is (`N_s` when AO is off).
 //!
 //! # `AoMethod::Seed`: the 2008 baseline, ported faithfully with its flaws (not our method)
 //!
@@ -75,7 +78,7 @@
 
 use crate::environment::Environment;
 use crate::frame::Frame;
-use crate::sampling::{cosine_direction, pixel_key, r2_point, seed_directions, seed_lift};
+use crate::sampling::{ao_point, cosine_direction, pixel_key, seed_directions, seed_lift};
 use glam::DVec3;
 use isowall_volume::Volume;
 use isowall_wall::camera::Basis;
@@ -221,7 +224,7 @@ pub fn render_accumulated(
         first.ibl[i] = ibl[i].map(|c| (c / kf) as f32);
         first.occlusion[i] = (occlusion[i] / kf) as f32;
         if first.hit[i] {
-            // Every frame's bent normal lies in the hemisphere of N_s, so the sum is not zero;
+            // Every frame's bent normal lies in the hemisphere of N, so the sum is not zero;
             // should it be, the first frame's is kept.
             if let Some(b) = bent[i].try_normalize() {
                 first.bent_normal[i] = b.to_array().map(|c| c as f32);
@@ -287,7 +290,7 @@ impl<'a> IblLighting<'a> {
 pub struct Ambient {
     /// A in [0, 1], 0 = open.
     pub occlusion: f64,
-    /// Unit bent normal (`N_s` where no ray is open or AO is off).
+    /// Unit bent normal (N where no ray is open, `N_s` where AO is off).
     pub bent_normal: DVec3,
     /// E for albedo 1 before exposure, linear RGB.
     pub irradiance: [f64; 3],
@@ -295,40 +298,90 @@ pub struct Ambient {
     pub fetches: u64,
 }
 
-/// The origin of the AO rays (ours) of a surface point `p` with viewer-facing normal `n_s`:
-/// `p + ao.offset_voxels * min spacing * n_s`.
-pub fn ao_origin(volume: &Volume, settings: &RenderSettings, p: DVec3, n_s: DVec3) -> DVec3 {
-    p + settings.ao.offset_voxels * volume.spacing().min_element() * n_s
+/// A hit as the AO rays see it (DESIGN.md "AO").
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AoSurface {
+    /// The hit point p on the surface.
+    pub position: DVec3,
+    /// N, the hemisphere's axis: the central-difference normal as it is (not turned towards the
+    /// viewer), or `geometric` where that gradient vanished (N is then the viewer fallback).
+    pub normal: DVec3,
+    /// Ng: the trilinear field's own gradient in p's cell, `-grad / |grad|`, turned to the side the
+    /// primary ray came from (`-dir` where it vanishes); for a cap, the face's outward normal.
+    pub geometric: DVec3,
+    /// N turned towards the viewer, as shading uses it (and the `seed` baseline).
+    pub facing: DVec3,
 }
 
-/// AO, bent normal and E at the surface point `p` with unit viewer-facing normal `n_s`, seen
-/// through pixel `(px, py)` of the full image (module documentation; `settings.ao.method` picks
-/// ours or the seed baseline).
+impl AoSurface {
+    /// The AO view of a primary hit at `position` with the normal of the `normal` AOV (DESIGN.md
+    /// "Normal": `-dir` where the gradient vanished), reached along the unit `dir`; `cap`: the hit
+    /// is on a box face (its normal the face's). The GPU's AO kernel applies the same rules to its
+    /// own hits (shaders/ao.wgsl).
+    pub fn new(volume: &Volume, position: DVec3, normal: DVec3, dir: DVec3, cap: bool) -> AoSurface {
+        let facing = if normal.dot(-dir) < 0.0 { -normal } else { normal };
+        let geometric = if cap { normal } else { geometric_normal(volume, position, dir) };
+        // The shading normal's fallback for a vanished gradient is exactly -dir.
+        let normal = if !cap && normal == -dir { geometric } else { normal };
+        AoSurface { position, normal, geometric, facing }
+    }
+
+    /// [`AoSurface::new`] for a hit of [`trace`].
+    pub fn of_hit(volume: &Volume, hit: &Hit, dir: DVec3) -> AoSurface {
+        AoSurface::new(volume, hit.position, hit.normal, dir.normalize(), hit.cap)
+    }
+}
+
+/// Ng at a surface point `p` reached along `dir`: `-g / |g|` with g the trilinear field's own
+/// gradient in p's cell ([`Volume::cell_gradient`]), turned so that `Ng . dir <= 0` (towards where
+/// the ray came from); `-dir` where g vanishes or is not finite.
+pub fn geometric_normal(volume: &Volume, p: DVec3, dir: DVec3) -> DVec3 {
+    let g = volume.cell_gradient(p);
+    let len = g.length();
+    if !(len.is_finite() && len > 0.0) {
+        return -dir;
+    }
+    let n = -g / len;
+    if n.dot(dir) > 0.0 {
+        -n
+    } else {
+        n
+    }
+}
+
+/// The origin of the AO rays (ours) of a surface point `p` with geometric normal `ng`:
+/// `p + eps * ng`, eps = `ao.offset_voxels` (0.01) of the smallest spacing.
+pub fn ao_origin(volume: &Volume, settings: &RenderSettings, p: DVec3, ng: DVec3) -> DVec3 {
+    p + settings.ao.offset_voxels * volume.spacing().min_element() * ng
+}
+
+/// AO, bent normal and E at the surface point `surface`, seen through pixel `(px, py)` of the full
+/// image (module documentation; `settings.ao.method` picks ours or the seed baseline).
 pub fn ambient_at(
     volume: &Volume,
     settings: &RenderSettings,
     lighting: &IblLighting,
-    p: DVec3,
-    n_s: DVec3,
+    surface: &AoSurface,
     (px, py): (u32, u32),
 ) -> Ambient {
     let ao = &settings.ao;
     let n = ao.samples;
     if n == 0 || ao.method == AoMethod::Seed {
-        return seed_ambient(volume, settings, lighting, p, n_s);
+        return seed_ambient(volume, settings, lighting, surface.position, surface.facing);
     }
     let key = pixel_key(px, py, ao.frame, ao.seed);
-    let o = ao_origin(volume, settings, p, n_s);
+    let axis = surface.normal;
+    let o = ao_origin(volume, settings, surface.position, surface.geometric);
     let radius = ao.radius_world(volume.spacing());
     let (mut tally, mut fetches) = (Tally::default(), 0);
     for i in 0..n {
-        let (u, v) = r2_point(i, key);
-        let w = cosine_direction(n_s, u, v);
+        let (u, v) = ao_point(ao.sequence, i, key);
+        let w = cosine_direction(axis, u, v);
         let (hit, f) = ao_ray_counted(volume, o, w, settings.iso, radius);
         fetches += f;
         tally.add(hit, w, lighting);
     }
-    tally.ambient(n, n_s, lighting, fetches)
+    tally.ambient(n, axis, lighting, fetches)
 }
 
 /// What the AO rays of one point found: how many were occluded, the sum of the open directions,
@@ -355,10 +408,10 @@ impl Tally {
     }
 
     /// A = occluded / n (n counts skipped samples too); bent normal = the normalized open sum, or
-    /// `n_s` when no ray was open; E from the lighting.
-    fn ambient(&self, n: u32, n_s: DVec3, lighting: &IblLighting, fetches: u64) -> Ambient {
+    /// `axis` (the hemisphere's) when no ray was open; E from the lighting.
+    fn ambient(&self, n: u32, axis: DVec3, lighting: &IblLighting, fetches: u64) -> Ambient {
         let occlusion = self.occluded as f64 / n as f64;
-        let bent_normal = self.open_sum.try_normalize().unwrap_or(n_s);
+        let bent_normal = self.open_sum.try_normalize().unwrap_or(axis);
         let irradiance = lighting.irradiance(occlusion, bent_normal, self.ray_sum, n);
         Ambient { occlusion, bent_normal, irradiance, fetches }
     }
@@ -510,9 +563,10 @@ fn shade_pixel(
         },
         Some(h) => {
             let v = -dir;
-            let n = if h.normal.dot(v) < 0.0 { -h.normal } else { h.normal };
+            let surface = AoSurface::of_hit(volume, &h, dir);
+            let n = surface.facing;
             let pixel = (view.window.x + x, view.window.y + y);
-            let amb = ambient_at(volume, settings, lighting, h.position, n, pixel);
+            let amb = ambient_at(volume, settings, lighting, &surface, pixel);
             fetches += amb.fetches;
             // albedo * (E + light * N.L) + specular: shade() with its ambient replaced by E.
             let mut lit = *settings;

@@ -24,9 +24,25 @@
 //!                    t = (1 + s n.x^2 a, s b, -s n.x); bt = (b, s + n.y^2 a, -n.y)
 //! cosine_direction(n, u, v): (x, y) = concentric_disk(u, v) (f32), then in f64 (f32 on the GPU):
 //!                    z = sqrt(max(0, 1 - x^2 - y^2)); w = x t + y bt + z n   (Malley's method)
+//! owen_permute(x, s) (Laine & Karras 2011, Burley's 2020 constants), each output bit depending
+//!                    only on itself and the lower bits:
+//!                    x += s; x ^= x * 0x6c50b47c; x ^= x * 0xb82f1e52; x ^= x * 0xc7afe638;
+//!                    x ^= x * 0x8d22f6e6
+//! owen_scramble(x, s) = reverse_bits(owen_permute(reverse_bits(x), s)): hash-based nested
+//!                    uniform (Owen) scrambling of a 0.32 fixed-point coordinate
+//! sobol_2d(i):       (reverse_bits(i), XOR of SOBOL_Y[k] over the set bits k of i), SOBOL_Y[0] =
+//!                    0x80000000, SOBOL_Y[k] = SOBOL_Y[k-1] ^ (SOBOL_Y[k-1] >> 1) (the first two
+//!                    Sobol dimensions, primitive polynomials 1 and x + 1)
+//! sobol_point(i, key): j = owen_scramble(i, hash(key))                    (index shuffle)
+//!                    (x, y) = sobol_2d(j)
+//!                    x = owen_scramble(x, hash(key ^ 0x2c1b3c6d)); y = owen_scramble(y, hash(key ^ 0x297a2d39))
+//!                    (u, v) = ((x >> 8) * 2^-24, (y >> 8) * 2^-24) as f32
+//!                    (Burley 2020, "Practical Hash-based Owen Scrambling": the first 2^k samples
+//!                    of a pixel are an aligned block of the sequence, a (0, k, 2)-net, scrambled)
 //! ```
 //!
-//! Sample `i` of a pixel is `cosine_direction(n, r2_point(i, pixel_key(px, py, frame, seed)))`:
+//! The 2D set is chosen per frame by [`AoSequence`](isowall_wall::AoSequence) ([`ao_point`]):
+//! sample `i` of a pixel is `cosine_direction(n, ao_point(sequence, i, pixel_key(px, py, frame, seed)))`:
 //! cosine-weighted over the hemisphere around `n`, so the mean of the occlusion indicator over the
 //! samples estimates A(p) = (1/pi) ∫ V cos. The frame index decorrelates successive frames of a
 //! progressive accumulation; nothing depends on the wall clock.
@@ -35,6 +51,7 @@
 //! the `seed` baseline.
 
 use glam::DVec3;
+use isowall_wall::AoSequence;
 
 /// "lowbias32" integer hash (Chris Wellons' hash-prospector), a bijection on `u32`.
 #[inline]
@@ -67,6 +84,60 @@ pub fn r2_point(i: u32, key: u32) -> (f32, f32) {
     let x = 0x8000_0000u32.wrapping_add(i.wrapping_mul(R2_A1)).wrapping_add(hash(key));
     let y = 0x8000_0000u32.wrapping_add(i.wrapping_mul(R2_A2)).wrapping_add(hash(key ^ 0x68bc_21eb));
     ((x >> 8) as f32 * (1.0 / 16_777_216.0), (y >> 8) as f32 * (1.0 / 16_777_216.0))
+}
+
+/// Laine-Karras style permutation of `x` keyed by `seed` (Burley 2020): each output bit depends
+/// only on the same and lower input bits, so on bit-reversed input it is a nested scramble.
+#[inline]
+pub fn owen_permute(x: u32, seed: u32) -> u32 {
+    let mut x = x.wrapping_add(seed);
+    x ^= x.wrapping_mul(0x6c50_b47c);
+    x ^= x.wrapping_mul(0xb82f_1e52);
+    x ^= x.wrapping_mul(0xc7af_e638);
+    x ^= x.wrapping_mul(0x8d22_f6e6);
+    x
+}
+
+/// Hash-based nested uniform (Owen) scrambling of a 0.32 fixed-point coordinate.
+#[inline]
+pub fn owen_scramble(x: u32, seed: u32) -> u32 {
+    owen_permute(x.reverse_bits(), seed).reverse_bits()
+}
+
+/// The first two dimensions of the Sobol sequence at index `i`, in 0.32 fixed point.
+#[inline]
+pub fn sobol_2d(i: u32) -> (u32, u32) {
+    let mut v = 0x8000_0000u32;
+    let mut y = 0u32;
+    let mut bits = i;
+    while bits != 0 {
+        if bits & 1 != 0 {
+            y ^= v;
+        }
+        bits >>= 1;
+        v ^= v >> 1;
+    }
+    (i.reverse_bits(), y)
+}
+
+/// Point `i` of the Owen-scrambled Sobol set of a pixel `key` (module documentation): both
+/// coordinates in [0, 1), multiples of 2^-24, exact in `f32`.
+#[inline]
+pub fn sobol_point(i: u32, key: u32) -> (f32, f32) {
+    let j = owen_scramble(i, hash(key));
+    let (x, y) = sobol_2d(j);
+    let x = owen_scramble(x, hash(key ^ 0x2c1b_3c6d));
+    let y = owen_scramble(y, hash(key ^ 0x297a_2d39));
+    ((x >> 8) as f32 * (1.0 / 16_777_216.0), (y >> 8) as f32 * (1.0 / 16_777_216.0))
+}
+
+/// Point `i` of the pixel `key`'s 2D set of `sequence`.
+#[inline]
+pub fn ao_point(sequence: AoSequence, i: u32, key: u32) -> (f32, f32) {
+    match sequence {
+        AoSequence::R2 => r2_point(i, key),
+        AoSequence::Sobol => sobol_point(i, key),
+    }
 }
 
 /// Shirley-Chiu concentric mapping of the unit square onto the unit disk (area-preserving), in f32.
@@ -150,6 +221,49 @@ mod tests {
         let p = |x: u32, y: u32| (x as f32 / 16_777_216.0, y as f32 / 16_777_216.0);
         assert_eq!(r2_point(0, 4_225_011_718), p(5_444_844, 1_372_129));
         assert_eq!(r2_point(7, 4_225_011_718), p(10_211_983, 1_185_600));
+    }
+
+    #[test]
+    fn sobol_known_answers() {
+        // Computed outside this code with Python (the module documentation's formulas, with
+        // reverse_bits(x) = int(format(x, '032b')[::-1], 2) and h as in hash_known_answers).
+        assert_eq!(sobol_2d(0), (0, 0));
+        assert_eq!(sobol_2d(1), (0x8000_0000, 0x8000_0000));
+        assert_eq!(sobol_2d(2), (0x4000_0000, 0xc000_0000));
+        assert_eq!(sobol_2d(3), (0xc000_0000, 0x4000_0000));
+        assert_eq!(sobol_2d(5), (0xa000_0000, 0x2000_0000));
+        assert_eq!(owen_scramble(0x1234_5678, 0xdead_beef), 0xc90c_b9f0);
+        let p = |x: u32, y: u32| (x as f32 / 16_777_216.0, y as f32 / 16_777_216.0);
+        assert_eq!(sobol_point(0, 4_225_011_718), p(1_423_546, 2_168_656));
+        assert_eq!(sobol_point(1, 4_225_011_718), p(13_079_559, 14_870_759));
+        assert_eq!(sobol_point(7, 4_225_011_718), p(10_949_349, 12_418_055));
+        assert_eq!(ao_point(AoSequence::Sobol, 7, 4_225_011_718), sobol_point(7, 4_225_011_718));
+        assert_eq!(ao_point(AoSequence::R2, 7, 4_225_011_718), r2_point(7, 4_225_011_718));
+    }
+
+    #[test]
+    fn owen_scrambled_sobol_prefixes_are_nets_in_every_pixel() {
+        // The first 2^k points of any pixel: exactly one point in every elementary interval
+        // [a/2^i, (a+1)/2^i) x [b/2^j, (b+1)/2^j) with i + j = k (a (0, k, 2)-net in base 2).
+        for key in [0, 1, pixel_key(17, 4, 2, 9), pixel_key(500, 300, 7, 0)] {
+            for k in [2u32, 4, 6] {
+                let n = 1u32 << k;
+                let pts: Vec<(f32, f32)> = (0..n).map(|i| sobol_point(i, key)).collect();
+                for i in 0..=k {
+                    let j = k - i;
+                    let mut cells = vec![0u32; n as usize];
+                    for &(u, v) in &pts {
+                        assert!((0.0..1.0).contains(&u) && (0.0..1.0).contains(&v));
+                        let (a, b) = ((u * (1 << i) as f32) as u32, (v * (1 << j) as f32) as u32);
+                        cells[(a + (b << i)) as usize] += 1;
+                    }
+                    assert!(cells.iter().all(|&c| c == 1), "key {key} k {k} i {i}: {cells:?}");
+                }
+            }
+        }
+        // Pixels and frames get different scramblings.
+        assert_ne!(sobol_point(0, pixel_key(1, 2, 0, 0)), sobol_point(0, pixel_key(1, 2, 1, 0)));
+        assert_ne!(sobol_point(3, pixel_key(1, 2, 0, 0)), sobol_point(3, pixel_key(2, 1, 0, 0)));
     }
 
     #[test]

@@ -11,19 +11,25 @@
 pub enum Kernel {
     Isosurface,
     Ao,
+    /// The tile's presentable image: colour, accumulation, sRGB, upsample (its own parameters,
+    /// `ComposeParams`, not the frame's).
+    Compose,
     /// Not a compute kernel: the render pass that draws a tile's image into its window.
     Present,
 }
 
 impl Kernel {
-    pub const ALL: [Kernel; 3] = [Kernel::Isosurface, Kernel::Ao, Kernel::Present];
-    /// The compute kernels (entry point `main`, the frame parameters of `frame.wgsl`).
-    pub const COMPUTE: [Kernel; 2] = [Kernel::Isosurface, Kernel::Ao];
+    pub const ALL: [Kernel; 4] = [Kernel::Isosurface, Kernel::Ao, Kernel::Compose, Kernel::Present];
+    /// The compute kernels (entry point `main`).
+    pub const COMPUTE: [Kernel; 3] = [Kernel::Isosurface, Kernel::Ao, Kernel::Compose];
+    /// The kernels that read the frame parameters of `frame.wgsl`.
+    pub const FRAME: [Kernel; 2] = [Kernel::Isosurface, Kernel::Ao];
 
     pub fn file_name(self) -> &'static str {
         match self {
             Kernel::Isosurface => "isosurface.wgsl",
             Kernel::Ao => "ao.wgsl",
+            Kernel::Compose => "compose.wgsl",
             Kernel::Present => "present.wgsl",
         }
     }
@@ -31,7 +37,7 @@ impl Kernel {
     /// The entry points the host uses.
     pub fn entry_points(self) -> &'static [&'static str] {
         match self {
-            Kernel::Isosurface | Kernel::Ao => &["main"],
+            Kernel::Isosurface | Kernel::Ao | Kernel::Compose => &["main"],
             Kernel::Present => &["vs_main", "fs_main"],
         }
     }
@@ -40,6 +46,7 @@ impl Kernel {
         match self {
             Kernel::Isosurface => include_str!("../../../shaders/isosurface.wgsl"),
             Kernel::Ao => include_str!("../../../shaders/ao.wgsl"),
+            Kernel::Compose => include_str!("../../../shaders/compose.wgsl"),
             Kernel::Present => include_str!("../../../shaders/present.wgsl"),
         }
     }
@@ -53,6 +60,11 @@ const INCLUDES: &[(&str, &str)] = &[
     ("volume.wgsl", include_str!("../../../shaders/volume.wgsl")),
     ("shading.wgsl", include_str!("../../../shaders/shading.wgsl")),
 ];
+
+/// The text of a shared include (`sampling.wgsl`, ...), for tests that run one on the GPU.
+pub fn include(name: &str) -> Option<&'static str> {
+    INCLUDES.iter().find(|(n, _)| *n == name).map(|(_, text)| *text)
+}
 
 /// The complete WGSL of a kernel, includes spliced in.
 pub fn source(kernel: Kernel) -> String {

@@ -121,7 +121,10 @@ fn two_and_four_bricks_composite_to_the_single_render_bit_for_bit() {
         assert_eq!(depth_diff, 0.0, "{n} bricks: depth differs");
         let (max, count) = colour_diff(&single, &composite);
         assert_eq!((max, count), (0.0, 0), "{n} bricks: colour differs at {count} pixels, by up to {max}");
-        assert!(single.occlusion.iter().filter(|&&a| a > 0.2).count() > 100, "AO is visible");
+        // (With the AO origin on the surface the plane under the sphere is a little less occluded
+        // than from half a voxel above it: about 200 pixels have A > 0.1.)
+        let occluded = single.occlusion.iter().filter(|&&a| a > 0.1).count();
+        assert!(occluded > 150, "AO is visible: {occluded} pixels with A > 0.1");
     }
 }
 

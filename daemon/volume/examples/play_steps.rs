@@ -42,7 +42,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         }
     }
     let source: VolumeSource = format!("{}/step_*.nrrd", dir.path().display()).parse()?;
-    let cache = StepCache::new(source, None, cache_mb << 20)?;
+    let cache = StepCache::new(source, None, cache_mb << 20, isowall_volume::io::VolumeLimit::default())?;
     let _ = cache.wait(0, Duration::from_secs(60));
     let start = Instant::now();
     let mut waited = 0;

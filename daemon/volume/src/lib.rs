@@ -146,10 +146,10 @@ impl Volume {
         p.cmpge(lo).all() && p.cmple(hi).all()
     }
 
-    /// The trilinear interpolant at continuous voxel coordinates `u`, clamped to the box.
-    /// An axis with a single sample is constant along that axis.
+    /// The cell that holds continuous voxel coordinates `u` (clamped to the box): its lowest
+    /// corner and the fraction along each axis; an axis with a single sample has cell 0, fraction 0.
     #[inline]
-    pub fn trilinear_voxel(&self, u: DVec3) -> f64 {
+    fn cell_of(&self, u: DVec3) -> ([usize; 3], [f64; 3]) {
         let mut i0 = [0usize; 3];
         let mut fr = [0f64; 3];
         for a in 0..3 {
@@ -162,6 +162,14 @@ impl Volume {
             i0[a] = i;
             fr[a] = x - i as f64;
         }
+        (i0, fr)
+    }
+
+    /// The trilinear interpolant at continuous voxel coordinates `u`, clamped to the box.
+    /// An axis with a single sample is constant along that axis.
+    #[inline]
+    pub fn trilinear_voxel(&self, u: DVec3) -> f64 {
+        let (i0, fr) = self.cell_of(u);
         let step = |a: usize| usize::from(self.dims[a] > 1);
         let (i, j, k) = (i0[0], i0[1], i0[2]);
         let (di, dj, dk) = (step(0), step(1), step(2));
@@ -192,11 +200,59 @@ impl Volume {
             |e: DVec3, h: f64| (self.sample_clamped(p + e * h) - self.sample_clamped(p - e * h)) / (2.0 * h);
         DVec3::new(d(DVec3::X, s.x), d(DVec3::Y, s.y), d(DVec3::Z, s.z))
     }
+
+    /// The trilinear interpolant's own gradient at `p`, inside the cell [`Volume::trilinear_voxel`]
+    /// evaluates `p` in (position clamped to the box; an axis with a single sample has 0), in
+    /// world units: DESIGN.md "AO"'s geometric normal is `-` this, normalized. The WGSL twin is
+    /// `cell_gradient` in shaders/volume.wgsl.
+    pub fn cell_gradient(&self, p: DVec3) -> DVec3 {
+        let u = self.to_voxel(p);
+        let (i0, fr) = self.cell_of(u);
+        let step = |a: usize| usize::from(self.dims[a] > 1);
+        let (d, (i, j, k)) = ([step(0), step(1), step(2)], (i0[0], i0[1], i0[2]));
+        // Corner c[dx + 2 dy + 4 dz].
+        let c: [f64; 8] = std::array::from_fn(|m| {
+            let (x, y, z) = (m & 1, (m >> 1) & 1, (m >> 2) & 1);
+            self.at(i + x * d[0], j + y * d[1], k + z * d[2]) as f64
+        });
+        let lerp = |a: f64, b: f64, t: f64| a + (b - a) * t;
+        let (x, y, z) = (fr[0], fr[1], fr[2]);
+        // d/dx: the x differences blended over y and z; likewise for y and z.
+        let gx = lerp(lerp(c[1] - c[0], c[3] - c[2], y), lerp(c[5] - c[4], c[7] - c[6], y), z);
+        let gy = lerp(lerp(c[2] - c[0], c[3] - c[1], x), lerp(c[6] - c[4], c[7] - c[5], x), z);
+        let gz = lerp(lerp(c[4] - c[0], c[5] - c[1], x), lerp(c[6] - c[2], c[7] - c[3], x), y);
+        let g = DVec3::new(gx, gy, gz) / self.spacing;
+        DVec3::select(glam::BVec3::new(d[0] == 0, d[1] == 0, d[2] == 0), DVec3::ZERO, g)
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn cell_gradient_is_the_trilinear_cells_own() {
+        // f = x y z + 3 x on a 4x3x3 grid, spacing (1, 2, 0.5): trilinear inside each cell is
+        // exact for it, so the gradient is analytic at a point of the cell.
+        let (dims, s) = ([4, 3, 3], DVec3::new(1.0, 2.0, 0.5));
+        let f = |p: DVec3| p.x * p.y * p.z + 3.0 * p.x;
+        let mut data = Vec::new();
+        for k in 0..3 {
+            for j in 0..3 {
+                for i in 0..4 {
+                    data.push(f(s * DVec3::new(i as f64, j as f64, k as f64)) as f32);
+                }
+            }
+        }
+        let v = Volume::new("xyz", dims, s, DVec3::ZERO, data).unwrap();
+        let p = DVec3::new(1.3, 2.5, 0.7);
+        let g = v.cell_gradient(p);
+        let want = DVec3::new(p.y * p.z + 3.0, p.x * p.z, p.x * p.y);
+        assert!((g - want).length() < 1e-5, "{g:?} {want:?}");
+        // A flat axis has no gradient along it.
+        let flat = Volume::new("flat", [2, 2, 1], DVec3::ONE, DVec3::ZERO, vec![0.0, 1.0, 0.0, 1.0]).unwrap();
+        assert_eq!(flat.cell_gradient(DVec3::new(0.5, 0.5, 0.0)), DVec3::X);
+    }
 
     fn ramp() -> Volume {
         // f = i + 10 j + 100 k on a 3x3x3 grid with spacing (1, 2, 4): trilinear reproduces it exactly.

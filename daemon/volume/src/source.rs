@@ -5,7 +5,7 @@
 //! Time-varying volumes: a glob names one file per time step; a 4-D NIfTI or NRRD file holds its
 //! steps itself. [`VolumeSource::time_steps`] counts them, [`VolumeSource::load_step`] reads one.
 
-use crate::io::RawSpec;
+use crate::io::{RawSpec, VolumeLimit};
 use crate::procedural::Procedural;
 use crate::{Volume, VolumeError};
 use std::path::PathBuf;
@@ -80,13 +80,30 @@ impl VolumeSource {
         VolumeSource::Procedural { kind: Procedural::Engine, size: None }
     }
 
-    /// Loads or generates the volume (its first time step).
+    /// Loads or generates the volume (its first time step), within the default [`VolumeLimit`].
     pub fn load(&self, raw: Option<&RawSpec>) -> Result<Volume, VolumeError> {
-        self.load_step(raw, 0)
+        self.load_within(raw, &VolumeLimit::default())
     }
 
-    /// Loads time step `step` (see the module's notes); a source without time steps has step 0.
+    /// Loads or generates the volume (its first time step) if it fits `limit` (checked from a
+    /// file's header, or from a procedural volume's size, before anything is allocated).
+    pub fn load_within(&self, raw: Option<&RawSpec>, limit: &VolumeLimit) -> Result<Volume, VolumeError> {
+        self.load_step_within(raw, 0, limit)
+    }
+
+    /// [`VolumeSource::load_step_within`] within the default [`VolumeLimit`].
     pub fn load_step(&self, raw: Option<&RawSpec>, step: usize) -> Result<Volume, VolumeError> {
+        self.load_step_within(raw, step, &VolumeLimit::default())
+    }
+
+    /// Loads time step `step` (see the module's notes) if it fits `limit`; a source without time
+    /// steps has step 0.
+    pub fn load_step_within(
+        &self,
+        raw: Option<&RawSpec>,
+        step: usize,
+        limit: &VolumeLimit,
+    ) -> Result<Volume, VolumeError> {
         let only_one = |name: &str| {
             if step == 0 {
                 Ok(())
@@ -95,10 +112,10 @@ impl VolumeSource {
             }
         };
         match self {
-            VolumeSource::File(p) => crate::io::load_step(p, raw, step),
+            VolumeSource::File(p) => crate::io::load_step_within(p, raw, step, limit),
             VolumeSource::DicomSeries { path, series } => {
                 only_one(&self.to_string())?;
-                crate::io::dicom::read(path, Some(series))
+                crate::io::dicom::read(path, Some(series), limit)
             }
             VolumeSource::Steps(pattern) => {
                 let files = self.step_files()?;
@@ -109,10 +126,15 @@ impl VolumeSource {
                         files.len() - 1
                     )));
                 };
-                crate::io::load(file, raw)
+                crate::io::load_within(file, raw, limit)
             }
             VolumeSource::Procedural { kind, size } => {
                 only_one(&self.to_string())?;
+                let [nx, ny, nz] = kind.dims(*size);
+                let voxels = (nx as u64) * (ny as u64) * (nz as u64);
+                limit
+                    .check(voxels, &format!("{nx}x{ny}x{nz}"))
+                    .map_err(|e| VolumeError::Source(format!("{self}: {e}")))?;
                 Ok(kind.generate(*size))
             }
         }
@@ -216,6 +238,22 @@ mod tests {
         assert_eq!(firsts, [1.0, 2.0, 3.0]);
         let e = s.load_step(None, 3).unwrap_err().to_string();
         assert!(e.contains("no time step 3: it matches 3 files"), "{e}");
+        // Every step is read within the limit: 2 voxels are 8 bytes as float32.
+        let e =
+            s.load_step_within(None, 1, &VolumeLimit::new(7, "[volume] max_bytes")).unwrap_err().to_string();
+        assert!(
+            e.contains("step_0003.nrrd") && e.contains("over the limit of 7 bytes ([volume] max_bytes)"),
+            "{e}"
+        );
+        assert_eq!(s.load_step_within(None, 1, &VolumeLimit::new(8, "test")).unwrap().data(), [2.0, 2.0]);
+        // A 4-D file is limited as a whole (it is read whole, then the step cut out).
+        let four = dir.path().join("four.nrrd");
+        let text = "NRRD0004\ntype: uchar\ndimension: 4\nsizes: 2 1 1 3\nencoding: raw\n\n";
+        std::fs::write(&four, [text.as_bytes(), &[1, 1, 2, 2, 3, 3]].concat()).unwrap();
+        let f = VolumeSource::File(four);
+        assert_eq!(f.load_step_within(None, 2, &VolumeLimit::new(24, "test")).unwrap().data(), [3.0, 3.0]);
+        let e = f.load_step_within(None, 2, &VolumeLimit::new(23, "test")).unwrap_err().to_string();
+        assert!(e.contains("over the limit of 23 bytes"), "{e}");
         let none: VolumeSource = format!("{}/nothing_*.nrrd", dir.path().display()).parse().unwrap();
         assert!(none.time_steps().unwrap_err().to_string().contains("no file matches"));
         let e = VolumeSource::default_engine().load_step(None, 1).unwrap_err().to_string();

@@ -5,7 +5,7 @@
 //! (the caller reports it and renders what it has) or [`StepState::Failed`] with the reason;
 //! [`StepCache::wait`] waits at most as long as it is told.
 
-use crate::io::RawSpec;
+use crate::io::{RawSpec, VolumeLimit};
 use crate::{Volume, VolumeError, VolumeSource};
 use std::collections::BTreeMap;
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
@@ -62,11 +62,12 @@ pub struct StepCache {
 }
 
 impl StepCache {
-    /// Counts the source's steps and starts loading step 0.
+    /// Counts the source's steps and starts loading step 0; every step is read within `limit`.
     pub fn new(
         source: VolumeSource,
         raw: Option<RawSpec>,
         cache_bytes: usize,
+        limit: VolumeLimit,
     ) -> Result<StepCache, VolumeError> {
         let steps = source.time_steps()?;
         let shared =
@@ -75,7 +76,7 @@ impl StepCache {
             let shared = shared.clone();
             std::thread::Builder::new()
                 .name("isowall-steps".into())
-                .spawn(move || load_ahead(&shared, &source, raw.as_ref()))
+                .spawn(move || load_ahead(&shared, &source, raw.as_ref(), &limit))
                 .map_err(|e| VolumeError::Source(format!("cannot start the time-step loader: {e}")))?
         };
         Ok(StepCache { shared, worker: Some(worker) })
@@ -142,7 +143,7 @@ impl Drop for StepCache {
 }
 
 /// The loader thread: keeps the window from the current step loaded, drops what falls out of it.
-fn load_ahead(shared: &Shared, source: &VolumeSource, raw: Option<&RawSpec>) {
+fn load_ahead(shared: &Shared, source: &VolumeSource, raw: Option<&RawSpec>, limit: &VolumeLimit) {
     let mut s = shared.lock();
     loop {
         if s.stop {
@@ -159,7 +160,7 @@ fn load_ahead(shared: &Shared, source: &VolumeSource, raw: Option<&RawSpec>) {
             continue;
         };
         drop(s);
-        let result = source.load_step(raw, step);
+        let result = source.load_step_within(raw, step, limit);
         s = shared.lock();
         s.loads += 1;
         match result {
@@ -204,7 +205,7 @@ mod tests {
     fn steps_ahead_are_prefetched_within_the_budget() {
         let dir = tempfile::tempdir().unwrap();
         // Each step is 64 f32 = 256 bytes: a budget of 3 steps.
-        let c = StepCache::new(steps(dir.path(), 6), None, 3 * 256 + 10).unwrap();
+        let c = StepCache::new(steps(dir.path(), 6), None, 3 * 256 + 10, VolumeLimit::default()).unwrap();
         assert_eq!(c.steps(), 6);
         assert_eq!(ready(&c, 0).data()[0], 0.0);
         // Steps 1 and 2 arrive without being asked for beyond the current one.
@@ -228,7 +229,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let source = steps(dir.path(), 3);
         std::fs::write(dir.path().join("step_01.nrrd"), b"NRRD0004\ntype: uchar\n").unwrap();
-        let c = StepCache::new(source, None, 1).unwrap();
+        let c = StepCache::new(source, None, 1, VolumeLimit::default()).unwrap();
         // A zero wait never blocks: the step is loading (or, on a fast machine, ready).
         assert!(!matches!(c.wait(2, Duration::ZERO), StepState::Failed(_)));
         match c.wait(1, Duration::from_secs(20)) {

@@ -32,7 +32,7 @@ use std::collections::{BTreeMap, VecDeque};
 use std::time::Duration;
 
 use crate::clock::{ClockEstimator, ClockOffset, ClockSample};
-use crate::messages::{Message, ProtocolError, TileImage};
+use crate::messages::{printable, Message, ProtocolError, TileImage};
 use crate::wire::FrameState;
 
 /// Pings and swaps remembered per node, at most (older ones are forgotten: their answers will be
@@ -58,6 +58,9 @@ pub enum ControllerOutput {
     BrickLoaded { node: String, brick: u64, load: Duration, resident_bytes: u64 },
     /// object space: `node` could not load `brick` (`crate::adoption::BrickAssigner::load_failed`).
     BrickFailed { node: String, brick: u64, reason: String },
+    /// object space: from `frame_id` on, `node` composites without the pixels of `peers` (they
+    /// missed its compositing deadline); empty when they are back. Told when the set changes.
+    PixelsMissing { node: String, frame_id: u64, peers: Vec<String> },
 }
 
 /// One node's part in one frame.
@@ -142,6 +145,12 @@ struct NodeState {
     swapped: VecDeque<u64>,
     snapshot_wanted: bool,
     counters: NodeCounters,
+    /// object space: the peers whose pixels its last Composited went without.
+    missing: Vec<String>,
+    /// Since when the controller has asked it something (a Ping, a frame) and heard nothing back.
+    waiting_since: Option<Duration>,
+    /// The tiles it shows, (name, width, height), once [`FrameController::set_node_tiles`] says.
+    tiles: Option<Vec<(String, u32, u32)>>,
 }
 
 impl NodeState {
@@ -154,6 +163,8 @@ impl NodeState {
         self.last_ready = None;
         self.swapped.clear();
         self.snapshot_wanted = false;
+        self.missing.clear();
+        self.waiting_since = None;
     }
 }
 
@@ -206,6 +217,8 @@ pub struct FrameController {
     ping_interval: Option<Duration>,
     next_ping_at: Option<Duration>,
     next_ping_id: u64,
+    /// A node silent this long is down (see [`FrameController::set_silence_limit`]).
+    silence_limit: Option<Duration>,
     last_frame_id: Option<u64>,
     /// Begun, not released.
     collecting: Option<Frame>,
@@ -228,6 +241,7 @@ impl FrameController {
             ping_interval: Some(Self::DEFAULT_PING_INTERVAL),
             next_ping_at: None,
             next_ping_id: 1,
+            silence_limit: None,
             last_frame_id: None,
             collecting: None,
             presenting: None,
@@ -290,6 +304,21 @@ impl FrameController {
         self.ping_interval = interval;
         if interval.is_none() {
             self.next_ping_at = None;
+        }
+    }
+
+    /// A node that has sent nothing for `limit` since it was asked something (a Ping, which goes
+    /// every ping interval, or a frame) is down: [`FrameController::handle_timeout`] reports it
+    /// ([`ControllerOutput::NodeDown`]) without waiting for the transport's idle timeout. `limit`
+    /// must be well over the ping interval; `None` (the default): only the transport says.
+    pub fn set_silence_limit(&mut self, limit: Option<Duration>) {
+        self.silence_limit = limit;
+    }
+
+    /// The tiles `node` shows, (name, width, height): a Snapshot from it may carry only these.
+    pub fn set_node_tiles(&mut self, node: &str, tiles: Vec<(String, u32, u32)>) {
+        if let Some(st) = self.nodes.get_mut(node) {
+            st.tiles = Some(tiles);
         }
     }
 
@@ -376,6 +405,7 @@ impl FrameController {
             }
             st.first_sent.get_or_insert(id);
             st.last_sent = Some(id);
+            st.waiting_since.get_or_insert(now);
             st.counters.frames += 1;
             parts.insert(name.clone(), Part::default());
             out.push(ControllerOutput::Send { node: name.clone(), message: Message::FrameState(state) });
@@ -470,13 +500,33 @@ impl FrameController {
         let collect = self.collecting.as_ref().map(|f| f.begin + self.deadline);
         let present =
             self.presenting.as_ref().map(|f| f.released_at.unwrap_or(f.begin) + self.present_deadline);
-        [collect, present, self.next_ping_at].into_iter().flatten().min()
+        let silent = self.silence_limit.and_then(|limit| {
+            self.nodes.values().filter(|n| n.up).filter_map(|n| n.waiting_since).min().map(|t| t + limit)
+        });
+        [collect, present, self.next_ping_at, silent].into_iter().flatten().min()
     }
 
     /// Acts on every timer that is due at `now`: releases the swap to the ready nodes (naming the
     /// stragglers), finishes a frame whose Presented replies are overdue, pings.
     pub fn handle_timeout(&mut self, now: Duration) -> Vec<ControllerOutput> {
         let mut out = Vec::new();
+        if let Some(limit) = self.silence_limit {
+            let silent: Vec<(String, Duration)> = self
+                .nodes
+                .iter()
+                .filter(|(_, n)| n.up)
+                .filter_map(|(name, n)| Some((name.clone(), n.waiting_since?)))
+                .filter(|(_, since)| now >= *since + limit)
+                .collect();
+            for (node, since) in silent {
+                let reason = format!(
+                    "silent for {} ms (limit {} ms): no answer to frames or pings",
+                    now.saturating_sub(since).as_millis(),
+                    limit.as_millis()
+                );
+                out.extend(self.node_down(now, &node, &reason));
+            }
+        }
         if let Some(f) = &self.presenting {
             if now >= f.released_at.unwrap_or(f.begin) + self.present_deadline {
                 self.finish(&mut out);
@@ -508,6 +558,7 @@ impl FrameController {
         self.next_ping_id += 1;
         let t0_us = micros(now);
         let st = self.nodes.get_mut(node).expect("a node");
+        st.waiting_since.get_or_insert(now);
         st.pings.push_back((id, t0_us));
         if st.pings.len() > REMEMBERED {
             st.pings.pop_front();
@@ -534,6 +585,24 @@ impl FrameController {
         out
     }
 
+    /// [`FrameController::request_snapshot`] with every tile downscaled by `divisor` at the
+    /// nodes (1..=[`crate::messages::MAX_THUMBNAIL_DIVISOR`]): a live thumbnail. A node that still
+    /// owes the answer to an earlier request is not asked again (that answer will do), so a slow
+    /// node's late answer is never one too many.
+    pub fn request_thumbnail(&mut self, _now: Duration, divisor: u32) -> Vec<ControllerOutput> {
+        let mut out = Vec::new();
+        for (name, st) in &mut self.nodes {
+            if st.up && !st.snapshot_wanted {
+                st.snapshot_wanted = true;
+                out.push(ControllerOutput::Send {
+                    node: name.clone(),
+                    message: Message::ThumbnailRequest { divisor },
+                });
+            }
+        }
+        out
+    }
+
     // ---- messages ----
 
     /// A message from `node` (whose Hello was handled by the caller before `node_up`). On
@@ -552,12 +621,14 @@ impl FrameController {
         if !st.up {
             return Err(err("the node is not up (no Hello, or its connection is closed)".into()));
         }
+        self.nodes.get_mut(node).expect("checked").waiting_since = None;
         match msg {
             Message::Hello { .. } => Err(err("a second Hello: the handshake is done".into())),
             Message::FrameState(_)
             | Message::Swap { .. }
             | Message::Ping { .. }
             | Message::SnapshotRequest
+            | Message::ThumbnailRequest { .. }
             | Message::Bricks { .. }
             | Message::LoadBrick { .. } => Err(err("only the controller sends this".into())),
             Message::BrickLoaded { brick, load_us, resident_bytes } => {
@@ -568,9 +639,11 @@ impl FrameController {
                     resident_bytes,
                 }])
             }
-            Message::BrickFailed { brick, reason } => {
-                Ok(vec![ControllerOutput::BrickFailed { node: node.to_string(), brick, reason }])
-            }
+            Message::BrickFailed { brick, reason } => Ok(vec![ControllerOutput::BrickFailed {
+                node: node.to_string(),
+                brick,
+                reason: printable(&reason),
+            }]),
             Message::Ready { frame_id, render_us } => self.handle_ready(now, node, frame_id, render_us),
             Message::Presented { frame_id, node_time_us } => {
                 self.handle_presented(now, node, frame_id, node_time_us)
@@ -581,13 +654,29 @@ impl FrameController {
                 if !std::mem::take(&mut st.snapshot_wanted) {
                     return Err(err("a Snapshot nobody asked for".into()));
                 }
-                for t in &tiles {
+                for (i, t) in tiles.iter().enumerate() {
                     t.validate().map_err(err)?;
+                    if tiles[..i].iter().any(|u| u.name == t.name) {
+                        return Err(err(format!("tile `{}` twice in one Snapshot", printable(&t.name))));
+                    }
+                    let shown = st.tiles.as_ref().map(|own| {
+                        own.iter().any(|(name, w, h)| *name == t.name && (*w, *h) == (t.width, t.height))
+                    });
+                    if shown == Some(false) {
+                        return Err(err(format!(
+                            "a {}x{} tile `{}`, which is not one of its tiles",
+                            t.width,
+                            t.height,
+                            printable(&t.name)
+                        )));
+                    }
                 }
                 Ok(vec![ControllerOutput::Snapshot { node: node.to_string(), tiles }])
             }
-            Message::Bye { reason } => Ok(self.node_down(now, node, &format!("said goodbye: {reason}"))),
-            Message::Composited { frame_id, bytes_sent, composite_us, merge_us, resident_bytes } => {
+            Message::Bye { reason } => {
+                Ok(self.node_down(now, node, &format!("said goodbye: {}", printable(&reason))))
+            }
+            Message::Composited { frame_id, bytes_sent, composite_us, merge_us, resident_bytes, missing } => {
                 let st = self.nodes.get(node).expect("checked");
                 let sent = matches!((st.first_sent, st.last_sent), (Some(a), Some(b)) if (a..=b).contains(&frame_id));
                 if !sent || st.last_ready.is_some_and(|r| frame_id <= r) {
@@ -604,7 +693,23 @@ impl FrameController {
                     p.resident_bytes = Some(resident_bytes);
                     p.merge = Some(Duration::from_micros(merge_us));
                 }
-                Ok(Vec::new())
+                // Names only the wall's other nodes, each once (it is printed).
+                let unique: std::collections::BTreeSet<&String> = missing.iter().collect();
+                if let Some(n) = missing.iter().find(|n| n.as_str() == node || !self.nodes.contains_key(*n)) {
+                    return Err(err(format!(
+                        "Composited names `{}` as missing, not another node of the wall",
+                        n.escape_debug()
+                    )));
+                }
+                if unique.len() != missing.len() {
+                    return Err(err("Composited names a missing node twice".into()));
+                }
+                let st = self.nodes.get_mut(node).expect("checked");
+                if st.missing == missing {
+                    return Ok(Vec::new());
+                }
+                st.missing = missing.clone();
+                Ok(vec![ControllerOutput::PixelsMissing { node: node.to_string(), frame_id, peers: missing }])
             }
         }
     }
@@ -756,6 +861,25 @@ mod tests {
     }
 
     #[test]
+    fn a_thumbnail_asks_each_node_once_until_it_answers() {
+        let mut c = controller(&["a", "b"]);
+        let out = c.request_thumbnail(ms(1), 8);
+        assert_eq!(sends(&out), vec![("a".into(), "ThumbnailRequest"), ("b".into(), "ThumbnailRequest")]);
+        assert!(matches!(
+            &out[0],
+            ControllerOutput::Send { message: Message::ThumbnailRequest { divisor: 8 }, .. }
+        ));
+        let tile = TileImage { name: "ta".into(), width: 2, height: 1, frame_id: 0, rgb8: vec![0; 6] };
+        let out = c.handle(ms(2), "a", Message::Snapshot { tiles: vec![tile.clone()] }).unwrap();
+        assert_eq!(out, vec![ControllerOutput::Snapshot { node: "a".into(), tiles: vec![tile.clone()] }]);
+        // b still owes its answer: only a is asked again, and b's late answer is no protocol error.
+        let out = c.request_thumbnail(ms(3), 8);
+        assert_eq!(sends(&out), vec![("a".into(), "ThumbnailRequest")]);
+        assert!(c.handle(ms(4), "b", Message::Snapshot { tiles: vec![] }).is_ok());
+        assert!(c.handle(ms(5), "b", Message::Snapshot { tiles: vec![] }).is_err(), "one answer per request");
+    }
+
+    #[test]
     fn a_frame_is_released_when_all_are_ready_and_done_when_all_presented() {
         let mut c = controller(&["a", "b"]);
         let out = c.begin_frame(ms(100), state(1)).unwrap();
@@ -790,6 +914,7 @@ mod tests {
             composite_us: 2500,
             merge_us: 700,
             resident_bytes: 99,
+            missing: vec![],
         };
         assert!(c.handle(ms(5), "a", comp(1)).unwrap().is_empty());
         c.handle(ms(6), "a", Message::Ready { frame_id: 1, render_us: 0 }).unwrap();
@@ -805,6 +930,43 @@ mod tests {
         assert_eq!(stats.per_node[0].merge, Some(Duration::from_micros(700)));
         assert_eq!(stats.per_node[1].bytes_sent, None);
         assert!(c.handle(ms(10), "b", comp(7)).is_err());
+    }
+
+    #[test]
+    fn missing_pixels_are_told_when_they_change_and_name_only_other_nodes() {
+        let mut c = controller(&["a", "b", "c"]);
+        let comp = |id, missing: &[&str]| Message::Composited {
+            frame_id: id,
+            bytes_sent: 0,
+            composite_us: 0,
+            merge_us: 0,
+            resident_bytes: 0,
+            missing: missing.iter().map(|s| s.to_string()).collect(),
+        };
+        let mut told = Vec::new();
+        for id in 1..=4 {
+            c.begin_frame(ms(id * 100), state(id)).unwrap();
+            let missing: &[&str] = if id == 2 || id == 3 { &["c"] } else { &[] };
+            told.extend(c.handle(ms(id * 100 + 5), "a", comp(id, missing)).unwrap());
+            for n in ["a", "b", "c"] {
+                c.handle(ms(id * 100 + 6), n, Message::Ready { frame_id: id, render_us: 0 }).unwrap();
+            }
+            for n in ["a", "b", "c"] {
+                c.handle(ms(id * 100 + 7), n, Message::Presented { frame_id: id, node_time_us: 0 }).unwrap();
+            }
+        }
+        assert_eq!(
+            told,
+            vec![
+                ControllerOutput::PixelsMissing { node: "a".into(), frame_id: 2, peers: vec!["c".into()] },
+                ControllerOutput::PixelsMissing { node: "a".into(), frame_id: 4, peers: vec![] },
+            ]
+        );
+        c.begin_frame(ms(500), state(5)).unwrap();
+        for bad in [&["a"][..], &["zz"], &["b", "b"]] {
+            let e = c.handle(ms(501), "a", comp(5, bad)).unwrap_err();
+            assert!(e.to_string().contains("missing"), "{e}");
+        }
     }
 
     #[test]
@@ -938,5 +1100,100 @@ mod tests {
         let out = c.handle_timeout(ms(500));
         assert_eq!(sends(&out), vec![("a".into(), "Ping")]);
         assert_eq!(c.poll_timeout(), Some(ms(1000)));
+    }
+
+    /// Plays the wall on a virtual clock: every `step` ms, timers fire; node `a` answers every
+    /// Ping and FrameState at once, `b` goes silent at `dies_at`. Returns when `b` was reported
+    /// down, and whether `a` ever was.
+    fn run_until_down(limit: Option<Duration>, dies_at: u64, until: u64) -> (Option<u64>, bool) {
+        let mut c = FrameController::new(vec!["a".into(), "b".into()], ms(100));
+        c.set_ping_interval(Some(ms(100)));
+        c.set_silence_limit(limit);
+        let mut queue: Vec<ControllerOutput> = Vec::new();
+        for n in ["a", "b"] {
+            queue.extend(c.node_up(ms(0), n).unwrap());
+        }
+        let (mut b_down, mut a_down) = (None, false);
+        let mut next_frame = 1;
+        for t in (0..=until).step_by(5) {
+            let now = ms(t);
+            if c.in_flight().is_none() {
+                queue.extend(c.begin_frame(now, state(next_frame)).unwrap());
+                next_frame += 1;
+            }
+            if c.poll_timeout().is_some_and(|at| at <= now) {
+                queue.extend(c.handle_timeout(now));
+            }
+            while !queue.is_empty() {
+                for out in std::mem::take(&mut queue) {
+                    match out {
+                        ControllerOutput::NodeDown { node, reason } => {
+                            if node == "b" {
+                                assert!(reason.contains("silent for"), "{reason}");
+                                b_down.get_or_insert(t);
+                            } else {
+                                a_down = true;
+                            }
+                        }
+                        ControllerOutput::Send { node, message } if node == "a" || t < dies_at => {
+                            let answer = match message {
+                                Message::Ping { id, t0_us } => Message::Pong { id, t0_us, t1_us: t0_us },
+                                Message::FrameState(f) => {
+                                    Message::Ready { frame_id: f.frame_id, render_us: 1 }
+                                }
+                                _ => continue,
+                            };
+                            queue.extend(c.handle(now, &node, answer).unwrap());
+                        }
+                        _ => {}
+                    }
+                }
+            }
+        }
+        (b_down, a_down)
+    }
+
+    #[test]
+    fn a_silent_node_is_down_within_the_silence_limit_and_an_answering_one_never() {
+        // Limit 3 deadlines (300 ms): `b` dies at 1000 ms, down by 1300 ms; `a` stays up.
+        let (down, a_down) = run_until_down(Some(ms(300)), 1000, 5000);
+        let down = down.expect("the silent node was never reported down");
+        assert!((1000..=1300).contains(&down), "down at {down} ms");
+        assert!(!a_down, "the node that answers was reported down");
+        // Without a limit the machine waits for the transport to say.
+        assert_eq!(run_until_down(None, 1000, 5000), (None, false));
+    }
+
+    #[test]
+    fn a_snapshot_may_carry_only_the_nodes_own_tiles() {
+        let mut c = controller(&["a", "b"]);
+        c.set_node_tiles("a", vec![("ta".into(), 2, 1)]);
+        c.set_node_tiles("b", vec![("tb".into(), 2, 1)]);
+        let tile = |name: &str, w: u32| TileImage {
+            name: name.into(),
+            width: w,
+            height: 1,
+            frame_id: 0,
+            rgb8: vec![0; w as usize * 3],
+        };
+        for (tiles, why) in [
+            (vec![tile("tb", 2)], "not one of its tiles"),
+            (vec![tile("ta", 3)], "not one of its tiles"),
+            (vec![tile("ta", 2), tile("ta", 2)], "twice"),
+        ] {
+            c.request_snapshot(ms(1));
+            let e = c.handle(ms(2), "a", Message::Snapshot { tiles }).unwrap_err();
+            assert!(e.to_string().contains(why) && e.to_string().contains("`a`"), "{e}");
+        }
+        c.request_snapshot(ms(3));
+        let out = c.handle(ms(4), "a", Message::Snapshot { tiles: vec![tile("ta", 2)] }).unwrap();
+        assert!(matches!(&out[..], [ControllerOutput::Snapshot { node, .. }] if node == "a"));
+    }
+
+    #[test]
+    fn a_peers_text_is_printable() {
+        assert_eq!(printable("ok: état"), "ok: état");
+        assert_eq!(printable("a\x1b[2Jb\nc\r"), "a\\u{1b}[2Jb\\nc\\r");
+        assert_eq!(printable(&"x".repeat(1000)).chars().count(), crate::messages::PRINTABLE_CHARS + 3);
     }
 }

@@ -11,11 +11,13 @@
 //! - **Ownership**: a brick owns the closed box of its samples; neighbours share the cut plane's
 //!   samples. A primary ray's march step belongs to the brick that owns its starting point (half-open
 //!   at the cut, see [`Brick::owned_planes`]), so exactly one brick finds each hit.
-//! - **Halo**: the samples a brick reads beyond its box, per axis: `ceil((R + offset + step) / s) + 2`
-//!   voxels of that axis' spacing s, with R the AO radius, `offset` the AO rays' start along the
-//!   normal and `step` the primary march step (the step that crosses the cut reads up to one step
-//!   beyond it, and a hit found there casts its AO rays from there), plus 2 for the gradient stencil (central differences one voxel away, whose
-//!   trilinear cell reaches one more sample). Then normals and AO near a cut read exactly the
+//! - **Halo**: the samples a brick reads beyond its box, per axis: `ceil((R + eps + step) / s) + 2`
+//!   voxels of that axis' spacing s, with R the AO radius, `eps` how far off the surface the AO
+//!   rays start (DESIGN.md "AO": `o = p + eps * Ng`, eps = 0.01 of the smallest spacing) and `step`
+//!   the primary march step (the step that crosses the cut reads up to one step beyond it, and a
+//!   hit found there casts its AO rays from there), plus 2 for the gradient stencil (central
+//!   differences one voxel away, whose trilinear cell reaches one more sample; Ng reads only p's
+//!   own cell, inside that). Then normals and AO near a cut read exactly the
 //!   samples a single-node render reads. An unbounded radius has no halo: object space refuses it
 //!   ([`BrickError::UnboundedRadius`]), and so the 2008 `seed` AO method, which marches 0.9 of the box.
 
@@ -266,8 +268,8 @@ pub fn covered_window(view: &View, box_min: DVec3, box_max: DVec3) -> Option<Win
     Some(Window { x, y, width, height })
 }
 
-/// The AO reach a brick's halo must cover for `settings`: R plus the rays' start offset, in world
-/// units. Errors where object space cannot bound it.
+/// The AO reach a brick's halo must cover for `settings`: R plus eps (the rays' start off the
+/// surface), in world units. Errors where object space cannot bound it.
 pub fn ao_reach(settings: &RenderSettings, spacing: DVec3) -> Result<f64, BrickError> {
     if settings.ao.method == AoMethod::Seed {
         return Err(BrickError::SeedMethod);
@@ -387,7 +389,8 @@ mod tests {
     fn halo_covers_the_ao_reach_plus_the_stencil_and_refuses_unbounded() {
         let mut s = RenderSettings::new(0.0);
         s.ao.radius = AoRadius::World(6.0);
-        // (6 + 0.5 + 0.5) / 1 -> 7, + 2; z spacing 2: ceil(3.5) = 4, + 2.
+        // (6 + eps 0.01 + step 0.5) / 1 -> 7, + 2; z spacing 2: ceil(3.255) = 4, + 2.
+        assert!((ao_reach(&s, DVec3::new(1.0, 1.0, 2.0)).unwrap() - 6.01).abs() < 1e-12);
         assert_eq!(halo_voxels(&s, DVec3::new(1.0, 1.0, 2.0)).unwrap(), [9, 9, 6]);
         let halo = halo_voxels(&s, DVec3::ONE).unwrap();
         assert!(check_within_halo(&s, DVec3::ONE, halo).is_ok());

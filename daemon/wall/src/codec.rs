@@ -7,10 +7,13 @@
 //! Nothing a peer sends can make the receiver allocate much more than it is willing to accept:
 //! - [`Decoder`] reads a frame's length first and rejects one over its limit before buffering any
 //!   of its body;
-//! - inside a frame, bincode's own limit ([`bincode::config::Configuration::with_limit`]) is the
-//!   smallest power of four >= the frame's length (at least 4 KiB), so a length field inside
-//!   the message (a string, a byte buffer) that claims more than that fails before anything is
-//!   allocated for it: at most 4 x the frame, never more than 4 x the decoder's limit.
+//! - inside a frame, bincode's own limit ([`bincode::config::Configuration::with_limit`]) bounds
+//!   what decoding may claim, so a length field inside the message (a string, a byte buffer) that
+//!   claims more than that fails before anything is allocated for it. Bincode counts what it
+//!   decodes at its size in memory, not on the wire (a varint `u64` of one byte counts 8), so a
+//!   valid body of `n` bytes claims up to [`CLAIM_PER_BYTE`] x `n`; the limit is the smallest power
+//!   of two >= that ([`claim_limit`]): at most 16 x the frame, never more than 16 x the decoder's
+//!   limit.
 //!
 //! Errors never panic; after one, a [`Decoder`] refuses everything (the stream has lost its
 //! framing) and the caller closes the connection with the error as the reason.
@@ -114,18 +117,33 @@ fn decode_limited<T: serde::de::DeserializeOwned, const N: usize>(
     bincode::serde::decode_from_slice(body, config::standard().with_limit::<N>())
 }
 
-/// Decodes `body` with bincode's limit the smallest power of four >= its length (>= 4 KiB).
+/// What bincode may claim per byte of a body, at most: every value counts its size in memory
+/// (`u64`, `i64`, `usize` lengths and `f64`: 8) for at least one byte on the wire. (No wire type
+/// holds a 128-bit integer, which would count 16.)
+pub const CLAIM_PER_BYTE: usize = 8;
+
+/// Bincode's limit for a body of `len` bytes: the smallest power of two >= [`CLAIM_PER_BYTE`] x
+/// `len`, and at least 4 KiB; `None` past what any frame may be ([`MAX_FRAME_LEN`]).
+pub fn claim_limit(len: usize) -> Option<usize> {
+    if len > MAX_FRAME_LEN {
+        return None;
+    }
+    Some((len * CLAIM_PER_BYTE).next_power_of_two().max(1 << 12))
+}
+
+/// Decodes `body` with bincode's limit [`claim_limit`] of its length.
 fn decode_bounded<T: serde::de::DeserializeOwned>(body: &[u8]) -> Result<(T, usize), DecodeError> {
+    let Some(limit) = claim_limit(body.len()) else { return Err(DecodeError::LimitExceeded) };
     macro_rules! try_limits {
         ($($shift:literal),*) => {
             $(
-                if body.len() <= (1usize << $shift) {
+                if limit == (1usize << $shift) {
                     return decode_limited::<T, { 1usize << $shift }>(body);
                 }
             )*
         };
     }
-    try_limits!(12, 14, 16, 18, 20, 22, 24, 26, 28, 30);
+    try_limits!(12, 13, 14, 15, 16, 17, 18, 19, 20, 21, 22, 23, 24, 25, 26, 27, 28, 29, 30, 31, 32, 33);
     Err(DecodeError::LimitExceeded)
 }
 
@@ -324,6 +342,7 @@ mod tests {
             Message::Ping { id: 7, t0_us: i64::MIN },
             Message::Pong { id: 7, t0_us: 1, t1_us: i64::MAX },
             Message::SnapshotRequest,
+            Message::ThumbnailRequest { divisor: 8 },
             Message::Snapshot {
                 tiles: vec![
                     TileImage {
@@ -366,6 +385,74 @@ mod tests {
             got.push(m);
         }
         assert_eq!(got, msgs);
+    }
+
+    /// Bodies of exactly `len` bytes: `dense` items that claim the most per byte, then a byte
+    /// string sized to fill the rest (`None` where a varint length's width skips `len`).
+    fn message_of_len(len: usize, shape: usize) -> Option<Message> {
+        let empty_tile = || TileImage { name: String::new(), width: 0, height: 0, frame_id: 0, rgb8: vec![] };
+        let filled = |dense: usize, pad: usize| match shape {
+            // Empty tiles: 5 bytes each, claiming 32 (lengths and u64s count 8, u32s 4).
+            0 => {
+                let mut tiles = vec![empty_tile(); dense];
+                tiles.push(TileImage { rgb8: vec![7; pad], ..empty_tile() });
+                Message::Snapshot { tiles }
+            }
+            // One tile's pixels: about one claimed byte per byte.
+            1 => Message::Snapshot { tiles: vec![TileImage { rgb8: vec![7; pad + dense], ..empty_tile() }] },
+            // A brick map of empty names (2 bytes claiming 9) and a long reason-like name.
+            _ => {
+                let mut holders = vec![Some(String::new()); dense];
+                holders.push(Some("n".repeat(pad)));
+                Message::Bricks { from_frame: u64::MAX, holders }
+            }
+        };
+        for dense in [len / 8, len / 8 + 1, len / 8 + 2] {
+            let base = encode(&filled(dense, 0)).ok()?.len();
+            if base > len {
+                continue;
+            }
+            // A byte string of `pad` bytes adds `pad` and widens its varint length past 250.
+            for widen in [0usize, 2, 4, 8] {
+                let Some(pad) = (len - base).checked_sub(widen) else { continue };
+                let m = filled(dense, pad);
+                if encode(&m).ok()?.len() == len {
+                    return Some(m);
+                }
+            }
+        }
+        None
+    }
+
+    #[test]
+    fn valid_messages_of_every_size_around_the_limits_round_trip() {
+        // Around every power of two from 512 B to 4 MiB: the old limits (powers of 4 >= the
+        // body), and where the claim of a dense body (up to 8 x its length) crosses the new ones.
+        let mut tried = 0;
+        for shift in 9..=22 {
+            let edge = 1usize << shift;
+            for len in edge - 3..=edge + 3 {
+                for shape in 0..3 {
+                    let Some(m) = message_of_len(len, shape) else { continue };
+                    let body = encode(&m).unwrap();
+                    assert_eq!(body.len(), len);
+                    let got = decode(&body).unwrap_or_else(|e| panic!("shape {shape}, {len} bytes: {e}"));
+                    assert!(got == m, "shape {shape}, {len} bytes: decoded differently");
+                    let mut d = Decoder::new(MAX_FRAME_LEN);
+                    d.push(&frame(&m).unwrap());
+                    assert!(d.next().unwrap().is_some_and(|g| g == m), "shape {shape}, {len} bytes, framed");
+                    tried += 1;
+                }
+            }
+        }
+        assert!(tried >= 14 * 7 * 2, "only {tried} messages could be built at the sizes wanted");
+        // The limit is a power of two and covers 8 claimed bytes per body byte.
+        for len in [0, 1, 511, 512, 513, 16_384, 16_385, MAX_FRAME_LEN] {
+            let limit = claim_limit(len).unwrap();
+            assert!(limit.is_power_of_two() && limit >= CLAIM_PER_BYTE * len && limit >= 4096, "{len}");
+            assert!(limit < 2 * CLAIM_PER_BYTE * len.max(512), "{len}: {limit}");
+        }
+        assert_eq!(claim_limit(MAX_FRAME_LEN + 1), None);
     }
 
     #[test]

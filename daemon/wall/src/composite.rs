@@ -6,24 +6,45 @@
 //! so the peer knows it is done). A rectangle's pixels travel planar: the depth of every pixel
 //! (f32 little-endian, distance along the ray, `+inf` where the brick has no hit), then their
 //! colours (8-bit sRGB), each plane compressing well; with [`PixelEncoding::Lz4`] the whole is
-//! LZ4-compressed (block format, lossless). The tile owner's [`Compositor`] keeps, per pixel,
+//! LZ4-compressed (block format, lossless, after its decoded size as a u32 little-endian). The tile owner's [`Compositor`] keeps, per pixel,
 //! the nearest hit of all bricks (its own included); pixels no brick hits show the background.
 //! When its own render and every other node's pixels for a frame are in, the frame's tiles are
 //! done (then Ready and the swap as in screen space).
 //!
-//! Everything a peer sends is checked before use: the tile must be the receiver's, the rectangle
-//! inside it, the payload exactly the rectangle's size (decompressed into a buffer of exactly that
-//! size, so a bomb cannot grow it), the sender the node its certificate names, one message per
-//! frame per peer. A violation is a [`CompositeError`]: the caller closes that peer's connection.
+//! Everything a peer sends is checked before use, and before anything is decompressed: the sender
+//! must be the node its certificate names, the frame no more than [`FRAMES_AHEAD`] frames past
+//! the latest this node was told of ([`Compositor::announce`]), one message per frame per peer.
+//! Every rectangle must be of a tile the receiver shows and lie inside it, and the size it claims
+//! (a raw payload's length, the 4-byte size an LZ4 payload starts with) must be exactly the
+//! rectangle's; then, against the sender's *footprint* for the frame (the screen rectangles its
+//! bricks may cover in the receiver's tiles, [`Footprints`]), the rectangles may number at most
+//! one per brick and tile, each must lie inside its brick's rectangle of that tile, and their
+//! decoded bytes may sum to no more than the footprint's. Only then is a payload decompressed,
+//! into a buffer of exactly the rectangle's size. Pixels that arrive before the frame's footprint
+//! is known wait compressed (the same checks, against the whole tiles, at arrival; the rest when
+//! the footprint comes). A violation is a [`CompositeError`] naming the peer: the caller closes
+//! that peer's connection.
+//!
+//! A frame waits for its peers until its *compositing deadline* (set when it starts,
+//! [`Compositor::expect`]); then it composites what arrived and names the peers whose pixels did
+//! not ([`Composited::missing`]). A peer that missed a deadline is not waited for again until
+//! something from it arrives (its pixels for any frame, late ones included): a silent peer costs
+//! one deadline, not one per frame, and a slow one is waited for again as soon as it shows up.
 
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, BTreeSet};
+use std::time::Duration;
 
 /// Bytes per pixel before compression: depth (f32) and sRGB (3 x u8).
 pub const BYTES_PER_PIXEL: usize = 7;
 /// Frames a compositor holds at once (pixels of later frames can arrive before this node's
-/// render of an earlier one); more is a misbehaving peer.
-pub const MAX_PENDING_FRAMES: usize = 8;
+/// render of an earlier one); past it the oldest pending frame is dropped (it can no longer be
+/// shown in time).
+pub const MAX_PENDING_FRAMES: usize = 16;
+/// Pixels may be for at most this many frames past the latest frame this node was told of.
+pub const FRAMES_AHEAD: u64 = 8;
+/// Bytes of the decoded size an LZ4 payload starts with (u32 little-endian).
+pub const LZ4_SIZE_BYTES: usize = 4;
 
 #[derive(Serialize, Deserialize, Debug, Clone, Copy, PartialEq, Eq)]
 pub enum PixelEncoding {
@@ -79,9 +100,42 @@ pub enum CompositeError {
     UnknownPeer { peer: String },
     #[error("node `{peer}` sent pixels for frame {frame_id} twice")]
     Twice { peer: String, frame_id: u64 },
-    #[error("node `{peer}` sent pixels for frame {frame_id} while {pending} frames are pending (at most {MAX_PENDING_FRAMES})")]
-    TooManyFrames { peer: String, frame_id: u64, pending: usize },
+    #[error("node `{peer}` sent pixels for frame {frame_id}, more than {FRAMES_AHEAD} frames ahead of frame {latest}, the latest this node was told of")]
+    FarAhead { peer: String, frame_id: u64, latest: u64 },
+    #[error("node `{peer}` sent {got} rectangles for frame {frame_id}; its bricks may cover at most {max} rectangles of this node's tiles")]
+    TooManyRects { peer: String, frame_id: u64, got: usize, max: usize },
+    #[error("node `{peer}` sent rectangles of {got} decoded bytes for frame {frame_id}; its bricks' footprint on this node's tiles is {max} bytes")]
+    TooManyBytes { peer: String, frame_id: u64, got: u64, max: u64 },
+    #[error("node `{peer}` sent a {w}x{h} rectangle at ({x}, {y}) of tile `{tile}` for frame {frame_id}, outside the footprint of its bricks there")]
+    OutsideFootprint { peer: String, tile: String, frame_id: u64, x: u32, y: u32, w: u32, h: u32 },
 }
+
+/// A rectangle of a tile, in the tile's own pixels.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TileRect {
+    pub x: u32,
+    pub y: u32,
+    pub width: u32,
+    pub height: u32,
+}
+
+impl TileRect {
+    pub fn contains(&self, r: &TileRect) -> bool {
+        r.x >= self.x
+            && r.y >= self.y
+            && u64::from(r.x) + u64::from(r.width) <= u64::from(self.x) + u64::from(self.width)
+            && u64::from(r.y) + u64::from(r.height) <= u64::from(self.y) + u64::from(self.height)
+    }
+
+    pub fn pixel_count(&self) -> u64 {
+        u64::from(self.width) * u64::from(self.height)
+    }
+}
+
+/// A frame's footprints: for each node whose pixels it needs, the rectangle each brick of that
+/// node may cover in each of this node's tiles (tile name, rectangle; one per brick and tile it
+/// covers, none where it covers nothing).
+pub type Footprints = BTreeMap<String, Vec<(String, TileRect)>>;
 
 impl Layer {
     /// A layer of `width x height` pixels at (x, y) of a tile: no hits, colour 0.
@@ -108,7 +162,7 @@ impl Layer {
         }
         raw.extend_from_slice(&self.rgb8);
         let (encoding, payload) = if compress {
-            let c = lz4_flex::block::compress(&raw);
+            let c = lz4_flex::block::compress_prepend_size(&raw);
             if c.len() < raw.len() {
                 (PixelEncoding::Lz4, c)
             } else {
@@ -130,8 +184,22 @@ impl Layer {
 }
 
 impl PixelRect {
-    /// Decodes the rectangle of a tile of `tile_size`, checking everything (module notes).
-    pub fn decode(&self, peer: &str, tile_size: (u32, u32)) -> Result<Layer, CompositeError> {
+    pub fn rect(&self) -> TileRect {
+        TileRect { x: self.x, y: self.y, width: self.width, height: self.height }
+    }
+
+    /// The bytes the payload decodes to, as it claims (a raw payload's length; the size an LZ4
+    /// payload starts with), without decompressing anything.
+    pub fn claimed_len(&self) -> Option<usize> {
+        match self.encoding {
+            PixelEncoding::Raw => Some(self.payload.len()),
+            PixelEncoding::Lz4 => lz4_flex::block::uncompressed_size(&self.payload).ok().map(|(n, _)| n),
+        }
+    }
+
+    /// Checks what can be checked without decompressing: the rectangle lies inside a tile of
+    /// `tile_size`, and the payload claims exactly its bytes.
+    pub fn check(&self, peer: &str, tile_size: (u32, u32)) -> Result<(), CompositeError> {
         let (tw, th) = tile_size;
         let fits = self.width > 0
             && self.height > 0
@@ -149,28 +217,45 @@ impl PixelRect {
                 th,
             });
         }
-        let n = self.width as usize * self.height as usize;
-        let want = n * BYTES_PER_PIXEL;
-        let bad = |why: String| CompositeError::BadPayload {
+        let want = self.rect().pixel_count() as usize * BYTES_PER_PIXEL;
+        match self.claimed_len() {
+            Some(n) if n == want => Ok(()),
+            claimed => Err(self.bad_payload(
+                peer,
+                want,
+                match (self.encoding, claimed) {
+                    (PixelEncoding::Raw, Some(n)) => format!("it has {n} bytes"),
+                    (_, Some(n)) => format!("it claims to decompress to {n} bytes"),
+                    (_, None) => format!("it is shorter than the {LZ4_SIZE_BYTES}-byte decoded size"),
+                },
+            )),
+        }
+    }
+
+    fn bad_payload(&self, peer: &str, want: usize, why: String) -> CompositeError {
+        CompositeError::BadPayload {
             peer: peer.to_string(),
             tile: self.tile.clone(),
             encoding: self.encoding,
             want,
             why,
-        };
+        }
+    }
+
+    /// Decodes the rectangle of a tile of `tile_size`, checking everything (module notes).
+    pub fn decode(&self, peer: &str, tile_size: (u32, u32)) -> Result<Layer, CompositeError> {
+        self.check(peer, tile_size)?;
+        let n = self.width as usize * self.height as usize;
+        let want = n * BYTES_PER_PIXEL;
         let raw = match self.encoding {
-            PixelEncoding::Raw => {
-                if self.payload.len() != want {
-                    return Err(bad(format!("it has {} bytes", self.payload.len())));
-                }
-                std::borrow::Cow::Borrowed(&self.payload[..])
-            }
+            PixelEncoding::Raw => std::borrow::Cow::Borrowed(&self.payload[..]),
             PixelEncoding::Lz4 => {
+                // The claimed size is the rectangle's (checked): the buffer is exactly that.
                 let mut out = vec![0u8; want];
-                let got = lz4_flex::block::decompress_into(&self.payload, &mut out)
-                    .map_err(|e| bad(format!("it does not decompress: {e}")))?;
+                let got = lz4_flex::block::decompress_into(&self.payload[LZ4_SIZE_BYTES..], &mut out)
+                    .map_err(|e| self.bad_payload(peer, want, format!("it does not decompress: {e}")))?;
                 if got != want {
-                    return Err(bad(format!("it decompresses to {got} bytes")));
+                    return Err(self.bad_payload(peer, want, format!("it decompresses to {got} bytes")));
                 }
                 std::borrow::Cow::Owned(out)
             }
@@ -179,7 +264,7 @@ impl PixelRect {
         let depth: Vec<f32> =
             d.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
         if let Some(i) = depth.iter().position(|v| v.is_nan() || *v < 0.0) {
-            return Err(bad(format!("pixel {i} has depth {}", depth[i])));
+            return Err(self.bad_payload(peer, want, format!("pixel {i} has depth {}", depth[i])));
         }
         Ok(Layer { x: self.x, y: self.y, width: self.width, height: self.height, depth, rgb8: c.to_vec() })
     }
@@ -232,15 +317,26 @@ impl TileCanvas {
     }
 }
 
+/// The compositing deadline of a wall whose swap barrier waits `barrier_deadline` for a frame:
+/// nine tenths of it from the frame's start, so a node that composites at its deadline is still
+/// ready for the barrier.
+pub fn composite_deadline(barrier_deadline: Duration) -> Duration {
+    barrier_deadline.mul_f64(0.9)
+}
+
 #[derive(Debug)]
 struct Pending {
     canvases: Vec<TileCanvas>,
     from: BTreeSet<String>,
     /// This node's own render is in, with the frame's background.
     local: Option<[u8; 3]>,
-    /// The nodes whose pixels the frame needs, where set ([`Compositor::expect`]); all peers
-    /// otherwise.
-    expect: Option<BTreeSet<String>>,
+    /// Once the frame started ([`Compositor::expect`]): the nodes whose pixels it needs (the
+    /// keys) and where their bricks may cover this node's tiles.
+    footprints: Option<Footprints>,
+    /// When the frame started: its deadline runs from here.
+    started: Option<Duration>,
+    /// Pixels that came before the footprints, checked against the whole tiles, still compressed.
+    early: Vec<(String, PeerPixels)>,
 }
 
 /// A frame whose tiles are composited.
@@ -248,6 +344,9 @@ struct Pending {
 pub struct Composited {
     pub frame_id: u64,
     pub tiles: Vec<TileCanvas>,
+    /// The nodes whose pixels the frame needed and did not have by its deadline (or that were not
+    /// waited for: they had missed an earlier deadline and sent nothing since), in name order.
+    pub missing: Vec<String>,
 }
 
 /// A tile owner's compositing state: frames waiting for this node's render or peers' pixels.
@@ -261,16 +360,93 @@ pub struct Compositor {
     pending: BTreeMap<u64, Pending>,
     /// The last frame done: pixels for it or older frames are stale.
     last_done: Option<u64>,
+    /// How long a frame waits for its peers after it starts.
+    deadline: Duration,
+    /// The latest frame this node was told of ([`Compositor::announce`]).
+    latest: Option<u64>,
+    /// Peers that missed a deadline and have sent nothing since: not waited for.
+    late: BTreeSet<String>,
+    /// Pending frames dropped to keep at most [`MAX_PENDING_FRAMES`].
+    dropped: u64,
+    refused: Vec<CompositeError>,
+}
+
+/// Checks a peer's rectangles against its footprint (module notes) and decodes them.
+fn decode_within(
+    tiles: &[(String, u32, u32)],
+    cert: &str,
+    msg: &PeerPixels,
+    footprint: &[(String, TileRect)],
+) -> Result<Vec<(String, Layer)>, CompositeError> {
+    let frame_id = msg.frame_id;
+    if msg.rects.len() > footprint.len() {
+        return Err(CompositeError::TooManyRects {
+            peer: cert.to_string(),
+            frame_id,
+            got: msg.rects.len(),
+            max: footprint.len(),
+        });
+    }
+    let bytes = |n: u64| n * BYTES_PER_PIXEL as u64;
+    let max = bytes(footprint.iter().map(|(_, r)| r.pixel_count()).sum());
+    let got = bytes(msg.rects.iter().map(|r| r.rect().pixel_count()).sum());
+    if got > max {
+        return Err(CompositeError::TooManyBytes { peer: cert.to_string(), frame_id, got, max });
+    }
+    if let Some(r) =
+        msg.rects.iter().find(|r| !footprint.iter().any(|(t, f)| *t == r.tile && f.contains(&r.rect())))
+    {
+        return Err(CompositeError::OutsideFootprint {
+            peer: cert.to_string(),
+            tile: r.tile.clone(),
+            frame_id,
+            x: r.x,
+            y: r.y,
+            w: r.width,
+            h: r.height,
+        });
+    }
+    msg.rects
+        .iter()
+        .map(|r| {
+            let (_, w, h) = tiles.iter().find(|t| t.0 == r.tile).expect("checked at arrival");
+            Ok((r.tile.clone(), r.decode(cert, (*w, *h))?))
+        })
+        .collect()
+}
+
+impl Pending {
+    fn merge(&mut self, layers: &[(String, Layer)]) {
+        for (tile, l) in layers {
+            if let Some(c) = self.canvases.iter_mut().find(|c| &c.name == tile) {
+                c.merge(l);
+            }
+        }
+    }
 }
 
 impl Compositor {
+    /// The compositor of `node` showing `tiles` (name, width, height), with pixels from `peers`
+    /// (the wall's other nodes), each frame waiting `deadline` for them after it starts.
     pub fn new(
         node: &str,
         peers: impl IntoIterator<Item = String>,
         tiles: Vec<(String, u32, u32)>,
+        deadline: Duration,
     ) -> Compositor {
         let peers = peers.into_iter().filter(|p| p != node).collect();
-        Compositor { node: node.to_string(), peers, tiles, pending: BTreeMap::new(), last_done: None }
+        Compositor {
+            node: node.to_string(),
+            peers,
+            tiles,
+            pending: BTreeMap::new(),
+            last_done: None,
+            deadline,
+            latest: None,
+            late: BTreeSet::new(),
+            dropped: 0,
+            refused: Vec::new(),
+        }
     }
 
     /// The nodes this one waits for each frame.
@@ -278,13 +454,29 @@ impl Compositor {
         &self.peers
     }
 
+    /// Peers not waited for (they missed a deadline and have sent nothing since).
+    pub fn late(&self) -> &BTreeSet<String> {
+        &self.late
+    }
+
+    /// Pending frames dropped because too many were pending.
+    pub fn dropped(&self) -> u64 {
+        self.dropped
+    }
+
     fn frame(&mut self, frame_id: u64) -> &mut Pending {
+        if !self.pending.contains_key(&frame_id) && self.pending.len() >= MAX_PENDING_FRAMES {
+            self.pending.pop_first();
+            self.dropped += 1;
+        }
         let tiles = &self.tiles;
         self.pending.entry(frame_id).or_insert_with(|| Pending {
             canvases: tiles.iter().map(|(n, w, h)| TileCanvas::new(n, *w, *h)).collect(),
             from: BTreeSet::new(),
             local: None,
-            expect: None,
+            footprints: None,
+            started: None,
+            early: Vec::new(),
         })
     }
 
@@ -292,10 +484,34 @@ impl Compositor {
         self.last_done.is_some_and(|d| frame_id <= d)
     }
 
+    /// The controller told this node of `frame_id` (its frame state arrived): pixels may come for
+    /// frames up to [`FRAMES_AHEAD`] past it. Pending frames further ahead (pixels that came
+    /// before any frame was announced) are dropped.
+    pub fn announce(&mut self, frame_id: u64) {
+        let latest = self.latest.map_or(frame_id, |l| l.max(frame_id));
+        self.latest = Some(latest);
+        let before = self.pending.len();
+        self.pending.retain(|&id, _| id <= latest.saturating_add(FRAMES_AHEAD));
+        self.dropped += (before - self.pending.len()) as u64;
+    }
+
+    /// Every peer, every whole tile once: the footprint of a frame that starts without one.
+    fn whole_tiles(&self) -> Footprints {
+        let all: Vec<(String, TileRect)> = self
+            .tiles
+            .iter()
+            .map(|(n, w, h)| (n.clone(), TileRect { x: 0, y: 0, width: *w, height: *h }))
+            .collect();
+        self.peers.iter().map(|p| (p.clone(), all.clone())).collect()
+    }
+
     /// This node's own layers of `frame_id` (tile name, layer), and the background for pixels no
-    /// brick hits. Layers for tiles this node does not show are ignored (they go to peers).
+    /// brick hits. Layers for tiles this node does not show are ignored (they go to peers). A
+    /// frame not started ([`Compositor::expect`]) starts now, waiting for every peer over whole
+    /// tiles (the pixels that came before and break the rules: [`Compositor::take_refused`]).
     pub fn local(
         &mut self,
+        now: Duration,
         frame_id: u64,
         layers: &[(String, Layer)],
         background: [u8; 3],
@@ -303,40 +519,78 @@ impl Compositor {
         if self.stale(frame_id) {
             return None;
         }
-        let p = self.frame(frame_id);
-        for (tile, layer) in layers {
-            if let Some(c) = p.canvases.iter_mut().find(|c| &c.name == tile) {
-                c.merge(layer);
-            }
+        if self.frame(frame_id).footprints.is_none() {
+            let all = self.whole_tiles();
+            let errors = self.expect(now, frame_id, all);
+            self.refused.extend(errors);
         }
+        let p = self.frame(frame_id);
+        p.merge(layers);
         p.local = Some(background);
-        self.poll(frame_id)
+        self.poll(now, frame_id)
     }
 
-    /// The nodes whose pixels `frame_id` needs (object space after a node died: the nodes that
-    /// hold bricks in the frame's map, `crate::adoption`); other peers are not waited for. This
-    /// node and names that are not peers are left out.
-    pub fn expect(&mut self, frame_id: u64, nodes: impl IntoIterator<Item = String>) {
+    /// Pixels refused when a frame started inside [`Compositor::local`] (close those peers'
+    /// connections).
+    pub fn take_refused(&mut self) -> Vec<CompositeError> {
+        std::mem::take(&mut self.refused)
+    }
+
+    /// `frame_id` starts at `now`: it needs the pixels of the nodes `footprints` names (the nodes
+    /// that hold bricks in its map, `crate::adoption`; this node and names that are not peers are
+    /// left out), each within its rectangles there, and waits for them until its deadline.
+    /// Pixels that came earlier are checked and merged now; those that break the rules are
+    /// returned (close those peers' connections) and count as not received.
+    pub fn expect(&mut self, now: Duration, frame_id: u64, footprints: Footprints) -> Vec<CompositeError> {
         if self.stale(frame_id) {
-            return;
+            return Vec::new();
         }
-        let want = nodes.into_iter().filter(|n| self.peers.contains(n)).collect();
-        self.frame(frame_id).expect = Some(want);
+        let footprints: Footprints = footprints.into_iter().filter(|(n, _)| self.peers.contains(n)).collect();
+        let tiles = self.tiles.clone();
+        let p = self.frame(frame_id);
+        let mut errors = Vec::new();
+        for (cert, msg) in std::mem::take(&mut p.early) {
+            let fp = footprints.get(&cert).map_or(&[][..], |f| &f[..]);
+            match decode_within(&tiles, &cert, &msg, fp) {
+                Ok(layers) => p.merge(&layers),
+                Err(e) => {
+                    p.from.remove(&cert);
+                    errors.push(e);
+                }
+            }
+        }
+        p.footprints = Some(footprints);
+        p.started = Some(now);
+        errors
     }
 
     /// `gone` render nothing any more (down): pending frames stop waiting for them. Returns the
     /// frames that this completes, oldest first (each drops the older ones, as always).
-    pub fn forget(&mut self, gone: &[String]) -> Vec<Composited> {
+    pub fn forget(&mut self, now: Duration, gone: &[String]) -> Vec<Composited> {
         let ids: Vec<u64> = self.pending.keys().copied().collect();
         for p in self.pending.values_mut() {
-            let want = p.expect.get_or_insert_with(|| self.peers.clone());
-            want.retain(|n| !gone.contains(n));
+            if let Some(f) = p.footprints.as_mut() {
+                f.retain(|n, _| !gone.contains(n));
+            }
         }
-        ids.into_iter().filter_map(|id| self.poll(id)).collect()
+        ids.into_iter().filter_map(|id| self.poll(now, id)).collect()
+    }
+
+    /// `nodes` are back (a brick map gives them bricks again): waited for again even if they
+    /// missed a deadline before.
+    pub fn wait_again(&mut self, nodes: &[String]) {
+        for n in nodes {
+            self.late.remove(n);
+        }
     }
 
     /// A peer's pixels, from the connection whose certificate names `cert`.
-    pub fn peer(&mut self, cert: &str, msg: PeerPixels) -> Result<Option<Composited>, CompositeError> {
+    pub fn peer(
+        &mut self,
+        now: Duration,
+        cert: &str,
+        msg: PeerPixels,
+    ) -> Result<Option<Composited>, CompositeError> {
         if msg.node != cert {
             return Err(CompositeError::WrongSender { cert: cert.to_string(), claimed: msg.node });
         }
@@ -345,17 +599,24 @@ impl Compositor {
         }
         let id = msg.frame_id;
         if self.stale(id) {
+            // Late, but alive: waited for again.
+            self.late.remove(cert);
             return Ok(None);
         }
-        if !self.pending.contains_key(&id) && self.pending.len() >= MAX_PENDING_FRAMES {
-            return Err(CompositeError::TooManyFrames {
+        if let Some(latest) = self.latest.filter(|l| id > l.saturating_add(FRAMES_AHEAD)) {
+            return Err(CompositeError::FarAhead { peer: cert.to_string(), frame_id: id, latest });
+        }
+        // What the header says, against the whole tiles: at most one rectangle per brick (one
+        // per node) and tile, each inside its tile, claiming exactly its size.
+        let max = self.tiles.len() * (self.peers.len() + 1);
+        if msg.rects.len() > max {
+            return Err(CompositeError::TooManyRects {
                 peer: cert.to_string(),
                 frame_id: id,
-                pending: self.pending.len(),
+                got: msg.rects.len(),
+                max,
             });
         }
-        // Decode everything before touching the frame: a bad message changes nothing.
-        let mut layers = Vec::with_capacity(msg.rects.len());
         for r in &msg.rects {
             let Some(&(_, w, h)) = self.tiles.iter().find(|t| t.0 == r.tile) else {
                 return Err(CompositeError::NotMyTile {
@@ -364,41 +625,79 @@ impl Compositor {
                     tile: r.tile.clone(),
                 });
             };
-            layers.push((r.tile.clone(), r.decode(cert, (w, h))?));
+            r.check(cert, (w, h))?;
         }
-        let p = self.frame(id);
-        if !p.from.insert(cert.to_string()) {
+        if self.pending.get(&id).is_some_and(|p| p.from.contains(cert)) {
             return Err(CompositeError::Twice { peer: cert.to_string(), frame_id: id });
         }
-        for (tile, l) in &layers {
-            if let Some(c) = p.canvases.iter_mut().find(|c| &c.name == tile) {
-                c.merge(l);
-            }
+        // Decoded now when the frame has started (a bad message changes nothing), else kept.
+        let footprint =
+            self.pending.get(&id).and_then(|p| p.footprints.as_ref()).map(|f| f.get(cert).cloned());
+        let layers = match &footprint {
+            Some(fp) => Some(decode_within(&self.tiles, cert, &msg, fp.as_deref().unwrap_or(&[]))?),
+            None => None,
+        };
+        self.late.remove(cert);
+        let p = self.frame(id);
+        p.from.insert(cert.to_string());
+        match layers {
+            Some(layers) => p.merge(&layers),
+            None => p.early.push((cert.to_string(), msg)),
         }
-        Ok(self.poll(id))
+        Ok(self.poll(now, id))
     }
 
-    /// The frame's tiles once everything is in; older pending frames are then dropped (they can
-    /// no longer be shown).
-    fn poll(&mut self, frame_id: u64) -> Option<Composited> {
+    /// The frame's tiles once this node's render and every awaited peer's pixels are in, or its
+    /// deadline has passed; older pending frames are then dropped (they can no longer be shown).
+    fn poll(&mut self, now: Duration, frame_id: u64) -> Option<Composited> {
         let p = self.pending.get(&frame_id)?;
         let background = p.local?;
-        if !p.expect.as_ref().unwrap_or(&self.peers).iter().all(|n| p.from.contains(n)) {
+        let expected: Vec<&String> = match &p.footprints {
+            Some(f) => f.keys().collect(),
+            None => self.peers.iter().collect(),
+        };
+        let waiting = expected.iter().any(|n| !p.from.contains(*n) && !self.late.contains(*n));
+        let due = p.started.is_some_and(|s| now >= s + self.deadline);
+        if waiting && !due {
             return None;
         }
+        let missing: Vec<String> = expected.into_iter().filter(|n| !p.from.contains(*n)).cloned().collect();
+        self.late.extend(missing.iter().cloned());
         let mut p = self.pending.remove(&frame_id).expect("present");
         for c in &mut p.canvases {
             c.fill_background(background);
         }
         self.pending.retain(|&id, _| id > frame_id);
         self.last_done = Some(frame_id);
-        Some(Composited { frame_id, tiles: p.canvases })
+        Some(Composited { frame_id, tiles: p.canvases, missing })
+    }
+
+    /// When the next frame's deadline passes (call [`Compositor::handle_timeout`] then).
+    pub fn poll_timeout(&self) -> Option<Duration> {
+        self.pending
+            .values()
+            .filter(|p| p.local.is_some())
+            .filter_map(|p| p.started.map(|s| s + self.deadline))
+            .min()
+    }
+
+    /// Frames whose deadline has passed at `now`, composited with what arrived.
+    pub fn handle_timeout(&mut self, now: Duration) -> Vec<Composited> {
+        let due: Vec<u64> = self
+            .pending
+            .iter()
+            .filter(|(_, p)| p.local.is_some() && p.started.is_some_and(|s| now >= s + self.deadline))
+            .map(|(&id, _)| id)
+            .collect();
+        due.into_iter().filter_map(|id| self.poll(now, id)).collect()
     }
 
     /// Forgets every frame: a new controller session numbers its frames afresh.
     pub fn reset(&mut self) {
         self.pending.clear();
         self.last_done = None;
+        self.latest = None;
+        self.late.clear();
     }
 
     /// Frames waiting.
@@ -410,6 +709,23 @@ impl Compositor {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    const T: Duration = Duration::ZERO;
+    const SECOND: Duration = Duration::from_secs(1);
+
+    fn ms(x: u64) -> Duration {
+        Duration::from_millis(x)
+    }
+
+    /// Footprints of whole 4x2 tiles `t`: per node, that many rectangles (one per brick).
+    fn whole(nodes: &[(&str, usize)]) -> Footprints {
+        let t = TileRect { x: 0, y: 0, width: 4, height: 2 };
+        nodes.iter().map(|(n, k)| (n.to_string(), vec![("t".to_string(), t); *k])).collect()
+    }
+
+    fn empty(frame_id: u64, node: &str) -> PeerPixels {
+        PeerPixels { frame_id, node: node.into(), rects: vec![] }
+    }
 
     fn layer(x: u32, y: u32, w: u32, h: u32, f: impl Fn(u32, u32) -> (f32, u8)) -> Layer {
         let mut l = Layer::empty(x, y, w, h);
@@ -472,78 +788,207 @@ mod tests {
 
     #[test]
     fn the_owner_keeps_the_nearest_hit_and_waits_for_every_peer() {
-        let mut c = Compositor::new("a", ["a", "b", "c"].map(String::from), vec![("t".into(), 4, 2)]);
+        let mut c = Compositor::new("a", ["a", "b", "c"].map(String::from), vec![("t".into(), 4, 2)], SECOND);
         let near = layer(0, 0, 2, 2, |_, _| (1.0, 10));
         let far = layer(1, 0, 3, 2, |_, _| (2.0, 20));
         let miss = layer(0, 0, 4, 1, |_, _| (f32::INFINITY, 99));
-        assert_eq!(c.local(1, &[("t".into(), far.clone())], [7, 7, 7]), None);
+        assert_eq!(c.local(T, 1, &[("t".into(), far.clone())], [7, 7, 7]), None);
         let from_b = PeerPixels { frame_id: 1, node: "b".into(), rects: vec![near.encode("t", true)] };
-        assert_eq!(c.peer("b", from_b.clone()).unwrap(), None);
-        assert_eq!(c.peer("b", from_b.clone()), Err(CompositeError::Twice { peer: "b".into(), frame_id: 1 }));
+        assert_eq!(c.peer(T, "b", from_b.clone()).unwrap(), None);
+        assert_eq!(
+            c.peer(T, "b", from_b.clone()),
+            Err(CompositeError::Twice { peer: "b".into(), frame_id: 1 })
+        );
         let from_c = PeerPixels { frame_id: 1, node: "c".into(), rects: vec![miss.encode("t", false)] };
-        let done = c.peer("c", from_c).unwrap().expect("all in");
+        let done = c.peer(T, "c", from_c).unwrap().expect("all in");
         let t = &done.tiles[0];
         // Row 0: near, near, far, far; row 1 the same.
         let colours: Vec<u8> = t.rgb8.chunks(3).map(|p| p[0]).collect();
         assert_eq!(colours, vec![10, 10, 20, 20, 10, 10, 20, 20]);
         assert_eq!(t.depth[0], 1.0);
         // Stale pixels are ignored; the wrong sender, an unknown peer and other tiles are errors.
-        assert_eq!(c.peer("b", from_b).unwrap(), None);
-        let e = c.peer("c", PeerPixels { frame_id: 2, node: "b".into(), rects: vec![] }).unwrap_err();
+        assert_eq!(c.peer(T, "b", from_b).unwrap(), None);
+        let e = c.peer(T, "c", PeerPixels { frame_id: 2, node: "b".into(), rects: vec![] }).unwrap_err();
         assert!(matches!(e, CompositeError::WrongSender { .. }));
-        let e = c.peer("z", PeerPixels { frame_id: 2, node: "z".into(), rects: vec![] }).unwrap_err();
+        let e = c.peer(T, "z", PeerPixels { frame_id: 2, node: "z".into(), rects: vec![] }).unwrap_err();
         assert!(matches!(e, CompositeError::UnknownPeer { .. }));
-        let e =
-            c.peer("b", PeerPixels { frame_id: 2, node: "b".into(), rects: vec![near.encode("u", false)] });
+        let e = c.peer(
+            T,
+            "b",
+            PeerPixels { frame_id: 2, node: "b".into(), rects: vec![near.encode("u", false)] },
+        );
         assert!(matches!(e, Err(CompositeError::NotMyTile { .. })));
         // Uncovered pixels get the background; frames can complete before an older one, which is dropped.
-        c.peer("b", PeerPixels { frame_id: 3, node: "b".into(), rects: vec![] }).unwrap();
-        c.peer("c", PeerPixels { frame_id: 3, node: "c".into(), rects: vec![] }).unwrap();
-        c.peer("b", PeerPixels { frame_id: 2, node: "b".into(), rects: vec![] }).unwrap();
-        let done = c.local(3, &[], [5, 6, 7]).expect("frame 3");
+        c.peer(T, "b", PeerPixels { frame_id: 3, node: "b".into(), rects: vec![] }).unwrap();
+        c.peer(T, "c", PeerPixels { frame_id: 3, node: "c".into(), rects: vec![] }).unwrap();
+        c.peer(T, "b", PeerPixels { frame_id: 2, node: "b".into(), rects: vec![] }).unwrap();
+        let done = c.local(T, 3, &[], [5, 6, 7]).expect("frame 3");
         assert!(done.tiles[0].rgb8.chunks(3).all(|p| p == [5, 6, 7]));
         assert_eq!(c.pending(), 0);
-        // A flood of future frames is refused.
-        for id in 10..10 + MAX_PENDING_FRAMES as u64 {
-            c.peer("b", PeerPixels { frame_id: id, node: "b".into(), rects: vec![] }).unwrap();
+        // Frames further ahead of the latest announced than FRAMES_AHEAD are refused, naming the
+        // peer; those within are kept.
+        c.announce(3);
+        for id in 4..=3 + FRAMES_AHEAD {
+            c.peer(T, "b", empty(id, "b")).unwrap();
         }
-        let e = c.peer("b", PeerPixels { frame_id: 99, node: "b".into(), rects: vec![] }).unwrap_err();
-        assert!(matches!(e, CompositeError::TooManyFrames { .. }));
+        let e = c.peer(T, "b", empty(4 + FRAMES_AHEAD, "b")).unwrap_err();
+        assert!(matches!(e, CompositeError::FarAhead { latest: 3, .. }), "{e}");
+        assert!(e.to_string().contains("node `b`"), "{e}");
+        assert!(matches!(c.peer(T, "b", empty(u64::MAX, "b")), Err(CompositeError::FarAhead { .. })));
+        assert_eq!(c.pending(), FRAMES_AHEAD as usize);
+    }
+
+    #[test]
+    fn frames_before_any_announce_are_bounded_and_dropped_when_far_ahead() {
+        let mut c = Compositor::new("a", ["a", "b"].map(String::from), vec![("t".into(), 4, 2)], SECOND);
+        for id in [u64::MAX, u64::MAX - 1, 1 << 40].into_iter().chain(0..100) {
+            c.peer(T, "b", empty(id, "b")).unwrap();
+        }
+        // The oldest go first: the three far-future frames and 87..=99 are kept.
+        assert_eq!(c.pending(), MAX_PENDING_FRAMES);
+        c.announce(95);
+        assert_eq!(c.pending(), MAX_PENDING_FRAMES - 3, "the far-future frames went at the announce");
+        assert_eq!(c.dropped(), 103 - (MAX_PENDING_FRAMES as u64 - 3));
+        assert!(matches!(c.peer(T, "b", empty(u64::MAX, "b")), Err(CompositeError::FarAhead { .. })));
+    }
+
+    #[test]
+    fn rectangles_are_capped_by_the_senders_footprint_before_anything_is_decompressed() {
+        let mut c = Compositor::new("a", ["a", "b", "c"].map(String::from), vec![("t".into(), 4, 2)], SECOND);
+        let corner = TileRect { x: 0, y: 0, width: 2, height: 2 };
+        let fp: Footprints =
+            [("b".to_string(), vec![("t".to_string(), corner)]), ("c".to_string(), vec![])].into();
+        assert!(c.expect(T, 1, fp.clone()).is_empty());
+        let inside = layer(0, 0, 2, 2, |_, _| (1.0, 10)).encode("t", true);
+        // 200 rectangles: refused on their number (at most one per brick and tile).
+        let bomb = PeerPixels { frame_id: 1, node: "b".into(), rects: vec![inside.clone(); 200] };
+        let e = c.peer(T, "b", bomb).unwrap_err();
+        assert!(matches!(e, CompositeError::TooManyRects { got: 200, max: 3, .. }), "{e}");
+        let two = PeerPixels { frame_id: 1, node: "b".into(), rects: vec![inside.clone(); 2] };
+        assert!(matches!(c.peer(T, "b", two), Err(CompositeError::TooManyRects { got: 2, max: 1, .. })));
+        // A rectangle larger than the footprint, and one of its size elsewhere in the tile.
+        let whole = PeerPixels {
+            frame_id: 1,
+            node: "b".into(),
+            rects: vec![layer(0, 0, 4, 2, |_, _| (1.0, 1)).encode("t", true)],
+        };
+        let e = c.peer(T, "b", whole).unwrap_err();
+        assert!(matches!(e, CompositeError::TooManyBytes { got: 56, max: 28, .. }), "{e}");
+        let moved = PeerPixels {
+            frame_id: 1,
+            node: "b".into(),
+            rects: vec![layer(2, 0, 2, 2, |_, _| (1.0, 1)).encode("t", true)],
+        };
+        let e = c.peer(T, "b", moved).unwrap_err();
+        assert!(matches!(e, CompositeError::OutsideFootprint { x: 2, .. }), "{e}");
+        assert!(e.to_string().contains("node `b`"), "{e}");
+        // c's bricks cover none of this node's tiles: any rectangle is too many.
+        let from_c = PeerPixels { frame_id: 1, node: "c".into(), rects: vec![inside.clone()] };
+        assert!(matches!(c.peer(T, "c", from_c), Err(CompositeError::TooManyRects { max: 0, .. })));
+        // An LZ4 payload claiming 1 GiB: refused on its header, nothing allocated.
+        let mut huge = inside.clone();
+        huge.payload[..4].copy_from_slice(&(1u32 << 30).to_le_bytes());
+        let e = c.peer(T, "b", PeerPixels { frame_id: 1, node: "b".into(), rects: vec![huge] }).unwrap_err();
+        assert!(e.to_string().contains("claims to decompress to 1073741824 bytes"), "{e}");
+        // None of that counted: the good message still completes the frame.
+        assert_eq!(c.peer(T, "c", empty(1, "c")).unwrap(), None);
+        let good = PeerPixels { frame_id: 1, node: "b".into(), rects: vec![inside.clone()] };
+        assert_eq!(c.peer(T, "b", good).unwrap(), None);
+        let done = c.local(T, 1, &[], [0, 0, 0]).expect("all in");
+        assert_eq!(done.missing, Vec::<String>::new());
+        assert_eq!(done.tiles[0].rgb8[0], 10);
+        // Pixels before their frame starts wait compressed; at the start the footprint refuses
+        // them (the peer counts as not received).
+        let early = PeerPixels {
+            frame_id: 2,
+            node: "b".into(),
+            rects: vec![layer(2, 0, 2, 2, |_, _| (1.0, 1)).encode("t", true)],
+        };
+        assert_eq!(c.peer(T, "b", early).unwrap(), None);
+        let errors = c.expect(T, 2, fp);
+        assert!(matches!(errors[..], [CompositeError::OutsideFootprint { frame_id: 2, .. }]), "{errors:?}");
+        c.peer(T, "c", empty(2, "c")).unwrap();
+        assert_eq!(c.local(T, 2, &[], [0, 0, 0]), None, "b's refused pixels do not count");
+    }
+
+    #[test]
+    fn a_frame_composites_what_arrived_by_its_deadline_names_the_missing_and_goes_on() {
+        let mut c = Compositor::new("a", ["a", "b", "c"].map(String::from), vec![("t".into(), 4, 2)], SECOND);
+        let near = layer(0, 0, 2, 2, |_, _| (1.0, 10));
+        let t0 = ms(5000);
+        c.announce(1);
+        c.expect(t0, 1, whole(&[("b", 1), ("c", 1)]));
+        assert_eq!(c.local(t0 + ms(20), 1, &[], [7, 7, 7]), None);
+        let b1 = PeerPixels { frame_id: 1, node: "b".into(), rects: vec![near.encode("t", true)] };
+        assert_eq!(c.peer(t0 + ms(30), "b", b1).unwrap(), None);
+        // c is silent: the frame waits until its deadline, then composites without c.
+        assert_eq!(c.poll_timeout(), Some(t0 + SECOND));
+        assert!(c.handle_timeout(t0 + ms(999)).is_empty());
+        let done = c.handle_timeout(t0 + SECOND);
+        assert_eq!(done.len(), 1);
+        assert_eq!(done[0].missing, vec!["c".to_string()]);
+        assert_eq!(done[0].tiles[0].rgb8[..6], [10, 10, 10, 10, 10, 10]);
+        assert_eq!(c.poll_timeout(), None);
+        // c missed a deadline: frame 2 does not wait for it (still named).
+        let t1 = t0 + ms(1100);
+        c.announce(2);
+        c.expect(t1, 2, whole(&[("b", 1), ("c", 1)]));
+        c.peer(t1 + ms(5), "b", empty(2, "b")).unwrap();
+        let done = c.local(t1 + ms(10), 2, &[], [7, 7, 7]).expect("c is not waited for");
+        assert_eq!(done.missing, vec!["c".to_string()]);
+        // c's late pixels of frame 1 arrive: it is alive, frame 3 waits for it again.
+        assert_eq!(c.peer(t1 + ms(20), "c", empty(1, "c")).unwrap(), None);
+        assert!(c.late().is_empty());
+        let t2 = t1 + ms(100);
+        c.announce(3);
+        c.expect(t2, 3, whole(&[("b", 1), ("c", 1)]));
+        c.peer(t2, "b", empty(3, "b")).unwrap();
+        assert_eq!(c.local(t2 + ms(10), 3, &[], [7, 7, 7]), None);
+        let done = c.peer(t2 + ms(400), "c", empty(3, "c")).unwrap().expect("c in time");
+        assert!(done.missing.is_empty());
+        // A frame whose own render is done after its deadline composites at once.
+        c.announce(4);
+        c.expect(t2 + ms(500), 4, whole(&[("b", 1), ("c", 1)]));
+        let done = c.local(t2 + ms(1600), 4, &[], [7, 7, 7]).expect("due");
+        assert_eq!(done.missing, vec!["b".to_string(), "c".to_string()]);
     }
 
     #[test]
     fn a_frame_waits_only_for_the_nodes_its_map_names_and_stops_waiting_for_the_dead() {
-        let mut c = Compositor::new("a", ["a", "b", "c"].map(String::from), vec![("t".into(), 4, 2)]);
+        let mut c = Compositor::new("a", ["a", "b", "c"].map(String::from), vec![("t".into(), 4, 2)], SECOND);
         let near = layer(0, 0, 2, 2, |_, _| (1.0, 10));
         let far = layer(0, 0, 4, 2, |_, _| (2.0, 20));
         // Frame 1 by the home map: a waits for b and c; c dies: b's pixels do not complete it.
-        assert_eq!(c.local(1, &[], [0, 0, 0]), None);
+        assert_eq!(c.local(T, 1, &[], [0, 0, 0]), None);
         let b1 = PeerPixels { frame_id: 1, node: "b".into(), rects: vec![far.encode("t", true)] };
-        assert_eq!(c.peer("b", b1).unwrap(), None);
+        assert_eq!(c.peer(T, "b", b1).unwrap(), None);
         // The map that leaves c without bricks ends the wait: frame 1 completes without c.
-        let done = c.forget(&["c".to_string()]);
+        let done = c.forget(T, &["c".to_string()]);
         assert_eq!(done.len(), 1);
         assert_eq!(done[0].frame_id, 1);
         assert!(done[0].tiles[0].rgb8.chunks(3).all(|p| p[0] == 20));
         // Frame 2: b holds c's brick too (two rectangles of the same tile in one message); the map
         // names only b (c, and names that are no peers, are not waited for).
-        c.expect(2, ["b".to_string(), "a".to_string(), "zz".to_string()]);
+        c.expect(T, 2, whole(&[("b", 2), ("a", 1), ("zz", 1)]));
         let b2 = PeerPixels {
             frame_id: 2,
             node: "b".into(),
             rects: vec![far.encode("t", false), near.encode("t", true)],
         };
-        assert_eq!(c.peer("b", b2).unwrap(), None);
-        let done = c.local(2, &[], [0, 0, 0]).expect("only b was expected");
+        assert_eq!(c.peer(T, "b", b2).unwrap(), None);
+        let done = c.local(T, 2, &[], [0, 0, 0]).expect("only b was expected");
         let colours: Vec<u8> = done.tiles[0].rgb8.chunks(3).map(|p| p[0]).collect();
         assert_eq!(colours, vec![10, 10, 20, 20, 10, 10, 20, 20]);
         // Frame 3 expects c again (it came back): b alone does not complete it.
-        c.expect(3, ["b".to_string(), "c".to_string()]);
-        c.peer("b", PeerPixels { frame_id: 3, node: "b".into(), rects: vec![] }).unwrap();
-        assert_eq!(c.local(3, &[], [0, 0, 0]), None);
-        assert!(c.peer("c", PeerPixels { frame_id: 3, node: "c".into(), rects: vec![] }).unwrap().is_some());
+        c.expect(T, 3, whole(&[("b", 1), ("c", 1)]));
+        c.peer(T, "b", PeerPixels { frame_id: 3, node: "b".into(), rects: vec![] }).unwrap();
+        assert_eq!(c.local(T, 3, &[], [0, 0, 0]), None);
+        assert!(c
+            .peer(T, "c", PeerPixels { frame_id: 3, node: "c".into(), rects: vec![] })
+            .unwrap()
+            .is_some());
         // Stale frames are not revived by expect.
-        c.expect(2, ["b".to_string()]);
+        c.expect(T, 2, whole(&[("b", 1)]));
         assert_eq!(c.pending(), 0);
     }
 }

@@ -6,8 +6,10 @@
 //! ```toml
 //! [wall]
 //! name = "local-2x2"
-//! deadline_ms = 2000              # frame deadline of the swap barrier (default 2000)
-//! message_limit_bytes = 67108864  # the largest network message (default 64 MiB)
+//! deadline_ms = 2000              # frame deadline of the swap barrier (default 2000, at most
+//!                                 # 600000: ten minutes)
+//! message_limit_bytes = 67108864  # the largest network message (default 64 MiB; 4 KiB to 1 GiB,
+//!                                 # and room for each node's snapshot of its tiles)
 //!
 //! [camera]      # the one wall camera, over the whole wall image (DESIGN.md "Camera")
 //! eye = [x, y, z]                 # optional: omitted -> a view that frames the volume
@@ -21,12 +23,15 @@
 //! iso = 0.0                       # optional, data units
 //! # raw files only: dims = [nx, ny, nz], type = "int16", spacing = [sx, sy, sz]
 //! # DICOM only: series = "UID"    # the SeriesInstanceUID, where the folder holds several
+//! max_bytes = 2147483648          # optional: the most the voxels may take as float32 on a node
+//!                                 # (default 2 GiB; also at most the GPU's largest binding)
 //!
 //! [render]      # render-state defaults, all optional
 //! shading = "blinn-phong"         # lambert | blinn-phong
 //! ao_samples = 16
 //! ao_radius = 8.0                 # world units or "unbounded"; omitted: 8 voxels
 //! ao_method = "ours"              # ours | seed
+//! ao_sequence = "sobol"           # sobol | r2: the 2D set of ours' directions
 //! ibl = "bent"                    # none | seed | bent | rays
 //! env = "sky"                     # sky | FILE.hdr | DIR (relative to this file's folder)
 //! exposure = 0.6                  # default 0.6 with an IBL method, else 1
@@ -55,7 +60,8 @@
 //! [`WallConfig::parse`] takes the text; [`WallConfig::load`] is a thin helper that only reads it.
 
 use crate::camera::{Camera, View, Window};
-use crate::render_state::{AoMethod, AoRadius, IblMethod, RenderSettings, Shading};
+use crate::names::name_problem;
+use crate::render_state::{AoMethod, AoRadius, AoSequence, IblMethod, RenderSettings, Shading};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 use std::fmt;
@@ -66,12 +72,17 @@ use toml::Spanned;
 
 /// Default frame deadline of the swap barrier, in milliseconds.
 pub const DEFAULT_DEADLINE_MS: u64 = 2000;
+/// Longest frame deadline (10 minutes): the controller waits up to two deadlines for a node.
+pub const MAX_DEADLINE_MS: u64 = 600_000;
 /// Default limit on the size of one network message (64 MiB).
 pub const DEFAULT_MESSAGE_LIMIT_BYTES: u64 = 64 << 20;
 /// Smallest accepted message limit: a frame state must fit.
 pub const MIN_MESSAGE_LIMIT_BYTES: u64 = 4096;
-/// Largest accepted message limit (4 GiB).
-pub const MAX_MESSAGE_LIMIT_BYTES: u64 = 1 << 32;
+/// Largest accepted message limit: what the decoder accepts at most ([`crate::codec::MAX_FRAME_LEN`],
+/// 1 GiB).
+pub const MAX_MESSAGE_LIMIT_BYTES: u64 = crate::codec::MAX_FRAME_LEN as u64;
+/// Largest `[volume] max_bytes`: 2^30 voxels as float32 (the readers' own cap).
+pub const MAX_VOLUME_BYTES: u64 = 4 << 30;
 /// Largest tile width or height, and largest bezel, in pixels.
 pub const MAX_TILE_SIZE: u32 = 16384;
 /// Largest extent of the whole wall image along either axis, in pixels.
@@ -201,6 +212,11 @@ pub struct VolumeConfig {
     /// DICOM only: the SeriesInstanceUID to read where the folder holds several series.
     #[serde(default)]
     pub series: Option<String>,
+    /// The most bytes the volume may take on a node as float32 (4 a voxel), checked from the
+    /// file's header before it is read; `None`: 2 GiB. A node also holds it to its GPU's largest
+    /// storage binding.
+    #[serde(default)]
+    pub max_bytes: Option<u64>,
 }
 
 /// `[render]`: the defaults of the render state (the controller may change them per frame).
@@ -213,6 +229,7 @@ pub struct RenderConfig {
     #[serde(with = "ao_radius_serde")]
     pub ao_radius: AoRadius,
     pub ao_method: AoMethod,
+    pub ao_sequence: AoSequence,
     pub ibl: IblMethod,
     /// `sky`, an equirectangular `FILE.hdr` or a cube-map `DIR` (relative to the config's folder).
     pub env: String,
@@ -229,6 +246,7 @@ impl Default for RenderConfig {
             ao_samples: 0,
             ao_radius: AoRadius::Default,
             ao_method: AoMethod::default(),
+            ao_sequence: AoSequence::default(),
             ibl: IblMethod::default(),
             env: "sky".into(),
             exposure: None,
@@ -441,6 +459,15 @@ impl<'a> Doc<'a> {
         self.problems.push((span, message.into()));
     }
 
+    /// A problem with something the file lacks: at `path` where it is there but empty (`nodes =
+    /// []`), else at the file's last line, where it would go.
+    fn at_missing(&mut self, path: &[Seg], message: impl Into<String>) {
+        let end = self.text.trim_end().len();
+        let line_start = self.text[..end].rfind('\n').map_or(0, |i| i + 1);
+        let span = self.span(path).unwrap_or(line_start..line_start);
+        self.problems.push((Some(span), message.into()));
+    }
+
     /// The line of the value at `path`, for messages that refer to another place.
     fn line_of(&self, path: &[Seg]) -> Option<usize> {
         self.span(path).map(|s| line_column(self.text, s.start).0)
@@ -524,7 +551,10 @@ impl WallConfig {
         let wall: Option<WallSection> = match doc_value(&doc, "wall") {
             Some(v) => doc.de(&v),
             None => {
-                doc.at_span(None, "missing table [wall] (with at least `name`)");
+                doc.at_missing(
+                    &[Seg::K("wall")],
+                    "missing table [wall] (with at least `name`) up to the end of the file",
+                );
                 None
             }
         };
@@ -535,7 +565,10 @@ impl WallConfig {
         let volume: Option<VolumeConfig> = match doc_value(&doc, "volume") {
             Some(v) => doc.de(&v),
             None => {
-                doc.at_span(None, "missing table [volume] (with at least `source`)");
+                doc.at_missing(
+                    &[Seg::K("volume")],
+                    "missing table [volume] (with at least `source`) up to the end of the file",
+                );
                 None
             }
         };
@@ -588,6 +621,9 @@ impl WallConfig {
         }
         validate_tiles(&mut doc, &tiles);
         validate_nodes(&mut doc, &nodes, &tiles);
+        if let Some(w) = &wall {
+            validate_snapshot_size(&mut doc, w, &tiles, &nodes);
+        }
 
         match (wall, camera, volume, render, certificates, joystick) {
             (Some(wall), Some(camera), Some(volume), Some(render), Some(certificates), Some(joystick))
@@ -674,6 +710,7 @@ impl WallConfig {
         s.ao.samples = r.ao_samples;
         s.ao.radius = r.ao_radius;
         s.ao.method = r.ao_method;
+        s.ao.sequence = r.ao_sequence;
         s.ao.ibl = r.ibl;
         s.exposure = r.exposure.unwrap_or(if s.ibl_needs_environment() { 0.6 } else { 1.0 });
         s
@@ -842,17 +879,65 @@ fn validate_wall(doc: &mut Doc<'_>, w: &WallSection) {
     if w.name.trim().is_empty() {
         doc.at(&at("name"), "wall: `name` is empty");
     }
-    if w.deadline_ms == 0 {
-        doc.at(&at("deadline_ms"), "wall: `deadline_ms` must be > 0");
+    if !(1..=MAX_DEADLINE_MS).contains(&w.deadline_ms) {
+        doc.at(
+            &at("deadline_ms"),
+            format!(
+                "wall: `deadline_ms` {} is outside 1..={MAX_DEADLINE_MS} (a frame deadline of at most 10 minutes)",
+                w.deadline_ms
+            ),
+        );
     }
     if !(MIN_MESSAGE_LIMIT_BYTES..=MAX_MESSAGE_LIMIT_BYTES).contains(&w.message_limit_bytes) {
         doc.at(
             &at("message_limit_bytes"),
             format!(
-                "wall: `message_limit_bytes` {} is outside {MIN_MESSAGE_LIMIT_BYTES}..={MAX_MESSAGE_LIMIT_BYTES}",
+                "wall: `message_limit_bytes` {} is outside {MIN_MESSAGE_LIMIT_BYTES}..={MAX_MESSAGE_LIMIT_BYTES} \
+                 (no decoder accepts a message over 1 GiB)",
                 w.message_limit_bytes
             ),
         );
+    }
+}
+
+/// A node's snapshot (one message with all its tiles) must fit the wall's message limit.
+fn validate_snapshot_size(
+    doc: &mut Doc<'_>,
+    w: &WallSection,
+    tiles: &Parsed<TileConfig>,
+    nodes: &Parsed<NodeConfig>,
+) {
+    if !(MIN_MESSAGE_LIMIT_BYTES..=MAX_MESSAGE_LIMIT_BYTES).contains(&w.message_limit_bytes) {
+        return; // reported on its own
+    }
+    for (i, n) in &nodes.items {
+        let own: Vec<&TileConfig> = n
+            .tiles
+            .iter()
+            .filter_map(|name| tiles.items.iter().map(|(_, t)| t).find(|t| t.name == *name))
+            .collect();
+        let need = crate::messages::TileImage::snapshot_len_bound(
+            own.iter().map(|t| (t.name.as_str(), t.width, t.height)),
+        );
+        if need > w.message_limit_bytes {
+            let names: Vec<&str> = own.iter().map(|t| t.name.as_str()).collect();
+            let message = format!(
+                "wall: `message_limit_bytes` {} is too small for the snapshot of node '{}' (tiles {}: up to \
+                 {need} bytes in one message); raise it to at least {need}",
+                w.message_limit_bytes,
+                n.name,
+                names.join(", ")
+            );
+            let given = doc
+                .value("wall")
+                .and_then(|v| v.get_ref().as_table())
+                .is_some_and(|t| t.iter().any(|(k, _)| k.get_ref() == "message_limit_bytes"));
+            if given {
+                doc.at(&[Seg::K("wall"), Seg::K("message_limit_bytes")], message);
+            } else {
+                doc.at(&[Seg::K("nodes"), Seg::I(*i), Seg::K("tiles")], message);
+            }
+        }
     }
 }
 
@@ -970,57 +1055,61 @@ fn validate_volume(doc: &mut Doc<'_>, v: &VolumeConfig) {
             doc.at(&at("spacing"), format!("volume: `spacing` {s:?} must be finite and > 0"));
         }
     }
+    if let Some(b) = v.max_bytes {
+        if !(4..=MAX_VOLUME_BYTES).contains(&b) {
+            doc.at(
+                &at("max_bytes"),
+                format!("volume: `max_bytes` {b} is outside 4..={MAX_VOLUME_BYTES} (one voxel to 2^30 voxels as float32)"),
+            );
+        }
+    }
 }
 
 fn validate_render(doc: &mut Doc<'_>, r: &RenderConfig) {
-    let at = |f| [Seg::K("render"), Seg::K(f)];
+    for (field, message) in render_problems(r) {
+        doc.at(&[Seg::K("render"), Seg::K(field)], message);
+    }
+}
+
+/// The problems of a `[render]` table, each with the field it is about: the rules of the config
+/// file, also applied to render settings changed while the wall runs (the operator console).
+pub fn render_problems(r: &RenderConfig) -> Vec<(&'static str, String)> {
+    let mut problems = Vec::new();
     if let AoRadius::World(radius) = r.ao_radius {
         if !(radius.is_finite() && radius > 0.0) {
-            doc.at(&at("ao_radius"), format!("render: `ao_radius` {radius} must be > 0 (or \"unbounded\")"));
+            problems
+                .push(("ao_radius", format!("render: `ao_radius` {radius} must be > 0 (or \"unbounded\")")));
         }
     }
     if r.ao_samples > crate::render_state::MAX_AO_SAMPLES {
-        doc.at(
-            &at("ao_samples"),
+        problems.push((
+            "ao_samples",
             format!(
                 "render: `ao_samples` {} is more than {} per frame (accumulate frames instead)",
                 r.ao_samples,
                 crate::render_state::MAX_AO_SAMPLES
             ),
-        );
+        ));
     }
     if let Some(x) = r.exposure {
         if !(x.is_finite() && x >= 0.0) {
-            doc.at(&at("exposure"), format!("render: `exposure` {x} must be a finite number >= 0"));
+            problems.push(("exposure", format!("render: `exposure` {x} must be a finite number >= 0")));
         }
     }
     if let Some(t) = r.target_frame_ms {
         if let Err(e) = crate::governor::Governor::new(t, 1, 1, 1) {
-            doc.at(&at("target_frame_ms"), format!("render: `target_frame_ms`: {e}"));
+            problems.push(("target_frame_ms", format!("render: `target_frame_ms`: {e}")));
         }
     }
     if r.env.trim().is_empty() {
-        doc.at(&at("env"), "render: `env` is empty (sky, FILE.hdr or DIR)");
+        problems.push(("env", "render: `env` is empty (sky, FILE.hdr or DIR)".to_string()));
     }
-}
-
-/// Names of tiles and nodes: also file names (certificates, snapshots) and TLS names.
-fn name_problem(name: &str) -> Option<String> {
-    if name.is_empty() {
-        return Some("is empty".into());
-    }
-    let ok_char = |c: char| c.is_ascii_alphanumeric() || c == '-' || c == '_' || c == '.';
-    if !name.chars().all(ok_char) || !name.starts_with(|c: char| c.is_ascii_alphanumeric()) {
-        return Some(format!(
-            "'{name}' may hold only letters, digits, '-', '_' and '.', and must start with a letter or digit"
-        ));
-    }
-    None
+    problems
 }
 
 fn validate_tiles(doc: &mut Doc<'_>, tiles: &Parsed<TileConfig>) {
     if !tiles.present || (tiles.items.is_empty() && !tiles.any_failed) {
-        doc.at_span(None, "no tiles: a wall needs at least one [[tiles]] table");
+        doc.at_missing(&[Seg::K("tiles")], "no tiles: a wall needs at least one [[tiles]] table");
         return;
     }
     let at = |i: usize, f: &'static str| [Seg::K("tiles"), Seg::I(i), Seg::K(f)];
@@ -1106,12 +1195,67 @@ fn validate_tiles(doc: &mut Doc<'_>, tiles: &Parsed<TileConfig>) {
 /// Checks `host:port` (or `[v6]:port`): a valid port (1..=65535) and a plausible host name or IP
 /// literal. Names are not resolved.
 pub fn check_address(address: &str) -> Result<(), String> {
+    parse_address(address).map(|_| ())
+}
+
+/// Where a node address leads, as far as the text says (the model does no I/O, so names other
+/// than `localhost` are not resolved): an IP address (an IPv4-mapped IPv6 address as the IPv4
+/// one), the loopback name (`localhost` and `*.localhost`, RFC 6761: 127.0.0.1 and ::1), or a
+/// host name without regard to case or a final dot; and the port.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum AddressHost {
+    Ip(std::net::IpAddr),
+    Localhost,
+    Name(String),
+}
+
+/// A node address, parsed: [`AddressHost`] and port.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct NodeAddress {
+    pub host: AddressHost,
+    pub port: u16,
+}
+
+impl NodeAddress {
+    /// Whether two addresses lead to the same socket: the same port, and the same IP address,
+    /// the same name, or `localhost` and 127.0.0.1 or ::1.
+    pub fn same_place(&self, other: &NodeAddress) -> bool {
+        let loopback = |ip: &std::net::IpAddr| match ip {
+            std::net::IpAddr::V4(v4) => *v4 == std::net::Ipv4Addr::LOCALHOST,
+            std::net::IpAddr::V6(v6) => *v6 == std::net::Ipv6Addr::LOCALHOST,
+        };
+        self.port == other.port
+            && match (&self.host, &other.host) {
+                (AddressHost::Localhost, AddressHost::Ip(ip))
+                | (AddressHost::Ip(ip), AddressHost::Localhost) => loopback(ip),
+                (a, b) => a == b,
+            }
+    }
+}
+
+/// Parses `host:port` (or `[v6]:port`), as [`check_address`] checks it.
+pub fn parse_address(address: &str) -> Result<NodeAddress, String> {
+    use std::net::IpAddr;
+    let ip_host = |ip: IpAddr| -> Result<AddressHost, String> {
+        let ip = match ip {
+            IpAddr::V6(v6) => v6.to_ipv4_mapped().map_or(IpAddr::V6(v6), IpAddr::V4),
+            v4 => v4,
+        };
+        if ip.is_unspecified() {
+            return Err(format!(
+                "'{address}': {ip} is the unspecified address, which no controller or peer can reach: \
+                 give the node's own address"
+            ));
+        }
+        Ok(AddressHost::Ip(ip))
+    };
     if let Some(rest) = address.strip_prefix('[') {
         let Some((host, port)) = rest.split_once("]:") else {
             return Err(format!("'{address}' is not [IPv6]:port"));
         };
-        host.parse::<std::net::Ipv6Addr>().map_err(|_| format!("'{host}' is not an IPv6 address"))?;
-        return check_port(address, port);
+        let ip =
+            host.parse::<std::net::Ipv6Addr>().map_err(|_| format!("'{host}' is not an IPv6 address"))?;
+        return Ok(NodeAddress { host: ip_host(IpAddr::V6(ip))?, port: parse_port(address, port)? });
     }
     let Some((host, port)) = address.rsplit_once(':') else {
         return Err(format!("'{address}' is not host:port (the port is missing)"));
@@ -1122,6 +1266,10 @@ pub fn check_address(address: &str) -> Result<(), String> {
     if host.contains(':') {
         return Err(format!("'{address}': write an IPv6 address in brackets, [addr]:port"));
     }
+    let port = parse_port(address, port)?;
+    if let Ok(ip) = host.parse::<std::net::Ipv4Addr>() {
+        return Ok(NodeAddress { host: ip_host(IpAddr::V4(ip))?, port });
+    }
     let label_ok = |l: &str| {
         !l.is_empty()
             && l.len() <= 63
@@ -1129,22 +1277,37 @@ pub fn check_address(address: &str) -> Result<(), String> {
             && !l.starts_with('-')
             && !l.ends_with('-')
     };
-    if host.len() > 253 || !host.split('.').all(label_ok) {
+    let name = host.strip_suffix('.').unwrap_or(host).to_ascii_lowercase();
+    if host.len() > 253 || !name.split('.').all(label_ok) {
         return Err(format!("'{host}' is not a valid host name or IP address"));
     }
-    check_port(address, port)
+    let host = if name == "localhost" || name.ends_with(".localhost") {
+        AddressHost::Localhost
+    } else {
+        AddressHost::Name(name)
+    };
+    Ok(NodeAddress { host, port })
 }
 
-fn check_port(address: &str, port: &str) -> Result<(), String> {
+fn parse_port(address: &str, port: &str) -> Result<u16, String> {
     match port.parse::<u16>() {
-        Ok(p) if p > 0 => Ok(()),
+        Ok(p) if p > 0 => Ok(p),
         _ => Err(format!("'{address}': port '{port}' is not in 1..=65535")),
+    }
+}
+
+/// Whether two node addresses lead to the same socket ([`NodeAddress::same_place`]); an address
+/// that does not parse is reported on its own.
+fn same_address(a: &str, b: &str) -> bool {
+    match (parse_address(a), parse_address(b)) {
+        (Ok(a), Ok(b)) => a.same_place(&b),
+        _ => false,
     }
 }
 
 fn validate_nodes(doc: &mut Doc<'_>, nodes: &Parsed<NodeConfig>, tiles: &Parsed<TileConfig>) {
     if !nodes.present || (nodes.items.is_empty() && !nodes.any_failed) {
-        doc.at_span(None, "no nodes: a wall needs at least one [[nodes]] table");
+        doc.at_missing(&[Seg::K("nodes")], "no nodes: a wall needs at least one [[nodes]] table");
         return;
     }
     let at = |i: usize, f: &'static str| [Seg::K("nodes"), Seg::I(i), Seg::K(f)];
@@ -1152,7 +1315,7 @@ fn validate_nodes(doc: &mut Doc<'_>, nodes: &Parsed<NodeConfig>, tiles: &Parsed<
         let i = *i;
         if let Some(p) = name_problem(&n.name) {
             doc.at(&at(i, "name"), format!("node name {p}"));
-        } else if RESERVED_NODE_NAMES.contains(&n.name.as_str()) {
+        } else if RESERVED_NODE_NAMES.iter().any(|r| r.eq_ignore_ascii_case(&n.name)) {
             doc.at(
                 &at(i, "name"),
                 format!("node name '{}' is reserved (its certificate files would clash)", n.name),
@@ -1163,17 +1326,29 @@ fn validate_nodes(doc: &mut Doc<'_>, nodes: &Parsed<NodeConfig>, tiles: &Parsed<
         }
     }
     for (a, (i, n)) in nodes.items.iter().enumerate() {
-        if let Some((j, _)) = nodes.items[..a].iter().find(|(_, m)| m.name == n.name) {
+        // TLS compares names without regard to case: `NODE0` beside `node0` could pose as it.
+        if let Some((j, m)) = nodes.items[..a].iter().find(|(_, m)| m.name.eq_ignore_ascii_case(&n.name)) {
             let first =
                 doc.line_of(&at(*j, "name")).map(|l| format!(" (first at line {l})")).unwrap_or_default();
-            doc.at(&at(*i, "name"), format!("duplicate node name '{}'{first}", n.name));
+            let same = if m.name == n.name {
+                String::new()
+            } else {
+                format!(" (the same as '{}' without regard to case)", m.name)
+            };
+            doc.at(&at(*i, "name"), format!("duplicate node name '{}'{same}{first}", n.name));
         }
-        if let Some((j, m)) = nodes.items[..a].iter().find(|(_, m)| m.address == n.address) {
+        if let Some((j, m)) = nodes.items[..a].iter().find(|(_, m)| same_address(&m.address, &n.address)) {
             let first = doc.line_of(&at(*j, "address")).map(|l| format!(" (line {l})")).unwrap_or_default();
-            doc.at(
-                &at(*i, "address"),
-                format!("node '{}' has the same address {} as node '{}'{first}", n.name, n.address, m.name),
-            );
+            let message = if m.address == n.address {
+                format!("node '{}' has the same address {} as node '{}'{first}", n.name, n.address, m.name)
+            } else {
+                format!(
+                    "node '{}' at {} has the same address as node '{}' at {}{first} (localhost is 127.0.0.1 \
+                     and ::1; names are compared without regard to case)",
+                    n.name, n.address, m.name, m.address
+                )
+            };
+            doc.at(&at(*i, "address"), message);
         }
     }
     // Tile references: every listed tile exists; every tile is driven by exactly one node.
@@ -1504,15 +1679,22 @@ tiles = ["b"]
     }
 
     #[test]
-    fn missing_sections_tiles_and_nodes_have_no_line() {
+    fn missing_sections_tiles_and_nodes_are_placed_at_the_end_or_where_empty() {
+        let last_line = |t: &str| Some(t.trim_end().lines().count());
         let no_wall = &GOOD[GOOD.find("[volume]").unwrap()..];
-        expect(no_wall, None, "missing table [wall]");
+        expect(no_wall, last_line(no_wall), "missing table [wall]");
         let no_volume = GOOD.replace("[volume]\nsource = \"procedural:sphere\"\n", "");
-        expect(&no_volume, None, "missing table [volume]");
-        let bare = "[wall]\nname = \"x\"\n[volume]\nsource = \"procedural:sphere\"\n";
-        expect(bare, None, "no tiles");
-        let ps = expect(bare, None, "no nodes");
+        expect(&no_volume, last_line(&no_volume), "missing table [volume]");
+        let bare = "[wall]\nname = \"x\"\n[volume]\nsource = \"procedural:sphere\"\n\n";
+        expect(bare, Some(4), "no tiles");
+        let ps = expect(bare, Some(4), "no nodes");
         assert_eq!(ps.len(), 2);
+        // Printed with the file and the line, like every other problem.
+        let e = WallConfig::parse(bare, Path::new("w.toml")).unwrap_err().to_string();
+        assert!(e.contains("w.toml:4:1: no nodes"), "{e}");
+        // `nodes = []` is where it is.
+        let empty = format!("nodes = []\n{bare}");
+        expect(&empty, Some(1), "no nodes");
     }
 
     #[test]
@@ -1537,6 +1719,14 @@ tiles = ["b"]
         );
         expect(&with("name = \"n1\"", "name = \"controller\""), Some(28), "reserved");
         expect(&with("name = \"n1\"", "name = \"ca\""), Some(28), "reserved");
+        // Without regard to case: TLS name matching ignores it.
+        expect(&with("name = \"n1\"", "name = \"Controller\""), Some(28), "reserved");
+        expect(&with("name = \"n1\"", "name = \"CA\""), Some(28), "reserved");
+        expect(
+            &with("name = \"n1\"", "name = \"N0\""),
+            Some(28),
+            "duplicate node name 'N0' (the same as 'n0' without regard to case) (first at line 23)",
+        );
         expect(&with("name = \"n1\"", "name = \"../n1\""), Some(28), "may hold only");
     }
 
@@ -1640,14 +1830,71 @@ tiles = ["b"]
             Some(29),
             "node 'n1' has the same address 127.0.0.1:7401 as node 'n0' (line 24)",
         );
+        // The same socket written another way.
+        for (a, b) in [
+            ("127.0.0.1:7401", "localhost:7401"),
+            ("[::1]:7401", "LocalHost.:7401"),
+            ("127.0.0.1:7401", "[::ffff:127.0.0.1]:7401"),
+            ("Node-A.cluster:7401", "node-a.cluster.:7401"),
+            ("localhost:7401", "wall.localhost:7401"),
+        ] {
+            let text = with("127.0.0.1:7401", a).replacen("127.0.0.1:7402", b, 1);
+            expect(
+                &text,
+                Some(29),
+                &format!("node 'n1' at {b} has the same address as node 'n0' at {a} (line 24)"),
+            );
+        }
+        // Different sockets.
+        for (a, b) in
+            [("localhost:7401", "127.0.0.2:7401"), ("localhost:7401", "localhost:7402"), ("a:1", "b:1")]
+        {
+            let text = with("127.0.0.1:7401", a).replacen("127.0.0.1:7402", b, 1);
+            assert!(WallConfig::parse(&text, Path::new("w.toml")).is_ok(), "{a} {b}");
+        }
+        for bad in ["0.0.0.0:7401", "[::]:7401"] {
+            let e = check_address(bad).unwrap_err();
+            assert!(e.contains("unspecified address"), "{bad}: {e}");
+        }
     }
 
     #[test]
     fn wall_limits_are_checked() {
         let w = |extra: &str| with("name = \"test\"\n", &format!("name = \"test\"\n{extra}\n"));
-        expect(&w("deadline_ms = 0"), Some(3), "wall: `deadline_ms` must be > 0");
+        expect(&w("deadline_ms = 0"), Some(3), "wall: `deadline_ms` 0 is outside 1..=600000");
+        expect(
+            &w("deadline_ms = 18446744073709551615"),
+            Some(3),
+            "`deadline_ms` 18446744073709551615 is outside",
+        );
+        assert!(WallConfig::parse(&w("deadline_ms = 600000"), Path::new("w.toml")).is_ok());
         expect(&w("message_limit_bytes = 10"), Some(3), "`message_limit_bytes` 10 is outside");
+        // Over what the decoder accepts.
+        let over = format!("message_limit_bytes = {}", crate::codec::MAX_FRAME_LEN + 1);
+        expect(&w(&over), Some(3), "no decoder accepts a message over 1 GiB");
+        let max = format!("message_limit_bytes = {}", crate::codec::MAX_FRAME_LEN);
+        assert!(WallConfig::parse(&w(&max), Path::new("w.toml")).is_ok());
         expect(&with("name = \"test\"", "name = \" \""), Some(2), "wall: `name` is empty");
+    }
+
+    #[test]
+    fn the_message_limit_holds_every_nodes_snapshot() {
+        let w = |extra: &str| with("name = \"test\"\n", &format!("name = \"test\"\n{extra}\n"));
+        // Tiles of 100x80: 24,000 bytes of pixels each.
+        let ps =
+            expect(&w("message_limit_bytes = 20000"), Some(3), "too small for the snapshot of node 'n0'");
+        assert!(ps.iter().any(|p| p.message.contains("node 'n1' (tiles b")), "{ps:#?}");
+        let need = crate::messages::TileImage::snapshot_len_bound([("a", 100, 80)]);
+        assert!(ps[0].message.contains(&format!("raise it to at least {need}")), "{ps:#?}");
+        assert!(WallConfig::parse(&w(&format!("message_limit_bytes = {need}")), Path::new("w.toml")).is_ok());
+        // Without the field, the default holds them; a tile too large for it is placed at its node.
+        let big = with("width = 100\nheight = 80\n\n[[nodes]]", "width = 16384\nheight = 16384\n\n[[nodes]]");
+        let ps = expect(
+            &big,
+            Some(30),
+            "`message_limit_bytes` 67108864 is too small for the snapshot of node 'n1'",
+        );
+        assert_eq!(ps.len(), 1, "{ps:#?}");
     }
 
     #[test]
@@ -1763,13 +2010,13 @@ tiles = ["b"]
         assert!(shown[1].starts_with("walls/bad.toml:6:1: unknown field `colour`"), "{}", shown[1]);
         assert!(shown[2].starts_with("walls/bad.toml:19:1: tile 'b' overlaps tile 'a'"), "{}", shown[2]);
         assert!(shown[3].starts_with("walls/bad.toml:33:11: node 'n1': address"), "{}", shown[3]);
-        // Without a position: FILE: message.
+        // What the file lacks: at its last line.
         let e = WallConfig::parse(
             "[wall]\nname = \"x\"\n[volume]\nsource = \"procedural:sphere\"\n",
             Path::new("w.toml"),
         )
         .unwrap_err();
-        assert_eq!(e.to_string(), "w.toml: no tiles: a wall needs at least one [[tiles]] table\nw.toml: no nodes: a wall needs at least one [[nodes]] table");
+        assert_eq!(e.to_string(), "w.toml:4:1: no tiles: a wall needs at least one [[tiles]] table\nw.toml:4:1: no nodes: a wall needs at least one [[nodes]] table");
         let e = WallConfig::load(Path::new("/nonexistent/wall.toml")).unwrap_err();
         assert!(e.to_string().starts_with("/nonexistent/wall.toml: cannot read the wall config:"), "{e}");
     }
@@ -1834,9 +2081,10 @@ tiles = ["b"]
     fn render_settings_take_the_render_defaults() {
         let c = WallConfig::parse(GOOD, Path::new("w.toml")).unwrap();
         assert_eq!(c.render_settings(2.0), RenderSettings::new(2.0));
-        let text = format!("[render]\nshading = \"lambert\"\nao_samples = 16\nao_radius = 4\nao_method = \"seed\"\nibl = \"rays\"\nexposure = 0.8\n\n{GOOD}");
+        let text = format!("[render]\nshading = \"lambert\"\nao_samples = 16\nao_radius = 4\nao_method = \"seed\"\nao_sequence = \"r2\"\nibl = \"rays\"\nexposure = 0.8\n\n{GOOD}");
         let s = WallConfig::parse(&text, Path::new("w.toml")).unwrap().render_settings(1.0);
         assert_eq!((s.shading, s.ao.samples, s.ao.radius), (Shading::Lambert, 16, AoRadius::World(4.0)));
+        assert_eq!(s.ao.sequence, AoSequence::R2);
         assert_eq!((s.ao.method, s.ao.ibl, s.exposure), (AoMethod::Seed, IblMethod::Rays, 0.8));
     }
 

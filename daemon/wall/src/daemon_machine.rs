@@ -12,6 +12,7 @@
 //!   [`NodeMachine::presented`] with the time it was shown, which sends Presented.
 //! - `Send(message)`: send it to the controller.
 //! - `SnapshotWanted`: send `Message::Snapshot` with the tiles' last presented frames.
+//! - `ThumbnailWanted { divisor }`: the same, each tile downscaled by `divisor`.
 //! - `Closed { reason }`: the controller said goodbye; close the connection.
 //!
 //! A FrameState that arrives while a frame renders is queued; a newer one replaces it (only the
@@ -22,7 +23,7 @@ use std::collections::VecDeque;
 use std::time::Duration;
 
 use crate::codec::check_hello;
-use crate::messages::{Message, ProtocolError, Role, PROTOCOL_VERSION};
+use crate::messages::{Message, ProtocolError, Role, MAX_THUMBNAIL_DIVISOR, PROTOCOL_VERSION};
 use crate::wire::{FrameSpec, FrameState};
 
 /// What the daemon's caller must do, in order.
@@ -36,6 +37,8 @@ pub enum NodeOutput {
     Present { frame_id: u64 },
     /// Answer with `Message::Snapshot` of the tiles' last presented frames.
     SnapshotWanted,
+    /// Answer with `Message::Snapshot` of them downscaled by `divisor` (`TileImage::downscaled`).
+    ThumbnailWanted { divisor: u32 },
     /// The controller said Bye: close the connection.
     Closed { reason: String },
     // object space (`crate::adoption`)
@@ -216,6 +219,12 @@ impl NodeMachine {
                 Ok(vec![NodeOutput::Send(Message::Pong { id, t0_us, t1_us: micros(now) })])
             }
             Message::SnapshotRequest => Ok(vec![NodeOutput::SnapshotWanted]),
+            Message::ThumbnailRequest { divisor } => {
+                if !(1..=MAX_THUMBNAIL_DIVISOR).contains(&divisor) {
+                    return err(format!("thumbnail divisor {divisor} is not in 1..={MAX_THUMBNAIL_DIVISOR}"));
+                }
+                Ok(vec![NodeOutput::ThumbnailWanted { divisor }])
+            }
             Message::Bye { reason } => {
                 self.reset();
                 Ok(vec![NodeOutput::Closed { reason }])
@@ -345,6 +354,14 @@ mod tests {
         let out = m.handle(ms(1234), Message::Ping { id: 9, t0_us: -7 }).unwrap();
         assert_eq!(out, vec![NodeOutput::Send(Message::Pong { id: 9, t0_us: -7, t1_us: 1_234_000 })]);
         assert_eq!(m.handle(ms(0), Message::SnapshotRequest).unwrap(), vec![NodeOutput::SnapshotWanted]);
+        assert_eq!(
+            m.handle(ms(0), Message::ThumbnailRequest { divisor: 4 }).unwrap(),
+            vec![NodeOutput::ThumbnailWanted { divisor: 4 }]
+        );
+        for divisor in [0, MAX_THUMBNAIL_DIVISOR + 1] {
+            let e = m.handle(ms(0), Message::ThumbnailRequest { divisor }).unwrap_err();
+            assert!(e.problem.contains(&format!("divisor {divisor} is not in")), "{e}");
+        }
     }
 
     #[test]

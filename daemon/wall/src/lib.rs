@@ -12,7 +12,11 @@
 //!   from Ping/Pong), [`barrier`] (the controller's swap barrier) and [`daemon_machine`] (a
 //!   daemon's side).
 //! - object space: [`bricks`] (the split, halos, covered windows), [`composite`] (depth
+//!   compositing of peers' pixels, its caps and deadline), [`adoption`] (which node renders each
+//!   brick when nodes die), [`object_machine`] (a node's object space: views, brick maps,
+//!   compositing and its messages).
 //!   compositing of peers' pixels), [`adoption`] (which node renders each brick when nodes die).
+//! - [`names`]: the one rule for node and tile names (a node's name is its certificate's name).
 //! - [`governor`]: the quality governor (frame times in, AO samples per frame out).
 
 pub mod adoption;
@@ -28,6 +32,8 @@ pub mod governor;
 pub mod joystick;
 pub mod lowres;
 pub mod messages;
+pub mod names;
+pub mod object_machine;
 pub mod render_state;
 pub mod wire;
 
@@ -41,6 +47,6 @@ pub use daemon_machine::{NodeMachine, NodeOutput};
 pub use governor::{Governor, GovernorError, Motion, MAX_SCALE};
 pub use messages::{Message, ProtocolError, Role, TileImage, PROTOCOL_VERSION};
 pub use render_state::{
-    AoMethod, AoRadius, AoSettings, Aov, IblMethod, Light, Material, RenderSettings, Shading,
+    AoMethod, AoRadius, AoSequence, AoSettings, Aov, IblMethod, Light, Material, RenderSettings, Shading,
 };
 pub use wire::{FrameSpec, FrameState};

@@ -14,6 +14,8 @@
 //!     <---------------------------------------- Presented { n, node_time_us }
 //!     Ping { id, t0 } --------------------------> (now and then: clock offsets)
 //!     <---------------------------------------- Pong { id, t0, t1 }
+//!     SnapshotRequest / ThumbnailRequest { divisor } ---> (whenever asked)
+//!     <---------------------------------------- Snapshot { tiles } (each 1/divisor the size)
 //! ```
 //!
 //! In object space a daemon also sends Composited before Ready, and when a node dies the
@@ -27,7 +29,7 @@ use serde::{Deserialize, Serialize};
 use crate::wire::FrameState;
 
 /// The protocol version of this build; a peer's [`Message::Hello`] must carry the same.
-pub const PROTOCOL_VERSION: u16 = 3;
+pub const PROTOCOL_VERSION: u16 = 4;
 
 /// Which side of a connection a peer is.
 #[derive(Serialize, Deserialize, Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -58,6 +60,46 @@ pub struct TileImage {
 }
 
 impl TileImage {
+    /// The image `divisor` times smaller along each axis (`ceil(width / divisor)` x
+    /// `ceil(height / divisor)`): each pixel the mean of the block of pixels it covers (blocks on
+    /// the right and bottom edges may be partial). A divisor of 0 or 1 is a copy.
+    pub fn downscaled(&self, divisor: u32) -> TileImage {
+        TileImage::downscale(&self.name, self.width, self.height, self.frame_id, &self.rgb8, divisor)
+    }
+
+    /// [`TileImage::downscaled`] of the `width` x `height` image `rgb8` (borrowed: a daemon
+    /// downscales the tile it shows without copying it first). Missing bytes count as black.
+    pub fn downscale(
+        name: &str,
+        width: u32,
+        height: u32,
+        frame_id: u64,
+        rgb8: &[u8],
+        divisor: u32,
+    ) -> TileImage {
+        let d = divisor.max(1);
+        let (w, h) = (width.div_ceil(d), height.div_ceil(d));
+        let mut out = Vec::with_capacity(w as usize * h as usize * 3);
+        for by in 0..h {
+            let rows = by * d..((by + 1) * d).min(height);
+            for bx in 0..w {
+                let cols = bx * d..((bx + 1) * d).min(width);
+                let mut sum = [0u64; 3];
+                for y in rows.clone() {
+                    for x in cols.clone() {
+                        let i = (y as usize * width as usize + x as usize) * 3;
+                        for (c, s) in sum.iter_mut().enumerate() {
+                            *s += u64::from(rgb8.get(i + c).copied().unwrap_or(0));
+                        }
+                    }
+                }
+                let n = (rows.len() * cols.len()).max(1) as u64;
+                out.extend(sum.map(|s| ((s + n / 2) / n) as u8));
+            }
+        }
+        TileImage { name: name.to_string(), width: w, height: h, frame_id, rgb8: out }
+    }
+
     /// Checks that `rgb8` holds exactly `width * height * 3` bytes.
     pub fn validate(&self) -> Result<(), String> {
         let want = self.width as u64 * self.height as u64 * 3;
@@ -71,6 +113,19 @@ impl TileImage {
             ));
         }
         Ok(())
+    }
+
+    /// The most bytes a [`Message::Snapshot`] of tiles with these names and sizes can take once
+    /// encoded ([`crate::codec`]: bincode's variable-length integers at their longest), for
+    /// checking that a wall's message limit lets a node send its snapshot.
+    pub fn snapshot_len_bound<'a>(tiles: impl IntoIterator<Item = (&'a str, u32, u32)>) -> u64 {
+        // Variant index (a u32) and tile count (a u64).
+        let mut bytes = 5 + 9;
+        for (name, width, height) in tiles {
+            // Name (length + bytes), width, height, frame id, pixels (length + bytes).
+            bytes += 9 + name.len() as u64 + 5 + 5 + 9 + 9 + u64::from(width) * u64::from(height) * 3;
+        }
+        bytes
     }
 }
 
@@ -104,8 +159,16 @@ pub enum Message {
     /// Daemon -> controller, before Ready in object space: the bytes it sent its peers for the
     /// frame and its compositing time (its render done to its tiles composited: waiting for the
     /// peers' pixels and merging them), the part of it spent working (encoding its pixels for the
-    /// peers, decoding theirs, merging), and the volume bytes it holds (its brick and halo).
-    Composited { frame_id: u64, bytes_sent: u64, composite_us: u64, merge_us: u64, resident_bytes: u64 },
+    /// peers, decoding theirs, merging), the volume bytes it holds (its brick and halo), and the
+    /// peers whose pixels the frame went without (not in by its compositing deadline).
+    Composited {
+        frame_id: u64,
+        bytes_sent: u64,
+        composite_us: u64,
+        merge_us: u64,
+        resident_bytes: u64,
+        missing: Vec<String>,
+    },
     /// Controller -> daemon (object space): from frame `from_frame` on, brick i is rendered by
     /// node `holders[i]` (nobody where `None`); see `crate::adoption`.
     Bricks { from_frame: u64, holders: Vec<Option<String>> },
@@ -117,7 +180,14 @@ pub enum Message {
     BrickLoaded { brick: u64, load_us: u64, resident_bytes: u64 },
     /// Daemon -> controller (object space): `brick` could not be loaded, and why.
     BrickFailed { brick: u64, reason: String },
+    /// Controller -> daemon: send me your tiles' last presented frames downscaled by `divisor`
+    /// (1..=[`MAX_THUMBNAIL_DIVISOR`], [`TileImage::downscaled`]), answered with a Snapshot: a
+    /// live thumbnail of the wall costs the nodes' links 1/divisor^2 of full tiles.
+    ThumbnailRequest { divisor: u32 },
 }
+
+/// The largest downscale a [`Message::ThumbnailRequest`] may ask for.
+pub const MAX_THUMBNAIL_DIVISOR: u32 = 64;
 
 impl Message {
     /// The message's name, for errors and logs.
@@ -138,6 +208,7 @@ impl Message {
             Message::LoadBrick { .. } => "LoadBrick",
             Message::BrickLoaded { .. } => "BrickLoaded",
             Message::BrickFailed { .. } => "BrickFailed",
+            Message::ThumbnailRequest { .. } => "ThumbnailRequest",
         }
     }
 
@@ -149,6 +220,7 @@ impl Message {
             | Message::Swap { .. }
             | Message::Ping { .. }
             | Message::SnapshotRequest
+            | Message::ThumbnailRequest { .. }
             | Message::Bricks { .. }
             | Message::LoadBrick { .. } => Some(Role::Controller),
             Message::Ready { .. }
@@ -172,6 +244,28 @@ pub struct ProtocolError {
     /// The offending message's kind ([`Message::kind`]).
     pub message: &'static str,
     pub problem: String,
+}
+
+/// Most characters of a peer's text shown: a reason is a line, not a document.
+pub const PRINTABLE_CHARS: usize = 300;
+
+/// A peer's text (a reason, a name) made safe to print on a terminal or in a log line: control
+/// characters (escape sequences, newlines, carriage returns) written as escapes, at most
+/// [`PRINTABLE_CHARS`] characters kept.
+pub fn printable(text: &str) -> String {
+    let mut out = String::new();
+    for (i, c) in text.chars().enumerate() {
+        if i == PRINTABLE_CHARS {
+            out.push_str("...");
+            break;
+        }
+        if c.is_control() {
+            out.extend(c.escape_default());
+        } else {
+            out.push(c);
+        }
+    }
+    out
 }
 
 impl ProtocolError {
@@ -241,6 +335,46 @@ mod tests {
         assert!(t.validate().is_ok());
         t.rgb8.pop();
         assert!(t.validate().unwrap_err().contains("17 bytes instead of 18"));
+    }
+
+    #[test]
+    fn a_snapshot_never_encodes_longer_than_its_bound() {
+        // Sizes and frame ids at varint boundaries, where each integer takes its most bytes.
+        for (w, h, id, name) in
+            [(1, 1, 0, "a"), (251, 3, 250, "t00"), (300, 200, u64::MAX, "x"), (16, 12, 1 << 40, "t")]
+        {
+            let tiles: Vec<TileImage> = (0..3)
+                .map(|i| TileImage {
+                    name: format!("{name}{i}"),
+                    width: w,
+                    height: h,
+                    frame_id: id,
+                    rgb8: vec![7; (w * h * 3) as usize],
+                })
+                .collect();
+            let bound =
+                TileImage::snapshot_len_bound(tiles.iter().map(|t| (t.name.as_str(), t.width, t.height)));
+            let len = crate::codec::encode(&Message::Snapshot { tiles }).unwrap().len() as u64;
+            assert!(len <= bound, "{w}x{h}: {len} > {bound}");
+            assert!(bound - len <= 3 * 46 + 14, "{w}x{h}: the bound {bound} is loose against {len}");
+        }
+    }
+
+    #[test]
+    fn thumbnails_average_blocks_and_keep_partial_edges() {
+        // 5x3, red = x * 10, green = y * 10, blue = 7.
+        let rgb8 = (0..3u8).flat_map(|y| (0..5u8).flat_map(move |x| [x * 10, y * 10, 7])).collect();
+        let t = TileImage { name: "a".into(), width: 5, height: 3, frame_id: 4, rgb8 };
+        let s = t.downscaled(2);
+        assert_eq!((s.width, s.height, s.frame_id, s.name.as_str()), (3, 2, 4, "a"));
+        assert!(s.validate().is_ok());
+        // Block (0,0): x 0..2, y 0..2 -> red 5, green 5; block (2,1): x 4, y 2 -> red 40, green 20.
+        assert_eq!(&s.rgb8[0..3], &[5, 5, 7]);
+        assert_eq!(&s.rgb8[15..18], &[40, 20, 7]);
+        assert_eq!(t.downscaled(1), t);
+        assert_eq!(t.downscaled(0), t);
+        let one = t.downscaled(64);
+        assert_eq!((one.width, one.height, one.rgb8.as_slice()), (1, 1, [20u8, 10, 7].as_slice()));
     }
 
     #[test]

@@ -118,18 +118,49 @@ pub const MAX_AO_SAMPLES: u32 = 1024;
 pub const MIN_STEP_VOXELS: f64 = 0.05;
 pub const MAX_STEP_VOXELS: f64 = 2.0;
 
+/// DESIGN.md "AO": the AO rays start at `p + eps * Ng`, eps = 0.01 of the smallest spacing.
+pub const AO_EPS_VOXELS: f64 = 0.01;
+
 /// How ambient occlusion is computed (DESIGN.md "AO").
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "kebab-case")]
 pub enum AoMethod {
-    /// Ours: cosine-weighted R2 directions with a per-pixel, per-frame shift, concentric disk
-    /// mapping, origin offset along N, occluded as soon as the ray reaches f >= iso within R (world
-    /// units): every cell the ray crosses is tested exactly (`exact`, the default), or the ray
-    /// marches with at most half a voxel per step.
+    /// Ours: cosine-weighted directions about N (as it is, not turned to the viewer) from a 2D
+    /// low-discrepancy set ([`AoSequence`]) decorrelated per pixel and frame, concentric disk
+    /// mapping, origin on the surface (`eps` = 0.01 voxel along the geometric normal Ng), occluded
+    /// as soon as the ray reaches f >= iso within R (world units): every cell the ray crosses is
+    /// tested exactly (`exact`, the default), or the ray marches with at most half a voxel per
+    /// step.
     #[default]
     Ours,
     /// The 2008 RTPara shader, ported faithfully as the baseline (not our method).
     Seed,
+}
+
+/// The 2D point set the AO directions of ours come from (DESIGN.md "AO"; the formulas are in
+/// `isowall_render::sampling`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum AoSequence {
+    /// The R2 sequence with a per-pixel, per-frame Cranley-Patterson shift.
+    R2,
+    /// Sobol (first two dimensions) with hash-based Owen scrambling and index shuffling, seeded
+    /// per pixel and frame: the lower error at every sample count measured (docs/accuracy).
+    #[default]
+    Sobol,
+}
+
+impl AoSequence {
+    /// Every sequence.
+    pub const ALL: [AoSequence; 2] = [AoSequence::R2, AoSequence::Sobol];
+
+    /// The name on the command line and in configs.
+    pub fn name(self) -> &'static str {
+        match self {
+            AoSequence::R2 => "r2",
+            AoSequence::Sobol => "sobol",
+        }
+    }
 }
 
 /// The AO radius R: world units, or unbounded (to the box).
@@ -172,8 +203,11 @@ pub struct AoSettings {
     pub exact: bool,
     /// March step of AO rays (ours, when not `exact`) in voxels of the smallest spacing.
     pub step_voxels: f64,
-    /// Offset of the AO ray origin along the normal, in voxels of the smallest spacing.
+    /// The AO rays' origin `eps` off the surface along the geometric normal Ng, in voxels of the
+    /// smallest spacing (DESIGN.md "AO": 0.01, [`AO_EPS_VOXELS`]).
     pub offset_voxels: f64,
+    /// The 2D set of ours' directions.
+    pub sequence: AoSequence,
     /// Frame index: with the pixel, it seeds the per-pixel shift of the sample pattern.
     pub frame: u32,
     /// A user seed mixed into every pixel's hash (`--seed`).
@@ -189,7 +223,8 @@ impl Default for AoSettings {
             ibl: IblMethod::None,
             exact: true,
             step_voxels: 0.5,
-            offset_voxels: 0.5,
+            offset_voxels: AO_EPS_VOXELS,
+            sequence: AoSequence::default(),
             frame: 0,
             seed: 0,
         }

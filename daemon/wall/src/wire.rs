@@ -10,13 +10,14 @@
 //! - AO radius kind: 0 default (8 voxels), 1 world (`radius`), 2 unbounded
 //! - AO method: 0 ours, 1 seed
 //! - IBL: 0 none, 1 seed, 2 bent, 3 rays
+//! - AO sequence: 0 R2, 1 Sobol (Owen-scrambled)
 
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
 use crate::camera::{Camera, CameraError};
 use crate::render_state::{
-    AoMethod, AoRadius, AoSettings, IblMethod, Light, Material, RenderSettings, Shading,
+    AoMethod, AoRadius, AoSequence, AoSettings, IblMethod, Light, Material, RenderSettings, Shading,
 };
 
 /// A camera on the wire: [`Camera`] with plain arrays.
@@ -60,6 +61,8 @@ pub struct WireAo {
     pub exact: bool,
     pub step_voxels: f64,
     pub offset_voxels: f64,
+    /// 0 r2, 1 sobol.
+    pub sequence: u8,
     pub frame: u32,
     pub seed: u32,
 }
@@ -276,6 +279,13 @@ fn ao_method_code(m: AoMethod) -> u8 {
     }
 }
 
+fn ao_sequence_code(q: AoSequence) -> u8 {
+    match q {
+        AoSequence::R2 => 0,
+        AoSequence::Sobol => 1,
+    }
+}
+
 fn ibl_code(m: IblMethod) -> u8 {
     match m {
         IblMethod::None => 0,
@@ -301,6 +311,7 @@ impl From<&AoSettings> for WireAo {
             exact: a.exact,
             step_voxels: a.step_voxels,
             offset_voxels: a.offset_voxels,
+            sequence: ao_sequence_code(a.sequence),
             frame: a.frame,
             seed: a.seed,
         }
@@ -344,6 +355,11 @@ impl TryFrom<WireAo> for AoSettings {
             exact: w.exact,
             step_voxels: step("settings.ao.step_voxels", w.step_voxels)?,
             offset_voxels: non_negative("settings.ao.offset_voxels", w.offset_voxels)?,
+            sequence: match w.sequence {
+                0 => AoSequence::R2,
+                1 => AoSequence::Sobol,
+                value => return Err(WireError::UnknownCode { field: "settings.ao.sequence", value, max: 1 }),
+            },
             frame: w.frame,
             seed: w.seed,
         })
@@ -436,6 +452,7 @@ mod tests {
             exact: false,
             step_voxels: 0.25,
             offset_voxels: 0.0,
+            sequence: AoSequence::R2,
             frame: 9,
             seed: 77,
         };
@@ -497,6 +514,7 @@ mod tests {
         check(&|s| s.settings.ao.ibl = 4, "settings.ao.ibl");
         check(&|s| s.settings.ao.step_voxels = f64::NAN, "settings.ao.step_voxels");
         check(&|s| s.settings.ao.offset_voxels = -0.1, "settings.ao.offset_voxels");
+        check(&|s| s.settings.ao.sequence = 2, "settings.ao.sequence");
         check(&|s| s.scale = 0, "scale");
         check(&|s| s.scale = 5, "scale");
         for scale in 1..=4 {

@@ -6,9 +6,11 @@
 //!
 //! Time: the controller's clock is the true time; node i's clock is true time + its offset.
 
-use std::cmp::Ordering;
+mod support;
+
 use std::collections::{BTreeMap, BinaryHeap};
 use std::time::Duration;
+use support::{Rng, Scheduled};
 
 use isowall_wall::barrier::{ControllerOutput, FrameController, FrameStats};
 use isowall_wall::codec::{self, Decoder};
@@ -25,28 +27,6 @@ fn ms(x: f64) -> Duration {
 
 fn us(t: Duration) -> i64 {
     t.as_micros() as i64
-}
-
-/// xorshift64*: tiny, seeded, good enough for jitter and loss.
-struct Rng(u64);
-
-impl Rng {
-    fn next_u64(&mut self) -> u64 {
-        self.0 ^= self.0 >> 12;
-        self.0 ^= self.0 << 25;
-        self.0 ^= self.0 >> 27;
-        self.0.wrapping_mul(0x2545_f491_4f6c_dd1d)
-    }
-
-    /// Uniform in [0, 1).
-    fn unit(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
-    }
-
-    /// Uniform in [0, d).
-    fn below(&mut self, d: Duration) -> Duration {
-        d.mul_f64(self.unit())
-    }
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -102,30 +82,6 @@ enum Ev {
     Connect { node: usize },
 }
 
-struct Scheduled {
-    at: Duration,
-    seq: u64,
-    ev: Ev,
-}
-
-impl PartialEq for Scheduled {
-    fn eq(&self, o: &Self) -> bool {
-        (self.at, self.seq) == (o.at, o.seq)
-    }
-}
-impl Eq for Scheduled {}
-impl PartialOrd for Scheduled {
-    fn partial_cmp(&self, o: &Self) -> Option<Ordering> {
-        Some(self.cmp(o))
-    }
-}
-impl Ord for Scheduled {
-    // Reversed: BinaryHeap pops the earliest.
-    fn cmp(&self, o: &Self) -> Ordering {
-        (o.at, o.seq).cmp(&(self.at, self.seq))
-    }
-}
-
 struct SimNode {
     cfg: NodeCfg,
     machine: NodeMachine,
@@ -150,7 +106,7 @@ struct Sim {
     now: Duration,
     ctrl: FrameController,
     nodes: Vec<SimNode>,
-    events: BinaryHeap<Scheduled>,
+    events: BinaryHeap<Scheduled<Ev>>,
     seq: u64,
     next_conn: u64,
     rng: Rng,
@@ -299,7 +255,9 @@ impl Sim {
                 }
                 ControllerOutput::Snapshot { node, tiles } => self.snapshots.push((node, tiles)),
                 // Object space only; these nodes never send them.
-                ControllerOutput::BrickLoaded { .. } | ControllerOutput::BrickFailed { .. } => {}
+                ControllerOutput::BrickLoaded { .. }
+                | ControllerOutput::BrickFailed { .. }
+                | ControllerOutput::PixelsMissing { .. } => {}
             }
         }
     }
@@ -376,7 +334,7 @@ impl Sim {
                     };
                     self.schedule(at, Ev::Shown { node: i, conn, frame_id });
                 }
-                NodeOutput::SnapshotWanted => {
+                NodeOutput::SnapshotWanted | NodeOutput::ThumbnailWanted { .. } => {
                     let tiles = self.nodes[i]
                         .machine
                         .tiles()

@@ -30,12 +30,37 @@ impl AoKernel {
         Ok(AoKernel { pipeline, layout, workgroup })
     }
 
+    /// The bind group of the kernel's inputs and `io` (as [`AoKernel::encode`] takes them), made
+    /// once per tile, volume and environment ([`TileTarget`](super::tile::TileTarget)).
+    pub(crate) fn bind(
+        &self,
+        ctx: &GpuContext,
+        params: &wgpu::Buffer,
+        volume: &GpuVolume,
+        env: &wgpu::Buffer,
+        io: [&wgpu::Buffer; 5],
+    ) -> wgpu::BindGroup {
+        let buffers = [params, &volume.voxels, &volume.block_minmax, io[0], io[1], env, io[2], io[3], io[4]];
+        super::bind_buffers(ctx, &self.layout, "ao", &buffers)
+    }
+
+    /// Records one frame of the kernel over a `size` window with a bind group from [`AoKernel::bind`].
+    pub(crate) fn pass(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        bind_group: &wgpu::BindGroup,
+        size: (u32, u32),
+        timestamps: Option<wgpu::ComputePassTimestampWrites>,
+    ) {
+        super::pass(enc, &self.pipeline, bind_group, "ao", size, self.workgroup, timestamps);
+    }
+
     /// Records one frame of the kernel over a `size` window. `io` is (direct + hit, N + depth,
     /// accumulated bent + A, accumulated E, fetches).
     #[allow(clippy::too_many_arguments)]
     pub fn encode(
         &self,
-        device: &wgpu::Device,
+        ctx: &GpuContext,
         enc: &mut wgpu::CommandEncoder,
         params: &wgpu::Buffer,
         volume: &GpuVolume,
@@ -43,7 +68,7 @@ impl AoKernel {
         io: [&wgpu::Buffer; 5],
         size: (u32, u32),
     ) {
-        let buffers = [params, &volume.voxels, &volume.block_minmax, io[0], io[1], env, io[2], io[3], io[4]];
-        super::dispatch(device, enc, &self.pipeline, &self.layout, "ao", &buffers, size, self.workgroup);
+        let bind_group = self.bind(ctx, params, volume, env, io);
+        self.pass(enc, &bind_group, size, None);
     }
 }

@@ -3,7 +3,7 @@
 
 use super::{GpuEnvironment, GpuVolume};
 use bytemuck::{Pod, Zeroable};
-use isowall_wall::{AoMethod, IblMethod, RenderSettings, Shading, View};
+use isowall_wall::{AoMethod, AoSequence, IblMethod, RenderSettings, Shading, View};
 
 /// Bisection steps after the bracketing march step (then one secant step): h / 4096.
 pub const REFINE_STEPS: u32 = 12;
@@ -48,13 +48,15 @@ pub struct FrameParams {
     pub seed: u32,
     /// < 0: unbounded
     pub ao_radius: f32,
+    /// eps: the AO rays start at p + eps Ng (world units)
     pub ao_offset: f32,
     pub ao_step: f32,
     pub env_width: u32,
     pub env_height: u32,
     /// 1: ours tests each cell exactly; 0: marches with `ao_step`
     pub ao_exact: u32,
-    pub _pad1: u32,
+    /// Ours' 2D set: 0 R2, 1 Sobol ([`ao_sequence_code`]).
+    pub ao_sequence: u32,
     pub _pad2: u32,
     pub sh: [[f32; 4]; 9],
     // object space
@@ -77,6 +79,14 @@ pub struct FrameParams {
 
 /// Performance flag: an AO ray that enters a block whose min >= iso is occluded at once (exact).
 pub const PERF_BLOCK_MIN_EXIT: u32 = 1;
+
+/// The kernels' code of an AO sequence (`ao_point` in shaders/sampling.wgsl).
+pub fn ao_sequence_code(q: AoSequence) -> u32 {
+    match q {
+        AoSequence::R2 => 0,
+        AoSequence::Sobol => 1,
+    }
+}
 
 fn v4(v: glam::DVec3, w: f64) -> [f32; 4] {
     [v.x as f32, v.y as f32, v.z as f32, w as f32]
@@ -152,7 +162,7 @@ impl FrameParams {
             env_width: env.width,
             env_height: env.height,
             ao_exact: u32::from(s.ao.exact),
-            _pad1: 0,
+            ao_sequence: ao_sequence_code(s.ao.sequence),
             _pad2: 0,
             sh,
             data_offset: match &volume.object {
@@ -182,7 +192,7 @@ mod tests {
 
     #[test]
     fn frame_params_layout_matches_the_wgsl_of_every_kernel() {
-        for kernel in Kernel::COMPUTE {
+        for kernel in Kernel::FRAME {
             crate::shaders::tests::check_layout(
                 kernel,
                 "FrameParams",
@@ -221,7 +231,7 @@ mod tests {
                     ("env_width", offset_of!(FrameParams, env_width)),
                     ("env_height", offset_of!(FrameParams, env_height)),
                     ("ao_exact", offset_of!(FrameParams, ao_exact)),
-                    ("_pad1", offset_of!(FrameParams, _pad1)),
+                    ("ao_sequence", offset_of!(FrameParams, ao_sequence)),
                     ("_pad2", offset_of!(FrameParams, _pad2)),
                     ("sh", offset_of!(FrameParams, sh)),
                     ("data_offset", offset_of!(FrameParams, data_offset)),

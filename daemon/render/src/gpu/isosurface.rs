@@ -24,17 +24,41 @@ impl IsosurfaceKernel {
         Ok(IsosurfaceKernel { pipeline, layout, workgroup })
     }
 
+    /// The bind group of the kernel's inputs and `outputs` (direct + hit, N + depth, fetches),
+    /// made once per tile and volume ([`TileTarget`](super::tile::TileTarget)).
+    pub(crate) fn bind(
+        &self,
+        ctx: &GpuContext,
+        params: &wgpu::Buffer,
+        volume: &GpuVolume,
+        outputs: [&wgpu::Buffer; 3],
+    ) -> wgpu::BindGroup {
+        let io = [params, &volume.voxels, &volume.block_minmax, outputs[0], outputs[1], outputs[2]];
+        super::bind_buffers(ctx, &self.layout, "isosurface", &io)
+    }
+
+    /// Records the kernel over a `size` window with a bind group from [`IsosurfaceKernel::bind`].
+    pub(crate) fn pass(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        bind_group: &wgpu::BindGroup,
+        size: (u32, u32),
+        timestamps: Option<wgpu::ComputePassTimestampWrites>,
+    ) {
+        super::pass(enc, &self.pipeline, bind_group, "isosurface", size, self.workgroup, timestamps);
+    }
+
     /// Records the kernel over a `size` window: `outputs` are (direct + hit, N + depth, fetches).
     pub fn encode(
         &self,
-        device: &wgpu::Device,
+        ctx: &GpuContext,
         enc: &mut wgpu::CommandEncoder,
         params: &wgpu::Buffer,
         volume: &GpuVolume,
         outputs: [&wgpu::Buffer; 3],
         size: (u32, u32),
     ) {
-        let io = [params, &volume.voxels, &volume.block_minmax, outputs[0], outputs[1], outputs[2]];
-        super::dispatch(device, enc, &self.pipeline, &self.layout, "isosurface", &io, size, self.workgroup);
+        let bind_group = self.bind(ctx, params, volume, outputs);
+        self.pass(enc, &bind_group, size, None);
     }
 }

@@ -1,31 +1,45 @@
 //! The wgpu renderer. One render thread owns the [`GpuRenderer`] (and so the device); the volume
-//! ([`GpuVolume`]) and the environment ([`GpuEnvironment`]) are uploaded once, and frames are
-//! rendered from them and read back into a [`Frame`].
+//! ([`GpuVolume`]) and the environment ([`GpuEnvironment`]) are uploaded once.
 //!
 //! A frame is two kernels: [`Kernel::Isosurface`](crate::shaders::Kernel) (first hit, normal,
 //! direct light) and, when AO or IBL is on, [`Kernel::Ao`](crate::shaders::Kernel) once per
-//! accumulated frame (occlusion, bent normal, IBL term, added into accumulators). The host then
-//! composes the colour exactly as the CPU reference does:
-//! `exposure * (direct + albedo * E)`, with `E = ambient` when neither AO nor IBL is on.
+//! accumulated frame (occlusion, bent normal, IBL term, added into accumulators). Colour is
+//! composed exactly as the CPU reference does, `exposure * (direct + albedo * E)` with
+//! `E = ambient` when neither AO nor IBL is on:
+//! - a wall tile ([`TileTarget`], `tile.rs`): on the GPU by [`Kernel::Compose`](crate::shaders::Kernel)
+//!   into the tile's presentable image, with resources made once and only what leaves the node
+//!   read back ([`ReadbackRing`]);
+//! - [`GpuRenderer::render_accumulated`] (files, AOVs, benchmarks): every AOV is read back into a
+//!   [`Frame`] and the host composes.
+//!
+//! Every GPU allocation and transfer goes through [`GpuContext`]'s counting helpers
+//! ([`GpuTraffic`]).
 
 pub mod ao;
+pub mod compose;
 pub mod frame_params;
 pub mod isosurface;
 pub mod perf;
 pub mod present;
+pub mod readback;
+pub mod tile;
 
 use crate::environment::Environment;
 use crate::shaders::{self, Kernel};
 use crate::Frame;
 use isowall_volume::{BlockMinMax, Volume, VoxelFormat};
 use isowall_wall::{IblMethod, RenderSettings, View};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 use wgpu::util::DeviceExt;
 
 pub use ao::AoKernel;
+pub use compose::{ComposeKernel, ComposeParams};
 pub use frame_params::FrameParams;
 pub use isosurface::IsosurfaceKernel;
 pub use perf::PerfOptions;
+pub use readback::ReadbackRing;
+pub use tile::{FrameCounters, FrameRead, TileFrame, TileOutput, TileTarget};
 
 #[derive(Debug, thiserror::Error)]
 pub enum GpuError {
@@ -57,6 +71,69 @@ pub struct GpuContext {
     pub info: wgpu::AdapterInfo,
     pub instance: wgpu::Instance,
     pub adapter: wgpu::Adapter,
+    /// What the renderer asked of the device so far (allocations, bytes each way).
+    pub traffic: GpuTraffic,
+}
+
+/// Running totals of what the renderer asks of the device: GPU objects created (buffers,
+/// textures, bind groups) and bytes uploaded and read back. Every creation and transfer of the
+/// renderer goes through [`GpuContext`]'s helpers, which count it; a benchmark takes the
+/// difference over a frame.
+#[derive(Debug, Default)]
+pub struct GpuTraffic {
+    allocations: AtomicU64,
+    uploaded: AtomicU64,
+    read_back: AtomicU64,
+}
+
+/// A [`GpuTraffic`] reading.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct TrafficCount {
+    pub allocations: u64,
+    pub uploaded: u64,
+    pub read_back: u64,
+}
+
+impl GpuTraffic {
+    pub fn now(&self) -> TrafficCount {
+        TrafficCount {
+            allocations: self.allocations.load(Ordering::Relaxed),
+            uploaded: self.uploaded.load(Ordering::Relaxed),
+            read_back: self.read_back.load(Ordering::Relaxed),
+        }
+    }
+
+    pub(crate) fn read_back(&self, bytes: u64) {
+        self.read_back.fetch_add(bytes, Ordering::Relaxed);
+    }
+}
+
+impl std::ops::Sub for TrafficCount {
+    type Output = TrafficCount;
+    fn sub(self, o: TrafficCount) -> TrafficCount {
+        TrafficCount {
+            allocations: self.allocations - o.allocations,
+            uploaded: self.uploaded - o.uploaded,
+            read_back: self.read_back - o.read_back,
+        }
+    }
+}
+
+/// The largest storage buffer a kernel can bind under `limits`, in bytes.
+pub fn storage_binding_limit(limits: &wgpu::Limits) -> u64 {
+    limits.max_storage_buffer_binding_size.min(limits.max_buffer_size)
+}
+
+/// The adapter [`GpuContext::new`] would open, by name, and its [`storage_binding_limit`]: asked
+/// without opening a device, so that a volume too large to bind is refused before it is read.
+pub fn adapter_storage_limit() -> Result<(String, u64), GpuError> {
+    let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+    let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+        power_preference: wgpu::PowerPreference::HighPerformance,
+        ..Default::default()
+    }))
+    .map_err(|e| GpuError::NoAdapter(e.to_string()))?;
+    Ok((adapter.get_info().name, storage_binding_limit(&adapter.limits())))
 }
 
 impl GpuContext {
@@ -73,11 +150,56 @@ impl GpuContext {
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("isowall"),
             required_limits: adapter.limits(),
+            // Per-pass GPU times of a tile's frame (`isowalld bench frame`), where the adapter has them.
+            required_features: adapter.features() & wgpu::Features::TIMESTAMP_QUERY,
             ..Default::default()
         }))
         .map_err(|source| GpuError::Device { adapter: info.name.clone(), source })?;
         tracing::info!(adapter = %info.name, backend = ?info.backend, kind = ?info.device_type, "GPU device open");
-        Ok(GpuContext { device, queue, info, instance, adapter })
+        Ok(GpuContext { device, queue, info, instance, adapter, traffic: GpuTraffic::default() })
+    }
+
+    /// `device.create_buffer`, counted.
+    pub fn create_buffer(&self, desc: &wgpu::BufferDescriptor) -> wgpu::Buffer {
+        self.traffic.allocations.fetch_add(1, Ordering::Relaxed);
+        self.device.create_buffer(desc)
+    }
+
+    /// `device.create_buffer_init`, counted (an allocation and its bytes uploaded).
+    pub fn create_buffer_init(&self, desc: &wgpu::util::BufferInitDescriptor) -> wgpu::Buffer {
+        self.traffic.allocations.fetch_add(1, Ordering::Relaxed);
+        self.traffic.uploaded.fetch_add(desc.contents.len() as u64, Ordering::Relaxed);
+        self.device.create_buffer_init(desc)
+    }
+
+    /// `device.create_texture`, counted.
+    pub fn create_texture(&self, desc: &wgpu::TextureDescriptor) -> wgpu::Texture {
+        self.traffic.allocations.fetch_add(1, Ordering::Relaxed);
+        self.device.create_texture(desc)
+    }
+
+    /// `device.create_bind_group`, counted.
+    pub fn create_bind_group(&self, desc: &wgpu::BindGroupDescriptor) -> wgpu::BindGroup {
+        self.traffic.allocations.fetch_add(1, Ordering::Relaxed);
+        self.device.create_bind_group(desc)
+    }
+
+    /// `queue.write_buffer`, counted.
+    pub fn write_buffer(&self, buffer: &wgpu::Buffer, offset: u64, data: &[u8]) {
+        self.traffic.uploaded.fetch_add(data.len() as u64, Ordering::Relaxed);
+        self.queue.write_buffer(buffer, offset, data);
+    }
+
+    /// `queue.write_texture`, counted.
+    pub fn write_texture(
+        &self,
+        texture: wgpu::TexelCopyTextureInfo,
+        data: &[u8],
+        layout: wgpu::TexelCopyBufferLayout,
+        size: wgpu::Extent3d,
+    ) {
+        self.traffic.uploaded.fetch_add(data.len() as u64, Ordering::Relaxed);
+        self.queue.write_texture(texture, data, layout, size);
     }
 
     /// Runs `f` inside a validation error scope and turns a captured error into [`GpuError`].
@@ -100,13 +222,12 @@ impl GpuContext {
 
     /// A storage buffer initialised with `contents`, refused with a clear error past the limits.
     fn storage_init(&self, name: &str, contents: &[u8]) -> Result<wgpu::Buffer, GpuError> {
-        let limits = self.device.limits();
-        let limit = limits.max_storage_buffer_binding_size.min(limits.max_buffer_size);
+        let limit = storage_binding_limit(&self.device.limits());
         if contents.len() as u64 > limit {
             return Err(GpuError::TooLarge { name: name.to_string(), bytes: contents.len() as u64, limit });
         }
         self.validated("upload", || {
-            self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            self.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some(name),
                 contents,
                 usage: wgpu::BufferUsages::STORAGE,
@@ -124,6 +245,7 @@ impl GpuContext {
         workgroup: (u32, u32),
         format: VoxelFormat,
     ) -> Result<(wgpu::ComputePipeline, wgpu::BindGroupLayout), GpuError> {
+        let voxel_format = &[("VOXEL_FORMAT", format.code() as f64)];
         self.validated("pipeline", || {
             let device = &self.device;
             let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
@@ -145,7 +267,8 @@ impl GpuContext {
                 module: &module,
                 entry_point: Some("main"),
                 compilation_options: wgpu::PipelineCompilationOptions {
-                    constants: &[("VOXEL_FORMAT", format.code() as f64)],
+                    // Only the volume kernels declare the voxel format.
+                    constants: if Kernel::FRAME.contains(&kernel) { voxel_format } else { &[] },
                     ..Default::default()
                 },
                 cache: None,
@@ -188,40 +311,53 @@ pub(crate) fn storage_entry(binding: u32, read_only: bool) -> wgpu::BindGroupLay
     }
 }
 
-/// Records one compute pass of `pipeline` (compiled with workgroup shape `workgroup`) over a `size`
-/// window, with `buffers` bound in order at bindings 0, 1, 2, ... of group 0 (every kernel declares
-/// its bindings that way).
-#[allow(clippy::too_many_arguments)]
-pub(crate) fn dispatch(
-    device: &wgpu::Device,
-    enc: &mut wgpu::CommandEncoder,
-    pipeline: &wgpu::ComputePipeline,
+/// A bind group of `buffers` bound in order at bindings 0, 1, 2, ... of group 0 (every kernel
+/// declares its bindings that way).
+pub(crate) fn bind_buffers(
+    ctx: &GpuContext,
     layout: &wgpu::BindGroupLayout,
     label: &str,
     buffers: &[&wgpu::Buffer],
-    size: (u32, u32),
-    workgroup: (u32, u32),
-) {
+) -> wgpu::BindGroup {
     let entries: Vec<wgpu::BindGroupEntry> = buffers
         .iter()
         .enumerate()
         .map(|(i, b)| wgpu::BindGroupEntry { binding: i as u32, resource: b.as_entire_binding() })
         .collect();
-    let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+    ctx.create_bind_group(&wgpu::BindGroupDescriptor { label: Some(label), layout, entries: &entries })
+}
+
+/// Records one compute pass of `pipeline` (compiled with workgroup shape `workgroup`) over a `size`
+/// window with `bind_group` at group 0; `timestamps` where the pass is timed.
+pub(crate) fn pass(
+    enc: &mut wgpu::CommandEncoder,
+    pipeline: &wgpu::ComputePipeline,
+    bind_group: &wgpu::BindGroup,
+    label: &str,
+    size: (u32, u32),
+    workgroup: (u32, u32),
+    timestamps: Option<wgpu::ComputePassTimestampWrites>,
+) {
+    let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
         label: Some(label),
-        layout,
-        entries: &entries,
+        timestamp_writes: timestamps,
     });
-    let mut pass =
-        enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(label), timestamp_writes: None });
     pass.set_pipeline(pipeline);
-    pass.set_bind_group(0, &bind_group, &[]);
+    pass.set_bind_group(0, bind_group, &[]);
     pass.dispatch_workgroups(size.0.div_ceil(workgroup.0), size.1.div_ceil(workgroup.1), 1);
+}
+
+/// A number no other volume or environment upload of this process has.
+fn next_resource_id() -> u64 {
+    static NEXT: AtomicU64 = AtomicU64::new(1);
+    NEXT.fetch_add(1, Ordering::Relaxed)
 }
 
 /// A volume on the GPU: voxels (packed as `format`) and per-block min/max (the fine level, then the
 /// coarse one).
 pub struct GpuVolume {
+    /// Identifies this upload (a tile's bind groups are made once per volume they bind).
+    pub id: u64,
     voxels: wgpu::Buffer,
     block_minmax: wgpu::Buffer,
     /// How the voxels are stored; the kernels that read them must be compiled for it.
@@ -293,6 +429,7 @@ impl GpuVolume {
         let block_minmax = ctx.storage_init("block min/max", bytemuck::cast_slice(&minmax))?;
         let d = v.dims();
         Ok(GpuVolume {
+            id: next_resource_id(),
             voxels,
             block_minmax,
             format,
@@ -347,6 +484,7 @@ impl GpuVolume {
         let minmax: Vec<[f32; 2]> = blocks.minmax.iter().map(|m| [round(m[0]), round(m[1])]).collect();
         let block_minmax = ctx.storage_init("block min/max", bytemuck::cast_slice(&minmax))?;
         Ok(GpuVolume {
+            id: next_resource_id(),
             voxels,
             block_minmax,
             format,
@@ -387,6 +525,8 @@ impl BlockLevel {
 
 /// An environment on the GPU: the equirectangular texels and their SH9 projection.
 pub struct GpuEnvironment {
+    /// Identifies this upload (see [`GpuVolume::id`]).
+    pub id: u64,
     texels: wgpu::Buffer,
     pub width: u32,
     pub height: u32,
@@ -399,7 +539,13 @@ impl GpuEnvironment {
             &format!("environment {}", env.name),
             bytemuck::cast_slice(&env.equirect_f32x4()),
         )?;
-        Ok(GpuEnvironment { texels, width: env.width, height: env.height, sh: env.sh9() })
+        Ok(GpuEnvironment {
+            id: next_resource_id(),
+            texels,
+            width: env.width,
+            height: env.height,
+            sh: env.sh9(),
+        })
     }
 }
 
@@ -408,6 +554,7 @@ pub struct GpuRenderer {
     pub ctx: GpuContext,
     isosurface: IsosurfaceKernel,
     ao: AoKernel,
+    compose: ComposeKernel,
     perf: PerfOptions,
     /// Bound where no environment is given (IBL off): one black texel.
     no_env: GpuEnvironment,
@@ -417,6 +564,8 @@ pub struct GpuRenderer {
 pub struct Rendered {
     pub frame: Frame,
     pub gpu_time: Duration,
+    /// All the time the host waited for the GPU: the frame and its readback.
+    pub wait_time: Duration,
 }
 
 /// The most frames one `render` accumulates.
@@ -428,8 +577,9 @@ impl GpuRenderer {
         let perf = PerfOptions::default();
         let isosurface = IsosurfaceKernel::new(&ctx, perf.workgroup, perf.format)?;
         let ao = AoKernel::new(&ctx, perf.workgroup, perf.format)?;
+        let compose = ComposeKernel::new(&ctx, perf.workgroup)?;
         let no_env = GpuEnvironment::upload(&ctx, &Environment::constant([0.0; 3]))?;
-        Ok(GpuRenderer { ctx, isosurface, ao, perf, no_env })
+        Ok(GpuRenderer { ctx, isosurface, ao, compose, perf, no_env })
     }
 
     /// The performance options in use.
@@ -446,6 +596,7 @@ impl GpuRenderer {
         if (perf.workgroup, perf.format) != (self.perf.workgroup, self.perf.format) {
             self.isosurface = IsosurfaceKernel::new(&self.ctx, perf.workgroup, perf.format)?;
             self.ao = AoKernel::new(&self.ctx, perf.workgroup, perf.format)?;
+            self.compose = ComposeKernel::new(&self.ctx, perf.workgroup)?;
         }
         self.perf = perf;
         Ok(())
@@ -497,27 +648,15 @@ impl GpuRenderer {
         GpuEnvironment::upload(&self.ctx, env)
     }
 
-    /// Renders one frame of `view` and reads every AOV back.
-    pub fn render(
-        &self,
+    /// Checks a frame's view, settings and volume before any GPU work; the environment to bind.
+    fn check_frame<'a>(
+        &'a self,
         volume: &GpuVolume,
         view: &View,
         settings: &RenderSettings,
-        env: Option<&GpuEnvironment>,
-    ) -> Result<Rendered, GpuError> {
-        self.render_accumulated(volume, view, settings, env, 1)
-    }
-
-    /// Renders `frames` frames with frame indices `settings.ao.frame ..` (fresh decorrelation each)
-    /// and averages their AO and IBL (progressive accumulation); reads every AOV back.
-    pub fn render_accumulated(
-        &self,
-        volume: &GpuVolume,
-        view: &View,
-        settings: &RenderSettings,
-        env: Option<&GpuEnvironment>,
+        env: Option<&'a GpuEnvironment>,
         frames: u32,
-    ) -> Result<Rendered, GpuError> {
+    ) -> Result<&'a GpuEnvironment, GpuError> {
         let (w, h) = (view.window.width, view.window.height);
         if w == 0 || h == 0 || view.full.0 == 0 || view.full.1 == 0 {
             return Err(GpuError::View(format!("empty window {w}x{h} of {}x{}", view.full.0, view.full.1)));
@@ -545,7 +684,32 @@ impl GpuRenderer {
         if settings.ibl_needs_environment() && env.is_none() {
             return Err(GpuError::Settings(format!("IBL method {:?} needs an environment", settings.ao.ibl)));
         }
-        let env = env.unwrap_or(&self.no_env);
+        Ok(env.unwrap_or(&self.no_env))
+    }
+
+    /// Renders one frame of `view` and reads every AOV back.
+    pub fn render(
+        &self,
+        volume: &GpuVolume,
+        view: &View,
+        settings: &RenderSettings,
+        env: Option<&GpuEnvironment>,
+    ) -> Result<Rendered, GpuError> {
+        self.render_accumulated(volume, view, settings, env, 1)
+    }
+
+    /// Renders `frames` frames with frame indices `settings.ao.frame ..` (fresh decorrelation each)
+    /// and averages their AO and IBL (progressive accumulation); reads every AOV back.
+    pub fn render_accumulated(
+        &self,
+        volume: &GpuVolume,
+        view: &View,
+        settings: &RenderSettings,
+        env: Option<&GpuEnvironment>,
+        frames: u32,
+    ) -> Result<Rendered, GpuError> {
+        let env = self.check_frame(volume, view, settings, env, frames)?;
+        let (w, h) = (view.window.width, view.window.height);
         let n = w as u64 * h as u64;
         let device = &self.ctx.device;
         let with_ao = settings.ao.samples > 0 || settings.ao.ibl != IblMethod::None;
@@ -553,7 +717,7 @@ impl GpuRenderer {
         let sizes = [n * 16, n * 16, n * 4, n * 16, n * 16];
         let (buffers, staging) = self.ctx.validated("frame buffers", || {
             let make = |label: &str, size: u64, usage| {
-                device.create_buffer(&wgpu::BufferDescriptor {
+                self.ctx.create_buffer(&wgpu::BufferDescriptor {
                     label: Some(label),
                     size,
                     usage,
@@ -573,7 +737,7 @@ impl GpuRenderer {
         let mut params = FrameParams::new(volume, view, settings, env);
         params.perf[0] = self.perf.flags();
         let uniform = |p: &FrameParams| {
-            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            self.ctx.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some("frame params"),
                 contents: bytemuck::bytes_of(p),
                 usage: wgpu::BufferUsages::STORAGE,
@@ -582,7 +746,7 @@ impl GpuRenderer {
         self.ctx.validated("encode", || {
             uniforms.push(uniform(&params));
             self.isosurface.encode(
-                device,
+                &self.ctx,
                 &mut enc,
                 &uniforms[0],
                 volume,
@@ -595,7 +759,7 @@ impl GpuRenderer {
                     uniforms.push(uniform(&params));
                     let u = uniforms.last().expect("just pushed");
                     self.ao.encode(
-                        device,
+                        &self.ctx,
                         &mut enc,
                         u,
                         volume,
@@ -617,7 +781,7 @@ impl GpuRenderer {
             enc.copy_buffer_to_buffer(src, 0, dst, 0, None);
         }
         self.ctx.queue.submit([enc.finish()]);
-        let bytes = read_buffers(&self.ctx, &staging)?;
+        let (bytes, readback_wait) = read_buffers(&self.ctx, &staging)?;
 
         let direct: &[[f32; 4]] = bytemuck::cast_slice(&bytes[0]);
         let geometry: &[[f32; 4]] = bytemuck::cast_slice(&bytes[1]);
@@ -662,12 +826,12 @@ impl GpuRenderer {
             gpu_ms = gpu_time.as_secs_f64() * 1e3,
             "frame rendered"
         );
-        Ok(Rendered { frame, gpu_time })
+        Ok(Rendered { frame, gpu_time, wait_time: gpu_time + readback_wait })
     }
 }
 
-/// Maps every buffer for reading, waits, and copies their contents out.
-fn read_buffers(ctx: &GpuContext, buffers: &[wgpu::Buffer]) -> Result<Vec<Vec<u8>>, GpuError> {
+/// Maps every buffer for reading, waits, and copies their contents out; also the time waited.
+fn read_buffers(ctx: &GpuContext, buffers: &[wgpu::Buffer]) -> Result<(Vec<Vec<u8>>, Duration), GpuError> {
     let (tx, rx) = std::sync::mpsc::channel();
     for (i, b) in buffers.iter().enumerate() {
         let tx = tx.clone();
@@ -676,7 +840,9 @@ fn read_buffers(ctx: &GpuContext, buffers: &[wgpu::Buffer]) -> Result<Vec<Vec<u8
         });
     }
     drop(tx);
+    let waited = Instant::now();
     ctx.wait()?;
+    let waited = waited.elapsed();
     for (i, r) in rx.iter() {
         r.map_err(|e| GpuError::Readback(format!("buffer {i}: {e}")))?;
     }
@@ -684,8 +850,9 @@ fn read_buffers(ctx: &GpuContext, buffers: &[wgpu::Buffer]) -> Result<Vec<Vec<u8
     for b in buffers {
         let view = b.get_mapped_range(..).map_err(|e| GpuError::Readback(e.to_string()))?;
         out.push(view.to_vec());
+        ctx.traffic.read_back(b.size());
         drop(view);
         b.unmap();
     }
-    Ok(out)
+    Ok((out, waited))
 }

@@ -1,29 +1,31 @@
 //! `Kernel::Present` (shaders/present.wgsl): showing tiles in windows. A [`TileSurface`] is one
 //! tile's window surface, created from the render thread's own instance (so the device that
-//! renders the tiles also presents them), with two textures: the image staged for the next swap
-//! and the image on show. Staging (upload) happens when a frame has rendered; presenting at the
-//! swap is then only a draw of a full-window triangle and the present itself.
+//! renders the tiles also presents them). It draws from the tile's own presentable images (a
+//! [`TileTarget`] holds a few: the one on show, the next, the one being rendered), which the compose kernel
+//! wrote on the GPU: nothing is copied or uploaded. Presenting at the swap is a draw of a
+//! full-window triangle from the image holding the frame, and the present itself.
 //!
 //! One path for every surface: a render pass samples the image (nearest) into the surface, so any
 //! surface format works (BGRA or RGBA, sRGB or not: see present.wgsl) and a window of another size
 //! than the tile (a monitor that does not match the config) is filled by stretching.
 
+use super::tile::TileTarget;
 use super::{GpuContext, GpuError};
 use crate::shaders::{self, Kernel};
 
-/// An image of a tile on the GPU, bound for drawing.
-struct TileTexture {
-    texture: wgpu::Texture,
-    bind_group: wgpu::BindGroup,
-    frame_id: u64,
+/// The bind groups of a tile target's two images, made once per target.
+struct Bound {
+    target: u64,
+    groups: [wgpu::BindGroup; super::tile::IMAGES],
 }
 
 /// What presenting did to one surface.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Presented {
-    /// The frame asked for was staged and is now on show.
+    /// The frame asked for was rendered and is now on show.
     Frame,
-    /// The frame asked for was not staged: the image already on show (or black) was presented.
+    /// The tile holds no image of the frame asked for: the image already on show (or black) was
+    /// presented.
     Previous,
     /// Nothing was presented (the window is occluded or the surface timed out).
     Skipped,
@@ -37,10 +39,9 @@ pub struct TileSurface {
     pipeline: wgpu::RenderPipeline,
     layout: wgpu::BindGroupLayout,
     sampler: wgpu::Sampler,
-    /// The view format of the tile textures: sRGB where the surface format is (see present.wgsl).
-    view_format: wgpu::TextureFormat,
-    staged: Option<TileTexture>,
-    shown: Option<TileTexture>,
+    bound: Option<Bound>,
+    /// The image on show (of `bound`'s target) and its frame.
+    shown: Option<(usize, u64)>,
 }
 
 impl TileSurface {
@@ -88,11 +89,8 @@ impl TileSurface {
             alpha_mode,
             view_formats: Vec::new(),
         };
-        let view_format = if format.is_srgb() {
-            wgpu::TextureFormat::Rgba8UnormSrgb
-        } else {
-            wgpu::TextureFormat::Rgba8Unorm
-        };
+        // The images hold sRGB values: an sRGB surface encodes again, so the shader decodes.
+        let decode: &[(&str, f64)] = &[("SRGB_SURFACE", if format.is_srgb() { 1.0 } else { 0.0 })];
         let device = &ctx.device;
         let (pipeline, layout, sampler) = ctx.validated("present pipeline", || {
             let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
@@ -140,7 +138,10 @@ impl TileSurface {
                 fragment: Some(wgpu::FragmentState {
                     module: &module,
                     entry_point: Some("fs_main"),
-                    compilation_options: Default::default(),
+                    compilation_options: wgpu::PipelineCompilationOptions {
+                        constants: decode,
+                        ..Default::default()
+                    },
                     targets: &[Some(wgpu::ColorTargetState {
                         format,
                         blend: None,
@@ -165,8 +166,7 @@ impl TileSurface {
             pipeline,
             layout,
             sampler,
-            view_format,
-            staged: None,
+            bound: None,
             shown: None,
         };
         tile.configure(ctx)?;
@@ -206,99 +206,52 @@ impl TileSurface {
         self.configure(ctx)
     }
 
-    /// Uploads a frame's image of the tile (8-bit sRGB RGB, rows top to bottom) for the next
-    /// [`TileSurface::present`] of `frame_id`.
-    pub fn stage(
-        &mut self,
-        ctx: &GpuContext,
-        frame_id: u64,
-        width: u32,
-        height: u32,
-        rgb8: &[u8],
-    ) -> Result<(), GpuError> {
-        let n = width as usize * height as usize;
-        if width == 0 || height == 0 || rgb8.len() != 3 * n {
-            return Err(GpuError::View(format!(
-                "tile {}: a {width}x{height} image needs {} bytes, not {}",
-                self.name,
-                3 * n,
-                rgb8.len()
-            )));
+    /// Bind groups for `target`'s images, made when the target is new to this surface.
+    fn bind(&mut self, ctx: &GpuContext, target: &TileTarget) -> Result<(), GpuError> {
+        if self.bound.as_ref().is_some_and(|b| b.target == target.id()) {
+            return Ok(());
         }
-        let reuse = self.staged.take().filter(|t| {
-            let s = t.texture.size();
-            (s.width, s.height) == (width, height)
-        });
-        let mut staged = match reuse {
-            Some(t) => t,
-            None => self.texture(ctx, width, height)?,
-        };
-        let mut rgba = vec![255u8; 4 * n];
-        for (d, s) in rgba.chunks_exact_mut(4).zip(rgb8.chunks_exact(3)) {
-            d[..3].copy_from_slice(s);
-        }
-        ctx.validated("stage tile", || {
-            ctx.queue.write_texture(
-                wgpu::TexelCopyTextureInfo {
-                    texture: &staged.texture,
-                    mip_level: 0,
-                    origin: wgpu::Origin3d::ZERO,
-                    aspect: wgpu::TextureAspect::All,
-                },
-                &rgba,
-                wgpu::TexelCopyBufferLayout {
-                    offset: 0,
-                    bytes_per_row: Some(4 * width),
-                    rows_per_image: Some(height),
-                },
-                wgpu::Extent3d { width, height, depth_or_array_layers: 1 },
-            )
+        self.shown = None;
+        let groups = ctx.validated("tile bind groups", || {
+            target.images().each_ref().map(|image| {
+                let view = image.texture.create_view(&wgpu::TextureViewDescriptor::default());
+                ctx.create_bind_group(&wgpu::BindGroupDescriptor {
+                    label: Some(&self.name),
+                    layout: &self.layout,
+                    entries: &[
+                        wgpu::BindGroupEntry {
+                            binding: 0,
+                            resource: wgpu::BindingResource::TextureView(&view),
+                        },
+                        wgpu::BindGroupEntry {
+                            binding: 1,
+                            resource: wgpu::BindingResource::Sampler(&self.sampler),
+                        },
+                    ],
+                })
+            })
         })?;
-        staged.frame_id = frame_id;
-        self.staged = Some(staged);
+        self.bound = Some(Bound { target: target.id(), groups });
         Ok(())
     }
 
-    /// A texture for the tile's image with its bind group.
-    fn texture(&self, ctx: &GpuContext, width: u32, height: u32) -> Result<TileTexture, GpuError> {
-        ctx.validated("tile texture", || {
-            let texture = ctx.device.create_texture(&wgpu::TextureDescriptor {
-                label: Some(&self.name),
-                size: wgpu::Extent3d { width, height, depth_or_array_layers: 1 },
-                mip_level_count: 1,
-                sample_count: 1,
-                dimension: wgpu::TextureDimension::D2,
-                format: wgpu::TextureFormat::Rgba8Unorm,
-                usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
-                view_formats: &[wgpu::TextureFormat::Rgba8UnormSrgb],
-            });
-            let view = texture.create_view(&wgpu::TextureViewDescriptor {
-                format: Some(self.view_format),
-                ..Default::default()
-            });
-            let bind_group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some(&self.name),
-                layout: &self.layout,
-                entries: &[
-                    wgpu::BindGroupEntry { binding: 0, resource: wgpu::BindingResource::TextureView(&view) },
-                    wgpu::BindGroupEntry {
-                        binding: 1,
-                        resource: wgpu::BindingResource::Sampler(&self.sampler),
-                    },
-                ],
-            });
-            TileTexture { texture, bind_group, frame_id: 0 }
-        })
-    }
-
-    /// The swap: puts the staged image of `frame_id` on show (if that is what is staged), then
+    /// The swap: puts `target`'s image of `frame_id` on show (where it holds that frame), then
     /// draws the image on show (black before the first) and presents it.
-    pub fn present(&mut self, ctx: &GpuContext, frame_id: u64) -> Result<Presented, GpuError> {
-        let fresh = self.staged.as_ref().is_some_and(|t| t.frame_id == frame_id);
-        if fresh {
-            std::mem::swap(&mut self.staged, &mut self.shown);
+    pub fn present(
+        &mut self,
+        ctx: &GpuContext,
+        target: Option<&TileTarget>,
+        frame_id: u64,
+    ) -> Result<Presented, GpuError> {
+        let mut fresh = false;
+        if let Some(t) = target {
+            self.bind(ctx, t)?;
+            if let Some(i) = t.images().iter().position(|im| im.frame_id == Some(frame_id)) {
+                self.shown = Some((i, frame_id));
+                fresh = true;
+            }
         }
-        Ok(match self.draw(ctx)? {
+        Ok(match self.draw(ctx, target)? {
             false => Presented::Skipped,
             true if fresh => Presented::Frame,
             true => Presented::Previous,
@@ -306,13 +259,20 @@ impl TileSurface {
     }
 
     /// Draws the image on show again (the window was exposed or resized).
-    pub fn redraw(&mut self, ctx: &GpuContext) -> Result<bool, GpuError> {
-        self.draw(ctx)
+    pub fn redraw(&mut self, ctx: &GpuContext, target: Option<&TileTarget>) -> Result<bool, GpuError> {
+        self.draw(ctx, target)
     }
 
     /// Acquires the surface's next texture, draws the image on show into it and presents it;
     /// `false` where the surface gave no texture (occluded, timed out).
-    fn draw(&mut self, ctx: &GpuContext) -> Result<bool, GpuError> {
+    fn draw(&mut self, ctx: &GpuContext, target: Option<&TileTarget>) -> Result<bool, GpuError> {
+        // The image on show, if the target still holds its frame (else black).
+        let shown = match (&self.bound, self.shown, target) {
+            (Some(b), Some((i, id)), Some(t)) if b.target == t.id() && t.images()[i].frame_id == Some(id) => {
+                Some(&b.groups[i])
+            }
+            _ => None,
+        };
         let mut retried = false;
         let (frame, suboptimal) = loop {
             match self.surface.get_current_texture() {
@@ -354,9 +314,9 @@ impl TileSurface {
                 occlusion_query_set: None,
                 multiview_mask: None,
             });
-            if let Some(shown) = &self.shown {
+            if let Some(group) = shown {
                 pass.set_pipeline(&self.pipeline);
-                pass.set_bind_group(0, &shown.bind_group, &[]);
+                pass.set_bind_group(0, group, &[]);
                 pass.draw(0..3, 0..1);
             }
         })?;

@@ -116,13 +116,24 @@ pub fn ao_at_gpu_hits(volume: &Volume, view: &View, s: &RenderSettings, g: &Fram
         let (x, y) = (i as u32 % view.window.width, i as u32 / view.window.width);
         let dir = view.ray_dir(&b, x, y);
         let nv = DVec3::from(g.normal[i].map(f64::from));
-        let ns = if nv.dot(-dir) < 0.0 { -nv } else { nv };
         let p = hit_position(view, g, i);
-        let a = reference::ambient_at(volume, s, &lighting, p, ns, (view.window.x + x, view.window.y + y));
+        let surface = reference::AoSurface::new(volume, p, nv, dir, is_cap(volume, p, nv));
+        let a = reference::ambient_at(volume, s, &lighting, &surface, (view.window.x + x, view.window.y + y));
         n += 1;
         off += usize::from((a.occlusion - g.occlusion[i] as f64).abs() > one_ray);
     }
     (n, off)
+}
+
+/// Whether a GPU hit is a cap, by the AO kernel's rule: its normal is a box face's outward normal
+/// and it lies on that face (within 1e-3 voxel).
+pub fn is_cap(volume: &Volume, p: DVec3, n: DVec3) -> bool {
+    let (lo, hi, tol) = (volume.box_min(), volume.box_max(), 1e-3 * volume.spacing());
+    (0..3).any(|a| {
+        let axis = n[a].abs() == 1.0 && (0..3).all(|b| b == a || n[b] == 0.0);
+        axis && ((n[a] < 0.0 && (p[a] - lo[a]).abs() <= tol[a])
+            || (n[a] > 0.0 && (p[a] - hi[a]).abs() <= tol[a]))
+    })
 }
 
 /// A floor (f >= 0 below z = 3.5) under a plate over the whole box whose lower face is at

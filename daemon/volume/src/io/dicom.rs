@@ -32,10 +32,11 @@
 //! with the transfer syntax named.
 //!
 //! Sizes are checked from the headers before any pixel is decoded (the whole series against
-//! [`super::MAX_VOXELS`] through [`super::Layout::voxel_count`]); uncompressed pixel data must hold
+//! [`super::MAX_VOXELS`] and the reader's [`VolumeLimit`] through [`super::Layout::check_within`]);
+//! uncompressed pixel data must hold
 //! the slice's bytes. Partial reads ([`crate::region`]) decode only the slices of a region.
 
-use super::{format_err, Layout, VoxelType};
+use super::{format_err, Layout, VolumeLimit, VoxelType};
 use crate::{Volume, VolumeError};
 use dicom_core::Tag;
 use dicom_dictionary_std::tags;
@@ -483,9 +484,20 @@ impl Series {
         Ok(())
     }
 
-    /// Reads the whole series.
-    pub fn read(&self) -> Result<Volume, VolumeError> {
+    /// Whether the series, as `f32` voxels, fits `limit` (from its headers).
+    pub fn check_within(&self, limit: &VolumeLimit) -> Result<(), VolumeError> {
+        let layout = Layout { dims: self.dims, voxel: VoxelType::F32, big_endian: false };
+        layout
+            .check_within(limit)
+            .map_err(|e| format_err(&self.name, format!("series {}: {e}", self.uid)))?;
+        Ok(())
+    }
+
+    /// Reads the whole series if it fits `limit` (checked from the headers, before any pixel is
+    /// decoded).
+    pub fn read(&self, limit: &VolumeLimit) -> Result<Volume, VolumeError> {
         let [nx, ny, nz] = self.dims;
+        self.check_within(limit)?;
         let mut data = Vec::with_capacity(nx * ny * nz);
         for k in 0..nz {
             self.read_slice(k, &mut data)?;
@@ -640,9 +652,9 @@ fn decode_slice(path: &Path, nx: usize, ny: usize) -> Result<Vec<f64>, VolumeErr
     Ok(values)
 }
 
-/// Reads the series `path` names (see [`Series::open`]).
-pub fn read(path: &Path, series: Option<&str>) -> Result<Volume, VolumeError> {
-    Series::open(path, series)?.read()
+/// Reads the series `path` names (see [`Series::open`]) within `limit`.
+pub fn read(path: &Path, series: Option<&str>, limit: &VolumeLimit) -> Result<Volume, VolumeError> {
+    Series::open(path, series)?.read(limit)
 }
 
 #[cfg(test)]
@@ -661,7 +673,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join(name);
         std::fs::copy(data(name), &p).unwrap();
-        read(&p, None)
+        read(&p, None, &VolumeLimit::default())
     }
 
     /// A small CT-like volume: whole Hounsfield values from -1024 up, distinct per voxel.
@@ -673,7 +685,7 @@ mod tests {
     }
 
     fn err_of(path: &Path, series: Option<&str>) -> String {
-        read(path, series).unwrap_err().to_string()
+        read(path, series, &VolumeLimit::default()).unwrap_err().to_string()
     }
 
     #[test]
@@ -682,7 +694,7 @@ mod tests {
         let v = ct_like([5, 4, 6]);
         let files = SeriesWriter::new("1.2.826.0.1.3680043.10.1").write(&v, dir.path()).unwrap();
         for source in [dir.path().to_path_buf(), files[3].clone()] {
-            let r = read(&source, None).unwrap();
+            let r = read(&source, None, &VolumeLimit::default()).unwrap();
             assert_eq!(r.dims(), v.dims());
             assert!((r.spacing() - v.spacing()).abs().max_element() < 1e-9, "{}", r.spacing());
             assert!((r.origin() - v.origin()).abs().max_element() < 1e-9, "{}", r.origin());
@@ -699,7 +711,7 @@ mod tests {
         let mut w = SeriesWriter::new("1.2.826.0.1.3680043.10.2");
         w.z_positions = Some((0..5).map(|k| o.z + (4 - k) as f64 * s.z).collect());
         w.write(&v, dir.path()).unwrap();
-        let r = read(dir.path(), None).unwrap();
+        let r = read(dir.path(), None, &VolumeLimit::default()).unwrap();
         for k in 0..5 {
             for i in 0..6 {
                 assert_eq!(r.data()[6 * k + i], v.data()[6 * (4 - k) + i], "slice {k}");
@@ -723,10 +735,10 @@ mod tests {
         let e = err_of(dir.path(), None);
         assert!(e.contains("holds 2 series") && e.contains("--series"), "{e}");
         assert!(e.contains("1.2.3.100 (CT, 'head', 4 files)") && e.contains("1.2.3.200"), "{e}");
-        assert_eq!(read(dir.path(), Some("1.2.3.100")).unwrap().data(), a.data());
-        assert_eq!(read(dir.path(), Some("1.2.3.200")).unwrap().data(), b.data());
+        assert_eq!(read(dir.path(), Some("1.2.3.100"), &VolumeLimit::default()).unwrap().data(), a.data());
+        assert_eq!(read(dir.path(), Some("1.2.3.200"), &VolumeLimit::default()).unwrap().data(), b.data());
         // One file names its own series.
-        assert_eq!(read(&files_b[1], None).unwrap().dims(), [2, 2, 3]);
+        assert_eq!(read(&files_b[1], None, &VolumeLimit::default()).unwrap().dims(), [2, 2, 3]);
         let e = err_of(dir.path(), Some("9.9"));
         assert!(e.contains("no series 9.9") && e.contains("1.2.3.100"), "{e}");
     }
@@ -846,7 +858,7 @@ mod tests {
         let ct = crate::io::load(&nrrd, None).unwrap();
         let dir = tempfile::tempdir().unwrap();
         SeriesWriter::new("1.2.826.0.1.3680043.10.9").write(&ct, dir.path()).unwrap();
-        let series = read(dir.path(), None).unwrap();
+        let series = read(dir.path(), None, &VolumeLimit::default()).unwrap();
         assert_eq!(series.dims(), ct.dims());
         assert!((series.spacing() - ct.spacing()).abs().max_element() < 1e-9, "{}", series.spacing());
         assert!((series.origin() - ct.origin()).abs().max_element() < 1e-9, "{}", series.origin());
@@ -904,5 +916,20 @@ mod tests {
         std::fs::remove_file(&f[0]).unwrap();
         let e = err_of(dir.path(), None);
         assert!(e.contains("over Isowall's limit"), "{e}");
+    }
+
+    #[test]
+    fn a_series_over_the_reader_limit_is_refused_naming_the_limit() {
+        // 5x4x6 float32 is 480 bytes: a 400-byte limit refuses it naming the limit's source;
+        // a limit of exactly its size reads it.
+        let dir = tempfile::tempdir().unwrap();
+        let v = ct_like([5, 4, 6]);
+        SeriesWriter::new("1.8.2").write(&v, dir.path()).unwrap();
+        let limit = VolumeLimit::new(400, "[volume] max_bytes");
+        let e = read(dir.path(), None, &limit).unwrap_err().to_string();
+        assert!(e.contains("480 bytes as float32, over the limit of 400 bytes ([volume] max_bytes)"), "{e}");
+        assert!(e.contains("series 1.8.2"), "{e}");
+        let r = read(dir.path(), None, &VolumeLimit::new(480, "test")).unwrap();
+        assert_eq!(r.data(), v.data());
     }
 }

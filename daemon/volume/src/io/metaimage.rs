@@ -2,7 +2,8 @@
 //!
 //! Supported:
 //! - `.mha` with the voxels after the header (`ElementDataFile = LOCAL`), and `.mhd` (or `.mha`)
-//!   whose `ElementDataFile` names one file, relative to the header's folder;
+//!   whose `ElementDataFile` names one file, relative to the header's folder and inside it (an
+//!   absolute path or `..` is refused: see [`super`]);
 //! - `NDims = 3`, `DimSize`, `ElementType` `MET_UCHAR`, `MET_CHAR`, `MET_USHORT`, `MET_SHORT`,
 //!   `MET_UINT`, `MET_INT`, `MET_FLOAT`, `MET_DOUBLE`;
 //! - spacing from `ElementSpacing`, else `ElementSize`, else 1 (with a warning); origin from `Offset`
@@ -24,7 +25,7 @@
 
 use super::{
     data_file_path, dims3, format_err, make_volume, numbers, open, spacing3, vec3, AxisSteps, DataSpec,
-    Encoding, Files, HeaderLines, Layout, VoxelType,
+    Encoding, Files, HeaderLines, Layout, VolumeLimit, VoxelType,
 };
 use crate::{Volume, VolumeError};
 use glam::DVec3;
@@ -32,7 +33,7 @@ use std::collections::HashMap;
 use std::path::Path;
 
 /// Reads the MetaImage file (`.mha` or `.mhd`) at `path`.
-pub(crate) fn read(path: &Path) -> Result<Volume, VolumeError> {
+pub(crate) fn read(path: &Path, limit: &VolumeLimit) -> Result<Volume, VolumeError> {
     let (r, file_len) = open(path)?;
     let mut lines = HeaderLines::new(r, path, "MetaImage");
     let err = |line: usize, what: String| format_err(path, format!("line {line}: {what}"));
@@ -140,7 +141,7 @@ pub(crate) fn read(path: &Path) -> Result<Volume, VolumeError> {
         None => None,
     };
     let layout = Layout { dims, voxel, big_endian };
-    layout.voxel_count().map_err(|e| err(dims_line, format!("DimSize: {e}")))?;
+    layout.check_within(limit).map_err(|e| err(dims_line, format!("DimSize: {e}")))?;
 
     let tokens: Vec<&str> = data_file.split_whitespace().collect();
     let mut data = if data_file.eq_ignore_ascii_case("LOCAL") {
@@ -163,7 +164,7 @@ pub(crate) fn read(path: &Path) -> Result<Volume, VolumeError> {
     } else if data_file.is_empty() {
         return Err(err(data_line, "ElementDataFile: no file name".into()));
     } else {
-        let data_path = data_file_path(path, &data_file);
+        let data_path = data_file_path(path, &format!("line {data_line}: ElementDataFile"), &data_file)?;
         let (r, len) = open(&data_path)?;
         let file_skip = u64::try_from(header_size.unwrap_or(0)).ok();
         let spec = DataSpec { encoding, file_skip, decoded_skip: 0 };

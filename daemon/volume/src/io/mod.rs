@@ -1,5 +1,5 @@
 //! Volume file readers. The format is chosen by the file name: `.nrrd`/`.nhdr` (NRRD), `.mhd`/`.mha`
-//! (MetaImage), `.nii`/`.nii.gz`/`.hdr` (NIfTI-1), a folder, `.dcm`/`.dicom`/`.ima` or a file with
+//! (MetaImage), `.nii`/`.nii.gz`/`.hdr` (NIfTI-1 and NIfTI-2), a folder, `.dcm`/`.dicom`/`.ima` or a file with
 //! DICOM's magic (a DICOM series, [`dicom`]); anything else is raw and needs a [`RawSpec`].
 //! Every error names the file and what is wrong with it; nothing here panics on bad input.
 //! Voxel values are kept in the data's own units (no rescaling except NIfTI's scl_slope/inter),
@@ -9,10 +9,20 @@
 //! What each reader supports and refuses is in its module: [`raw`], [`nrrd`], [`metaimage`],
 //! [`nifti`]. Common to all of them:
 //!
-//! - three dimensions, one scalar per voxel, x fastest; the grid must be axis-aligned (a negative
+//! - three dimensions (a 4-D NIfTI or NRRD is a series of 3-D time steps, [`load_step_within`]),
+//!   one scalar per voxel, x fastest; the grid must be axis-aligned (a negative
 //!   axis direction, where a format has one, is undone by mirroring the data, so every sample keeps
 //!   its world position);
-//! - at most [`MAX_VOXELS`] voxels (4 GiB as `f32`);
+//! - at most [`MAX_VOXELS`] voxels, and at most a [`VolumeLimit`] of bytes as Isowall holds them
+//!   (`f32`, 4 bytes a voxel; by default [`DEFAULT_MAX_BYTES`], the daemon passes the GPU's
+//!   largest storage binding and the wall's `[volume] max_bytes`): both checked from the header,
+//!   before anything is allocated or inflated, with an error naming the file and the limit;
+//! - only regular files are read: a volume, or a data file a header names, that is a FIFO, a
+//!   device, a socket or a directory is refused (its type is checked before it is opened, it is
+//!   opened without blocking and checked again), so no header can make a reader wait forever;
+//! - a detached header names its data file relative to its own folder, never above it: absolute
+//!   paths and `..` are refused (a header cannot be used to read, or learn the size of, any
+//!   other file); symbolic links inside the folder are followed;
 //! - uncompressed data must fill the file exactly (after its header and skips): fewer bytes are
 //!   "truncated", more are "extra data"; compressed data must decompress to exactly the voxels'
 //!   bytes and is read through a bounded reader (never more than one byte past what the volume
@@ -36,6 +46,53 @@ use std::path::{Path, PathBuf};
 
 /// The largest volume Isowall reads: 2^30 voxels, 4 GiB as `f32`.
 pub const MAX_VOXELS: u64 = 1 << 30;
+
+/// The default [`VolumeLimit`]: 2 GiB of `f32` voxels (512 Mi voxels, e.g. 1024x1024x512).
+pub const DEFAULT_MAX_BYTES: u64 = 2 << 30;
+
+/// The most bytes a volume's voxels may take once read (as `f32`, 4 bytes a voxel), and where
+/// that limit comes from (named in the error). Readers check it against the header's dims before
+/// they allocate or inflate anything.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct VolumeLimit {
+    pub bytes: u64,
+    /// E.g. "the GPU's largest storage binding" or "[volume] max_bytes".
+    pub source: String,
+}
+
+impl Default for VolumeLimit {
+    fn default() -> Self {
+        VolumeLimit { bytes: DEFAULT_MAX_BYTES, source: "Isowall's default maximum".into() }
+    }
+}
+
+impl VolumeLimit {
+    pub fn new(bytes: u64, source: impl Into<String>) -> VolumeLimit {
+        VolumeLimit { bytes, source: source.into() }
+    }
+
+    /// The tighter of two limits.
+    pub fn min(self, other: VolumeLimit) -> VolumeLimit {
+        if other.bytes < self.bytes {
+            other
+        } else {
+            self
+        }
+    }
+
+    /// Whether `voxels` voxels (of `what`, e.g. `1024x1024x1024 uint8`) fit.
+    pub fn check(&self, voxels: u64, what: &str) -> Result<(), String> {
+        let bytes = voxels.saturating_mul(4);
+        if bytes > self.bytes {
+            return Err(format!(
+                "{what} is {bytes} bytes as float32, over the limit of {} bytes ({}): refused before reading \
+                 its data",
+                self.bytes, self.source
+            ));
+        }
+        Ok(())
+    }
+}
 
 /// The longest text header (NRRD, MetaImage) read before giving up on finding its end.
 const HEADER_LIMIT: u64 = 1 << 20;
@@ -149,15 +206,32 @@ impl FileFormat {
     }
 }
 
-/// Reads a volume file, choosing the reader by the file name. `raw` is needed for raw files and
-/// ignored (with a warning) for the self-describing formats. A 4-D file gives its first time step.
+/// Reads a volume file, choosing the reader by the file name, within the default
+/// [`VolumeLimit`]. `raw` is needed for raw files and ignored (with a warning) for the
+/// self-describing formats. A 4-D file gives its first time step.
 pub fn load(path: &Path, raw: Option<&RawSpec>) -> Result<Volume, VolumeError> {
-    load_step(path, raw, 0)
+    load_within(path, raw, &VolumeLimit::default())
 }
 
-/// Reads time step `step` of a volume file: a 4-D NIfTI or NRRD holds `dim[4]` steps (read whole,
-/// then the step cut out), every other file one (step 0).
+/// [`load`] within `limit`, checked from the header before any voxel is read.
+pub fn load_within(path: &Path, raw: Option<&RawSpec>, limit: &VolumeLimit) -> Result<Volume, VolumeError> {
+    load_step_within(path, raw, 0, limit)
+}
+
+/// [`load_step_within`] within the default [`VolumeLimit`].
 pub fn load_step(path: &Path, raw: Option<&RawSpec>, step: usize) -> Result<Volume, VolumeError> {
+    load_step_within(path, raw, step, &VolumeLimit::default())
+}
+
+/// Reads time step `step` of a volume file within `limit`: a 4-D NIfTI or NRRD holds `dim[4]`
+/// steps (read whole, then the step cut out, so the limit applies to the whole file), every
+/// other file one (step 0).
+pub fn load_step_within(
+    path: &Path,
+    raw: Option<&RawSpec>,
+    step: usize,
+    limit: &VolumeLimit,
+) -> Result<Volume, VolumeError> {
     let format = FileFormat::of(path);
     if format != FileFormat::Raw && raw.is_some() {
         tracing::warn!(
@@ -166,12 +240,12 @@ pub fn load_step(path: &Path, raw: Option<&RawSpec>, step: usize) -> Result<Volu
         );
     }
     let (volume, steps) = match format {
-        FileFormat::Nrrd => nrrd::read(path)?,
-        FileFormat::MetaImage => (metaimage::read(path)?, 1),
-        FileFormat::Nifti => nifti::read(path)?,
-        FileFormat::Dicom => (dicom::read(path, None)?, 1),
+        FileFormat::Nrrd => nrrd::read(path, limit)?,
+        FileFormat::MetaImage => (metaimage::read(path, limit)?, 1),
+        FileFormat::Nifti => nifti::read(path, limit)?,
+        FileFormat::Dicom => (dicom::read(path, None, limit)?, 1),
         FileFormat::Raw => match raw {
-            Some(spec) => (raw::read(path, spec)?, 1),
+            Some(spec) => (raw::read(path, spec, limit)?, 1),
             None => {
                 return Err(format_err(
                     path,
@@ -222,7 +296,9 @@ pub(crate) fn plan(
     match FileFormat::of(path) {
         FileFormat::Nrrd => nrrd::plan(path),
         FileFormat::Raw => {
-            let Some(spec) = raw else { return load(path, raw).map(|_| None) };
+            let Some(spec) = raw else {
+                return load_within(path, raw, &VolumeLimit::default()).map(|_| None);
+            };
             let layout = Layout { dims: spec.dims, voxel: spec.voxel, big_endian: spec.big_endian };
             layout.voxel_count().map_err(|e| format_err(path, format!("--dims {e}")))?;
             let s = spec.spacing;
@@ -263,21 +339,59 @@ pub(crate) fn io_err(path: &Path, source: io::Error) -> VolumeError {
     VolumeError::Io { path: path.to_path_buf(), source }
 }
 
-/// Opens a file for buffered reading and returns it with its length.
+/// Opens a regular file for buffered reading and returns it with its length. Anything else (a
+/// FIFO, a device, a socket, a directory) is refused before it is opened; the file is opened
+/// without blocking (a FIFO swapped in meanwhile cannot hold the reader) and checked again.
 pub(crate) fn open(path: &Path) -> Result<(BufReader<File>, u64), VolumeError> {
-    let file = File::open(path).map_err(|e| io_err(path, e))?;
-    let len = file.metadata().map_err(|e| io_err(path, e))?.len();
-    Ok((BufReader::new(file), len))
+    use std::os::unix::fs::OpenOptionsExt;
+    let not_regular = |t: std::fs::FileType| {
+        use std::os::unix::fs::FileTypeExt;
+        let kind = if t.is_fifo() {
+            "a FIFO (named pipe)"
+        } else if t.is_dir() {
+            "a directory"
+        } else if t.is_char_device() || t.is_block_device() {
+            "a device"
+        } else if t.is_socket() {
+            "a socket"
+        } else {
+            "not a regular file"
+        };
+        format_err(path, format!("is {kind}, not a regular file: volumes are read from regular files only"))
+    };
+    let kind = std::fs::metadata(path).map_err(|e| io_err(path, e))?.file_type();
+    if !kind.is_file() {
+        return Err(not_regular(kind));
+    }
+    let file = std::fs::OpenOptions::new()
+        .read(true)
+        .custom_flags(libc::O_NONBLOCK)
+        .open(path)
+        .map_err(|e| io_err(path, e))?;
+    let meta = file.metadata().map_err(|e| io_err(path, e))?;
+    if !meta.file_type().is_file() {
+        return Err(not_regular(meta.file_type()));
+    }
+    Ok((BufReader::new(file), meta.len()))
 }
 
-/// A data file named in a header, relative to the header's folder unless absolute.
-pub(crate) fn data_file_path(header: &Path, name: &str) -> PathBuf {
-    let name = Path::new(name);
-    if name.is_absolute() {
-        name.to_path_buf()
-    } else {
-        header.parent().unwrap_or(Path::new("")).join(name)
+/// The data file a header names: relative to the header's folder, and inside it. An absolute
+/// path or a `..` is refused (naming the header and the field), so a header cannot point a
+/// reader at any other file.
+pub(crate) fn data_file_path(header: &Path, field: &str, name: &str) -> Result<PathBuf, VolumeError> {
+    use std::path::Component;
+    let p = Path::new(name);
+    let inside = p.components().all(|c| matches!(c, Component::Normal(_) | Component::CurDir));
+    if !inside {
+        return Err(format_err(
+            header,
+            format!(
+                "{field}: '{name}' is not a file in the header's folder: a data file is named relative to \
+                 the header, without '..' or an absolute path"
+            ),
+        ));
     }
+    Ok(header.parent().unwrap_or(Path::new("")).join(p))
 }
 
 /// The files a volume's voxels are read from, for error messages: `header` is the file the user
@@ -349,6 +463,13 @@ impl Layout {
             )),
             None => Err(format!("{nx}x{ny}x{nz} voxels overflow a 64-bit count")),
         }
+    }
+
+    /// [`Layout::voxel_count`], also within `limit` (as `f32`): what readers check from a header.
+    pub fn check_within(&self, limit: &VolumeLimit) -> Result<usize, String> {
+        let count = self.voxel_count()?;
+        limit.check(count as u64, &self.describe())?;
+        Ok(count)
     }
 
     /// Bytes the voxels take in the file (valid once [`Layout::voxel_count`] succeeded).
@@ -950,6 +1071,77 @@ mod tests {
         };
         let v = load(&p, Some(&spec)).unwrap();
         assert_eq!((v.dims(), v.spacing(), v.data()), ([2, 1, 1], DVec3::ONE, [7.0, 9.0].as_slice()));
+    }
+
+    /// A FIFO at `path` (by the `mkfifo` command: no unsafe code here).
+    fn mkfifo(path: &Path) {
+        let ok = std::process::Command::new("mkfifo").arg(path).status().unwrap().success();
+        assert!(ok, "mkfifo {}", path.display());
+    }
+
+    #[test]
+    fn only_regular_files_are_read_and_none_blocks() {
+        let dir = tempfile::tempdir().unwrap();
+        let fifo = dir.path().join("pipe.nrrd");
+        mkfifo(&fifo);
+        let header = "NRRD0004\ntype: uchar\ndimension: 3\nsizes: 2 1 1\nencoding: raw\n";
+        let nhdr = dir.path().join("v.nhdr");
+        std::fs::write(&nhdr, format!("{header}data file: pipe.nrrd\n")).unwrap();
+        let mha = dir.path().join("v.mhd");
+        std::fs::write(
+            &mha,
+            "NDims = 3\nDimSize = 2 1 1\nElementType = MET_UCHAR\nElementDataFile = pipe.nrrd\n",
+        )
+        .unwrap();
+        let sub = dir.path().join("sub.nrrd");
+        std::fs::create_dir(&sub).unwrap();
+        let spec = RawSpec {
+            dims: [2, 1, 1],
+            voxel: VoxelType::U8,
+            spacing: DVec3::ONE,
+            big_endian: false,
+            header_bytes: 0,
+        };
+        // No writer ever opens the FIFO: a reader that opened it blocking would wait forever.
+        let cases: [(&Path, Option<&RawSpec>, &str); 6] = [
+            (&fifo, None, "a FIFO"),
+            (&nhdr, None, "a FIFO"),
+            (&mha, None, "a FIFO"),
+            (&sub, None, "a directory"),
+            (Path::new("/dev/zero"), Some(&spec), "a device"),
+            (Path::new("/dev/null"), Some(&spec), "a device"),
+        ];
+        for (path, raw, kind) in cases {
+            let m = load(path, raw).unwrap_err().to_string();
+            assert!(
+                m.contains(&format!("is {kind}")) && m.contains("not a regular file"),
+                "{}: {m}",
+                path.display()
+            );
+        }
+    }
+
+    #[test]
+    fn the_limit_is_checked_from_the_header_before_inflating() {
+        let dir = tempfile::tempdir().unwrap();
+        // Claims 1024^3 voxels: 4 GiB as float32, over the default 2 GiB. Its data would be a
+        // gzip bomb; a reader that inflated before checking would allocate gigabytes.
+        let p = dir.path().join("bomb.nrrd");
+        let header = "NRRD0004\ntype: uchar\ndimension: 3\nsizes: 1024 1024 1024\nencoding: gzip\n\n";
+        std::fs::write(&p, [header.as_bytes(), &testutil::gzip(&[0u8; 4096])].concat()).unwrap();
+        let m = load(&p, None).unwrap_err().to_string();
+        assert!(m.starts_with(&p.display().to_string()), "{m}");
+        assert!(m.contains("line 4: sizes: 1024x1024x1024 uint8 is 4294967296 bytes as float32"), "{m}");
+        assert!(m.contains("over the limit of 2147483648 bytes (Isowall's default maximum)"), "{m}");
+        // A tighter limit names where it comes from; a small volume within it reads.
+        let tiny = dir.path().join("tiny.nrrd");
+        let header = "NRRD0004\ntype: uchar\ndimension: 3\nsizes: 4 4 4\nencoding: gzip\n\n";
+        std::fs::write(&tiny, [header.as_bytes(), &testutil::gzip(&[1u8; 64])].concat()).unwrap();
+        let limit = VolumeLimit::new(255, "the GPU's largest storage binding");
+        let m = load_within(&tiny, None, &limit).unwrap_err().to_string();
+        assert!(m.contains("256 bytes as float32, over the limit of 255 bytes (the GPU's"), "{m}");
+        assert_eq!(load_within(&tiny, None, &VolumeLimit::new(256, "x")).unwrap().data().len(), 64);
+        assert_eq!(limit.clone().min(VolumeLimit::default()), limit);
     }
 
     #[test]

@@ -25,7 +25,7 @@
 
 use super::{
     format_err, io_err, make_volume, open, read_data, read_full, read_voxels, DataSpec, Encoding, Files,
-    Layout, Scale, VoxelType, MAX_VOXELS,
+    Layout, Scale, VolumeLimit, VoxelType, MAX_VOXELS,
 };
 use crate::{Volume, VolumeError};
 use glam::DVec3;
@@ -37,16 +37,17 @@ const HEADER_LEN: usize = 348;
 /// The size of a NIfTI-2 header.
 const HEADER2_LEN: usize = 540;
 
-/// Reads the NIfTI file (`.nii`, `.nii.gz`, or the `.hdr` of a pair) at `path`: the volume (a
-/// 4-D file's time steps stacked along z) and the number of time steps.
-pub(crate) fn read(path: &Path) -> Result<(Volume, usize), VolumeError> {
+/// Reads the NIfTI file (`.nii`, `.nii.gz`, or the `.hdr` of a pair) at `path` within `limit`
+/// (all its time steps together): the volume (a 4-D file's time steps stacked along z) and the
+/// number of time steps.
+pub(crate) fn read(path: &Path, limit: &VolumeLimit) -> Result<(Volume, usize), VolumeError> {
     let (mut r, file_len) = open(path)?;
     let gzipped = r.fill_buf().map_err(|e| io_err(path, e))?.starts_with(&[0x1f, 0x8b]);
     let files = Files::single(path);
     if gzipped {
         // The whole file is compressed: the header, any extensions, then the voxels.
         let mut r = BufReader::new(flate2::bufread::MultiGzDecoder::new(r));
-        let header = Header::read(path, &mut r, Encoding::Gzip)?;
+        let header = Header::read(path, &mut r, Encoding::Gzip, limit)?;
         if !header.single_file {
             return Err(format_err(
                 path,
@@ -58,7 +59,7 @@ pub(crate) fn read(path: &Path) -> Result<(Volume, usize), VolumeError> {
         return header.volume(path, data);
     }
 
-    let header = Header::read(path, &mut r, Encoding::Raw)?;
+    let header = Header::read(path, &mut r, Encoding::Raw, limit)?;
     let is_hdr = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("hdr"));
     let data =
         match (header.single_file, is_hdr) {
@@ -88,14 +89,16 @@ pub(crate) fn read(path: &Path) -> Result<(Volume, usize), VolumeError> {
     header.volume(path, data)
 }
 
-/// The number of time steps of the NIfTI file at `path` (its header only).
+/// The number of time steps of the NIfTI file at `path` (its header only; the reader's limit is
+/// checked when a step is read).
 pub(crate) fn time_steps(path: &Path) -> Result<usize, VolumeError> {
+    let limit = &VolumeLimit::new(u64::MAX, "none while counting time steps");
     let (mut r, _) = open(path)?;
     let gzipped = r.fill_buf().map_err(|e| io_err(path, e))?.starts_with(&[0x1f, 0x8b]);
     let header = if gzipped {
-        Header::read(path, &mut flate2::bufread::MultiGzDecoder::new(r), Encoding::Gzip)?
+        Header::read(path, &mut flate2::bufread::MultiGzDecoder::new(r), Encoding::Gzip, limit)?
     } else {
-        Header::read(path, &mut r, Encoding::Raw)?
+        Header::read(path, &mut r, Encoding::Raw, limit)?
     };
     Ok(header.time_steps)
 }
@@ -142,8 +145,13 @@ struct Raw {
 
 impl Header {
     /// Reads and checks the header (348 bytes NIfTI-1, 540 NIfTI-2) from `r` (data decoded from
-    /// `enc`).
-    fn read(path: &Path, r: &mut dyn Read, enc: Encoding) -> Result<Header, VolumeError> {
+    /// `enc`), and its dims against `limit`.
+    fn read(
+        path: &Path,
+        r: &mut dyn Read,
+        enc: Encoding,
+        limit: &VolumeLimit,
+    ) -> Result<Header, VolumeError> {
         let files = Files::single(path);
         let mut h = vec![0u8; HEADER_LEN];
         let n = read_full(r, &mut h).map_err(|e| files.read_error(enc, e))?;
@@ -314,7 +322,7 @@ impl Header {
             );
         }
         let layout = Layout { dims, voxel, big_endian: big };
-        layout.voxel_count().map_err(|e| err(format!("dim (all {nt} time steps): {e}")))?;
+        layout.check_within(limit).map_err(|e| err(format!("dim (all {nt} time steps): {e}")))?;
 
         let mut spacing = DVec3::ZERO;
         for a in 0..3 {

@@ -2,7 +2,8 @@
 //!
 //! Supported:
 //! - `.nrrd` with the data attached after the header's blank line, and detached headers (`.nhdr`,
-//!   or any NRRD header) whose `data file:` names one file, relative to the header's folder;
+//!   or any NRRD header) whose `data file:` names one file, relative to the header's folder and
+//!   inside it (an absolute path or `..` is refused: see [`super`]);
 //! - `encoding`: `raw`, `gzip` (also `gz`);
 //! - `type`: every 8, 16 and 32-bit integer and `float`/`double`, under all of NRRD's names
 //!   (`uchar`, `unsigned char`, `uint8`, `uint8_t`, `signed char`, `char`, `short`, `short int`,
@@ -26,7 +27,7 @@
 
 use super::{
     data_file_path, dims3, format_err, make_volume, open, skip_lines, spacing3, vec3, AxisSteps, DataSpec,
-    Encoding, Files, HeaderLines, Layout, VoxelType,
+    Encoding, Files, HeaderLines, Layout, VolumeLimit, VoxelType,
 };
 use crate::{Volume, VolumeError};
 use glam::DVec3;
@@ -34,14 +35,17 @@ use std::collections::HashMap;
 use std::io::BufRead;
 use std::path::Path;
 
-/// Reads the NRRD file (attached or detached header) at `path`: the volume (a 4-D file's time
-/// steps stacked along z) and the number of time steps.
-pub(crate) fn read(path: &Path) -> Result<(Volume, usize), VolumeError> {
+/// Reads the NRRD file (attached or detached header) at `path` within `limit` (all its time
+/// steps together): the volume (a 4-D file's time steps stacked along z) and the number of time
+/// steps.
+pub(crate) fn read(path: &Path, limit: &VolumeLimit) -> Result<(Volume, usize), VolumeError> {
     let (r, file_len) = open(path)?;
     let mut lines = HeaderLines::new(r, path, "NRRD");
     let header = Header::read(path, &mut lines)?;
     let layout = Layout { dims: header.dims, voxel: header.voxel, big_endian: header.big_endian };
-    layout.voxel_count().map_err(|e| format_err(path, format!("line {}: sizes: {e}", header.sizes_line)))?;
+    layout
+        .check_within(limit)
+        .map_err(|e| format_err(path, format!("line {}: sizes: {e}", header.sizes_line)))?;
 
     let spec = match header.encoding {
         Encoding::Raw => DataSpec {
@@ -67,7 +71,7 @@ pub(crate) fn read(path: &Path) -> Result<(Volume, usize), VolumeError> {
             super::read_data(files, r, pos, file_len, spec, &layout, None)?
         }
         Some(name) => {
-            let data_path = data_file_path(path, name);
+            let data_path = data_file_path(path, "data file", name)?;
             let files = Files { header: path, data: &data_path };
             let (mut r, len) = open(&data_path)?;
             let pos = skip_lines(files, &mut r, header.line_skip)?;
@@ -120,7 +124,7 @@ pub(crate) fn plan(path: &Path) -> Result<Option<(crate::region::FilePlan, DVec3
             (path.to_path_buf(), pos, file_len)
         }
         Some(name) => {
-            let data_path = data_file_path(path, name);
+            let data_path = data_file_path(path, "data file", name)?;
             let files = Files { header: path, data: &data_path };
             let (mut r, len) = open(&data_path)?;
             let pos = skip_lines(files, &mut r, header.line_skip)?;
@@ -595,7 +599,7 @@ mod tests {
     }
 
     #[test]
-    fn skips_crlf_and_detached_data_by_absolute_path() {
+    fn skips_crlf_and_detached_data_beside_the_header() {
         let dir = tempfile::tempdir().unwrap();
         let vals = values(VoxelType::I16, 24);
         let raw = encode(&vals, VoxelType::I16, false);
@@ -615,21 +619,25 @@ mod tests {
         let skipped = gzip(&[[7u8; 3].as_slice(), &raw].concat());
         write(&p, &header("short", false, "gzip", "byte skip: 3\n\n"), &skipped);
         check(&load(&p, None).unwrap(), DIMS, spacing, DVec3::ZERO, &vals);
-        // line skip, then byte skip, in a detached file given by its absolute path.
-        let d = dir.path().join("data with lines.bin");
+        // line skip, then byte skip, in a detached file in a folder beside the header.
+        fs::create_dir(dir.path().join("sub")).unwrap();
+        let d = dir.path().join("sub/data with lines.bin");
         fs::write(&d, [b"first line\nsecond\n".as_slice(), b"xy", &raw].concat()).unwrap();
         let h = dir.path().join("lines.nhdr");
-        write(
-            &h,
-            &header(
-                "short",
-                false,
-                "raw",
-                &format!("line skip: 2\nbyte skip: 2\ndata file: {}\n", d.display()),
-            ),
-            &[],
-        );
+        let fields = "line skip: 2\nbyte skip: 2\ndata file: ./sub/data with lines.bin\n";
+        write(&h, &header("short", false, "raw", fields), &[]);
         check(&load(&h, None).unwrap(), DIMS, spacing, DVec3::ZERO, &vals);
+        // The same file by its absolute path, or from above the header's folder, is refused,
+        // and its size is not told.
+        let inner = dir.path().join("sub/up.nhdr");
+        for (header_path, name) in
+            [(&h, d.display().to_string()), (&inner, "../sub/data with lines.bin".into())]
+        {
+            write(header_path, &header("short", false, "raw", &format!("data file: {name}\n")), &[]);
+            let m = load(header_path, None).unwrap_err().to_string();
+            assert!(m.contains("is not a file in the header's folder"), "{m}");
+            assert!(!m.contains("bytes"), "{m}");
+        }
         // CRLF line endings.
         let crlf = header("short", false, "raw", "\n").replace('\n', "\r\n");
         write(&p, &crlf, &raw);
@@ -809,11 +817,22 @@ mod tests {
         // A gzip bomb: 10 MB of zeros for a 24-byte volume is refused after reading 49 bytes.
         let m = error_of(d, "t.nrrd", &header("short", false, "gzip", "\n"), &gzip(&vec![0; 10_000_000]));
         assert!(m.contains("extra data"), "{m}");
-        // A huge volume claimed by a tiny file is refused without allocating it.
+        // A huge volume claimed by a tiny file is refused without allocating it: over the limit
+        // from its header, or (within the limit) at the end of the data really there.
         let m = error_of(
             d,
             "t.nrrd",
             &header("short", false, "gzip", "\n").replace("4 3 2", "1024 1024 1000"),
+            &gzip(&raw),
+        );
+        assert!(
+            m.contains("line 5: sizes: 1024x1024x1000 int16 is 4194304000 bytes as float32, over the limit"),
+            "{m}"
+        );
+        let m = error_of(
+            d,
+            "t.nrrd",
+            &header("short", false, "gzip", "\n").replace("4 3 2", "1024 1024 500"),
             &gzip(&raw),
         );
         assert!(m.contains("truncated"), "{m}");

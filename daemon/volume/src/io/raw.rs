@@ -6,15 +6,17 @@
 //! voxels: a size mismatch either way is an error (it almost always means wrong dims or type).
 //! Compressed raw files are not supported.
 
-use super::{check_raw_size, format_err, make_volume, open, read_voxels, Encoding, Files, Layout, RawSpec};
+use super::{
+    check_raw_size, format_err, make_volume, open, read_voxels, Encoding, Files, Layout, RawSpec, VolumeLimit,
+};
 use crate::{Volume, VolumeError};
 use glam::DVec3;
 use std::path::Path;
 
 /// Reads the raw volume at `path` as `spec` describes it.
-pub(crate) fn read(path: &Path, spec: &RawSpec) -> Result<Volume, VolumeError> {
+pub(crate) fn read(path: &Path, spec: &RawSpec, limit: &VolumeLimit) -> Result<Volume, VolumeError> {
     let layout = Layout { dims: spec.dims, voxel: spec.voxel, big_endian: spec.big_endian };
-    layout.voxel_count().map_err(|e| format_err(path, format!("--dims {e}")))?;
+    layout.check_within(limit).map_err(|e| format_err(path, format!("--dims {e}")))?;
     let s = spec.spacing;
     if !(s.is_finite() && s.min_element() > 0.0) {
         return Err(format_err(

@@ -1,0 +1,499 @@
+//! The console's frame loop: drives the wall frame after frame (as `isowall session` does, with
+//! the session's camera logic), carries out the API's [`Command`]s between frames, asks the nodes
+//! for downscaled thumbnails only when a page wants one, and publishes the [`Status`].
+
+use super::api::{ApiError, Picture, Shared};
+use super::patch::{CameraPatch, Controls, RenderPatch};
+use super::status::{self, NodeHealth, Status};
+use crate::controls::SessionState;
+use crate::local::LocalDaemons;
+use crate::path::CameraPath;
+use crate::wall::{compose, compose_scaled, quantile, Wall};
+use anyhow::Result;
+use isowall_wall::messages::MAX_THUMBNAIL_DIVISOR;
+use isowall_wall::{Camera, Governor, Motion, RenderSettings};
+use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::path::PathBuf;
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tokio::sync::{mpsc, oneshot};
+
+/// Thumbnails asked of the nodes per second at most, however many pages ask (a page asking
+/// sooner gets the last one again).
+pub const THUMBNAIL_MAX_HZ: f64 = 4.0;
+/// How long a thumbnail waits for a node that does not answer.
+const THUMBNAIL_GIVE_UP: Duration = Duration::from_secs(2);
+/// The status is published this often at most.
+const PUBLISH_EVERY: Duration = Duration::from_millis(100);
+
+/// What the API asks the frame loop for.
+pub enum Command {
+    Render(RenderPatch, oneshot::Sender<Result<(), ApiError>>),
+    Camera(CameraPatch, oneshot::Sender<Result<(), ApiError>>),
+    /// A whole-wall PNG: `width` for a thumbnail at most that wide, `None` for full resolution.
+    Snapshot(Option<u32>, oneshot::Sender<Result<Picture, ApiError>>),
+}
+
+/// The scene the console starts with.
+pub struct Scene {
+    pub camera: Camera,
+    pub settings: RenderSettings,
+    pub range: (f64, f64),
+    pub demo: Option<(PathBuf, CameraPath)>,
+}
+
+/// The thumbnail downscale for a page `width` pixels wide: the smallest divisor that fits.
+pub fn divisor_for(wall_width: u32, width: u32) -> u32 {
+    wall_width.div_ceil(width.max(1)).clamp(1, MAX_THUMBNAIL_DIVISOR)
+}
+
+fn unix_ms() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| u64::try_from(d.as_millis()).unwrap_or(u64::MAX))
+}
+
+fn png(w: u32, h: u32, rgb: &[u8]) -> Result<Vec<u8>, ApiError> {
+    use image::ImageEncoder;
+    let mut out = Vec::new();
+    image::codecs::png::PngEncoder::new(&mut out)
+        .write_image(rgb, w, h, image::ExtendedColorType::Rgb8)
+        .map_err(|e| ApiError::internal(format!("cannot encode the snapshot as PNG: {e}")))?;
+    Ok(out)
+}
+
+struct Loop {
+    shared: Arc<Shared>,
+    controls: Controls,
+    demo_path: Option<(PathBuf, CameraPath)>,
+    demo_started: Option<Instant>,
+    governor: Option<(f64, Governor)>,
+    health: BTreeMap<String, NodeHealth>,
+    /// When each recent frame's swap was released.
+    released_at: VecDeque<(u64, Instant)>,
+    /// Time between swaps of the recent frames.
+    intervals: VecDeque<(u64, Duration)>,
+    last_swap: Option<Instant>,
+    waiting: Vec<(u32, oneshot::Sender<Result<Picture, ApiError>>)>,
+    asked_divisor: u32,
+    cache: Option<(u32, Instant, Picture)>,
+    thumbnails: u64,
+    rss: HashMap<String, (u32, u64)>,
+    rss_at: Option<Instant>,
+    frame_samples: (u32, u32),
+    started: Instant,
+    published: Option<Instant>,
+}
+
+pub async fn run(
+    mut wall: Wall,
+    mut daemons: Option<LocalDaemons>,
+    scene: Scene,
+    shared: Arc<Shared>,
+    mut commands: mpsc::Receiver<Command>,
+) -> Result<()> {
+    wall.sync_clocks(5).await;
+    let now = Instant::now();
+    let controls = Controls {
+        session: SessionState::new(scene.camera, scene.settings, scene.range),
+        home: scene.camera,
+        range: scene.range,
+        env: wall.config.render.env.clone(),
+        target_frame_ms: wall.config.render.target_frame_ms,
+        orbit: false,
+        orbit_degrees_per_second: 20.0,
+        demo_available: scene.demo.is_some(),
+        demo: false,
+    };
+    let mut me = Loop {
+        shared,
+        controls,
+        demo_path: scene.demo,
+        demo_started: None,
+        governor: None,
+        health: wall.config.nodes.iter().map(|n| (n.name.clone(), NodeHealth::new(now, unix_ms()))).collect(),
+        released_at: VecDeque::new(),
+        intervals: VecDeque::new(),
+        last_swap: None,
+        waiting: Vec::new(),
+        asked_divisor: 1,
+        cache: None,
+        thumbnails: 0,
+        rss: HashMap::new(),
+        rss_at: None,
+        frame_samples: (scene.settings.ao.samples, 1),
+        started: now,
+        published: None,
+    };
+    let mut last = Instant::now();
+    let mut frames = 0u64;
+    loop {
+        // Everything the API asked since the last frame; never waits.
+        let mut moved = false;
+        while let Ok(cmd) = commands.try_recv() {
+            moved |= me.command(&mut wall, cmd).await;
+        }
+        if commands.is_closed() && commands.is_empty() {
+            break;
+        }
+        let dt = last.elapsed().as_secs_f64().min(0.25);
+        last = Instant::now();
+        moved |= me.advance(dt);
+        let settings = me.frame_settings(&mut wall);
+        let camera = me.controls.session.camera;
+        if let Err(e) = wall.frame(&camera, &settings).await {
+            tracing::warn!("console: no frame: {e:#}");
+            me.after_frame(&mut wall, &mut daemons, false, moved).await;
+            tokio::time::sleep(Duration::from_millis(200)).await;
+            continue;
+        }
+        me.after_frame(&mut wall, &mut daemons, true, moved).await;
+        frames += 1;
+        if frames % 30 == 29 {
+            wall.sync_clocks(1).await;
+        }
+    }
+    wall.close("the console is closed").await;
+    drop(daemons);
+    Ok(())
+}
+
+impl Loop {
+    /// Carries out one command; `true` if it moved the camera (the governor's motion).
+    async fn command(&mut self, wall: &mut Wall, cmd: Command) -> bool {
+        match cmd {
+            Command::Render(p, reply) => {
+                let r = self.controls.apply_render(&p).map_err(ApiError::refused);
+                let _ = reply.send(r);
+                false
+            }
+            Command::Camera(p, reply) => {
+                let demo_before = self.controls.demo;
+                let r = self.controls.apply_camera(&p).map_err(ApiError::refused);
+                if self.controls.demo && !demo_before {
+                    self.demo_started = Some(Instant::now());
+                }
+                let moved = r.is_ok();
+                let _ = reply.send(r);
+                moved
+            }
+            Command::Snapshot(None, reply) => {
+                let tiles = wall.snapshot().await;
+                let frame_id = tiles.values().flatten().map(|t| t.frame_id).min();
+                let age = frame_id.and_then(|f| self.age_of(f));
+                let (w, h, rgb) = compose(&wall.config, &tiles);
+                let r = tokio::task::spawn_blocking(move || png(w, h, &rgb))
+                    .await
+                    .unwrap_or_else(|e| Err(ApiError::internal(format!("PNG encoder: {e}"))));
+                let _ = reply.send(r.map(|png| Picture { png, width: w, height: h, frame_id, age }));
+                false
+            }
+            Command::Snapshot(Some(width), reply) => {
+                let divisor = divisor_for(wall.config.wall_size().0, width);
+                let fresh = Duration::from_secs_f64(1.0 / THUMBNAIL_MAX_HZ);
+                match &self.cache {
+                    Some((d, at, pic)) if *d == divisor && at.elapsed() < fresh => {
+                        let mut pic = pic.clone();
+                        pic.age = pic.frame_id.and_then(|f| self.age_of(f));
+                        let _ = reply.send(Ok(pic));
+                    }
+                    _ => {
+                        self.waiting.push((divisor, reply));
+                        self.ask_thumbnail(wall).await;
+                    }
+                }
+                false
+            }
+        }
+    }
+
+    async fn ask_thumbnail(&mut self, wall: &mut Wall) {
+        if wall.thumbnail_pending() {
+            return;
+        }
+        let Some(&(divisor, _)) = self.waiting.first() else { return };
+        self.asked_divisor = divisor;
+        self.thumbnails += 1;
+        wall.request_thumbnail(divisor, THUMBNAIL_GIVE_UP).await;
+    }
+
+    /// How long ago frame `id`'s swap was released.
+    fn age_of(&self, id: u64) -> Option<Duration> {
+        self.released_at.iter().find(|(f, _)| *f == id).map(|(_, t)| t.elapsed())
+    }
+
+    /// Moves the camera by the orbit or the demo path for `dt` seconds; `true` if it moved.
+    fn advance(&mut self, dt: f64) -> bool {
+        let c = &mut self.controls;
+        if c.demo {
+            if let Some((_, path)) = &self.demo_path {
+                let start = *self.demo_started.get_or_insert_with(Instant::now);
+                let t = start.elapsed().as_secs_f64().rem_euclid(path.duration().max(1e-9));
+                let key = path.at(t);
+                c.session.camera = key.camera();
+                c.session.settings.iso = key.iso;
+                c.session.settings.ao.samples = key.ao_samples;
+                return true;
+            }
+        }
+        if c.orbit {
+            c.session.orbit_yaw(c.orbit_degrees_per_second * dt);
+            return true;
+        }
+        false
+    }
+
+    /// The settings of the next frame: the operator's, with the governor's samples and scale.
+    fn frame_settings(&mut self, wall: &mut Wall) -> RenderSettings {
+        let mut s = self.controls.session.settings;
+        match self.controls.target_frame_ms {
+            Some(t) => {
+                if self.governor.as_ref().is_none_or(|(target, _)| *target != t) {
+                    let max = isowall_wall::render_state::MAX_AO_SAMPLES;
+                    self.governor = Governor::new(t, s.ao.samples.clamp(1, max), 1, max).ok().map(|g| (t, g));
+                }
+            }
+            None => self.governor = None,
+        }
+        match &self.governor {
+            Some((_, g)) => {
+                s.ao.samples = g.samples();
+                wall.scale = g.scale();
+            }
+            None => wall.scale = 1,
+        }
+        self.frame_samples = (s.ao.samples, wall.scale);
+        s
+    }
+
+    async fn after_frame(
+        &mut self,
+        wall: &mut Wall,
+        daemons: &mut Option<LocalDaemons>,
+        ok: bool,
+        moved: bool,
+    ) {
+        let now = Instant::now();
+        if ok {
+            let id = wall.last_frame_id();
+            self.released_at.push_back((id, now));
+            if let Some(prev) = self.last_swap {
+                self.intervals.push_back((id, now - prev));
+            }
+            self.last_swap = Some(now);
+            while self.released_at.len() > 256 {
+                self.released_at.pop_front();
+            }
+            while self.intervals.len() > crate::wall::HISTORY {
+                self.intervals.pop_front();
+            }
+            if let Some((_, g)) = &mut self.governor {
+                let frame = wall.releases.last().map_or(Duration::ZERO, |r| r.1);
+                g.observe(status::ms(frame), if moved { Motion::Moving } else { Motion::Still });
+            }
+        }
+        // Node health from the frame just released (its stragglers missed the deadline).
+        let release = wall.releases.last().filter(|r| ok && r.0 == wall.last_frame_id());
+        let unix = unix_ms();
+        for (name, h) in &mut self.health {
+            let connected = wall.is_up(name);
+            let missed = release.filter(|_| connected).map(|r| r.2.contains(name));
+            h.observe(now, unix, connected, missed);
+        }
+        // A thumbnail that came in: to every page waiting for one at its size.
+        if let Some(tiles) = wall.take_thumbnail() {
+            let divisor = self.asked_divisor;
+            let frame_id = tiles.values().flatten().map(|t| t.frame_id).min();
+            let (w, h, rgb) = compose_scaled(&wall.config, &tiles, divisor);
+            let age = frame_id.and_then(|f| self.age_of(f));
+            match png(w, h, &rgb) {
+                Ok(png) => {
+                    let pic = Picture { png, width: w, height: h, frame_id, age };
+                    let (now_served, later): (Vec<_>, Vec<_>) =
+                        std::mem::take(&mut self.waiting).into_iter().partition(|(d, _)| *d == divisor);
+                    for (_, reply) in now_served {
+                        let _ = reply.send(Ok(pic.clone()));
+                    }
+                    self.waiting = later;
+                    self.cache = Some((divisor, Instant::now(), pic));
+                }
+                Err(e) => {
+                    for (_, reply) in self.waiting.drain(..) {
+                        let _ = reply.send(Err(e.clone()));
+                    }
+                }
+            }
+        }
+        self.waiting.retain(|(_, r)| !r.is_closed());
+        if !self.waiting.is_empty() {
+            self.ask_thumbnail(wall).await;
+        }
+        // Resident memory of local daemons, once a second.
+        if self.rss_at.is_none_or(|t| t.elapsed() > Duration::from_secs(1)) {
+            self.rss_at = Some(Instant::now());
+            self.rss.clear();
+            if let Some(d) = daemons.as_mut() {
+                for (name, pid) in d.pids() {
+                    if let Some(r) = crate::local::resources(pid) {
+                        self.rss.insert(name, (pid, r.rss_kib));
+                    }
+                }
+            }
+        }
+        if self.published.is_none_or(|t| t.elapsed() >= PUBLISH_EVERY) {
+            self.published = Some(Instant::now());
+            let status = self.status(wall);
+            self.shared.status.send_replace(Some(Arc::new(status)));
+        }
+    }
+
+    fn status(&self, wall: &Wall) -> Status {
+        use status::*;
+        let cfg = &wall.config;
+        let (width, height) = cfg.wall_size();
+        let tiles = cfg
+            .tiles
+            .iter()
+            .map(|t| TileInfo {
+                name: t.name.clone(),
+                node: cfg.node_of_tile(&t.name).map(|n| n.name.clone()).unwrap_or_default(),
+                x: t.x,
+                y: t.y,
+                width: t.width,
+                height: t.height,
+                bezel: t.bezel,
+            })
+            .collect();
+        let now = Instant::now();
+        let fps = {
+            let recent: Vec<&(u64, Instant)> = self
+                .released_at
+                .iter()
+                .filter(|(_, t)| now.duration_since(*t) < Duration::from_secs(2))
+                .collect();
+            match (recent.first(), recent.last()) {
+                (Some(a), Some(b)) if recent.len() > 1 => {
+                    (recent.len() - 1) as f64 / b.1.duration_since(a.1).as_secs_f64().max(1e-9)
+                }
+                _ => 0.0,
+            }
+        };
+        let intervals: Vec<Duration> = self.intervals.iter().map(|x| x.1).collect();
+        let skews: Vec<Duration> = wall.finished.iter().filter_map(|f| f.swap_skew).collect();
+        let tail = |v: &[Duration]| v[v.len().saturating_sub(SERIES)..].iter().map(|d| ms(*d)).collect();
+        let q = |v: &[Duration], p: f64| quantile(v.to_vec(), p).map(ms);
+        let frame = FrameInfo {
+            id: wall.releases.last().map_or(0, |r| r.0),
+            released: wall.released,
+            fps,
+            frame_ms: tail(&intervals),
+            skew_ms: tail(&skews),
+            frame_ms_p50: q(&intervals, 0.5),
+            frame_ms_p99: q(&intervals, 0.99),
+            skew_ms_p50: q(&skews, 0.5),
+            skew_ms_p99: q(&skews, 0.99),
+        };
+        let s = &self.controls.session.settings;
+        let c = &self.controls.session.camera;
+        let times = last_times(&wall.finished);
+        let resident: BTreeMap<&str, u64> = wall
+            .finished
+            .iter()
+            .rev()
+            .take(8)
+            .flat_map(|f| f.per_node.iter().filter_map(|n| n.resident_bytes.map(|b| (n.node.as_str(), b))))
+            .collect();
+        let nodes = cfg
+            .nodes
+            .iter()
+            .map(|n| {
+                let h = &self.health[&n.name];
+                let (render_ms, ready_ms) = times.get(&n.name).copied().unwrap_or_default();
+                NodeCard {
+                    name: n.name.clone(),
+                    address: n.address.clone(),
+                    state: h.state,
+                    reason: h.reason.clone(),
+                    since_s: h.since.elapsed().as_secs_f64(),
+                    since_unix_ms: h.since_unix_ms,
+                    render_ms,
+                    ready_ms,
+                    rss_kib: self.rss.get(&n.name).map(|r| r.1),
+                    pid: self.rss.get(&n.name).map(|r| r.0),
+                    resident_volume_bytes: resident.get(n.name.as_str()).copied(),
+                    tiles: n.tiles.clone(),
+                    bricks: wall.bricks_of(&n.name),
+                }
+            })
+            .collect();
+        Status {
+            wall: WallInfo {
+                name: cfg.wall.name.clone(),
+                mode: format!("{:?}", cfg.wall.mode).to_lowercase(),
+                width,
+                height,
+                deadline_ms: cfg.wall.deadline_ms,
+                tiles,
+            },
+            frame,
+            render: RenderInfo {
+                iso: s.iso,
+                ao_samples: s.ao.samples,
+                max_ao_samples: isowall_wall::render_state::MAX_AO_SAMPLES,
+                ao_method: s.ao.method,
+                ibl: s.ao.ibl,
+                exposure: s.exposure,
+                shading: s.shading,
+                target_frame_ms: self.controls.target_frame_ms,
+                frame_ao_samples: self.frame_samples.0,
+                frame_scale: self.frame_samples.1,
+            },
+            volume: VolumeInfo {
+                source: cfg.volume_source(),
+                min: self.controls.range.0,
+                max: self.controls.range.1,
+            },
+            camera: CameraInfo {
+                eye: c.eye.to_array(),
+                target: c.target.to_array(),
+                up: c.up.to_array(),
+                fov_y: c.fov_y_deg,
+            },
+            orbit: OrbitInfo {
+                playing: self.controls.orbit,
+                degrees_per_second: self.controls.orbit_degrees_per_second,
+            },
+            demo: DemoInfo {
+                path: self.demo_path.as_ref().map(|(p, _)| p.display().to_string()),
+                playing: self.controls.demo,
+                duration_s: self.demo_path.as_ref().map(|(_, p)| p.duration()),
+            },
+            nodes,
+            console: ConsoleInfo {
+                read_only: self.shared.access.read_only,
+                token: self.shared.access.token.is_some(),
+                uptime_s: self.started.elapsed().as_secs_f64(),
+                node_image_bytes: wall.snapshot_bytes,
+                thumbnails: self.thumbnails,
+                served_bytes: self.shared.served_bytes.load(Ordering::Relaxed),
+            },
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_thumbnail_divisor_is_the_smallest_that_fits() {
+        assert_eq!(divisor_for(328, 328), 1);
+        assert_eq!(divisor_for(328, 400), 1);
+        assert_eq!(divisor_for(328, 164), 2);
+        assert_eq!(divisor_for(328, 163), 3);
+        assert_eq!(divisor_for(7680, 640), 12);
+        assert_eq!(divisor_for(1 << 20, 1), MAX_THUMBNAIL_DIVISOR);
+        assert_eq!(divisor_for(328, 0), MAX_THUMBNAIL_DIVISOR);
+    }
+}

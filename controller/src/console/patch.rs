@@ -1,0 +1,323 @@
+//! The changes `POST /api/render` and `POST /api/camera` ask for, and how they apply to the
+//! console's [`Controls`]: validated first (the render settings by the config's own rules,
+//! [`isowall_wall::config::render_problems`]), applied only when all of it is valid, so a refused
+//! request changes nothing.
+
+use crate::controls::SessionState;
+use isowall_wall::config::{render_problems, RenderConfig};
+use isowall_wall::{AoMethod, Camera, IblMethod, RenderSettings, Shading};
+use serde::{Deserialize, Deserializer};
+
+/// A refused change: the field it is about and why.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Refusal {
+    pub field: &'static str,
+    pub message: String,
+}
+
+impl Refusal {
+    fn new(field: &'static str, message: impl Into<String>) -> Refusal {
+        Refusal { field, message: message.into() }
+    }
+}
+
+/// `POST /api/render`: any subset of the render settings, with the config's names and units.
+#[derive(Clone, Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RenderPatch {
+    /// Data units, within the volume's value range.
+    pub iso: Option<f64>,
+    pub ao_samples: Option<u32>,
+    pub ao_method: Option<AoMethod>,
+    pub ibl: Option<IblMethod>,
+    pub exposure: Option<f64>,
+    pub shading: Option<Shading>,
+    /// A number turns the quality governor on for that frame time; `null` turns it off.
+    #[serde(default, deserialize_with = "present")]
+    pub target_frame_ms: Option<Option<f64>>,
+}
+
+/// `Some(value)` for a field that is present (also `null`), `None` for one left out.
+fn present<'de, D: Deserializer<'de>>(d: D) -> Result<Option<Option<f64>>, D::Error> {
+    Option::<f64>::deserialize(d).map(Some)
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Play {
+    Play,
+    Pause,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum DemoCommand {
+    Start,
+    Stop,
+}
+
+/// `POST /api/camera`: a camera set outright (eye, target, up, fov_y), moved (yaw, pitch,
+/// zoom, as the session's keys do), reset to the config's, and the orbit and demo path played.
+#[derive(Clone, Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CameraPatch {
+    pub eye: Option<[f64; 3]>,
+    pub target: Option<[f64; 3]>,
+    pub up: Option<[f64; 3]>,
+    pub fov_y: Option<f64>,
+    /// Degrees about the world up axis through the target (+: counter-clockwise from above).
+    pub yaw_deg: Option<f64>,
+    /// Degrees up (+) or down about the target, stopping short of the poles.
+    pub pitch_deg: Option<f64>,
+    /// Distance factor (< 1: closer).
+    pub zoom: Option<f64>,
+    /// Back to the config's camera (before the other fields apply).
+    #[serde(default)]
+    pub reset: bool,
+    pub orbit: Option<Play>,
+    pub orbit_degrees_per_second: Option<f64>,
+    pub demo: Option<DemoCommand>,
+}
+
+/// What the operator controls: the session's camera and settings, the governor's target, the
+/// orbit and the demo path.
+#[derive(Clone, Debug)]
+pub struct Controls {
+    pub session: SessionState,
+    pub home: Camera,
+    pub range: (f64, f64),
+    pub env: String,
+    pub target_frame_ms: Option<f64>,
+    pub orbit: bool,
+    pub orbit_degrees_per_second: f64,
+    /// Whether a demo path was given, and whether it plays.
+    pub demo_available: bool,
+    pub demo: bool,
+}
+
+/// The largest orbit rate and single turn accepted, degrees.
+const MAX_DEGREES: f64 = 360.0;
+
+impl Controls {
+    /// Applies `p` if all of it is valid; on a refusal nothing changes.
+    pub fn apply_render(&mut self, p: &RenderPatch) -> Result<(), Refusal> {
+        let mut s: RenderSettings = self.session.settings;
+        let mut target = self.target_frame_ms;
+        if let Some(iso) = p.iso {
+            let (lo, hi) = self.range;
+            if !iso.is_finite() {
+                return Err(Refusal::new("iso", format!("render: `iso` {iso} is not a finite number")));
+            }
+            if iso < lo || iso > hi {
+                return Err(Refusal::new(
+                    "iso",
+                    format!("render: `iso` {iso} is outside the volume's value range [{lo}, {hi}]"),
+                ));
+            }
+            s.iso = iso;
+        }
+        if let Some(n) = p.ao_samples {
+            s.ao.samples = n;
+        }
+        if let Some(m) = p.ao_method {
+            s.ao.method = m;
+        }
+        if let Some(m) = p.ibl {
+            s.ao.ibl = m;
+        }
+        if let Some(x) = p.exposure {
+            s.exposure = x;
+        }
+        if let Some(x) = p.shading {
+            s.shading = x;
+        }
+        if let Some(t) = p.target_frame_ms {
+            target = t;
+        }
+        // The config's own rules, on the table these settings would be written as.
+        let table = RenderConfig {
+            shading: s.shading,
+            ao_samples: s.ao.samples,
+            ao_radius: s.ao.radius,
+            ao_method: s.ao.method,
+            ao_sequence: s.ao.sequence,
+            ibl: s.ao.ibl,
+            env: self.env.clone(),
+            exposure: Some(s.exposure),
+            target_frame_ms: target,
+        };
+        if let Some((field, message)) = render_problems(&table).into_iter().next() {
+            return Err(Refusal { field, message });
+        }
+        self.session.settings = s;
+        self.target_frame_ms = target;
+        Ok(())
+    }
+
+    /// Applies `p` if all of it is valid; on a refusal nothing changes.
+    pub fn apply_camera(&mut self, p: &CameraPatch) -> Result<(), Refusal> {
+        let mut next = self.clone();
+        let c = &mut next.session.camera;
+        if p.reset {
+            *c = self.home;
+        }
+        let vec = |field: &'static str, v: [f64; 3]| {
+            if v.iter().all(|x| x.is_finite()) {
+                Ok(glam::DVec3::from_array(v))
+            } else {
+                Err(Refusal::new(field, format!("camera: `{field}` {v:?} is not three finite numbers")))
+            }
+        };
+        if let Some(v) = p.eye {
+            c.eye = vec("eye", v)?;
+        }
+        if let Some(v) = p.target {
+            c.target = vec("target", v)?;
+        }
+        if let Some(v) = p.up {
+            c.up = vec("up", v)?;
+        }
+        if let Some(f) = p.fov_y {
+            c.fov_y_deg = f;
+        }
+        let turn = |field: &'static str, x: f64| {
+            if x.is_finite() && x.abs() <= MAX_DEGREES {
+                Ok(x)
+            } else {
+                Err(Refusal::new(
+                    field,
+                    format!("camera: `{field}` {x} is not a number of degrees in [-360, 360]"),
+                ))
+            }
+        };
+        if let Some(x) = p.yaw_deg {
+            next.session.orbit_yaw(turn("yaw_deg", x)?);
+        }
+        if let Some(x) = p.pitch_deg {
+            next.session.orbit_pitch(turn("pitch_deg", x)?);
+        }
+        if let Some(z) = p.zoom {
+            if !(z.is_finite() && z > 0.0 && z <= 100.0) {
+                return Err(Refusal::new("zoom", format!("camera: `zoom` {z} is not a factor in (0, 100]")));
+            }
+            next.session.zoom(z);
+        }
+        next.session.camera.validate().map_err(|e| Refusal::new("camera", format!("camera: {e}")))?;
+        if let Some(r) = p.orbit_degrees_per_second {
+            next.orbit_degrees_per_second = turn("orbit_degrees_per_second", r)?;
+        }
+        if let Some(play) = p.orbit {
+            next.orbit = play == Play::Play;
+        }
+        match p.demo {
+            Some(DemoCommand::Start) if !self.demo_available => {
+                return Err(Refusal::new(
+                    "demo",
+                    "no demo path: start the console with --demo-path FILE (keyframes in TOML)",
+                ))
+            }
+            Some(d) => next.demo = d == DemoCommand::Start,
+            None => {}
+        }
+        *self = next;
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::DVec3;
+
+    fn controls() -> Controls {
+        let cam =
+            Camera { eye: DVec3::new(10.0, 0.0, 0.0), target: DVec3::ZERO, up: DVec3::Z, fov_y_deg: 35.0 };
+        Controls {
+            session: SessionState::new(cam, RenderSettings::new(0.5), (0.0, 2.0)),
+            home: cam,
+            range: (0.0, 2.0),
+            env: "sky".into(),
+            target_frame_ms: None,
+            orbit: false,
+            orbit_degrees_per_second: 20.0,
+            demo_available: false,
+            demo: false,
+        }
+    }
+
+    fn render(json: &str) -> RenderPatch {
+        serde_json::from_str(json).unwrap()
+    }
+
+    #[test]
+    fn a_valid_render_patch_changes_only_what_it_names() {
+        let mut c = controls();
+        c.apply_render(&render(r#"{"iso": 1.25, "ao_samples": 32, "ibl": "rays", "ao_method": "seed"}"#))
+            .unwrap();
+        let s = c.session.settings;
+        assert_eq!((s.iso, s.ao.samples, s.ao.ibl, s.ao.method), (1.25, 32, IblMethod::Rays, AoMethod::Seed));
+        assert_eq!(s.exposure, RenderSettings::new(0.5).exposure);
+        c.apply_render(&render(r#"{"target_frame_ms": 40}"#)).unwrap();
+        assert_eq!(c.target_frame_ms, Some(40.0));
+        c.apply_render(&render(r#"{"exposure": 0.8}"#)).unwrap();
+        assert_eq!(c.target_frame_ms, Some(40.0), "left out: unchanged");
+        c.apply_render(&render(r#"{"target_frame_ms": null}"#)).unwrap();
+        assert_eq!(c.target_frame_ms, None);
+    }
+
+    #[test]
+    fn an_invalid_render_patch_names_its_field_and_changes_nothing() {
+        let cases = [
+            (r#"{"iso": 2.5, "ao_samples": 4}"#, "iso", "outside the volume's value range [0, 2]"),
+            (r#"{"ao_samples": 5000, "iso": 1.0}"#, "ao_samples", "`ao_samples` 5000 is more than 1024"),
+            (r#"{"exposure": -1}"#, "exposure", "`exposure` -1 must be a finite number >= 0"),
+            (r#"{"target_frame_ms": 0}"#, "target_frame_ms", "`target_frame_ms`: target frame time 0 ms"),
+        ];
+        for (json, field, says) in cases {
+            let mut c = controls();
+            let before = c.session;
+            let e = c.apply_render(&render(json)).unwrap_err();
+            assert_eq!(e.field, field, "{json}: {e:?}");
+            assert!(e.message.contains(says), "{json}: {}", e.message);
+            assert_eq!(c.session, before, "{json} changed something");
+        }
+        let e = serde_json::from_str::<RenderPatch>(r#"{"isovalue": 1}"#).unwrap_err().to_string();
+        assert!(e.contains("unknown field `isovalue`"), "{e}");
+        let e = serde_json::from_str::<RenderPatch>(r#"{"ibl": "mirror"}"#).unwrap_err().to_string();
+        assert!(e.contains("unknown variant `mirror`"), "{e}");
+    }
+
+    #[test]
+    fn camera_patches_move_set_and_refuse() {
+        let mut c = controls();
+        let p: CameraPatch = serde_json::from_str(r#"{"yaw_deg": 90, "orbit": "play"}"#).unwrap();
+        c.apply_camera(&p).unwrap();
+        assert!(
+            (c.session.camera.eye - DVec3::new(0.0, 10.0, 0.0)).length() < 1e-9,
+            "{}",
+            c.session.camera.eye
+        );
+        assert!(c.orbit);
+        let p: CameraPatch =
+            serde_json::from_str(r#"{"reset": true, "zoom": 0.5, "orbit": "pause"}"#).unwrap();
+        c.apply_camera(&p).unwrap();
+        assert!((c.session.camera.eye - DVec3::new(5.0, 0.0, 0.0)).length() < 1e-9);
+        assert!(!c.orbit);
+        let before = c.session;
+        for (json, field) in [
+            (r#"{"eye": [0, 0, 0], "yaw_deg": 10}"#, "camera"),
+            (r#"{"fov_y": 200}"#, "camera"),
+            (r#"{"zoom": -1}"#, "zoom"),
+            (r#"{"yaw_deg": 1e9}"#, "yaw_deg"),
+            (r#"{"demo": "start"}"#, "demo"),
+        ] {
+            let p: CameraPatch = serde_json::from_str(json).unwrap();
+            let e = c.apply_camera(&p).unwrap_err();
+            assert_eq!(e.field, field, "{json}: {e:?}");
+            assert_eq!(c.session, before, "{json} changed something");
+        }
+        c.demo_available = true;
+        c.apply_camera(&serde_json::from_str(r#"{"demo": "start"}"#).unwrap()).unwrap();
+        assert!(c.demo);
+    }
+}

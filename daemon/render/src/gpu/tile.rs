@@ -1,0 +1,454 @@
+//! A wall tile's GPU resources, made once (at start, on a resize, on a change of internal scale)
+//! and reused every frame: the AOV and accumulation buffers of its (low-resolution) window, the
+//! parameters (written in place), [`IMAGES`] presentable images (the one on show, one waiting for
+//! its swap, the one being rendered), depth, counters, and the bind groups that tie them to the kernels.
+//!
+//! A frame ([`GpuRenderer::render_tile`]) stays on the GPU: the isosurface kernel (only when the
+//! accumulation restarts: the primary hits do not change while the frame state does not), the AO
+//! kernel adding one frame into the running sums, and [`Kernel::Compose`](crate::shaders::Kernel)
+//! writing the presentable image, depth and the frame's counters. Only what leaves the node is
+//! read back, through a [`ReadbackRing`]: the counters (and kernel timestamps) every frame, colour
+//! and depth where the tile's pixels travel (object space), the image when a snapshot is asked
+//! for ([`GpuRenderer::read_tile_image`]).
+
+use super::compose::ComposeParams;
+use super::readback::{Read, ReadbackRing, Source};
+use super::{FrameParams, GpuEnvironment, GpuError, GpuRenderer, GpuVolume};
+use isowall_wall::{lowres, IblMethod, RenderSettings, View};
+
+/// A presentable image of a tile: 8-bit sRGB values in an RGBA8 texture the size of the tile's
+/// window, drawn by presentation (`present.rs`) and copied for snapshots.
+pub struct TileImage {
+    pub texture: wgpu::Texture,
+    /// The frame it holds, once rendered.
+    pub frame_id: Option<u64>,
+    storage: wgpu::TextureView,
+}
+
+/// The bind groups of a tile for one volume and environment.
+struct Bound {
+    volume: u64,
+    env: u64,
+    isosurface: wgpu::BindGroup,
+    ao: wgpu::BindGroup,
+}
+
+/// The timestamp queries of a tile's frame (where the adapter has them): begin and end of the
+/// isosurface, AO and compose passes.
+struct Timestamps {
+    set: wgpu::QuerySet,
+    resolved: wgpu::Buffer,
+}
+
+const QUERIES: u32 = 6;
+
+/// Presentable images per tile: the one on show, one rendered and waiting for its swap, and the
+/// one being rendered.
+pub const IMAGES: usize = 3;
+
+/// Bytes of the counters buffer: fetches (low, high word), hits, pixels.
+const COUNTER_BYTES: u64 = 16;
+
+/// A tile's resources.
+pub struct TileTarget {
+    pub name: String,
+    /// Identifies these resources (presentation binds a target's images once).
+    id: u64,
+    size: (u32, u32),
+    scale: u32,
+    low_size: (u32, u32),
+    /// direct + hit, N + depth, fetches, summed bent + A, summed E (the low window).
+    aov: [wgpu::Buffer; 5],
+    params: wgpu::Buffer,
+    compose_params: wgpu::Buffer,
+    depth: wgpu::Buffer,
+    counters: wgpu::Buffer,
+    images: [TileImage; IMAGES],
+    compose: [wgpu::BindGroup; IMAGES],
+    bound: Option<Bound>,
+    timestamps: Option<Timestamps>,
+    /// Frames in the running sums.
+    frames: u32,
+    /// The last frame's parameters with the frame index cleared, and its volume and environment:
+    /// any difference restarts the accumulation.
+    state: Option<(FrameParams, u64, u64)>,
+    /// The image the last frame was rendered into.
+    latest: usize,
+}
+
+/// What a tile's frame reads back (the tag of its slot in the ring).
+#[derive(Clone, Debug)]
+pub struct FrameRead {
+    pub frame_id: u64,
+    pub tile: String,
+    pub width: u32,
+    pub height: u32,
+    /// The passes the frame ran (isosurface, AO, compose) where they were timed.
+    pub timed: Option<[bool; 3]>,
+    /// Colour and depth were read (object space shares).
+    pub share: bool,
+    /// Only the image (a snapshot of a frame already rendered).
+    pub image_only: bool,
+}
+
+/// The frame's counters over the tile's low window.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct FrameCounters {
+    pub fetches: u64,
+    pub hits: u64,
+    pub pixels: u64,
+}
+
+/// A tile's read, decoded.
+#[derive(Clone, Debug, Default)]
+pub struct TileOutput {
+    pub counters: FrameCounters,
+    /// GPU milliseconds of the isosurface, AO and compose passes (timestamp queries), where the
+    /// adapter has them and the pass ran.
+    pub kernel_ms: [Option<f64>; 3],
+    /// 8-bit sRGB RGB, rows top to bottom (shares and snapshots).
+    pub rgb8: Option<Vec<u8>>,
+    /// Distance along the ray per pixel, +inf without a hit (shares).
+    pub depth: Option<Vec<f32>>,
+}
+
+impl TileTarget {
+    /// The resources of a tile showing `view`'s window, rendered at internal scale `scale`.
+    pub fn new(gpu: &GpuRenderer, name: &str, view: &View, scale: u32) -> Result<TileTarget, GpuError> {
+        let ctx = &gpu.ctx;
+        let scale = scale.max(1);
+        let low = lowres::scaled_view(view, scale);
+        let size = (view.window.width, view.window.height);
+        let low_size = (low.window.width, low.window.height);
+        if size.0 == 0 || size.1 == 0 {
+            return Err(GpuError::View(format!("tile {name}: empty window {}x{}", size.0, size.1)));
+        }
+        let limits = ctx.device.limits();
+        if size.0.max(size.1) > limits.max_texture_dimension_2d {
+            return Err(GpuError::TooLarge {
+                name: format!("tile {name}'s image"),
+                bytes: 4 * size.0 as u64 * size.1 as u64,
+                limit: limits.max_texture_dimension_2d as u64,
+            });
+        }
+        let n = low_size.0 as u64 * low_size.1 as u64;
+        let limit = limits.max_storage_buffer_binding_size.min(limits.max_buffer_size);
+        if n * 16 > limit {
+            return Err(GpuError::TooLarge { name: format!("tile {name}'s AOVs"), bytes: n * 16, limit });
+        }
+        ctx.validated("tile resources", || {
+            let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
+                ctx.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some(label),
+                    size,
+                    usage,
+                    mapped_at_creation: false,
+                })
+            };
+            let storage =
+                wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::COPY_SRC;
+            let aov = [
+                buffer("direct", n * 16, storage),
+                buffer("geometry", n * 16, storage),
+                buffer("fetches", n * 4, storage),
+                buffer("acc ao", n * 16, storage),
+                buffer("acc ibl", n * 16, storage),
+            ];
+            let params_usage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST;
+            let params = buffer("frame params", std::mem::size_of::<FrameParams>() as u64, params_usage);
+            let compose_params =
+                buffer("compose params", std::mem::size_of::<ComposeParams>() as u64, params_usage);
+            let depth = buffer("depth", size.0 as u64 * size.1 as u64 * 4, storage);
+            let counters = buffer("counters", COUNTER_BYTES, storage);
+            let image = || {
+                let texture = ctx.create_texture(&wgpu::TextureDescriptor {
+                    label: Some(name),
+                    size: wgpu::Extent3d { width: size.0, height: size.1, depth_or_array_layers: 1 },
+                    mip_level_count: 1,
+                    sample_count: 1,
+                    dimension: wgpu::TextureDimension::D2,
+                    format: wgpu::TextureFormat::Rgba8Unorm,
+                    usage: wgpu::TextureUsages::STORAGE_BINDING
+                        | wgpu::TextureUsages::TEXTURE_BINDING
+                        | wgpu::TextureUsages::COPY_SRC,
+                    view_formats: &[],
+                });
+                let storage = texture.create_view(&wgpu::TextureViewDescriptor::default());
+                TileImage { texture, frame_id: None, storage }
+            };
+            let images = [image(), image(), image()];
+            let inputs = [&aov[0], &aov[1], &aov[4], &aov[2]];
+            let compose = [0, 1, 2].map(|i| {
+                gpu.compose.bind(ctx, &compose_params, inputs, &images[i].storage, &depth, &counters)
+            });
+            let timestamps =
+                ctx.device.features().contains(wgpu::Features::TIMESTAMP_QUERY).then(|| Timestamps {
+                    set: ctx.device.create_query_set(&wgpu::QuerySetDescriptor {
+                        label: Some("tile passes"),
+                        ty: wgpu::QueryType::Timestamp,
+                        count: QUERIES,
+                    }),
+                    resolved: buffer(
+                        "timestamps",
+                        8 * QUERIES as u64,
+                        wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+                    ),
+                });
+            TileTarget {
+                name: name.to_string(),
+                id: super::next_resource_id(),
+                size,
+                scale,
+                low_size,
+                aov,
+                params,
+                compose_params,
+                depth,
+                counters,
+                images,
+                compose,
+                bound: None,
+                timestamps,
+                frames: 0,
+                state: None,
+                latest: 0,
+            }
+        })
+    }
+
+    /// Whether the resources fit `view`'s window at `scale` (else make new ones).
+    pub fn fits(&self, view: &View, scale: u32) -> bool {
+        let low = lowres::scaled_view(view, scale.max(1));
+        self.size == (view.window.width, view.window.height)
+            && self.scale == scale.max(1)
+            && self.low_size == (low.window.width, low.window.height)
+    }
+
+    pub fn id(&self) -> u64 {
+        self.id
+    }
+
+    /// The window's size in pixels.
+    pub fn size(&self) -> (u32, u32) {
+        self.size
+    }
+
+    /// Frames in the running sums after the last frame.
+    pub fn frames(&self) -> u32 {
+        self.frames
+    }
+
+    /// The image holding `frame_id`, if it is still held.
+    pub fn image(&self, frame_id: u64) -> Option<&TileImage> {
+        self.images.iter().find(|i| i.frame_id == Some(frame_id))
+    }
+
+    /// The images (presentation makes its bind groups for them once).
+    pub fn images(&self) -> &[TileImage; IMAGES] {
+        &self.images
+    }
+}
+
+impl FrameRead {
+    /// Decodes a delivered read of this tag.
+    pub fn decode(
+        read: Read<FrameRead>,
+        timestamp_period_ns: f32,
+    ) -> Result<(FrameRead, TileOutput), GpuError> {
+        let tag = read.tag;
+        let mut parts = read.parts?.into_iter();
+        let mut out = TileOutput::default();
+        let mut next = |what: &str| {
+            parts
+                .next()
+                .ok_or_else(|| GpuError::Readback(format!("tile {}: the read lacks its {what}", tag.tile)))
+        };
+        if !tag.image_only {
+            let c: Vec<u32> = bytemuck::pod_collect_to_vec(next("counters")?.as_slice());
+            out.counters = FrameCounters {
+                fetches: c[0] as u64 | (c[1] as u64) << 32,
+                hits: c[2] as u64,
+                pixels: c[3] as u64,
+            };
+            if let Some(ran) = tag.timed {
+                let t: Vec<u64> = bytemuck::pod_collect_to_vec(next("timestamps")?.as_slice());
+                for k in 0..3 {
+                    if ran[k] && t[2 * k + 1] >= t[2 * k] {
+                        out.kernel_ms[k] =
+                            Some((t[2 * k + 1] - t[2 * k]) as f64 * timestamp_period_ns as f64 * 1e-6);
+                    }
+                }
+            }
+        }
+        if tag.share || tag.image_only {
+            let rgba = next("image")?;
+            out.rgb8 = Some(rgba.chunks_exact(4).flat_map(|p| [p[0], p[1], p[2]]).collect());
+        }
+        if tag.share {
+            out.depth = Some(bytemuck::pod_collect_to_vec(next("depth")?.as_slice()));
+        }
+        Ok((tag, out))
+    }
+}
+
+/// One frame of a tile ([`GpuRenderer::render_tile`]).
+pub struct TileFrame<'a> {
+    pub frame_id: u64,
+    pub volume: &'a GpuVolume,
+    /// The tile's view at full resolution (the resources' window).
+    pub view: &'a View,
+    /// `settings.ao.frame` is this frame's index in the sample sequence.
+    pub settings: &'a RenderSettings,
+    pub env: Option<&'a GpuEnvironment>,
+    /// Keep accumulating onto the running sums where the frame state is unchanged (false:
+    /// restart).
+    pub accumulate: bool,
+    /// Read colour and depth back (object space shares).
+    pub share: bool,
+}
+
+impl GpuRenderer {
+    /// Renders a frame of a tile into its next image, on the GPU, and records its read (counters;
+    /// colour and depth for a share) into `ring`, which must have a free slot. Submits and
+    /// returns without waiting.
+    pub fn render_tile(
+        &self,
+        tile: &mut TileTarget,
+        frame: &TileFrame,
+        ring: &mut ReadbackRing<FrameRead>,
+    ) -> Result<(), GpuError> {
+        let ctx = &self.ctx;
+        let scale = tile.scale;
+        if !tile.fits(frame.view, scale) {
+            return Err(GpuError::View(format!(
+                "tile {}: its resources are {}x{} at scale {scale}, the view's window is {}x{}",
+                tile.name, tile.size.0, tile.size.1, frame.view.window.width, frame.view.window.height
+            )));
+        }
+        let low = lowres::scaled_view(frame.view, scale);
+        let env = self.check_frame(frame.volume, &low, frame.settings, frame.env, 1)?;
+        let s = frame.settings;
+        let with_ao = s.ao.samples > 0 || s.ao.ibl != IblMethod::None;
+        let mut params = FrameParams::new(frame.volume, &low, s, env);
+        params.perf[0] = self.perf.flags();
+        let mut key = params;
+        key.frame = 0;
+        let state = (key, frame.volume.id, env.id);
+        let same = tile.state.as_ref().is_some_and(|(p, v, e)| {
+            bytemuck::bytes_of(p) == bytemuck::bytes_of(&state.0) && (*v, *e) == (state.1, state.2)
+        });
+        let restart = !frame.accumulate || !same || tile.frames >= super::MAX_FRAMES;
+        tile.state = Some(state);
+        if tile.bound.as_ref().is_none_or(|b| (b.volume, b.env) != (frame.volume.id, env.id)) {
+            let a = &tile.aov;
+            tile.bound = Some(Bound {
+                volume: frame.volume.id,
+                env: env.id,
+                isosurface: self.isosurface.bind(ctx, &tile.params, frame.volume, [&a[0], &a[1], &a[2]]),
+                ao: self.ao.bind(
+                    ctx,
+                    &tile.params,
+                    frame.volume,
+                    &env.texels,
+                    [&a[0], &a[1], &a[3], &a[4], &a[2]],
+                ),
+            });
+        }
+        let bound = tile.bound.as_ref().expect("bound above");
+        if restart {
+            tile.frames = 0;
+        }
+        let frames = if with_ao { tile.frames + 1 } else { 0 };
+        // The image holding the oldest frame (or none).
+        let back = (0..IMAGES)
+            .filter(|&i| i != tile.latest)
+            .min_by_key(|&i| tile.images[i].frame_id.map_or(0, |f| f + 1))
+            .expect("more than one image");
+        let compose = ComposeParams::new(frame.view, &low, scale, s, frames);
+        let low_size = (low.window.width, low.window.height);
+        let timed = tile.timestamps.as_ref().map(|_| [restart, with_ao, true]);
+        let share = frame.share;
+        let slot = ctx.validated("tile frame", || -> Result<(usize, wgpu::CommandBuffer), GpuError> {
+            ctx.write_buffer(&tile.params, 0, bytemuck::bytes_of(&params));
+            ctx.write_buffer(&tile.compose_params, 0, bytemuck::bytes_of(&compose));
+            let mut enc =
+                ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("tile") });
+            let ts = |k: u32| {
+                tile.timestamps.as_ref().map(|t| wgpu::ComputePassTimestampWrites {
+                    query_set: &t.set,
+                    beginning_of_pass_write_index: Some(2 * k),
+                    end_of_pass_write_index: Some(2 * k + 1),
+                })
+            };
+            if restart {
+                enc.clear_buffer(&tile.aov[3], 0, None);
+                enc.clear_buffer(&tile.aov[4], 0, None);
+                self.isosurface.pass(&mut enc, &bound.isosurface, low_size, ts(0));
+            } else {
+                // The fetches of this frame only (the isosurface kernel's were counted when it ran).
+                enc.clear_buffer(&tile.aov[2], 0, None);
+            }
+            if with_ao {
+                self.ao.pass(&mut enc, &bound.ao, low_size, ts(1));
+            }
+            enc.clear_buffer(&tile.counters, 0, None);
+            self.compose.pass(&mut enc, &tile.compose[back], tile.size, ts(2));
+            let mut sources = vec![Source::Buffer(&tile.counters, COUNTER_BYTES)];
+            if let Some(t) = &tile.timestamps {
+                enc.resolve_query_set(&t.set, 0..QUERIES, &t.resolved, 0);
+                sources.push(Source::Buffer(&t.resolved, 8 * QUERIES as u64));
+            }
+            if share {
+                sources.push(Source::Texture(&tile.images[back].texture));
+                sources.push(Source::Buffer(&tile.depth, tile.size.0 as u64 * tile.size.1 as u64 * 4));
+            }
+            let tag = FrameRead {
+                frame_id: frame.frame_id,
+                tile: tile.name.clone(),
+                width: tile.size.0,
+                height: tile.size.1,
+                timed,
+                share,
+                image_only: false,
+            };
+            let slot = ring.record(ctx, &mut enc, tag, &sources)?;
+            Ok((slot, enc.finish()))
+        })??;
+        let (slot, commands) = slot;
+        let submission = ctx.queue.submit([commands]);
+        ring.submitted(slot, submission);
+        tile.frames = frames;
+        tile.latest = back;
+        tile.images[back].frame_id = Some(frame.frame_id);
+        Ok(())
+    }
+
+    /// Records a read of the image holding `frame_id` (a snapshot) into `ring` and submits it;
+    /// an error where the tile no longer holds that frame.
+    pub fn read_tile_image(
+        &self,
+        tile: &TileTarget,
+        frame_id: u64,
+        ring: &mut ReadbackRing<FrameRead>,
+    ) -> Result<(), GpuError> {
+        let ctx = &self.ctx;
+        let image = tile.image(frame_id).ok_or_else(|| {
+            GpuError::Readback(format!("tile {}: frame {frame_id} is no longer held", tile.name))
+        })?;
+        let mut enc =
+            ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("snapshot") });
+        let tag = FrameRead {
+            frame_id,
+            tile: tile.name.clone(),
+            width: tile.size.0,
+            height: tile.size.1,
+            timed: None,
+            share: false,
+            image_only: true,
+        };
+        let slot = ring.record(ctx, &mut enc, tag, &[Source::Texture(&image.texture)])?;
+        let submission = ctx.queue.submit([enc.finish()]);
+        ring.submitted(slot, submission);
+        Ok(())
+    }
+}

@@ -1,0 +1,202 @@
+//! A wall tile's frame on the GPU (`TileTarget`, `Kernel::Compose`): the compose kernel against
+//! the host's compose of the same AOVs and against the CPU reference's colour, progressive
+//! accumulation against `render_accumulated`, the restart on a change of frame state, and the
+//! counts that make a steady frame cheap: no allocation, only the counters read back (colour and
+//! depth for a share).
+
+mod common;
+
+use isowall_render::gpu::{
+    FrameRead, GpuRenderer, GpuVolume, ReadbackRing, TileFrame, TileOutput, TileTarget,
+};
+use isowall_render::output::srgb8;
+use isowall_render::reference;
+use isowall_volume::procedural::Procedural;
+use isowall_volume::{Volume, VolumeSource};
+use isowall_wall::{Camera, RenderSettings, View};
+
+const W: u32 = 64;
+const H: u32 = 48;
+
+fn scene() -> (Volume, View, RenderSettings) {
+    let src = VolumeSource::Procedural { kind: Procedural::SphereOverPlane, size: Some(40) };
+    let volume = src.load(None).unwrap();
+    let view = View::whole(Camera::framing(volume.box_min(), volume.box_max(), W, H), W, H);
+    let settings = RenderSettings::new(Procedural::SphereOverPlane.natural_iso());
+    (volume, view, settings)
+}
+
+/// Renders one frame of the tile and waits for its read.
+fn frame(
+    gpu: &GpuRenderer,
+    tile: &mut TileTarget,
+    ring: &mut ReadbackRing<FrameRead>,
+    gv: &GpuVolume,
+    view: &View,
+    s: &RenderSettings,
+    accumulate: bool,
+) -> TileOutput {
+    let f = TileFrame { frame_id: 1, volume: gv, view, settings: s, env: None, accumulate, share: true };
+    gpu.render_tile(tile, &f, ring).unwrap();
+    ring.wait_oldest(&gpu.ctx).unwrap();
+    let mut reads = ring.take_ready();
+    assert_eq!(reads.len(), 1);
+    FrameRead::decode(reads.remove(0), gpu.ctx.queue.get_timestamp_period()).unwrap().1
+}
+
+/// (channel values that differ, the largest difference in levels).
+fn differences(a: &[u8], b: &[u8]) -> (usize, u8) {
+    assert_eq!(a.len(), b.len());
+    let d: Vec<u8> = a.iter().zip(b).map(|(x, y)| x.abs_diff(*y)).collect();
+    (d.iter().filter(|&&x| x > 0).count(), d.iter().copied().max().unwrap_or(0))
+}
+
+#[test]
+fn the_compose_kernel_is_the_host_compose_and_follows_the_reference() {
+    let Some(gpu) = common::gpu() else { return };
+    let (volume, view, mut s) = scene();
+    let gv = gpu.upload(&volume).unwrap();
+    let mut ring = ReadbackRing::new(2);
+    for samples in [0, 8] {
+        s.ao.samples = samples;
+        s.exposure = 1.3;
+        let mut tile = TileTarget::new(&gpu, "t", &view, 1).unwrap();
+        let out = frame(&gpu, &mut tile, &mut ring, &gv, &view, &s, false);
+        let host = gpu.render(&gv, &view, &s, None).unwrap().frame;
+        let (n, max) = differences(out.rgb8.as_ref().unwrap(), &srgb8(&host));
+        eprintln!("{samples} samples: {n} channel values differ from the host's compose, by at most {max}");
+        assert!(max <= 1 && n * 200 <= host.pixel_count() * 3, "{n} values differ, by up to {max} levels");
+        // Depth: the frame's where it hits, +inf elsewhere.
+        let depth = out.depth.as_ref().unwrap();
+        for i in 0..host.pixel_count() {
+            if host.hit[i] {
+                assert_eq!(depth[i], host.depth[i], "pixel {i}");
+            } else {
+                assert_eq!(depth[i], f32::INFINITY, "pixel {i}");
+            }
+        }
+        assert_eq!(out.counters.hits, host.hit_count() as u64);
+        assert_eq!(out.counters.fetches, host.fetches);
+        assert_eq!(out.counters.pixels, (W * H) as u64);
+    }
+    // Against the CPU reference's own compose (no AO: E = ambient): the colour of pixels both hit.
+    s.ao.samples = 0;
+    let mut tile = TileTarget::new(&gpu, "t", &view, 1).unwrap();
+    let out = frame(&gpu, &mut tile, &mut ring, &gv, &view, &s, false);
+    let r = reference::render(&volume, &view, &s);
+    let rgb = out.rgb8.unwrap();
+    let want = srgb8(&r);
+    let depth = out.depth.unwrap();
+    let mut diffs: Vec<u8> = (0..r.pixel_count())
+        .filter(|&i| r.hit[i] && depth[i].is_finite())
+        .map(|i| (0..3).map(|c| rgb[3 * i + c].abs_diff(want[3 * i + c])).max().unwrap())
+        .collect();
+    diffs.sort();
+    assert!(diffs.len() > 500, "too few hits ({})", diffs.len());
+    assert!(
+        diffs[diffs.len() / 2] <= 1,
+        "median difference {} levels from the reference",
+        diffs[diffs.len() / 2]
+    );
+    assert!(diffs[diffs.len() * 9 / 10] <= 3, "90th percentile {} levels", diffs[diffs.len() * 9 / 10]);
+    // Background pixels are the background exactly.
+    let bg = srgb8(&r);
+    for i in (0..r.pixel_count()).filter(|&i| !r.hit[i] && !depth[i].is_finite()) {
+        assert_eq!(rgb[3 * i..3 * i + 3], bg[3 * i..3 * i + 3], "background pixel {i}");
+    }
+}
+
+#[test]
+fn accumulation_on_the_gpu_averages_the_frames_and_restarts_when_the_state_changes() {
+    let Some(gpu) = common::gpu() else { return };
+    let (volume, view, mut s) = scene();
+    let gv = gpu.upload(&volume).unwrap();
+    let mut ring = ReadbackRing::new(2);
+    let mut tile = TileTarget::new(&gpu, "t", &view, 1).unwrap();
+    s.ao.samples = 2;
+    let frames = 6;
+    let mut out = TileOutput::default();
+    for k in 0..frames {
+        let mut f = s;
+        f.ao.frame = s.ao.frame + k;
+        out = frame(&gpu, &mut tile, &mut ring, &gv, &view, &f, k > 0);
+    }
+    assert_eq!(tile.frames(), frames);
+    let want = gpu.render_accumulated(&gv, &view, &s, None, frames).unwrap().frame;
+    let (n, max) = differences(out.rgb8.as_ref().unwrap(), &srgb8(&want));
+    eprintln!("{frames} frames: {n} channel values differ from render_accumulated, by at most {max}");
+    assert!(max <= 1 && n * 100 <= want.pixel_count() * 3, "{n} values differ, by up to {max} levels");
+    // And it is not the single first frame: the frames were averaged.
+    let single = gpu.render(&gv, &view, &s, None).unwrap().frame;
+    let (n, _) = differences(out.rgb8.as_ref().unwrap(), &srgb8(&single));
+    assert!(n > 100, "only {n} values differ from a single frame");
+
+    // A change of state restarts the sums even when the caller asks to accumulate.
+    let mut moved = s;
+    moved.iso += 0.05;
+    moved.ao.frame = s.ao.frame + frames;
+    let out = frame(&gpu, &mut tile, &mut ring, &gv, &view, &moved, true);
+    assert_eq!(tile.frames(), 1);
+    let want = gpu.render(&gv, &view, &moved, None).unwrap().frame;
+    let (n, max) = differences(out.rgb8.as_ref().unwrap(), &srgb8(&want));
+    assert!(max <= 1 && n * 100 <= want.pixel_count() * 3, "after the change: {n} values differ");
+}
+
+#[test]
+fn a_steady_tile_allocates_nothing_and_reads_back_only_what_leaves_the_node() {
+    let Some(gpu) = common::gpu() else { return };
+    let (volume, view, mut s) = scene();
+    s.ao.samples = 2;
+    let gv = gpu.upload(&volume).unwrap();
+    let mut ring = ReadbackRing::new(3);
+    let mut tile = TileTarget::new(&gpu, "t", &view, 2).unwrap();
+    let timestamps = if gpu.ctx.device.features().contains(wgpu::Features::TIMESTAMP_QUERY) { 48 } else { 0 };
+    let params = (std::mem::size_of::<isowall_render::gpu::FrameParams>()
+        + std::mem::size_of::<isowall_render::gpu::ComposeParams>()) as u64;
+    for share in [false, true] {
+        let run = |ring: &mut ReadbackRing<FrameRead>, tile: &mut TileTarget, k: u32| {
+            let mut f = s;
+            f.ao.frame = k;
+            let tf = TileFrame {
+                frame_id: k as u64,
+                volume: &gv,
+                view: &view,
+                settings: &f,
+                env: None,
+                accumulate: true,
+                share,
+            };
+            gpu.render_tile(tile, &tf, ring).unwrap();
+        };
+        // Warm: the ring's staging buffers are made as first needed.
+        for k in 0..3 {
+            run(&mut ring, &mut tile, k);
+        }
+        while ring.in_flight() > 0 {
+            ring.wait_oldest(&gpu.ctx).unwrap();
+        }
+        ring.take_ready();
+        let before = gpu.ctx.traffic.now();
+        let n = 6u64;
+        for k in 3..3 + n as u32 {
+            if !ring.has_free_slot() {
+                ring.wait_oldest(&gpu.ctx).unwrap();
+            }
+            run(&mut ring, &mut tile, k);
+        }
+        while ring.in_flight() > 0 {
+            ring.wait_oldest(&gpu.ctx).unwrap();
+        }
+        let reads = ring.take_ready();
+        let t = gpu.ctx.traffic.now() - before;
+        assert_eq!(reads.len() as u64, n);
+        assert_eq!(t.allocations, 0, "share {share}: {} GPU allocations in {n} steady frames", t.allocations);
+        assert_eq!(t.uploaded, n * params, "share {share}: bytes uploaded");
+        let pixels = (W * H) as u64;
+        let per_frame = 16 + timestamps + if share { pixels * 4 + pixels * 4 } else { 0 };
+        assert_eq!(t.read_back, n * per_frame, "share {share}: bytes read back");
+    }
+    // A resize (another window size) needs new resources, which the tile says.
+    let small = View::whole(view.camera, W / 2, H / 2);
+    assert!(!tile.fits(&small, 2) && !tile.fits(&view, 1) && tile.fits(&view, 2));
+}

@@ -1,0 +1,114 @@
+// Kernel::Compose (daemon/render/src/gpu/compose.rs): a tile's presentable image from the other
+// kernels' outputs, on the GPU, one invocation per pixel of the tile's (full-resolution) window.
+//
+// - Colour exactly as the CPU reference composes it: exposure * (direct + albedo * E), with E the
+//   running sum of the AO kernel's IBL term over the accumulated frames divided by their count
+//   (progressive accumulation: the mean of the frames' colours is the colour of their mean E), or
+//   the ambient light where neither AO nor IBL is on (count 0). Pixels without a hit take the
+//   background as it is (no exposure).
+// - The sRGB transfer and 8-bit rounding of `output::srgb8` (round half up of 255 * srgb(c)); the
+//   stored value is that level / 255, which any unorm8 conversion keeps exactly.
+// - The low-resolution upsample (`isowall_wall::lowres::upsample_nearest`): the kernels ran over
+//   the low window; full pixel (x, y) of the window takes low pixel
+//   ((origin + (x, y)) / scale - low_origin). Scale 1 is the identity.
+// - Depth per full pixel (distance along the ray, +inf without a hit: the bits of f32 infinity),
+//   what object space composites by.
+// - Per-frame counters of the low window (each low pixel counted once): trilinear fetches as a
+//   64-bit sum (low word, high word), hits and pixels, summed per row of the low window, then once
+//   per row into `counters`.
+
+struct ComposeParams {
+    background: vec4<f32>, // rgb: linear background; w: exposure
+    albedo: vec4<f32>,     // rgb; w: 0
+    ambient: vec4<f32>,    // rgb: E where neither AO nor IBL is on; w: 0
+    low_origin: vec2<u32>, // the low window's origin in the low image
+    low_size: vec2<u32>,   // the low window's size (the other kernels' window)
+    origin: vec2<u32>,     // the tile's window origin in the full image
+    size: vec2<u32>,       // the tile's window size
+    scale: u32,            // internal resolution divisor, 1 ..= 4
+    frames: u32,           // frames in the running sums; 0: no AO or IBL (E = ambient)
+    _pad0: u32,
+    _pad1: u32,
+}
+
+// A read-only storage buffer, not a uniform: see frame.wgsl (lavapipe's uniform inlining).
+@group(0) @binding(0) var<storage, read> params: ComposeParams;
+// From the isosurface kernel (low window): direct light, w = 1 on a hit.
+@group(0) @binding(1) var<storage, read> in_color: array<vec4<f32>>;
+// From the isosurface kernel (low window): N and depth (w).
+@group(0) @binding(2) var<storage, read> in_geometry: array<vec4<f32>>;
+// From the AO kernel (low window): running sum of E (rgb).
+@group(0) @binding(3) var<storage, read> acc_ibl: array<vec4<f32>>;
+// From both kernels (low window): trilinear fetches of this frame per pixel.
+@group(0) @binding(4) var<storage, read> in_fetches: array<u32>;
+// The tile's presentable image, 8-bit sRGB values.
+@group(0) @binding(5) var out_image: texture_storage_2d<rgba8unorm, write>;
+// Depth per pixel of the window, as f32 bits.
+@group(0) @binding(6) var<storage, read_write> out_depth: array<u32>;
+// fetches (low word, high word), hits, pixels counted.
+@group(0) @binding(7) var<storage, read_write> counters: array<atomic<u32>, 4>;
+
+const INFINITY_BITS: u32 = 0x7f800000u;
+
+// `isowall_wall::render_state::linear_to_srgb` in f32: non-finite values are 0.
+fn linear_to_srgb(x: f32) -> f32 {
+    var c = 0.0;
+    if x == x && abs(x) <= 3.40282347e38 {
+        c = clamp(x, 0.0, 1.0);
+    }
+    if c <= 0.0031308 {
+        return 12.92 * c;
+    }
+    return 1.055 * pow(c, 1.0 / 2.4) - 0.055;
+}
+
+// 8-bit level / 255 of a linear channel (`output::srgb8`).
+fn encode(x: f32) -> f32 {
+    return floor(linear_to_srgb(x) * 255.0 + 0.5) / 255.0;
+}
+
+@compute @workgroup_size(8, 8, 1)
+fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
+    // The counters: the first invocation of each row of the low window sums that row and adds it
+    // once (no workgroup barrier: llvmpipe runs a workgroup that has one as coroutines).
+    if gid.x == 0u && gid.y < params.low_size.y {
+        var lo = 0u;
+        var hi = 0u;
+        var hits = 0u;
+        let row = gid.y * params.low_size.x;
+        for (var x = 0u; x < params.low_size.x; x += 1u) {
+            let f = in_fetches[row + x];
+            let sum = lo + f;
+            hi += select(0u, 1u, sum < lo);
+            lo = sum;
+            hits += select(0u, 1u, in_color[row + x].w >= 0.5);
+        }
+        let old = atomicAdd(&counters[0], lo);
+        hi += select(0u, 1u, old + lo < old); // carry into the high word
+        atomicAdd(&counters[1], hi);
+        atomicAdd(&counters[2], hits);
+        atomicAdd(&counters[3], params.low_size.x);
+    }
+
+    if gid.x >= params.size.x || gid.y >= params.size.y {
+        return;
+    }
+    let s = max(params.scale, 1u);
+    let low = (params.origin + gid.xy) / s - params.low_origin;
+    let i = low.x + low.y * params.low_size.x;
+    let d = in_color[i];
+    var rgb = params.background.xyz;
+    var depth = INFINITY_BITS;
+    if d.w >= 0.5 {
+        var e = params.ambient.xyz;
+        if params.frames > 0u {
+            let k = f32(params.frames);
+            e = acc_ibl[i].xyz / k;
+        }
+        rgb = params.background.w * (d.xyz + params.albedo.xyz * e);
+        depth = bitcast<u32>(in_geometry[i].w);
+    }
+    let image = vec4<f32>(encode(rgb.x), encode(rgb.y), encode(rgb.z), 1.0);
+    textureStore(out_image, vec2<i32>(gid.xy), image);
+    out_depth[gid.x + gid.y * params.size.x] = depth;
+}

@@ -1,0 +1,618 @@
+//! Attacks on the wall's network, made as a hostile peer on loopback would make them: the real
+//! `isowalld` and `isowall` as processes, and real QUIC clients (or a node played by the test)
+//! holding the wall's own certificates. One test per kind of attack; each says what the wall must
+//! do, fails when it does not, and prints what the attacker achieved (`--nocapture`).
+//!
+//! - identities: node names that differ only in case are refused by `check-config` and `keygen`;
+//!   a CA-signed certificate named `Controller` does not drive a node, one named `NODE1` does not
+//!   pass for `node1`;
+//! - take-over: a node's certificate, retrying, never knocks the running controller off, nor
+//!   does a controller's connection that sends no Hello;
+//! - bincode limits: messages of every size around 4, 16 and 64 KiB reach the daemon;
+//! - limits: connections per identity, streams and flow-control windows, snapshot tiles checked
+//!   against their node, a node's reason escaped before the terminal sees it;
+//! - start: a wall with one of four nodes down starts (`orbit`, `up`) and the node joins when it
+//!   comes up; in object space a killed node is down within 3 deadlines.
+
+use isowall_e2e::{
+    bin, free_udp_ports, in_ci, run_in, set_object_mode, start_nodes, wall_config, wall_config_2x1, Daemon,
+};
+use isowall_net::transport::{self, Channel};
+use isowall_net::Identity;
+use isowall_wall::codec;
+use isowall_wall::daemon_machine::{NodeMachine, NodeOutput};
+use isowall_wall::messages::{Message, Role, TileImage};
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+fn runtime() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap()
+}
+
+fn keygen(dir: &Path, config: &Path) {
+    let out = run_in(dir, "isowall", &["keygen", "--config", config.to_str().unwrap()]);
+    assert!(out.status.success(), "keygen: {}", String::from_utf8_lossy(&out.stderr));
+}
+
+fn addr(port: u16) -> SocketAddr {
+    format!("127.0.0.1:{port}").parse().unwrap()
+}
+
+/// A process killed when dropped, its stderr in a file.
+struct Proc(Child);
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// `isowall ARGS...` in `dir` in the background, stdout and stderr to `dir/NAME.out|err`.
+fn spawn_isowall(dir: &Path, name: &str, args: &[&str]) -> (Proc, PathBuf, PathBuf) {
+    let (out, err) = (dir.join(format!("{name}.out")), dir.join(format!("{name}.err")));
+    let child = Command::new(bin("isowall"))
+        .current_dir(dir)
+        .args(args)
+        .stdin(Stdio::null())
+        .stdout(std::fs::File::create(&out).unwrap())
+        .stderr(std::fs::File::create(&err).unwrap())
+        .spawn()
+        .unwrap();
+    (Proc(child), out, err)
+}
+
+fn text(path: &Path) -> String {
+    std::fs::read_to_string(path).unwrap_or_default()
+}
+
+/// Waits until `file` holds `needle`; how long that took, or `None` after `timeout`.
+fn wait_for(file: &Path, needle: &str, timeout: Duration) -> Option<Duration> {
+    let start = Instant::now();
+    while start.elapsed() < timeout {
+        if text(file).contains(needle) {
+            return Some(start.elapsed());
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    None
+}
+
+/// The resident set of a process in KiB.
+fn rss_kib(pid: u32) -> u64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).expect("/proc/PID/status");
+    let line = status.lines().find(|l| l.starts_with("VmRSS:")).expect("VmRSS");
+    line.split_whitespace().nth(1).unwrap().parse().unwrap()
+}
+
+/// Starts the daemons `node0..count` (`None`: no Vulkan adapter outside CI, skip).
+fn nodes(dir: &Path, config: &Path, count: usize) -> Option<Vec<Daemon>> {
+    start_nodes(dir, config, count)
+}
+
+/// Writes `out/NAME.pem|key` (and `ca.pem`): a certificate the wall's CA (`keys/ca.*`, wall
+/// `wall`) signs for the DNS name `dns`, the way any keygen that let such a name through would.
+fn forge(keys: &Path, wall: &str, dns: &str, out: &Path, file_name: &str) {
+    use rcgen::{BasicConstraints, CertificateParams, DnType, IsCa, Issuer, KeyPair, KeyUsagePurpose};
+    std::fs::create_dir_all(out).unwrap();
+    std::fs::copy(keys.join("ca.pem"), out.join("ca.pem")).unwrap();
+    let ca_key = KeyPair::from_pem(&text(&keys.join("ca.key"))).unwrap();
+    // The CA as keygen describes it: the same subject, so the chain links by name and key.
+    let mut ca = CertificateParams::new(Vec::<String>::new()).unwrap();
+    ca.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
+    ca.distinguished_name.push(DnType::CommonName, format!("Isowall wall CA: {wall}"));
+    ca.key_usages = vec![KeyUsagePurpose::KeyCertSign, KeyUsagePurpose::DigitalSignature];
+    let issuer = Issuer::new(ca, ca_key);
+    let key = KeyPair::generate().unwrap();
+    let mut params = CertificateParams::new(vec![dns.to_string()]).unwrap();
+    params.distinguished_name.push(DnType::CommonName, dns);
+    let cert = params.signed_by(&key, &issuer).unwrap();
+    std::fs::write(out.join(format!("{file_name}.pem")), cert.pem()).unwrap();
+    std::fs::write(out.join(format!("{file_name}.key")), key.serialize_pem()).unwrap();
+    // Private keys are loaded only when no one but their owner may read them.
+    {
+        use std::os::unix::fs::PermissionsExt;
+        let p = out.join(format!("{file_name}.key"));
+        std::fs::set_permissions(p, std::fs::Permissions::from_mode(0o600)).unwrap();
+    }
+}
+
+/// The application close reason of `conn` once the daemon closes it, or how it ended otherwise.
+async fn closed(conn: &quinn::Connection, within: Duration) -> String {
+    match tokio::time::timeout(within, conn.closed()).await {
+        Ok(quinn::ConnectionError::ApplicationClosed(c)) => String::from_utf8_lossy(&c.reason).into_owned(),
+        Ok(other) => format!("(no reason: {other})"),
+        Err(_) => "(still open)".into(),
+    }
+}
+
+/// As the controller would: connects to node `node` at `at`, opens the channel, says Hello.
+async fn hello_as_controller(
+    endpoint: &quinn::Endpoint,
+    at: SocketAddr,
+    node: &str,
+) -> Result<Channel, String> {
+    let conn = transport::connect(endpoint, at, node).await.map_err(|e| e.to_string())?;
+    let mut ch = Channel::open(conn, node, 64 << 20).await.map_err(|e| e.to_string())?;
+    ch.sender
+        .send(&codec::hello(isowall_net::tls::CONTROLLER, Role::Controller))
+        .await
+        .map_err(|e| e.to_string())?;
+    Ok(ch)
+}
+
+// ---- 1: identities ------------------------------------------------------------------------------
+
+#[test]
+fn names_equal_without_regard_to_case_are_refused_and_no_node_certificate_is_the_controller() {
+    let dir = tempfile::tempdir().unwrap();
+    let ports = free_udp_ports(4);
+    let config = wall_config(dir.path(), "names", &ports, 16, 12, 2, 5000, "keys");
+    let good = text(&config);
+    // (a) check-config and keygen refuse `Controller` and `NODE0` beside `node0`, writing nothing.
+    for (from, to, says) in [
+        ("name = \"node1\"", "name = \"Controller\"", "node name 'Controller' is reserved"),
+        (
+            "name = \"node1\"",
+            "name = \"NODE0\"",
+            "duplicate node name 'NODE0' (the same as 'node0' without regard to case)",
+        ),
+    ] {
+        let bad = dir.path().join("bad.toml");
+        std::fs::write(&bad, good.replacen(from, to, 1).replace("keys", "bad-keys")).unwrap();
+        let out = run_in(dir.path(), "isowall", &["check-config", bad.to_str().unwrap()]);
+        let err = String::from_utf8_lossy(&out.stderr).into_owned() + &String::from_utf8_lossy(&out.stdout);
+        assert!(!out.status.success() && err.contains(says), "check-config accepted `{to}`:\n{err}");
+        let out = run_in(dir.path(), "isowall", &["keygen", "--config", bad.to_str().unwrap()]);
+        assert!(!out.status.success(), "keygen accepted `{to}`");
+        assert!(!dir.path().join("bad-keys/ca.pem").exists(), "keygen wrote a CA for `{to}`");
+        eprintln!("`{to}`: refused by check-config and keygen");
+    }
+    // (b) Certificates the wall CA signed for such names, on a running wall.
+    keygen(dir.path(), &config);
+    let keys = dir.path().join("keys");
+    let forged = dir.path().join("forged");
+    forge(&keys, "names", "Controller", &forged, "controller");
+    forge(&keys, "names", "NODE1", &forged, "node1");
+    let Some(_daemons) = nodes(dir.path(), &config, 1) else { return };
+    let rt = runtime();
+    let reason = rt.block_on(async {
+        let endpoint = transport::client(&Identity::load(&forged, "controller").unwrap()).unwrap();
+        let ch = hello_as_controller(&endpoint, addr(ports[0]), "node0").await.expect("the handshake itself");
+        let first = tokio::time::timeout(Duration::from_secs(5), async {
+            let mut r = ch.receiver;
+            r.recv().await
+        })
+        .await;
+        assert!(
+            !matches!(first, Ok(Ok(Some(_)))),
+            "node0 answered a certificate named `Controller`: {first:?}"
+        );
+        closed(&ch.connection, Duration::from_secs(5)).await
+    });
+    eprintln!("a certificate named `Controller` as the controller: closed with \"{reason}\"");
+    assert!(reason.contains("node `Controller`'s certificate is not the controller's"), "{reason}");
+    // (c) `NODE1` serving on node1's address: the controller does not take it for node1.
+    let fake = rt.spawn(fake_node(forged.clone(), "node1".into(), ports[1], vec![], Act::Honest));
+    let out = run_in(dir.path(), "isowall", &["snapshot", config.to_str().unwrap(), "--out", "s.png"]);
+    fake.abort();
+    let err = String::from_utf8_lossy(&out.stderr);
+    eprintln!("{err}");
+    assert!(err.contains("its certificate is node `NODE1`'s, not node `node1`'s"), "{err}");
+    // The real controller certificate still drives node0 (the wall starts with the node it has).
+    assert!(out.status.success(), "snapshot with node0 failed:\n{err}");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(stdout.contains("wrote") && stdout.contains("of 4 tiles"), "{stdout}");
+}
+
+// ---- 2: identity before take-over ----------------------------------------------------------------
+
+#[test]
+fn a_node_certificate_or_a_silent_controller_never_disturbs_the_running_session() {
+    let dir = tempfile::tempdir().unwrap();
+    let ports = free_udp_ports(4);
+    let config = wall_config(dir.path(), "takeover", &ports, 16, 12, 2, 5000, "keys");
+    keygen(dir.path(), &config);
+    let Some(_daemons) = nodes(dir.path(), &config, 4) else { return };
+    let keys = dir.path().join("keys");
+    let (mut orbit, out, err) =
+        spawn_isowall(dir.path(), "orbit", &["orbit", config.to_str().unwrap(), "--frames", "100000"]);
+    assert!(wait_for(&err, "node node3 up", Duration::from_secs(60)).is_some(), "{}", text(&err));
+    let rt = runtime();
+    let started = Instant::now();
+    let (attempts, reasons, silent) = rt.block_on(async {
+        let node = transport::client(&Identity::load(&keys, "node1").unwrap()).unwrap();
+        let controller = transport::client(&Identity::load(&keys, "controller").unwrap()).unwrap();
+        // A controller's connection that never opens its stream: it must not take over either.
+        let silent = transport::connect(&controller, addr(ports[0]), "node0").await.unwrap();
+        let mut reasons = std::collections::BTreeSet::new();
+        let mut attempts = 0;
+        // An attacker with node1's certificate retrying against node0 for 10 s.
+        while started.elapsed() < Duration::from_secs(10) {
+            attempts += 1;
+            match hello_as_controller(&node, addr(ports[0]), "node0").await {
+                Ok(ch) => reasons.insert(closed(&ch.connection, Duration::from_secs(5)).await),
+                Err(e) => reasons.insert(e),
+            };
+        }
+        (attempts, reasons, closed(&silent, Duration::from_secs(1)).await)
+    });
+    std::thread::sleep(Duration::from_millis(500));
+    let _ = orbit.0.kill();
+    let _ = orbit.0.wait();
+    let stderr = text(&err);
+    let downs = stderr.matches(" is down").count();
+    let stragglers = stderr.matches("swap released without").count();
+    eprintln!(
+        "{attempts} attempts with node1's certificate in {:.1} s; closed with {reasons:?}; the silent controller connection: \"{silent}\"; the orbit reported {downs} downs and {stragglers} released swaps with stragglers; stdout:\n{}",
+        started.elapsed().as_secs_f64(),
+        text(&out)
+    );
+    assert!(attempts >= 10, "only {attempts} attempts");
+    // Each attempt is refused with the reason (or, when the daemon's close overtakes the client's
+    // own sends, seen only as the connection lost or reset).
+    let refused = "node `node1`'s certificate is not the controller's";
+    assert!(reasons.iter().any(|r| r.contains(refused)), "{reasons:?}");
+    let raced = |r: &String| r.ends_with("connection lost") || r.ends_with("reset by peer)");
+    assert!(reasons.iter().all(|r| r.contains(refused) || raced(r)), "{reasons:?}");
+    assert!(silent.contains("no stream and Hello within 5 s"), "{silent}");
+    assert_eq!(downs, 0, "the running controller lost a node:\n{stderr}");
+    assert_eq!(stragglers, 0, "a swap went without a node:\n{stderr}");
+}
+
+// ---- 5: bincode limits ---------------------------------------------------------------------------
+
+/// A brick map whose body is exactly `len` bytes (one holder's name fills it).
+fn bricks_of_len(len: usize) -> Message {
+    let with = |n: usize| Message::Bricks { from_frame: 1, holders: vec![Some("n".repeat(n)), None] };
+    let base = codec::encode(&with(0)).unwrap().len();
+    (0..=8)
+        .filter_map(|widen| len.checked_sub(base + widen))
+        .map(with)
+        .find(|m| codec::encode(m).unwrap().len() == len)
+        .unwrap_or_else(|| panic!("no brick map of {len} bytes"))
+}
+
+#[test]
+fn valid_messages_around_the_old_limits_reach_the_daemon() {
+    let dir = tempfile::tempdir().unwrap();
+    let ports = free_udp_ports(4);
+    let config = wall_config(dir.path(), "limits", &ports, 16, 12, 2, 5000, "keys");
+    keygen(dir.path(), &config);
+    let Some(_daemons) = nodes(dir.path(), &config, 1) else { return };
+    let keys = dir.path().join("keys");
+    let rt = runtime();
+    let passed = rt.block_on(async {
+        let endpoint = transport::client(&Identity::load(&keys, "controller").unwrap()).unwrap();
+        let mut ch = hello_as_controller(&endpoint, addr(ports[0]), "node0").await.unwrap();
+        let first = ch.receiver.recv().await.unwrap().unwrap();
+        assert!(matches!(first, Message::Hello { .. }), "{first:?}");
+        let mut passed = 0;
+        for edge in [4096usize, 16_384, 65_536, 262_144] {
+            for len in edge - 4..=edge + 4 {
+                let m = bricks_of_len(len);
+                ch.sender.send(&m).await.unwrap();
+                // The daemon ignores a brick map in screen space; the Ping proves it decoded it.
+                let id = len as u64;
+                ch.sender.send(&Message::Ping { id, t0_us: 0 }).await.unwrap();
+                let answer = tokio::time::timeout(Duration::from_secs(10), async {
+                    loop {
+                        match ch.receiver.recv().await {
+                            Ok(Some(Message::Pong { id: got, .. })) if got == id => return Ok(()),
+                            Ok(Some(_)) => continue,
+                            Ok(None) => return Err("stream ended".to_string()),
+                            Err(e) => return Err(e.to_string()),
+                        }
+                    }
+                })
+                .await;
+                match answer {
+                    Ok(Ok(())) => passed += 1,
+                    other => {
+                        let why = closed(&ch.connection, Duration::from_secs(1)).await;
+                        panic!(
+                            "a valid {len}-byte brick map closed the connection: {other:?}; reason \"{why}\""
+                        );
+                    }
+                }
+            }
+        }
+        passed
+    });
+    eprintln!("{passed} valid messages of 4092..=262148 bytes around the powers of 4 decoded by the daemon");
+    assert_eq!(passed, 4 * 9);
+}
+
+// ---- 8: limits -------------------------------------------------------------------------------------
+
+#[test]
+fn connections_streams_and_windows_are_bounded_per_peer() {
+    let dir = tempfile::tempdir().unwrap();
+    let ports = free_udp_ports(4);
+    let config = wall_config(dir.path(), "bounded", &ports, 16, 12, 2, 5000, "keys");
+    keygen(dir.path(), &config);
+    let Some(daemons) = nodes(dir.path(), &config, 1) else { return };
+    let pid = daemons[0].child.id();
+    let keys = dir.path().join("keys");
+    let rt = runtime();
+    rt.block_on(async {
+        let endpoint = transport::client(&Identity::load(&keys, "controller").unwrap()).unwrap();
+        // (a) Connections per identity: two controller connections wait for their Hello, the
+        // third is refused at once; the two are closed at the Hello timeout.
+        let mut waiting = Vec::new();
+        for _ in 0..2 {
+            waiting.push(transport::connect(&endpoint, addr(ports[0]), "node0").await.unwrap());
+        }
+        let third = transport::connect(&endpoint, addr(ports[0]), "node0").await.unwrap();
+        let r3 = closed(&third, Duration::from_secs(2)).await;
+        eprintln!("third controller connection: \"{r3}\"");
+        assert!(r3.contains("controller already has 2 connections open"), "{r3}");
+        let t = Instant::now();
+        for c in &waiting {
+            let r = closed(c, Duration::from_secs(8)).await;
+            assert!(r.contains("no stream and Hello within 5 s"), "{r}");
+        }
+        eprintln!("silent connections closed {:.2} s after the third", t.elapsed().as_secs_f64());
+        // (b) Streams and windows: a peer that opens every stream it may and fills each. The
+        // daemon reads none of them (it uses one bidirectional stream), so what it buffers is
+        // what the limits let in.
+        let rss_before = rss_kib(pid);
+        let ch = hello_as_controller(&endpoint, addr(ports[0]), "node0").await.unwrap();
+        let mut opened = 0;
+        let mut writers = Vec::new();
+        for _ in 0..100 {
+            match tokio::time::timeout(Duration::from_millis(300), ch.connection.open_uni()).await {
+                Ok(Ok(mut s)) => {
+                    opened += 1;
+                    writers.push(tokio::spawn(async move {
+                        let chunk = vec![0x5au8; 64 << 10];
+                        let mut sent = 0usize;
+                        while sent < (32 << 20) {
+                            match tokio::time::timeout(Duration::from_secs(2), s.write_all(&chunk)).await {
+                                Ok(Ok(())) => sent += chunk.len(),
+                                _ => break,
+                            }
+                        }
+                        sent
+                    }));
+                }
+                _ => break,
+            }
+        }
+        let mut accepted = 0;
+        for w in writers {
+            accepted += w.await.unwrap();
+        }
+        let rss_after = rss_kib(pid);
+        eprintln!(
+            "streams opened: {opened}; bytes the daemon let in: {:.1} MiB; daemon RSS {:.1} -> {:.1} MiB",
+            accepted as f64 / (1 << 20) as f64,
+            rss_before as f64 / 1024.0,
+            rss_after as f64 / 1024.0
+        );
+        assert!(opened <= transport::MAX_UNI_STREAMS as usize, "{opened} streams opened");
+        assert!(accepted <= (transport::CONNECTION_WINDOW as usize) + (1 << 20), "{accepted} bytes let in");
+        assert!(rss_after < rss_before + 48 * 1024, "RSS {rss_before} -> {rss_after} KiB");
+        ch.connection.close(0u32.into(), b"done");
+    });
+    let mut d = daemons;
+    assert!(d[0].child.try_wait().unwrap().is_none(), "node0 exited:\n{}", d[0].log_text());
+}
+
+/// How a node played by the test misbehaves.
+#[derive(Clone)]
+enum Act {
+    /// Speaks the protocol as a daemon does.
+    Honest,
+    /// Answers a snapshot with its own tiles and this one too (another node's), in red.
+    ForeignTile(String, u32, u32),
+    /// Says goodbye with this reason after its first presented frame.
+    Bye(String),
+}
+
+/// A node played by the test: a QUIC server with `keys/NAME.*` on `port` that speaks the protocol
+/// through the model's [`NodeMachine`] (renders nothing, answers at once; its tiles blue).
+async fn fake_node(keys: PathBuf, name: String, port: u16, tiles: Vec<(String, u32, u32)>, act: Act) {
+    let identity = Identity::load(&keys, &name).unwrap();
+    let endpoint = transport::server(addr(port), &identity).unwrap();
+    let image = |name: &str, w: u32, h: u32, rgb: [u8; 3]| TileImage {
+        name: name.into(),
+        width: w,
+        height: h,
+        frame_id: 1,
+        rgb8: rgb.iter().copied().cycle().take((w * h * 3) as usize).collect(),
+    };
+    while let Some(incoming) = endpoint.accept().await {
+        let Ok(conn) = incoming.await else { continue };
+        let Ok(Channel { mut sender, mut receiver, .. }) = Channel::accept(conn, "controller", 1 << 20).await
+        else {
+            continue;
+        };
+        let mut m = NodeMachine::new(name.clone(), tiles.iter().map(|t| t.0.clone()).collect());
+        let epoch = Instant::now();
+        if sender.send(&m.hello()).await.is_err() {
+            continue;
+        }
+        'conn: while let Ok(Some(msg)) = receiver.recv().await {
+            let Ok(out) = m.handle(epoch.elapsed(), msg) else { break };
+            let mut queue: std::collections::VecDeque<NodeOutput> = out.into();
+            while let Some(out) = queue.pop_front() {
+                match out {
+                    NodeOutput::Send(msg) => {
+                        if sender.send(&msg).await.is_err() {
+                            break 'conn;
+                        }
+                    }
+                    NodeOutput::Render { state, .. } => queue.extend(m.render_done(
+                        epoch.elapsed(),
+                        state.frame_id,
+                        Duration::from_micros(50),
+                    )),
+                    NodeOutput::Present { frame_id } => {
+                        queue.extend(m.presented(epoch.elapsed(), frame_id));
+                        if let Act::Bye(reason) = &act {
+                            let _ = sender.send(&Message::Bye { reason: reason.clone() }).await;
+                        }
+                    }
+                    NodeOutput::SnapshotWanted => {
+                        let mut shown: Vec<TileImage> =
+                            tiles.iter().map(|(n, w, h)| image(n, *w, *h, [0, 0, 255])).collect();
+                        if let Act::ForeignTile(n, w, h) = &act {
+                            shown.push(image(n, *w, *h, [255, 0, 0]));
+                        }
+                        let _ = sender.send(&Message::Snapshot { tiles: shown }).await;
+                    }
+                    NodeOutput::Closed { .. } => break 'conn,
+                    _ => {}
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn a_node_cannot_send_another_nodes_tile_nor_write_to_the_operators_terminal() {
+    // No GPU: both nodes are played by the test, which answer at once (a short deadline bounds
+    // what a lost message costs).
+    let short = |config: &Path| {
+        std::fs::write(config, text(config).replace("deadline_ms = 60000", "deadline_ms = 2000")).unwrap()
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let ports = free_udp_ports(2);
+    let config = wall_config_2x1(dir.path(), "fakes", &ports, 8, 4, 0, 0);
+    short(&config);
+    keygen(dir.path(), &config);
+    let keys = dir.path().join("keys");
+    let rt = runtime();
+    let t = |i: usize| vec![(format!("t{i}"), 8u32, 4u32)];
+    // (a) node1 answers a snapshot with node0's tile t0 (red) beside its own.
+    let fakes = [
+        rt.spawn(fake_node(keys.clone(), "node0".into(), ports[0], t(0), Act::Honest)),
+        rt.spawn(fake_node(
+            keys.clone(),
+            "node1".into(),
+            ports[1],
+            t(1),
+            Act::ForeignTile("t0".into(), 8, 4),
+        )),
+    ];
+    let out = run_in(dir.path(), "isowall", &["snapshot", config.to_str().unwrap(), "--out", "s.png"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    eprintln!("{err}");
+    assert!(out.status.success(), "{err}");
+    assert!(
+        err.contains("closing node1") && err.contains("tile `t0`, which is not one of its tiles"),
+        "{err}"
+    );
+    let img = image::open(dir.path().join("s.png")).unwrap().to_rgb8();
+    assert_eq!(img.get_pixel(0, 0).0, [0, 0, 255], "tile t0 is not node0's");
+    for f in fakes {
+        f.abort();
+    }
+    // (b) node1 says goodbye with terminal escapes and a forged line: printed escaped.
+    let ports = free_udp_ports(2);
+    let config = wall_config_2x1(dir.path(), "fakes2", &ports, 8, 4, 0, 0);
+    short(&config);
+    let evil = "\u{1b}[2J\u{1b}[31mowned\r\nisowall: frame 9: all good";
+    let fakes = [
+        rt.spawn(fake_node(keys.clone(), "node0".into(), ports[0], t(0), Act::Honest)),
+        rt.spawn(fake_node(keys.clone(), "node1".into(), ports[1], t(1), Act::Bye(evil.into()))),
+    ];
+    let out = run_in(dir.path(), "isowall", &["orbit", config.to_str().unwrap(), "--frames", "3"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    eprintln!("{err}");
+    for f in fakes {
+        f.abort();
+    }
+    assert!(err.contains("node node1 is down: said goodbye: \\u{1b}[2J"), "{err}");
+    assert!(!err.contains('\u{1b}') && !err.contains('\r'), "raw control characters reached the terminal");
+    assert!(!err.lines().any(|l| l.starts_with("isowall: frame 9")), "a node forged a line of its own");
+}
+
+// ---- 9: a wall starts without a dead node ------------------------------------------------------
+
+#[test]
+fn a_wall_starts_with_the_nodes_it_has_and_a_late_node_joins() {
+    let dir = tempfile::tempdir().unwrap();
+    let ports = free_udp_ports(4);
+    let config = wall_config(dir.path(), "late", &ports, 16, 12, 2, 5000, "keys");
+    keygen(dir.path(), &config);
+    let Some(mut daemons) = nodes(dir.path(), &config, 3) else { return };
+    let t0 = Instant::now();
+    let (mut orbit, _out, err) =
+        spawn_isowall(dir.path(), "orbit", &["orbit", config.to_str().unwrap(), "--frames", "100000"]);
+    let started = wait_for(&err, "starting without node node3", Duration::from_secs(60));
+    assert!(started.is_some(), "the wall did not start without node3:\n{}", text(&err));
+    let up_at = t0.elapsed();
+    daemons.push(Daemon::start(dir.path(), &config, "node3", &[]));
+    assert!(daemons[3].wait_ready(Duration::from_secs(120)), "node3:\n{}", daemons[3].log_text());
+    let ready_at = t0.elapsed();
+    let back = wait_for(&err, "node node3 is back", Duration::from_secs(30));
+    let _ = orbit.0.kill();
+    let _ = orbit.0.wait();
+    let stderr = text(&err);
+    eprintln!(
+        "started without node3 after {:.2} s; node3 ready {:.2} s later, rejoined {:.2} s after that\n{stderr}",
+        up_at.as_secs_f64(),
+        (ready_at - up_at).as_secs_f64(),
+        back.map_or(f64::NAN, |b| b.as_secs_f64())
+    );
+    assert!(back.is_some(), "node3 never joined:\n{stderr}");
+    assert!(!stderr.contains("cannot reach 1 of 4"), "{stderr}");
+}
+
+#[test]
+fn isowall_up_starts_without_a_node_it_cannot_reach() {
+    let dir = tempfile::tempdir().unwrap();
+    let ports = free_udp_ports(4);
+    let config = wall_config(dir.path(), "upwithout", &ports, 16, 12, 2, 5000, "keys");
+    // node3 lives at an address nothing answers (TEST-NET-1): `up` starts no daemon for it.
+    let s = text(&config).replace(&format!("127.0.0.1:{}", ports[3]), "192.0.2.1:7401");
+    std::fs::write(&config, s).unwrap();
+    keygen(dir.path(), &config);
+    let t = Instant::now();
+    let out = run_in(dir.path(), "isowall", &["up", config.to_str().unwrap(), "--frames", "5"]);
+    let (stdout, stderr) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    if !out.status.success() && stderr.contains("no Vulkan adapter") && !in_ci() {
+        eprintln!("skipping: no Vulkan adapter");
+        return;
+    }
+    eprintln!(
+        "`isowall up` with node3 unreachable: exit {} after {:.1} s\n{stdout}\n{stderr}",
+        out.status,
+        t.elapsed().as_secs_f64()
+    );
+    assert!(out.status.success(), "{stderr}");
+    assert!(stderr.contains("starting without node node3 (192.0.2.1:7401)"), "{stderr}");
+    assert!(stdout.contains("frames: 5"), "{stdout}");
+}
+
+#[test]
+fn object_space_a_killed_node_is_down_within_three_deadlines() {
+    let dir = tempfile::tempdir().unwrap();
+    let ports = free_udp_ports(4);
+    let deadline_ms = 1000u64;
+    let config = wall_config(dir.path(), "objdeath", &ports, 40, 30, 2, deadline_ms, "keys");
+    set_object_mode(&config);
+    keygen(dir.path(), &config);
+    let Some(mut daemons) = nodes(dir.path(), &config, 4) else { return };
+    let (mut orbit, _out, err) =
+        spawn_isowall(dir.path(), "orbit", &["orbit", config.to_str().unwrap(), "--frames", "100000"]);
+    assert!(wait_for(&err, "node node3 up", Duration::from_secs(60)).is_some(), "{}", text(&err));
+    std::thread::sleep(Duration::from_secs(2));
+    daemons[1].child.kill().unwrap();
+    let down = wait_for(&err, "node node1 is down", Duration::from_secs(20));
+    let _ = orbit.0.kill();
+    let _ = orbit.0.wait();
+    let stderr = text(&err);
+    let down = down.unwrap_or_else(|| panic!("node1 was never reported down:\n{stderr}"));
+    eprintln!(
+        "object space: node1 killed, reported down {:.2} s later (deadline {deadline_ms} ms)",
+        down.as_secs_f64()
+    );
+    let line = stderr.lines().find(|l| l.contains("node node1 is down")).unwrap_or_default().to_string();
+    eprintln!("{line}");
+    assert!(down <= Duration::from_millis(3 * deadline_ms + 300), "down after {down:?}:\n{stderr}");
+}
