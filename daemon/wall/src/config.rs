@@ -25,6 +25,9 @@
 //! # DICOM only: series = "UID"    # the SeriesInstanceUID, where the folder holds several
 //! max_bytes = 2147483648          # optional: the most the voxels may take as float32 on a node
 //!                                 # (default 2 GiB; also at most the GPU's largest binding)
+//! cache_bytes = 1073741824        # optional, time steps (`source = "steps/step_*.nrrd"` or a 4-D
+//!                                 # file): what a node keeps loaded ahead of the step it shows
+//!                                 # (default 1 GiB; 0: only the step it shows)
 //!
 //! [render]      # render-state defaults, all optional
 //! shading = "blinn-phong"         # lambert | blinn-phong
@@ -83,6 +86,10 @@ pub const MIN_MESSAGE_LIMIT_BYTES: u64 = 4096;
 pub const MAX_MESSAGE_LIMIT_BYTES: u64 = crate::codec::MAX_FRAME_LEN as u64;
 /// Largest `[volume] max_bytes`: 2^30 voxels as float32 (the readers' own cap).
 pub const MAX_VOLUME_BYTES: u64 = 4 << 30;
+/// Default `[volume] cache_bytes`: 1 GiB of time steps loaded ahead.
+pub const DEFAULT_CACHE_BYTES: u64 = 1 << 30;
+/// Largest `[volume] cache_bytes`: 1 TiB.
+pub const MAX_CACHE_BYTES: u64 = 1 << 40;
 /// Largest tile width or height, and largest bezel, in pixels.
 pub const MAX_TILE_SIZE: u32 = 16384;
 /// Largest extent of the whole wall image along either axis, in pixels.
@@ -217,6 +224,10 @@ pub struct VolumeConfig {
     /// storage binding.
     #[serde(default)]
     pub max_bytes: Option<u64>,
+    /// Time-varying volumes: the bytes of time steps a node keeps loaded from the one it shows
+    /// on (prefetch); `None`: [`DEFAULT_CACHE_BYTES`].
+    #[serde(default)]
+    pub cache_bytes: Option<u64>,
 }
 
 /// `[render]`: the defaults of the render state (the controller may change them per frame).
@@ -748,6 +759,11 @@ impl WallConfig {
         }
     }
 
+    /// `[volume] cache_bytes`, or its default.
+    pub fn cache_bytes(&self) -> u64 {
+        self.volume.cache_bytes.unwrap_or(DEFAULT_CACHE_BYTES)
+    }
+
     /// The environment of `[render] env`: `sky` unchanged, a FILE.hdr or DIR resolved.
     pub fn env_source(&self) -> String {
         let e = &self.render.env;
@@ -1053,6 +1069,17 @@ fn validate_volume(doc: &mut Doc<'_>, v: &VolumeConfig) {
     if let Some(s) = v.spacing {
         if !s.iter().all(|x| x.is_finite() && *x > 0.0) {
             doc.at(&at("spacing"), format!("volume: `spacing` {s:?} must be finite and > 0"));
+        }
+    }
+    if let Some(b) = v.cache_bytes {
+        if b > MAX_CACHE_BYTES {
+            doc.at(
+                &at("cache_bytes"),
+                format!("volume: `cache_bytes` {b} is over the limit of {MAX_CACHE_BYTES} (1 TiB)"),
+            );
+        }
+        if v.source.starts_with("procedural:") {
+            doc.at(&at("cache_bytes"), "volume: `cache_bytes` is for time steps, not a procedural volume");
         }
     }
     if let Some(b) = v.max_bytes {
@@ -1963,6 +1990,28 @@ tiles = ["b"]
         let c = WallConfig::parse(&raw, Path::new("/w/wall.toml")).unwrap();
         assert_eq!((c.volume.dims, c.volume.voxel_type.as_deref()), (Some([2, 2, 2]), Some("int16")));
         assert_eq!(c.volume_source(), "/w/head.raw");
+        assert_eq!(c.cache_bytes(), DEFAULT_CACHE_BYTES);
+        expect(
+            &vol("source = \"steps/step_*.nrrd\"\ncache_bytes = 1099511627777"),
+            Some(6),
+            "volume: `cache_bytes` 1099511627777 is over the limit of 1099511627776 (1 TiB)",
+        );
+        expect(
+            &vol("source = \"steps/step_*.nrrd\"\ncache_bytes = -1"),
+            Some(6),
+            "invalid value: integer `-1`",
+        );
+        expect(
+            &vol("source = \"procedural:sphere\"\ncache_bytes = 1000"),
+            Some(6),
+            "`cache_bytes` is for time steps, not a procedural volume",
+        );
+        let steps = WallConfig::parse(
+            &vol("source = \"steps/step_*.nrrd\"\ncache_bytes = 0"),
+            Path::new("/w/wall.toml"),
+        )
+        .unwrap();
+        assert_eq!((steps.cache_bytes(), steps.volume_source().as_str()), (0, "/w/steps/step_*.nrrd"));
     }
 
     #[test]
