@@ -2,7 +2,9 @@
 //! both binaries): reads and validates a wall config
 //! ([`WallConfig::check_report`](isowall_wall::WallConfig::check_report)). Every problem is printed
 //! to stderr as `FILE:LINE:COL: message` and the exit status is 1; a valid config prints a short
-//! summary (the wall, its image size and the tiles of every node) to stdout.
+//! summary (the wall, its image size and the tiles of every node) to stdout. A DICOM volume's
+//! headers are read too (no pixels): the series chosen, its grid, or why it cannot be read
+//! (including a series over `[volume] max_bytes`).
 
 use isowall_wall::WallConfig;
 use std::path::PathBuf;
@@ -16,12 +18,43 @@ pub struct CheckConfigArgs {
 
 pub fn run(a: &CheckConfigArgs) -> anyhow::Result<()> {
     let (problems, last) = match WallConfig::check_report(&a.file) {
-        Ok(report) => {
-            println!("{report}");
-            return Ok(());
-        }
+        Ok(report) => match WallConfig::load(&a.file).map(|c| check_dicom(&c)) {
+            Ok(Err(problem)) => {
+                println!("{report}");
+                anyhow::bail!("{}: [volume] source: {problem}", a.file.display())
+            }
+            Ok(Ok(Some(series))) => {
+                println!("{report}\n  {series}");
+                return Ok(());
+            }
+            _ => {
+                println!("{report}");
+                return Ok(());
+            }
+        },
         Err(e) => e,
     };
     eprintln!("{problems}");
     anyhow::bail!("{last}")
+}
+
+/// A DICOM volume's series, from its headers: `Ok(None)` when the volume is not DICOM.
+fn check_dicom(config: &WallConfig) -> Result<Option<String>, String> {
+    use isowall_volume::io::dicom::{is_dicom, Series};
+    use isowall_volume::VolumeSource;
+    let (path, series) = match config.volume_source().parse::<VolumeSource>() {
+        Ok(VolumeSource::DicomSeries { path, series }) => (path, Some(series)),
+        Ok(VolumeSource::File(path)) if is_dicom(&path) => (path, None),
+        _ => return Ok(None),
+    };
+    let s = Series::open(&path, series.as_deref()).map_err(|e| e.to_string())?;
+    if let Some(bytes) = config.volume.max_bytes {
+        let limit = isowall_volume::io::VolumeLimit::new(bytes, "[volume] max_bytes");
+        s.check_within(&limit).map_err(|e| e.to_string())?;
+    }
+    let [nx, ny, nz] = s.dims;
+    Ok(Some(format!(
+        "volume: DICOM series {} of {nx}x{ny}x{nz} slices, spacing {} {} {}",
+        s.uid, s.spacing.x, s.spacing.y, s.spacing.z
+    )))
 }

@@ -37,13 +37,19 @@ pub enum Action {
     AoSamples(i8),
     /// The next IBL method (none, seed, bent, rays).
     NextIbl,
+    /// Time steps: play or pause.
+    PlayPause,
+    /// Time steps: one step on (+) or back (-).
+    Step(i8),
+    /// Time steps: double (+) or halve (-) the play rate.
+    Rate(i8),
     Screenshot,
     Quit,
 }
 
 /// The key help shown by `isowall session`.
 pub const KEY_HELP: &str =
-    "arrows/wasd orbit, ijkl pan, +/- zoom, ]/[ iso, >/< AO samples, b IBL, p screenshot, q quit";
+    "arrows/wasd orbit, ijkl pan, +/- zoom, ]/[ iso, >/< AO samples, b IBL, space play/pause, n/N step, )/( rate, p screenshot, q quit";
 
 /// The action of a key, if any.
 pub fn action_for_key(key: Key) -> Option<Action> {
@@ -64,6 +70,11 @@ pub fn action_for_key(key: Key) -> Option<Action> {
         Key::Char('>') | Key::Char('.') => AoSamples(1),
         Key::Char('<') | Key::Char(',') => AoSamples(-1),
         Key::Char('b') => NextIbl,
+        Key::Char(' ') => PlayPause,
+        Key::Char('n') => Step(1),
+        Key::Char('N') => Step(-1),
+        Key::Char(')') => Rate(1),
+        Key::Char('(') => Rate(-1),
         Key::Char('p') => Screenshot,
         Key::Char('q') | Key::Esc | Key::CtrlC => Quit,
         _ => return None,
@@ -77,19 +88,25 @@ pub const ZOOM_STEP: f64 = 0.9;
 /// The eye never comes closer to the up axis (through the target) than this, degrees.
 const MIN_POLE_DEG: f64 = 2.0;
 
-/// The camera and settings a session drives.
+/// The camera, settings and time step a session drives.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SessionState {
     pub camera: Camera,
     pub settings: RenderSettings,
     /// One iso step (a hundredth of the volume's value range).
     pub iso_step: f64,
+    pub playback: Playback,
 }
 
 impl SessionState {
     pub fn new(camera: Camera, settings: RenderSettings, value_range: (f64, f64)) -> Self {
         let span = (value_range.1 - value_range.0).abs();
-        SessionState { camera, settings, iso_step: if span > 0.0 { span / 100.0 } else { 1e-3 } }
+        SessionState {
+            camera,
+            settings,
+            iso_step: if span > 0.0 { span / 100.0 } else { 1e-3 },
+            playback: Playback::new(1, DEFAULT_RATE),
+        }
     }
 
     /// Turns the eye about the world up (+z) through the target.
@@ -155,6 +172,9 @@ impl SessionState {
                     IblMethod::Rays => IblMethod::None,
                 }
             }
+            Action::PlayPause => self.playback.playing = !self.playback.playing,
+            Action::Step(s) => self.playback.step_by(s as i32),
+            Action::Rate(s) => self.playback.change_rate(s),
             Action::Screenshot => {}
             Action::Quit => return true,
         }
@@ -177,6 +197,58 @@ impl SessionState {
         if z != 0.0 {
             self.zoom((-z * j.zoom_per_second * dt).exp());
         }
+    }
+}
+
+/// Playing a time-varying volume: the step shown, whether it plays, and at how many steps a
+/// second. Pure: the frame loop passes the time that went by.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Playback {
+    /// The volume's time steps (1: nothing to play).
+    pub steps: u32,
+    pub step: u32,
+    pub playing: bool,
+    /// Steps per second while playing.
+    pub rate: f64,
+    /// The part of a step played since `step` was shown, in steps (0 ..< 1).
+    phase: f64,
+}
+
+/// The play rate a session starts with, steps per second.
+pub const DEFAULT_RATE: f64 = 4.0;
+/// The fastest and slowest play rates, steps per second.
+pub const MAX_RATE: f64 = 240.0;
+pub const MIN_RATE: f64 = 0.125;
+
+impl Playback {
+    /// Paused at step 0, at `rate` steps a second (clamped to MIN_RATE..=MAX_RATE).
+    pub fn new(steps: u32, rate: f64) -> Playback {
+        let rate = if rate.is_finite() { rate.clamp(MIN_RATE, MAX_RATE) } else { 1.0 };
+        Playback { steps: steps.max(1), step: 0, playing: false, rate, phase: 0.0 }
+    }
+
+    /// Moves on by `dt` seconds of play (nothing while paused), wrapping at the last step.
+    pub fn advance(&mut self, dt: f64) {
+        if !self.playing || !(dt.is_finite() && dt > 0.0) {
+            return;
+        }
+        let total = self.phase + dt * self.rate;
+        let whole = total.floor();
+        self.phase = total - whole;
+        self.step = ((self.step as u64 + whole as u64) % self.steps as u64) as u32;
+    }
+
+    /// One step on (+) or back (-), wrapping; the phase starts again.
+    pub fn step_by(&mut self, delta: i32) {
+        let n = self.steps as i64;
+        self.step = (self.step as i64 + delta as i64).rem_euclid(n) as u32;
+        self.phase = 0.0;
+    }
+
+    /// Doubles (+) or halves (-) the rate, within MIN_RATE..=MAX_RATE.
+    pub fn change_rate(&mut self, sign: i8) {
+        let r = if sign > 0 { self.rate * 2.0 } else { self.rate / 2.0 };
+        self.rate = r.clamp(MIN_RATE, MAX_RATE);
     }
 }
 
@@ -221,6 +293,9 @@ mod tests {
         assert_eq!(action_for_key(Key::Char('b')), Some(Action::NextIbl));
         assert_eq!(action_for_key(Key::Char('p')), Some(Action::Screenshot));
         assert_eq!(action_for_key(Key::CtrlC), Some(Action::Quit));
+        assert_eq!(action_for_key(Key::Char(' ')), Some(Action::PlayPause));
+        assert_eq!(action_for_key(Key::Char('N')), Some(Action::Step(-1)));
+        assert_eq!(action_for_key(Key::Char(')')), Some(Action::Rate(1)));
         assert_eq!(action_for_key(Key::Char('z')), None);
     }
 
@@ -304,5 +379,49 @@ mod tests {
         // Stick up for a second: one e-fold closer.
         s.apply_axes(Axes { zoom: 1.0, ..Default::default() }, 1.0, &j);
         assert!((s.camera.eye.length() - 10.0 * (-1.0f64).exp()).abs() < 1e-9);
+    }
+
+    #[test]
+    fn playback_steps_at_its_rate_wraps_and_pauses() {
+        let mut p = Playback::new(16, 4.0);
+        p.advance(1.0);
+        assert_eq!(p.step, 0, "paused at first");
+        p.playing = true;
+        // 4 steps a second: 0.3 s is one step and a fifth, the fifth kept.
+        p.advance(0.3);
+        assert_eq!(p.step, 1);
+        p.advance(0.25);
+        assert_eq!(p.step, 2);
+        p.advance(3.5);
+        assert_eq!(p.step, (2 + 14) % 16, "wraps at the last step");
+        p.step_by(-2);
+        assert_eq!(p.step, 14);
+        p.step_by(1);
+        assert_eq!(p.step, 15);
+        p.change_rate(1);
+        assert_eq!(p.rate, 8.0);
+        for _ in 0..20 {
+            p.change_rate(1);
+        }
+        assert_eq!(p.rate, MAX_RATE);
+        p.playing = false;
+        p.advance(10.0);
+        assert_eq!(p.step, 15, "paused");
+        // A volume without time steps stays at 0.
+        let mut one = Playback::new(1, 4.0);
+        one.playing = true;
+        one.advance(5.0);
+        one.step_by(3);
+        assert_eq!(one.step, 0);
+        // Through the session's keys.
+        let cam =
+            Camera { eye: DVec3::new(0.0, -5.0, 0.0), target: DVec3::ZERO, up: DVec3::Z, fov_y_deg: 35.0 };
+        let mut s = SessionState::new(cam, RenderSettings::new(0.5), (0.0, 1.0));
+        s.playback = Playback::new(4, 1.0);
+        s.apply(Action::PlayPause);
+        assert!(s.playback.playing);
+        s.apply(Action::Step(1));
+        s.apply(Action::Rate(-1));
+        assert_eq!((s.playback.step, s.playback.rate), (1, 0.5));
     }
 }

@@ -18,7 +18,7 @@ use std::time::{Duration, Instant};
 pub struct DemoArgs {
     /// The wall config (TOML)
     pub config: PathBuf,
-    /// The camera path: [[key]] tables with time, eye, target, up, fov, iso, ao_samples
+    /// The camera path: [[key]] tables with time, eye, target, up, fov, iso, ao_samples, step
     #[arg(long, value_name = "FILE")]
     pub path: PathBuf,
     /// The frame clock: frame i shows the path at i / FPS seconds
@@ -77,6 +77,7 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
                 }
             }
             let camera = key.camera();
+            wall.time_step = key.step;
             tokio::select! {
                 r = wall.frame(&camera, &s) => r?,
                 _ = &mut stop => break,

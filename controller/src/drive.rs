@@ -57,6 +57,12 @@ pub struct OrbitOptions {
     /// `ID UNIX_MS TILE=FRAME_ID...` (the tiles that answered) in DIR/frames.txt
     #[arg(long, value_name = "DIR", hide = true)]
     pub record_frames: Option<PathBuf>,
+    /// Time-varying volumes: the time step of the first frame (wrapped at the step count)
+    #[arg(long, default_value_t = 0)]
+    pub step: u32,
+    /// Time-varying volumes: play, one time step a frame from --step (wrapping)
+    #[arg(long)]
+    pub play: bool,
 }
 
 #[derive(Args)]
@@ -157,6 +163,14 @@ pub(crate) fn scene_and_range(config: &WallConfig) -> Result<(Camera, RenderSett
         config.render_settings(iso),
         (lo as f64, hi as f64),
     ))
+}
+
+/// The number of time steps of the configured volume (1 for a volume without time steps), from
+/// file names or a header.
+pub(crate) fn time_steps(config: &WallConfig) -> Result<u32> {
+    let source: VolumeSource = config.volume_source().parse()?;
+    let n = source.time_steps().with_context(|| format!("volume {source}"))?;
+    Ok(u32::try_from(n).unwrap_or(u32::MAX).max(1))
 }
 
 /// The camera of frame `k` of an orbit: the eye turned about the world up axis (+z) through the
@@ -271,7 +285,10 @@ async fn drive(
     let mut governed = GovernorLog::default();
     let mut settings = *settings;
     let total = o.frames + o.still_frames;
+    let steps = time_steps(&wall.config)?;
     for k in 0..total {
+        let played = if o.play { k } else { 0 };
+        wall.time_step = ((u64::from(o.step) + played) % u64::from(steps)) as u32;
         if let Some(p) = period {
             tokio::time::sleep_until((start + p.mul_f64(k as f64)).into()).await;
         }

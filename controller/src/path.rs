@@ -11,6 +11,7 @@
 //! fov = 35.0              # optional, vertical degrees; default the wall's [camera] fov_y
 //! iso = 0.5               # optional, data units; default the wall's iso
 //! ao_samples = 16         # optional; default the wall's [render] ao_samples
+//! step = 0                # optional, time-varying volumes: the time step; default 0
 //! ```
 //!
 //! Between keys, eye, target and up follow a Catmull-Rom spline (a cubic Hermite whose tangent
@@ -18,7 +19,9 @@
 //! with a continuous velocity, also for unevenly spaced keys); up is renormalised. A path whose
 //! last key repeats its first (a closed loop) takes its end tangents across the seam, so a
 //! looping demo turns smoothly there too. The field of view and the iso value are linear (no
-//! overshoot); the AO sample count is stepwise: that of the last key at or before the time.
+//! overshoot); the AO sample count is stepwise: that of the last key at or before the time. The
+//! time step is linear and rounded down (keys `step = 0` at 0 s and `step = 15` at 15 s play a
+//! step a second; a node wraps a step past the volume's last).
 
 use glam::DVec3;
 use isowall_wall::config::line_column;
@@ -52,6 +55,7 @@ struct KeyFile {
     fov: Option<f64>,
     iso: Option<f64>,
     ao_samples: Option<u32>,
+    step: Option<u32>,
 }
 
 /// What a key leaves out is taken from the wall.
@@ -72,6 +76,7 @@ pub struct Key {
     pub fov_y_deg: f64,
     pub iso: f64,
     pub ao_samples: u32,
+    pub step: u32,
 }
 
 impl Key {
@@ -141,6 +146,7 @@ impl CameraPath {
                 fov_y_deg: k.fov.unwrap_or(d.fov_y_deg),
                 iso: k.iso.unwrap_or(d.iso),
                 ao_samples: k.ao_samples.unwrap_or(d.ao_samples),
+                step: k.step.unwrap_or(0),
             };
             finite("fov", &[key.fov_y_deg])?;
             finite("iso", &[key.iso])?;
@@ -167,7 +173,8 @@ impl CameraPath {
             && first.up == last.up
             && first.fov_y_deg == last.fov_y_deg
             && first.iso == last.iso
-            && first.ao_samples == last.ao_samples;
+            && first.ao_samples == last.ao_samples
+            && first.step == last.step;
         Ok(CameraPath { keys, closed })
     }
 
@@ -217,6 +224,7 @@ impl CameraPath {
             fov_y_deg: lerp(k0.fov_y_deg, k1.fov_y_deg),
             iso: lerp(k0.iso, k1.iso),
             ao_samples,
+            step: lerp(k0.step as f64, k1.step as f64).floor().max(0.0) as u32,
         }
     }
 }
@@ -306,6 +314,18 @@ mod tests {
         // Past the ends: clamped.
         assert_eq!(p.at(-1.0).eye, p.keys[0].eye);
         assert_eq!(p.at(9.0).eye, p.keys[3].eye);
+    }
+
+    #[test]
+    fn the_time_step_is_linear_rounded_down() {
+        let text = "[[key]]\ntime = 0\neye = [5, 0, 0]\ntarget = [0, 0, 0]\n\n\
+                    [[key]]\ntime = 15\neye = [5, 0, 0]\ntarget = [0, 0, 0]\nstep = 15\n";
+        let p = parse(text).unwrap();
+        let steps: Vec<u32> =
+            [0.0, 0.99, 1.0, 7.5, 14.99, 15.0, 20.0].iter().map(|&t| p.at(t).step).collect();
+        assert_eq!(steps, [0, 0, 1, 7, 14, 15, 15]);
+        assert!(!p.closed, "a path back at its first camera on another step is not a loop");
+        assert!(parse(&text.replace("step = 15", "step = -1")).is_err());
     }
 
     #[test]

@@ -5,7 +5,7 @@
 //! skew, iso, AO samples, IBL). While nothing changes the wall keeps refining its progressive AO.
 
 use crate::controls::{action_for_key, Action, Axes, Key, SessionState, KEY_HELP};
-use crate::drive::{load, runtime, scene_and_range};
+use crate::drive::{load, runtime, scene_and_range, time_steps};
 use crate::start::{self, StartArgs};
 use crate::wall::compose;
 use anyhow::{Context, Result};
@@ -170,6 +170,7 @@ pub fn session(a: &SessionArgs) -> Result<()> {
     let (camera, settings, range) = scene_and_range(&config)?;
     let joystick = config.joystick.clone();
     let mut state = SessionState::new(camera, settings, range);
+    state.playback.steps = time_steps(&config)?;
     std::fs::create_dir_all(&a.screenshots)
         .with_context(|| format!("cannot create {}", a.screenshots.display()))?;
     let (tx, rx) = mpsc::channel::<Input>();
@@ -218,6 +219,8 @@ pub fn session(a: &SessionArgs) -> Result<()> {
             let dt = last.elapsed().as_secs_f64().min(0.25);
             last = Instant::now();
             state.apply_axes(axes, dt, &wall.config.joystick);
+            state.playback.advance(dt);
+            wall.time_step = state.playback.step;
             tokio::select! {
                 r = wall.frame(&state.camera, &state.settings) => r?,
                 _ = &mut ctrl_c => break 'frames,
@@ -253,8 +256,19 @@ pub fn session(a: &SessionArgs) -> Result<()> {
                 None => ("-".into(), "-".into()),
             };
             let s = &state.settings;
+            let p = &state.playback;
+            let step = if p.steps > 1 {
+                let late = match wall.finished.last() {
+                    Some(f) if f.per_node.iter().any(|n| n.step_late.is_some()) => " (a node waited for it)",
+                    _ => "",
+                };
+                let mode = if p.playing { format!("playing {} steps/s", p.rate) } else { "paused".into() };
+                format!(" | step {}/{} {mode}{late}", p.step, p.steps)
+            } else {
+                String::new()
+            };
             print!(
-                "\r\x1b[2K{fps:.1} fps | slowest {slowest} | skew {skew} | iso {:.4} | AO {} | IBL {:?} {note}",
+                "\r\x1b[2K{fps:.1} fps | slowest {slowest} | skew {skew} | iso {:.4} | AO {} | IBL {:?}{step} {note}",
                 s.iso, s.ao.samples, s.ao.ibl
             );
             let _ = std::io::stdout().flush();

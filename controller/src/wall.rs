@@ -86,6 +86,8 @@ pub struct Wall {
     next_frame: u64,
     /// The internal resolution divisor sent with the next frame states (the governor's; 1: full).
     pub scale: u32,
+    /// The time step the next frames render (a time-varying volume).
+    pub time_step: u32,
     /// Statistics of the last finished frames (at most [`HISTORY`]..2 x [`HISTORY`]).
     pub finished: Vec<FrameStats>,
     /// The last releases: (frame, barrier time, stragglers), bounded like `finished`.
@@ -146,6 +148,7 @@ impl Wall {
             epoch: Instant::now(),
             next_frame: 1,
             scale: 1,
+            time_step: 0,
             finished: Vec::new(),
             releases: Vec::new(),
             released: 0,
@@ -437,6 +440,17 @@ impl Wall {
                     self.snapshot_bytes += tiles.iter().map(|t| t.rgb8.len() as u64).sum::<u64>();
                     self.snapshots.insert(node, tiles);
                 }
+                ControllerOutput::StepLate { node, frame_id, wanted, late } => {
+                    let waited = late.waited.as_secs_f64() * 1e3;
+                    if late.shown_step == wanted {
+                        tracing::info!(%node, frame_id, "waited {waited:.0} ms for time step {wanted}");
+                    } else {
+                        eprintln!(
+                            "isowall: node {node} showed time step {} in frame {frame_id}, not {wanted}: not loaded after {waited:.0} ms",
+                            late.shown_step
+                        );
+                    }
+                }
                 ControllerOutput::PixelsMissing { node, frame_id, peers } => {
                     if peers.is_empty() {
                         eprintln!(
@@ -556,7 +570,7 @@ impl Wall {
         self.retry_down_nodes();
         let id = self.next_frame;
         self.next_frame += 1;
-        let state = FrameState::new(id, camera, settings, self.scale);
+        let state = FrameState::new(id, camera, settings, self.scale).at_time_step(self.time_step);
         let now = self.now();
         let out = self.machine.begin_frame(now, state).map_err(|e| anyhow!("{e}"))?;
         self.execute(out).await;
@@ -725,6 +739,49 @@ pub fn quantile(mut v: Vec<Duration>, q: f64) -> Option<Duration> {
 }
 
 /// Human statistics of a run.
+/// Time-varying volumes: the steps the frames played and the frames whose step was not loaded
+/// on some node when the frame came (it waited, bounded) or that showed another step. Empty
+/// when every frame was at step 0.
+pub fn time_step_report(finished: &[FrameStats]) -> String {
+    if finished.iter().all(|f| f.time_step == 0) {
+        return String::new();
+    }
+    let changes = finished.windows(2).filter(|w| w[0].time_step != w[1].time_step).count();
+    let (mut waited, mut other) = (Vec::new(), Vec::new());
+    for f in finished {
+        for n in &f.per_node {
+            if let Some(l) = n.step_late {
+                waited.push(format!("{}@{}", n.node, f.frame_id));
+                if l.shown_step != f.time_step {
+                    other.push(format!(
+                        "{}@{} (step {} for {})",
+                        n.node, f.frame_id, l.shown_step, f.time_step
+                    ));
+                }
+            }
+        }
+    }
+    let frames_waited: std::collections::BTreeSet<u64> = finished
+        .iter()
+        .filter(|f| f.per_node.iter().any(|n| n.step_late.is_some()))
+        .map(|f| f.frame_id)
+        .collect();
+    let mut s = format!(
+        "time steps: {} step changes over {} frames; frames that waited for their step: {}; frames with another step shown: {}\n",
+        changes,
+        finished.len(),
+        frames_waited.len(),
+        other.len()
+    );
+    if !waited.is_empty() {
+        s += &format!("  waited (node@frame): {}\n", waited.join(", "));
+    }
+    if !other.is_empty() {
+        s += &format!("  another step shown: {}\n", other.join(", "));
+    }
+    s
+}
+
 pub fn report(wall: &Wall, elapsed: Duration) -> String {
     let frames = wall.released;
     let mut s = format!(
@@ -801,6 +858,7 @@ pub fn report(wall: &Wall, elapsed: Duration) -> String {
             ms(quantile(merge, 1.0)),
         );
     }
+    s += &time_step_report(&wall.finished);
     let stragglers: Vec<String> =
         wall.releases.iter().flat_map(|r| r.2.iter().map(|n| format!("{n}@{}", r.0))).collect();
     if !stragglers.is_empty() {

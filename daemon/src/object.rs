@@ -362,7 +362,8 @@ impl ObjectNode {
     fn finish(&mut self, c: Composited) -> JobResult {
         let render_time = self.machine.render_time(c.frame_id);
         let tiles = c.tiles.into_iter().map(TileResult::from).collect();
-        JobResult { frame_id: c.frame_id, tiles, render_time }
+        // Object space has no time steps (time-varying sources are refused there).
+        JobResult { frame_id: c.frame_id, tiles, render_time, step_late: None }
     }
 
     /// A brick map from the controller (`Message::Bricks`): the frames it completes, or the

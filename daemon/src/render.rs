@@ -103,11 +103,20 @@ impl From<AovArg> for Aov {
 
 #[derive(Args, Debug, Default, Clone)]
 pub struct RenderArgs {
-    /// Volume: a file (.nrrd .nhdr .mhd .mha .nii .nii.gz, or raw with --dims/--type/--spacing) or
+    /// Volume: a file (.nrrd .nhdr .mhd .mha .nii .nii.gz, a DICOM folder or one file of the series,
+    /// or raw with --dims/--type/--spacing) or
     /// procedural:NAME[:N] with NAME one of sphere, sphere-over-plane, torus, marschner-lobb, gyroid,
     /// engine and N the largest dimension [default: procedural:engine, 256x256x118]
     #[arg(long, value_name = "PATH|procedural:NAME[:N]")]
     pub volume: Option<String>,
+    /// DICOM: the SeriesInstanceUID to read where the folder holds several (the error without it
+    /// lists them)
+    #[arg(long, value_name = "UID")]
+    pub series: Option<String>,
+    /// Time-varying volumes (a `step_*.nrrd` glob, a 4-D NIfTI or NRRD): the time step to render,
+    /// from 0 [default: 0]
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    pub step: usize,
     /// Iso value in the data's own units (Hounsfield for CT) [default: the procedural volume's own;
     /// for files the middle of the data range, with a warning]
     #[arg(long, value_name = "V", allow_negative_numbers = true)]
@@ -233,14 +242,26 @@ pub fn load_volume_within(
     iso: Option<f64>,
     limit: &VolumeLimit,
 ) -> Result<(Volume, f64)> {
+    load_volume_step_within(spec, raw, iso, 0, limit)
+}
+
+/// [`load_volume_within`] of time step `step`.
+pub fn load_volume_step_within(
+    spec: Option<&str>,
+    raw: Option<&RawSpec>,
+    iso: Option<f64>,
+    step: usize,
+    limit: &VolumeLimit,
+) -> Result<(Volume, f64)> {
     let source: VolumeSource = match spec {
         Some(s) => s.parse()?,
         None => VolumeSource::default_engine(),
     };
     let start = Instant::now();
-    tracing::info!(volume = %source, "loading volume");
+    tracing::info!(volume = %source, step, "loading volume");
     let bar = crate::progress::spinner(format!("loading volume {source}"));
-    let volume = source.load_within(raw, limit).with_context(|| format!("cannot load volume {source}"));
+    let volume =
+        source.load_step_within(raw, step, limit).with_context(|| format!("cannot load volume {source}"));
     bar.finish_and_clear();
     let volume = volume?;
     let (lo, hi) = volume.value_range();
@@ -263,9 +284,14 @@ pub fn load_volume_within(
 
 pub fn run(a: &RenderArgs) -> Result<()> {
     let raw = a.raw_spec()?;
+    let spec = match (&a.volume, &a.series) {
+        (v, None) => v.clone(),
+        (Some(v), Some(uid)) => Some(v.parse::<VolumeSource>()?.with_series(Some(uid))?.to_string()),
+        (None, Some(_)) => bail!("--series needs --volume (a DICOM folder or one file of it)"),
+    };
     let gpu = a.renderer.unwrap_or_default() == RendererKind::Gpu;
     let limit = volume_limit(a.max_volume_bytes.map(|b| (b, "--max-volume-bytes")), gpu)?;
-    let (volume, iso) = load_volume_within(a.volume.as_deref(), raw.as_ref(), a.iso, &limit)?;
+    let (volume, iso) = load_volume_step_within(spec.as_deref(), raw.as_ref(), a.iso, a.step, &limit)?;
     let (w, h) = a.size.unwrap_or((800, 600));
     let framing = Camera::framing(volume.box_min(), volume.box_max(), w, h);
     let centre = 0.5 * (volume.box_min() + volume.box_max());

@@ -104,6 +104,27 @@ async fn shown_tiles(node: &Node, divisor: u32) -> Vec<TileImage> {
     }
 }
 
+/// A time-varying volume's steps for the render thread, loaded ahead within `[volume]
+/// cache_bytes`; a frame waits for a step not loaded yet at most half the wall's deadline (at
+/// most 10 s). `None` for a volume without time steps.
+fn time_steps(
+    config: &WallConfig,
+    raw: Option<&isowall_volume::io::RawSpec>,
+    limit: isowall_volume::io::VolumeLimit,
+) -> Result<Option<crate::tiles::TimeSteps>> {
+    let source: isowall_volume::VolumeSource = config.volume_source().parse()?;
+    let count = source.time_steps().with_context(|| format!("volume {source}"))?;
+    if count < 2 {
+        return Ok(None);
+    }
+    let cache_bytes = usize::try_from(config.cache_bytes()).unwrap_or(usize::MAX);
+    let wait =
+        std::time::Duration::from_millis(config.wall.deadline_ms / 2).min(std::time::Duration::from_secs(10));
+    tracing::info!(volume = %source, steps = count, cache_bytes, "time-varying volume");
+    let cache = isowall_volume::steps::StepCache::new(source, raw.cloned(), cache_bytes, limit)?;
+    Ok(Some(crate::tiles::TimeSteps { cache, wait }))
+}
+
 pub fn run(a: &RunArgs) -> Result<()> {
     let mut config = WallConfig::load(&a.config).map_err(|e| anyhow!("{e}"))?;
     let node = config
@@ -130,6 +151,7 @@ pub fn run(a: &RunArgs) -> Result<()> {
     let volume_limit =
         crate::render::volume_limit(config.volume.max_bytes.map(|b| (b, "[volume] max_bytes")), true)?;
     // object space: only the brick and its halo.
+    let mut steps = None;
     let (volume, object, peer_rx, inbox, load_rx) = if config.wall.mode == WallMode::Object {
         let setup = crate::object::load_brick(&config, &node.name, raw.as_ref(), volume_limit)?;
         let (load_tx, load_rx) = tokio::sync::mpsc::unbounded_channel();
@@ -148,13 +170,14 @@ pub fn run(a: &RunArgs) -> Result<()> {
             config.volume.iso,
             &volume_limit,
         )?;
+        steps = time_steps(&config, raw.as_ref(), volume_limit)?;
         (RenderVolume::Whole(volume), None, None, None, None)
     };
     let env_src: EnvSource = config.env_source().parse().context("[render] env")?;
     let env: Environment = env_src.load().context("cannot load the environment")?;
     let (tx, results) = tokio::sync::mpsc::unbounded_channel();
     crate::notify::status("opening the GPU device");
-    let renderer = TileRenderer::start(volume, Some(env), tx)?;
+    let renderer = TileRenderer::start(volume, Some(env), tx, steps)?;
     let addr = transport::resolve(&node.address)?;
     let setup = WindowSetup {
         mode: a.display,
@@ -545,6 +568,16 @@ async fn frame_done(
             tracing::warn!("{e}");
         }
     }
+    if let Some((shown_step, waited)) = done.step_late {
+        crate::notify::status(&format!(
+            "frame {id}: its time step was not loaded in time; waited {:.0} ms, showed step {shown_step}",
+            waited.as_secs_f64() * 1e3
+        ));
+        let waited_us = u64::try_from(waited.as_micros()).unwrap_or(u64::MAX);
+        if let Err(e) = sender.send(&Message::StepLate { frame_id: id, shown_step, waited_us }).await {
+            tracing::warn!("{e}");
+        }
+    }
     node.pending = Some(done);
     machine.render_done(node.epoch.elapsed(), id, t)
 }
@@ -601,6 +634,7 @@ async fn execute(
                     scale,
                     // object space: the shares travel to the tiles' owners.
                     read_pixels: node.object.is_some(),
+                    time_step: spec.time_step,
                 }) {
                     tracing::error!("{e}");
                     node.render_dead = true;

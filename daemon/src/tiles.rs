@@ -14,6 +14,7 @@ use isowall_render::environment::Environment;
 use isowall_render::gpu::present::{Presented, TileSurface};
 use isowall_render::gpu::ObjectSpace;
 use isowall_render::gpu::{FrameRead, GpuRenderer, ReadbackRing, TileFrame, TileTarget};
+use isowall_volume::steps::{StepCache, StepState};
 use isowall_volume::{BlockMinMax, Volume, VolumeInfo};
 use isowall_wall::{RenderSettings, View};
 use std::collections::VecDeque;
@@ -36,6 +37,8 @@ pub struct TileJob {
     /// Read each view's colour and depth back (object space: its pixels travel to the tile's
     /// owner); otherwise the frame stays on the GPU and the results carry no pixels.
     pub read_pixels: bool,
+    /// The frame's time step (a time-varying volume; taken modulo its step count).
+    pub time_step: u32,
 }
 
 /// A tile's image of a frame: 8-bit sRGB, rows top to bottom. Where the frame stayed on the GPU
@@ -72,6 +75,23 @@ pub struct JobResult {
     pub frame_id: u64,
     pub tiles: Vec<TileResult>,
     pub render_time: Duration,
+    /// The frame's time step was not loaded when the job came: the step rendered and how long
+    /// the render thread waited for it (bounded by [`TimeSteps::wait`]).
+    pub step_late: Option<(u32, Duration)>,
+}
+
+/// A time-varying volume on the render thread (screen space): its steps, loaded ahead by the
+/// cache's own loader thread, and the longest a frame waits for a step that is not loaded yet
+/// before it renders the step it has (and says so).
+pub struct TimeSteps {
+    pub cache: StepCache,
+    pub wait: Duration,
+}
+
+/// The steps and which one is on the GPU.
+struct StepsOnGpu {
+    steps: TimeSteps,
+    shown: u32,
 }
 
 /// A window to present a tile in, with its size in pixels.
@@ -107,6 +127,7 @@ enum WindowJob {
 /// A frame submitted to the GPU whose reads have not all arrived.
 struct InFlight {
     frame_id: u64,
+    step_late: Option<(u32, Duration)>,
     started: Instant,
     tiles: Vec<Option<TileResult>>,
     fetches: u64,
@@ -135,6 +156,7 @@ struct RenderLoop {
     frames: VecDeque<InFlight>,
     snapshots: Vec<SnapshotWait>,
     results: tokio::sync::mpsc::UnboundedSender<Result<JobResult, String>>,
+    steps: Option<StepsOnGpu>,
 }
 
 /// The render thread: a [`RenderHandle`] to it and the thread to join.
@@ -151,12 +173,14 @@ pub struct RenderHandle {
 }
 
 impl TileRenderer {
-    /// Starts the render thread: opens the GPU, uploads the volume and environment, then renders
-    /// jobs in order. Returns once the GPU is up (or with its error). Results go to `results`.
+    /// Starts the render thread: opens the GPU, uploads the volume (step 0 where `steps` is
+    /// given) and environment, then renders jobs in order. Returns once the GPU is up (or with
+    /// its error). Results go to `results`.
     pub fn start(
         volume: RenderVolume,
         env: Option<Environment>,
         results: tokio::sync::mpsc::UnboundedSender<Result<JobResult, String>>,
+        steps: Option<TimeSteps>,
     ) -> Result<TileRenderer> {
         let (jobs, rx) = mpsc::channel::<Job>();
         let (ready_tx, ready_rx) = mpsc::channel::<Result<String, String>>();
@@ -204,6 +228,7 @@ impl TileRenderer {
                     frames: VecDeque::new(),
                     snapshots: Vec::new(),
                     results,
+                    steps: steps.map(|steps| StepsOnGpu { steps, shown: 0 }),
                 };
                 loop {
                     // Reads in flight: take the next job if there is one, else wait for the GPU.
@@ -393,11 +418,13 @@ impl RenderLoop {
     /// its reads arrive. False when the results' receiver is gone.
     fn render(&mut self, job: &TileJob) -> bool {
         let started = Instant::now();
+        let step_late = self.show_step(job.frame_id, job.time_step);
         match self.submit(job) {
             Ok(()) => {
                 let n = job.tiles.len();
                 self.frames.push_back(InFlight {
                     frame_id: job.frame_id,
+                    step_late,
                     started,
                     tiles: vec![None; n],
                     fetches: 0,
@@ -407,6 +434,47 @@ impl RenderLoop {
             }
             Err(e) => self.results.send(Err(e)).is_ok(),
         }
+    }
+
+    /// A time-varying volume: puts the frame's step on the GPU (the current one for the cache,
+    /// so it loads the ones after it). A step not loaded yet is waited for at most
+    /// [`TimeSteps::wait`]; then the frame renders the step it has. `Some((shown, waited))`
+    /// where the step was not loaded when the frame came.
+    fn show_step(&mut self, frame_id: u64, wanted: u32) -> Option<(u32, Duration)> {
+        let on = self.steps.as_mut()?;
+        let count = on.steps.cache.steps().max(1);
+        let wanted = (wanted as usize % count) as u32;
+        let first = on.steps.cache.get(wanted as usize);
+        if wanted == on.shown {
+            return None;
+        }
+        let t0 = Instant::now();
+        let late = matches!(first, StepState::Loading);
+        let state = if late { on.steps.cache.wait(wanted as usize, on.steps.wait) } else { first };
+        match state {
+            StepState::Ready(v) => match self.gpu.upload(&v) {
+                Ok(gv) => {
+                    self.volumes.retain(|v| v.0 != 0);
+                    self.volumes.insert(0, (0, gv));
+                    on.shown = wanted;
+                }
+                Err(e) => tracing::warn!(frame_id, "time step {wanted}: cannot upload it: {e}"),
+            },
+            StepState::Loading => tracing::warn!(
+                frame_id,
+                "time step {wanted} is not loaded after waiting {:.0} ms: rendering step {}",
+                on.steps.wait.as_secs_f64() * 1e3,
+                on.shown
+            ),
+            StepState::Failed(e) => {
+                tracing::warn!(
+                    frame_id,
+                    "time step {wanted} cannot be shown: {e}; rendering step {}",
+                    on.shown
+                )
+            }
+        }
+        (late || on.shown != wanted).then(|| (on.shown, t0.elapsed()))
     }
 
     fn submit(&mut self, job: &TileJob) -> Result<(), String> {
@@ -543,7 +611,8 @@ impl RenderLoop {
                 "frame rendered"
             );
             let tiles = f.tiles.into_iter().flatten().collect();
-            if self.results.send(Ok(JobResult { frame_id: f.frame_id, tiles, render_time })).is_err() {
+            let result = JobResult { frame_id: f.frame_id, tiles, render_time, step_late: f.step_late };
+            if self.results.send(Ok(result)).is_err() {
                 return false;
             }
         }
@@ -586,7 +655,7 @@ mod tests {
         let src: isowall_volume::VolumeSource = "procedural:sphere-over-plane:48".parse().unwrap();
         let volume = src.load(None).unwrap();
         let (tx, rx) = tokio::sync::mpsc::unbounded_channel();
-        Some((TileRenderer::start(RenderVolume::Whole(volume), None, tx).unwrap(), rx))
+        Some((TileRenderer::start(RenderVolume::Whole(volume), None, tx, None).unwrap(), rx))
     }
 
     fn camera() -> Camera {
@@ -616,6 +685,7 @@ mod tests {
             bricks: Vec::new(),
             scale,
             read_pixels,
+            time_step: 0,
         };
         r.handle().submit(job).unwrap();
         let result = rx.blocking_recv().unwrap().unwrap();

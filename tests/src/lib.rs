@@ -214,6 +214,50 @@ pub fn render_whole(
     run_in(dir, "isowalld", &args)
 }
 
+/// How a whole-wall image compares with the single render of the whole wall camera, over the
+/// tiles' pixels of a 2x2 wall of `w`x`h` tiles with `bezel`-pixel mullions ([`wall_config`]).
+#[derive(Debug, Clone, Copy)]
+pub struct TileDiff {
+    pub compared: u64,
+    /// The largest difference of a channel, in 8-bit levels.
+    pub max_diff: u8,
+    /// The mean difference per channel, in levels.
+    pub mean: f64,
+    /// Pixels of the single render brighter than a dim background (the object is in view).
+    pub lit: u64,
+}
+
+/// Compares the tiles' pixels of `wall` with `whole` (see [`TileDiff`]); `is_bezel(x, y)` says
+/// which pixels are mullions, left out of the comparison.
+pub fn compare_tiles(
+    wall: &image::RgbImage,
+    whole: &image::RgbImage,
+    is_bezel: impl Fn(u32, u32) -> bool,
+) -> TileDiff {
+    let (mut compared, mut max_diff, mut sum_diff, mut lit) = (0u64, 0u8, 0u64, 0u64);
+    for (x, y, b) in whole.enumerate_pixels() {
+        if is_bezel(x, y) {
+            continue;
+        }
+        let a = wall.get_pixel(x, y).0;
+        compared += 1;
+        for c in 0..3 {
+            let d = a[c].abs_diff(b.0[c]);
+            max_diff = max_diff.max(d);
+            sum_diff += d as u64;
+        }
+        lit += u64::from(b.0.iter().map(|&v| v as u32).sum::<u32>() > 200);
+    }
+    TileDiff { compared, max_diff, mean: sum_diff as f64 / (3 * compared.max(1)) as f64, lit }
+}
+
+/// Whether pixel (x, y) of a 2x2 wall of `w`x`h` tiles lies in a mullion of `bezel` pixels.
+pub fn in_bezel_2x2(x: u32, y: u32, w: u32, h: u32, bezel: u32) -> bool {
+    let tx = x < w || x >= w + 2 * bezel;
+    let ty = y < h || y >= h + 2 * bezel;
+    !(tx && ty)
+}
+
 /// Writes `dir/NAME.toml`: a 2x2 wall of `w`x`h` tiles with `bezel`-pixel mullions, nodes
 /// `node0..3` on the given loopback ports, the torus at 48^3 with 4 AO samples and sky light, a
 /// fixed camera, and the certificates in `dir/CERTS`.

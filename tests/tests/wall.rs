@@ -2,7 +2,9 @@
 //! controller, whose snapshot must equal a single render of the whole wall camera; a slow daemon
 //! reported by name while the others go on; a peer with another CA's certificate refused.
 
-use isowall_e2e::{free_udp_ports, gpu_ok, in_ci, render_whole, run_in, wall_config, Daemon};
+use isowall_e2e::{
+    compare_tiles, free_udp_ports, gpu_ok, in_bezel_2x2, in_ci, render_whole, run_in, wall_config, Daemon,
+};
 use std::time::Duration;
 
 #[test]
@@ -38,33 +40,17 @@ fn a_2x2_wall_snapshot_equals_the_single_render_of_the_whole_wall() {
     let wall = image::open(dir.path().join("wall.png")).unwrap().to_rgb8();
     let whole = image::open(dir.path().join("whole.png")).unwrap().to_rgb8();
     assert_eq!(wall.dimensions(), (fw, fh));
-    let in_tile = |x: u32, y: u32| {
-        let tx = x < w || x >= w + 2 * bezel;
-        let ty = y < h || y >= h + 2 * bezel;
-        tx && ty
-    };
-    let (mut compared, mut max_diff, mut sum_diff, mut lit) = (0u64, 0u8, 0u64, 0u64);
-    for y in 0..fh {
-        for x in 0..fw {
-            let (a, b) = (wall.get_pixel(x, y).0, whole.get_pixel(x, y).0);
-            if in_tile(x, y) {
-                compared += 1;
-                for c in 0..3 {
-                    let d = a[c].abs_diff(b[c]);
-                    max_diff = max_diff.max(d);
-                    sum_diff += d as u64;
-                }
-                lit += u64::from(b.iter().map(|&v| v as u32).sum::<u32>() > 200);
-            } else {
-                assert!(a.iter().all(|&v| v < 40), "bezel pixel ({x},{y}) not dark: {a:?}");
-            }
+    for (x, y, a) in wall.enumerate_pixels() {
+        if in_bezel_2x2(x, y, w, h, bezel) {
+            assert!(a.0.iter().all(|&v| v < 40), "bezel pixel ({x},{y}) not dark: {a:?}");
         }
     }
+    let d = compare_tiles(&wall, &whole, |x, y| in_bezel_2x2(x, y, w, h, bezel));
+    let (compared, max_diff, mean, lit) = (d.compared, d.max_diff, d.mean, d.lit);
     assert_eq!(compared, 4 * (w * h) as u64);
     assert!(lit > 200, "the torus is hardly in view ({lit} lit pixels)");
     // Tiles are windows of the one wall image with the same per-pixel sample patterns: the same
     // pixels, up to one 8-bit level where float sums round differently.
-    let mean = sum_diff as f64 / (3 * compared) as f64;
     eprintln!("wall snapshot vs single render: max difference {max_diff} levels, mean {mean:.4}");
     assert!(max_diff <= 1 && mean < 0.01, "max {max_diff}, mean {mean}");
 }

@@ -20,6 +20,7 @@ pub mod io;
 pub mod procedural;
 pub mod region;
 pub mod source;
+pub mod steps;
 
 use glam::DVec3;
 use std::path::PathBuf;
@@ -28,6 +29,7 @@ pub use blocks::BlockMinMax;
 pub use format::VoxelFormat;
 pub use region::{Pass, Progress, VolumeInfo, VolumeStream, VoxelRange};
 pub use source::VolumeSource;
+pub use steps::{StepCache, StepState};
 
 /// Everything that can go wrong making or reading a volume. File errors carry the path.
 #[derive(Debug, thiserror::Error)]

@@ -14,6 +14,8 @@
 //!   everything outside the region is decoded and dropped, a slice at a time (compressed streams
 //!   cannot seek), so a region costs the decompression of the file up to the region's last slice;
 //! - procedural volumes: only the region's samples are generated;
+//! - DICOM series: only the slices (files) of the region's z-range are decoded, each whole
+//!   (compressed slices cannot be decoded in part) and cropped in memory;
 //! - MetaImage, NIfTI and NRRD whose `space directions` mirror an axis: the whole volume is read
 //!   once and cropped (it is resident while that happens, then dropped): a documented limit.
 //!
@@ -124,6 +126,8 @@ pub(crate) struct FilePlan {
 enum Kind {
     File(FilePlan),
     Procedural(crate::procedural::Procedural, Option<usize>),
+    /// A DICOM series: one file per z-slice.
+    Dicom(Box<crate::io::dicom::Series>),
     /// Read whole, then cropped (formats without partial reads).
     Whole(Box<Volume>),
 }
@@ -179,6 +183,14 @@ impl VolumeSource {
                 };
                 Ok(VolumeStream { info, kind: Kind::Procedural(*kind, *size), progress: None })
             }
+            VolumeSource::DicomSeries { path, series } => {
+                Ok(VolumeStream::dicom(crate::io::dicom::Series::open(path, Some(series))?, path))
+            }
+            VolumeSource::Steps(_) => Err(time_series_refused(self)),
+            VolumeSource::File(path) if crate::io::time_steps(path)? > 1 => Err(time_series_refused(self)),
+            VolumeSource::File(path) if crate::io::dicom::is_dicom(path) => {
+                Ok(VolumeStream::dicom(crate::io::dicom::Series::open(path, None)?, path))
+            }
             VolumeSource::File(path) => match crate::io::plan(path, raw)? {
                 Some((plan, spacing, origin)) => {
                     let info = VolumeInfo {
@@ -204,7 +216,25 @@ impl VolumeSource {
     }
 }
 
+/// Object space reads one volume: time-varying sources are refused.
+fn time_series_refused(source: &VolumeSource) -> VolumeError {
+    VolumeError::Source(format!(
+        "{source}: a time-varying volume cannot be split into bricks (object space); render it on a \
+         screen-space wall or choose one step"
+    ))
+}
+
 impl VolumeStream {
+    fn dicom(series: crate::io::dicom::Series, path: &std::path::Path) -> VolumeStream {
+        let info = VolumeInfo {
+            name: path.display().to_string(),
+            dims: series.dims,
+            spacing: series.spacing,
+            origin: series.origin,
+        };
+        VolumeStream { info, kind: Kind::Dicom(Box::new(series)), progress: None }
+    }
+
     /// Reports every z-slice a pass has done to `f` (from the calling thread, in order; the last
     /// report of a pass has `done == total`).
     pub fn on_progress(mut self, f: impl Fn(Progress) + Send + Sync + 'static) -> VolumeStream {
@@ -298,7 +328,7 @@ impl VolumeStream {
                 self.report(Pass::Read, slices, slices);
                 v
             }
-            Kind::File(_) => {
+            Kind::File(_) | Kind::Dicom(_) => {
                 let [rx, ry, _] = range.dims();
                 let mut data = Vec::with_capacity(range.count());
                 let nx = self.info.dims[0];
@@ -351,6 +381,15 @@ impl VolumeStream {
                 Ok(())
             }
             Kind::File(plan) => plan.for_each_slice(nx, ny, range, rows, f),
+            Kind::Dicom(series) => {
+                let mut slice = Vec::with_capacity(nx * ny);
+                for k in range.lo[2]..=range.hi[2] {
+                    slice.clear();
+                    series.read_slice(k, &mut slice)?;
+                    f(k, &slice[nx * range.lo[1]..nx * (range.lo[1] + rows)]);
+                }
+                Ok(())
+            }
         }
     }
 }

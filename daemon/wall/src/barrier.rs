@@ -61,6 +61,9 @@ pub enum ControllerOutput {
     /// object space: from `frame_id` on, `node` composites without the pixels of `peers` (they
     /// missed its compositing deadline); empty when they are back. Told when the set changes.
     PixelsMissing { node: String, frame_id: u64, peers: Vec<String> },
+    /// `node` did not have frame `frame_id`'s time step `wanted` loaded when the frame came
+    /// (the caller logs it; [`NodeFrameStats::step_late`] keeps it with the frame).
+    StepLate { node: String, frame_id: u64, wanted: u32, late: StepLate },
 }
 
 /// One node's part in one frame.
@@ -87,12 +90,25 @@ pub struct NodeFrameStats {
     pub resident_bytes: Option<u64>,
     /// The work in its compositing: encoding, decoding, merging (object space).
     pub merge: Option<Duration>,
+    /// Its StepLate: the frame's time step was not loaded when the frame came (time-varying
+    /// volumes).
+    pub step_late: Option<StepLate>,
+}
+
+/// A node's time step that was not loaded when its frame came: it waited `waited` (bounded)
+/// and rendered `shown_step`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct StepLate {
+    pub shown_step: u32,
+    pub waited: Duration,
 }
 
 /// A finished frame.
 #[derive(Debug, Clone, PartialEq)]
 pub struct FrameStats {
     pub frame_id: u64,
+    /// The time step the frame asked for.
+    pub time_step: u32,
     /// The frame's participants, by name.
     pub per_node: Vec<NodeFrameStats>,
     /// max - min of `presented_at` over the nodes that have one (`None` when none has).
@@ -184,11 +200,13 @@ struct Part {
     composite: Option<Duration>,
     resident_bytes: Option<u64>,
     merge: Option<Duration>,
+    step_late: Option<StepLate>,
 }
 
 #[derive(Debug)]
 struct Frame {
     id: u64,
+    time_step: u32,
     begin: Duration,
     /// Set at the release.
     released_at: Option<Duration>,
@@ -412,7 +430,8 @@ impl FrameController {
             parts.insert(name.clone(), Part::default());
             out.push(ControllerOutput::Send { node: name.clone(), message: Message::FrameState(state) });
         }
-        self.collecting = Some(Frame { id, begin: now, released_at: None, parts, missing });
+        self.collecting =
+            Some(Frame { id, time_step: state.time_step, begin: now, released_at: None, parts, missing });
         if self.collecting.as_ref().is_some_and(Frame::all_ready) {
             self.release(now, &mut out);
         }
@@ -475,6 +494,7 @@ impl FrameController {
                 composite: p.composite,
                 resident_bytes: p.resident_bytes,
                 merge: p.merge,
+                step_late: p.step_late,
             })
             .collect();
         let times = per_node.iter().filter_map(|s| s.presented_at);
@@ -486,6 +506,7 @@ impl FrameController {
             frame_id: f.id,
             stats: FrameStats {
                 frame_id: f.id,
+                time_step: f.time_step,
                 per_node,
                 swap_skew,
                 barrier: released_at.saturating_sub(f.begin),
@@ -682,6 +703,28 @@ impl FrameController {
             }
             Message::Bye { reason } => {
                 Ok(self.node_down(now, node, &format!("said goodbye: {}", printable(&reason))))
+            }
+            Message::StepLate { frame_id, shown_step, waited_us } => {
+                let st = self.nodes.get(node).expect("checked");
+                let sent = matches!((st.first_sent, st.last_sent), (Some(a), Some(b)) if (a..=b).contains(&frame_id));
+                if !sent || st.last_ready.is_some_and(|r| frame_id <= r) {
+                    return Err(err(format!(
+                        "StepLate for frame {frame_id}, which it is not rendering (sent {:?}..={:?}, ready {:?})",
+                        st.first_sent, st.last_sent, st.last_ready
+                    )));
+                }
+                let frame = self.collecting.as_mut().filter(|f| f.id == frame_id);
+                if let Some((wanted, p)) = frame.and_then(|f| Some(f.time_step).zip(f.parts.get_mut(node))) {
+                    let waited = Duration::from_micros(waited_us);
+                    p.step_late = Some(StepLate { shown_step, waited });
+                    return Ok(vec![ControllerOutput::StepLate {
+                        node: node.to_string(),
+                        frame_id,
+                        wanted,
+                        late: StepLate { shown_step, waited },
+                    }]);
+                }
+                Ok(Vec::new())
             }
             Message::Composited { frame_id, bytes_sent, composite_us, merge_us, resident_bytes, missing } => {
                 let st = self.nodes.get(node).expect("checked");
@@ -934,6 +977,31 @@ mod tests {
         assert_eq!(stats.per_node[1].ready_after, Some(ms(20)));
         assert_eq!(stats.per_node[1].presented_node_time_us, Some(6));
         assert_eq!(c.poll_timeout(), None);
+    }
+
+    #[test]
+    fn a_late_time_step_is_told_and_kept_with_the_frame_and_a_stray_one_is_an_error() {
+        let mut c = controller(&["a", "b"]);
+        c.begin_frame(ms(0), state(1).at_time_step(6)).unwrap();
+        let late = Message::StepLate { frame_id: 1, shown_step: 5, waited_us: 40_000 };
+        let out = c.handle(ms(1), "a", late.clone()).unwrap();
+        let told = StepLate { shown_step: 5, waited: ms(40) };
+        assert_eq!(
+            out,
+            vec![ControllerOutput::StepLate { node: "a".into(), frame_id: 1, wanted: 6, late: told }]
+        );
+        c.handle(ms(2), "a", Message::Ready { frame_id: 1, render_us: 0 }).unwrap();
+        c.handle(ms(3), "b", Message::Ready { frame_id: 1, render_us: 0 }).unwrap();
+        // After its Ready, or for a frame never sent, it is a protocol error.
+        assert!(c.handle(ms(4), "a", late).is_err());
+        let never = Message::StepLate { frame_id: 9, shown_step: 0, waited_us: 0 };
+        assert!(c.handle(ms(4), "b", never).is_err());
+        c.handle(ms(5), "a", Message::Presented { frame_id: 1, node_time_us: 0 }).unwrap();
+        let out = c.handle(ms(5), "b", Message::Presented { frame_id: 1, node_time_us: 0 }).unwrap();
+        let ControllerOutput::FrameDone { stats, .. } = &out[0] else { panic!("{out:?}") };
+        assert_eq!(stats.time_step, 6);
+        assert_eq!(stats.per_node[0].step_late, Some(told));
+        assert_eq!(stats.per_node[1].step_late, None);
     }
 
     #[test]

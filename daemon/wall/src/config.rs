@@ -18,11 +18,16 @@
 //! fov_y = 35.0                    # vertical, over the whole wall image, degrees (default 35)
 //!
 //! [volume]
-//! source = "procedural:engine"    # PATH (relative to this file's folder) or procedural:NAME[:N]
+//! source = "procedural:engine"    # PATH (relative to this file's folder; a DICOM folder or file)
+//!                                 # or procedural:NAME[:N]
 //! iso = 0.0                       # optional, data units
 //! # raw files only: dims = [nx, ny, nz], type = "int16", spacing = [sx, sy, sz]
+//! # DICOM only: series = "UID"    # the SeriesInstanceUID, where the folder holds several
 //! max_bytes = 2147483648          # optional: the most the voxels may take as float32 on a node
 //!                                 # (default 2 GiB; also at most the GPU's largest binding)
+//! cache_bytes = 1073741824        # optional, time steps (`source = "steps/step_*.nrrd"` or a 4-D
+//!                                 # file): what a node keeps loaded ahead of the step it shows
+//!                                 # (default 1 GiB; 0: only the step it shows)
 //!
 //! [render]      # render-state defaults, all optional
 //! shading = "blinn-phong"         # lambert | blinn-phong
@@ -63,6 +68,7 @@ use crate::render_state::{AoMethod, AoRadius, AoSequence, IblMethod, RenderSetti
 use glam::DVec3;
 use isowall_volume::io::{RawSpec, VoxelType};
 use isowall_volume::procedural::Procedural;
+use isowall_volume::source::SERIES_SELECTOR;
 use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::ops::Range;
@@ -83,6 +89,10 @@ pub const MIN_MESSAGE_LIMIT_BYTES: u64 = 4096;
 pub const MAX_MESSAGE_LIMIT_BYTES: u64 = crate::codec::MAX_FRAME_LEN as u64;
 /// Largest `[volume] max_bytes`: 2^30 voxels as float32 (the readers' own cap).
 pub const MAX_VOLUME_BYTES: u64 = 4 << 30;
+/// Default `[volume] cache_bytes`: 1 GiB of time steps loaded ahead.
+pub const DEFAULT_CACHE_BYTES: u64 = 1 << 30;
+/// Largest `[volume] cache_bytes`: 1 TiB.
+pub const MAX_CACHE_BYTES: u64 = 1 << 40;
 /// Largest tile width or height, and largest bezel, in pixels.
 pub const MAX_TILE_SIZE: u32 = 16384;
 /// Largest extent of the whole wall image along either axis, in pixels.
@@ -198,11 +208,18 @@ pub struct VolumeConfig {
     /// Raw files only: the spacing (world units per voxel; default 1).
     #[serde(default)]
     pub spacing: Option<[f64; 3]>,
+    /// DICOM only: the SeriesInstanceUID to read where the folder holds several series.
+    #[serde(default)]
+    pub series: Option<String>,
     /// The most bytes the volume may take on a node as float32 (4 a voxel), checked from the
     /// file's header before it is read; `None`: 2 GiB. A node also holds it to its GPU's largest
     /// storage binding.
     #[serde(default)]
     pub max_bytes: Option<u64>,
+    /// Time-varying volumes: the bytes of time steps a node keeps loaded from the one it shows
+    /// on (prefetch); `None`: [`DEFAULT_CACHE_BYTES`].
+    #[serde(default)]
+    pub cache_bytes: Option<u64>,
 }
 
 /// `[render]`: the defaults of the render state (the controller may change them per frame).
@@ -719,13 +736,18 @@ impl WallConfig {
         self.resolve(&self.certificates.dir)
     }
 
-    /// The volume source with a relative PATH resolved (`procedural:...` unchanged).
+    /// The volume source with a relative PATH resolved (`procedural:...` unchanged) and the
+    /// DICOM `series` chosen (`PATH?series=UID`).
     pub fn volume_source(&self) -> String {
         let s = &self.volume.source;
         if s.starts_with("procedural:") {
             s.clone()
         } else {
-            self.resolve(s).to_string_lossy().into_owned()
+            let path = self.resolve(s).to_string_lossy().into_owned();
+            match &self.volume.series {
+                Some(uid) => format!("{path}{SERIES_SELECTOR}{uid}"),
+                None => path,
+            }
         }
     }
 
@@ -743,6 +765,11 @@ impl WallConfig {
             })),
             _ => Ok(None),
         }
+    }
+
+    /// `[volume] cache_bytes`, or its default.
+    pub fn cache_bytes(&self) -> u64 {
+        self.volume.cache_bytes.unwrap_or(DEFAULT_CACHE_BYTES)
     }
 
     /// The environment of `[render] env`: `sky` unchanged, a FILE.hdr or DIR resolved.
@@ -1008,6 +1035,9 @@ fn validate_volume(doc: &mut Doc<'_>, v: &VolumeConfig) {
                 );
             }
         }
+        if v.series.is_some() {
+            doc.at(&at("series"), "volume: `series` is for DICOM folders only, not a procedural volume");
+        }
     } else if v.dims.is_some() != v.voxel_type.is_some() || (v.spacing.is_some() && v.dims.is_none()) {
         let field = if v.dims.is_some() {
             "dims"
@@ -1036,6 +1066,17 @@ fn validate_volume(doc: &mut Doc<'_>, v: &VolumeConfig) {
     if let Some(s) = v.spacing {
         if !s.iter().all(|x| x.is_finite() && *x > 0.0) {
             doc.at(&at("spacing"), format!("volume: `spacing` {s:?} must be finite and > 0"));
+        }
+    }
+    if let Some(b) = v.cache_bytes {
+        if b > MAX_CACHE_BYTES {
+            doc.at(
+                &at("cache_bytes"),
+                format!("volume: `cache_bytes` {b} is over the limit of {MAX_CACHE_BYTES} (1 TiB)"),
+            );
+        }
+        if v.source.starts_with("procedural:") {
+            doc.at(&at("cache_bytes"), "volume: `cache_bytes` is for time steps, not a procedural volume");
         }
     }
     if let Some(b) = v.max_bytes {
@@ -1946,6 +1987,28 @@ tiles = ["b"]
         let c = WallConfig::parse(&raw, Path::new("/w/wall.toml")).unwrap();
         assert_eq!((c.volume.dims, c.volume.voxel_type.as_deref()), (Some([2, 2, 2]), Some("int16")));
         assert_eq!(c.volume_source(), "/w/head.raw");
+        assert_eq!(c.cache_bytes(), DEFAULT_CACHE_BYTES);
+        expect(
+            &vol("source = \"steps/step_*.nrrd\"\ncache_bytes = 1099511627777"),
+            Some(6),
+            "volume: `cache_bytes` 1099511627777 is over the limit of 1099511627776 (1 TiB)",
+        );
+        expect(
+            &vol("source = \"steps/step_*.nrrd\"\ncache_bytes = -1"),
+            Some(6),
+            "invalid value: integer `-1`",
+        );
+        expect(
+            &vol("source = \"procedural:sphere\"\ncache_bytes = 1000"),
+            Some(6),
+            "`cache_bytes` is for time steps, not a procedural volume",
+        );
+        let steps = WallConfig::parse(
+            &vol("source = \"steps/step_*.nrrd\"\ncache_bytes = 0"),
+            Path::new("/w/wall.toml"),
+        )
+        .unwrap();
+        assert_eq!((steps.cache_bytes(), steps.volume_source().as_str()), (0, "/w/steps/step_*.nrrd"));
     }
 
     #[test]

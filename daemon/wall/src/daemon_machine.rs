@@ -178,7 +178,8 @@ impl NodeMachine {
             | Message::Snapshot { .. }
             | Message::Composited { .. }
             | Message::BrickLoaded { .. }
-            | Message::BrickFailed { .. } => err("only a daemon sends this".into()),
+            | Message::BrickFailed { .. }
+            | Message::StepLate { .. } => err("only a daemon sends this".into()),
             Message::Bricks { from_frame, holders } => Ok(vec![NodeOutput::Bricks { from_frame, holders }]),
             Message::LoadBrick { brick } => Ok(vec![NodeOutput::LoadBrick { brick }]),
             Message::FrameState(state) => {

@@ -8,6 +8,8 @@
 //! controller                                   daemon
 //!     Hello ------------------------------------> (both ways, first on a connection)
 //!     FrameState(n) ----------------------------> renders its tiles
+//!     <---------------------------------------- StepLate { n, .. } (only when its time step
+//!                                                  was not loaded when the frame came)
 //!     <---------------------------------------- Ready { n, render_us }
 //!     (all up nodes ready, or the deadline)
 //!     Swap(n) ----------------------------------> presents
@@ -29,7 +31,7 @@ use serde::{Deserialize, Serialize};
 use crate::wire::FrameState;
 
 /// The protocol version of this build; a peer's [`Message::Hello`] must carry the same.
-pub const PROTOCOL_VERSION: u16 = 4;
+pub const PROTOCOL_VERSION: u16 = 5;
 
 /// Which side of a connection a peer is.
 #[derive(Serialize, Deserialize, Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -184,6 +186,10 @@ pub enum Message {
     /// (1..=[`MAX_THUMBNAIL_DIVISOR`], [`TileImage::downscaled`]), answered with a Snapshot: a
     /// live thumbnail of the wall costs the nodes' links 1/divisor^2 of full tiles.
     ThumbnailRequest { divisor: u32 },
+    /// Daemon -> controller, before Ready: the frame's time step was not loaded when the frame
+    /// came; the node waited `waited_us` for it (a bounded wait) and rendered `shown_step`
+    /// (the frame's own step once loaded in time, else the last one it had).
+    StepLate { frame_id: u64, shown_step: u32, waited_us: u64 },
 }
 
 /// The largest downscale a [`Message::ThumbnailRequest`] may ask for.
@@ -209,6 +215,7 @@ impl Message {
             Message::BrickLoaded { .. } => "BrickLoaded",
             Message::BrickFailed { .. } => "BrickFailed",
             Message::ThumbnailRequest { .. } => "ThumbnailRequest",
+            Message::StepLate { .. } => "StepLate",
         }
     }
 
@@ -229,7 +236,8 @@ impl Message {
             | Message::Snapshot { .. }
             | Message::Composited { .. }
             | Message::BrickLoaded { .. }
-            | Message::BrickFailed { .. } => Some(Role::Daemon),
+            | Message::BrickFailed { .. }
+            | Message::StepLate { .. } => Some(Role::Daemon),
         }
     }
 }

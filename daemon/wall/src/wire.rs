@@ -92,18 +92,29 @@ pub struct FrameState {
     /// 1 ..= [`MAX_SCALE`](crate::governor::MAX_SCALE); `lowres.rs`): the same for every node.
     /// (Protocol 3: this u32 was `quality`, unused, in protocol 2.)
     pub scale: u32,
+    /// The time step of a time-varying volume every node renders in this frame (0 for a volume
+    /// without time steps; a node takes it modulo its volume's step count). Protocol 5.
+    pub time_step: u32,
 }
 
 impl FrameState {
-    /// The frame state of a model frame.
+    /// The frame state of a model frame, at time step 0.
     pub fn new(frame_id: u64, camera: &Camera, settings: &RenderSettings, scale: u32) -> Self {
-        FrameState { frame_id, camera: camera.into(), settings: settings.into(), scale }
+        FrameState { frame_id, camera: camera.into(), settings: settings.into(), scale, time_step: 0 }
+    }
+
+    /// The same frame state at time step `time_step`.
+    pub fn at_time_step(self, time_step: u32) -> Self {
+        FrameState { time_step, ..self }
     }
 
     /// Whether `other` asks for the same image (everything but the frame id is equal): a daemon
     /// keeps accumulating progressive AO while this holds.
     pub fn same_image(&self, other: &FrameState) -> bool {
-        self.camera == other.camera && self.settings == other.settings && self.scale == other.scale
+        self.camera == other.camera
+            && self.settings == other.settings
+            && self.scale == other.scale
+            && self.time_step == other.time_step
     }
 }
 
@@ -115,11 +126,13 @@ pub struct FrameSpec {
     pub settings: RenderSettings,
     /// The internal resolution divisor, 1 ..= [`MAX_SCALE`](crate::governor::MAX_SCALE).
     pub scale: u32,
+    /// The time step ([`FrameState::time_step`]).
+    pub time_step: u32,
 }
 
 impl From<&FrameSpec> for FrameState {
     fn from(f: &FrameSpec) -> Self {
-        FrameState::new(f.frame_id, &f.camera, &f.settings, f.scale)
+        FrameState::new(f.frame_id, &f.camera, &f.settings, f.scale).at_time_step(f.time_step)
     }
 }
 
@@ -139,6 +152,7 @@ impl TryFrom<&FrameState> for FrameSpec {
                     expected: "an internal resolution divisor in 1..=4",
                 });
             },
+            time_step: s.time_step,
         })
     }
 }
@@ -477,7 +491,7 @@ mod tests {
 
     #[test]
     fn model_wire_model_round_trips() {
-        let spec = FrameSpec { frame_id: 42, camera: camera(), settings: settings(), scale: 3 };
+        let spec = FrameSpec { frame_id: 42, camera: camera(), settings: settings(), scale: 3, time_step: 7 };
         let wire = FrameState::from(&spec);
         assert_eq!(FrameSpec::try_from(&wire).unwrap(), spec);
         // Every enum value survives.
@@ -549,5 +563,7 @@ mod tests {
         let mut c = a;
         c.settings.ao.frame += 1;
         assert!(!a.same_image(&c));
+        assert!(!a.same_image(&a.at_time_step(1)), "another time step is another image");
+        assert_eq!(a.at_time_step(5).time_step, 5);
     }
 }

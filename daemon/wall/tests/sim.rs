@@ -257,7 +257,8 @@ impl Sim {
                 // Object space only; these nodes never send them.
                 ControllerOutput::BrickLoaded { .. }
                 | ControllerOutput::BrickFailed { .. }
-                | ControllerOutput::PixelsMissing { .. } => {}
+                | ControllerOutput::PixelsMissing { .. }
+                | ControllerOutput::StepLate { .. } => {}
             }
         }
     }

@@ -1,5 +1,6 @@
 //! Volume file readers. The format is chosen by the file name: `.nrrd`/`.nhdr` (NRRD), `.mhd`/`.mha`
-//! (MetaImage), `.nii`/`.nii.gz`/`.hdr` (NIfTI-1); anything else is raw and needs a [`RawSpec`].
+//! (MetaImage), `.nii`/`.nii.gz`/`.hdr` (NIfTI-1 and NIfTI-2), a folder, `.dcm`/`.dicom`/`.ima` or a file with
+//! DICOM's magic (a DICOM series, [`dicom`]); anything else is raw and needs a [`RawSpec`].
 //! Every error names the file and what is wrong with it; nothing here panics on bad input.
 //! Voxel values are kept in the data's own units (no rescaling except NIfTI's scl_slope/inter),
 //! converted to `f32`: 32-bit integers beyond 2^24 and doubles lose precision, doubles beyond the
@@ -8,7 +9,8 @@
 //! What each reader supports and refuses is in its module: [`raw`], [`nrrd`], [`metaimage`],
 //! [`nifti`]. Common to all of them:
 //!
-//! - three dimensions, one scalar per voxel, x fastest; the grid must be axis-aligned (a negative
+//! - three dimensions (a 4-D NIfTI or NRRD is a series of 3-D time steps, [`load_step_within`]),
+//!   one scalar per voxel, x fastest; the grid must be axis-aligned (a negative
 //!   axis direction, where a format has one, is undone by mirroring the data, so every sample keeps
 //!   its world position);
 //! - at most [`MAX_VOXELS`] voxels, and at most a [`VolumeLimit`] of bytes as Isowall holds them
@@ -28,6 +30,8 @@
 //!   compression bomb costs no more than the data really there;
 //! - NaN and Inf voxels are refused ([`VolumeError::NonFinite`], naming the file).
 
+pub mod dicom;
+pub mod dicom_write;
 pub mod metaimage;
 pub mod nifti;
 pub mod nrrd;
@@ -172,11 +176,20 @@ enum FileFormat {
     Nrrd,
     MetaImage,
     Nifti,
+    Dicom,
 }
 
 impl FileFormat {
-    /// The format a file name says (case-insensitive); anything unknown is raw.
+    /// The format a file name says (case-insensitive); a folder or a file with DICOM's magic is
+    /// DICOM; anything else unknown is raw.
     fn of(path: &Path) -> FileFormat {
+        match FileFormat::by_name(path) {
+            FileFormat::Raw if dicom::is_dicom(path) => FileFormat::Dicom,
+            f => f,
+        }
+    }
+
+    fn by_name(path: &Path) -> FileFormat {
         let name = path.file_name().map(|n| n.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
         let ends = |exts: &[&str]| exts.iter().any(|e| name.ends_with(e));
         if ends(&[".nrrd", ".nhdr"]) {
@@ -185,6 +198,8 @@ impl FileFormat {
             FileFormat::MetaImage
         } else if ends(&[".nii", ".nii.gz", ".hdr"]) {
             FileFormat::Nifti
+        } else if ends(&[".dcm", ".dicom", ".ima"]) {
+            FileFormat::Dicom
         } else {
             FileFormat::Raw
         }
@@ -193,13 +208,30 @@ impl FileFormat {
 
 /// Reads a volume file, choosing the reader by the file name, within the default
 /// [`VolumeLimit`]. `raw` is needed for raw files and ignored (with a warning) for the
-/// self-describing formats.
+/// self-describing formats. A 4-D file gives its first time step.
 pub fn load(path: &Path, raw: Option<&RawSpec>) -> Result<Volume, VolumeError> {
     load_within(path, raw, &VolumeLimit::default())
 }
 
 /// [`load`] within `limit`, checked from the header before any voxel is read.
 pub fn load_within(path: &Path, raw: Option<&RawSpec>, limit: &VolumeLimit) -> Result<Volume, VolumeError> {
+    load_step_within(path, raw, 0, limit)
+}
+
+/// [`load_step_within`] within the default [`VolumeLimit`].
+pub fn load_step(path: &Path, raw: Option<&RawSpec>, step: usize) -> Result<Volume, VolumeError> {
+    load_step_within(path, raw, step, &VolumeLimit::default())
+}
+
+/// Reads time step `step` of a volume file within `limit`: a 4-D NIfTI or NRRD holds `dim[4]`
+/// steps (read whole, then the step cut out, so the limit applies to the whole file), every
+/// other file one (step 0).
+pub fn load_step_within(
+    path: &Path,
+    raw: Option<&RawSpec>,
+    step: usize,
+    limit: &VolumeLimit,
+) -> Result<Volume, VolumeError> {
     let format = FileFormat::of(path);
     if format != FileFormat::Raw && raw.is_some() {
         tracing::warn!(
@@ -207,19 +239,52 @@ pub fn load_within(path: &Path, raw: Option<&RawSpec>, limit: &VolumeLimit) -> R
             path.display()
         );
     }
-    match format {
-        FileFormat::Nrrd => nrrd::read(path, limit),
-        FileFormat::MetaImage => metaimage::read(path, limit),
-        FileFormat::Nifti => nifti::read(path, limit),
+    let (volume, steps) = match format {
+        FileFormat::Nrrd => nrrd::read(path, limit)?,
+        FileFormat::MetaImage => (metaimage::read(path, limit)?, 1),
+        FileFormat::Nifti => nifti::read(path, limit)?,
+        FileFormat::Dicom => (dicom::read(path, None, limit)?, 1),
         FileFormat::Raw => match raw {
-            Some(spec) => raw::read(path, spec, limit),
-            None => Err(format_err(
-                path,
-                "not a known volume format (.nrrd, .nhdr, .mhd, .mha, .nii, .nii.gz, .hdr), so it is read as \
-                 raw voxels; a raw volume needs --dims NX,NY,NZ, --type and --spacing SX,SY,SZ",
-            )),
+            Some(spec) => (raw::read(path, spec, limit)?, 1),
+            None => {
+                return Err(format_err(
+                    path,
+                    "not a known volume format (.nrrd, .nhdr, .mhd, .mha, .nii, .nii.gz, .hdr, DICOM), so it is read as \
+                     raw voxels; a raw volume needs --dims NX,NY,NZ, --type and --spacing SX,SY,SZ",
+                ))
+            }
         },
+    };
+    time_step(path, volume, steps, step)
+}
+
+/// The number of time steps of a volume file, from its header: `dim[4]` of a 4-D NIfTI, the 4th
+/// size of a 4-D NRRD, 1 for every other file.
+pub fn time_steps(path: &Path) -> Result<usize, VolumeError> {
+    match FileFormat::of(path) {
+        FileFormat::Nrrd => nrrd::time_steps(path),
+        FileFormat::Nifti => nifti::time_steps(path),
+        _ => Ok(1),
     }
+}
+
+/// Step `step` of `steps` stacked along z in `v`.
+fn time_step(path: &Path, v: Volume, steps: usize, step: usize) -> Result<Volume, VolumeError> {
+    if step >= steps {
+        return Err(format_err(
+            path,
+            format!("has no time step {step}: it holds {steps} (0 to {})", steps - 1),
+        ));
+    }
+    if steps == 1 {
+        return Ok(v);
+    }
+    let [nx, ny, nzt] = v.dims;
+    let nz = nzt / steps;
+    let mut data = v.data;
+    data.truncate(nx * ny * nz * (step + 1));
+    data.drain(..nx * ny * nz * step);
+    Volume::new(v.name, [nx, ny, nz], v.spacing, v.origin, data)
 }
 
 /// Where the voxels of a file are, for partial reads ([`crate::region`]): raw files and NRRD
@@ -256,6 +321,8 @@ pub(crate) fn plan(
             Ok(Some((plan, spec.spacing, DVec3::ZERO)))
         }
         FileFormat::MetaImage | FileFormat::Nifti => Ok(None),
+        // Read slice by slice through `Series` (crate::region), not through a file plan.
+        FileFormat::Dicom => Ok(None),
     }
 }
 
@@ -810,6 +877,11 @@ impl AxisSteps {
         Ok(AxisSteps { steps })
     }
 
+    /// Whether the z step is negative.
+    pub fn mirrors_z(&self) -> bool {
+        self.steps[2][2] < 0.0
+    }
+
     /// Whether a step is negative (the data is mirrored along that axis when read).
     pub fn mirrors(&self) -> bool {
         (0..3).any(|a| self.steps[a][a] < 0.0)
@@ -981,6 +1053,7 @@ mod tests {
         assert_eq!(of("engine.raw"), FileFormat::Raw);
         assert_eq!(of("nrrd"), FileFormat::Raw);
         assert_eq!(of("x.nii.gz.bak"), FileFormat::Raw);
+        assert_eq!(of("ct/IM0001.DCM"), FileFormat::Dicom);
     }
 
     #[test]

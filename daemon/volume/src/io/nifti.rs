@@ -1,4 +1,6 @@
-//! NIfTI-1 reader (<https://nifti.nimh.nih.gov/nifti-1/>).
+//! NIfTI-1 and NIfTI-2 reader (<https://nifti.nimh.nih.gov/nifti-1/>,
+//! <https://nifti.nimh.nih.gov/nifti-2/>): NIfTI-2 is the same with a 540-byte header of 64-bit
+//! fields (magic `n+2`/`ni2`).
 //!
 //! Supported:
 //! - single files (`.nii`, magic `n+1`), gzip-compressed whole (`.nii.gz`; recognised by the gzip
@@ -7,7 +9,8 @@
 //! - either byte order, told by `sizeof_hdr` = 348;
 //! - `datatype` 2 uint8, 4 int16, 8 int32, 16 float32, 64 float64, 256 int8, 512 uint16,
 //!   768 uint32;
-//! - `dim[0]` = 3, or 4 to 7 when the extra dimensions are 1 (a single time point);
+//! - `dim[0]` = 3, or 4 to 7 when the dimensions past the 4th are 1: `dim[4]` time steps, stacked
+//!   along z when read ([`super::load_step`] cuts one out);
 //! - spacing `|pixdim[1..=3]|`; voxels from `vox_offset`, so header extensions are skipped;
 //! - `scl_slope`/`scl_inter`, applied when the slope is finite and not 0 and the pair is not
 //!   (1, 0) (a non-finite intercept counts as 0, as nibabel does);
@@ -16,13 +19,13 @@
 //!
 //! Not supported: orientation. The grid is taken as axis-aligned, index axes along world x, y, z;
 //! a qform rotation, `qfac` or a rotating sform is ignored with a warning. Units (`xyzt_units`)
-//! are not converted. Refused with an error: NIfTI-2, Analyze 7.5 headers (no NIfTI magic), other
-//! datatypes (complex, RGB, 64-bit), more than one time point, zero or non-finite spacing, a
+//! are not converted. Refused with an error: Analyze 7.5 headers (no NIfTI magic), other
+//! datatypes (complex, RGB, 64-bit), dimensions past the 4th above 1, zero or non-finite spacing, a
 //! `vox_offset` inside the header.
 
 use super::{
     format_err, io_err, make_volume, open, read_data, read_full, read_voxels, DataSpec, Encoding, Files,
-    Layout, Scale, VolumeLimit, VoxelType,
+    Layout, Scale, VolumeLimit, VoxelType, MAX_VOXELS,
 };
 use crate::{Volume, VolumeError};
 use glam::DVec3;
@@ -31,9 +34,13 @@ use std::path::{Path, PathBuf};
 
 /// The size of a NIfTI-1 header.
 const HEADER_LEN: usize = 348;
+/// The size of a NIfTI-2 header.
+const HEADER2_LEN: usize = 540;
 
-/// Reads the NIfTI-1 file (`.nii`, `.nii.gz`, or the `.hdr` of a pair) at `path`.
-pub(crate) fn read(path: &Path, limit: &VolumeLimit) -> Result<Volume, VolumeError> {
+/// Reads the NIfTI file (`.nii`, `.nii.gz`, or the `.hdr` of a pair) at `path` within `limit`
+/// (all its time steps together): the volume (a 4-D file's time steps stacked along z) and the
+/// number of time steps.
+pub(crate) fn read(path: &Path, limit: &VolumeLimit) -> Result<(Volume, usize), VolumeError> {
     let (mut r, file_len) = open(path)?;
     let gzipped = r.fill_buf().map_err(|e| io_err(path, e))?.starts_with(&[0x1f, 0x8b]);
     let files = Files::single(path);
@@ -44,43 +51,56 @@ pub(crate) fn read(path: &Path, limit: &VolumeLimit) -> Result<Volume, VolumeErr
         if !header.single_file {
             return Err(format_err(
                 path,
-                "magic 'ni1' (a .hdr/.img pair) in a gzip-compressed file is not supported",
+                "magic 'ni1'/'ni2' (a .hdr/.img pair) in a gzip-compressed file is not supported",
             ));
         }
-        let skip = header.vox_offset - HEADER_LEN as u64;
+        let skip = header.vox_offset - header.len as u64;
         let data = read_voxels(files, &mut r, Encoding::Gzip, skip, &header.layout, header.scale)?;
         return header.volume(path, data);
     }
 
     let header = Header::read(path, &mut r, Encoding::Raw, limit)?;
     let is_hdr = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("hdr"));
-    let data = match (header.single_file, is_hdr) {
-        (true, false) => {
-            let spec = DataSpec {
-                encoding: Encoding::Raw,
-                file_skip: Some(header.vox_offset - HEADER_LEN as u64),
-                decoded_skip: 0,
-            };
-            read_data(files, r, HEADER_LEN as u64, file_len, spec, &header.layout, header.scale)?
-        }
-        (false, true) => {
-            let img = image_path(path);
-            let (r, len) = open(&img)?;
-            let spec =
-                DataSpec { encoding: Encoding::Raw, file_skip: Some(header.vox_offset), decoded_skip: 0 };
-            read_data(Files { header: path, data: &img }, r, 0, len, spec, &header.layout, header.scale)?
-        }
-        (true, true) => {
-            return Err(format_err(path, "magic 'n+1' says a single .nii file, but the name ends in .hdr"))
-        }
-        (false, false) => {
-            return Err(format_err(
+    let data =
+        match (header.single_file, is_hdr) {
+            (true, false) => {
+                let spec = DataSpec {
+                    encoding: Encoding::Raw,
+                    file_skip: Some(header.vox_offset - header.len as u64),
+                    decoded_skip: 0,
+                };
+                read_data(files, r, header.len as u64, file_len, spec, &header.layout, header.scale)?
+            }
+            (false, true) => {
+                let img = image_path(path);
+                let (r, len) = open(&img)?;
+                let spec =
+                    DataSpec { encoding: Encoding::Raw, file_skip: Some(header.vox_offset), decoded_skip: 0 };
+                read_data(Files { header: path, data: &img }, r, 0, len, spec, &header.layout, header.scale)?
+            }
+            (true, true) => {
+                return Err(format_err(path, "the magic says a single .nii file, but the name ends in .hdr"))
+            }
+            (false, false) => return Err(format_err(
                 path,
-                "magic 'ni1' says the voxels are in a separate .img file: open the matching .hdr",
-            ))
-        }
-    };
+                "the magic ('ni1'/'ni2') says the voxels are in a separate .img file: open the matching .hdr",
+            )),
+        };
     header.volume(path, data)
+}
+
+/// The number of time steps of the NIfTI file at `path` (its header only; the reader's limit is
+/// checked when a step is read).
+pub(crate) fn time_steps(path: &Path) -> Result<usize, VolumeError> {
+    let limit = &VolumeLimit::new(u64::MAX, "none while counting time steps");
+    let (mut r, _) = open(path)?;
+    let gzipped = r.fill_buf().map_err(|e| io_err(path, e))?.starts_with(&[0x1f, 0x8b]);
+    let header = if gzipped {
+        Header::read(path, &mut flate2::bufread::MultiGzDecoder::new(r), Encoding::Gzip, limit)?
+    } else {
+        Header::read(path, &mut r, Encoding::Raw, limit)?
+    };
+    Ok(header.time_steps)
 }
 
 /// The `.img` of a `.hdr`, its extension in the same case.
@@ -98,12 +118,34 @@ struct Header {
     /// Where the voxels begin (in the `.nii`, or in the `.img` of a pair).
     vox_offset: u64,
     scale: Option<Scale>,
-    /// Magic `n+1` (one file) rather than `ni1` (a pair).
+    /// Magic `n+1`/`n+2` (one file) rather than `ni1`/`ni2` (a pair).
     single_file: bool,
+    /// The header's length: 348 (NIfTI-1) or 540 (NIfTI-2).
+    len: usize,
+    /// `dim[4]` of a 4-D file (1 otherwise); the steps are stacked along z in `layout`.
+    time_steps: usize,
+}
+
+/// A header's fields as both versions hold them (NIfTI-2 widens them to 64 bits).
+struct Raw {
+    magic: Vec<u8>,
+    dim: Vec<i64>,
+    datatype: i16,
+    bitpix: i16,
+    pixdim: Vec<f64>,
+    vox_offset: f64,
+    slope: f64,
+    inter: f64,
+    qform_code: i32,
+    sform_code: i32,
+    quatern: [f64; 3],
+    qoffset: [f64; 3],
+    srow: [[f64; 4]; 3],
 }
 
 impl Header {
-    /// Reads and checks the 348-byte header from `r` (data decoded from `enc`).
+    /// Reads and checks the header (348 bytes NIfTI-1, 540 NIfTI-2) from `r` (data decoded from
+    /// `enc`), and its dims against `limit`.
     fn read(
         path: &Path,
         r: &mut dyn Read,
@@ -111,9 +153,9 @@ impl Header {
         limit: &VolumeLimit,
     ) -> Result<Header, VolumeError> {
         let files = Files::single(path);
-        let mut h = [0u8; HEADER_LEN];
+        let mut h = vec![0u8; HEADER_LEN];
         let n = read_full(r, &mut h).map_err(|e| files.read_error(enc, e))?;
-        if n < HEADER_LEN {
+        if n < 4 {
             return Err(
                 files.format(format!("header is truncated: {n} bytes, a NIfTI-1 header has {HEADER_LEN}"))
             );
@@ -122,58 +164,127 @@ impl Header {
 
         let sizeof_le = i32::from_le_bytes([h[0], h[1], h[2], h[3]]);
         let sizeof_be = i32::from_be_bytes([h[0], h[1], h[2], h[3]]);
-        let big = match (sizeof_le, sizeof_be) {
-            (348, _) => false,
-            (_, 348) => true,
-            (540, _) | (_, 540) => return Err(err("NIfTI-2 files are not supported (NIfTI-1 is)".into())),
+        let (big, v2) = match (sizeof_le, sizeof_be) {
+            (348, _) => (false, false),
+            (_, 348) => (true, false),
+            (540, _) => (false, true),
+            (_, 540) => (true, true),
             _ => {
                 return Err(err(format!(
-                    "not a NIfTI-1 file: sizeof_hdr is {sizeof_le} (or {sizeof_be} big-endian), not 348"
+                    "not a NIfTI file: sizeof_hdr is {sizeof_le} (or {sizeof_be} big-endian), not 348 (NIfTI-1) or 540 (NIfTI-2)"
                 )))
             }
         };
-        let i16_at = |o: usize| {
+        let len = if v2 { HEADER2_LEN } else { HEADER_LEN };
+        if v2 && n == HEADER_LEN {
+            h.resize(HEADER2_LEN, 0);
+            let more = read_full(r, &mut h[HEADER_LEN..]).map_err(|e| files.read_error(enc, e))?;
+            h.truncate(HEADER_LEN + more);
+        }
+        let got = if v2 && n == HEADER_LEN { h.len() } else { n };
+        if got < len {
+            let version = if v2 { "NIfTI-2" } else { "NIfTI-1" };
+            return Err(
+                files.format(format!("header is truncated: {got} bytes, a {version} header has {len}"))
+            );
+        }
+        let bytes = |o: usize, n: usize| {
+            let mut b = h[o..o + n].to_vec();
             if big {
-                i16::from_be_bytes([h[o], h[o + 1]])
-            } else {
-                i16::from_le_bytes([h[o], h[o + 1]])
+                b.reverse();
+            }
+            b
+        };
+        let i16_at = |o: usize| i16::from_le_bytes(bytes(o, 2).try_into().unwrap());
+        let i32_at = |o: usize| i32::from_le_bytes(bytes(o, 4).try_into().unwrap());
+        let i64_at = |o: usize| i64::from_le_bytes(bytes(o, 8).try_into().unwrap());
+        let f32_at = |o: usize| f64::from(f32::from_le_bytes(bytes(o, 4).try_into().unwrap()));
+        let f64_at = |o: usize| f64::from_le_bytes(bytes(o, 8).try_into().unwrap());
+        // The fields of both versions, by the specifications' offsets.
+        let f = if v2 {
+            Raw {
+                magic: h[4..12].to_vec(),
+                dim: (0..8).map(|i| i64_at(16 + 8 * i)).collect(),
+                datatype: i16_at(12),
+                bitpix: i16_at(14),
+                pixdim: (0..8).map(|i| f64_at(104 + 8 * i)).collect(),
+                vox_offset: i64_at(168) as f64,
+                slope: f64_at(176),
+                inter: f64_at(184),
+                qform_code: i32_at(344),
+                sform_code: i32_at(348),
+                quatern: [f64_at(352), f64_at(360), f64_at(368)],
+                qoffset: [f64_at(376), f64_at(384), f64_at(392)],
+                srow: [0, 1, 2].map(|r| [0, 1, 2, 3].map(|c| f64_at(400 + 32 * r + 8 * c))),
+            }
+        } else {
+            Raw {
+                magic: h[344..348].to_vec(),
+                dim: (0..8).map(|i| i64::from(i16_at(40 + 2 * i))).collect(),
+                datatype: i16_at(70),
+                bitpix: i16_at(72),
+                pixdim: (0..8).map(|i| f32_at(76 + 4 * i)).collect(),
+                vox_offset: f32_at(108),
+                slope: f32_at(112),
+                inter: f32_at(116),
+                qform_code: i32::from(i16_at(252)),
+                sform_code: i32::from(i16_at(254)),
+                quatern: [f32_at(256), f32_at(260), f32_at(264)],
+                qoffset: [f32_at(268), f32_at(272), f32_at(276)],
+                srow: [0, 1, 2].map(|r| [0, 1, 2, 3].map(|c| f32_at(280 + 16 * r + 4 * c))),
             }
         };
-        let f32_at = |o: usize| {
-            let b = [h[o], h[o + 1], h[o + 2], h[o + 3]];
-            f64::from(if big { f32::from_be_bytes(b) } else { f32::from_le_bytes(b) })
-        };
 
-        let single_file = match &h[344..348] {
-            b"n+1\0" => true,
-            b"ni1\0" => false,
-            m => {
+        let single_file = match (v2, f.magic.as_slice()) {
+            (false, b"n+1\0") | (true, b"n+2\0\r\n\x1a\n") => true,
+            (false, b"ni1\0") | (true, b"ni2\0\r\n\x1a\n") => false,
+            (_, m) => {
+                let want = if v2 {
+                    "\"n+2\" (or \"ni2\" for a .hdr/.img pair)"
+                } else {
+                    "\"n+1\" (or \"ni1\" for a .hdr/.img pair)"
+                };
                 return Err(err(format!(
-                    "magic is {:?}, not \"n+1\" (or \"ni1\" for a .hdr/.img pair); Analyze 7.5 files are not supported",
+                    "magic is {:?}, not {want}; Analyze 7.5 files are not supported",
                     String::from_utf8_lossy(m)
-                )))
+                )));
             }
         };
 
-        let dim: Vec<i64> = (0..8).map(|i| i64::from(i16_at(40 + 2 * i))).collect();
+        let dim = &f.dim;
         let rank = dim[0];
-        if !(3..=7).contains(&rank) || (4..=rank as usize).any(|i| dim[i] != 1) {
+        if !(3..=7).contains(&rank) || (5..=rank as usize).any(|i| dim[i] != 1) {
             let shown: Vec<String> =
                 dim.iter().take((rank.clamp(0, 7) + 1) as usize).map(|d| d.to_string()).collect();
             return Err(err(format!(
-                "dim is [{}]; Isowall reads 3-dimensional volumes (dim[0] = 3, or more with the extra sizes 1)",
+                "dim is [{}]; Isowall reads 3-dimensional volumes and 4-dimensional series of them \
+                 (dim[0] = 3 or 4, or more with the extra sizes 1)",
                 shown.join(", ")
             )));
         }
-        if dim[1..4].iter().any(|&d| d < 1) {
+        if dim[1..4].iter().any(|&d| d < 1) || (rank >= 4 && dim[4] < 1) {
             return Err(err(format!(
-                "dim[1..3] = {} {} {}: every size must be at least 1",
-                dim[1], dim[2], dim[3]
+                "dim[1..4] = {} {} {} {}: every size must be at least 1",
+                dim[1],
+                dim[2],
+                dim[3],
+                if rank >= 4 { dim[4] } else { 1 }
             )));
         }
-        let dims = [dim[1] as usize, dim[2] as usize, dim[3] as usize];
+        let too_big = |d: i64| usize::try_from(d).ok().filter(|&d| d as u64 <= MAX_VOXELS);
+        let (Some(nx), Some(ny), Some(nz), Some(nt)) =
+            (too_big(dim[1]), too_big(dim[2]), too_big(dim[3]), too_big(if rank >= 4 { dim[4] } else { 1 }))
+        else {
+            return Err(err(format!(
+                "dim: {} {} {} {} is over Isowall's limit of {MAX_VOXELS} voxels",
+                dim[1], dim[2], dim[3], dim[4]
+            )));
+        };
+        let time_steps = nt;
+        // Time steps are stacked along z: the file's voxels are one volume of nz * nt slices.
+        let dims = [nx, ny, nz.saturating_mul(nt)];
 
-        let datatype = i16_at(70);
+        let datatype = f.datatype;
         let voxel = match datatype {
             2 => VoxelType::U8,
             4 => VoxelType::I16,
@@ -202,7 +313,7 @@ impl Header {
                 )));
             }
         };
-        let bitpix = i16_at(72);
+        let bitpix = f.bitpix;
         if i64::from(bitpix) != 8 * voxel.size() as i64 {
             tracing::warn!(
                 "{}: bitpix is {bitpix} but datatype {datatype} has {} bits; going by datatype",
@@ -211,44 +322,43 @@ impl Header {
             );
         }
         let layout = Layout { dims, voxel, big_endian: big };
-        layout.check_within(limit).map_err(|e| err(format!("dim: {e}")))?;
+        layout.check_within(limit).map_err(|e| err(format!("dim (all {nt} time steps): {e}")))?;
 
         let mut spacing = DVec3::ZERO;
         for a in 0..3 {
-            let p = f32_at(76 + 4 * (a + 1));
+            let p = f.pixdim[a + 1];
             if !(p.is_finite() && p != 0.0) {
                 return Err(err(format!("pixdim[{}] is {p}: voxel spacing must be finite and not 0", a + 1)));
             }
             spacing[a] = p.abs();
         }
 
-        let vox_offset = f32_at(108);
-        let min_offset = if single_file { HEADER_LEN as f64 } else { 0.0 };
+        let vox_offset = f.vox_offset;
+        let min_offset = if single_file { len as f64 } else { 0.0 };
         if !(vox_offset.is_finite() && vox_offset >= min_offset && vox_offset.fract() == 0.0) {
             return Err(err(format!(
                 "vox_offset is {vox_offset}: it must be a whole number of bytes, at least {min_offset}"
             )));
         }
 
-        let (slope, inter) = (f32_at(112), f32_at(116));
+        let (slope, inter) = (f.slope, f.inter);
         let inter = if inter.is_finite() { inter } else { 0.0 };
         let scale = (slope.is_finite() && slope != 0.0 && !(slope == 1.0 && inter == 0.0))
             .then_some(Scale { slope, inter });
 
-        let (qform_code, sform_code) = (i16_at(252), i16_at(254));
+        let (qform_code, sform_code) = (f.qform_code, f.sform_code);
         let origin = if qform_code > 0 {
-            let (b, c, d) = (f32_at(256), f32_at(260), f32_at(264));
-            let qfac = f32_at(76);
+            let [b, c, d] = f.quatern;
+            let qfac = f.pixdim[0];
             if b != 0.0 || c != 0.0 || d != 0.0 || qfac < 0.0 {
                 tracing::warn!(
                     "{}: the qform rotates or flips the grid; Isowall ignores orientation and takes the axes as x, y, z",
                     path.display()
                 );
             }
-            DVec3::new(f32_at(268), f32_at(272), f32_at(276))
+            DVec3::from_array(f.qoffset)
         } else if sform_code > 0 {
-            let row = |o: usize| [f32_at(o), f32_at(o + 4), f32_at(o + 8), f32_at(o + 12)];
-            let (x, y, z) = (row(280), row(296), row(312));
+            let [x, y, z] = f.srow;
             let diagonal =
                 x[1] == 0.0 && x[2] == 0.0 && y[0] == 0.0 && y[2] == 0.0 && z[0] == 0.0 && z[1] == 0.0;
             if !diagonal {
@@ -265,11 +375,20 @@ impl Header {
             return Err(err(format!("the origin ({}, {}, {}) is not finite", origin.x, origin.y, origin.z)));
         }
 
-        Ok(Header { layout, spacing, origin, vox_offset: vox_offset as u64, scale, single_file })
+        Ok(Header {
+            layout,
+            spacing,
+            origin,
+            vox_offset: vox_offset as u64,
+            scale,
+            single_file,
+            len,
+            time_steps,
+        })
     }
 
-    fn volume(&self, path: &Path, data: Vec<f32>) -> Result<Volume, VolumeError> {
-        make_volume(path, self.layout.dims, self.spacing, self.origin, data)
+    fn volume(&self, path: &Path, data: Vec<f32>) -> Result<(Volume, usize), VolumeError> {
+        Ok((make_volume(path, self.layout.dims, self.spacing, self.origin, data)?, self.time_steps))
     }
 }
 
@@ -454,8 +573,8 @@ mod tests {
         let base = fields(VoxelType::U8, false);
         let m = |f: Fields| error_of(d, "e.nii", &nii(&f, &raw)).to_string();
 
-        let s = m(Fields { dim: [4, 3, 2, 4, 2, 1, 1, 1], ..base.clone() });
-        assert!(s.contains("dim is [4, 3, 2, 4, 2]"), "{s}");
+        let s = m(Fields { dim: [5, 3, 2, 4, 2, 2, 1, 1], ..base.clone() });
+        assert!(s.contains("dim is [5, 3, 2, 4, 2, 2]"), "{s}");
         let s = m(Fields { dim: [2, 3, 8, 1, 1, 1, 1, 1], ..base.clone() });
         assert!(s.contains("3-dimensional"), "{s}");
         let s = m(Fields { dim: [3, 3, 0, 4, 1, 1, 1, 1], ..base.clone() });
@@ -473,7 +592,7 @@ mod tests {
         let mut bytes = nii(&base, &raw);
         bytes[0..4].copy_from_slice(&540i32.to_le_bytes());
         let s = error_of(d, "e.nii", &bytes).to_string();
-        assert!(s.contains("NIfTI-2"), "{s}");
+        assert!(s.contains("header is truncated: 376 bytes, a NIfTI-2 header has 540"), "{s}");
         bytes[0..4].copy_from_slice(&1234i32.to_le_bytes());
         let s = error_of(d, "e.nii", &bytes).to_string();
         assert!(s.contains("sizeof_hdr is 1234"), "{s}");
@@ -497,6 +616,98 @@ mod tests {
         assert!(s.contains("header is truncated: 100 bytes"), "{s}");
         let s = error_of(d, "e.nii.gz", b"not a nifti at all").to_string();
         assert!(s.contains("truncated") || s.contains("sizeof_hdr"), "{s}");
+    }
+
+    /// A NIfTI-2 header (540 bytes) for `f`, by the NIfTI-2 specification's offsets.
+    fn header2(f: &Fields) -> Vec<u8> {
+        let mut h = vec![0u8; 540];
+        let mut put = |o: usize, b: &[u8]| {
+            let mut b = b.to_vec();
+            if f.big {
+                b.reverse();
+            }
+            h[o..o + b.len()].copy_from_slice(&b);
+        };
+        put(0, &540i32.to_le_bytes());
+        put(12, &f.datatype.to_le_bytes());
+        put(14, &f.bitpix.to_le_bytes());
+        for (i, d) in f.dim.iter().enumerate() {
+            put(16 + 8 * i, &i64::from(*d).to_le_bytes());
+        }
+        for (i, p) in f.pixdim.iter().enumerate() {
+            put(104 + 8 * i, &f64::from(*p).to_le_bytes());
+        }
+        put(168, &(f.vox_offset as i64).to_le_bytes());
+        put(176, &f64::from(f.slope).to_le_bytes());
+        put(184, &f64::from(f.inter).to_le_bytes());
+        put(344, &i32::from(f.qform_code).to_le_bytes());
+        put(348, &i32::from(f.sform_code).to_le_bytes());
+        for (i, q) in f.qoffset.iter().enumerate() {
+            put(376 + 8 * i, &f64::from(*q).to_le_bytes());
+        }
+        h[4..12].copy_from_slice(b"n+2\0\r\n\x1a\n");
+        h
+    }
+
+    #[test]
+    fn nifti2_and_4d_files_read_as_time_steps() {
+        let dir = tempfile::tempdir().unwrap();
+        for big in [false, true] {
+            let vals = values(VoxelType::I16, 48);
+            let raw = encode(&vals, VoxelType::I16, big);
+            let f = Fields {
+                dim: [4, 3, 2, 4, 2, 1, 1, 1],
+                vox_offset: 544.0,
+                qform_code: 1,
+                qoffset: [1.0, 2.0, 3.0],
+                slope: 2.0,
+                inter: 1.0,
+                ..fields(VoxelType::I16, big)
+            };
+            let mut bytes = header2(&f);
+            bytes.resize(544, 0);
+            bytes.extend_from_slice(&raw);
+            let scaled: Vec<f64> = vals.iter().map(|v| v * 2.0 + 1.0).collect();
+            for name in ["four.nii", "four.nii.gz"] {
+                let p = dir.path().join(name);
+                fs::write(&p, if name.ends_with(".gz") { gzip(&bytes) } else { bytes.clone() }).unwrap();
+                assert_eq!(super::super::time_steps(&p).unwrap(), 2);
+                let origin = DVec3::new(1.0, 2.0, 3.0);
+                check(&load(&p, None).unwrap(), DIMS, SPACING, origin, &scaled[..24]);
+                check(&super::super::load_step(&p, None, 1).unwrap(), DIMS, SPACING, origin, &scaled[24..]);
+                let e = super::super::load_step(&p, None, 2).unwrap_err().to_string();
+                assert!(e.contains("has no time step 2: it holds 2 (0 to 1)"), "{e}");
+            }
+            // NIfTI-1 4-D too; a file one step short is truncated.
+            let p = dir.path().join("four1.nii");
+            let f1 = Fields { vox_offset: 352.0, ..f.clone() };
+            fs::write(&p, nii(&f1, &raw)).unwrap();
+            check(
+                &super::super::load_step(&p, None, 1).unwrap(),
+                DIMS,
+                SPACING,
+                DVec3::new(1.0, 2.0, 3.0),
+                &scaled[24..],
+            );
+            let s = error_of(dir.path(), "short.nii", &nii(&f1, &raw[..raw.len() - 2 * 24])).to_string();
+            assert!(s.contains("data is truncated"), "{s}");
+        }
+    }
+
+    #[test]
+    fn nibabels_nifti2_example_reads_both_steps() {
+        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/nifti/example_nifti2.nii.gz");
+        assert_eq!(super::super::time_steps(&p).unwrap(), 2);
+        let s0 = load(&p, None).unwrap();
+        let s1 = super::super::load_step(&p, None, 1).unwrap();
+        assert_eq!(s0.dims(), [32, 20, 12]);
+        assert!((s0.spacing() - DVec3::new(2.0, 2.0, 2.2)).abs().max_element() < 1e-5, "{}", s0.spacing());
+        assert!((s0.origin() - DVec3::new(117.8551, -35.72294, -7.2487984)).abs().max_element() < 1e-3);
+        assert_eq!(&s0.data()[..4], &[424.0, 428.0, 408.0, 403.0]);
+        assert_eq!(&s1.data()[..4], &[439.0, 421.0, 414.0, 404.0]);
+        assert_eq!(&s1.data()[s1.data().len() - 3..], &[452.0, 448.0, 457.0]);
+        let sum = |v: &Volume| v.data().iter().map(|&x| x as f64).sum::<f64>();
+        assert_eq!((sum(&s0), sum(&s1)), (3461748.0, 3465054.0));
     }
 
     #[test]

@@ -15,9 +15,13 @@
 //!   neither gives spacing 1 (with a warning); the origin defaults to 0;
 //! - comments, `key:=value` pairs, CRLF line endings; fields Isowall does not use (`content`,
 //!   `kinds`, `centers`, `axis mins`, `labels`, `units`, `space`, `measurement frame`, ...) are
-//!   ignored, unknown fields warned about and ignored.
+//!   ignored, unknown fields warned about and ignored;
+//! - `dimension: 4`: a series of 3-D time steps along the 4th (slowest) axis; the per-axis fields
+//!   have a 4th entry, which is ignored (`spacings ... nan`, `space directions ... none`); the
+//!   steps are stacked along z when read ([`super::load_step`] cuts one out); a negative z
+//!   direction is refused there.
 //!
-//! Refused with an error: `dimension` other than 3, 64-bit integers and `block`, the `ascii`,
+//! Refused with an error: `dimension` other than 3 or 4, 64-bit integers and `block`, the `ascii`,
 //! `hex` and `bzip2` encodings, `space directions` that are not along the world axes or `none`,
 //! both `spacings` and `space directions`, `data file: LIST` and file-name patterns, a repeated field.
 
@@ -31,8 +35,10 @@ use std::collections::HashMap;
 use std::io::BufRead;
 use std::path::Path;
 
-/// Reads the NRRD file (attached or detached header) at `path`.
-pub(crate) fn read(path: &Path, limit: &VolumeLimit) -> Result<Volume, VolumeError> {
+/// Reads the NRRD file (attached or detached header) at `path` within `limit` (all its time
+/// steps together): the volume (a 4-D file's time steps stacked along z) and the number of time
+/// steps.
+pub(crate) fn read(path: &Path, limit: &VolumeLimit) -> Result<(Volume, usize), VolumeError> {
     let (r, file_len) = open(path)?;
     let mut lines = HeaderLines::new(r, path, "NRRD");
     let header = Header::read(path, &mut lines)?;
@@ -78,7 +84,14 @@ pub(crate) fn read(path: &Path, limit: &VolumeLimit) -> Result<Volume, VolumeErr
         Some(steps) => (steps.spacing(), steps.apply(origin, header.dims, &mut data)),
         None => (header.spacings.unwrap_or(DVec3::ONE), origin),
     };
-    make_volume(path, header.dims, spacing, origin, data)
+    Ok((make_volume(path, header.dims, spacing, origin, data)?, header.time_steps))
+}
+
+/// The number of time steps of the NRRD file at `path` (its header only).
+pub(crate) fn time_steps(path: &Path) -> Result<usize, VolumeError> {
+    let (r, _) = open(path)?;
+    let mut lines = HeaderLines::new(r, path, "NRRD");
+    Ok(Header::read(path, &mut lines)?.time_steps)
 }
 
 /// Where the voxels of the NRRD file at `path` are, for partial reads; `None` where a `space
@@ -158,6 +171,8 @@ struct Header {
     byte_skip: i64,
     /// Whether the header ended with a blank line (rather than the end of the file).
     blank_line: bool,
+    /// The 4th size of a 4-D file (1 otherwise); the steps are stacked along z in `dims`.
+    time_steps: usize,
 }
 
 /// Fields Isowall reads or knowingly ignores, with their alternative spellings.
@@ -248,15 +263,37 @@ impl Header {
         let (n, t) = required("type")?;
         let voxel = voxel_type(t).map_err(|e| err(n, e))?;
         let (n, d) = required("dimension")?;
-        match d.parse::<usize>() {
-            Ok(3) => {}
+        let rank = match d.parse::<usize>() {
+            Ok(r @ (3 | 4)) => r,
             Ok(d) => {
-                return Err(err(n, format!("dimension is {d}; Isowall reads 3-dimensional volumes only")))
+                return Err(err(
+                    n,
+                    format!(
+                    "dimension is {d}; Isowall reads 3-dimensional volumes and 4-dimensional series of them"
+                ),
+                ))
             }
             Err(_) => return Err(err(n, format!("dimension: '{d}' is not a whole number"))),
-        }
+        };
+        // A 4-D file is a series of 3-D time steps (its last axis, the slowest): its per-axis
+        // fields have a fourth entry, which is set aside here.
         let (sizes_line, s) = required("sizes")?;
+        let (s, t) = split_fourth(s, rank);
         let dims = dims3("sizes", s).map_err(|e| err(sizes_line, e))?;
+        let time_steps = match t {
+            None => 1,
+            Some(t) => match t.parse::<usize>() {
+                Ok(t) if t >= 1 => t,
+                _ => {
+                    return Err(err(
+                        sizes_line,
+                        format!("sizes: the time steps '{t}' are not a whole number >= 1"),
+                    ))
+                }
+            },
+        };
+        // Time steps are stacked along z: the file's voxels are one volume of nz * nt slices.
+        let dims = [dims[0], dims[1], dims[2].saturating_mul(time_steps)];
         let (n, e) = required("encoding")?;
         let encoding = match e.to_ascii_lowercase().as_str() {
             "raw" => Encoding::Raw,
@@ -280,7 +317,7 @@ impl Header {
         };
 
         let spacings = match get("spacings") {
-            Some((n, s)) => Some(spacing3("spacings", s).map_err(|e| err(n, e))?),
+            Some((n, s)) => Some(spacing3("spacings", split_fourth(s, rank).0).map_err(|e| err(n, e))?),
             None => None,
         };
         if let Some((n, sd)) = get("space dimension") {
@@ -295,7 +332,17 @@ impl Header {
                     "both 'spacings' and 'space directions' are given; NRRD allows only one".into(),
                 ))
             }
-            Some((n, sd)) => Some(space_directions(sd).map_err(|e| err(n, e))?),
+            Some((n, sd)) => {
+                let sd = if rank == 4 { sd.trim_end().strip_suffix("none").unwrap_or(sd) } else { sd };
+                let steps = space_directions(sd).map_err(|e| err(n, e))?;
+                if time_steps > 1 && steps.mirrors_z() {
+                    return Err(err(
+                        n,
+                        "space directions: a negative z step in a 4-D series is not supported".into(),
+                    ));
+                }
+                Some(steps)
+            }
             None => None,
         };
         if spacings.is_none() && steps.is_none() {
@@ -352,7 +399,20 @@ impl Header {
             line_skip,
             byte_skip,
             blank_line,
+            time_steps,
         })
+    }
+}
+
+/// A per-axis field's first three entries and, in a 4-D header, the fourth.
+fn split_fourth(value: &str, rank: usize) -> (&str, Option<&str>) {
+    if rank != 4 {
+        return (value, None);
+    }
+    let v = value.trim_end();
+    match v.rfind(|c: char| c.is_whitespace()) {
+        Some(i) => (&v[..i], Some(v[i..].trim())),
+        None => (v, None),
     }
 }
 
@@ -462,6 +522,52 @@ mod tests {
         let mut bytes = header.as_bytes().to_vec();
         bytes.extend_from_slice(data);
         fs::write(path, bytes).unwrap();
+    }
+
+    #[test]
+    fn four_dimensional_files_are_time_steps() {
+        let dir = tempfile::tempdir().unwrap();
+        let vals = values(VoxelType::I16, 48);
+        let raw = encode(&vals, VoxelType::I16, false);
+        let four = |encoding: &str, geometry: &str| {
+            format!(
+                "NRRD0004\ntype: short\ndimension: 4\nsizes: 4 3 2 2\nendian: little\nencoding: {encoding}\n\
+                 {geometry}\nspace origin: (1,2,3)\nkinds: domain domain domain time\n\n"
+            )
+        };
+        let spacing = DVec3::new(0.5, 1.0, 2.0);
+        for (name, enc, data) in [("r.nrrd", "raw", raw.clone()), ("g.nrrd", "gzip", gzip(&raw))] {
+            for geometry in ["spacings: 0.5 1 2 nan", "space directions: (0.5,0,0) (0,1,0) (0,0,2) none"] {
+                let p = dir.path().join(name);
+                let text = four(enc, geometry);
+                let text = if geometry.starts_with("spacings") {
+                    text.replace("space origin: (1,2,3)\n", "")
+                } else {
+                    text
+                };
+                write(&p, &text, &data);
+                let origin =
+                    if geometry.starts_with("spacings") { DVec3::ZERO } else { DVec3::new(1.0, 2.0, 3.0) };
+                assert_eq!(super::super::time_steps(&p).unwrap(), 2);
+                check(&load(&p, None).unwrap(), [4, 3, 2], spacing, origin, &vals[..24]);
+                check(
+                    &super::super::load_step(&p, None, 1).unwrap(),
+                    [4, 3, 2],
+                    spacing,
+                    origin,
+                    &vals[24..],
+                );
+            }
+        }
+        // One step short.
+        let p = dir.path().join("short.nrrd");
+        write(&p, &four("raw", "spacings: 0.5 1 2 nan"), &raw[..24 * 2]);
+        let e = load(&p, None).unwrap_err().to_string();
+        assert!(e.contains("data is truncated"), "{e}");
+        // Object space refuses a time series.
+        let p = dir.path().join("r.nrrd");
+        let e = crate::VolumeSource::File(p).stream(None).err().unwrap().to_string();
+        assert!(e.contains("time-varying volume cannot be split into bricks"), "{e}");
     }
 
     #[test]
@@ -609,10 +715,10 @@ mod tests {
         let m = error_of(
             d,
             "t.nrrd",
-            &header("uchar", false, "raw", "\n").replace("dimension: 3", "dimension: 4"),
+            &header("uchar", false, "raw", "\n").replace("dimension: 3", "dimension: 5"),
             &raw,
         );
-        assert!(m.contains("dimension is 4"), "{m}");
+        assert!(m.contains("dimension is 5"), "{m}");
         let m =
             error_of(d, "t.nrrd", &header("short", false, "raw", "\n").replace("endian: little\n", ""), &raw);
         assert!(m.contains("'endian'"), "{m}");

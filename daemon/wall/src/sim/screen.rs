@@ -199,7 +199,8 @@ impl Sim {
                 ControllerOutput::Snapshot { .. }
                 | ControllerOutput::BrickLoaded { .. }
                 | ControllerOutput::BrickFailed { .. }
-                | ControllerOutput::PixelsMissing { .. } => {}
+                | ControllerOutput::PixelsMissing { .. }
+                | ControllerOutput::StepLate { .. } => {}
             }
         }
     }

@@ -1,0 +1,102 @@
+//! Time-varying volumes on a wall: a 2x2 wall of local nodes plays a glob of time steps, a demo
+//! path's `step` track advancing one step a frame; every recorded frame equals the single render
+//! of its step (`isowalld render --step N`), so every node rendered the frame's own step, and the
+//! frames of different steps differ.
+
+use isowall_e2e::{compare_tiles, free_udp_ports, gpu_ok, in_bezel_2x2, render_whole, run_in, wall_config};
+use std::path::Path;
+
+const STEPS: usize = 4;
+
+/// Writes `STEPS` time steps `dir/steps/step_K.nrrd`: 24^3 float voxels with spacing 2 (the box
+/// 0..46, in the wall camera's view), f = 1 - |p - c| / 30 (a ball of radius 15 at iso 0.5)
+/// whose centre moves 5 world units along x each step.
+fn write_steps(dir: &Path) {
+    std::fs::create_dir_all(dir.join("steps")).unwrap();
+    for k in 0..STEPS {
+        let c = [12.0 + 5.0 * k as f32, 23.0, 23.0];
+        let mut bytes =
+            b"NRRD0004\ntype: float\ndimension: 3\nsizes: 24 24 24\nspacings: 2 2 2\nendian: little\nencoding: raw\n\n"
+                .to_vec();
+        for z in 0..24 {
+            for y in 0..24 {
+                for x in 0..24 {
+                    let p = [2.0 * x as f32, 2.0 * y as f32, 2.0 * z as f32];
+                    let d = ((p[0] - c[0]).powi(2) + (p[1] - c[1]).powi(2) + (p[2] - c[2]).powi(2)).sqrt();
+                    bytes.extend((1.0 - d / 30.0).to_le_bytes());
+                }
+            }
+        }
+        std::fs::write(dir.join(format!("steps/step_{k:02}.nrrd")), bytes).unwrap();
+    }
+}
+
+#[test]
+fn a_2x2_wall_renders_every_frames_time_step_on_every_node() {
+    let dir = tempfile::tempdir().unwrap();
+    write_steps(dir.path());
+    let (w, h, bezel) = (40u32, 30u32, 3u32);
+    let config = wall_config(dir.path(), "steps", &free_udp_ports(4), w, h, bezel, 60_000, "keys");
+    let text = std::fs::read_to_string(&config).unwrap();
+    let text = text.replace("source = \"procedural:torus:48\"", "source = \"steps/step_*.nrrd\"\niso = 0.5");
+    std::fs::write(&config, text).unwrap();
+    // The wall camera all along; one step a second at 1 fps: frame k shows step k.
+    let key = "eye = [60, -70, 45]\ntarget = [23.5, 23.5, 23.5]";
+    let last = STEPS - 1;
+    std::fs::write(
+        dir.path().join("path.toml"),
+        format!("[[key]]\ntime = 0\n{key}\nstep = 0\n\n[[key]]\ntime = {last}\n{key}\nstep = {last}\n"),
+    )
+    .unwrap();
+    let cfg = config.to_str().unwrap();
+    let out = run_in(dir.path(), "isowall", &["keygen", "--config", cfg]);
+    assert!(out.status.success(), "keygen: {}", String::from_utf8_lossy(&out.stderr));
+    let out = run_in(
+        dir.path(),
+        "isowall",
+        &["demo", cfg, "--path", "path.toml", "--local", "--fps", "1", "--record", "rec"],
+    );
+    if !gpu_ok("isowall demo", &out) {
+        return;
+    }
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        stdout.contains(&format!("wrote {STEPS} frames")),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(stdout.contains("time steps: 3 step changes"), "{stdout}");
+    let (fw, fh) = (2 * w + 2 * bezel, 2 * h + 2 * bezel);
+    let mut frames = Vec::new();
+    for k in 0..STEPS {
+        let single = format!("single-{k}.png");
+        let step = k.to_string();
+        let out = render_whole(
+            dir.path(),
+            "steps/step_*.nrrd",
+            (fw, fh),
+            4,
+            &["--step", &step, "--iso", "0.5", "--out", &single],
+        );
+        assert!(gpu_ok("isowalld render", &out), "{}", String::from_utf8_lossy(&out.stderr));
+        let wall = image::open(dir.path().join(format!("rec/frame-{k:06}.png"))).unwrap().to_rgb8();
+        let whole = image::open(dir.path().join(&single)).unwrap().to_rgb8();
+        assert_eq!(wall.dimensions(), (fw, fh));
+        let d = compare_tiles(&wall, &whole, |x, y| in_bezel_2x2(x, y, w, h, bezel));
+        assert_eq!(d.compared, 4 * (w * h) as u64);
+        assert!(d.lit > 200, "step {k}: the ball is hardly in view ({} lit pixels)", d.lit);
+        eprintln!(
+            "step {k}: wall frame vs single render: max difference {} levels, mean {:.4}",
+            d.max_diff, d.mean
+        );
+        assert!(d.max_diff <= 1 && d.mean < 0.01, "step {k}: {d:?}");
+        frames.push(whole);
+    }
+    // The steps are different images: a node showing another step would be seen.
+    for i in 0..STEPS {
+        for j in i + 1..STEPS {
+            let differing = frames[i].pixels().zip(frames[j].pixels()).filter(|(p, q)| p != q).count();
+            assert!(differing > 100, "steps {i} and {j} differ in only {differing} pixels");
+        }
+    }
+}

@@ -1,0 +1,105 @@
+//! Volumes as users bring them, through the real binaries: a DICOM series (a folder of slices,
+//! one series chosen among several), time steps (a glob of files, `--step`), and check-config
+//! reading a DICOM folder's headers.
+
+use glam::DVec3;
+use isowall_e2e::{gpu_ok, run_in, shared_dir};
+use isowall_volume::io::dicom_write::SeriesWriter;
+use isowall_volume::Volume;
+use std::path::Path;
+
+/// Renders `volume` (extra arguments appended) to `out` in `dir`, small and without AO.
+fn render(dir: &Path, volume: &str, iso: &str, out: &str, extra: &[&str]) -> Option<Vec<u8>> {
+    let mut args = vec!["render", "--volume", volume, "--iso", iso, "--size", "48x36", "--out", out];
+    args.extend_from_slice(extra);
+    let o = run_in(dir, "isowalld", &args);
+    if !gpu_ok(&format!("isowalld render --volume {volume}"), &o) {
+        return None;
+    }
+    Some(std::fs::read(dir.join(out)).expect("the image was written"))
+}
+
+#[test]
+fn the_ct_as_a_dicom_series_renders_exactly_as_its_nrrd() {
+    let Some(shared) = shared_dir() else { return };
+    let nrrd = shared.join("data/ct-cranium.nrrd");
+    let ct = isowall_volume::io::load(&nrrd, None).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let series = dir.path().join("ct");
+    SeriesWriter::new("1.2.826.0.1.3680043.10.20").write(&ct, &series).unwrap();
+    // A second series in the same folder: the folder alone is ambiguous.
+    let mut other = SeriesWriter::new("1.2.826.0.1.3680043.10.21");
+    other.first_number = 1000;
+    let small = Volume::new("s", [4, 4, 3], DVec3::ONE, DVec3::ZERO, vec![0.0; 48]).unwrap();
+    other.write(&small, &series).unwrap();
+
+    let Some(want) = render(dir.path(), nrrd.to_str().unwrap(), "300", "nrrd.png", &[]) else { return };
+    let o = run_in(dir.path(), "isowalld", &["render", "--volume", "ct", "--iso", "300", "--size", "48x36"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("holds 2 series"), "{err}");
+    assert!(err.contains("1.2.826.0.1.3680043.10.20 (CT, 'isowall', 108 files)"), "{err}");
+    let got =
+        render(dir.path(), "ct", "300", "dicom.png", &["--series", "1.2.826.0.1.3680043.10.20"]).unwrap();
+    assert!(got == want, "the DICOM series renders differently from the NRRD");
+    // One file of the series names the series by itself.
+    let got = render(dir.path(), "ct/slice_0050.dcm", "300", "file.png", &[]).unwrap();
+    assert!(got == want, "one file of the series renders differently from the NRRD");
+}
+
+/// A NRRD of a sphere of `radius` voxels in a 16^3 box.
+fn sphere_nrrd(path: &Path, radius: f64) {
+    let mut bytes =
+        b"NRRD0004\ntype: float\ndimension: 3\nsizes: 16 16 16\nendian: little\nencoding: raw\n\n".to_vec();
+    for k in 0..16 {
+        for j in 0..16 {
+            for i in 0..16 {
+                let d = DVec3::new(i as f64, j as f64, k as f64) - DVec3::splat(7.5);
+                bytes.extend(((radius - d.length()) as f32).to_le_bytes());
+            }
+        }
+    }
+    std::fs::write(path, bytes).unwrap();
+}
+
+#[test]
+fn render_step_n_of_a_glob_is_the_render_of_that_file() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::create_dir(dir.path().join("steps")).unwrap();
+    for (k, r) in [3.0, 5.0, 7.0].iter().enumerate() {
+        sphere_nrrd(&dir.path().join(format!("steps/step_{k:04}.nrrd")), *r);
+    }
+    let glob = "steps/step_*.nrrd";
+    let Some(step1) = render(dir.path(), glob, "0", "glob1.png", &["--step", "1"]) else { return };
+    let file1 = render(dir.path(), "steps/step_0001.nrrd", "0", "file1.png", &[]).unwrap();
+    assert!(step1 == file1, "--step 1 of the glob differs from its second file");
+    let step0 = render(dir.path(), glob, "0", "glob0.png", &[]).unwrap();
+    assert!(step0 != step1, "steps 0 and 1 are different spheres");
+    let o = run_in(dir.path(), "isowalld", &["render", "--volume", glob, "--iso", "0", "--step", "3"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("no time step 3: it matches 3 files"), "{err}");
+}
+
+#[test]
+fn check_config_reads_a_dicom_folders_headers() {
+    let dir = tempfile::tempdir().unwrap();
+    // Six slices, so that with one removed the usual step is still the median.
+    let v = Volume::new("v", [6, 5, 6], DVec3::new(0.5, 0.5, 2.0), DVec3::ZERO, vec![-1000.0; 180]).unwrap();
+    let files = SeriesWriter::new("1.2.3.4.5").write(&v, &dir.path().join("series")).unwrap();
+    let config = "[wall]\nname = \"d\"\n\n[volume]\nsource = \"series\"\nseries = \"1.2.3.4.5\"\n\n\
+                  [[tiles]]\nname = \"t\"\nx = 0\ny = 0\nwidth = 64\nheight = 48\n\n\
+                  [[nodes]]\nname = \"n\"\naddress = \"127.0.0.1:7999\"\ntiles = [\"t\"]\n";
+    std::fs::write(dir.path().join("d.toml"), config).unwrap();
+    let o = run_in(dir.path(), "isowall", &["check-config", "d.toml"]);
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(out.contains("volume: DICOM series 1.2.3.4.5 of 6x5x6 slices, spacing 0.5 0.5 2"), "{out}");
+    // A missing slice: exit 1, naming the neighbours of the gap.
+    std::fs::remove_file(&files[2]).unwrap();
+    let o = run_in(dir.path(), "isowalld", &["check-config", "d.toml"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("d.toml: [volume] source:") && err.contains("a gap") && err.contains("slice_0001.dcm"),
+        "{err}"
+    );
+}
