@@ -8,7 +8,7 @@
 //   background as it is (no exposure).
 // - The sRGB transfer and 8-bit rounding of `output::srgb8` (round half up of 255 * srgb(c)); the
 //   stored value is that level / 255, which any unorm8 conversion keeps exactly.
-// - The low-resolution upsample (`isowall_wall::lowres::upsample_nearest`): the kernels ran over
+// - The low-resolution upsample (`isowall_model::lowres::upsample_nearest`): the kernels ran over
 //   the low window; full pixel (x, y) of the window takes low pixel
 //   ((origin + (x, y)) / scale - low_origin). Scale 1 is the identity.
 // - Depth per full pixel (distance along the ray, +inf without a hit: the bits of f32 infinity),
@@ -50,7 +50,7 @@ struct ComposeParams {
 
 const INFINITY_BITS: u32 = 0x7f800000u;
 
-// `isowall_wall::render_state::linear_to_srgb` in f32: non-finite values are 0.
+// `isowall_model::render_state::linear_to_srgb` in f32: non-finite values are 0.
 fn linear_to_srgb(x: f32) -> f32 {
     var c = 0.0;
     if x == x && abs(x) <= 3.40282347e38 {

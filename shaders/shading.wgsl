@@ -1,5 +1,5 @@
 // Shared include: direct light (Lambert or Blinn-Phong) without the ambient term, the twin of
-// `isowall_wall::render_state::shade` with a zero ambient. The ambient/IBL term is added when the
+// `isowall_model::render_state::shade` with a zero ambient. The ambient/IBL term is added when the
 // frame is composed (see gpu/mod.rs). Expects `params` at module scope.
 
 const SHADING_LAMBERT: u32 = 0u;

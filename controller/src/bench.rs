@@ -14,7 +14,7 @@ use crate::local::{is_loopback, LocalDaemons};
 use crate::wall::{quantile, Wall};
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use isowall_wall::config::{TileConfig, WallConfig, WallMode};
+use isowall_model::config::{TileConfig, WallConfig, WallMode};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
@@ -241,8 +241,8 @@ pub fn bench(a: &BenchArgs) -> Result<()> {
     if let Some(&bad) = nodes.iter().find(|&&n| n == 0 || n > config.nodes.len()) {
         bail!("--nodes {bad}: the wall has {} node(s)", config.nodes.len());
     }
-    if let Some(&bad) = a.samples.iter().find(|&&k| k > isowall_wall::render_state::MAX_AO_SAMPLES) {
-        bail!("--samples {bad} is over the limit of {}", isowall_wall::render_state::MAX_AO_SAMPLES);
+    if let Some(&bad) = a.samples.iter().find(|&&k| k > isowall_model::render_state::MAX_AO_SAMPLES) {
+        bail!("--samples {bad} is over the limit of {}", isowall_model::render_state::MAX_AO_SAMPLES);
     }
     let engine = config.volume_source() == "procedural:engine";
     let dir = tempfile_dir()?;

@@ -1,12 +1,12 @@
 //! `isowall check-config FILE` and `isowalld check-config FILE` (this one file is compiled into
 //! both binaries): reads and validates a wall config
-//! ([`WallConfig::check_report`](isowall_wall::WallConfig::check_report)). Every problem is printed
+//! ([`WallConfig::check_report`](isowall_model::WallConfig::check_report)). Every problem is printed
 //! to stderr as `FILE:LINE:COL: message` and the exit status is 1; a valid config prints a short
 //! summary (the wall, its image size and the tiles of every node) to stdout. A DICOM volume's
 //! headers are read too (no pixels): the series chosen, its grid, or why it cannot be read
 //! (including a series over `[volume] max_bytes`).
 
-use isowall_wall::WallConfig;
+use isowall_model::WallConfig;
 use std::path::PathBuf;
 
 #[derive(clap::Args, Debug)]

@@ -3,9 +3,9 @@
 //! camera and settings. `session.rs` is the thin glue that reads crossterm and gilrs.
 
 use glam::{DQuat, DVec3};
-use isowall_wall::joystick::JoystickConfig;
-use isowall_wall::render_state::MAX_AO_SAMPLES;
-use isowall_wall::{Camera, IblMethod, RenderSettings};
+use isowall_model::joystick::JoystickConfig;
+use isowall_model::render_state::MAX_AO_SAMPLES;
+use isowall_model::{Camera, IblMethod, RenderSettings};
 
 /// A key, as the session sees it (the glue converts terminal key events).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -10,7 +10,7 @@ use crate::start::{self, StartArgs};
 use crate::wall::{compose, report};
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use isowall_wall::render_state::MAX_AO_SAMPLES;
+use isowall_model::render_state::MAX_AO_SAMPLES;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 

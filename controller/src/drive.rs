@@ -7,8 +7,8 @@ use clap::Args;
 use glam::DQuat;
 use isowall_net::CaMode;
 use isowall_volume::{BlockMinMax, VolumeSource};
-use isowall_wall::config::WallConfig;
-use isowall_wall::{Camera, Governor, Motion, RenderSettings};
+use isowall_model::config::WallConfig;
+use isowall_model::{Camera, Governor, Motion, RenderSettings};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
@@ -186,7 +186,7 @@ fn governor(config: &WallConfig, settings: &RenderSettings, o: &OrbitOptions) ->
     let Some(target) = o.target_frame_ms.or(config.render.target_frame_ms) else {
         return Ok(None);
     };
-    let g = Governor::new(target, settings.ao.samples.max(1), 1, isowall_wall::render_state::MAX_AO_SAMPLES)
+    let g = Governor::new(target, settings.ao.samples.max(1), 1, isowall_model::render_state::MAX_AO_SAMPLES)
         .map_err(|e| anyhow!("--target-frame-ms: {e}"))?;
     Ok(Some(g))
 }

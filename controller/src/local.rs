@@ -2,7 +2,7 @@
 //! stopped when the controller exits (also on Ctrl-C or an error: they are killed on drop).
 
 use anyhow::{Context, Result};
-use isowall_wall::config::WallConfig;
+use isowall_model::config::WallConfig;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 

@@ -24,8 +24,8 @@
 //! step a second; a node wraps a step past the volume's last).
 
 use glam::DVec3;
-use isowall_wall::config::line_column;
-use isowall_wall::Camera;
+use isowall_model::config::line_column;
+use isowall_model::Camera;
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
 

@@ -10,7 +10,7 @@ use crate::start::{self, StartArgs};
 use crate::wall::compose;
 use anyhow::{Context, Result};
 use clap::Args;
-use isowall_wall::joystick::{JoystickConfig, PadAxis, PadButton};
+use isowall_model::joystick::{JoystickConfig, PadAxis, PadButton};
 use std::io::Write;
 use std::path::PathBuf;
 use std::sync::mpsc;

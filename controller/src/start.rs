@@ -5,7 +5,7 @@ use crate::local::LocalDaemons;
 use crate::wall::Wall;
 use anyhow::{anyhow, Result};
 use clap::Args;
-use isowall_wall::config::WallConfig;
+use isowall_model::config::WallConfig;
 use std::time::Duration;
 
 #[derive(Args, Clone, Debug)]

@@ -5,13 +5,13 @@
 use anyhow::{anyhow, bail, Context, Result};
 use isowall_net::transport::{self, Channel, ChannelSender};
 use isowall_net::Identity;
-use isowall_wall::adoption::{AdoptionOutput, BrickAssigner};
-use isowall_wall::barrier::{ControllerOutput, FrameController, FrameStats};
-use isowall_wall::codec;
-use isowall_wall::config::WallConfig;
-use isowall_wall::messages::{printable, Message, Role, TileImage};
-use isowall_wall::wire::FrameState;
-use isowall_wall::{Camera, RenderSettings};
+use isowall_model::adoption::{AdoptionOutput, BrickAssigner};
+use isowall_model::frame_controller::{ControllerOutput, FrameController, FrameStats};
+use isowall_model::codec;
+use isowall_model::config::WallConfig;
+use isowall_model::messages::{printable, Message, Role, TileImage};
+use isowall_model::wire::FrameState;
+use isowall_model::{Camera, RenderSettings};
 use std::collections::{BTreeMap, HashMap};
 use std::time::{Duration, Instant};
 use tokio::sync::mpsc;
@@ -127,7 +127,7 @@ impl Wall {
                 config.tiles_of(&node.name).iter().map(|t| (t.name.clone(), t.width, t.height)).collect();
             machine.set_node_tiles(&node.name, tiles);
         }
-        if config.wall.mode == isowall_wall::WallMode::Object {
+        if config.wall.mode == isowall_model::WallMode::Object {
             // A dead node stalls every frame of an object-space wall (every node waits for its
             // pixels): it is down once silent for 3 deadlines, pinged often enough to tell.
             // The controller asks every node something at least every ping interval, so the
@@ -159,7 +159,7 @@ impl Wall {
             last_try: HashMap::new(),
             bricks: None,
         };
-        if wall.config.wall.mode == isowall_wall::WallMode::Object {
+        if wall.config.wall.mode == isowall_model::WallMode::Object {
             wall.bricks = Some(BrickAssigner::new(names.clone()));
         }
         let start = Instant::now();
@@ -695,7 +695,7 @@ pub fn compose_scaled(
     let mut img = vec![12u8; w as usize * h as usize * 3];
     let by_name: HashMap<&str, &TileImage> = tiles.values().flatten().map(|t| (t.name.as_str(), t)).collect();
     for full in &config.tiles {
-        let tile = isowall_wall::config::TileConfig {
+        let tile = isowall_model::config::TileConfig {
             x: full.x / d,
             y: full.y / d,
             width: full.width.div_ceil(d).min(w - full.x / d),

@@ -13,9 +13,9 @@
 //! This build opens X11 windows only (winit's `x11` feature; Wayland sessions run X11 clients
 //! through Xwayland).
 
-use crate::tiles::{RenderHandle, TileRenderer, TileWindow};
+use crate::render_thread::{RenderHandle, TileRenderer, TileWindow};
 use anyhow::{anyhow, Context, Result};
-use isowall_wall::config::TileConfig;
+use isowall_model::config::TileConfig;
 use std::sync::Arc;
 use winit::application::ApplicationHandler;
 use winit::dpi::{PhysicalPosition, PhysicalSize};

@@ -13,7 +13,7 @@ mod peer_addr;
 mod progress;
 mod render;
 mod run;
-mod tiles;
+mod render_thread;
 
 use clap::{Parser, Subcommand};
 

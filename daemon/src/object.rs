@@ -1,7 +1,7 @@
 //! Object space on a wall node (`[wall] mode = "object"`): the I/O around the model's
-//! [`ObjectMachine`] (`isowall_wall::object_machine`: the views of each frame, the brick maps,
+//! [`ObjectMachine`] (`isowall_model::object_machine`: the views of each frame, the brick maps,
 //! compositing with its caps and deadline, and the messages for the controller live there; the
-//! geometry in `isowall_wall::bricks`, the pixels' rules in `isowall_wall::composite`):
+//! geometry in `isowall_model::bricks`, the pixels' rules in `isowall_model::composite`):
 //!
 //! - set-up ([`load_brick`]): a streaming pass over the volume gives the block min/max of the whole
 //!   (one z-slice resident at a time), every node computes the same split from it at the config's
@@ -18,7 +18,7 @@
 //! - a frame whose AO radius exceeds the halo (the config's radius sized it) is rendered with the
 //!   radius bounded by the halo, and `seed` AO with `ours`, with a warning (the config check refuses
 //!   both up front).
-//! - a node dies ([`isowall_wall::adoption`] has the rules): the controller's brick map gives its
+//! - a node dies ([`isowall_model::adoption`] has the rules): the controller's brick map gives its
 //!   brick to nobody, and pending frames stop waiting for it; the survivor it chose gets
 //!   `LoadBrick` and reads that brick and halo with the same partial read as at start-up
 //!   ([`read_brick`], from the [`BrickPlan`] kept since start-up) on a blocking task, the render
@@ -27,7 +27,7 @@
 //!   gives it to another node. `--adopt-delay-ms` (hidden) delays the read, so tests can watch
 //!   frames run while it loads.
 
-use crate::tiles::{BrickData, JobResult, TileResult};
+use crate::render_thread::{BrickData, JobResult, TileResult};
 use anyhow::{anyhow, Context, Result};
 use isowall_net::pixels::{PeerConnection, PeerPixelsIn, PixelOutbox};
 use isowall_net::transport;
@@ -36,13 +36,13 @@ use isowall_render::gpu::ObjectSpace;
 use isowall_volume::io::{RawSpec, VolumeLimit};
 use isowall_volume::region::VolumeStream;
 use isowall_volume::{BlockMinMax, VolumeInfo, VolumeSource, VoxelRange};
-use isowall_wall::adoption::AdoptionError;
-use isowall_wall::bricks::{self, Brick, Occupancy};
-use isowall_wall::composite::{Composited, TileCanvas};
-use isowall_wall::config::WallConfig;
-use isowall_wall::messages::Message;
-use isowall_wall::object_machine::{BrickGeometry, FrameViews, ObjectMachine, ObjectOutput};
-use isowall_wall::{Camera, RenderSettings};
+use isowall_model::adoption::AdoptionError;
+use isowall_model::bricks::{self, Brick, Occupancy};
+use isowall_model::composite::{Composited, TileCanvas};
+use isowall_model::config::WallConfig;
+use isowall_model::messages::Message;
+use isowall_model::object_machine::{BrickGeometry, FrameViews, ObjectMachine, ObjectOutput};
+use isowall_model::{Camera, RenderSettings};
 use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -170,7 +170,7 @@ pub fn spawn_load(
     plan: Arc<BrickPlan>,
     brick: u64,
     index: usize,
-    renderer: crate::tiles::RenderHandle,
+    renderer: crate::render_thread::RenderHandle,
     done: tokio::sync::mpsc::UnboundedSender<LoadDone>,
     delay: Duration,
 ) {
@@ -380,7 +380,7 @@ impl ObjectNode {
 
     /// `LoadBrick`: starts loading the brick beside this node's own (an answer comes through
     /// [`ObjectNode::load_done`]), or the answer to send at once.
-    pub fn load(&mut self, brick: u64, renderer: &crate::tiles::RenderHandle) -> Option<Message> {
+    pub fn load(&mut self, brick: u64, renderer: &crate::render_thread::RenderHandle) -> Option<Message> {
         let mut answer = None;
         for out in self.machine.load(brick) {
             match out {

@@ -4,7 +4,7 @@
 //! address changes: the peer is still checked by its certificate's node name.
 
 use anyhow::{anyhow, Result};
-use isowall_wall::config::WallConfig;
+use isowall_model::config::WallConfig;
 
 /// One `NODE=HOST:PORT` override.
 #[derive(Clone, Debug, PartialEq, Eq)]

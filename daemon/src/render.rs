@@ -9,7 +9,7 @@ use isowall_render::gpu::GpuRenderer;
 use isowall_render::{output, reference, Frame};
 use isowall_volume::io::{RawSpec, VolumeLimit, VoxelType};
 use isowall_volume::{Volume, VolumeSource};
-use isowall_wall::{AoMethod, AoRadius, AoSequence, Aov, Camera, IblMethod, RenderSettings, Shading, View};
+use isowall_model::{AoMethod, AoRadius, AoSequence, Aov, Camera, IblMethod, RenderSettings, Shading, View};
 use std::path::PathBuf;
 use std::time::Instant;
 

@@ -10,7 +10,7 @@
 use crate::display::{self, Display, DisplayMode, WindowSetup};
 use crate::object::{Done, LoadDone, ObjectNode};
 use crate::render::load_volume_within;
-use crate::tiles::{JobResult, RenderHandle, RenderVolume, TileJob, TileRenderer, TileResult};
+use crate::render_thread::{JobResult, RenderHandle, RenderVolume, TileJob, TileRenderer, TileResult};
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
 use isowall_net::pixels::{PeerPixelsIn, PixelInbox};
@@ -18,10 +18,10 @@ use isowall_net::tls::PeerIdentity;
 use isowall_net::transport::{self, Channel, NetError};
 use isowall_net::Identity;
 use isowall_render::environment::{EnvSource, Environment};
-use isowall_wall::config::{WallConfig, WallMode};
-use isowall_wall::daemon_machine::{NodeMachine, NodeOutput};
-use isowall_wall::messages::{Message, TileImage};
-use isowall_wall::wire::FrameSpec;
+use isowall_model::config::{WallConfig, WallMode};
+use isowall_model::node_machine::{NodeMachine, NodeOutput};
+use isowall_model::messages::{Message, TileImage};
+use isowall_model::wire::FrameSpec;
 use std::path::PathBuf;
 use std::time::Instant;
 use tokio::sync::mpsc::UnboundedReceiver;
@@ -111,7 +111,7 @@ fn time_steps(
     config: &WallConfig,
     raw: Option<&isowall_volume::io::RawSpec>,
     limit: isowall_volume::io::VolumeLimit,
-) -> Result<Option<crate::tiles::TimeSteps>> {
+) -> Result<Option<crate::render_thread::TimeSteps>> {
     let source: isowall_volume::VolumeSource = config.volume_source().parse()?;
     let count = source.time_steps().with_context(|| format!("volume {source}"))?;
     if count < 2 {
@@ -122,7 +122,7 @@ fn time_steps(
         std::time::Duration::from_millis(config.wall.deadline_ms / 2).min(std::time::Duration::from_secs(10));
     tracing::info!(volume = %source, steps = count, cache_bytes, "time-varying volume");
     let cache = isowall_volume::steps::StepCache::new(source, raw.cloned(), cache_bytes, limit)?;
-    Ok(Some(crate::tiles::TimeSteps { cache, wait }))
+    Ok(Some(crate::render_thread::TimeSteps { cache, wait }))
 }
 
 pub fn run(a: &RunArgs) -> Result<()> {
@@ -381,8 +381,8 @@ async fn greet(conn: &quinn::Connection, limit: usize) -> Result<Greeted, String
         Ok(None) => return Err(format!("`{peer}` ended its stream before its Hello")),
         Err(e) => return Err(e.to_string()),
     };
-    if let Err(e) = isowall_wall::codec::check_hello(&hello, isowall_wall::messages::Role::Controller) {
-        return Err(isowall_wall::messages::ProtocolError::new(peer, hello.kind(), e.to_string()).to_string());
+    if let Err(e) = isowall_model::codec::check_hello(&hello, isowall_model::messages::Role::Controller) {
+        return Err(isowall_model::messages::ProtocolError::new(peer, hello.kind(), e.to_string()).to_string());
     }
     Ok(Greeted { channel, hello })
 }
@@ -688,7 +688,7 @@ async fn execute(
                 }
             },
             NodeOutput::Closed { reason } => {
-                tracing::info!("the controller said goodbye: {}", isowall_wall::messages::printable(&reason));
+                tracing::info!("the controller said goodbye: {}", isowall_model::messages::printable(&reason));
                 return Err(NetError::Connection { peer: "controller".into(), reason });
             }
         }

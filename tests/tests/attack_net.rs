@@ -19,9 +19,9 @@ use isowall_e2e::{
 };
 use isowall_net::transport::{self, Channel};
 use isowall_net::Identity;
-use isowall_wall::codec;
-use isowall_wall::daemon_machine::{NodeMachine, NodeOutput};
-use isowall_wall::messages::{Message, Role, TileImage};
+use isowall_model::codec;
+use isowall_model::node_machine::{NodeMachine, NodeOutput};
+use isowall_model::messages::{Message, Role, TileImage};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};

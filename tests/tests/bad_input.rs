@@ -15,8 +15,8 @@
 use isowall_e2e::{free_udp_ports, in_ci, run_in, Daemon};
 use isowall_net::transport::{self, Channel};
 use isowall_net::{Identity, ALPN};
-use isowall_wall::codec;
-use isowall_wall::messages::{Message, Role, PROTOCOL_VERSION};
+use isowall_model::codec;
+use isowall_model::messages::{Message, Role, PROTOCOL_VERSION};
 use std::net::{SocketAddr, UdpSocket};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;

@@ -13,11 +13,11 @@
 mod harness;
 
 use harness::Outcome;
-use isowall_wall::camera::Camera;
-use isowall_wall::codec;
-use isowall_wall::messages::{Message, Role, TileImage, PROTOCOL_VERSION};
-use isowall_wall::render_state::RenderSettings;
-use isowall_wall::wire::FrameState;
+use isowall_model::camera::Camera;
+use isowall_model::codec;
+use isowall_model::messages::{Message, Role, TileImage, PROTOCOL_VERSION};
+use isowall_model::render_state::RenderSettings;
+use isowall_model::wire::FrameState;
 use std::io::Write;
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::path::{Path, PathBuf};

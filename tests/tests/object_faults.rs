@@ -102,7 +102,7 @@ fn object_space_a_killed_nodes_brick_is_adopted_and_given_back() {
     std::fs::write(&config, text.replace("ao_samples = 4", "ao_samples = 0")).unwrap();
     let cfg = config.to_str().unwrap();
     assert!(run_in(dir.path(), "isowall", &["keygen", "--config", cfg]).status.success());
-    let wall_cfg = isowall_wall::WallConfig::load(&config).unwrap();
+    let wall_cfg = isowall_model::WallConfig::load(&config).unwrap();
     let (fw, fh) = wall_cfg.wall_size();
 
     // The single render of the wall camera.

@@ -6,8 +6,8 @@
 use glam::DVec3;
 use isowall_e2e::{free_udp_ports, gpu_ok, render_whole, run_in, wall_config};
 use isowall_volume::{BlockMinMax, VolumeSource};
-use isowall_wall::bricks::{self, Occupancy};
-use isowall_wall::{AoRadius, RenderSettings};
+use isowall_model::bricks::{self, Occupancy};
+use isowall_model::{AoRadius, RenderSettings};
 
 /// The scene: the torus at 48^3 (iso 0), AO radius 10 world units (voxels): wider than a block,
 /// so the AO of points near a cut reaches into the neighbour brick.
@@ -94,7 +94,7 @@ fn object_wall(nodes: usize, compress: bool) {
     }
 
     // The single render of the whole wall image, with its depth.
-    let wall_cfg = isowall_wall::WallConfig::load(&config).unwrap();
+    let wall_cfg = isowall_model::WallConfig::load(&config).unwrap();
     let (fw, fh) = wall_cfg.wall_size();
     let render = |aov: &str, out: &str| {
         let radius = AO_RADIUS.to_string();
@@ -112,13 +112,13 @@ fn object_wall(nodes: usize, compress: bool) {
     };
 
     // Pixels whose surface point lies within the AO radius of a cut plane.
-    let cam = isowall_wall::Camera {
+    let cam = isowall_model::Camera {
         eye: DVec3::new(60.0, -70.0, 45.0),
         target: DVec3::splat(23.5),
         up: DVec3::Z,
         fov_y_deg: 40.0,
     };
-    let view = isowall_wall::View::whole(cam, fw, fh);
+    let view = isowall_model::View::whole(cam, fw, fh);
     let basis = cam.basis();
     let mut cuts: Vec<(usize, f64)> = Vec::new();
     for b in &split {

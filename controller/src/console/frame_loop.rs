@@ -10,8 +10,8 @@ use crate::local::LocalDaemons;
 use crate::path::CameraPath;
 use crate::wall::{compose, compose_scaled, quantile, Wall};
 use anyhow::Result;
-use isowall_wall::messages::MAX_THUMBNAIL_DIVISOR;
-use isowall_wall::{Camera, Governor, Motion, RenderSettings};
+use isowall_model::messages::MAX_THUMBNAIL_DIVISOR;
+use isowall_model::{Camera, Governor, Motion, RenderSettings};
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::path::PathBuf;
 use std::sync::atomic::Ordering;
@@ -250,7 +250,7 @@ impl Loop {
         match self.controls.target_frame_ms {
             Some(t) => {
                 if self.governor.as_ref().is_none_or(|(target, _)| *target != t) {
-                    let max = isowall_wall::render_state::MAX_AO_SAMPLES;
+                    let max = isowall_model::render_state::MAX_AO_SAMPLES;
                     self.governor = Governor::new(t, s.ao.samples.clamp(1, max), 1, max).ok().map(|g| (t, g));
                 }
             }
@@ -440,7 +440,7 @@ impl Loop {
             render: RenderInfo {
                 iso: s.iso,
                 ao_samples: s.ao.samples,
-                max_ao_samples: isowall_wall::render_state::MAX_AO_SAMPLES,
+                max_ao_samples: isowall_model::render_state::MAX_AO_SAMPLES,
                 ao_method: s.ao.method,
                 ibl: s.ao.ibl,
                 exposure: s.exposure,

@@ -84,7 +84,7 @@ pub fn console(a: &ConsoleArgs) -> Result<()> {
                 ao_samples: settings.ao.samples,
             };
             let path =
-                crate::path::CameraPath::load(p, defaults, isowall_wall::render_state::MAX_AO_SAMPLES)?;
+                crate::path::CameraPath::load(p, defaults, isowall_model::render_state::MAX_AO_SAMPLES)?;
             Some((p.clone(), path))
         }
         None => None,

@@ -1,11 +1,11 @@
 //! The changes `POST /api/render` and `POST /api/camera` ask for, and how they apply to the
 //! console's [`Controls`]: validated first (the render settings by the config's own rules,
-//! [`isowall_wall::config::render_problems`]), applied only when all of it is valid, so a refused
+//! [`isowall_model::config::render_problems`]), applied only when all of it is valid, so a refused
 //! request changes nothing.
 
 use crate::controls::SessionState;
-use isowall_wall::config::{render_problems, RenderConfig};
-use isowall_wall::{AoMethod, Camera, IblMethod, RenderSettings, Shading};
+use isowall_model::config::{render_problems, RenderConfig};
+use isowall_model::{AoMethod, Camera, IblMethod, RenderSettings, Shading};
 use serde::{Deserialize, Deserializer};
 
 /// A refused change: the field it is about and why.

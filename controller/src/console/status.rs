@@ -69,10 +69,10 @@ pub struct RenderInfo {
     pub ao_samples: u32,
     /// The most AO samples per frame the renderer takes (the slider's end).
     pub max_ao_samples: u32,
-    pub ao_method: isowall_wall::AoMethod,
-    pub ibl: isowall_wall::IblMethod,
+    pub ao_method: isowall_model::AoMethod,
+    pub ibl: isowall_model::IblMethod,
     pub exposure: f64,
-    pub shading: isowall_wall::Shading,
+    pub shading: isowall_model::Shading,
     /// The quality governor's target (`None`: off, `ao_samples` every frame).
     pub target_frame_ms: Option<f64>,
     /// The samples and internal resolution divisor of the last frame (the governor's choice).
@@ -215,7 +215,7 @@ pub fn ms(d: Duration) -> f64 {
 
 /// The last value of each node's render and ready times over `finished` (newest last).
 pub fn last_times(
-    finished: &[isowall_wall::barrier::FrameStats],
+    finished: &[isowall_model::frame_controller::FrameStats],
 ) -> BTreeMap<String, (Option<f64>, Option<f64>)> {
     let mut out: BTreeMap<String, (Option<f64>, Option<f64>)> = BTreeMap::new();
     for f in finished.iter().rev().take(8) {

@@ -1,7 +1,7 @@
 //! `isowall keygen`: the wall CA and a certificate + key for every node and for the controller
 //! (the files are listed in [`crate::tls`]). It is safe to run beside a working wall:
 //!
-//! - every name is checked first, by the config's own rule ([`isowall_wall::names`]), before any
+//! - every name is checked first, by the config's own rule ([`isowall_model::names`]), before any
 //!   key is made or any file written;
 //! - an existing CA is never replaced unless asked ([`CaMode::Replace`], `--force`): every
 //!   certificate it signed would stop working. [`CaMode::Renew`] (`--renew`) keeps it and issues

@@ -3,7 +3,7 @@
 //! length-prefixed [`Message`]s on one bidirectional stream per connection ([`transport`]),
 //! encoded by the model's one codec module; in object space, nodes' pixels to each other on a
 //! stream per frame ([`pixels`]). The protocol logic lives in the model's state machines
-//! (`isowall_wall::barrier`, `isowall_wall::daemon_machine`); the binaries drive them with what
+//! (`isowall_model::barrier`, `isowall_model::node_machine`); the binaries drive them with what
 //! arrives here.
 
 pub mod keygen;
@@ -15,7 +15,7 @@ pub use keygen::{keygen, CaMode, KeygenReport};
 pub use tls::{Identity, TlsError};
 pub use transport::{Channel, NetError, ALPN};
 
-use isowall_wall::messages::Message;
+use isowall_model::messages::Message;
 
 /// Re-exported for the binaries: what travels.
 pub type WireMessage = Message;

@@ -11,8 +11,8 @@
 
 use crate::transport::{self, NetError};
 use crate::Identity;
-use isowall_wall::codec;
-use isowall_wall::composite::PeerPixels;
+use isowall_model::codec;
+use isowall_model::composite::PeerPixels;
 use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicUsize, Ordering};

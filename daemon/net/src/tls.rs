@@ -66,9 +66,9 @@ pub(crate) fn io(path: &Path) -> impl FnOnce(std::io::Error) -> TlsError + '_ {
 }
 
 /// A certificate name: a node's name or `controller`, by the config's rule
-/// ([`isowall_wall::names`]).
+/// ([`isowall_model::names`]).
 pub(crate) fn check_name(name: &str) -> Result<(), TlsError> {
-    match isowall_wall::names::name_problem(name) {
+    match isowall_model::names::name_problem(name) {
         None => Ok(()),
         Some(problem) => Err(TlsError::BadName(problem)),
     }

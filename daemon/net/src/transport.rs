@@ -3,8 +3,8 @@
 //! or bytes that do not decode, end that connection with a reason and nothing else.
 
 use crate::tls::{Identity, TlsError};
-use isowall_wall::codec::{self, CodecError, Decoder};
-use isowall_wall::messages::Message;
+use isowall_model::codec::{self, CodecError, Decoder};
+use isowall_model::messages::Message;
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;

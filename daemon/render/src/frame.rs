@@ -1,6 +1,6 @@
 //! A rendered frame: every AOV of a window of pixels, rows top to bottom.
 
-use isowall_wall::Aov;
+use isowall_model::Aov;
 
 /// All AOVs of one rendered window. Pixels without a hit hold 0 in every AOV but `color`,
 /// which holds the background.

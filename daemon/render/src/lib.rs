@@ -1,7 +1,7 @@
 //! Isowall's renderers. [`gpu`] is the wgpu compute ray-caster (one kernel per WGSL file in
 //! `shaders/`, see [`shaders`]); [`reference`] is the exact CPU renderer (f64, cubic roots per
 //! cell) that the GPU is tested against. Both produce a [`Frame`] for a
-//! [`View`](isowall_wall::View) of a volume. Nothing here touches the network.
+//! [`View`](isowall_model::View) of a volume. Nothing here touches the network.
 
 pub mod environment;
 pub mod frame;

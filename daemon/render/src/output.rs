@@ -2,8 +2,8 @@
 //! for one channel, `PF` for three, negative scale = little endian).
 
 use crate::frame::Frame;
-use isowall_wall::render_state::linear_to_srgb;
-use isowall_wall::Aov;
+use isowall_model::render_state::linear_to_srgb;
+use isowall_model::Aov;
 use std::path::{Path, PathBuf};
 
 #[derive(Debug, thiserror::Error)]

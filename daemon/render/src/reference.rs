@@ -42,7 +42,7 @@
 //! central-difference normal as it is, *not* turned towards the viewer (Ng where its gradient
 //! vanished). Ray i is occluded (`V_i = 1`) when the exact trilinear field reaches `f >= iso` at
 //! some `t` in `[0, R]`, `R` the AO radius
-//! ([`AoSettings::radius_world`](isowall_wall::AoSettings::radius_world)) or the box exit when
+//! ([`AoSettings::radius_world`](isowall_model::AoSettings::radius_world)) or the box exit when
 //! unbounded; `t = 0` is included, so an origin inside the object is occluded. A direction under
 //! the surface meets the object within a few eps by the same test; no other rule. Outside the box
 //! the field is empty, so a ray that leaves the box is open (and one whose origin lies outside the
@@ -81,9 +81,9 @@ use crate::frame::Frame;
 use crate::sampling::{ao_point, cosine_direction, pixel_key, seed_directions, seed_lift};
 use glam::DVec3;
 use isowall_volume::Volume;
-use isowall_wall::camera::Basis;
-use isowall_wall::render_state::shade;
-use isowall_wall::{AoMethod, IblMethod, RenderSettings, View};
+use isowall_model::camera::Basis;
+use isowall_model::render_state::shade;
+use isowall_model::{AoMethod, IblMethod, RenderSettings, View};
 use std::borrow::Cow;
 use std::sync::atomic::{AtomicU32, Ordering};
 
@@ -907,7 +907,7 @@ fn quadratic_roots(a: f64, b: f64, c: f64) -> [f64; 2] {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use isowall_wall::{Camera, Window};
+    use isowall_model::{Camera, Window};
 
     /// A volume sampling `f` at the world positions of its samples.
     fn field(dims: [usize; 3], spacing: DVec3, origin: DVec3, f: impl Fn(DVec3) -> f64) -> Volume {

@@ -41,7 +41,7 @@
 //!                    of a pixel are an aligned block of the sequence, a (0, k, 2)-net, scrambled)
 //! ```
 //!
-//! The 2D set is chosen per frame by [`AoSequence`](isowall_wall::AoSequence) ([`ao_point`]):
+//! The 2D set is chosen per frame by [`AoSequence`](isowall_model::AoSequence) ([`ao_point`]):
 //! sample `i` of a pixel is `cosine_direction(n, ao_point(sequence, i, pixel_key(px, py, frame, seed)))`:
 //! cosine-weighted over the hemisphere around `n`, so the mean of the occlusion indicator over the
 //! samples estimates A(p) = (1/pi) ∫ V cos. The frame index decorrelates successive frames of a
@@ -51,7 +51,7 @@
 //! the `seed` baseline.
 
 use glam::DVec3;
-use isowall_wall::AoSequence;
+use isowall_model::AoSequence;
 
 /// "lowbias32" integer hash (Chris Wellons' hash-prospector), a bijection on `u32`.
 #[inline]

@@ -16,7 +16,7 @@ use isowall_render::reference;
 use isowall_render::Frame;
 use isowall_volume::procedural::{sphere_over_plane_geometry, Procedural};
 use isowall_volume::{Volume, VolumeSource};
-use isowall_wall::{AoMethod, AoRadius, Camera, IblMethod, RenderSettings, View, Window};
+use isowall_model::{AoMethod, AoRadius, Camera, IblMethod, RenderSettings, View, Window};
 
 fn scene(kind: Procedural, size: usize) -> (Volume, f64) {
     (VolumeSource::Procedural { kind, size: Some(size) }.load(None).unwrap(), kind.natural_iso())

@@ -13,7 +13,7 @@ use isowall_render::output::srgb8;
 use isowall_render::reference;
 use isowall_volume::procedural::Procedural;
 use isowall_volume::{Volume, VolumeSource};
-use isowall_wall::{Camera, RenderSettings, View};
+use isowall_model::{Camera, RenderSettings, View};
 
 const W: u32 = 64;
 const H: u32 = 48;

@@ -16,7 +16,7 @@ use isowall_render::reference::{self, ao_origin, ao_ray_occluded, trace, Hit};
 use isowall_render::Frame;
 use isowall_volume::procedural::{sphere_over_plane_geometry, Procedural};
 use isowall_volume::Volume;
-use isowall_wall::{AoMethod, AoRadius, Camera, IblMethod, RenderSettings, View, Window};
+use isowall_model::{AoMethod, AoRadius, Camera, IblMethod, RenderSettings, View, Window};
 
 /// Pixel (px, py) of `view` alone (a 1x1 window of it).
 fn pixel(

@@ -5,7 +5,7 @@
 use glam::DVec3;
 use isowall_render::reference::{render, trace};
 use isowall_volume::Volume;
-use isowall_wall::{Camera, RenderSettings, View};
+use isowall_model::{Camera, RenderSettings, View};
 use std::path::{Path, PathBuf};
 
 fn conventions_dir() -> Option<PathBuf> {

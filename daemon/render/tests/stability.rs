@@ -20,7 +20,7 @@ use isowall_render::reference;
 use isowall_render::Frame;
 use isowall_volume::procedural::Procedural;
 use isowall_volume::{Volume, VolumeError, VolumeSource};
-use isowall_wall::{AoMethod, AoRadius, Aov, Camera, IblMethod, RenderSettings, View};
+use isowall_model::{AoMethod, AoRadius, Aov, Camera, IblMethod, RenderSettings, View};
 
 /// The GPU renderer with the sky uploaded, and the sky for the reference.
 struct Ctx {

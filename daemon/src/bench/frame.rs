@@ -16,7 +16,7 @@ use isowall_render::gpu::{
     FrameRead, GpuRenderer, GpuVolume, ReadbackRing, TileFrame, TileTarget, TrafficCount,
 };
 use isowall_render::output::srgb8;
-use isowall_wall::{Camera, RenderSettings, View};
+use isowall_model::{Camera, RenderSettings, View};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 

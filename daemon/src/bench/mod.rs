@@ -13,7 +13,7 @@ use accuracy::AccuracyArgs;
 use anyhow::Result;
 use clap::{Args, Subcommand};
 use isowall_render::gpu::GpuRenderer;
-use isowall_wall::{AoMethod, Camera, RenderSettings, View};
+use isowall_model::{AoMethod, Camera, RenderSettings, View};
 use stats::{error_stats, median, sample_list, scene_spec};
 
 #[derive(Subcommand)]

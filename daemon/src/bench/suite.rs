@@ -16,7 +16,7 @@ use clap::Args;
 use isowall_render::gpu::{GpuRenderer, GpuVolume, PerfOptions};
 use isowall_render::Frame;
 use isowall_volume::VoxelFormat;
-use isowall_wall::{AoSequence, Camera, RenderSettings, View};
+use isowall_model::{AoSequence, Camera, RenderSettings, View};
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 

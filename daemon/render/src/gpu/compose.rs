@@ -7,7 +7,7 @@ use super::{storage_entry, GpuContext, GpuError};
 use crate::shaders::Kernel;
 use bytemuck::{Pod, Zeroable};
 use isowall_volume::VoxelFormat;
-use isowall_wall::{RenderSettings, View};
+use isowall_model::{RenderSettings, View};
 
 /// Twin of WGSL `ComposeParams`.
 #[repr(C)]

@@ -3,7 +3,7 @@
 
 use super::{GpuEnvironment, GpuVolume};
 use bytemuck::{Pod, Zeroable};
-use isowall_wall::{AoMethod, AoSequence, IblMethod, RenderSettings, Shading, View};
+use isowall_model::{AoMethod, AoSequence, IblMethod, RenderSettings, Shading, View};
 
 /// Bisection steps after the bracketing march step (then one secant step): h / 4096.
 pub const REFINE_STEPS: u32 = 12;

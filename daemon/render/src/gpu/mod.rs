@@ -28,7 +28,7 @@ use crate::environment::Environment;
 use crate::shaders::{self, Kernel};
 use crate::Frame;
 use isowall_volume::{BlockMinMax, Volume, VoxelFormat};
-use isowall_wall::{IblMethod, RenderSettings, View};
+use isowall_model::{IblMethod, RenderSettings, View};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 use wgpu::util::DeviceExt;
@@ -393,7 +393,7 @@ pub struct GpuVolume {
     pub object: Option<ObjectSpace>,
 }
 
-/// Object space: the GPU volume holds a brick and its halo (`isowall_wall::bricks`). The box,
+/// Object space: the GPU volume holds a brick and its halo (`isowall_model::bricks`). The box,
 /// spacing and block grid stay the whole volume's; the voxels are the region starting at
 /// `data_offset`.
 #[derive(Clone, Debug, PartialEq)]

@@ -14,7 +14,7 @@
 use super::compose::ComposeParams;
 use super::readback::{Read, ReadbackRing, Source};
 use super::{FrameParams, GpuEnvironment, GpuError, GpuRenderer, GpuVolume};
-use isowall_wall::{lowres, IblMethod, RenderSettings, View};
+use isowall_model::{lowres, IblMethod, RenderSettings, View};
 
 /// A presentable image of a tile: 8-bit sRGB values in an RGBA8 texture the size of the tile's
 /// window, drawn by presentation (`present.rs`) and copied for snapshots.

@@ -8,7 +8,7 @@
 //! - [`radix`]: the sort-last schedules to compare with on the same network (radix-k, binary
 //!   swap, direct-send as radix-k's one-round case), over the same brick footprints.
 //!
-//! `cargo run -p isowall-wall --release --example wall_scale` prints the table and writes
+//! `cargo run -p isowall-model --release --example wall_scale` prints the table and writes
 //! docs/scale/; docs/scale.md reads it.
 
 pub mod lan;

@@ -1,5 +1,5 @@
 //! The daemon's side of the frame protocol: [`NodeMachine`], sans-IO like
-//! [`crate::barrier::FrameController`]. `now` is the daemon's own clock (a [`Duration`] since any
+//! [`crate::frame_controller::FrameController`]. `now` is the daemon's own clock (a [`Duration`] since any
 //! fixed epoch); the controller learns its offset from Ping/Pong.
 //!
 //! The caller sends [`NodeMachine::hello`] when the connection opens, passes every message to

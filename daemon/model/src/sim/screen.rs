@@ -9,9 +9,9 @@ use std::collections::BTreeMap;
 use std::time::Duration;
 
 use super::lan::{Events, Lan, LanCounts, LanModel};
-use crate::barrier::{ControllerOutput, FrameController};
+use crate::frame_controller::{ControllerOutput, FrameController};
 use crate::codec::{self, Decoder};
-use crate::daemon_machine::{NodeMachine, NodeOutput};
+use crate::node_machine::{NodeMachine, NodeOutput};
 use crate::messages::{Message, Role};
 use crate::render_state::RenderSettings;
 use crate::wire::FrameState;

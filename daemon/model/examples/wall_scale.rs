@@ -2,15 +2,15 @@
 //! 256 nodes, and the compositing schedules beside direct-send. Prints the tables and writes
 //! `docs/scale/*.csv` and `docs/scale/*.svg` (or into the folder given as the first argument).
 //!
-//! `cargo run -p isowall-wall --release --example wall_scale [OUT_DIR]`
+//! `cargo run -p isowall-model --release --example wall_scale [OUT_DIR]`
 
 use std::fmt::Write as _;
 use std::path::PathBuf;
 use std::time::Duration;
 
-use isowall_wall::sim::radix::factors;
-use isowall_wall::sim::screen::percentiles;
-use isowall_wall::sim::{
+use isowall_model::sim::radix::factors;
+use isowall_model::sim::screen::percentiles;
+use isowall_model::sim::{
     run_object, run_radix, run_screen, LanModel, ObjectSpec, ObjectWall, PixelCost, RadixReport, Scene,
     ScreenSpec,
 };

@@ -9,7 +9,7 @@
 //! - The frame protocol, sans-IO (time is passed in as a `Duration` since any epoch):
 //!   [`wire`] (frame state on the wire, converted to and from the model), [`messages`], [`codec`]
 //!   (the one place bytes are made: bincode, length-prefixed frames, limits), [`clock`] (offsets
-//!   from Ping/Pong), [`barrier`] (the controller's swap barrier) and [`daemon_machine`] (a
+//!   from Ping/Pong), [`frame_controller`] (the controller's swap barrier) and [`node_machine`] (a
 //!   daemon's side).
 //! - object space: [`bricks`] (the split, halos, covered windows), [`composite`] (depth
 //!   compositing of peers' pixels, its caps and deadline), [`adoption`] (which node renders each
@@ -20,14 +20,14 @@
 //! - [`sim`]: the wall at scale: a LAN model on a virtual clock driving the machines above.
 
 pub mod adoption;
-pub mod barrier;
+pub mod frame_controller;
 pub mod bricks;
 pub mod camera;
 pub mod clock;
 pub mod codec;
 pub mod composite;
 pub mod config;
-pub mod daemon_machine;
+pub mod node_machine;
 pub mod governor;
 pub mod joystick;
 pub mod lowres;
@@ -38,13 +38,13 @@ pub mod render_state;
 pub mod sim;
 pub mod wire;
 
-pub use barrier::{ControllerOutput, FrameController, FrameStats, NodeFrameStats};
+pub use frame_controller::{ControllerOutput, FrameController, FrameStats, NodeFrameStats};
 pub use camera::{Camera, CameraError, View, Window};
 pub use config::{
     CameraConfig, CertConfig, ConfigErrors, NodeConfig, Problem, RenderConfig, TileConfig, VolumeConfig,
     WallConfig, WallMode, WallSection,
 };
-pub use daemon_machine::{NodeMachine, NodeOutput};
+pub use node_machine::{NodeMachine, NodeOutput};
 pub use governor::{Governor, GovernorError, Motion, MAX_SCALE};
 pub use messages::{Message, ProtocolError, Role, TileImage, PROTOCOL_VERSION};
 pub use render_state::{

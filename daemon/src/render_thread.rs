@@ -16,7 +16,7 @@ use isowall_render::gpu::ObjectSpace;
 use isowall_render::gpu::{FrameRead, GpuRenderer, ReadbackRing, TileFrame, TileTarget};
 use isowall_volume::steps::{StepCache, StepState};
 use isowall_volume::{BlockMinMax, Volume, VolumeInfo};
-use isowall_wall::{RenderSettings, View};
+use isowall_model::{RenderSettings, View};
 use std::collections::VecDeque;
 use std::sync::{mpsc, Arc};
 use std::time::{Duration, Instant};
@@ -31,7 +31,7 @@ pub struct TileJob {
     /// object space: the brick each view renders, by index (a node renders an adopted brick
     /// beside its own, `object.rs`); empty: the one volume.
     pub bricks: Vec<usize>,
-    /// The internal resolution divisor (1 ..= 4, `isowall_wall::lowres`): each tile renders its
+    /// The internal resolution divisor (1 ..= 4, `isowall_model::lowres`): each tile renders its
     /// view of the image divided by it and is upsampled (nearest) to its full size on the GPU.
     pub scale: u32,
     /// Read each view's colour and depth back (object space: its pixels travel to the tile's
@@ -637,7 +637,7 @@ impl RenderLoop {
 mod tests {
     use super::*;
     use isowall_render::gpu::GpuError;
-    use isowall_wall::{Camera, Window};
+    use isowall_model::{Camera, Window};
 
     type Results = tokio::sync::mpsc::UnboundedReceiver<Result<JobResult, String>>;
 

@@ -1,18 +1,18 @@
-//! The wall at scale (`isowall_wall::sim`): the LAN model drives the real machines as the model
+//! The wall at scale (`isowall_model::sim`): the LAN model drives the real machines as the model
 //! says it does, a lost packet is paid for as the protocol pays for it, a 256-node wall runs to
 //! the end deterministically, and the object-space machines send what the footprints say.
 
 use std::time::Duration;
 
-use isowall_wall::codec;
-use isowall_wall::messages::Message;
-use isowall_wall::sim::radix::{factors, message_bytes};
-use isowall_wall::sim::screen::percentiles;
-use isowall_wall::sim::{
+use isowall_model::codec;
+use isowall_model::messages::Message;
+use isowall_model::sim::radix::{factors, message_bytes};
+use isowall_model::sim::screen::percentiles;
+use isowall_model::sim::{
     run_object, run_radix, run_screen, LanModel, ObjectSpec, ObjectWall, PixelCost, Scene, ScreenSpec,
 };
-use isowall_wall::wire::FrameState;
-use isowall_wall::{Camera, RenderSettings};
+use isowall_model::wire::FrameState;
+use isowall_model::{Camera, RenderSettings};
 
 fn quiet() -> LanModel {
     LanModel { jitter: Duration::ZERO, loss: 0.0, ..LanModel::ten_gbe() }
@@ -134,7 +134,7 @@ fn a_256_node_wall_runs_to_the_end_and_a_seed_decides_everything() {
     assert_eq!(a, b, "the same seed, the same run");
     let c = run_screen(&ScreenSpec { seed: 8, ..spec });
     let barriers =
-        |r: &isowall_wall::sim::ScreenReport| r.frames.iter().map(|f| f.barrier).collect::<Vec<_>>();
+        |r: &isowall_model::sim::ScreenReport| r.frames.iter().map(|f| f.barrier).collect::<Vec<_>>();
     assert_ne!(barriers(&a), barriers(&c), "another seed, other jitter");
 }
 

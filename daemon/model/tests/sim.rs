@@ -12,13 +12,13 @@ use std::collections::{BTreeMap, BinaryHeap};
 use std::time::Duration;
 use support::{Rng, Scheduled};
 
-use isowall_wall::barrier::{ControllerOutput, FrameController, FrameStats};
-use isowall_wall::codec::{self, Decoder};
-use isowall_wall::daemon_machine::{NodeMachine, NodeOutput};
-use isowall_wall::messages::{Message, ProtocolError, Role, TileImage};
-use isowall_wall::render_state::RenderSettings;
-use isowall_wall::wire::FrameState;
-use isowall_wall::Camera;
+use isowall_model::frame_controller::{ControllerOutput, FrameController, FrameStats};
+use isowall_model::codec::{self, Decoder};
+use isowall_model::node_machine::{NodeMachine, NodeOutput};
+use isowall_model::messages::{Message, ProtocolError, Role, TileImage};
+use isowall_model::render_state::RenderSettings;
+use isowall_model::wire::FrameState;
+use isowall_model::Camera;
 
 /// Milliseconds, exact to the nanosecond (no float truncation surprises in comparisons).
 fn ms(x: f64) -> Duration {

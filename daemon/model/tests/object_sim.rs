@@ -18,16 +18,16 @@ use std::time::Duration;
 use support::{Rng, Scheduled};
 
 use glam::DVec3;
-use isowall_wall::adoption::{AdoptionOutput, BrickAssigner};
-use isowall_wall::bricks;
-use isowall_wall::codec;
-use isowall_wall::composite::{Composited, TileCanvas};
-use isowall_wall::config::WallConfig;
-use isowall_wall::daemon_machine::{NodeMachine, NodeOutput};
-use isowall_wall::messages::{Message, Role};
-use isowall_wall::object_machine::{BrickGeometry, FrameViews, ObjectMachine, ObjectOutput};
-use isowall_wall::wire::FrameState;
-use isowall_wall::{Camera, RenderSettings};
+use isowall_model::adoption::{AdoptionOutput, BrickAssigner};
+use isowall_model::bricks;
+use isowall_model::codec;
+use isowall_model::composite::{Composited, TileCanvas};
+use isowall_model::config::WallConfig;
+use isowall_model::node_machine::{NodeMachine, NodeOutput};
+use isowall_model::messages::{Message, Role};
+use isowall_model::object_machine::{BrickGeometry, FrameViews, ObjectMachine, ObjectOutput};
+use isowall_model::wire::FrameState;
+use isowall_model::{Camera, RenderSettings};
 
 fn ms(x: u64) -> Duration {
     Duration::from_millis(x)

@@ -1,5 +1,5 @@
 //! A wall node in object space, sans-IO: [`ObjectMachine`], beside the frame machine
-//! ([`crate::daemon_machine::NodeMachine`]) of an object-space node. `now` is the daemon's own
+//! ([`crate::node_machine::NodeMachine`]) of an object-space node. `now` is the daemon's own
 //! clock (a [`Duration`] since any fixed epoch), as for the frame machine.
 //!
 //! Each frame the caller
