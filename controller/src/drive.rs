@@ -5,10 +5,10 @@ use crate::wall::{compose, quantile, report, Wall};
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
 use glam::DQuat;
-use isowall_net::CaMode;
-use isowall_volume::{BlockMinMax, VolumeSource};
 use isowall_model::config::WallConfig;
 use isowall_model::{Camera, Governor, Motion, RenderSettings};
+use isowall_net::CaMode;
+use isowall_volume::{BlockMinMax, VolumeSource};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 

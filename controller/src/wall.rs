@@ -3,15 +3,15 @@
 //! snapshots; report statistics. The network code only moves bytes and calls the state machine.
 
 use anyhow::{anyhow, bail, Context, Result};
-use isowall_net::transport::{self, Channel, ChannelSender};
-use isowall_net::Identity;
 use isowall_model::adoption::{AdoptionOutput, BrickAssigner};
-use isowall_model::frame_controller::{ControllerOutput, FrameController, FrameStats};
 use isowall_model::codec;
 use isowall_model::config::WallConfig;
+use isowall_model::frame_controller::{ControllerOutput, FrameController, FrameStats};
 use isowall_model::messages::{printable, Message, Role, TileImage};
 use isowall_model::wire::FrameState;
 use isowall_model::{Camera, RenderSettings};
+use isowall_net::transport::{self, Channel, ChannelSender};
+use isowall_net::Identity;
 use std::collections::{BTreeMap, HashMap};
 use std::time::{Duration, Instant};
 use tokio::sync::mpsc;

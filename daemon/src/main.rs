@@ -12,8 +12,8 @@ mod object;
 mod peer_addr;
 mod progress;
 mod render;
-mod run;
 mod render_thread;
+mod run;
 
 use clap::{Parser, Subcommand};
 

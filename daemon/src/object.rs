@@ -29,13 +29,6 @@
 
 use crate::render_thread::{BrickData, JobResult, TileResult};
 use anyhow::{anyhow, Context, Result};
-use isowall_net::pixels::{PeerConnection, PeerPixelsIn, PixelOutbox};
-use isowall_net::transport;
-use isowall_net::Identity;
-use isowall_render::gpu::ObjectSpace;
-use isowall_volume::io::{RawSpec, VolumeLimit};
-use isowall_volume::region::VolumeStream;
-use isowall_volume::{BlockMinMax, VolumeInfo, VolumeSource, VoxelRange};
 use isowall_model::adoption::AdoptionError;
 use isowall_model::bricks::{self, Brick, Occupancy};
 use isowall_model::composite::{Composited, TileCanvas};
@@ -43,6 +36,13 @@ use isowall_model::config::WallConfig;
 use isowall_model::messages::Message;
 use isowall_model::object_machine::{BrickGeometry, FrameViews, ObjectMachine, ObjectOutput};
 use isowall_model::{Camera, RenderSettings};
+use isowall_net::pixels::{PeerConnection, PeerPixelsIn, PixelOutbox};
+use isowall_net::transport;
+use isowall_net::Identity;
+use isowall_render::gpu::ObjectSpace;
+use isowall_volume::io::{RawSpec, VolumeLimit};
+use isowall_volume::region::VolumeStream;
+use isowall_volume::{BlockMinMax, VolumeInfo, VolumeSource, VoxelRange};
 use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::sync::Arc;

@@ -4,12 +4,12 @@ use crate::args;
 use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
 use glam::DVec3;
+use isowall_model::{AoMethod, AoRadius, AoSequence, Aov, Camera, IblMethod, RenderSettings, Shading, View};
 use isowall_render::environment::{EnvSource, Environment};
 use isowall_render::gpu::GpuRenderer;
 use isowall_render::{output, reference, Frame};
 use isowall_volume::io::{RawSpec, VolumeLimit, VoxelType};
 use isowall_volume::{Volume, VolumeSource};
-use isowall_model::{AoMethod, AoRadius, AoSequence, Aov, Camera, IblMethod, RenderSettings, Shading, View};
 use std::path::PathBuf;
 use std::time::Instant;
 

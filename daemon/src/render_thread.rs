@@ -10,13 +10,13 @@
 //! and the images of a snapshot ([`RenderHandle::snapshot`]).
 
 use anyhow::{Context, Result};
+use isowall_model::{RenderSettings, View};
 use isowall_render::environment::Environment;
 use isowall_render::gpu::present::{Presented, TileSurface};
 use isowall_render::gpu::ObjectSpace;
 use isowall_render::gpu::{FrameRead, GpuRenderer, ReadbackRing, TileFrame, TileTarget};
 use isowall_volume::steps::{StepCache, StepState};
 use isowall_volume::{BlockMinMax, Volume, VolumeInfo};
-use isowall_model::{RenderSettings, View};
 use std::collections::VecDeque;
 use std::sync::{mpsc, Arc};
 use std::time::{Duration, Instant};
@@ -636,8 +636,8 @@ impl RenderLoop {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use isowall_render::gpu::GpuError;
     use isowall_model::{Camera, Window};
+    use isowall_render::gpu::GpuError;
 
     type Results = tokio::sync::mpsc::UnboundedReceiver<Result<JobResult, String>>;
 

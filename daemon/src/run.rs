@@ -13,15 +13,15 @@ use crate::render::load_volume_within;
 use crate::render_thread::{JobResult, RenderHandle, RenderVolume, TileJob, TileRenderer, TileResult};
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
+use isowall_model::config::{WallConfig, WallMode};
+use isowall_model::messages::{Message, TileImage};
+use isowall_model::node_machine::{NodeMachine, NodeOutput};
+use isowall_model::wire::FrameSpec;
 use isowall_net::pixels::{PeerPixelsIn, PixelInbox};
 use isowall_net::tls::PeerIdentity;
 use isowall_net::transport::{self, Channel, NetError};
 use isowall_net::Identity;
 use isowall_render::environment::{EnvSource, Environment};
-use isowall_model::config::{WallConfig, WallMode};
-use isowall_model::node_machine::{NodeMachine, NodeOutput};
-use isowall_model::messages::{Message, TileImage};
-use isowall_model::wire::FrameSpec;
 use std::path::PathBuf;
 use std::time::Instant;
 use tokio::sync::mpsc::UnboundedReceiver;
@@ -382,7 +382,9 @@ async fn greet(conn: &quinn::Connection, limit: usize) -> Result<Greeted, String
         Err(e) => return Err(e.to_string()),
     };
     if let Err(e) = isowall_model::codec::check_hello(&hello, isowall_model::messages::Role::Controller) {
-        return Err(isowall_model::messages::ProtocolError::new(peer, hello.kind(), e.to_string()).to_string());
+        return Err(
+            isowall_model::messages::ProtocolError::new(peer, hello.kind(), e.to_string()).to_string()
+        );
     }
     Ok(Greeted { channel, hello })
 }
@@ -688,7 +690,10 @@ async fn execute(
                 }
             },
             NodeOutput::Closed { reason } => {
-                tracing::info!("the controller said goodbye: {}", isowall_model::messages::printable(&reason));
+                tracing::info!(
+                    "the controller said goodbye: {}",
+                    isowall_model::messages::printable(&reason)
+                );
                 return Err(NetError::Connection { peer: "controller".into(), reason });
             }
         }

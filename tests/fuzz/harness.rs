@@ -9,12 +9,12 @@
 
 #![allow(dead_code)]
 
-use isowall_volume::VolumeError;
 use isowall_model::codec::{self, Decoder, HEADER_LEN};
 use isowall_model::config::WallConfig;
-use isowall_model::node_machine::{NodeMachine, NodeOutput};
 use isowall_model::messages::{Message, Role};
+use isowall_model::node_machine::{NodeMachine, NodeOutput};
 use isowall_model::wire::{FrameSpec, FrameState};
+use isowall_volume::VolumeError;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 

@@ -17,11 +17,11 @@
 use isowall_e2e::{
     bin, free_udp_ports, in_ci, run_in, set_object_mode, start_nodes, wall_config, wall_config_2x1, Daemon,
 };
+use isowall_model::codec;
+use isowall_model::messages::{Message, Role, TileImage};
+use isowall_model::node_machine::{NodeMachine, NodeOutput};
 use isowall_net::transport::{self, Channel};
 use isowall_net::Identity;
-use isowall_model::codec;
-use isowall_model::node_machine::{NodeMachine, NodeOutput};
-use isowall_model::messages::{Message, Role, TileImage};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};

@@ -12,12 +12,12 @@
 //! names the peer. Each test prints its numbers (`cargo test ... -- --nocapture`).
 
 use isowall_e2e::{free_udp_ports, in_ci, run_in, start_nodes_with, Daemon};
-use isowall_net::transport::{self, Channel};
-use isowall_net::Identity;
 use isowall_model::codec;
 use isowall_model::composite::{Layer, PeerPixels};
-use isowall_model::node_machine::{NodeMachine, NodeOutput};
 use isowall_model::messages::Message;
+use isowall_model::node_machine::{NodeMachine, NodeOutput};
+use isowall_net::transport::{self, Channel};
+use isowall_net::Identity;
 use std::collections::VecDeque;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};

@@ -13,10 +13,10 @@
 //! must work afterwards. (A peer with another CA's certificate: tests/tests/wall.rs.)
 
 use isowall_e2e::{free_udp_ports, in_ci, run_in, Daemon};
-use isowall_net::transport::{self, Channel};
-use isowall_net::{Identity, ALPN};
 use isowall_model::codec;
 use isowall_model::messages::{Message, Role, PROTOCOL_VERSION};
+use isowall_net::transport::{self, Channel};
+use isowall_net::{Identity, ALPN};
 use std::net::{SocketAddr, UdpSocket};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;

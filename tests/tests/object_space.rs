@@ -5,9 +5,9 @@
 
 use glam::DVec3;
 use isowall_e2e::{free_udp_ports, gpu_ok, render_whole, run_in, wall_config};
-use isowall_volume::{BlockMinMax, VolumeSource};
 use isowall_model::bricks::{self, Occupancy};
 use isowall_model::{AoRadius, RenderSettings};
+use isowall_volume::{BlockMinMax, VolumeSource};
 
 /// The scene: the torus at 48^3 (iso 0), AO radius 10 world units (voxels): wider than a block,
 /// so the AO of points near a cut reaches into the neighbour brick.

@@ -7,10 +7,10 @@
 //!     arrives, one connection attempt (no retry) must complete the handshake and the Hello.
 
 use isowall_e2e::{bin, free_udp_ports, in_ci, repo_root, run_in, Daemon};
-use isowall_net::transport::{self, Channel};
-use isowall_net::Identity;
 use isowall_model::codec;
 use isowall_model::messages::Role;
+use isowall_net::transport::{self, Channel};
+use isowall_net::Identity;
 use std::os::unix::net::UnixDatagram;
 use std::process::Command;
 use std::time::{Duration, Instant};

@@ -20,33 +20,33 @@
 //! - [`sim`]: the wall at scale: a LAN model on a virtual clock driving the machines above.
 
 pub mod adoption;
-pub mod frame_controller;
 pub mod bricks;
 pub mod camera;
 pub mod clock;
 pub mod codec;
 pub mod composite;
 pub mod config;
-pub mod node_machine;
+pub mod frame_controller;
 pub mod governor;
 pub mod joystick;
 pub mod lowres;
 pub mod messages;
 pub mod names;
+pub mod node_machine;
 pub mod object_machine;
 pub mod render_state;
 pub mod sim;
 pub mod wire;
 
-pub use frame_controller::{ControllerOutput, FrameController, FrameStats, NodeFrameStats};
 pub use camera::{Camera, CameraError, View, Window};
 pub use config::{
     CameraConfig, CertConfig, ConfigErrors, NodeConfig, Problem, RenderConfig, TileConfig, VolumeConfig,
     WallConfig, WallMode, WallSection,
 };
-pub use node_machine::{NodeMachine, NodeOutput};
+pub use frame_controller::{ControllerOutput, FrameController, FrameStats, NodeFrameStats};
 pub use governor::{Governor, GovernorError, Motion, MAX_SCALE};
 pub use messages::{Message, ProtocolError, Role, TileImage, PROTOCOL_VERSION};
+pub use node_machine::{NodeMachine, NodeOutput};
 pub use render_state::{
     AoMethod, AoRadius, AoSequence, AoSettings, Aov, IblMethod, Light, Material, RenderSettings, Shading,
 };

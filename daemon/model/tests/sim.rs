@@ -12,10 +12,10 @@ use std::collections::{BTreeMap, BinaryHeap};
 use std::time::Duration;
 use support::{Rng, Scheduled};
 
-use isowall_model::frame_controller::{ControllerOutput, FrameController, FrameStats};
 use isowall_model::codec::{self, Decoder};
-use isowall_model::node_machine::{NodeMachine, NodeOutput};
+use isowall_model::frame_controller::{ControllerOutput, FrameController, FrameStats};
 use isowall_model::messages::{Message, ProtocolError, Role, TileImage};
+use isowall_model::node_machine::{NodeMachine, NodeOutput};
 use isowall_model::render_state::RenderSettings;
 use isowall_model::wire::FrameState;
 use isowall_model::Camera;

@@ -80,10 +80,10 @@ use crate::environment::Environment;
 use crate::frame::Frame;
 use crate::sampling::{ao_point, cosine_direction, pixel_key, seed_directions, seed_lift};
 use glam::DVec3;
-use isowall_volume::Volume;
 use isowall_model::camera::Basis;
 use isowall_model::render_state::shade;
 use isowall_model::{AoMethod, IblMethod, RenderSettings, View};
+use isowall_volume::Volume;
 use std::borrow::Cow;
 use std::sync::atomic::{AtomicU32, Ordering};
 

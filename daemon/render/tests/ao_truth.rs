@@ -21,12 +21,12 @@ mod common;
 mod truth;
 
 use glam::DVec3;
+use isowall_model::{AoRadius, AoSequence, Camera, IblMethod, RenderSettings, View, Window};
 use isowall_render::environment::Environment;
 use isowall_render::gpu::GpuRenderer;
 use isowall_render::reference;
 use isowall_volume::procedural::{sphere_over_plane_geometry, Procedural};
 use isowall_volume::{Volume, VolumeSource};
-use isowall_model::{AoRadius, AoSequence, Camera, IblMethod, RenderSettings, View, Window};
 use std::path::PathBuf;
 use std::sync::OnceLock;
 use truth::{errors, parallel_map, Errors, Field, Truth};

@@ -11,12 +11,12 @@ mod common;
 use common::{ao_at_gpu_hits, plate_scene};
 
 use glam::DVec3;
+use isowall_model::{AoMethod, AoRadius, Camera, IblMethod, RenderSettings, View, Window};
 use isowall_render::environment::Environment;
 use isowall_render::reference;
 use isowall_render::Frame;
 use isowall_volume::procedural::{sphere_over_plane_geometry, Procedural};
 use isowall_volume::{Volume, VolumeSource};
-use isowall_model::{AoMethod, AoRadius, Camera, IblMethod, RenderSettings, View, Window};
 
 fn scene(kind: Procedural, size: usize) -> (Volume, f64) {
     (VolumeSource::Procedural { kind, size: Some(size) }.load(None).unwrap(), kind.natural_iso())

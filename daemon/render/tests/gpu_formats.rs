@@ -5,11 +5,11 @@
 
 mod common;
 
+use isowall_model::{Camera, RenderSettings, View};
 use isowall_render::gpu::{ObjectSpace, PerfOptions};
 use isowall_render::reference;
 use isowall_volume::procedural::Procedural;
 use isowall_volume::{VolumeSource, VoxelFormat};
-use isowall_model::{Camera, RenderSettings, View};
 
 const PACKED: [VoxelFormat; 3] = [VoxelFormat::R16F, VoxelFormat::R16, VoxelFormat::R8];
 

@@ -6,6 +6,7 @@
 
 mod common;
 
+use isowall_model::{Camera, RenderSettings, View};
 use isowall_render::gpu::{
     FrameRead, GpuRenderer, GpuVolume, ReadbackRing, TileFrame, TileOutput, TileTarget,
 };
@@ -13,7 +14,6 @@ use isowall_render::output::srgb8;
 use isowall_render::reference;
 use isowall_volume::procedural::Procedural;
 use isowall_volume::{Volume, VolumeSource};
-use isowall_model::{Camera, RenderSettings, View};
 
 const W: u32 = 64;
 const H: u32 = 48;

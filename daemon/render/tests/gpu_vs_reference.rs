@@ -6,10 +6,10 @@
 mod common;
 
 use glam::DVec3;
+use isowall_model::{Camera, RenderSettings, Shading, View, Window};
 use isowall_render::reference;
 use isowall_volume::procedural::Procedural;
 use isowall_volume::VolumeSource;
-use isowall_model::{Camera, RenderSettings, Shading, View, Window};
 
 const SIZE: u32 = 96;
 

@@ -5,11 +5,11 @@
 mod common;
 
 use glam::DVec3;
+use isowall_model::bricks::{self, Occupancy};
+use isowall_model::{AoRadius, Camera, RenderSettings, View};
 use isowall_render::gpu::ObjectSpace;
 use isowall_render::Frame;
 use isowall_volume::{BlockMinMax, VolumeSource, VoxelRange};
-use isowall_model::bricks::{self, Occupancy};
-use isowall_model::{AoRadius, Camera, RenderSettings, View};
 
 /// The single render, the composite of the bricks, each brick's frame, and the bricks.
 type Renders = (Frame, Frame, Vec<(Frame, ObjectSpace)>, Vec<bricks::Brick>);

@@ -11,12 +11,12 @@
 //!   and progressive accumulation is the mean of the frames.
 
 use glam::DVec3;
+use isowall_model::{AoMethod, AoRadius, Camera, IblMethod, RenderSettings, View, Window};
 use isowall_render::environment::Environment;
 use isowall_render::reference::{self, ao_origin, ao_ray_occluded, trace, Hit};
 use isowall_render::Frame;
 use isowall_volume::procedural::{sphere_over_plane_geometry, Procedural};
 use isowall_volume::Volume;
-use isowall_model::{AoMethod, AoRadius, Camera, IblMethod, RenderSettings, View, Window};
 
 /// Pixel (px, py) of `view` alone (a 1x1 window of it).
 fn pixel(

@@ -3,9 +3,9 @@
 //! within 2e-4 and the normal within 0.2 degrees of the independently computed answers.
 
 use glam::DVec3;
+use isowall_model::{Camera, RenderSettings, View};
 use isowall_render::reference::{render, trace};
 use isowall_volume::Volume;
-use isowall_model::{Camera, RenderSettings, View};
 use std::path::{Path, PathBuf};
 
 fn conventions_dir() -> Option<PathBuf> {

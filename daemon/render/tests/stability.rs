@@ -14,13 +14,13 @@ mod common;
 use common::{ao_at_gpu_hits, hit_position, plate_scene, sampled};
 
 use glam::DVec3;
+use isowall_model::{AoMethod, AoRadius, Aov, Camera, IblMethod, RenderSettings, View};
 use isowall_render::environment::Environment;
 use isowall_render::gpu::{GpuEnvironment, GpuRenderer};
 use isowall_render::reference;
 use isowall_render::Frame;
 use isowall_volume::procedural::Procedural;
 use isowall_volume::{Volume, VolumeError, VolumeSource};
-use isowall_model::{AoMethod, AoRadius, Aov, Camera, IblMethod, RenderSettings, View};
 
 /// The GPU renderer with the sky uploaded, and the sky for the reference.
 struct Ctx {

@@ -7,9 +7,9 @@ use crate::args;
 use crate::render::load_volume;
 use anyhow::{Context, Result};
 use clap::Args;
+use isowall_model::{AoMethod, Camera, IblMethod, RenderSettings, View};
 use isowall_render::environment::Environment;
 use isowall_render::gpu::GpuRenderer;
-use isowall_model::{AoMethod, Camera, IblMethod, RenderSettings, View};
 use std::time::Instant;
 
 /// The scenes of the speed/accuracy chart (DESIGN.md "Accuracy and speed").

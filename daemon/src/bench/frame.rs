@@ -12,11 +12,11 @@ use crate::args;
 use crate::render::load_volume;
 use anyhow::{bail, Context, Result};
 use clap::Args;
+use isowall_model::{Camera, RenderSettings, View};
 use isowall_render::gpu::{
     FrameRead, GpuRenderer, GpuVolume, ReadbackRing, TileFrame, TileTarget, TrafficCount,
 };
 use isowall_render::output::srgb8;
-use isowall_model::{Camera, RenderSettings, View};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 

@@ -12,8 +12,8 @@ use crate::render::load_volume;
 use accuracy::AccuracyArgs;
 use anyhow::Result;
 use clap::{Args, Subcommand};
-use isowall_render::gpu::GpuRenderer;
 use isowall_model::{AoMethod, Camera, RenderSettings, View};
+use isowall_render::gpu::GpuRenderer;
 use stats::{error_stats, median, sample_list, scene_spec};
 
 #[derive(Subcommand)]

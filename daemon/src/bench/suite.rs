@@ -13,10 +13,10 @@ use crate::args;
 use crate::render::load_volume;
 use anyhow::{Context, Result};
 use clap::Args;
+use isowall_model::{AoSequence, Camera, RenderSettings, View};
 use isowall_render::gpu::{GpuRenderer, GpuVolume, PerfOptions};
 use isowall_render::Frame;
 use isowall_volume::VoxelFormat;
-use isowall_model::{AoSequence, Camera, RenderSettings, View};
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 

@@ -9,10 +9,10 @@ use std::collections::BTreeMap;
 use std::time::Duration;
 
 use super::lan::{Events, Lan, LanCounts, LanModel};
-use crate::frame_controller::{ControllerOutput, FrameController};
 use crate::codec::{self, Decoder};
-use crate::node_machine::{NodeMachine, NodeOutput};
+use crate::frame_controller::{ControllerOutput, FrameController};
 use crate::messages::{Message, Role};
+use crate::node_machine::{NodeMachine, NodeOutput};
 use crate::render_state::RenderSettings;
 use crate::wire::FrameState;
 use crate::Camera;

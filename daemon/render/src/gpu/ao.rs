@@ -3,8 +3,8 @@
 
 use super::{frame_entries, storage_entry, FrameParams, GpuContext, GpuError, GpuVolume};
 use crate::shaders::Kernel;
-use isowall_volume::VoxelFormat;
 use isowall_model::{AoMethod, RenderSettings};
+use isowall_volume::VoxelFormat;
 
 /// The most dispatches one frame's AO samples are split over.
 pub const MAX_AO_DISPATCHES: u32 = 256;

@@ -6,8 +6,8 @@
 use super::{storage_entry, GpuContext, GpuError};
 use crate::shaders::Kernel;
 use bytemuck::{Pod, Zeroable};
-use isowall_volume::VoxelFormat;
 use isowall_model::{RenderSettings, View};
+use isowall_volume::VoxelFormat;
 
 /// Twin of WGSL `ComposeParams`.
 #[repr(C)]

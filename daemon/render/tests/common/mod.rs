@@ -2,11 +2,11 @@
 #![allow(dead_code)]
 
 use glam::DVec3;
+use isowall_model::{RenderSettings, View};
 use isowall_render::gpu::{GpuError, GpuRenderer};
 use isowall_render::reference::{self, IblLighting};
 use isowall_render::Frame;
 use isowall_volume::Volume;
-use isowall_model::{RenderSettings, View};
 
 /// The GPU renderer, or `None` (after a message) where no Vulkan adapter exists. Under `CI=true`
 /// a missing adapter fails the test loudly instead: GPU tests never skip silently in CI.
@@ -165,8 +165,8 @@ pub fn sampled(name: &str, dims: [usize; 3], spacing: DVec3, f: impl Fn(DVec3) -
 /// The scenes of the performance tests: the engine (96^3-ish, default radius) and a sphere over a
 /// plane (unbounded radius), framed at 64x64 with 16 AO samples: (name, volume, view, settings).
 pub fn perf_scenes() -> Vec<(&'static str, Volume, View, RenderSettings)> {
-    use isowall_volume::procedural::Procedural;
     use isowall_model::{AoRadius, Camera};
+    use isowall_volume::procedural::Procedural;
     [(Procedural::Engine, 96, AoRadius::Default), (Procedural::SphereOverPlane, 48, AoRadius::Unbounded)]
         .into_iter()
         .map(|(kind, n, radius)| {

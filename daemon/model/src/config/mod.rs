@@ -1,0 +1,723 @@
+//! The wall config: one TOML file that describes a whole wall (its name and timing limits, the one
+//! wall camera, the volume, the render defaults, the certificates, the screen tiles and the nodes
+//! that drive them). Every table and field is checked (`deny_unknown_fields`), and every problem is
+//! reported at once with its file, line and column.
+//!
+//! ```toml
+//! [wall]
+//! name = "local-2x2"
+//! deadline_ms = 2000              # frame deadline of the swap barrier (default 2000, at most
+//!                                 # 600000: ten minutes)
+//! message_limit_bytes = 67108864  # the largest network message (default 64 MiB; 4 KiB to 1 GiB,
+//!                                 # and room for each node's snapshot of its tiles)
+//!
+//! [camera]      # the one wall camera, over the whole wall image (DESIGN.md "Camera")
+//! eye = [x, y, z]                 # optional: omitted -> a view that frames the volume
+//! target = [x, y, z]              # optional: default the volume's centre
+//! up = [0, 0, 1]                  # default +z
+//! fov_y = 35.0                    # vertical, over the whole wall image, degrees (default 35)
+//!
+//! [volume]
+//! source = "procedural:engine"    # PATH (relative to this file's folder; a DICOM folder or file)
+//!                                 # or procedural:NAME[:N]
+//! iso = 0.0                       # optional, data units
+//! # raw files only: dims = [nx, ny, nz], type = "int16", spacing = [sx, sy, sz]
+//! # DICOM only: series = "UID"    # the SeriesInstanceUID, where the folder holds several
+//! max_bytes = 2147483648          # optional: the most the voxels may take as float32 on a node
+//!                                 # (default 2 GiB; also at most the GPU's largest binding)
+//! cache_bytes = 1073741824        # optional, time steps (`source = "steps/step_*.nrrd"` or a 4-D
+//!                                 # file): what a node keeps loaded ahead of the step it shows
+//!                                 # (default 1 GiB; 0: only the step it shows)
+//!
+//! [render]      # render-state defaults, all optional
+//! shading = "blinn-phong"         # lambert | blinn-phong
+//! ao_samples = 16
+//! ao_radius = 8.0                 # world units or "unbounded"; omitted: 8 voxels
+//! ao_method = "ours"              # ours | seed
+//! ao_sequence = "sobol"           # sobol | r2: the 2D set of ours' directions
+//! ibl = "bent"                    # none | seed | bent | rays
+//! env = "sky"                     # sky | FILE.hdr | DIR (relative to this file's folder)
+//! exposure = 0.6                  # default 0.6 with an IBL method, else 1
+//! target_frame_ms = 100.0         # quality governor: AO samples chosen per frame for this
+//!                                 # frame time while the camera moves (omitted: off)
+//!
+//! [certificates]
+//! dir = "keys"                    # relative to this file (default "keys")
+//!
+//! [[tiles]]
+//! name = "t00"
+//! x = 0                           # top-left visible pixel in whole-wall pixels
+//! y = 0
+//! width = 320
+//! height = 240
+//! bezel = [0, 8, 0, 8]            # left, right, top, bottom hidden pixels (default 0)
+//!
+//! [[nodes]]
+//! name = "node0"
+//! address = "127.0.0.1:7401"      # host:port (QUIC over UDP)
+//! tiles = ["t00"]
+//! ```
+//!
+//! A tile is a window of the one wall image: its bezels are hidden pixels of that image, so a
+//! straight line stays straight across a mullion (DESIGN.md "Camera"). The model reads no files:
+//! [`WallConfig::parse`] takes the text; [`WallConfig::load`] is a thin helper that only reads it.
+
+use crate::camera::{Camera, View, Window};
+use crate::names::name_problem;
+use crate::render_state::{AoMethod, AoRadius, AoSequence, IblMethod, RenderSettings, Shading};
+use glam::DVec3;
+use isowall_volume::io::{RawSpec, VoxelType};
+use isowall_volume::procedural::Procedural;
+use isowall_volume::source::SERIES_SELECTOR;
+use serde::{Deserialize, Serialize};
+use std::fmt;
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+use toml::de::{DeTable, DeValue, ValueDeserializer};
+use toml::Spanned;
+
+mod address;
+mod diagnostics;
+#[cfg(test)]
+mod tests;
+mod validate;
+
+pub use address::{check_address, parse_address, AddressHost, NodeAddress};
+use diagnostics::{doc_list, doc_value, Doc, Seg};
+pub use diagnostics::{line_column, ConfigErrors, Problem};
+pub use validate::render_problems;
+use validate::*;
+
+/// Default frame deadline of the swap barrier, in milliseconds.
+pub const DEFAULT_DEADLINE_MS: u64 = 2000;
+/// Longest frame deadline (10 minutes): the controller waits up to two deadlines for a node.
+pub const MAX_DEADLINE_MS: u64 = 600_000;
+/// Default limit on the size of one network message (64 MiB).
+pub const DEFAULT_MESSAGE_LIMIT_BYTES: u64 = 64 << 20;
+/// Smallest accepted message limit: a frame state must fit.
+pub const MIN_MESSAGE_LIMIT_BYTES: u64 = 4096;
+/// Largest accepted message limit: what the decoder accepts at most ([`crate::codec::MAX_FRAME_LEN`],
+/// 1 GiB).
+pub const MAX_MESSAGE_LIMIT_BYTES: u64 = crate::codec::MAX_FRAME_LEN as u64;
+/// Largest `[volume] max_bytes`: 2^30 voxels as float32 (the readers' own cap).
+pub const MAX_VOLUME_BYTES: u64 = 4 << 30;
+/// Default `[volume] cache_bytes`: 1 GiB of time steps loaded ahead.
+pub const DEFAULT_CACHE_BYTES: u64 = 1 << 30;
+/// Largest `[volume] cache_bytes`: 1 TiB.
+pub const MAX_CACHE_BYTES: u64 = 1 << 40;
+/// Largest tile width or height, and largest bezel, in pixels.
+pub const MAX_TILE_SIZE: u32 = 16384;
+/// Largest extent of the whole wall image along either axis, in pixels.
+pub const MAX_WALL_EXTENT: u64 = 1 << 20;
+/// Default vertical field of view of the wall camera, degrees (that of [`Camera::framing`]).
+pub const DEFAULT_FOV_Y_DEG: f64 = 35.0;
+/// Names a node may not have: its certificate files would clash with the CA's and the controller's.
+pub const RESERVED_NODE_NAMES: [&str; 2] = ["ca", "controller"];
+
+/// A whole wall, as read from its config file.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WallConfig {
+    pub wall: WallSection,
+    #[serde(default)]
+    pub camera: CameraConfig,
+    pub volume: VolumeConfig,
+    #[serde(default)]
+    pub render: RenderConfig,
+    #[serde(default)]
+    pub certificates: CertConfig,
+    #[serde(default)]
+    pub tiles: Vec<TileConfig>,
+    #[serde(default)]
+    pub nodes: Vec<NodeConfig>,
+    /// `[joystick]`: the gamepad mapping of `isowall session` (optional).
+    #[serde(default)]
+    pub joystick: crate::joystick::JoystickConfig,
+    /// The config file (relative paths in it are relative to its folder).
+    #[serde(skip)]
+    pub path: PathBuf,
+}
+
+/// `[wall]`: the wall's name and limits.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WallSection {
+    pub name: String,
+    /// Frame deadline of the swap barrier, milliseconds.
+    #[serde(default = "default_deadline_ms")]
+    pub deadline_ms: u64,
+    /// The largest network message accepted, bytes.
+    #[serde(default = "default_message_limit_bytes")]
+    pub message_limit_bytes: u64,
+    // object space
+    /// `screen` (each node renders its tiles; the default) or `object` (each node renders its
+    /// brick of the volume, composited by depth: `bricks.rs`).
+    #[serde(default)]
+    pub mode: WallMode,
+    /// Object space: compress the pixels nodes send each other (lz4); `false` sends them raw.
+    #[serde(default = "default_compress")]
+    pub compress: bool,
+}
+
+/// How a wall distributes its work (DESIGN.md "Distribution").
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum WallMode {
+    /// Sort-first: each node renders the pixels of its tiles from the whole volume.
+    #[default]
+    Screen,
+    /// Sort-last: each node renders its brick; tile owners keep the nearest hit per pixel.
+    Object,
+}
+
+fn default_compress() -> bool {
+    true
+}
+
+fn default_deadline_ms() -> u64 {
+    DEFAULT_DEADLINE_MS
+}
+
+fn default_message_limit_bytes() -> u64 {
+    DEFAULT_MESSAGE_LIMIT_BYTES
+}
+
+/// `[camera]`: the one wall camera over the whole wall image. Omitted fields are filled by
+/// [`WallConfig::camera_for`] once the volume's box is known.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CameraConfig {
+    /// `None`: a view that frames the volume (see [`WallConfig::camera_for`]).
+    pub eye: Option<[f64; 3]>,
+    /// `None`: the volume's centre.
+    pub target: Option<[f64; 3]>,
+    pub up: [f64; 3],
+    /// Vertical field of view over the whole wall image, degrees.
+    pub fov_y: f64,
+}
+
+impl Default for CameraConfig {
+    fn default() -> Self {
+        CameraConfig { eye: None, target: None, up: [0.0, 0.0, 1.0], fov_y: DEFAULT_FOV_Y_DEG }
+    }
+}
+
+/// `[volume]`: what is rendered.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct VolumeConfig {
+    /// `PATH` (relative to the config file's folder) or `procedural:NAME[:N]`.
+    pub source: String,
+    /// The iso value in data units; `None`: the procedural volume's own, or the data's mid-range.
+    #[serde(default)]
+    pub iso: Option<f64>,
+    /// Raw files only: dimensions (nx, ny, nz).
+    #[serde(default)]
+    pub dims: Option<[usize; 3]>,
+    /// Raw files only: the voxel type (`uint8`, `int16`, `float32`, ...).
+    #[serde(default, rename = "type")]
+    pub voxel_type: Option<String>,
+    /// Raw files only: the spacing (world units per voxel; default 1).
+    #[serde(default)]
+    pub spacing: Option<[f64; 3]>,
+    /// DICOM only: the SeriesInstanceUID to read where the folder holds several series.
+    #[serde(default)]
+    pub series: Option<String>,
+    /// The most bytes the volume may take on a node as float32 (4 a voxel), checked from the
+    /// file's header before it is read; `None`: 2 GiB. A node also holds it to its GPU's largest
+    /// storage binding.
+    #[serde(default)]
+    pub max_bytes: Option<u64>,
+    /// Time-varying volumes: the bytes of time steps a node keeps loaded from the one it shows
+    /// on (prefetch); `None`: [`DEFAULT_CACHE_BYTES`].
+    #[serde(default)]
+    pub cache_bytes: Option<u64>,
+}
+
+/// `[render]`: the defaults of the render state (the controller may change them per frame).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RenderConfig {
+    pub shading: Shading,
+    pub ao_samples: u32,
+    /// World units or `"unbounded"`; omitted: [`AoRadius::Default`] (8 voxels).
+    #[serde(with = "ao_radius_serde")]
+    pub ao_radius: AoRadius,
+    pub ao_method: AoMethod,
+    pub ao_sequence: AoSequence,
+    pub ibl: IblMethod,
+    /// `sky`, an equirectangular `FILE.hdr` or a cube-map `DIR` (relative to the config's folder).
+    pub env: String,
+    /// `None`: 0.6 with an IBL method, else 1 (as `isowalld render`).
+    pub exposure: Option<f64>,
+    /// The quality governor's target frame time (ms); `None`: off (`ao_samples` every frame).
+    pub target_frame_ms: Option<f64>,
+}
+
+impl Default for RenderConfig {
+    fn default() -> Self {
+        RenderConfig {
+            shading: Shading::default(),
+            ao_samples: 0,
+            ao_radius: AoRadius::Default,
+            ao_method: AoMethod::default(),
+            ao_sequence: AoSequence::default(),
+            ibl: IblMethod::default(),
+            env: "sky".into(),
+            exposure: None,
+            target_frame_ms: None,
+        }
+    }
+}
+
+/// `ao_radius`: a number (world units) or the string `"unbounded"`.
+mod ao_radius_serde {
+    use crate::render_state::AoRadius;
+    use serde::de::{self, Visitor};
+    use serde::{Deserializer, Serializer};
+    use std::fmt;
+
+    pub fn serialize<S: Serializer>(r: &AoRadius, s: S) -> Result<S::Ok, S::Error> {
+        match r {
+            AoRadius::Default => s.serialize_none(),
+            AoRadius::World(r) => s.serialize_f64(*r),
+            AoRadius::Unbounded => s.serialize_str("unbounded"),
+        }
+    }
+
+    struct RadiusVisitor;
+
+    impl Visitor<'_> for RadiusVisitor {
+        type Value = AoRadius;
+        fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+            f.write_str("a radius in world units (a number > 0) or \"unbounded\"")
+        }
+        fn visit_f64<E: de::Error>(self, v: f64) -> Result<AoRadius, E> {
+            Ok(AoRadius::World(v))
+        }
+        fn visit_i64<E: de::Error>(self, v: i64) -> Result<AoRadius, E> {
+            Ok(AoRadius::World(v as f64))
+        }
+        fn visit_u64<E: de::Error>(self, v: u64) -> Result<AoRadius, E> {
+            Ok(AoRadius::World(v as f64))
+        }
+        fn visit_str<E: de::Error>(self, v: &str) -> Result<AoRadius, E> {
+            if v == "unbounded" {
+                Ok(AoRadius::Unbounded)
+            } else {
+                Err(E::invalid_value(de::Unexpected::Str(v), &self))
+            }
+        }
+        fn visit_none<E: de::Error>(self) -> Result<AoRadius, E> {
+            Ok(AoRadius::Default)
+        }
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<AoRadius, D::Error> {
+        d.deserialize_any(RadiusVisitor)
+    }
+}
+
+/// `[certificates]`: where the wall's own certificates are (made by `isowall keygen`).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CertConfig {
+    /// Relative to the config file's folder; holds `ca.pem`, `<node>.pem`/`.key` and
+    /// `controller.pem`/`.key`.
+    pub dir: String,
+}
+
+impl Default for CertConfig {
+    fn default() -> Self {
+        CertConfig { dir: "keys".into() }
+    }
+}
+
+/// `[[tiles]]`: one screen, a window of the wall image.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TileConfig {
+    pub name: String,
+    /// Top-left visible pixel, in whole-wall pixels.
+    pub x: u32,
+    pub y: u32,
+    pub width: u32,
+    pub height: u32,
+    /// Hidden mullion pixels: left, right, top, bottom.
+    #[serde(default)]
+    pub bezel: [u32; 4],
+}
+
+impl TileConfig {
+    /// The tile's visible pixels as a window of the wall image.
+    pub fn window(&self) -> Window {
+        Window { x: self.x, y: self.y, width: self.width, height: self.height }
+    }
+
+    /// The tile with its bezels, `[x0, x1) x [y0, y1)` in wall pixels (x0, y0 may be negative in
+    /// an invalid config; validation refuses that).
+    pub fn outer(&self) -> (i64, i64, i64, i64) {
+        let [l, r, t, b] = self.bezel.map(i64::from);
+        let (x, y, w, h) = (self.x as i64, self.y as i64, self.width as i64, self.height as i64);
+        (x - l, x + w + r, y - t, y + h + b)
+    }
+}
+
+/// `[[nodes]]`: one wall node (an `isowalld`) and the tiles it drives.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NodeConfig {
+    pub name: String,
+    /// `host:port` (QUIC over UDP); `[v6]:port` for IPv6 literals.
+    pub address: String,
+    #[serde(default)]
+    pub tiles: Vec<String>,
+}
+
+const SECTIONS: [&str; 8] =
+    ["wall", "camera", "volume", "render", "certificates", "tiles", "nodes", "joystick"];
+
+impl WallConfig {
+    /// Parses and validates a config, collecting every problem. `path` names the file in messages
+    /// and anchors relative paths; nothing is read here.
+    pub fn parse(text: &str, path: &Path) -> Result<WallConfig, ConfigErrors> {
+        let (root, syntax) = DeTable::parse_recoverable(text);
+        let mut doc = Doc { text, root, problems: Vec::new() };
+        if !syntax.is_empty() {
+            // A syntax error makes the parser resynchronise, often reporting knock-on errors on the
+            // same line: one per line is what helps.
+            let mut lines = std::collections::BTreeSet::new();
+            for e in syntax {
+                let line = e.span().map(|s| line_column(text, s.start).0);
+                if lines.insert(line) {
+                    doc.at_span(e.span(), e.message().to_string());
+                }
+            }
+            return Err(doc.into_errors(path));
+        }
+
+        // Unknown top-level keys.
+        let unknown: Vec<(Range<usize>, String)> = doc
+            .root
+            .get_ref()
+            .iter()
+            .filter(|(k, _)| !SECTIONS.contains(&k.get_ref().as_ref()))
+            .map(|(k, _)| (k.span(), k.get_ref().to_string()))
+            .collect();
+        for (span, key) in unknown {
+            let expected: Vec<String> = SECTIONS.iter().map(|s| format!("`{s}`")).collect();
+            doc.at_span(
+                Some(span),
+                format!("unknown field `{key}`, expected one of {}", expected.join(", ")),
+            );
+        }
+
+        let wall: Option<WallSection> = match doc_value(&doc, "wall") {
+            Some(v) => doc.de(&v),
+            None => {
+                doc.at_missing(
+                    &[Seg::K("wall")],
+                    "missing table [wall] (with at least `name`) up to the end of the file",
+                );
+                None
+            }
+        };
+        let camera: Option<CameraConfig> = match doc_value(&doc, "camera") {
+            Some(v) => doc.de(&v),
+            None => Some(CameraConfig::default()),
+        };
+        let volume: Option<VolumeConfig> = match doc_value(&doc, "volume") {
+            Some(v) => doc.de(&v),
+            None => {
+                doc.at_missing(
+                    &[Seg::K("volume")],
+                    "missing table [volume] (with at least `source`) up to the end of the file",
+                );
+                None
+            }
+        };
+        let render: Option<RenderConfig> = match doc_value(&doc, "render") {
+            Some(v) => doc.de(&v),
+            None => Some(RenderConfig::default()),
+        };
+        let certificates: Option<CertConfig> = match doc_value(&doc, "certificates") {
+            Some(v) => doc.de(&v),
+            None => Some(CertConfig::default()),
+        };
+        let tiles = doc_list::<TileConfig>(&mut doc, "tiles");
+        let nodes = doc_list::<NodeConfig>(&mut doc, "nodes");
+        let joystick: Option<crate::joystick::JoystickConfig> = match doc_value(&doc, "joystick") {
+            Some(v) => doc.de(&v),
+            None => Some(Default::default()),
+        };
+        for (field, message) in joystick.iter().flat_map(|j| j.problems()) {
+            doc.at(&[Seg::K("joystick"), Seg::K(field)], message);
+        }
+
+        if let Some(w) = &wall {
+            validate_wall(&mut doc, w);
+        }
+        if let Some(c) = &camera {
+            validate_camera(&mut doc, c);
+        }
+        if let Some(v) = &volume {
+            validate_volume(&mut doc, v);
+        }
+        if let Some(r) = &render {
+            validate_render(&mut doc, r);
+        }
+        // object space: the halo bounds the AO reach.
+        if let (Some(w), Some(r)) = (&wall, &render) {
+            if w.mode == WallMode::Object {
+                let mut s = RenderSettings::new(0.0);
+                s.ao.radius = r.ao_radius;
+                s.ao.method = r.ao_method;
+                if let Err(e) = crate::bricks::ao_reach(&s, DVec3::ONE) {
+                    let key = if r.ao_method == AoMethod::Seed { "ao_method" } else { "ao_radius" };
+                    doc.at(&[Seg::K("render"), Seg::K(key)], format!("render: {key}: {e}"));
+                }
+            }
+        }
+        if let Some(c) = &certificates {
+            if c.dir.trim().is_empty() {
+                doc.at(&[Seg::K("certificates"), Seg::K("dir")], "certificates: `dir` is empty");
+            }
+        }
+        validate_tiles(&mut doc, &tiles);
+        validate_nodes(&mut doc, &nodes, &tiles);
+        if let Some(w) = &wall {
+            validate_snapshot_size(&mut doc, w, &tiles, &nodes);
+        }
+
+        match (wall, camera, volume, render, certificates, joystick) {
+            (Some(wall), Some(camera), Some(volume), Some(render), Some(certificates), Some(joystick))
+                if doc.problems.is_empty() =>
+            {
+                Ok(WallConfig {
+                    wall,
+                    camera,
+                    volume,
+                    render,
+                    certificates,
+                    tiles: tiles.items.into_iter().map(|(_, t)| t).collect(),
+                    nodes: nodes.items.into_iter().map(|(_, n)| n).collect(),
+                    joystick,
+                    path: path.to_path_buf(),
+                })
+            }
+            _ => Err(doc.into_errors(path)),
+        }
+    }
+
+    /// Reads the file and parses it ([`WallConfig::parse`]); a read error is a problem too.
+    pub fn load(path: &Path) -> Result<WallConfig, ConfigErrors> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| ConfigErrors::single(path, format!("cannot read the wall config: {e}")))?;
+        WallConfig::parse(&text, path)
+    }
+
+    /// The full wall image in pixels: the largest right and bottom edges of the tiles, bezels
+    /// included.
+    pub fn wall_size(&self) -> (u32, u32) {
+        let w = self.tiles.iter().map(|t| t.outer().1).max().unwrap_or(0);
+        let h = self.tiles.iter().map(|t| t.outer().3).max().unwrap_or(0);
+        (w.clamp(0, u32::MAX as i64) as u32, h.clamp(0, u32::MAX as i64) as u32)
+    }
+
+    pub fn tile(&self, name: &str) -> Option<&TileConfig> {
+        self.tiles.iter().find(|t| t.name == name)
+    }
+
+    pub fn node(&self, name: &str) -> Option<&NodeConfig> {
+        self.nodes.iter().find(|n| n.name == name)
+    }
+
+    /// The node that drives a tile.
+    pub fn node_of_tile(&self, tile: &str) -> Option<&NodeConfig> {
+        self.nodes.iter().find(|n| n.tiles.iter().any(|t| t == tile))
+    }
+
+    /// The tiles a node drives, in its order.
+    pub fn tiles_of(&self, node: &str) -> Vec<&TileConfig> {
+        self.node(node).map(|n| n.tiles.iter().filter_map(|t| self.tile(t)).collect()).unwrap_or_default()
+    }
+
+    /// What a tile shows: the wall camera over the whole wall image, the tile's pixels as the window.
+    pub fn tile_view(&self, camera: Camera, tile: &str) -> Option<View> {
+        let t = self.tile(tile)?;
+        Some(View { camera, full: self.wall_size(), window: t.window() })
+    }
+
+    /// The configured wall camera with its defaults filled for a volume box: target the box
+    /// centre, and without `eye` the view [`Camera::framing`] picks for the whole wall image
+    /// (the same direction, at the distance where the box fits with the configured target, up and
+    /// field of view).
+    pub fn camera_for(&self, box_min: DVec3, box_max: DVec3) -> Camera {
+        let c = &self.camera;
+        let centre = 0.5 * (box_min + box_max);
+        let target = c.target.map(DVec3::from_array).unwrap_or(centre);
+        let up = DVec3::from_array(c.up);
+        match c.eye {
+            Some(eye) => Camera { eye: DVec3::from_array(eye), target, up, fov_y_deg: c.fov_y },
+            None => {
+                let (w, h) = self.wall_size();
+                framing_with(box_min, box_max, target, up, c.fov_y, w.max(1), h.max(1))
+            }
+        }
+    }
+
+    /// The render state for a frame at `iso`, with the `[render]` defaults.
+    pub fn render_settings(&self, iso: f64) -> RenderSettings {
+        let r = &self.render;
+        let mut s = RenderSettings::new(iso);
+        s.shading = r.shading;
+        s.ao.samples = r.ao_samples;
+        s.ao.radius = r.ao_radius;
+        s.ao.method = r.ao_method;
+        s.ao.sequence = r.ao_sequence;
+        s.ao.ibl = r.ibl;
+        s.exposure = r.exposure.unwrap_or(if s.ibl_needs_environment() { 0.6 } else { 1.0 });
+        s
+    }
+
+    /// A path relative to the config file's folder (absolute paths are kept).
+    pub fn resolve(&self, relative: &str) -> PathBuf {
+        let p = Path::new(relative);
+        if p.is_absolute() {
+            return p.to_path_buf();
+        }
+        match self.path.parent() {
+            Some(dir) => dir.join(p),
+            None => p.to_path_buf(),
+        }
+    }
+
+    /// The certificates folder.
+    pub fn cert_dir(&self) -> PathBuf {
+        self.resolve(&self.certificates.dir)
+    }
+
+    /// The volume source with a relative PATH resolved (`procedural:...` unchanged) and the
+    /// DICOM `series` chosen (`PATH?series=UID`).
+    pub fn volume_source(&self) -> String {
+        let s = &self.volume.source;
+        if s.starts_with("procedural:") {
+            s.clone()
+        } else {
+            let path = self.resolve(s).to_string_lossy().into_owned();
+            match &self.volume.series {
+                Some(uid) => format!("{path}{SERIES_SELECTOR}{uid}"),
+                None => path,
+            }
+        }
+    }
+
+    /// How to read a raw volume file, from `[volume] dims`, `type` and `spacing`; `None` when the
+    /// file has a header of its own (no `dims` and `type`).
+    pub fn raw_spec(&self) -> Result<Option<RawSpec>, String> {
+        let v = &self.volume;
+        match (v.dims, &v.voxel_type) {
+            (Some(dims), Some(t)) => Ok(Some(RawSpec {
+                dims,
+                voxel: t.parse().map_err(|e: String| format!("[volume] type: {e}"))?,
+                spacing: DVec3::from_array(v.spacing.unwrap_or([1.0; 3])),
+                big_endian: false,
+                header_bytes: 0,
+            })),
+            _ => Ok(None),
+        }
+    }
+
+    /// `[volume] cache_bytes`, or its default.
+    pub fn cache_bytes(&self) -> u64 {
+        self.volume.cache_bytes.unwrap_or(DEFAULT_CACHE_BYTES)
+    }
+
+    /// The environment of `[render] env`: `sky` unchanged, a FILE.hdr or DIR resolved.
+    pub fn env_source(&self) -> String {
+        let e = &self.render.env;
+        if e.eq_ignore_ascii_case("sky") {
+            e.clone()
+        } else {
+            self.resolve(e).to_string_lossy().into_owned()
+        }
+    }
+
+    /// What `check-config FILE` prints, for both binaries: `Ok(text)` for a valid config (the
+    /// file and a summary), `Err((problems, last line))` with every problem as FILE:LINE:COL.
+    pub fn check_report(path: &Path) -> Result<String, (String, String)> {
+        match WallConfig::load(path) {
+            Ok(config) => Ok(format!("{}: ok\n{}", path.display(), config.summary())),
+            Err(errors) => {
+                let n = errors.problems.len();
+                Err((
+                    errors.to_string(),
+                    format!("{}: {n} problem{}", path.display(), if n == 1 { "" } else { "s" }),
+                ))
+            }
+        }
+    }
+
+    /// A short human summary: the wall, its image size, and the tiles of every node.
+    pub fn summary(&self) -> String {
+        let (w, h) = self.wall_size();
+        let mut s = format!(
+            "wall '{}': {w}x{h} px, {} tiles on {} nodes, volume {}",
+            self.wall.name,
+            self.tiles.len(),
+            self.nodes.len(),
+            self.volume.source
+        );
+        for n in &self.nodes {
+            let tiles: Vec<String> = self
+                .tiles_of(&n.name)
+                .iter()
+                .map(|t| format!("{} {}x{}+{}+{}", t.name, t.width, t.height, t.x, t.y))
+                .collect();
+            let list = if tiles.is_empty() { "(no tiles)".to_string() } else { tiles.join(", ") };
+            s.push_str(&format!("\n  {} ({}): {list}", n.name, n.address));
+        }
+        s
+    }
+}
+
+/// [`Camera::framing`]'s view direction, generalised to a given target, up and field of view:
+/// the distance where all eight corners fit a `width` x `height` image with a 5% margin, and the
+/// whole box stays in front of the eye. With the box centre, +z and 35 degrees it is
+/// `Camera::framing`.
+fn framing_with(
+    box_min: DVec3,
+    box_max: DVec3,
+    target: DVec3,
+    up: DVec3,
+    fov_y_deg: f64,
+    width: u32,
+    height: u32,
+) -> Camera {
+    let base = Camera::framing(box_min, box_max, width, height);
+    let forward = (base.target - base.eye).normalize();
+    let mut cam = Camera { eye: target - forward, target, up, fov_y_deg };
+    if cam.validate().is_err() {
+        // Up parallel to the framing direction, or a bad fov: give the camera as configured and
+        // let the caller's validation say what is wrong.
+        return cam;
+    }
+    let b = cam.basis();
+    let tan_y = 0.95 * b.tan_half_fov;
+    let tan_x = tan_y * width as f64 / height as f64;
+    let mut dist: f64 = 1e-6;
+    for i in 0..8 {
+        let c = DVec3::new(
+            if i & 1 == 0 { box_min.x } else { box_max.x },
+            if i & 2 == 0 { box_min.y } else { box_max.y },
+            if i & 4 == 0 { box_min.z } else { box_max.z },
+        ) - target;
+        let z = c.dot(b.forward);
+        dist = dist.max(c.dot(b.right).abs() / tan_x - z).max(c.dot(b.up).abs() / tan_y - z);
+    }
+    let centre = 0.5 * (box_min + box_max);
+    let reach = 0.5 * (box_max - box_min).length() + (target - centre).length();
+    dist = dist.max(1.01 * reach.max(1e-6));
+    cam.eye = target - dist * b.forward;
+    cam
+}
