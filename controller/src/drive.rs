@@ -8,7 +8,7 @@ use glam::DQuat;
 use isowall_model::config::WallConfig;
 use isowall_model::{Camera, Governor, Motion, RenderSettings};
 use isowall_net::CaMode;
-use isowall_volume::{BlockMinMax, VolumeSource};
+use isowall_volume::{BlockMinMax, VolumeInfo, VolumeSource};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
@@ -146,8 +146,16 @@ pub(crate) fn scene_and_range(config: &WallConfig) -> Result<(Camera, RenderSett
         None => isowall_volume::io::VolumeLimit::default(),
     };
     // What the nodes would refuse, refused here from the header too; then only the value range
-    // is kept of the data (the block grid), never the whole volume.
-    let scanned = source.stream(raw.as_ref()).map_err(anyhow::Error::from).and_then(|stream| {
+    // is kept of the data (the block grid), never the whole volume. Time steps are not streamed
+    // (a region read is of one file): their first step gives the box and the range.
+    let scanned = source.time_steps().map_err(anyhow::Error::from).and_then(|steps| {
+        if steps > 1 {
+            let v = source.load_step_within(raw.as_ref(), 0, &limit)?;
+            let info =
+                VolumeInfo { name: v.name.clone(), dims: v.dims(), spacing: v.spacing(), origin: v.origin() };
+            return Ok((info, v.value_range()));
+        }
+        let stream = source.stream(raw.as_ref())?;
         let info = stream.info().clone();
         let [x, y, z] = info.dims;
         let voxels = (x as u64).saturating_mul(y as u64).saturating_mul(z as u64);

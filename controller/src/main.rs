@@ -3,7 +3,6 @@
 //! It never links wgpu: the daemons render.
 
 mod bench;
-mod check_config;
 mod console;
 mod controls;
 mod demo;
@@ -36,7 +35,7 @@ struct Cli {
 #[derive(Subcommand)]
 enum Command {
     /// Check a wall config: print every problem as FILE:LINE:COL (exit 1), or a summary.
-    CheckConfig(check_config::CheckConfigArgs),
+    CheckConfig(isowall_model::check_config::CheckConfigArgs),
     /// Make the wall's certificate authority and a certificate per node and for the controller.
     Keygen(drive::KeygenArgs),
     /// Start a local daemon for every loopback node, drive an orbit, optionally snapshot, stop them.
@@ -65,7 +64,7 @@ fn main() -> std::process::ExitCode {
         .init();
     let cli = Cli::parse();
     let result = match cli.command {
-        Command::CheckConfig(args) => check_config::run(&args),
+        Command::CheckConfig(args) => isowall_model::check_config::run(&args).map_err(anyhow::Error::from),
         Command::Keygen(args) => drive::keygen(&args),
         Command::Up(args) => drive::up(&args),
         Command::Orbit(args) => drive::orbit(&args),

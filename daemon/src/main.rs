@@ -3,9 +3,6 @@
 
 mod args;
 mod bench;
-// The same front end as `isowall check-config` (one file, compiled into both binaries).
-#[path = "../../controller/src/check_config.rs"]
-mod check_config;
 mod display;
 mod notify;
 mod object;
@@ -43,7 +40,7 @@ enum Command {
     #[command(subcommand)]
     Bench(bench::BenchCommand),
     /// Check a wall config: print every problem as FILE:LINE:COL (exit 1), or a summary.
-    CheckConfig(check_config::CheckConfigArgs),
+    CheckConfig(isowall_model::check_config::CheckConfigArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -60,7 +57,9 @@ fn main() -> std::process::ExitCode {
         Some(Command::Render(args)) => render::run(&args),
         Some(Command::Run(args)) => run::run(&args),
         Some(Command::Bench(cmd)) => bench::run(&cmd),
-        Some(Command::CheckConfig(args)) => check_config::run(&args),
+        Some(Command::CheckConfig(args)) => {
+            isowall_model::check_config::run(&args).map_err(anyhow::Error::from)
+        }
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

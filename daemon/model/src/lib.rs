@@ -22,6 +22,8 @@
 pub mod adoption;
 pub mod bricks;
 pub mod camera;
+#[cfg(feature = "cli")]
+pub mod check_config;
 pub mod clock;
 pub mod codec;
 pub mod composite;

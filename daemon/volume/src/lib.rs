@@ -21,15 +21,17 @@ pub mod procedural;
 pub mod region;
 pub mod source;
 pub mod steps;
+mod voxel_range;
 
 use glam::DVec3;
 use std::path::PathBuf;
 
 pub use blocks::BlockMinMax;
 pub use format::VoxelFormat;
-pub use region::{Pass, Progress, VolumeInfo, VolumeStream, VoxelRange};
+pub use region::{Pass, Progress, VolumeInfo, VolumeStream};
 pub use source::VolumeSource;
 pub use steps::{StepCache, StepState};
+pub use voxel_range::VoxelRange;
 
 /// Everything that can go wrong making or reading a volume. File errors carry the path.
 #[derive(Debug, thiserror::Error)]

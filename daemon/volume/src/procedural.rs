@@ -84,14 +84,14 @@ impl Procedural {
     /// Generates the volume; `size` is the largest dimension (default per kind: engine 256 -> 256x256x118).
     pub fn generate(self, size: Option<usize>) -> Volume {
         let dims = self.dims(size);
-        let all = crate::region::VoxelRange::whole(dims);
+        let all = crate::VoxelRange::whole(dims);
         self.generate_region(size, &all)
     }
 
     /// Generates only the samples of `range` (global indices) of the volume of `size`: the crop
     /// of [`Procedural::generate`], sample for sample, without making the rest (object space:
     /// a node holds its brick and halo only). Its origin is the range's first sample.
-    pub fn generate_region(self, size: Option<usize>, range: &crate::region::VoxelRange) -> Volume {
+    pub fn generate_region(self, size: Option<usize>, range: &crate::VoxelRange) -> Volume {
         let dims = self.dims(size);
         let n = dims[0];
         let data = fill_region(range, self.field_fn(dims));
@@ -213,7 +213,7 @@ fn box_centre(dims: [usize; 3]) -> DVec3 {
 
 /// Samples `f` at every voxel of `range` (world position = global voxel index), z-slices split
 /// over a few threads.
-fn fill_region(range: &crate::region::VoxelRange, f: impl Fn(DVec3) -> f64 + Sync) -> Vec<f32> {
+fn fill_region(range: &crate::VoxelRange, f: impl Fn(DVec3) -> f64 + Sync) -> Vec<f32> {
     let [nx, ny, nz] = range.dims();
     let [x0, y0, z0] = range.lo;
     let slice = nx * ny;

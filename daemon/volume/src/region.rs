@@ -24,68 +24,10 @@
 //! Both passes report their progress, z-slice by z-slice, to an observer set with
 //! [`VolumeStream::on_progress`] (the daemon draws it as a bar, a systemd status and log lines).
 
-use crate::io::RawSpec;
-use crate::{BlockMinMax, Volume, VolumeError, VolumeSource};
+use crate::io::{FilePlan, RawSpec};
+use crate::{BlockMinMax, Volume, VolumeError, VolumeSource, VoxelRange};
 use glam::DVec3;
-use std::io::{Seek, SeekFrom};
 use std::path::PathBuf;
-
-/// An inclusive range of sample indices per axis.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub struct VoxelRange {
-    pub lo: [usize; 3],
-    pub hi: [usize; 3],
-}
-
-impl VoxelRange {
-    /// Every sample of a volume of `dims`.
-    pub fn whole(dims: [usize; 3]) -> VoxelRange {
-        VoxelRange { lo: [0; 3], hi: dims.map(|n| n.max(1) - 1) }
-    }
-
-    /// Samples per axis.
-    pub fn dims(&self) -> [usize; 3] {
-        [0, 1, 2].map(|a| self.hi[a] + 1 - self.lo[a])
-    }
-
-    /// Number of samples.
-    pub fn count(&self) -> usize {
-        self.dims().iter().product()
-    }
-
-    /// Whether the range is non-empty and lies within a volume of `dims`.
-    pub fn fits(&self, dims: [usize; 3]) -> bool {
-        (0..3).all(|a| self.lo[a] <= self.hi[a] && self.hi[a] < dims[a])
-    }
-}
-
-impl Volume {
-    /// The samples of `range` as a volume of their own (origin at the range's first sample).
-    pub fn crop(&self, range: &VoxelRange) -> Result<Volume, VolumeError> {
-        if !range.fits(self.dims()) {
-            return Err(VolumeError::Invalid(format!(
-                "{}: region {range:?} does not fit dims {:?}",
-                self.name,
-                self.dims()
-            )));
-        }
-        let [nx, ny, _] = range.dims();
-        let mut data = Vec::with_capacity(range.count());
-        for k in range.lo[2]..=range.hi[2] {
-            for j in range.lo[1]..=range.hi[1] {
-                let row = range.lo[0] + self.dims()[0] * (j + self.dims()[1] * k);
-                data.extend_from_slice(&self.data()[row..row + nx]);
-            }
-        }
-        debug_assert_eq!(data.len(), nx * ny * range.dims()[2]);
-        Volume::new(self.name.clone(), range.dims(), self.spacing(), self.origin_of(range.lo), data)
-    }
-
-    /// World position of sample `index`.
-    pub fn origin_of(&self, index: [usize; 3]) -> DVec3 {
-        self.origin() + self.spacing() * DVec3::new(index[0] as f64, index[1] as f64, index[2] as f64)
-    }
-}
 
 /// What a volume is, without its voxels.
 #[derive(Clone, Debug, PartialEq)]
@@ -105,22 +47,6 @@ impl VolumeInfo {
             + self.spacing
                 * DVec3::new((self.dims[0] - 1) as f64, (self.dims[1] - 1) as f64, (self.dims[2] - 1) as f64)
     }
-}
-
-/// Where a file's voxels are, for reading parts of it (see the module's notes).
-#[derive(Clone, Debug)]
-pub(crate) struct FilePlan {
-    /// The file the user named (messages, the volume's name).
-    pub header: PathBuf,
-    /// The file holding the voxels.
-    pub data: PathBuf,
-    pub layout: crate::io::Layout,
-    /// Raw: the byte of the data file where voxel 0 starts (the size already checked).
-    /// Compressed: where the compressed stream starts.
-    pub start: u64,
-    pub encoding: crate::io::Encoding,
-    /// Compressed only: decoded bytes before voxel 0.
-    pub decoded_skip: u64,
 }
 
 enum Kind {
@@ -387,89 +313,6 @@ impl VolumeStream {
                     slice.clear();
                     series.read_slice(k, &mut slice)?;
                     f(k, &slice[nx * range.lo[1]..nx * (range.lo[1] + rows)]);
-                }
-                Ok(())
-            }
-        }
-    }
-}
-
-impl FilePlan {
-    fn files(&self) -> crate::io::Files<'_> {
-        crate::io::Files { header: &self.header, data: &self.data }
-    }
-
-    fn for_each_slice(
-        &self,
-        nx: usize,
-        ny: usize,
-        range: &VoxelRange,
-        rows: usize,
-        f: &mut dyn FnMut(usize, &[f32]),
-    ) -> Result<(), VolumeError> {
-        use crate::io::Encoding;
-        let files = self.files();
-        let size = self.layout.voxel.size() as u64;
-        let slice_bytes = (nx * ny) as u64 * size;
-        let want_bytes = (nx * rows) as u64 * size;
-        let mut bytes = vec![0u8; want_bytes as usize];
-        let mut values: Vec<f32> = Vec::with_capacity(nx * rows);
-        let (file, _) = crate::io::open(&self.data)?;
-        let mut decode = |k: usize, bytes: &[u8], values: &mut Vec<f32>| {
-            values.clear();
-            crate::io::decode_into(bytes, self.layout.voxel, self.layout.big_endian, None, values);
-            f(k, values);
-        };
-        match self.encoding {
-            Encoding::Raw => {
-                let mut file = file;
-                for k in range.lo[2]..=range.hi[2] {
-                    let at = self.start + k as u64 * slice_bytes + (range.lo[1] * nx) as u64 * size;
-                    file.seek(SeekFrom::Start(at)).map_err(|e| files.io(e))?;
-                    let n = crate::io::read_full(&mut file, &mut bytes).map_err(|e| files.io(e))?;
-                    if n < bytes.len() {
-                        return Err(files.format(format!(
-                            "data is truncated: slice {k} ends after {n} of {} bytes",
-                            bytes.len()
-                        )));
-                    }
-                    decode(k, &bytes, &mut values);
-                }
-                Ok(())
-            }
-            enc => {
-                let mut r = file;
-                crate::io::skip_bytes(files, &mut r, Encoding::Raw, self.start)?;
-                let mut dec = enc.decoder(r).map_err(|e| files.io(e))?;
-                crate::io::skip_bytes(files, &mut *dec, enc, self.decoded_skip)?;
-                let whole = range.lo[1] == 0 && rows == ny && range.hi[2] + 1 == self.layout.dims[2];
-                // Decoded bytes before the region's first slice, and before/after its rows.
-                crate::io::skip_bytes(files, &mut *dec, enc, range.lo[2] as u64 * slice_bytes)?;
-                let before = (range.lo[1] * nx) as u64 * size;
-                let after = slice_bytes - before - want_bytes;
-                for k in range.lo[2]..=range.hi[2] {
-                    crate::io::skip_bytes(files, &mut *dec, enc, before)?;
-                    let n = crate::io::read_full(&mut *dec, &mut bytes).map_err(|e| files.io(e))?;
-                    if n < bytes.len() {
-                        return Err(
-                            files.format(format!("data is truncated: the {enc:?} data ends in slice {k}"))
-                        );
-                    }
-                    if k < range.hi[2] || whole {
-                        crate::io::skip_bytes(files, &mut *dec, enc, after)?;
-                    }
-                    decode(k, &bytes, &mut values);
-                }
-                if whole {
-                    // A whole pass also checks that the stream ends where the voxels do.
-                    let mut probe = [0u8; 1];
-                    if crate::io::read_full(&mut *dec, &mut probe).map_err(|e| files.io(e))? > 0 {
-                        return Err(files.format(format!(
-                            "extra data: the {enc:?} data decompresses to more than the {} bytes {} needs",
-                            self.layout.byte_len(),
-                            self.layout.describe()
-                        )));
-                    }
                 }
                 Ok(())
             }

@@ -35,11 +35,13 @@ pub mod dicom_write;
 pub mod metaimage;
 pub mod nifti;
 pub mod nrrd;
+mod plan;
 pub mod raw;
 
 use crate::{Volume, VolumeError};
 use flate2::bufread::{MultiGzDecoder, ZlibDecoder};
 use glam::DVec3;
+pub(crate) use plan::FilePlan;
 use std::fs::File;
 use std::io::{self, BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
@@ -292,7 +294,7 @@ fn time_step(path: &Path, v: Volume, steps: usize, step: usize) -> Result<Volume
 pub(crate) fn plan(
     path: &Path,
     raw: Option<&RawSpec>,
-) -> Result<Option<(crate::region::FilePlan, DVec3, DVec3)>, VolumeError> {
+) -> Result<Option<(FilePlan, DVec3, DVec3)>, VolumeError> {
     match FileFormat::of(path) {
         FileFormat::Nrrd => nrrd::plan(path),
         FileFormat::Raw => {
@@ -310,7 +312,7 @@ pub(crate) fn plan(
             }
             let (_, len) = open(path)?;
             check_raw_size(Files::single(path), len, spec.header_bytes, &layout)?;
-            let plan = crate::region::FilePlan {
+            let plan = FilePlan {
                 header: path.to_path_buf(),
                 data: path.to_path_buf(),
                 layout,

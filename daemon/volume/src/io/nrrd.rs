@@ -96,7 +96,7 @@ pub(crate) fn time_steps(path: &Path) -> Result<usize, VolumeError> {
 
 /// Where the voxels of the NRRD file at `path` are, for partial reads; `None` where a `space
 /// directions` mirrors an axis (such files are read whole).
-pub(crate) fn plan(path: &Path) -> Result<Option<(crate::region::FilePlan, DVec3, DVec3)>, VolumeError> {
+pub(crate) fn plan(path: &Path) -> Result<Option<(super::FilePlan, DVec3, DVec3)>, VolumeError> {
     let (r, file_len) = open(path)?;
     let mut lines = HeaderLines::new(r, path, "NRRD");
     let header = Header::read(path, &mut lines)?;
@@ -143,7 +143,7 @@ pub(crate) fn plan(path: &Path) -> Result<Option<(crate::region::FilePlan, DVec3
         }
         _ => (pos, header.byte_skip.max(0) as u64),
     };
-    let plan = crate::region::FilePlan {
+    let plan = super::FilePlan {
         header: path.to_path_buf(),
         data: data_path.clone(),
         layout,

@@ -1,13 +1,18 @@
-//! `isowall check-config FILE` and `isowalld check-config FILE` (this one file is compiled into
-//! both binaries): reads and validates a wall config
-//! ([`WallConfig::check_report`](isowall_model::WallConfig::check_report)). Every problem is printed
+//! `isowall check-config FILE` and `isowalld check-config FILE`, the one front end of both
+//! binaries (the `cli` feature, which both enable): reads and validates a wall config
+//! ([`WallConfig::check_report`]). Every problem is printed
 //! to stderr as `FILE:LINE:COL: message` and the exit status is 1; a valid config prints a short
 //! summary (the wall, its image size and the tiles of every node) to stdout. A DICOM volume's
 //! headers are read too (no pixels): the series chosen, its grid, or why it cannot be read
 //! (including a series over `[volume] max_bytes`).
 
-use isowall_model::WallConfig;
+use crate::WallConfig;
 use std::path::PathBuf;
+
+/// Why a config did not pass; every problem was printed to stderr first.
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct CheckFailed(String);
 
 #[derive(clap::Args, Debug)]
 pub struct CheckConfigArgs {
@@ -16,12 +21,13 @@ pub struct CheckConfigArgs {
     pub file: PathBuf,
 }
 
-pub fn run(a: &CheckConfigArgs) -> anyhow::Result<()> {
+/// Prints the report of `a.file` to stdout (or its problems to stderr) and says whether it passed.
+pub fn run(a: &CheckConfigArgs) -> Result<(), CheckFailed> {
     let (problems, last) = match WallConfig::check_report(&a.file) {
         Ok(report) => match WallConfig::load(&a.file).map(|c| check_dicom(&c)) {
             Ok(Err(problem)) => {
                 println!("{report}");
-                anyhow::bail!("{}: [volume] source: {problem}", a.file.display())
+                return Err(CheckFailed(format!("{}: [volume] source: {problem}", a.file.display())));
             }
             Ok(Ok(Some(series))) => {
                 println!("{report}\n  {series}");
@@ -35,7 +41,7 @@ pub fn run(a: &CheckConfigArgs) -> anyhow::Result<()> {
         Err(e) => e,
     };
     eprintln!("{problems}");
-    anyhow::bail!("{last}")
+    Err(CheckFailed(last))
 }
 
 /// A DICOM volume's series, from its headers: `Ok(None)` when the volume is not DICOM.
