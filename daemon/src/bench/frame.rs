@@ -7,7 +7,7 @@
 //! frame stayed on the GPU (every AOV made and read back each frame, composed, accumulated and
 //! encoded on the CPU, uploaded again to present) in the same run, for ratios.
 
-use super::stats::{csv_records, median, sample_list, scene_spec};
+use super::stats::{csv_records, median, sample_list, save_csv, scene_spec};
 use crate::args;
 use crate::render::load_volume;
 use anyhow::{bail, Context, Result};
@@ -422,13 +422,7 @@ pub fn run(a: &FrameArgs) -> Result<()> {
         }
     }
     if let Some(p) = &a.save {
-        let mut text = format!("{header}\n{HEADER}\n");
-        for r in &rows {
-            text.push_str(&r.csv());
-            text.push('\n');
-        }
-        std::fs::write(p, text).with_context(|| format!("writing {}", p.display()))?;
-        println!("# saved {}", p.display());
+        save_csv(p, &header, HEADER, rows.iter().map(Row::csv))?;
     }
     if let (Some(base), Some(p)) = (baseline, &a.baseline) {
         println!(

@@ -1,7 +1,21 @@
 //! What the benchmarks share: medians, error statistics and the scene and sample lists of their
 //! flags. It imports nothing of its sibling modules.
 
-use anyhow::{bail, Result};
+use anyhow::{bail, Context, Result};
+use std::path::Path;
+
+/// Writes a bench's rows to `path`: its `comment` line, the `header` line, then one line a row
+/// (what [`csv_records`] reads back).
+pub fn save_csv(path: &Path, comment: &str, header: &str, rows: impl Iterator<Item = String>) -> Result<()> {
+    let mut text = format!("{comment}\n{header}\n");
+    for r in rows {
+        text.push_str(&r);
+        text.push('\n');
+    }
+    std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))?;
+    println!("# saved {}", path.display());
+    Ok(())
+}
 
 /// The records of a CSV file a bench wrote: its `header` line first (blank lines and `#` comments
 /// anywhere are passed over), then `fields` comma-separated fields a line, each with its line

@@ -8,7 +8,7 @@
 //! pixels, the share of pixels whose hit differs from the reference's, and the median normal error
 //! in degrees over pixels both hit.
 
-use super::stats::{csv_records, error_stats, median, sample_list, scene_spec};
+use super::stats::{csv_records, error_stats, median, sample_list, save_csv, scene_spec};
 use crate::args;
 use crate::render::load_volume;
 use anyhow::{Context, Result};
@@ -334,13 +334,7 @@ pub fn run(a: &SuiteArgs) -> Result<()> {
         }
     }
     if let Some(p) = &a.save {
-        let mut text = format!("{header}\n{HEADER}\n");
-        for r in &rows {
-            text.push_str(&r.csv());
-            text.push('\n');
-        }
-        std::fs::write(p, text).with_context(|| format!("writing {}", p.display()))?;
-        println!("# saved {}", p.display());
+        save_csv(p, &header, HEADER, rows.iter().map(Row::csv))?;
     }
     if let (Some(base), Some(p)) = (baseline, &a.baseline) {
         println!(
