@@ -419,21 +419,6 @@ fn luminance(e: [f64; 3]) -> f64 {
     0.2126 * e[0] + 0.7152 * e[1] + 0.0722 * e[2]
 }
 
-/// A smooth environment (no sun): brighter above, tinted along x, dim below.
-fn smooth_environment() -> Environment {
-    let (w, h) = (128u32, 64u32);
-    let mut texels = Vec::new();
-    for row in 0..h {
-        for col in 0..w {
-            let d =
-                Environment::uv_to_direction((col as f64 + 0.5) / w as f64, (row as f64 + 0.5) / h as f64);
-            let sky = 0.2 + 0.8 * d.z.max(0.0);
-            texels.push([(sky + 0.3 * d.x.max(0.0)) as f32, sky as f32, (sky * 1.3 - 0.1 * d.y) as f32]);
-        }
-    }
-    Environment::new("smooth", w, h, texels).unwrap()
-}
-
 /// IBL on the MRI at radius 8: `rays` within 1% mean relative error (per pixel, luminance) of the
 /// estimate's E under a smooth environment; `bent` and `seed` reported beside it. Under the
 /// built-in sky (its sun a small bright disk) both estimates carry more noise; reported too.
@@ -444,7 +429,7 @@ fn ibl_rays_match_the_estimate_and_bent_and_seed_are_reported() {
     let gpu = common::gpu();
     let voxel = scene.volume.spacing().min_element();
     for (env, methods) in [
-        (smooth_environment(), &[IblMethod::Rays, IblMethod::Bent, IblMethod::Seed][..]),
+        (common::smooth_environment(), &[IblMethod::Rays, IblMethod::Bent, IblMethod::Seed][..]),
         (Environment::sky(), &[IblMethod::Rays][..]),
     ] {
         let want: Vec<f64> = scene

@@ -10,6 +10,8 @@
 //! - renders are deterministic, windows agree with the whole image, the frame index decorrelates,
 //!   and progressive accumulation is the mean of the frames.
 
+mod common;
+
 use glam::DVec3;
 use isowall_model::{AoMethod, AoRadius, Camera, IblMethod, RenderSettings, View, Window};
 use isowall_render::environment::Environment;
@@ -263,21 +265,6 @@ fn brute_force_irradiance(
     e.map(|c| c / (rings * sectors) as f64)
 }
 
-/// A smooth environment (no sun): brighter above, tinted along x, dim below.
-fn smooth_environment() -> Environment {
-    let (w, h) = (128u32, 64u32);
-    let mut texels = Vec::new();
-    for row in 0..h {
-        for col in 0..w {
-            let d =
-                Environment::uv_to_direction((col as f64 + 0.5) / w as f64, (row as f64 + 0.5) / h as f64);
-            let sky = 0.2 + 0.8 * d.z.max(0.0);
-            texels.push([(sky + 0.3 * d.x.max(0.0)) as f32, sky as f32, (sky * 1.3 - 0.1 * d.y) as f32]);
-        }
-    }
-    Environment::new("smooth", w, h, texels).unwrap()
-}
-
 /// Sample points of `sphere-over-plane` (size 32) seen through a grid of pixels: the sphere from
 /// several sides and the plane around and below it.
 fn ibl_points(volume: &Volume, view: &View) -> Vec<(u32, u32, DVec3, DVec3)> {
@@ -299,7 +286,7 @@ fn luminance(e: [f64; 3]) -> f64 {
 #[test]
 fn rays_are_an_unbiased_estimate_of_the_visibility_weighted_irradiance() {
     let volume = Procedural::SphereOverPlane.generate(Some(32));
-    let env = smooth_environment();
+    let env = common::smooth_environment();
     let view = close_view(&volume, 32, 32);
     let mut s = RenderSettings::new(0.0);
     s.ao.ibl = IblMethod::Rays;

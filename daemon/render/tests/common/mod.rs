@@ -3,6 +3,7 @@
 
 use glam::DVec3;
 use isowall_model::{RenderSettings, View};
+use isowall_render::environment::Environment;
 use isowall_render::gpu::{GpuError, GpuRenderer};
 use isowall_render::reference::{self, IblLighting};
 use isowall_render::Frame;
@@ -178,4 +179,19 @@ pub fn perf_scenes() -> Vec<(&'static str, Volume, View, RenderSettings)> {
             (kind.name(), volume, view, s)
         })
         .collect()
+}
+
+/// A smooth environment (no sun): brighter above, tinted along x, dim below.
+pub fn smooth_environment() -> Environment {
+    let (w, h) = (128u32, 64u32);
+    let mut texels = Vec::new();
+    for row in 0..h {
+        for col in 0..w {
+            let d =
+                Environment::uv_to_direction((col as f64 + 0.5) / w as f64, (row as f64 + 0.5) / h as f64);
+            let sky = 0.2 + 0.8 * d.z.max(0.0);
+            texels.push([(sky + 0.3 * d.x.max(0.0)) as f32, sky as f32, (sky * 1.3 - 0.1 * d.y) as f32]);
+        }
+    }
+    Environment::new("smooth", w, h, texels).unwrap()
 }
