@@ -7,6 +7,7 @@ use isowall_model::adoption::{AdoptionOutput, BrickAssigner};
 use isowall_model::codec;
 use isowall_model::config::WallConfig;
 use isowall_model::frame_controller::{ControllerOutput, FrameController, FrameStats};
+use isowall_model::links::{Link as LinkId, Links};
 use isowall_model::messages::{printable, Message, Role, TileImage};
 use isowall_model::wire::FrameState;
 use isowall_model::{Camera, RenderSettings};
@@ -17,11 +18,11 @@ use std::time::{Duration, Instant};
 use tokio::sync::mpsc;
 
 /// What arrives from a node's connection (or a reconnection attempt).
-/// Messages and closes carry the connection they came on (`quinn::Connection::stable_id`): a
-/// late one from a node's previous connection is not about its current one.
+/// Messages and closes carry the connection they came on (its link number, the model's
+/// [`Links`]): a late one from a node's previous connection is not about its current one.
 enum Event {
-    Message(String, usize, Message),
-    Closed(String, usize, String),
+    Message(String, LinkId, Message),
+    Closed(String, LinkId, String),
     /// A node that was down is reachable again (handshake done).
     Reconnected(String, Link),
     /// A reconnection attempt failed; another may start.
@@ -56,7 +57,7 @@ async fn establish(endpoint: quinn::Endpoint, name: String, address: String, lim
     Ok(Link { connection, sender, receiver })
 }
 
-/// An object-space node that dies is reported down within this many deadlines.
+/// A node that dies is reported down within this many deadlines.
 pub const SILENT_DEADLINES: u32 = 3;
 
 /// Events queued from the nodes' readers at most: a node that sends faster than the controller
@@ -79,6 +80,8 @@ pub struct Wall {
     machine: FrameController,
     senders: HashMap<String, ChannelSender>,
     connections: HashMap<String, quinn::Connection>,
+    /// Each node's current connection, by link number.
+    links: Links,
     events: mpsc::Receiver<Event>,
     events_tx: mpsc::Sender<Event>,
     endpoint: quinn::Endpoint,
@@ -127,21 +130,21 @@ impl Wall {
                 config.tiles_of(&node.name).iter().map(|t| (t.name.clone(), t.width, t.height)).collect();
             machine.set_node_tiles(&node.name, tiles);
         }
-        if config.wall.mode == isowall_model::WallMode::Object {
-            // A dead node stalls every frame of an object-space wall (every node waits for its
-            // pixels): it is down once silent for 3 deadlines, pinged often enough to tell.
-            // The controller asks every node something at least every ping interval, so the
-            // silence counted from the first unanswered question is 3 deadlines less one ping
-            // interval (at least 2.5 deadlines).
-            let ping = FrameController::DEFAULT_PING_INTERVAL.min(deadline / 2);
-            machine.set_ping_interval(Some(ping));
-            machine.set_silence_limit(Some(deadline * SILENT_DEADLINES - ping));
-        }
+        // A dead node is down once silent for 3 deadlines, pinged often enough to tell, in
+        // either mode: in object space it stalls every frame (every node waits for its
+        // pixels), in screen space every swap waits a deadline for it, and QUIC's idle timeout
+        // alone would take 5 s. The controller asks every node something at least every ping
+        // interval, so the silence counted from the first unanswered question is 3 deadlines
+        // less one ping interval (at least 2.5 deadlines).
+        let ping = FrameController::DEFAULT_PING_INTERVAL.min(deadline / 2);
+        machine.set_ping_interval(Some(ping));
+        machine.set_silence_limit(Some(deadline * SILENT_DEADLINES - ping));
         let mut wall = Wall {
             machine,
             config,
             senders: HashMap::new(),
             connections: HashMap::new(),
+            links: Links::default(),
             events,
             events_tx,
             endpoint,
@@ -259,7 +262,7 @@ impl Wall {
         let Link { connection, sender, mut receiver } = link;
         let tx = self.events_tx.clone();
         let node = name.to_string();
-        let id = connection.stable_id();
+        let id = self.links.attach(name);
         tokio::spawn(async move {
             loop {
                 // Waits while the queue is full: the node's stream is read no faster than handled.
@@ -468,12 +471,13 @@ impl Wall {
     }
 
     /// Whether connection `id` is `node`'s current one.
-    fn is_current(&self, node: &str, id: usize) -> bool {
-        self.senders.contains_key(node) && self.connections.get(node).is_some_and(|c| c.stable_id() == id)
+    fn is_current(&self, node: &str, id: LinkId) -> bool {
+        self.senders.contains_key(node) && self.links.is_current(node, id)
     }
 
     fn drop_node(&mut self, node: &str, reason: &str) {
         self.senders.remove(node);
+        self.links.detach(node);
         if let Some(c) = self.connections.remove(node) {
             transport::close(&c, reason);
         }

@@ -58,7 +58,8 @@ fn main() -> std::process::ExitCode {
         Some(Command::Run(args)) => run::run(&args),
         Some(Command::Bench(cmd)) => bench::run(&cmd),
         Some(Command::CheckConfig(args)) => {
-            isowall_model::check_config::run(&args).map_err(anyhow::Error::from)
+            isowall_model::check_config::run(&args, &isowall_net::tls::check_wall_certificates)
+                .map_err(anyhow::Error::from)
         }
     };
     match result {

@@ -209,8 +209,8 @@ pub struct ObjectNode {
     pub adopt_delay: Duration,
     addrs: HashMap<String, SocketAddr>,
     outbox: Option<PixelOutbox>,
-    /// Each peer's latest connection (to close when its pixels break the rules).
-    connections: HashMap<String, PeerConnection>,
+    /// The peers' open connections by link (to close the one whose pixels break the rules).
+    connections: HashMap<u64, PeerConnection>,
     /// The machine's clock.
     epoch: Instant,
     /// How long each wait for a peer may take (the wall's deadline).
@@ -310,13 +310,13 @@ impl ObjectNode {
                 "object space: the map gives this node a brick it has not loaded"
             );
         }
-        let done = self.execute(out, None);
+        let done = self.execute(out);
         debug_assert!(done.is_empty(), "a frame starting completes nothing");
         views
     }
 
     /// Carries out the machine's outputs; returns the composited frames.
-    fn execute(&mut self, outputs: Vec<ObjectOutput>, from: Option<&PeerConnection>) -> Vec<Done> {
+    fn execute(&mut self, outputs: Vec<ObjectOutput>) -> Vec<Done> {
         let mut done = Vec::new();
         for out in outputs {
             match out {
@@ -324,11 +324,14 @@ impl ObjectNode {
                     Some(o) => o.send(&peer, frame_id, bytes),
                     None => tracing::error!(frame_id, %peer, "cannot send pixels: no client endpoint"),
                 },
-                ObjectOutput::ClosePeer { peer, reason } => {
-                    tracing::warn!(%peer, "closing the peer's connection: {reason}");
-                    if let Some(c) = from.or(self.connections.get(&peer)) {
+                ObjectOutput::ClosePeer { peer, link, reason } => {
+                    tracing::warn!(%peer, link, "closing the peer's connection: {reason}");
+                    if let Some(c) = self.connections.get(&link) {
                         c.close(&reason);
                     }
+                }
+                ObjectOutput::Dropped { peer, reason } => {
+                    tracing::warn!(%peer, "dropped the peer's pixels, its connection kept: {reason}")
                 }
                 ObjectOutput::Composited(c) => {
                     let report = self.machine.report(self.now(), &c);
@@ -375,7 +378,7 @@ impl ObjectNode {
     ) -> Result<Vec<Done>, AdoptionError> {
         let (map, out) = self.machine.set_map(self.now(), from_frame, holders)?;
         tracing::info!(from_frame, holders = ?map.holders, "object space: brick map");
-        Ok(self.execute(out, None))
+        Ok(self.execute(out))
     }
 
     /// `LoadBrick`: starts loading the brick beside this node's own (an answer comes through
@@ -397,7 +400,7 @@ impl ObjectNode {
                 }
                 ObjectOutput::Send(msg) => answer = Some(msg),
                 other => {
-                    self.execute(vec![other], None);
+                    self.execute(vec![other]);
                 }
             }
         }
@@ -428,16 +431,20 @@ impl ObjectNode {
         let rendered = done.tiles.into_iter().map(TileCanvas::from).collect();
         let out = self.machine.local_done(self.now(), id, done.render_time, rendered);
         self.machine.add_work(id, t0.elapsed());
-        self.execute(out, None)
+        self.execute(out)
     }
 
     /// A peer's pixels: the frames they complete (a violation closes the peer's connection).
     pub fn peer(&mut self, item: PeerPixelsIn) -> Vec<Done> {
         let (id, t0) = (item.pixels.frame_id, Instant::now());
-        self.connections.insert(item.cert.clone(), item.connection.clone());
-        let out = self.machine.peer(self.now(), &item.cert, item.pixels);
+        let link = item.connection.link();
+        if !self.connections.contains_key(&link) {
+            self.connections.retain(|_, c| c.is_open());
+            self.connections.insert(link, item.connection);
+        }
+        let out = self.machine.peer(self.now(), &item.cert, link, item.pixels);
         self.machine.add_work(id, t0.elapsed());
-        self.execute(out, Some(&item.connection))
+        self.execute(out)
     }
 
     /// When the next compositing deadline passes ([`ObjectNode::handle_timeout`]).
@@ -448,7 +455,7 @@ impl ObjectNode {
     /// Frames whose compositing deadline passed: composited with what arrived.
     pub fn handle_timeout(&mut self) -> Vec<Done> {
         let out = self.machine.handle_timeout(self.now());
-        self.execute(out, None)
+        self.execute(out)
     }
 }
 

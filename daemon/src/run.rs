@@ -14,6 +14,7 @@ use crate::render_thread::{JobResult, RenderHandle, RenderVolume, TileJob, TileR
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
 use isowall_model::config::{WallConfig, WallMode};
+use isowall_model::handshake_limit::{HandshakeLimit, HandshakeLimiter};
 use isowall_model::messages::{Message, TileImage};
 use isowall_model::node_machine::{NodeMachine, NodeOutput};
 use isowall_model::wire::FrameSpec;
@@ -248,10 +249,17 @@ fn network(
         let inbox = state.inbox.clone();
         let limit = state.limit;
         let live = LiveConnections::default();
+        let handshakes = Handshakes::new(state.epoch);
         tokio::spawn(async move {
             while let Some(incoming) = acceptor.accept().await {
+                // Before any crypto: a source whose handshakes keep failing or being refused
+                // is refused here (the model's rule), so a flood costs no TLS work.
+                let Some(source) = handshakes.start(&incoming) else {
+                    incoming.refuse();
+                    continue;
+                };
                 let (tx, inbox, live) = (conn_tx.clone(), inbox.clone(), live.clone());
-                tokio::spawn(async move { admit(incoming, tx, inbox, live, limit).await });
+                tokio::spawn(async move { admit(incoming, source, tx, inbox, live, limit).await });
             }
         });
         let serve_all = async {
@@ -296,6 +304,63 @@ struct Greeted {
     hello: Message,
 }
 
+/// The handshake limit of the accept loop (the model's [`HandshakeLimiter`] on the daemon's
+/// clock), and its refusals logged at most once a second.
+#[derive(Clone)]
+struct Handshakes {
+    epoch: std::time::Instant,
+    inner: std::sync::Arc<std::sync::Mutex<(HandshakeLimiter, Option<std::time::Instant>, u64)>>,
+}
+
+/// A handshake the limit let start: give it back ([`Source::admitted`]) once the connection
+/// is admitted, so the wall's own connections never spend the limit.
+struct Source {
+    ip: std::net::IpAddr,
+    handshakes: Handshakes,
+}
+
+impl Source {
+    fn admitted(&self) {
+        let now = self.handshakes.epoch.elapsed();
+        self.handshakes.inner.lock().expect("not poisoned").0.admitted(now, self.ip);
+    }
+}
+
+impl Handshakes {
+    fn new(epoch: std::time::Instant) -> Handshakes {
+        let limiter = HandshakeLimiter::new(HandshakeLimit::DAEMON);
+        Handshakes { epoch, inner: std::sync::Arc::new(std::sync::Mutex::new((limiter, None, 0))) }
+    }
+
+    /// `Some` when `incoming`'s handshake may start; `None`: refuse it (logged, at most once a
+    /// second, with the count).
+    fn start(&self, incoming: &quinn::Incoming) -> Option<Source> {
+        let remote = incoming.remote_address();
+        let ip = remote.ip().to_canonical();
+        let mut guard = self.inner.lock().expect("not poisoned");
+        let (limiter, last_log, unlogged) = &mut *guard;
+        if limiter.start(self.epoch.elapsed(), ip) {
+            return Some(Source { ip, handshakes: self.clone() });
+        }
+        *unlogged += 1;
+        if last_log.is_none_or(|t| t.elapsed() >= std::time::Duration::from_secs(1)) {
+            let HandshakeLimit { per_second, burst } = HandshakeLimit::DAEMON;
+            let (started, refused) = limiter.counts();
+            tracing::warn!(
+                %remote,
+                refused_since_last_line = *unlogged,
+                handshakes_started = started,
+                refused_in_all = refused,
+                "refused a connection before its handshake: too many failed or refused handshakes \
+                 from {ip} ({burst} at once, then {per_second} a second)"
+            );
+            *last_log = Some(std::time::Instant::now());
+            *unlogged = 0;
+        }
+        None
+    }
+}
+
 /// Live verified connections per identity.
 #[derive(Clone, Default)]
 struct LiveConnections(std::sync::Arc<std::sync::Mutex<std::collections::HashMap<PeerIdentity, usize>>>);
@@ -327,6 +392,7 @@ impl LiveConnections {
 /// inbox; anything else is closed with the reason. Nothing here touches the running session.
 async fn admit(
     incoming: quinn::Incoming,
+    source: Source,
     session: tokio::sync::mpsc::Sender<Greeted>,
     inbox: Option<PixelInbox>,
     live: LiveConnections,
@@ -357,13 +423,17 @@ async fn admit(
         return refuse(&who, reason);
     }
     match (&who, inbox) {
-        (PeerIdentity::Node(_), Some(inbox)) => inbox.accept(conn),
+        (PeerIdentity::Node(_), Some(inbox)) => {
+            source.admitted();
+            inbox.accept(conn)
+        }
         (PeerIdentity::Node(_), None) => {
             refuse(&who, format!("{who}'s certificate is not the controller's: it may not drive a node"))
         }
         (PeerIdentity::Controller, _) => match tokio::time::timeout(HELLO_TIMEOUT, greet(&conn, limit)).await
         {
             Ok(Ok(greeted)) => {
+                source.admitted();
                 let _ = session.send(greeted).await;
             }
             Ok(Err(reason)) => refuse(&who, reason),

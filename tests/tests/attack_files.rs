@@ -1,7 +1,8 @@
 //! Hostile files and configs against the real binaries: volume bombs (gzip NRRD, NIfTI and
 //! MetaImage claiming 1024^3 voxels from about 1 MB), a FIFO or a device as a volume's data, a
 //! detached header pointing at /etc/passwd or above its folder, `keygen` over an existing CA,
-//! names keygen could not write, key files open to others, and configs that cannot work.
+//! names keygen could not write, key files open to others, certificates that end soon or have
+//! ended, and configs that cannot work.
 //!
 //! Memory is bounded twice: the child's address space is capped (`ulimit -v`), so a reader that
 //! allocated gigabytes fails the test instead of passing it, and its peak resident set (VmHWM of
@@ -398,6 +399,52 @@ fn keygen_keeps_a_working_ca_renews_from_it_and_writes_private_keys() {
     let out = run_in(d, "isowall", &["keygen", "--config", "wall.toml", "--force"]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     assert_ne!(read(&keys.join("ca.pem")), before[0]);
+}
+
+#[test]
+fn a_certificate_near_its_end_is_warned_about_and_an_expired_one_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    std::fs::write(d.join("wall.toml"), WALL).unwrap();
+    // `keygen --days 1`: check-config passes with a warning for each certificate, naming it.
+    let out = run_in(d, "isowall", &["keygen", "--config", "wall.toml", "--days", "1"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let out = run_in(d, "isowall", &["check-config", "wall.toml"]);
+    let err = String::from_utf8_lossy(&out.stderr).into_owned();
+    eprintln!("check-config, certificates of 1 day:\n{err}");
+    assert!(out.status.success(), "{err}");
+    for name in ["node0", "controller"] {
+        let line = format!("warning: keys/{name}.pem: the certificate expires on");
+        assert!(err.contains(&line) && err.contains("in 1 day:"), "no warning for {name}:\n{err}");
+    }
+    assert!(!err.contains("ca.pem"), "the CA (10 years) was warned about:\n{err}");
+    // node0's certificate, signed by the wall's CA, ended yesterday: check-config fails and the
+    // daemon refuses to start, each naming the file and the date.
+    use rcgen::{CertificateParams, DnType, Issuer, KeyPair};
+    let keys = d.join("keys");
+    let ca_key = KeyPair::from_pem(&std::fs::read_to_string(keys.join("ca.key")).unwrap()).unwrap();
+    let issuer =
+        Issuer::from_ca_cert_pem(&std::fs::read_to_string(keys.join("ca.pem")).unwrap(), ca_key).unwrap();
+    let key = KeyPair::generate().unwrap();
+    let mut params = CertificateParams::new(vec!["node0".to_string()]).unwrap();
+    params.distinguished_name.push(DnType::CommonName, "node0");
+    let day = |days: i64| {
+        rcgen::date_time_ymd(1970, 1, 1) + Duration::from_secs((now_unix() + days * 86_400) as u64)
+    };
+    params.not_before = day(-10);
+    params.not_after = day(-1);
+    let cert = params.signed_by(&key, &issuer).unwrap();
+    std::fs::write(keys.join("node0.pem"), cert.pem()).unwrap();
+    std::fs::write(keys.join("node0.key"), key.serialize_pem()).unwrap();
+    let out = run_in(d, "isowall", &["check-config", "wall.toml"]);
+    let err = String::from_utf8_lossy(&out.stderr).into_owned();
+    eprintln!("check-config, node0's certificate expired:\n{err}");
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(err.contains("keys/node0.pem: the certificate expired on") && err.contains("--renew"), "{err}");
+    let args = ["run", "--config", "wall.toml", "--node", "node0", "--display", "offscreen"];
+    let r = run_bounded(d, "isowalld", &args, 0, Duration::from_secs(60));
+    assert_eq!(r.code, Some(1), "{}", r.stderr);
+    assert!(r.stderr.contains("node0.pem: the certificate expired on"), "{}", r.stderr);
 }
 
 #[test]

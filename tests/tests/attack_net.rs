@@ -7,12 +7,13 @@
 //!   a CA-signed certificate named `Controller` does not drive a node, one named `NODE1` does not
 //!   pass for `node1`;
 //! - take-over: a node's certificate, retrying, never knocks the running controller off, nor
-//!   does a controller's connection that sends no Hello;
+//!   does a controller's connection that sends no Hello; a reconnect flood is refused before its
+//!   TLS handshakes (per source address) and the wall keeps its frame rate;
 //! - bincode limits: messages of every size around 4, 16 and 64 KiB reach the daemon;
 //! - limits: connections per identity, streams and flow-control windows, snapshot tiles checked
 //!   against their node, a node's reason escaped before the terminal sees it;
 //! - start: a wall with one of four nodes down starts (`orbit`, `up`) and the node joins when it
-//!   comes up; in object space a killed node is down within 3 deadlines.
+//!   comes up; in either space a killed node is down within 3 deadlines.
 
 use isowall_e2e::{
     bin, free_udp_ports, in_ci, run_in, set_object_mode, start_nodes, wall_config, wall_config_2x1, Daemon,
@@ -257,14 +258,122 @@ fn a_node_certificate_or_a_silent_controller_never_disturbs_the_running_session(
     );
     assert!(attempts >= 10, "only {attempts} attempts");
     // Each attempt is refused with the reason (or, when the daemon's close overtakes the client's
-    // own sends, seen only as the connection lost or reset).
+    // own sends, seen only as the connection lost or reset), and once its first few handshakes
+    // have failed, before its handshake (the limit per source address).
     let refused = "node `node1`'s certificate is not the controller's";
     assert!(reasons.iter().any(|r| r.contains(refused)), "{reasons:?}");
     let raced = |r: &String| r.ends_with("connection lost") || r.ends_with("reset by peer)");
-    assert!(reasons.iter().all(|r| r.contains(refused) || raced(r)), "{reasons:?}");
+    let limited = |r: &String| r.contains("the server refused to accept a new connection");
+    assert!(reasons.iter().all(|r| r.contains(refused) || raced(r) || limited(r)), "{reasons:?}");
     assert!(silent.contains("no stream and Hello within 5 s"), "{silent}");
     assert_eq!(downs, 0, "the running controller lost a node:\n{stderr}");
     assert_eq!(stragglers, 0, "a swap went without a node:\n{stderr}");
+}
+
+/// Frames the orbit recorded (`--record-frames DIR`: a line `ID UNIX_MS ...` per swap) between
+/// `from` and `to`, per second.
+fn fps_between(frames: &Path, from: std::time::SystemTime, to: std::time::SystemTime) -> f64 {
+    let ms = |t: std::time::SystemTime| t.duration_since(std::time::UNIX_EPOCH).unwrap().as_millis();
+    let (a, b) = (ms(from), ms(to));
+    let n = text(frames)
+        .lines()
+        .filter_map(|l| l.split_whitespace().nth(1)?.parse::<u128>().ok())
+        .filter(|t| (a..b).contains(t))
+        .count();
+    n as f64 / (b - a) as f64 * 1e3
+}
+
+#[test]
+fn a_reconnect_flood_is_refused_before_its_handshakes_and_the_wall_keeps_its_frame_rate() {
+    let dir = tempfile::tempdir().unwrap();
+    let ports = free_udp_ports(4);
+    let config = wall_config(dir.path(), "flood", &ports, 16, 12, 2, 5000, "keys");
+    keygen(dir.path(), &config);
+    let Some(_daemons) = nodes(dir.path(), &config, 4) else { return };
+    let keys = dir.path().join("keys");
+    let record = dir.path().join("frames");
+    let (mut orbit, _out, err) = spawn_isowall(
+        dir.path(),
+        "orbit",
+        &[
+            "orbit",
+            config.to_str().unwrap(),
+            "--frames",
+            "100000",
+            "--record-frames",
+            record.to_str().unwrap(),
+        ],
+    );
+    assert!(wait_for(&err, "node node3 up", Duration::from_secs(60)).is_some(), "{}", text(&err));
+    std::thread::sleep(Duration::from_secs(2));
+    let window = Duration::from_secs(5);
+    let before = std::time::SystemTime::now();
+    std::thread::sleep(window);
+    let flood_start = std::time::SystemTime::now();
+    // An attacker holding node1's certificate reconnects to node0 about 450 times a second
+    // from 8 tasks, each connection closed as soon as it is up.
+    const RATE: u64 = 450;
+    const TASKS: u64 = 8;
+    let rt = runtime();
+    let (attempts, refused_before, handshakes) = rt.block_on(async {
+        let node = transport::client(&Identity::load(&keys, "node1").unwrap()).unwrap();
+        let until = tokio::time::Instant::now() + window;
+        let tasks: Vec<_> = (0..TASKS)
+            .map(|_| {
+                let node = node.clone();
+                let at = addr(ports[0]);
+                tokio::spawn(async move {
+                    let (mut attempts, mut refused, mut handshakes) = (0u64, 0u64, 0u64);
+                    let mut tick = tokio::time::interval(Duration::from_micros(TASKS * 1_000_000 / RATE));
+                    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+                    while tokio::time::Instant::now() < until {
+                        tick.tick().await;
+                        attempts += 1;
+                        match node.connect(at, "node0").unwrap().await {
+                            Ok(c) => {
+                                handshakes += 1;
+                                c.close(0u32.into(), b"again");
+                            }
+                            Err(quinn::ConnectionError::ConnectionClosed(c))
+                                if c.error_code == quinn::TransportErrorCode::CONNECTION_REFUSED =>
+                            {
+                                refused += 1
+                            }
+                            Err(_) => {}
+                        }
+                    }
+                    (attempts, refused, handshakes)
+                })
+            })
+            .collect();
+        let mut sum = (0, 0, 0);
+        for t in tasks {
+            let (a, r, h) = t.await.unwrap();
+            sum = (sum.0 + a, sum.1 + r, sum.2 + h);
+        }
+        sum
+    });
+    let flood_end = std::time::SystemTime::now();
+    std::thread::sleep(Duration::from_millis(500));
+    let _ = orbit.0.kill();
+    let _ = orbit.0.wait();
+    let frames = record.join("frames.txt");
+    let fps_before = fps_between(&frames, before, flood_start);
+    let fps_during = fps_between(&frames, flood_start, flood_end);
+    let stderr = text(&err);
+    let downs = stderr.matches(" is down").count();
+    eprintln!(
+        "reconnect flood with node1's certificate: {attempts} attempts in {:.1} s ({:.0}/s), {refused_before} refused before their handshake, {handshakes} handshakes completed; the wall's frame rate {fps_before:.1} fps before, {fps_during:.1} fps during; {downs} nodes reported down",
+        flood_end.duration_since(flood_start).unwrap().as_secs_f64(),
+        attempts as f64 / flood_end.duration_since(flood_start).unwrap().as_secs_f64(),
+    );
+    assert!(attempts >= RATE, "only {attempts} attempts");
+    assert!(fps_before > 0.0, "no frames recorded before the flood:\n{stderr}");
+    // The limit (8 at once, then 4 a second per source) lets a few handshakes through.
+    assert!(handshakes <= 8 + 4 * (window.as_secs() + 1), "{handshakes} handshakes completed");
+    assert!(refused_before >= attempts / 2, "{refused_before} of {attempts} refused before their handshake");
+    assert!(fps_during >= 0.5 * fps_before, "{fps_before:.1} fps before, {fps_during:.1} during the flood");
+    assert_eq!(downs, 0, "the running controller lost a node:\n{stderr}");
 }
 
 // ---- 5: bincode limits ---------------------------------------------------------------------------
@@ -594,13 +703,17 @@ fn isowall_up_starts_without_a_node_it_cannot_reach() {
     assert!(stdout.contains("frames: 5"), "{stdout}");
 }
 
-#[test]
-fn object_space_a_killed_node_is_down_within_three_deadlines() {
+/// Kills node1 of a running 2x2 wall (object space or screen space): how long until the
+/// controller reports it down; at most 3 deadlines (and a little for the processes).
+fn a_killed_node_is_down_within_three_deadlines(object: bool) {
     let dir = tempfile::tempdir().unwrap();
     let ports = free_udp_ports(4);
     let deadline_ms = 1000u64;
-    let config = wall_config(dir.path(), "objdeath", &ports, 40, 30, 2, deadline_ms, "keys");
-    set_object_mode(&config);
+    let config = wall_config(dir.path(), "death", &ports, 40, 30, 2, deadline_ms, "keys");
+    if object {
+        set_object_mode(&config);
+    }
+    let space = if object { "object space" } else { "screen space" };
     keygen(dir.path(), &config);
     let Some(mut daemons) = nodes(dir.path(), &config, 4) else { return };
     let (mut orbit, _out, err) =
@@ -614,10 +727,20 @@ fn object_space_a_killed_node_is_down_within_three_deadlines() {
     let stderr = text(&err);
     let down = down.unwrap_or_else(|| panic!("node1 was never reported down:\n{stderr}"));
     eprintln!(
-        "object space: node1 killed, reported down {:.2} s later (deadline {deadline_ms} ms)",
+        "{space}: node1 killed, reported down {:.2} s later (deadline {deadline_ms} ms)",
         down.as_secs_f64()
     );
     let line = stderr.lines().find(|l| l.contains("node node1 is down")).unwrap_or_default().to_string();
     eprintln!("{line}");
     assert!(down <= Duration::from_millis(3 * deadline_ms + 300), "down after {down:?}:\n{stderr}");
+}
+
+#[test]
+fn object_space_a_killed_node_is_down_within_three_deadlines() {
+    a_killed_node_is_down_within_three_deadlines(true);
+}
+
+#[test]
+fn screen_space_a_killed_node_is_down_within_three_deadlines() {
+    a_killed_node_is_down_within_three_deadlines(false);
 }

@@ -4,7 +4,10 @@
 //! to stderr as `FILE:LINE:COL: message` and the exit status is 1; a valid config prints a short
 //! summary (the wall, its image size and the tiles of every node) to stdout. A DICOM volume's
 //! headers are read too (no pixels): the series chosen, its grid, or why it cannot be read
-//! (including a series over `[volume] max_bytes`).
+//! (including a series over `[volume] max_bytes`). The wall's certificates, where keygen wrote
+//! them, are checked by the caller's `certificates` (the network crate reads them): one that
+//! expires within 30 days is a `warning:` line on stderr (the check still passes), one expired
+//! fails the check.
 
 use crate::WallConfig;
 use std::path::PathBuf;
@@ -21,23 +24,38 @@ pub struct CheckConfigArgs {
     pub file: PathBuf,
 }
 
+/// What a certificate check says of a wall: warnings (each a line), or why it cannot work.
+pub type CertificateCheck<'a> = &'a dyn Fn(&WallConfig) -> Result<Vec<String>, String>;
+
 /// Prints the report of `a.file` to stdout (or its problems to stderr) and says whether it passed.
-pub fn run(a: &CheckConfigArgs) -> Result<(), CheckFailed> {
+pub fn run(a: &CheckConfigArgs, certificates: CertificateCheck) -> Result<(), CheckFailed> {
     let (problems, last) = match WallConfig::check_report(&a.file) {
-        Ok(report) => match WallConfig::load(&a.file).map(|c| check_dicom(&c)) {
-            Ok(Err(problem)) => {
-                println!("{report}");
-                return Err(CheckFailed(format!("{}: [volume] source: {problem}", a.file.display())));
-            }
-            Ok(Ok(Some(series))) => {
-                println!("{report}\n  {series}");
-                return Ok(());
-            }
-            _ => {
+        Ok(report) => {
+            let Ok(config) = WallConfig::load(&a.file) else {
                 println!("{report}");
                 return Ok(());
+            };
+            match check_dicom(&config) {
+                Err(problem) => {
+                    println!("{report}");
+                    return Err(CheckFailed(format!("{}: [volume] source: {problem}", a.file.display())));
+                }
+                Ok(Some(series)) => println!("{report}\n  {series}"),
+                Ok(None) => println!("{report}"),
             }
-        },
+            return match certificates(&config) {
+                Ok(warnings) => {
+                    for w in warnings {
+                        eprintln!("warning: {w}");
+                    }
+                    Ok(())
+                }
+                Err(problems) => {
+                    eprintln!("{problems}");
+                    Err(CheckFailed(problems.lines().last().unwrap_or_default().to_string()))
+                }
+            };
+        }
         Err(e) => e,
     };
     eprintln!("{problems}");

@@ -335,8 +335,20 @@ struct Pending {
     footprints: Option<Footprints>,
     /// When the frame started: its deadline runs from here.
     started: Option<Duration>,
-    /// Pixels that came before the footprints, checked against the whole tiles, still compressed.
-    early: Vec<(String, PeerPixels)>,
+    /// Pixels that came before the footprints, checked against the whole tiles, still compressed,
+    /// with the link they came on.
+    early: Vec<(String, Link, PeerPixels)>,
+}
+
+/// Which connection a peer's pixels came on ([`crate::links`]): a message refused later is
+/// blamed on the connection that carried it, not on a newer one from the same peer.
+pub use crate::links::Link;
+
+/// Pixels refused when their frame started: the rule they broke, and the link that carried them.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Refused {
+    pub link: Link,
+    pub error: CompositeError,
 }
 
 /// A frame whose tiles are composited.
@@ -368,7 +380,7 @@ pub struct Compositor {
     late: BTreeSet<String>,
     /// Pending frames dropped to keep at most [`MAX_PENDING_FRAMES`].
     dropped: u64,
-    refused: Vec<CompositeError>,
+    refused: Vec<Refused>,
 }
 
 /// Checks a peer's rectangles against its footprint (module notes) and decodes them.
@@ -532,7 +544,7 @@ impl Compositor {
 
     /// Pixels refused when a frame started inside [`Compositor::local`] (close those peers'
     /// connections).
-    pub fn take_refused(&mut self) -> Vec<CompositeError> {
+    pub fn take_refused(&mut self) -> Vec<Refused> {
         std::mem::take(&mut self.refused)
     }
 
@@ -541,7 +553,7 @@ impl Compositor {
     /// left out), each within its rectangles there, and waits for them until its deadline.
     /// Pixels that came earlier are checked and merged now; those that break the rules are
     /// returned (close those peers' connections) and count as not received.
-    pub fn expect(&mut self, now: Duration, frame_id: u64, footprints: Footprints) -> Vec<CompositeError> {
+    pub fn expect(&mut self, now: Duration, frame_id: u64, footprints: Footprints) -> Vec<Refused> {
         if self.stale(frame_id) {
             return Vec::new();
         }
@@ -549,13 +561,13 @@ impl Compositor {
         let tiles = self.tiles.clone();
         let p = self.frame(frame_id);
         let mut errors = Vec::new();
-        for (cert, msg) in std::mem::take(&mut p.early) {
+        for (cert, link, msg) in std::mem::take(&mut p.early) {
             let fp = footprints.get(&cert).map_or(&[][..], |f| &f[..]);
             match decode_within(&tiles, &cert, &msg, fp) {
                 Ok(layers) => p.merge(&layers),
-                Err(e) => {
+                Err(error) => {
                     p.from.remove(&cert);
-                    errors.push(e);
+                    errors.push(Refused { link, error });
                 }
             }
         }
@@ -584,11 +596,15 @@ impl Compositor {
         }
     }
 
-    /// A peer's pixels, from the connection whose certificate names `cert`.
+    /// A peer's pixels, from the connection `link` whose certificate names `cert`. A second
+    /// message for a frame from the same peer is [`CompositeError::Twice`]: dropped, changing
+    /// nothing (it may come on another connection of the same certificate; the caller logs it
+    /// and keeps the connection).
     pub fn peer(
         &mut self,
         now: Duration,
         cert: &str,
+        link: Link,
         msg: PeerPixels,
     ) -> Result<Option<Composited>, CompositeError> {
         if msg.node != cert {
@@ -642,7 +658,7 @@ impl Compositor {
         p.from.insert(cert.to_string());
         match layers {
             Some(layers) => p.merge(&layers),
-            None => p.early.push((cert.to_string(), msg)),
+            None => p.early.push((cert.to_string(), link, msg)),
         }
         Ok(self.poll(now, id))
     }
@@ -794,34 +810,35 @@ mod tests {
         let miss = layer(0, 0, 4, 1, |_, _| (f32::INFINITY, 99));
         assert_eq!(c.local(T, 1, &[("t".into(), far.clone())], [7, 7, 7]), None);
         let from_b = PeerPixels { frame_id: 1, node: "b".into(), rects: vec![near.encode("t", true)] };
-        assert_eq!(c.peer(T, "b", from_b.clone()).unwrap(), None);
+        assert_eq!(c.peer(T, "b", 1, from_b.clone()).unwrap(), None);
         assert_eq!(
-            c.peer(T, "b", from_b.clone()),
+            c.peer(T, "b", 1, from_b.clone()),
             Err(CompositeError::Twice { peer: "b".into(), frame_id: 1 })
         );
         let from_c = PeerPixels { frame_id: 1, node: "c".into(), rects: vec![miss.encode("t", false)] };
-        let done = c.peer(T, "c", from_c).unwrap().expect("all in");
+        let done = c.peer(T, "c", 1, from_c).unwrap().expect("all in");
         let t = &done.tiles[0];
         // Row 0: near, near, far, far; row 1 the same.
         let colours: Vec<u8> = t.rgb8.chunks(3).map(|p| p[0]).collect();
         assert_eq!(colours, vec![10, 10, 20, 20, 10, 10, 20, 20]);
         assert_eq!(t.depth[0], 1.0);
         // Stale pixels are ignored; the wrong sender, an unknown peer and other tiles are errors.
-        assert_eq!(c.peer(T, "b", from_b).unwrap(), None);
-        let e = c.peer(T, "c", PeerPixels { frame_id: 2, node: "b".into(), rects: vec![] }).unwrap_err();
+        assert_eq!(c.peer(T, "b", 1, from_b).unwrap(), None);
+        let e = c.peer(T, "c", 1, PeerPixels { frame_id: 2, node: "b".into(), rects: vec![] }).unwrap_err();
         assert!(matches!(e, CompositeError::WrongSender { .. }));
-        let e = c.peer(T, "z", PeerPixels { frame_id: 2, node: "z".into(), rects: vec![] }).unwrap_err();
+        let e = c.peer(T, "z", 1, PeerPixels { frame_id: 2, node: "z".into(), rects: vec![] }).unwrap_err();
         assert!(matches!(e, CompositeError::UnknownPeer { .. }));
         let e = c.peer(
             T,
             "b",
+            1,
             PeerPixels { frame_id: 2, node: "b".into(), rects: vec![near.encode("u", false)] },
         );
         assert!(matches!(e, Err(CompositeError::NotMyTile { .. })));
         // Uncovered pixels get the background; frames can complete before an older one, which is dropped.
-        c.peer(T, "b", PeerPixels { frame_id: 3, node: "b".into(), rects: vec![] }).unwrap();
-        c.peer(T, "c", PeerPixels { frame_id: 3, node: "c".into(), rects: vec![] }).unwrap();
-        c.peer(T, "b", PeerPixels { frame_id: 2, node: "b".into(), rects: vec![] }).unwrap();
+        c.peer(T, "b", 1, PeerPixels { frame_id: 3, node: "b".into(), rects: vec![] }).unwrap();
+        c.peer(T, "c", 1, PeerPixels { frame_id: 3, node: "c".into(), rects: vec![] }).unwrap();
+        c.peer(T, "b", 1, PeerPixels { frame_id: 2, node: "b".into(), rects: vec![] }).unwrap();
         let done = c.local(T, 3, &[], [5, 6, 7]).expect("frame 3");
         assert!(done.tiles[0].rgb8.chunks(3).all(|p| p == [5, 6, 7]));
         assert_eq!(c.pending(), 0);
@@ -829,12 +846,12 @@ mod tests {
         // peer; those within are kept.
         c.announce(3);
         for id in 4..=3 + FRAMES_AHEAD {
-            c.peer(T, "b", empty(id, "b")).unwrap();
+            c.peer(T, "b", 1, empty(id, "b")).unwrap();
         }
-        let e = c.peer(T, "b", empty(4 + FRAMES_AHEAD, "b")).unwrap_err();
+        let e = c.peer(T, "b", 1, empty(4 + FRAMES_AHEAD, "b")).unwrap_err();
         assert!(matches!(e, CompositeError::FarAhead { latest: 3, .. }), "{e}");
         assert!(e.to_string().contains("node `b`"), "{e}");
-        assert!(matches!(c.peer(T, "b", empty(u64::MAX, "b")), Err(CompositeError::FarAhead { .. })));
+        assert!(matches!(c.peer(T, "b", 1, empty(u64::MAX, "b")), Err(CompositeError::FarAhead { .. })));
         assert_eq!(c.pending(), FRAMES_AHEAD as usize);
     }
 
@@ -842,14 +859,14 @@ mod tests {
     fn frames_before_any_announce_are_bounded_and_dropped_when_far_ahead() {
         let mut c = Compositor::new("a", ["a", "b"].map(String::from), vec![("t".into(), 4, 2)], SECOND);
         for id in [u64::MAX, u64::MAX - 1, 1 << 40].into_iter().chain(0..100) {
-            c.peer(T, "b", empty(id, "b")).unwrap();
+            c.peer(T, "b", 1, empty(id, "b")).unwrap();
         }
         // The oldest go first: the three far-future frames and 87..=99 are kept.
         assert_eq!(c.pending(), MAX_PENDING_FRAMES);
         c.announce(95);
         assert_eq!(c.pending(), MAX_PENDING_FRAMES - 3, "the far-future frames went at the announce");
         assert_eq!(c.dropped(), 103 - (MAX_PENDING_FRAMES as u64 - 3));
-        assert!(matches!(c.peer(T, "b", empty(u64::MAX, "b")), Err(CompositeError::FarAhead { .. })));
+        assert!(matches!(c.peer(T, "b", 1, empty(u64::MAX, "b")), Err(CompositeError::FarAhead { .. })));
     }
 
     #[test]
@@ -862,38 +879,39 @@ mod tests {
         let inside = layer(0, 0, 2, 2, |_, _| (1.0, 10)).encode("t", true);
         // 200 rectangles: refused on their number (at most one per brick and tile).
         let bomb = PeerPixels { frame_id: 1, node: "b".into(), rects: vec![inside.clone(); 200] };
-        let e = c.peer(T, "b", bomb).unwrap_err();
+        let e = c.peer(T, "b", 1, bomb).unwrap_err();
         assert!(matches!(e, CompositeError::TooManyRects { got: 200, max: 3, .. }), "{e}");
         let two = PeerPixels { frame_id: 1, node: "b".into(), rects: vec![inside.clone(); 2] };
-        assert!(matches!(c.peer(T, "b", two), Err(CompositeError::TooManyRects { got: 2, max: 1, .. })));
+        assert!(matches!(c.peer(T, "b", 1, two), Err(CompositeError::TooManyRects { got: 2, max: 1, .. })));
         // A rectangle larger than the footprint, and one of its size elsewhere in the tile.
         let whole = PeerPixels {
             frame_id: 1,
             node: "b".into(),
             rects: vec![layer(0, 0, 4, 2, |_, _| (1.0, 1)).encode("t", true)],
         };
-        let e = c.peer(T, "b", whole).unwrap_err();
+        let e = c.peer(T, "b", 1, whole).unwrap_err();
         assert!(matches!(e, CompositeError::TooManyBytes { got: 56, max: 28, .. }), "{e}");
         let moved = PeerPixels {
             frame_id: 1,
             node: "b".into(),
             rects: vec![layer(2, 0, 2, 2, |_, _| (1.0, 1)).encode("t", true)],
         };
-        let e = c.peer(T, "b", moved).unwrap_err();
+        let e = c.peer(T, "b", 1, moved).unwrap_err();
         assert!(matches!(e, CompositeError::OutsideFootprint { x: 2, .. }), "{e}");
         assert!(e.to_string().contains("node `b`"), "{e}");
         // c's bricks cover none of this node's tiles: any rectangle is too many.
         let from_c = PeerPixels { frame_id: 1, node: "c".into(), rects: vec![inside.clone()] };
-        assert!(matches!(c.peer(T, "c", from_c), Err(CompositeError::TooManyRects { max: 0, .. })));
+        assert!(matches!(c.peer(T, "c", 1, from_c), Err(CompositeError::TooManyRects { max: 0, .. })));
         // An LZ4 payload claiming 1 GiB: refused on its header, nothing allocated.
         let mut huge = inside.clone();
         huge.payload[..4].copy_from_slice(&(1u32 << 30).to_le_bytes());
-        let e = c.peer(T, "b", PeerPixels { frame_id: 1, node: "b".into(), rects: vec![huge] }).unwrap_err();
+        let e =
+            c.peer(T, "b", 1, PeerPixels { frame_id: 1, node: "b".into(), rects: vec![huge] }).unwrap_err();
         assert!(e.to_string().contains("claims to decompress to 1073741824 bytes"), "{e}");
         // None of that counted: the good message still completes the frame.
-        assert_eq!(c.peer(T, "c", empty(1, "c")).unwrap(), None);
+        assert_eq!(c.peer(T, "c", 1, empty(1, "c")).unwrap(), None);
         let good = PeerPixels { frame_id: 1, node: "b".into(), rects: vec![inside.clone()] };
-        assert_eq!(c.peer(T, "b", good).unwrap(), None);
+        assert_eq!(c.peer(T, "b", 1, good).unwrap(), None);
         let done = c.local(T, 1, &[], [0, 0, 0]).expect("all in");
         assert_eq!(done.missing, Vec::<String>::new());
         assert_eq!(done.tiles[0].rgb8[0], 10);
@@ -904,10 +922,17 @@ mod tests {
             node: "b".into(),
             rects: vec![layer(2, 0, 2, 2, |_, _| (1.0, 1)).encode("t", true)],
         };
-        assert_eq!(c.peer(T, "b", early).unwrap(), None);
+        // They came on link 7; the peer reconnects meanwhile (link 8): the refusal names link 7.
+        assert_eq!(c.peer(T, "b", 7, early).unwrap(), None);
         let errors = c.expect(T, 2, fp);
-        assert!(matches!(errors[..], [CompositeError::OutsideFootprint { frame_id: 2, .. }]), "{errors:?}");
-        c.peer(T, "c", empty(2, "c")).unwrap();
+        assert!(
+            matches!(
+                errors[..],
+                [Refused { link: 7, error: CompositeError::OutsideFootprint { frame_id: 2, .. } }]
+            ),
+            "{errors:?}"
+        );
+        c.peer(T, "c", 1, empty(2, "c")).unwrap();
         assert_eq!(c.local(T, 2, &[], [0, 0, 0]), None, "b's refused pixels do not count");
     }
 
@@ -920,7 +945,7 @@ mod tests {
         c.expect(t0, 1, whole(&[("b", 1), ("c", 1)]));
         assert_eq!(c.local(t0 + ms(20), 1, &[], [7, 7, 7]), None);
         let b1 = PeerPixels { frame_id: 1, node: "b".into(), rects: vec![near.encode("t", true)] };
-        assert_eq!(c.peer(t0 + ms(30), "b", b1).unwrap(), None);
+        assert_eq!(c.peer(t0 + ms(30), "b", 1, b1).unwrap(), None);
         // c is silent: the frame waits until its deadline, then composites without c.
         assert_eq!(c.poll_timeout(), Some(t0 + SECOND));
         assert!(c.handle_timeout(t0 + ms(999)).is_empty());
@@ -933,18 +958,18 @@ mod tests {
         let t1 = t0 + ms(1100);
         c.announce(2);
         c.expect(t1, 2, whole(&[("b", 1), ("c", 1)]));
-        c.peer(t1 + ms(5), "b", empty(2, "b")).unwrap();
+        c.peer(t1 + ms(5), "b", 1, empty(2, "b")).unwrap();
         let done = c.local(t1 + ms(10), 2, &[], [7, 7, 7]).expect("c is not waited for");
         assert_eq!(done.missing, vec!["c".to_string()]);
         // c's late pixels of frame 1 arrive: it is alive, frame 3 waits for it again.
-        assert_eq!(c.peer(t1 + ms(20), "c", empty(1, "c")).unwrap(), None);
+        assert_eq!(c.peer(t1 + ms(20), "c", 1, empty(1, "c")).unwrap(), None);
         assert!(c.late().is_empty());
         let t2 = t1 + ms(100);
         c.announce(3);
         c.expect(t2, 3, whole(&[("b", 1), ("c", 1)]));
-        c.peer(t2, "b", empty(3, "b")).unwrap();
+        c.peer(t2, "b", 1, empty(3, "b")).unwrap();
         assert_eq!(c.local(t2 + ms(10), 3, &[], [7, 7, 7]), None);
-        let done = c.peer(t2 + ms(400), "c", empty(3, "c")).unwrap().expect("c in time");
+        let done = c.peer(t2 + ms(400), "c", 1, empty(3, "c")).unwrap().expect("c in time");
         assert!(done.missing.is_empty());
         // A frame whose own render is done after its deadline composites at once.
         c.announce(4);
@@ -961,7 +986,7 @@ mod tests {
         // Frame 1 by the home map: a waits for b and c; c dies: b's pixels do not complete it.
         assert_eq!(c.local(T, 1, &[], [0, 0, 0]), None);
         let b1 = PeerPixels { frame_id: 1, node: "b".into(), rects: vec![far.encode("t", true)] };
-        assert_eq!(c.peer(T, "b", b1).unwrap(), None);
+        assert_eq!(c.peer(T, "b", 1, b1).unwrap(), None);
         // The map that leaves c without bricks ends the wait: frame 1 completes without c.
         let done = c.forget(T, &["c".to_string()]);
         assert_eq!(done.len(), 1);
@@ -975,16 +1000,16 @@ mod tests {
             node: "b".into(),
             rects: vec![far.encode("t", false), near.encode("t", true)],
         };
-        assert_eq!(c.peer(T, "b", b2).unwrap(), None);
+        assert_eq!(c.peer(T, "b", 1, b2).unwrap(), None);
         let done = c.local(T, 2, &[], [0, 0, 0]).expect("only b was expected");
         let colours: Vec<u8> = done.tiles[0].rgb8.chunks(3).map(|p| p[0]).collect();
         assert_eq!(colours, vec![10, 10, 20, 20, 10, 10, 20, 20]);
         // Frame 3 expects c again (it came back): b alone does not complete it.
         c.expect(T, 3, whole(&[("b", 1), ("c", 1)]));
-        c.peer(T, "b", PeerPixels { frame_id: 3, node: "b".into(), rects: vec![] }).unwrap();
+        c.peer(T, "b", 1, PeerPixels { frame_id: 3, node: "b".into(), rects: vec![] }).unwrap();
         assert_eq!(c.local(T, 3, &[], [0, 0, 0]), None);
         assert!(c
-            .peer(T, "c", PeerPixels { frame_id: 3, node: "c".into(), rects: vec![] })
+            .peer(T, "c", 1, PeerPixels { frame_id: 3, node: "c".into(), rects: vec![] })
             .unwrap()
             .is_some());
         // Stale frames are not revived by expect.

@@ -15,8 +15,10 @@
 //!   compositing of peers' pixels, its caps and deadline), [`adoption`] (which node renders each
 //!   brick when nodes die), [`object_machine`] (a node's object space: views, brick maps,
 //!   compositing and its messages).
+//! - [`links`]: which connection of each node is its current one (a counter, never reused).
 //! - [`names`]: the one rule for node and tile names (a node's name is its certificate's name).
 //! - [`governor`]: the quality governor (frame times in, AO samples per frame out).
+//! - [`handshake_limit`]: handshakes a daemon starts per source address (a token bucket).
 //! - [`sim`]: the wall at scale: a LAN model on a virtual clock driving the machines above.
 
 pub mod adoption;
@@ -30,7 +32,9 @@ pub mod composite;
 pub mod config;
 pub mod frame_controller;
 pub mod governor;
+pub mod handshake_limit;
 pub mod joystick;
+pub mod links;
 pub mod lowres;
 pub mod messages;
 pub mod names;

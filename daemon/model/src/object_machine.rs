@@ -18,7 +18,8 @@
 //!   [`ObjectMachine::handle_timeout`] at [`ObjectMachine::poll_timeout`];
 //! - carries out the outputs: [`ObjectOutput::Composited`] (send [`ObjectMachine::report`] to
 //!   the controller, then the frame is rendered for the frame machine), [`ObjectOutput::ClosePeer`]
-//!   (a peer broke the rules: close its connection with the reason, nothing else stops),
+//!   (a peer broke the rules: close the connection that carried it with the reason, nothing
+//!   else stops), [`ObjectOutput::Dropped`] (a duplicate: log it, close nothing),
 //!   [`ObjectOutput::Send`], [`ObjectOutput::Load`] (read a brick adopted from a dead node, then
 //!   [`ObjectMachine::load_done`]).
 //!
@@ -31,8 +32,8 @@ use crate::adoption::{brick_index, AdoptionError, BrickMap, MapHistory};
 use crate::bricks;
 use crate::codec;
 use crate::composite::{
-    composite_deadline, CompositeError, Composited, Compositor, Footprints, Layer, PeerPixels, TileCanvas,
-    TileRect,
+    composite_deadline, CompositeError, Composited, Compositor, Footprints, Layer, Link, PeerPixels, Refused,
+    TileCanvas, TileRect,
 };
 use crate::config::WallConfig;
 use crate::messages::Message;
@@ -78,8 +79,12 @@ pub enum ObjectOutput {
     /// The frame's tiles are composited: send [`ObjectMachine::report`] to the controller; the
     /// frame is then rendered as far as the frame machine is concerned.
     Composited(Composited),
-    /// A peer broke the rules: close its connection with this reason.
-    ClosePeer { peer: String, reason: String },
+    /// A peer broke the rules: close the connection `link` (the one that carried what broke
+    /// them, [`crate::composite::Link`]) with this reason.
+    ClosePeer { peer: String, link: Link, reason: String },
+    /// A peer's message was dropped (a second one for a frame: it changes nothing, and may come
+    /// on another connection of the same certificate): log the reason, close nothing.
+    Dropped { peer: String, reason: String },
     /// Send this to the controller.
     Send(Message),
     /// Read brick `index` (wire number `brick`) and its halo, upload it beside the node's own,
@@ -286,7 +291,7 @@ impl ObjectMachine {
         }
         self.submitted.insert(frame_id, views.iter().map(|(n, v)| (n.clone(), v.window)).collect());
         self.submitted.retain(|&id, _| id.saturating_add(FRAMES_KEPT) > frame_id);
-        (FrameViews { views, bricks, unload, not_loaded }, refused.into_iter().map(close).collect())
+        (FrameViews { views, bricks, unload, not_loaded }, refused.into_iter().map(refused_output).collect())
     }
 
     /// A brick map from the controller (`Message::Bricks`): frames from `from_frame` on follow
@@ -394,7 +399,7 @@ impl ObjectMachine {
         self.local.insert(frame_id, LocalDone { at: now, sent, render });
         self.local.retain(|&k, _| k.saturating_add(FRAMES_KEPT) > frame_id);
         let done = self.compositor.local(now, frame_id, &mine, self.background);
-        out.extend(self.compositor.take_refused().into_iter().map(close));
+        out.extend(self.compositor.take_refused().into_iter().map(refused_output));
         out.extend(done.map(ObjectOutput::Composited));
         out
     }
@@ -404,11 +409,11 @@ impl ObjectMachine {
         self.local.get(&frame_id).map_or(Duration::ZERO, |l| l.render)
     }
 
-    /// A peer's pixels, from the connection whose certificate names `cert`.
-    pub fn peer(&mut self, now: Duration, cert: &str, pixels: PeerPixels) -> Vec<ObjectOutput> {
-        match self.compositor.peer(now, cert, pixels) {
+    /// A peer's pixels, from the connection `link` whose certificate names `cert`.
+    pub fn peer(&mut self, now: Duration, cert: &str, link: Link, pixels: PeerPixels) -> Vec<ObjectOutput> {
+        match self.compositor.peer(now, cert, link, pixels) {
             Ok(done) => done.map(ObjectOutput::Composited).into_iter().collect(),
-            Err(e) => vec![close(e)],
+            Err(e) => vec![refused_output(Refused { link, error: e })],
         }
     }
 
@@ -449,7 +454,8 @@ impl ObjectMachine {
     }
 }
 
-fn close(e: CompositeError) -> ObjectOutput {
+/// What to do about refused pixels: drop a duplicate, close the link that carried the rest.
+fn refused_output(Refused { link, error: e }: Refused) -> ObjectOutput {
     let peer = match &e {
         CompositeError::WrongSender { cert, .. } => cert.clone(),
         CompositeError::NotMyTile { peer, .. }
@@ -462,5 +468,8 @@ fn close(e: CompositeError) -> ObjectOutput {
         | CompositeError::TooManyBytes { peer, .. }
         | CompositeError::OutsideFootprint { peer, .. } => peer.clone(),
     };
-    ObjectOutput::ClosePeer { peer, reason: e.to_string() }
+    match e {
+        CompositeError::Twice { .. } => ObjectOutput::Dropped { peer, reason: e.to_string() },
+        _ => ObjectOutput::ClosePeer { peer, link, reason: e.to_string() },
+    }
 }

@@ -21,7 +21,7 @@ use glam::DVec3;
 use isowall_model::adoption::{AdoptionOutput, BrickAssigner};
 use isowall_model::bricks;
 use isowall_model::codec;
-use isowall_model::composite::{Composited, TileCanvas};
+use isowall_model::composite::{Composited, Layer, PeerPixels, TileCanvas};
 use isowall_model::config::WallConfig;
 use isowall_model::messages::{Message, Role};
 use isowall_model::node_machine::{NodeMachine, NodeOutput};
@@ -363,7 +363,7 @@ impl Sim {
             Ev::Pixels { from, bytes, .. } => {
                 let pixels = codec::decode_pixels(&bytes).expect("the codec's own bytes");
                 let cert = self.nodes[from].name.clone();
-                let out = self.nodes[n].object.peer(now, &cert, pixels);
+                let out = self.nodes[n].object.peer(now, &cert, from as u64, pixels);
                 self.object_outputs(n, out);
             }
             Ev::Timeout { .. } => {
@@ -448,7 +448,9 @@ impl Sim {
                     let out = self.nodes[n].frame.render_done(self.now, c.frame_id, render);
                     self.frame_outputs(n, out);
                 }
-                ObjectOutput::ClosePeer { peer, reason } => self.closed.push((n, peer, reason)),
+                ObjectOutput::ClosePeer { peer, reason, .. } | ObjectOutput::Dropped { peer, reason } => {
+                    self.closed.push((n, peer, reason))
+                }
                 ObjectOutput::Load { brick, .. } => {
                     let d = self.load_time;
                     self.after(d, Ev::LoadDone { node: n, brick });
@@ -626,4 +628,41 @@ fn a_dead_nodes_brick_is_adopted_and_frames_never_wait_for_the_dead() {
     let named: BTreeSet<String> = sim.records.values().flat_map(|r| r.missing.clone()).collect();
     assert_eq!(named, BTreeSet::from(["node2".to_string()]));
     assert!(sim.closed.is_empty(), "{:?}", sim.closed);
+}
+
+/// A peer's second message for a frame is dropped with a reason naming the peer, its connection
+/// left open (a second connection with the same certificate may carry it); pixels that came
+/// early and break the rules once their frame starts close the connection that carried them,
+/// not a newer one of the same certificate.
+#[test]
+fn a_duplicate_is_dropped_and_an_early_refusal_closes_the_link_that_carried_it() {
+    let config = config();
+    let geometry =
+        BrickGeometry { owned: owned(), own: 0, own_bytes: 1000, spacing: DVec3::ONE, halo: [3; 3] };
+    let mut m = ObjectMachine::new(&config, "node0", geometry);
+    let camera = config.camera_for(DVec3::ZERO, DVec3::splat(47.0));
+    let rect = |x| {
+        Layer { x, y: 0, width: 2, height: 2, depth: vec![1.0; 4], rgb8: vec![9; 12] }.encode("t0", false)
+    };
+    let pixels = |frame_id, rects| PeerPixels { frame_id, node: "node1".into(), rects };
+    let closes = |out: &[ObjectOutput]| out.iter().any(|o| matches!(o, ObjectOutput::ClosePeer { .. }));
+    // Frame 1 from node1 on link 1, then again on link 2.
+    let first = m.peer(ms(0), "node1", 1, pixels(1, vec![]));
+    assert!(!closes(&first), "{first:?}");
+    let again = m.peer(ms(1), "node1", 2, pixels(1, vec![]));
+    assert!(
+        matches!(&again[..], [ObjectOutput::Dropped { peer, reason }] if peer == "node1" && reason.contains("twice")),
+        "{again:?}"
+    );
+    // Frame 2's pixels come early on link 2 with more rectangles than node1's one brick may
+    // cover of tile t0; node1 then reconnects (link 3). When frame 2 starts, link 2 is closed.
+    let early = m.peer(ms(2), "node1", 2, pixels(2, vec![rect(0), rect(2)]));
+    assert!(early.is_empty(), "{early:?}");
+    let newer = m.peer(ms(3), "node1", 3, pixels(3, vec![]));
+    assert!(!closes(&newer), "{newer:?}");
+    let (_, out) = m.views(ms(4), 2, camera, [0; 3]);
+    assert!(
+        matches!(&out[..], [ObjectOutput::ClosePeer { peer, link: 2, reason }] if peer == "node1" && reason.contains("rectangles")),
+        "{out:?}"
+    );
 }

@@ -13,7 +13,9 @@
 //!   little) for `days` days ([`DEFAULT_DAYS`]: two years); a new CA for [`CA_DAYS`]. A
 //!   certificate may not outlive the CA that signs it.
 
-use crate::tls::{certificate_params, check_node_names, io, key_mode_problem, TlsError, CONTROLLER};
+use crate::tls::{
+    certificate_params, check_node_names, io, key_mode_problem, unix_now, TlsError, CONTROLLER,
+};
 use rcgen::{BasicConstraints, CertificateParams, DnType, IsCa, Issuer, KeyPair, KeyUsagePurpose};
 use rustls::pki_types::pem::PemObject;
 use rustls::pki_types::CertificateDer;
@@ -186,11 +188,6 @@ fn existing_ca(
     Ok((issuer, ca_not_after))
 }
 
-fn unix_now() -> i64 {
-    let since = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default();
-    i64::try_from(since.as_secs()).unwrap_or(i64::MAX)
-}
-
 fn date_time(unix_seconds: i64) -> Result<OffsetDateTime, TlsError> {
     OffsetDateTime::from_unix_timestamp(unix_seconds)
         .map_err(|e| TlsError::Validity(format!("the time {unix_seconds} s after 1970: {e}")))
@@ -298,5 +295,47 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let e = keygen(dir.path(), "w", &[], CaMode::New, CA_DAYS + 1).unwrap_err();
         assert!(e.to_string().contains("outside 1..=3650"), "{e}");
+    }
+
+    #[test]
+    fn expired_certificates_are_refused_and_ending_ones_warned_about() {
+        use crate::tls::{certificate_report, validity_at, Identity};
+        let dir = tempfile::tempdir().unwrap();
+        // `keygen --days 1`: loading and check-config warn about node0's and the controller's.
+        keygen(dir.path(), "w", &names(&["node0"]), CaMode::New, 1).unwrap();
+        let (node_pem, ca_pem) = (dir.path().join("node0.pem"), dir.path().join("ca.pem"));
+        let der = |p: &Path| CertificateDer::from_pem_slice(&std::fs::read(p).unwrap()).unwrap();
+        let now = unix_now();
+        let w = validity_at(&node_pem, false, &der(&node_pem), now).unwrap().expect("a warning");
+        assert!(w.contains("node0.pem: the certificate expires on") && w.contains("in 1 day:"), "{w}");
+        assert!(w.contains("--renew"), "{w}");
+        assert_eq!(validity_at(&ca_pem, true, &der(&ca_pem), now).unwrap(), None, "the CA ends in 10 years");
+        let warned = certificate_report(dir.path(), &names(&["node0"]), now).unwrap();
+        assert_eq!(warned.len(), 2, "{warned:?}");
+        assert!(Identity::load(dir.path(), "node0").is_ok(), "ending soon still loads");
+        // Two days later: refused, naming the file and the date.
+        let e = validity_at(&node_pem, false, &der(&node_pem), now + 2 * 86_400).unwrap_err();
+        assert!(matches!(&e, TlsError::Expired { path, .. } if *path == node_pem), "{e}");
+        assert!(e.to_string().contains("expired on") && e.to_string().contains("--renew"), "{e}");
+        let e = certificate_report(dir.path(), &names(&["node0"]), now + 2 * 86_400).unwrap_err();
+        assert_eq!(e.lines().count(), 2, "{e}");
+        // The CA, 11 years on: refused, with the way to a new one.
+        let e = validity_at(&ca_pem, true, &der(&ca_pem), now + 11 * 365 * 86_400).unwrap_err();
+        assert!(e.to_string().contains("the wall CA expired on") && e.to_string().contains("--force"), "{e}");
+        // A certificate the CA signed that ended yesterday is refused at load, and one valid only
+        // from tomorrow too.
+        let (issuer, _) = existing_ca(&ca_pem, &dir.path().join("ca.key")).unwrap();
+        for (from, to, says) in [(-10, -1, "expired on"), (1, 10, "is not valid before")] {
+            let key = KeyPair::generate().unwrap();
+            let mut params = certificate_params("node0").unwrap();
+            params.not_before = date_time(now + from * 86_400).unwrap();
+            params.not_after = date_time(now + to * 86_400).unwrap();
+            let cert = params.signed_by(&key, &issuer).unwrap();
+            write_atomically(&node_pem, cert.pem().as_bytes(), CERT_MODE).unwrap();
+            write_atomically(&dir.path().join("node0.key"), key.serialize_pem().as_bytes(), KEY_MODE)
+                .unwrap();
+            let e = Identity::load(dir.path(), "node0").err().expect("refused").to_string();
+            assert!(e.contains("node0.pem") && e.contains(says), "{e}");
+        }
     }
 }

@@ -15,7 +15,7 @@ use isowall_model::codec;
 use isowall_model::composite::PeerPixels;
 use std::collections::HashMap;
 use std::net::SocketAddr;
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -25,14 +25,35 @@ pub const SENDS_IN_FLIGHT: usize = 4;
 /// The QUIC application error code of a stream stopped or reset on a deadline.
 const STREAM_DEADLINE: u32 = 2;
 
-/// A peer's connection, to close when what it sends breaks the rules.
+/// A peer's connection, to close when what it sends breaks the rules, and its link number: a
+/// counter stamped when it was accepted, never reused (the model's `composite::Link`), so what it
+/// carried is told apart from what a newer connection of the same certificate carries.
 #[derive(Clone, Debug)]
-pub struct PeerConnection(quinn::Connection);
+pub struct PeerConnection {
+    connection: quinn::Connection,
+    link: isowall_model::links::Link,
+}
+
+/// The next link number of an accepted peer connection.
+static NEXT_LINK: AtomicU64 = AtomicU64::new(1);
 
 impl PeerConnection {
+    fn new(connection: quinn::Connection) -> PeerConnection {
+        PeerConnection { connection, link: NEXT_LINK.fetch_add(1, Ordering::Relaxed) }
+    }
+
     /// Closes the connection with a reason the peer reads.
     pub fn close(&self, reason: &str) {
-        transport::close(&self.0, reason);
+        transport::close(&self.connection, reason);
+    }
+
+    pub fn link(&self) -> isowall_model::links::Link {
+        self.link
+    }
+
+    /// Whether the connection is still open.
+    pub fn is_open(&self) -> bool {
+        self.connection.close_reason().is_none()
     }
 }
 
@@ -163,7 +184,8 @@ impl PixelInbox {
                 transport::close(&conn, "only the controller and the wall's other nodes may connect");
                 return;
             };
-            tracing::info!(peer = %cert, %remote, "peer connected (object space)");
+            let peer = PeerConnection::new(conn.clone());
+            tracing::info!(peer = %cert, %remote, link = peer.link, "peer connected (object space)");
             loop {
                 let mut stream = match conn.accept_uni().await {
                     Ok(s) => s,
@@ -192,11 +214,7 @@ impl PixelInbox {
                 };
                 match codec::decode_pixels(&bytes) {
                     Ok(pixels) => {
-                        let item = PeerPixelsIn {
-                            cert: cert.clone(),
-                            connection: PeerConnection(conn.clone()),
-                            pixels,
-                        };
+                        let item = PeerPixelsIn { cert: cert.clone(), connection: peer.clone(), pixels };
                         if me.tx.send(item).await.is_err() {
                             return;
                         }

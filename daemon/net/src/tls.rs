@@ -16,6 +16,11 @@
 //!
 //! A private key is loaded only when no one but its owner may read or write it (mode 0600 or
 //! 0400): [`Identity::load`] refuses a key open to its group or to others, naming the file.
+//!
+//! Validity ([`validity_at`]): [`Identity::load`] refuses a certificate or CA that has expired
+//! or is not valid yet, naming the file and the date, and warns (tracing) about one that ends
+//! within [`EXPIRY_WARNING_DAYS`]; `check-config` says the same of every certificate of the
+//! wall it finds ([`certificate_report`]).
 
 use rustls::pki_types::pem::PemObject;
 use rustls::pki_types::{CertificateDer, PrivateKeyDer};
@@ -59,6 +64,93 @@ pub enum TlsError {
     KeyOpen { path: PathBuf, mode: u32 },
     #[error("{}: the private key does not belong to the certificate {}", key.display(), cert.display())]
     KeyMismatch { cert: PathBuf, key: PathBuf },
+    #[error("{}: {what} expired on {until} (UTC): {renew}", path.display())]
+    Expired { path: PathBuf, what: &'static str, until: String, renew: &'static str },
+    #[error(
+        "{}: {what} is not valid before {from} (UTC): is this machine's clock right?", path.display()
+    )]
+    NotYetValid { path: PathBuf, what: &'static str, from: String },
+}
+
+/// A certificate that ends within this many days is warned about.
+pub const EXPIRY_WARNING_DAYS: i64 = 30;
+
+/// What renews a certificate, and the CA.
+const RENEW: &str = "`isowall keygen --renew --config FILE` issues the certificates again from the CA (copy \
+                     each node its new files)";
+const RENEW_CA: &str = "`isowall keygen --force --config FILE` makes a new CA and certificates (copy every \
+                        node its new files)";
+
+/// Where `path`'s certificate (`der`; `ca`: the wall CA) stands at `now` (Unix seconds): an
+/// error when it has expired or is not valid yet, a warning (`Some`) when it ends within
+/// [`EXPIRY_WARNING_DAYS`].
+pub fn validity_at(path: &Path, ca: bool, der: &[u8], now: i64) -> Result<Option<String>, TlsError> {
+    let what = if ca { "the wall CA" } else { "the certificate" };
+    let renew = if ca { RENEW_CA } else { RENEW };
+    let (_, x509) = x509_parser::parse_x509_certificate(der).map_err(|e| TlsError::Pem {
+        path: path.to_owned(),
+        what: "certificate",
+        reason: e.to_string(),
+    })?;
+    let v = x509.validity();
+    let day = |t: &x509_parser::time::ASN1Time| t.to_datetime().date().to_string();
+    if now < v.not_before.timestamp() {
+        return Err(TlsError::NotYetValid { path: path.to_owned(), what, from: day(&v.not_before) });
+    }
+    let left = v.not_after.timestamp() - now;
+    if left < 0 {
+        return Err(TlsError::Expired { path: path.to_owned(), what, until: day(&v.not_after), renew });
+    }
+    // Whole days left, a part of a day counted as one.
+    let days = (left + 86_399) / 86_400;
+    Ok((left < EXPIRY_WARNING_DAYS * 86_400).then(|| {
+        format!(
+            "{}: {what} expires on {} (UTC), in {days} day{}: {renew}",
+            path.display(),
+            day(&v.not_after),
+            if days == 1 { "" } else { "s" }
+        )
+    }))
+}
+
+/// The seconds since 1970 now.
+pub(crate) fn unix_now() -> i64 {
+    let since = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default();
+    i64::try_from(since.as_secs()).unwrap_or(i64::MAX)
+}
+
+/// `check-config`'s lines on the certificates of `config`'s wall in its certificate folder, now
+/// ([`certificate_report`]).
+pub fn check_wall_certificates(config: &isowall_model::WallConfig) -> Result<Vec<String>, String> {
+    let names: Vec<String> = config.nodes.iter().map(|n| n.name.clone()).collect();
+    certificate_report(&config.cert_dir(), &names, unix_now())
+}
+
+/// `check-config`'s lines on the wall's certificates in `dir` (the CA, each of `names`' and the
+/// controller's, those present: a folder keygen has not written yet says nothing) at `now`: a
+/// warning per certificate that ends soon; an error (every problem, one a line) when one has
+/// expired, is not valid yet or cannot be read.
+pub fn certificate_report(dir: &Path, names: &[String], now: i64) -> Result<Vec<String>, String> {
+    let (mut warnings, mut problems) = (Vec::new(), Vec::new());
+    let files = std::iter::once(("ca".to_string(), true))
+        .chain(names.iter().map(|n| (n.clone(), false)))
+        .chain(std::iter::once((CONTROLLER.to_string(), false)));
+    for (name, ca) in files {
+        let path = dir.join(format!("{name}.pem"));
+        if !path.exists() {
+            continue;
+        }
+        match read_cert(&path).and_then(|der| validity_at(&path, ca, &der, now)) {
+            Ok(Some(w)) => warnings.push(w),
+            Ok(None) => {}
+            Err(e) => problems.push(e.to_string()),
+        }
+    }
+    if problems.is_empty() {
+        Ok(warnings)
+    } else {
+        Err(problems.join("\n"))
+    }
 }
 
 pub(crate) fn io(path: &Path) -> impl FnOnce(std::io::Error) -> TlsError + '_ {
@@ -137,8 +229,15 @@ impl Identity {
     /// no one but its owner may read it.
     pub fn load(dir: &Path, name: &str) -> Result<Identity, TlsError> {
         check_name(name)?;
-        let ca = read_cert(&dir.join("ca.pem"))?;
-        let cert = read_cert(&dir.join(format!("{name}.pem")))?;
+        let (ca_path, cert_path) = (dir.join("ca.pem"), dir.join(format!("{name}.pem")));
+        let ca = read_cert(&ca_path)?;
+        let cert = read_cert(&cert_path)?;
+        let now = unix_now();
+        for (path, is_ca, der) in [(&ca_path, true, &ca), (&cert_path, false, &cert)] {
+            if let Some(warning) = validity_at(path, is_ca, der, now)? {
+                tracing::warn!("{warning}");
+            }
+        }
         let key_path = dir.join(format!("{name}.key"));
         key_mode_problem(&key_path)?;
         let bytes = std::fs::read(&key_path).map_err(io(&key_path))?;

@@ -353,7 +353,7 @@ impl Sim {
                     let scale = self.scale();
                     self.share(f, n).merged_pixels += merged * scale;
                     let cert = self.names[from].clone();
-                    let out = self.machines[n].peer(now, &cert, pixels);
+                    let out = self.machines[n].peer(now, &cert, from as u64, pixels);
                     self.outputs(now, n, out);
                 }
                 Err(e) => {
@@ -384,7 +384,7 @@ impl Sim {
                         self.events.push(now + Duration::from_millis(1), Ev::Begin { frame: c.frame_id + 1 });
                     }
                 }
-                ObjectOutput::ClosePeer { peer, reason } => {
+                ObjectOutput::ClosePeer { peer, reason, .. } | ObjectOutput::Dropped { peer, reason } => {
                     self.errors.push(format!("{} closed {peer}: {reason}", self.names[n]))
                 }
                 other => self.errors.push(format!("{}: unexpected {other:?}", self.names[n])),
