@@ -2,7 +2,10 @@
 //! read-only, 4xx on bad input with nothing changed), and its page in a real browser (Debian's
 //! chromium driven through chromedriver with fantoccini): a local 2x2 wall comes up, the page shows
 //! its thumbnail and four nodes up, the iso slider changes the picture and the status, a killed
-//! node's card turns down and comes back up when the node is restarted.
+//! node's card turns down and comes back up when the node is restarted. On a wall of time steps
+//! (a glob of NRRD files), `POST /api/time` sets the step (the status and the next snapshot show
+//! it), plays and pauses, and refuses an out-of-range step or rate naming the field; the page shows
+//! its time controls there (hidden for one step) and its play button plays the wall.
 //!
 //! The browser test also prints what the page costs (run it with `--nocapture`): the thumbnail's
 //! latency (swap released -> painted in the page), fps without and with the page open, and the
@@ -658,4 +661,40 @@ async fn the_page_shows_the_wall_its_nodes_and_drives_it_in_a_real_browser() {
         back.as_secs_f64() * 1e3
     );
     eprintln!("  screenshot: {}", out.join("console.png").display());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_page_shows_time_controls_for_time_steps_and_plays_them() {
+    let Some((driver, chromium)) = driver() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    write_ball_steps(dir.path(), 4);
+    let config = wall(dir.path(), 1, (48, 36), 20000);
+    set_ball_steps_source(&config);
+    let (d, c) = (dir.path().to_path_buf(), config.clone());
+    let Some(con) =
+        tokio::task::spawn_blocking(move || Console::start(&d, &c, &["--local"], None)).await.unwrap()
+    else {
+        return;
+    };
+    let con = std::sync::Arc::new(con);
+    let page = browser(&driver, &chromium, &dir.path().join("chromium-profile")).await;
+    page.goto(&format!("{}/", con.base)).await.unwrap();
+    until(&page, "document.getElementById('time').hidden === false", Duration::from_secs(60)).await;
+    assert_eq!(js(&page, "document.getElementById('step').max").await, "3");
+    assert_eq!(js(&page, "document.getElementById('play').textContent").await, "play");
+    // The play button: the wall plays (the status says so and the step moves), the button says pause.
+    page.find(fantoccini::Locator::Id("play")).await.unwrap().click().await.unwrap();
+    let con2 = con.clone();
+    tokio::task::spawn_blocking(move || {
+        wait_time(&con2, "playing after the page's play button", |t| t["playing"] == true && t["step"] != 0)
+    })
+    .await
+    .unwrap();
+    until(&page, "document.getElementById('play').textContent === 'pause'", Duration::from_secs(10)).await;
+    page.find(fantoccini::Locator::Id("play")).await.unwrap().click().await.unwrap();
+    let con2 = con.clone();
+    tokio::task::spawn_blocking(move || wait_time(&con2, "paused by the page", |t| t["playing"] == false))
+        .await
+        .unwrap();
+    page.close().await.unwrap();
 }
