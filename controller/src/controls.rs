@@ -245,6 +245,12 @@ impl Playback {
         self.phase = 0.0;
     }
 
+    /// Shows `step` (wrapped into the steps); the phase starts again.
+    pub fn show(&mut self, step: u32) {
+        self.step = step % self.steps.max(1);
+        self.phase = 0.0;
+    }
+
     /// Doubles (+) or halves (-) the rate, within MIN_RATE..=MAX_RATE.
     pub fn change_rate(&mut self, sign: i8) {
         let r = if sign > 0 { self.rate * 2.0 } else { self.rate / 2.0 };
@@ -398,6 +404,11 @@ mod tests {
         assert_eq!(p.step, 14);
         p.step_by(1);
         assert_eq!(p.step, 15);
+        p.show(3);
+        assert_eq!(p.step, 3);
+        p.show(17);
+        assert_eq!(p.step, 1, "wraps");
+        p.show(15);
         p.change_rate(1);
         assert_eq!(p.rate, 8.0);
         for _ in 0..20 {

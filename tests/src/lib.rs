@@ -301,6 +301,39 @@ pub fn wall_config(
     path
 }
 
+/// Writes `steps` time steps `dir/steps/step_KK.nrrd`: 24^3 float voxels with spacing 2 (the box
+/// 0..46, in [`wall_config`]'s camera view), f = 1 - |p - c| / 30 (a ball of radius 15 at iso 0.5)
+/// whose centre moves 5 world units along x each step.
+pub fn write_ball_steps(dir: &Path, steps: usize) {
+    std::fs::create_dir_all(dir.join("steps")).unwrap();
+    for k in 0..steps {
+        let c = [12.0 + 5.0 * k as f32, 23.0, 23.0];
+        let mut bytes =
+            b"NRRD0004\ntype: float\ndimension: 3\nsizes: 24 24 24\nspacings: 2 2 2\nendian: little\nencoding: raw\n\n"
+                .to_vec();
+        for z in 0..24 {
+            for y in 0..24 {
+                for x in 0..24 {
+                    let p = [2.0 * x as f32, 2.0 * y as f32, 2.0 * z as f32];
+                    let d = ((p[0] - c[0]).powi(2) + (p[1] - c[1]).powi(2) + (p[2] - c[2]).powi(2)).sqrt();
+                    bytes.extend((1.0 - d / 30.0).to_le_bytes());
+                }
+            }
+        }
+        std::fs::write(dir.join(format!("steps/step_{k:02}.nrrd")), bytes).unwrap();
+    }
+}
+
+/// Makes the wall config at `path` a time-varying wall: `source = "steps/step_*.nrrd"` (see
+/// [`write_ball_steps`]) at iso 0.5, in place of [`wall_config`]'s torus.
+pub fn set_ball_steps_source(path: &Path) {
+    let text = std::fs::read_to_string(path).expect("the wall config");
+    let old = "source = \"procedural:torus:48\"";
+    assert!(text.contains(old), "{} has no torus source", path.display());
+    std::fs::write(path, text.replace(old, "source = \"steps/step_*.nrrd\"\niso = 0.5"))
+        .expect("write the config");
+}
+
 /// Makes the wall config at `path` an object-space wall (`[wall] mode = "object"`).
 pub fn set_object_mode(path: &Path) {
     let text = std::fs::read_to_string(path).expect("the wall config");

@@ -2,14 +2,19 @@
 //! read-only, 4xx on bad input with nothing changed), and its page in a real browser (Debian's
 //! chromium driven through chromedriver with fantoccini): a local 2x2 wall comes up, the page shows
 //! its thumbnail and four nodes up, the iso slider changes the picture and the status, a killed
-//! node's card turns down and comes back up when the node is restarted.
+//! node's card turns down and comes back up when the node is restarted. On a wall of time steps
+//! (a glob of NRRD files), `POST /api/time` sets the step (the status and the next snapshot show
+//! it), plays and pauses, and refuses an out-of-range step or rate naming the field; the page shows
+//! its time controls there (hidden for one step) and its play button plays the wall.
 //!
 //! The browser test also prints what the page costs (run it with `--nocapture`): the thumbnail's
 //! latency (swap released -> painted in the page), fps without and with the page open, and the
 //! bytes per second the page costs the wall and the console. With `CI=true` a missing chromium
 //! or chromedriver fails the test instead of skipping it.
 
-use isowall_e2e::{bin, free_udp_ports, in_ci, run_in, wall_config, Daemon};
+use isowall_e2e::{
+    bin, free_udp_ports, in_ci, run_in, set_ball_steps_source, wall_config, write_ball_steps, Daemon,
+};
 use serde_json::Value;
 use std::io::{BufRead, BufReader, Read, Write};
 use std::path::{Path, PathBuf};
@@ -209,7 +214,7 @@ fn the_api_refuses_missing_tokens_and_bad_input_and_changes_nothing() {
     let before = con.status();
     let (lo, hi) = (before["volume"]["min"].as_f64().unwrap(), before["volume"]["max"].as_f64().unwrap());
     // Bad input: a 4xx with the reason, naming the field where there is one.
-    let cases: [(&str, &str, &str, u16, &str); 8] = [
+    let cases: [(&str, &str, &str, u16, &str); 10] = [
         ("/api/render", "application/json", "{\"iso\": ", 400, "EOF"),
         ("/api/render", "application/json", "{\"isovalue\": 1}", 422, "unknown field `isovalue`"),
         ("/api/render", "application/json", "{\"ibl\": \"mirror\"}", 422, "unknown variant `mirror`"),
@@ -218,6 +223,8 @@ fn the_api_refuses_missing_tokens_and_bad_input_and_changes_nothing() {
         ("/api/render", "application/json", "{\"ao_samples\": 100000}", 422, "is more than 1024"),
         ("/api/render", "application/json", "{\"exposure\": -2}", 422, "`exposure` -2 must be"),
         ("/api/camera", "application/json", "{\"zoom\": 0}", 422, "`zoom` 0 is not a factor"),
+        ("/api/time", "application/json", "{\"play\": \"play\"}", 422, "one time step, nothing to play"),
+        ("/api/time", "application/json", "{\"step\": 1}", 422, "the volume has 1 time step (0..=0)"),
     ];
     for (path, kind, body, status, says) in cases {
         let r = con.post_as(path, kind, body);
@@ -244,6 +251,7 @@ fn the_api_refuses_missing_tokens_and_bad_input_and_changes_nothing() {
     std::thread::sleep(Duration::from_millis(300));
     let after = con.status();
     assert_eq!(after["render"], before["render"]);
+    assert_eq!((after["time"]["steps"].as_u64(), after["time"]["playing"].as_bool()), (Some(1), Some(false)));
     // A valid change is applied, and the thumbnail is the wall's size over the divisor.
     assert_eq!(con.post("/api/render", "{\"ao_samples\": 2, \"exposure\": 0.9}").status, 200);
     let give_up = Instant::now() + Duration::from_secs(30);
@@ -279,7 +287,11 @@ fn a_read_only_console_shows_but_refuses_changes() {
     let Some(con) = Console::start(dir.path(), &config, &["--local", "--read-only"], None) else { return };
     let before = con.status();
     assert_eq!(before["console"]["read_only"], true);
-    for (path, body) in [("/api/render", "{\"iso\": 0.0}"), ("/api/camera", "{\"orbit\": \"play\"}")] {
+    for (path, body) in [
+        ("/api/render", "{\"iso\": 0.0}"),
+        ("/api/camera", "{\"orbit\": \"play\"}"),
+        ("/api/time", "{\"step\": 0}"),
+    ] {
         let r = con.post(path, body);
         assert_eq!(r.status, 403, "{path}");
         assert!(r.json()["error"].as_str().unwrap().contains("read-only"));
@@ -299,6 +311,92 @@ fn a_read_only_console_shows_but_refuses_changes() {
         (after["render"].clone(), after["orbit"]["playing"].clone()),
         (before["render"].clone(), false.into())
     );
+}
+
+/// The whole wall's pixels, as `GET /api/snapshot.png` gives them.
+fn snapshot(con: &Console) -> image::RgbImage {
+    let r = con.get("/api/snapshot.png");
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    image::load_from_memory(&r.body).expect("a PNG").to_rgb8()
+}
+
+/// Pixels of two images of the same size whose channels differ by more than 32 levels.
+fn changed_pixels(a: &image::RgbImage, b: &image::RgbImage) -> usize {
+    assert_eq!(a.dimensions(), b.dimensions());
+    a.pixels().zip(b.pixels()).filter(|(p, q)| p.0.iter().zip(q.0).any(|(x, y)| x.abs_diff(y) > 32)).count()
+}
+
+/// Polls the status until `done` holds of its `time` block (30 s at most).
+fn wait_time(con: &Console, what: &str, done: impl Fn(&Value) -> bool) -> Value {
+    let give_up = Instant::now() + Duration::from_secs(30);
+    loop {
+        let t = con.status()["time"].clone();
+        if done(&t) {
+            return t;
+        }
+        assert!(Instant::now() < give_up, "{what}: the status says {t}");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+#[test]
+fn the_api_shows_and_sets_the_time_step_of_a_time_varying_volume() {
+    let dir = tempfile::tempdir().unwrap();
+    write_ball_steps(dir.path(), 4);
+    let config = wall(dir.path(), 1, (48, 36), 20000);
+    set_ball_steps_source(&config);
+    let Some(con) = Console::start(dir.path(), &config, &["--local"], None) else { return };
+    let t = con.status()["time"].clone();
+    assert_eq!(
+        (t["steps"].as_u64(), t["step"].as_u64(), t["playing"].as_bool(), t["rate"].as_f64()),
+        (Some(4), Some(0), Some(false), Some(4.0)),
+        "{t}"
+    );
+    // Two pictures of step 0: how much a still frame changes by itself (AO refining).
+    let still_a = snapshot(&con);
+    std::thread::sleep(Duration::from_millis(300));
+    let still_b = snapshot(&con);
+    let noise = changed_pixels(&still_a, &still_b);
+    // Refusals name the field and change nothing.
+    for (body, field, says) in [
+        ("{\"step\": 4}", "step", "`step` 4 is out of range: the volume has 4 time steps (0..=3)"),
+        ("{\"step\": 1, \"rate\": 0}", "rate", "`rate` 0 is not a number of steps per second"),
+        ("{\"rate\": 1e6, \"play\": \"play\"}", "rate", "`rate` 1000000"),
+    ] {
+        let r = con.post("/api/time", body);
+        let text = String::from_utf8_lossy(&r.body).to_string();
+        assert_eq!((r.status, r.json()["field"].as_str()), (422, Some(field)), "{body}: {text}");
+        assert!(text.contains(says), "{body}: {text}");
+    }
+    let r = con.post("/api/time", "{\"step\": -1}");
+    assert_eq!(r.status, 422, "{}", String::from_utf8_lossy(&r.body));
+    std::thread::sleep(Duration::from_millis(300));
+    let t = con.status()["time"].clone();
+    assert_eq!(
+        (t["step"].as_u64(), t["playing"].as_bool(), t["rate"].as_f64()),
+        (Some(0), Some(false), Some(4.0))
+    );
+    // Step 2: the status reports it and the wall shows it (the ball 10 units on).
+    let r = con.post("/api/time", "{\"step\": 2}");
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    wait_time(&con, "step 2", |t| t["step"] == 2 && t["playing"] == false);
+    let give_up = Instant::now() + Duration::from_secs(30);
+    let moved = loop {
+        let n = changed_pixels(&still_b, &snapshot(&con));
+        if n > 3 * noise + 40 {
+            break n;
+        }
+        assert!(Instant::now() < give_up, "step 2 looks like step 0: {n} pixels changed, {noise} by noise");
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    eprintln!("step 0 -> 2: {moved} pixels changed ({noise} between two stills of step 0)");
+    // Play at 8 steps a second: the step moves on by itself; paused, it stays.
+    assert_eq!(con.post("/api/time", "{\"play\": \"play\", \"rate\": 8}").status, 200);
+    wait_time(&con, "playing from step 2", |t| t["playing"] == true && t["rate"] == 8.0 && t["step"] != 2);
+    assert_eq!(con.post("/api/time", "{\"play\": \"pause\", \"step\": 1}").status, 200);
+    let t = wait_time(&con, "paused at step 1", |t| t["playing"] == false && t["step"] == 1);
+    std::thread::sleep(Duration::from_millis(500));
+    assert_eq!(con.status()["time"]["step"], t["step"], "paused, the step stays");
 }
 
 // ---- the browser ----
@@ -454,6 +552,10 @@ async fn the_page_shows_the_wall_its_nodes_and_drives_it_in_a_real_browser() {
     .await;
     let status = con.status();
     assert_eq!(status["nodes"].as_array().unwrap().len(), 4);
+    // A volume without time steps: no time controls.
+    assert_eq!(status["time"]["steps"], 1);
+    assert_eq!(js(&page, "document.getElementById('time').hidden").await, Value::Bool(true));
+    assert_eq!(js(&page, "document.getElementById('orbit').offsetParent !== null").await, Value::Bool(true));
 
     // With the page open (it polls the thumbnail and gets the live status).
     let (fps_page, a1, b1) = measure(10).await.unwrap();
@@ -559,4 +661,40 @@ async fn the_page_shows_the_wall_its_nodes_and_drives_it_in_a_real_browser() {
         back.as_secs_f64() * 1e3
     );
     eprintln!("  screenshot: {}", out.join("console.png").display());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_page_shows_time_controls_for_time_steps_and_plays_them() {
+    let Some((driver, chromium)) = driver() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    write_ball_steps(dir.path(), 4);
+    let config = wall(dir.path(), 1, (48, 36), 20000);
+    set_ball_steps_source(&config);
+    let (d, c) = (dir.path().to_path_buf(), config.clone());
+    let Some(con) =
+        tokio::task::spawn_blocking(move || Console::start(&d, &c, &["--local"], None)).await.unwrap()
+    else {
+        return;
+    };
+    let con = std::sync::Arc::new(con);
+    let page = browser(&driver, &chromium, &dir.path().join("chromium-profile")).await;
+    page.goto(&format!("{}/", con.base)).await.unwrap();
+    until(&page, "document.getElementById('time').hidden === false", Duration::from_secs(60)).await;
+    assert_eq!(js(&page, "document.getElementById('step').max").await, "3");
+    assert_eq!(js(&page, "document.getElementById('play').textContent").await, "play");
+    // The play button: the wall plays (the status says so and the step moves), the button says pause.
+    page.find(fantoccini::Locator::Id("play")).await.unwrap().click().await.unwrap();
+    let con2 = con.clone();
+    tokio::task::spawn_blocking(move || {
+        wait_time(&con2, "playing after the page's play button", |t| t["playing"] == true && t["step"] != 0)
+    })
+    .await
+    .unwrap();
+    until(&page, "document.getElementById('play').textContent === 'pause'", Duration::from_secs(10)).await;
+    page.find(fantoccini::Locator::Id("play")).await.unwrap().click().await.unwrap();
+    let con2 = con.clone();
+    tokio::task::spawn_blocking(move || wait_time(&con2, "paused by the page", |t| t["playing"] == false))
+        .await
+        .unwrap();
+    page.close().await.unwrap();
 }

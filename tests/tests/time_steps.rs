@@ -3,43 +3,20 @@
 //! of its step (`isowalld render --step N`), so every node rendered the frame's own step, and the
 //! frames of different steps differ.
 
-use isowall_e2e::{compare_tiles, free_udp_ports, gpu_ok, in_bezel_2x2, render_whole, run_in, wall_config};
-use std::path::Path;
+use isowall_e2e::{
+    compare_tiles, free_udp_ports, gpu_ok, in_bezel_2x2, render_whole, run_in, set_ball_steps_source,
+    wall_config, write_ball_steps,
+};
 
 const STEPS: usize = 4;
-
-/// Writes `STEPS` time steps `dir/steps/step_K.nrrd`: 24^3 float voxels with spacing 2 (the box
-/// 0..46, in the wall camera's view), f = 1 - |p - c| / 30 (a ball of radius 15 at iso 0.5)
-/// whose centre moves 5 world units along x each step.
-fn write_steps(dir: &Path) {
-    std::fs::create_dir_all(dir.join("steps")).unwrap();
-    for k in 0..STEPS {
-        let c = [12.0 + 5.0 * k as f32, 23.0, 23.0];
-        let mut bytes =
-            b"NRRD0004\ntype: float\ndimension: 3\nsizes: 24 24 24\nspacings: 2 2 2\nendian: little\nencoding: raw\n\n"
-                .to_vec();
-        for z in 0..24 {
-            for y in 0..24 {
-                for x in 0..24 {
-                    let p = [2.0 * x as f32, 2.0 * y as f32, 2.0 * z as f32];
-                    let d = ((p[0] - c[0]).powi(2) + (p[1] - c[1]).powi(2) + (p[2] - c[2]).powi(2)).sqrt();
-                    bytes.extend((1.0 - d / 30.0).to_le_bytes());
-                }
-            }
-        }
-        std::fs::write(dir.join(format!("steps/step_{k:02}.nrrd")), bytes).unwrap();
-    }
-}
 
 #[test]
 fn a_2x2_wall_renders_every_frames_time_step_on_every_node() {
     let dir = tempfile::tempdir().unwrap();
-    write_steps(dir.path());
+    write_ball_steps(dir.path(), STEPS);
     let (w, h, bezel) = (40u32, 30u32, 3u32);
     let config = wall_config(dir.path(), "steps", &free_udp_ports(4), w, h, bezel, 60_000, "keys");
-    let text = std::fs::read_to_string(&config).unwrap();
-    let text = text.replace("source = \"procedural:torus:48\"", "source = \"steps/step_*.nrrd\"\niso = 0.5");
-    std::fs::write(&config, text).unwrap();
+    set_ball_steps_source(&config);
     // The wall camera all along; one step a second at 1 fps: frame k shows step k.
     let key = "eye = [60, -70, 45]\ntarget = [23.5, 23.5, 23.5]";
     let last = STEPS - 1;

@@ -6,6 +6,7 @@
 //!   `X-Isowall-Frame-Age-Ms` (since its swap was released); `?download=1` names it as a file;
 //! - `POST /api/render`: a partial set of render settings (`patch::RenderPatch`);
 //! - `POST /api/camera`: camera moves, orbit and demo path (`patch::CameraPatch`);
+//! - `POST /api/time`: a time-varying volume's step, play or pause and rate (`patch::TimePatch`);
 //! - `GET /api/live`: a WebSocket pushing the status, `?hz=` times a second (1..=10, default 4).
 //!
 //! Refusals are JSON `{"error": REASON, "field": FIELD}` with a 4xx status, and change nothing.
@@ -15,7 +16,7 @@
 //! cross-site form cannot send one).
 
 use super::frame_loop::Command;
-use super::patch::{CameraPatch, Refusal, RenderPatch};
+use super::patch::{CameraPatch, Refusal, RenderPatch, TimePatch};
 use super::status::Status;
 use super::Access;
 use axum::body::Body;
@@ -115,6 +116,7 @@ pub fn router(shared: Arc<Shared>) -> Router {
         .route("/api/snapshot.png", get(snapshot))
         .route("/api/render", post(render))
         .route("/api/camera", post(camera))
+        .route("/api/time", post(time))
         .route("/api/live", get(live))
         .layer(axum::middleware::from_fn_with_state(shared.clone(), authorize));
     Router::new()
@@ -313,6 +315,16 @@ async fn camera(
     read_only(&shared)?;
     let Json(patch) = body.map_err(bad_json)?;
     ask(&shared, |tx| Command::Camera(patch, tx)).await?;
+    Ok(Json(serde_json::json!({ "ok": true })).into_response())
+}
+
+async fn time(
+    State(shared): State<Arc<Shared>>,
+    body: Result<Json<TimePatch>, JsonRejection>,
+) -> Result<Response, ApiError> {
+    read_only(&shared)?;
+    let Json(patch) = body.map_err(bad_json)?;
+    ask(&shared, |tx| Command::Time(patch, tx)).await?;
     Ok(Json(serde_json::json!({ "ok": true })).into_response())
 }
 

@@ -3,7 +3,7 @@
 //! for downscaled thumbnails only when a page wants one, and publishes the [`Status`].
 
 use super::api::{ApiError, Picture, Shared};
-use super::patch::{CameraPatch, Controls, RenderPatch};
+use super::patch::{CameraPatch, Controls, RenderPatch, TimePatch};
 use super::status::{self, NodeHealth, Status};
 use crate::controls::SessionState;
 use crate::local::LocalDaemons;
@@ -31,6 +31,7 @@ const PUBLISH_EVERY: Duration = Duration::from_millis(100);
 pub enum Command {
     Render(RenderPatch, oneshot::Sender<Result<(), ApiError>>),
     Camera(CameraPatch, oneshot::Sender<Result<(), ApiError>>),
+    Time(TimePatch, oneshot::Sender<Result<(), ApiError>>),
     /// A whole-wall PNG: `width` for a thumbnail at most that wide, `None` for full resolution.
     Snapshot(Option<u32>, oneshot::Sender<Result<Picture, ApiError>>),
 }
@@ -40,6 +41,8 @@ pub struct Scene {
     pub camera: Camera,
     pub settings: RenderSettings,
     pub range: (f64, f64),
+    /// The volume's time steps (1: none to play).
+    pub steps: u32,
     pub demo: Option<(PathBuf, CameraPath)>,
 }
 
@@ -95,8 +98,10 @@ pub async fn run(
 ) -> Result<()> {
     wall.sync_clocks(5).await;
     let now = Instant::now();
+    let mut session = SessionState::new(scene.camera, scene.settings, scene.range);
+    session.playback.steps = scene.steps.max(1);
     let controls = Controls {
-        session: SessionState::new(scene.camera, scene.settings, scene.range),
+        session,
         home: scene.camera,
         range: scene.range,
         env: wall.config.render.env.clone(),
@@ -142,6 +147,7 @@ pub async fn run(
         moved |= me.advance(dt);
         let settings = me.frame_settings(&mut wall);
         let camera = me.controls.session.camera;
+        wall.time_step = me.controls.session.playback.step;
         if let Err(e) = wall.frame(&camera, &settings).await {
             tracing::warn!("console: no frame: {e:#}");
             me.after_frame(&mut wall, &mut daemons, false, moved).await;
@@ -175,6 +181,13 @@ impl Loop {
                     self.demo_started = Some(Instant::now());
                 }
                 let moved = r.is_ok();
+                let _ = reply.send(r);
+                moved
+            }
+            Command::Time(p, reply) => {
+                let r = self.controls.apply_time(&p).map_err(ApiError::refused);
+                // A step shown is a new picture (the governor's motion).
+                let moved = r.is_ok() && p.step.is_some();
                 let _ = reply.send(r);
                 moved
             }
@@ -223,7 +236,8 @@ impl Loop {
         self.released_at.iter().find(|(f, _)| *f == id).map(|(_, t)| t.elapsed())
     }
 
-    /// Moves the camera by the orbit or the demo path for `dt` seconds; `true` if it moved.
+    /// Moves the camera and the time step by the demo path, or by the orbit and the playback,
+    /// for `dt` seconds; `true` if the picture moved.
     fn advance(&mut self, dt: f64) -> bool {
         let c = &mut self.controls;
         if c.demo {
@@ -234,14 +248,18 @@ impl Loop {
                 c.session.camera = key.camera();
                 c.session.settings.iso = key.iso;
                 c.session.settings.ao.samples = key.ao_samples;
+                c.session.playback.show(key.step);
                 return true;
             }
         }
+        let step = c.session.playback.step;
+        c.session.playback.advance(dt);
+        let stepped = c.session.playback.step != step;
         if c.orbit {
             c.session.orbit_yaw(c.orbit_degrees_per_second * dt);
             return true;
         }
-        false
+        stepped
     }
 
     /// The settings of the next frame: the operator's, with the governor's samples and scale.
@@ -468,6 +486,22 @@ impl Loop {
                 path: self.demo_path.as_ref().map(|(p, _)| p.display().to_string()),
                 playing: self.controls.demo,
                 duration_s: self.demo_path.as_ref().map(|(_, p)| p.duration()),
+            },
+            time: {
+                let p = &self.controls.session.playback;
+                let waited = |f: &isowall_model::frame_controller::FrameStats| {
+                    f.per_node.iter().any(|n| n.step_late.is_some())
+                };
+                TimeInfo {
+                    steps: p.steps,
+                    step: p.step,
+                    playing: p.playing,
+                    rate: p.rate,
+                    min_rate: crate::controls::MIN_RATE,
+                    max_rate: crate::controls::MAX_RATE,
+                    waited: wall.finished.last().is_some_and(waited),
+                    frames_waited: wall.finished.iter().filter(|f| waited(f)).count() as u64,
+                }
             },
             nodes,
             console: ConsoleInfo {

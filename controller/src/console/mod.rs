@@ -1,7 +1,7 @@
 //! `isowall console CONFIG`: the controller's frame loop (as `isowall session` drives it) plus an
 //! HTTP server on the same tokio runtime, serving one page (embedded: `assets/`) and the JSON API
 //! it uses (`api.rs`): the wall live as a thumbnail, a card per node, rolling charts of frame
-//! time and measured swap skew, and the render and camera controls.
+//! time and measured swap skew, and the render, camera and time-step controls.
 //!
 //! The frame loop owns the [`Wall`](crate::wall::Wall); HTTP handlers never touch it. They read
 //! the latest [`Status`](status::Status) (published by the loop a few times a second) and send
@@ -14,7 +14,7 @@ mod frame_loop;
 mod patch;
 mod status;
 
-use crate::drive::{load, runtime, scene_and_range};
+use crate::drive::{load, runtime, scene_and_range, time_steps};
 use crate::start::{self, StartArgs};
 use anyhow::{bail, Context, Result};
 use clap::Args;
@@ -76,6 +76,7 @@ pub fn console(a: &ConsoleArgs) -> Result<()> {
     let access = access(&a.listen, a.token.as_deref(), a.read_only)?;
     let config = load(&a.config)?;
     let (camera, settings, range) = scene_and_range(&config)?;
+    let steps = time_steps(&config)?;
     let demo = match &a.demo_path {
         Some(p) => {
             let defaults = crate::path::Defaults {
@@ -96,7 +97,7 @@ pub fn console(a: &ConsoleArgs) -> Result<()> {
             .with_context(|| format!("cannot listen on {}", access.listen))?;
         let local = listener.local_addr().context("listening address")?;
         let (daemons, wall) = start::open(config, &a.start).await?;
-        let scene = frame_loop::Scene { camera, settings, range, demo };
+        let scene = frame_loop::Scene { camera, settings, range, steps, demo };
         let (shared, commands) = api::Shared::new(access.clone());
         let looper = tokio::spawn(frame_loop::run(wall, daemons, scene, shared.clone(), commands));
         // Printed for scripts and tests: the page's address, once it serves.

@@ -1,9 +1,9 @@
-//! The changes `POST /api/render` and `POST /api/camera` ask for, and how they apply to the
-//! console's [`Controls`]: validated first (the render settings by the config's own rules,
+//! The changes `POST /api/render`, `POST /api/camera` and `POST /api/time` ask for, and how they
+//! apply to the console's [`Controls`]: validated first (the render settings by the config's own rules,
 //! [`isowall_model::config::render_problems`]), applied only when all of it is valid, so a refused
 //! request changes nothing.
 
-use crate::controls::SessionState;
+use crate::controls::{SessionState, MAX_RATE, MIN_RATE};
 use isowall_model::config::{render_problems, RenderConfig};
 use isowall_model::{AoMethod, Camera, IblMethod, RenderSettings, Shading};
 use serde::{Deserialize, Deserializer};
@@ -79,8 +79,22 @@ pub struct CameraPatch {
     pub demo: Option<DemoCommand>,
 }
 
-/// What the operator controls: the session's camera and settings, the governor's target, the
-/// orbit and the demo path.
+/// `POST /api/time`: a time-varying volume's playback (the session's [`Playback`]): the step
+/// shown, play or pause, and the rate.
+///
+/// [`Playback`]: crate::controls::Playback
+#[derive(Clone, Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TimePatch {
+    /// The step to show, 0 ..< the volume's steps (playing goes on from there).
+    pub step: Option<u32>,
+    pub play: Option<Play>,
+    /// Steps per second while playing, MIN_RATE..=MAX_RATE.
+    pub rate: Option<f64>,
+}
+
+/// What the operator controls: the session's camera, settings and time step, the governor's
+/// target, the orbit and the demo path.
 #[derive(Clone, Debug)]
 pub struct Controls {
     pub session: SessionState,
@@ -224,6 +238,50 @@ impl Controls {
     }
 }
 
+impl Controls {
+    /// Applies `p` if all of it is valid; on a refusal nothing changes.
+    pub fn apply_time(&mut self, p: &TimePatch) -> Result<(), Refusal> {
+        let mut next = self.session.playback;
+        let steps = next.steps;
+        if let Some(step) = p.step {
+            if step >= steps {
+                return Err(Refusal::new(
+                    "step",
+                    format!(
+                        "time: `step` {step} is out of range: the volume has {steps} time step{} (0..={})",
+                        if steps == 1 { "" } else { "s" },
+                        steps - 1
+                    ),
+                ));
+            }
+            next.show(step);
+        }
+        if let Some(rate) = p.rate {
+            if !(rate.is_finite() && (MIN_RATE..=MAX_RATE).contains(&rate)) {
+                return Err(Refusal::new(
+                    "rate",
+                    format!(
+                        "time: `rate` {rate} is not a number of steps per second in [{MIN_RATE}, {MAX_RATE}]"
+                    ),
+                ));
+            }
+            next.rate = rate;
+        }
+        match p.play {
+            Some(Play::Play) if steps < 2 => {
+                return Err(Refusal::new(
+                    "play",
+                    "time: the volume has one time step, nothing to play (a glob of steps or a 4-D file has more)",
+                ))
+            }
+            Some(play) => next.playing = play == Play::Play,
+            None => {}
+        }
+        self.session.playback = next;
+        Ok(())
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -319,5 +377,45 @@ mod tests {
         c.demo_available = true;
         c.apply_camera(&serde_json::from_str(r#"{"demo": "start"}"#).unwrap()).unwrap();
         assert!(c.demo);
+    }
+
+    #[test]
+    fn time_patches_show_play_and_refuse_naming_the_field() {
+        let time = |json: &str| serde_json::from_str::<TimePatch>(json).unwrap();
+        let mut c = controls();
+        // One step: nothing to play, step 0 only.
+        let e = c.apply_time(&time(r#"{"play": "play"}"#)).unwrap_err();
+        assert_eq!(e.field, "play", "{e:?}");
+        let e = c.apply_time(&time(r#"{"step": 1}"#)).unwrap_err();
+        assert!(e.field == "step" && e.message.contains("has 1 time step (0..=0)"), "{e:?}");
+        c.apply_time(&time(r#"{"step": 0, "play": "pause"}"#)).unwrap();
+        c.session.playback.steps = 16;
+        c.apply_time(&time(r#"{"step": 15, "play": "play", "rate": 8}"#)).unwrap();
+        let p = c.session.playback;
+        assert_eq!((p.step, p.playing, p.rate), (15, true, 8.0));
+        let before = c.session;
+        for (json, field, says) in [
+            (
+                r#"{"step": 16, "play": "pause"}"#,
+                "step",
+                "`step` 16 is out of range: the volume has 16 time steps (0..=15)",
+            ),
+            (
+                r#"{"rate": 0, "step": 1}"#,
+                "rate",
+                "`rate` 0 is not a number of steps per second in [0.125, 240]",
+            ),
+            (r#"{"rate": -4}"#, "rate", "`rate` -4"),
+            (r#"{"rate": 1e9, "play": "pause"}"#, "rate", "`rate` 1000000000"),
+        ] {
+            let e = c.apply_time(&time(json)).unwrap_err();
+            assert_eq!(e.field, field, "{json}: {e:?}");
+            assert!(e.message.contains(says), "{json}: {}", e.message);
+            assert_eq!(c.session, before, "{json} changed something");
+        }
+        let e = serde_json::from_str::<TimePatch>(r#"{"steps": 3}"#).unwrap_err().to_string();
+        assert!(e.contains("unknown field `steps`"), "{e}");
+        c.apply_time(&time(r#"{"play": "pause", "step": 3}"#)).unwrap();
+        assert_eq!((c.session.playback.step, c.session.playback.playing), (3, false));
     }
 }

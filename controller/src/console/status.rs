@@ -18,6 +18,7 @@ pub struct Status {
     pub camera: CameraInfo,
     pub orbit: OrbitInfo,
     pub demo: DemoInfo,
+    pub time: TimeInfo,
     pub nodes: Vec<NodeCard>,
     pub console: ConsoleInfo,
 }
@@ -108,6 +109,23 @@ pub struct DemoInfo {
     pub path: Option<String>,
     pub playing: bool,
     pub duration_s: Option<f64>,
+}
+
+/// A time-varying volume's playback (`steps` 1: a volume without time steps).
+#[derive(Clone, Debug, Serialize)]
+pub struct TimeInfo {
+    pub steps: u32,
+    /// The step of the next frame.
+    pub step: u32,
+    pub playing: bool,
+    /// Steps per second while playing, and its bounds.
+    pub rate: f64,
+    pub min_rate: f64,
+    pub max_rate: f64,
+    /// Whether a node waited for the last frame's step (it was not loaded ahead in time).
+    pub waited: bool,
+    /// Frames among the controller's recent history (up to `wall::HISTORY`) that waited so.
+    pub frames_waited: u64,
 }
 
 #[derive(Clone, Debug, Serialize)]

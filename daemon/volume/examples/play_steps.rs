@@ -4,10 +4,14 @@
 //! whose step was not loaded yet (the node would report them and show the step it has). Prints
 //! steps per second, frames that waited, loads and the most steps resident at once.
 //!
+//! With `--dir DIR` the steps are written to `DIR/step_KKKK.nrrd` and kept (for a wall config's
+//! `source = "DIR/step_*.nrrd"`, iso 0: the sphere's surface); FRAMES 0 only writes them.
+//!
 //! ```text
-//! cargo run --release -p isowall-volume --example play_steps -- N STEPS FRAMES CACHE_MB [FRAME_MS]
+//! cargo run --release -p isowall-volume --example play_steps -- N STEPS FRAMES CACHE_MB [FRAME_MS] [--dir DIR]
 //! cargo run --release -p isowall-volume --example play_steps -- 64 16 64 64
 //! cargo run --release -p isowall-volume --example play_steps -- 256 16 64 512 40
+//! cargo run --release -p isowall-volume --example play_steps -- 256 16 0 0 --dir /tmp/steps-256
 //! ```
 
 use isowall_volume::{StepCache, StepState, VolumeSource};
@@ -15,14 +19,31 @@ use std::io::Write;
 use std::time::{Duration, Instant};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
-    let args: Vec<usize> = std::env::args().skip(1).map(|a| a.parse()).collect::<Result<_, _>>()?;
+    let usage = "usage: play_steps N STEPS FRAMES CACHE_MB [FRAME_MS] [--dir DIR]";
+    let mut words: Vec<String> = std::env::args().skip(1).collect();
+    let kept = match words.iter().position(|w| w == "--dir") {
+        Some(i) => {
+            let d = words.get(i + 1).ok_or(usage)?.clone();
+            words.drain(i..i + 2);
+            Some(std::path::PathBuf::from(d))
+        }
+        None => None,
+    };
+    let args: Vec<usize> = words.iter().map(|a| a.parse()).collect::<Result<_, _>>()?;
     let [n, steps, frames, cache_mb, rest @ ..] = args.as_slice() else {
-        return Err("usage: play_steps N STEPS FRAMES CACHE_MB [FRAME_MS]".into());
+        return Err(usage.into());
     };
     let frame_ms = rest.first().copied().unwrap_or(0);
-    let dir = tempfile::tempdir()?;
+    let temporary = tempfile::tempdir()?;
+    let dir = match &kept {
+        Some(d) => {
+            std::fs::create_dir_all(d)?;
+            d.as_path()
+        }
+        None => temporary.path(),
+    };
     for k in 0..*steps {
-        let path = dir.path().join(format!("step_{k:04}.nrrd"));
+        let path = dir.join(format!("step_{k:04}.nrrd"));
         let mut f = std::io::BufWriter::new(std::fs::File::create(path)?);
         write!(
             f,
@@ -41,7 +62,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             }
         }
     }
-    let source: VolumeSource = format!("{}/step_*.nrrd", dir.path().display()).parse()?;
+    if *frames == 0 {
+        println!("wrote {steps} steps of {n}^3 to {}", dir.display());
+        return Ok(());
+    }
+    let source: VolumeSource = format!("{}/step_*.nrrd", dir.display()).parse()?;
     let cache = StepCache::new(source, None, cache_mb << 20, isowall_volume::io::VolumeLimit::default())?;
     let _ = cache.wait(0, Duration::from_secs(60));
     let start = Instant::now();

@@ -1,6 +1,6 @@
 // The Isowall operator console: live status over the /api/live WebSocket, the wall thumbnail
 // fetched at THUMB_HZ from /api/snapshot.png?width=, charts drawn by hand on canvases, and the
-// controls posting to /api/render and /api/camera. No build step, no libraries.
+// controls posting to /api/render, /api/camera and /api/time. No build step, no libraries.
 "use strict";
 
 const THUMB_HZ = 2;
@@ -119,6 +119,18 @@ function showControls(s) {
   if (!touched("target-frame-ms") && document.activeElement !== $("target-frame-ms")) {
     $("target-frame-ms").value = r.target_frame_ms === null ? "" : r.target_frame_ms;
   }
+  // Time steps: shown only for a volume that has more than one.
+  const t = s.time;
+  $("time").hidden = t.steps < 2;
+  $("step").max = Math.max(0, t.steps - 1);
+  if (!touched("step")) {
+    $("step").value = t.step;
+    $("step-value").textContent = t.step + " of 0–" + (t.steps - 1) + (t.waited ? " (a node waited for it)" : "");
+  }
+  $("rate").min = t.min_rate;
+  $("rate").max = t.max_rate;
+  if (!touched("rate") && document.activeElement !== $("rate")) $("rate").value = t.rate;
+  $("play").textContent = t.playing ? "pause" : "play";
   $("orbit").textContent = s.orbit.playing ? "pause orbit" : "play orbit";
   $("demo").textContent = s.demo.playing ? "stop demo path" : "start demo path";
   $("demo").disabled = !s.demo.path;
@@ -171,6 +183,11 @@ const sendExposure = throttled(() => post("/api/render", { exposure: Number($("e
 wire("exposure", "input", (el) => { $("exposure-value").textContent = fmt(Number(el.value), 2); sendExposure(); });
 wire("target-frame-ms", "change", (el) =>
   post("/api/render", { target_frame_ms: el.value === "" ? null : Number(el.value) }));
+const sendStep = throttled(() => post("/api/time", { step: Number($("step").value) }));
+wire("step", "input", (el) => { $("step-value").textContent = el.value; sendStep(); });
+wire("step", "change", () => sendStep());
+wire("rate", "change", (el) => post("/api/time", { rate: Number(el.value) }));
+$("play").addEventListener("click", () => post("/api/time", { play: status && status.time.playing ? "pause" : "play" }));
 $("orbit").addEventListener("click", () => post("/api/camera", { orbit: status && status.orbit.playing ? "pause" : "play" }));
 $("demo").addEventListener("click", () => post("/api/camera", { demo: status && status.demo.playing ? "stop" : "start" }));
 $("home").addEventListener("click", () => post("/api/camera", { reset: true, orbit: "pause", demo: "stop" }));
