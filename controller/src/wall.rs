@@ -606,6 +606,11 @@ impl Wall {
         self.bricks.as_ref().map(|a| a.map(self.next_frame).bricks_of(node)).unwrap_or_default()
     }
 
+    /// `node`'s process resident memory, as its last Pong said (every node, local or not).
+    pub fn resident_bytes(&self, node: &str) -> Option<u64> {
+        self.machine.resident_bytes(node)
+    }
+
     /// Whether `node` is connected (it takes part in the next frame).
     pub fn is_up(&self, node: &str) -> bool {
         self.senders.contains_key(node)

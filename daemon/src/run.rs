@@ -504,6 +504,9 @@ async fn serve(
                     if let (Some(o), Message::FrameState(s)) = (node.object.as_mut(), &msg) {
                         o.announce(s.frame_id);
                     }
+                    if matches!(msg, Message::Ping { .. }) {
+                        machine.set_resident_bytes(process_resident_bytes());
+                    }
                     machine.handle(node.epoch.elapsed(), msg)
                 } {
                     Ok(out) => out,
@@ -769,4 +772,27 @@ async fn execute(
         }
     }
     Ok(())
+}
+
+/// This process's resident memory (`VmRSS` of `/proc/self/status`), told to the controller with
+/// each Pong for the operator's node cards; 0 where the OS does not say.
+fn process_resident_bytes() -> u64 {
+    let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    let kib =
+        status.lines().find_map(|l| l.strip_prefix("VmRSS:")?.trim().strip_suffix("kB")?.trim().parse().ok());
+    kib.unwrap_or(0u64) * 1024
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn this_process_has_resident_memory_on_linux() {
+        let bytes = super::process_resident_bytes();
+        if cfg!(target_os = "linux") {
+            // A test binary holds at least a few MiB, and far less than this machine's memory.
+            assert!(bytes > 1 << 20 && bytes < 1 << 40, "{bytes}");
+        } else {
+            assert_eq!(bytes, 0);
+        }
+    }
 }

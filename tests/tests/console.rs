@@ -211,6 +211,17 @@ fn the_api_refuses_missing_tokens_and_bad_input_and_changes_nothing() {
     assert_eq!(con.get_with("/api/status", Some("sesame-0123456789abcdeX")).status, 401);
     assert_eq!(con.get_with("/api/snapshot.png?width=8", Some("wrong")).status, 401);
     assert_eq!(con.get_with(&format!("/api/status?token={token}"), None).status, 200);
+    // The node tells its own resident memory with its Pongs (twice a second), local or not.
+    let give_up = Instant::now() + Duration::from_secs(20);
+    let rss_kib = loop {
+        if let Some(kib) = con.status()["nodes"][0]["rss_kib"].as_u64() {
+            break kib;
+        }
+        assert!(Instant::now() < give_up, "no resident memory from node0: {}", con.status());
+        std::thread::sleep(Duration::from_millis(200));
+    };
+    // A daemon holding a wgpu device and a volume: more than 4 MiB, less than this machine.
+    assert!(rss_kib > 4 << 10 && rss_kib < 24 << 20, "node0 resident {rss_kib} KiB");
     let before = con.status();
     let (lo, hi) = (before["volume"]["min"].as_f64().unwrap(), before["volume"]["max"].as_f64().unwrap());
     // Bad input: a 4xx with the reason, naming the field where there is one.
@@ -559,6 +570,10 @@ async fn the_page_shows_the_wall_its_nodes_and_drives_it_in_a_real_browser() {
 
     // With the page open (it polls the thumbnail and gets the live status).
     let (fps_page, a1, b1) = measure(10).await.unwrap();
+    // Every card shows its node's resident memory (told by the node itself with its Pongs).
+    let cards_with_memory =
+        "[...document.querySelectorAll('.node-card')].filter(c => /\\d+ MiB/.test(c.textContent)).length";
+    until(&page, &format!("{cards_with_memory} === 4"), Duration::from_secs(10)).await;
     let latencies = js(&page, "window.isowall.latencies").await;
     let mut lat: Vec<f64> = latencies.as_array().unwrap().iter().filter_map(Value::as_f64).collect();
     lat.sort_by(f64::total_cmp);

@@ -82,8 +82,8 @@ struct Loop {
     asked_divisor: u32,
     cache: Option<(u32, Instant, Picture)>,
     thumbnails: u64,
-    rss: HashMap<String, (u32, u64)>,
-    rss_at: Option<Instant>,
+    /// The process ids of the daemons the console started (`--local`), by node.
+    pids: HashMap<String, u32>,
     frame_samples: (u32, u32),
     started: Instant,
     published: Option<Instant>,
@@ -125,8 +125,7 @@ pub async fn run(
         asked_divisor: 1,
         cache: None,
         thumbnails: 0,
-        rss: HashMap::new(),
-        rss_at: None,
+        pids: HashMap::new(),
         frame_samples: (scene.settings.ao.samples, 1),
         started: now,
         published: None,
@@ -347,17 +346,8 @@ impl Loop {
         if !self.waiting.is_empty() {
             self.ask_thumbnail(wall).await;
         }
-        // Resident memory of local daemons, once a second.
-        if self.rss_at.is_none_or(|t| t.elapsed() > Duration::from_secs(1)) {
-            self.rss_at = Some(Instant::now());
-            self.rss.clear();
-            if let Some(d) = daemons.as_mut() {
-                for (name, pid) in d.pids() {
-                    if let Some(r) = crate::local::resources(pid) {
-                        self.rss.insert(name, (pid, r.rss_kib));
-                    }
-                }
-            }
+        if let Some(d) = daemons.as_mut() {
+            self.pids = d.pids().into_iter().collect();
         }
         if self.published.is_none_or(|t| t.elapsed() >= PUBLISH_EVERY) {
             self.published = Some(Instant::now());
@@ -437,8 +427,8 @@ impl Loop {
                     since_unix_ms: h.since_unix_ms,
                     render_ms,
                     ready_ms,
-                    rss_kib: self.rss.get(&n.name).map(|r| r.1),
-                    pid: self.rss.get(&n.name).map(|r| r.0),
+                    rss_kib: wall.resident_bytes(&n.name).map(|b| b / 1024),
+                    pid: self.pids.get(&n.name).copied(),
                     resident_volume_bytes: resident.get(n.name.as_str()).copied(),
                     tiles: n.tiles.clone(),
                     bricks: wall.bricks_of(&n.name),

@@ -157,7 +157,8 @@ pub struct NodeCard {
     /// Its last reported render time and when its Ready arrived after the frame began, ms.
     pub render_ms: Option<f64>,
     pub ready_ms: Option<f64>,
-    /// Resident memory of its daemon (local daemons: read from /proc), KiB.
+    /// Resident memory of its daemon process, KiB, as the node tells with each Pong (about once
+    /// a second; `null` until the first on its current connection).
     pub rss_kib: Option<u64>,
     /// The process id of a daemon the console started (`--local`).
     pub pid: Option<u32>,

@@ -169,6 +169,8 @@ struct NodeState {
     waiting_since: Option<Duration>,
     /// The tiles it shows, (name, width, height), once [`FrameController::set_node_tiles`] says.
     tiles: Option<Vec<(String, u32, u32)>>,
+    /// Its process's resident memory, from its last Pong on this connection.
+    resident_bytes: Option<u64>,
 }
 
 impl NodeState {
@@ -183,6 +185,7 @@ impl NodeState {
         self.snapshots_owed.clear();
         self.missing.clear();
         self.waiting_since = None;
+        self.resident_bytes = None;
     }
 }
 
@@ -284,6 +287,11 @@ impl FrameController {
     /// current connection.
     pub fn clock_offset(&self, node: &str) -> Option<ClockOffset> {
         self.nodes.get(node)?.clock.estimate()
+    }
+
+    /// The node's process resident memory as its last Pong on its current connection said.
+    pub fn resident_bytes(&self, node: &str) -> Option<u64> {
+        self.nodes.get(node)?.resident_bytes
     }
 
     pub fn is_up(&self, node: &str) -> bool {
@@ -672,7 +680,9 @@ impl FrameController {
             Message::Presented { frame_id, node_time_us } => {
                 self.handle_presented(now, node, frame_id, node_time_us)
             }
-            Message::Pong { id, t0_us, t1_us } => self.handle_pong(now, node, id, t0_us, t1_us),
+            Message::Pong { id, t0_us, t1_us, resident_bytes } => {
+                self.handle_pong(now, node, id, t0_us, t1_us, resident_bytes)
+            }
             Message::Snapshot { tiles } => {
                 let st = self.nodes.get_mut(node).expect("checked");
                 let Some(divisor) = st.snapshots_owed.pop_front() else {
@@ -848,6 +858,7 @@ impl FrameController {
         id: u64,
         t0_us: i64,
         t1_us: i64,
+        resident_bytes: u64,
     ) -> Result<Vec<ControllerOutput>, ProtocolError> {
         let st = self.nodes.get_mut(node).expect("checked");
         let err = |problem: String| Err(ProtocolError::new(node, "Pong", problem));
@@ -861,6 +872,8 @@ impl FrameController {
         st.pings.remove(pos);
         st.clock.add(ClockSample { t0_us: sent, t1_us, t2_us: micros(now) });
         st.counters.pongs += 1;
+        // 0: the node's OS does not say.
+        st.resident_bytes = (resident_bytes > 0).then_some(resident_bytes);
         Ok(Vec::new())
     }
 }
@@ -1144,7 +1157,7 @@ mod tests {
                 Message::Hello { version: 1, name: "a".into(), role: crate::messages::Role::Daemon },
                 "second Hello",
             ),
-            ("a", Message::Pong { id: 99, t0_us: 0, t1_us: 0 }, "not sent to it"),
+            ("a", Message::Pong { id: 99, t0_us: 0, t1_us: 0, resident_bytes: 0 }, "not sent to it"),
             ("a", Message::Snapshot { tiles: vec![] }, "nobody asked"),
             ("zz", Message::Ready { frame_id: 1, render_us: 0 }, "not a node of this wall"),
         ];
@@ -1164,7 +1177,9 @@ mod tests {
         let Some(ControllerOutput::Send { message: Message::Ping { id, t0_us }, .. }) = out.first() else {
             panic!()
         };
-        let e = c.handle(ms(6), "a", Message::Pong { id: *id, t0_us: t0_us + 1, t1_us: 0 }).unwrap_err();
+        let e = c
+            .handle(ms(6), "a", Message::Pong { id: *id, t0_us: t0_us + 1, t1_us: 0, resident_bytes: 0 })
+            .unwrap_err();
         assert!(e.problem.contains("echoes"), "{e}");
     }
 
@@ -1173,11 +1188,20 @@ mod tests {
         let mut c = controller(&["a", "b"]);
         // The node_up pings were id 1 (a) and 2 (b) at t0 = 0; a's clock is 50 ms ahead, b's 30 ms
         // behind, 1 ms each way.
-        c.handle(ms(2), "a", Message::Pong { id: 1, t0_us: 0, t1_us: 1_000 + 50_000 }).unwrap();
-        c.handle(ms(2), "b", Message::Pong { id: 2, t0_us: 0, t1_us: 1_000 - 30_000 }).unwrap();
+        c.handle(
+            ms(2),
+            "a",
+            Message::Pong { id: 1, t0_us: 0, t1_us: 1_000 + 50_000, resident_bytes: 7 << 20 },
+        )
+        .unwrap();
+        c.handle(ms(2), "b", Message::Pong { id: 2, t0_us: 0, t1_us: 1_000 - 30_000, resident_bytes: 0 })
+            .unwrap();
         assert_eq!(c.clock_offset("a").unwrap().offset_us, 50_000);
         assert_eq!(c.clock_offset("b").unwrap().offset_us, -30_000);
         assert_eq!(c.clock_offset("a").unwrap().error_us, 1_001);
+        // The Pongs carry each node's resident memory (0: not known).
+        assert_eq!(c.resident_bytes("a"), Some(7 << 20));
+        assert_eq!(c.resident_bytes("b"), None);
         c.begin_frame(ms(100), state(1)).unwrap();
         c.handle(ms(110), "a", Message::Ready { frame_id: 1, render_us: 0 }).unwrap();
         c.handle(ms(110), "b", Message::Ready { frame_id: 1, render_us: 0 }).unwrap();
@@ -1237,7 +1261,9 @@ mod tests {
                         }
                         ControllerOutput::Send { node, message } if node == "a" || t < dies_at => {
                             let answer = match message {
-                                Message::Ping { id, t0_us } => Message::Pong { id, t0_us, t1_us: t0_us },
+                                Message::Ping { id, t0_us } => {
+                                    Message::Pong { id, t0_us, t1_us: t0_us, resident_bytes: 1 }
+                                }
                                 Message::FrameState(f) => {
                                     Message::Ready { frame_id: f.frame_id, render_us: 1 }
                                 }

@@ -15,7 +15,7 @@
 //!     Swap(n) ----------------------------------> presents
 //!     <---------------------------------------- Presented { n, node_time_us }
 //!     Ping { id, t0 } --------------------------> (now and then: clock offsets)
-//!     <---------------------------------------- Pong { id, t0, t1 }
+//!     <---------------------------------------- Pong { id, t0, t1, resident_bytes }
 //!     SnapshotRequest / ThumbnailRequest { divisor } ---> (whenever asked)
 //!     <---------------------------------------- Snapshot { tiles } (each 1/divisor the size)
 //! ```
@@ -31,7 +31,7 @@ use serde::{Deserialize, Serialize};
 use crate::wire::FrameState;
 
 /// The protocol version of this build; a peer's [`Message::Hello`] must carry the same.
-pub const PROTOCOL_VERSION: u16 = 5;
+pub const PROTOCOL_VERSION: u16 = 6;
 
 /// Which side of a connection a peer is.
 #[derive(Serialize, Deserialize, Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -149,8 +149,9 @@ pub enum Message {
     Presented { frame_id: u64, node_time_us: i64 },
     /// Controller -> daemon: clock sync; `t0_us` is the controller's clock at sending.
     Ping { id: u64, t0_us: i64 },
-    /// Daemon -> controller: `t1_us` is the daemon's clock when the Ping arrived.
-    Pong { id: u64, t0_us: i64, t1_us: i64 },
+    /// Daemon -> controller: `t1_us` is the daemon's clock when the Ping arrived;
+    /// `resident_bytes` the daemon process's resident memory then (0 where its OS does not say).
+    Pong { id: u64, t0_us: i64, t1_us: i64, resident_bytes: u64 },
     /// Controller -> daemon: send me your tiles' last presented frames.
     SnapshotRequest,
     /// Daemon -> controller: its tiles' last presented frames.

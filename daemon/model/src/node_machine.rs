@@ -80,6 +80,8 @@ pub struct NodeMachine {
     accumulate: u32,
     last_presented: Option<u64>,
     counters: NodeMachineCounters,
+    /// The daemon process's resident memory as last told by its runtime, sent with each Pong.
+    resident_bytes: u64,
 }
 
 const PEER: &str = "controller";
@@ -104,7 +106,14 @@ impl NodeMachine {
             accumulate: 0,
             last_presented: None,
             counters: NodeMachineCounters::default(),
+            resident_bytes: 0,
         }
+    }
+
+    /// The runtime tells the machine its process's resident memory (the machine reads no OS
+    /// state); the next Pong carries it to the controller.
+    pub fn set_resident_bytes(&mut self, bytes: u64) {
+        self.resident_bytes = bytes;
     }
 
     pub fn name(&self) -> &str {
@@ -216,9 +225,12 @@ impl NodeMachine {
                 self.presenting.push_back(frame_id);
                 Ok(vec![NodeOutput::Present { frame_id }])
             }
-            Message::Ping { id, t0_us } => {
-                Ok(vec![NodeOutput::Send(Message::Pong { id, t0_us, t1_us: micros(now) })])
-            }
+            Message::Ping { id, t0_us } => Ok(vec![NodeOutput::Send(Message::Pong {
+                id,
+                t0_us,
+                t1_us: micros(now),
+                resident_bytes: self.resident_bytes,
+            })]),
             Message::SnapshotRequest => Ok(vec![NodeOutput::SnapshotWanted]),
             Message::ThumbnailRequest { divisor } => {
                 if !(1..=MAX_THUMBNAIL_DIVISOR).contains(&divisor) {
@@ -350,10 +362,24 @@ mod tests {
     }
 
     #[test]
-    fn ping_is_answered_with_the_local_clock() {
+    fn ping_is_answered_with_the_local_clock_and_the_resident_memory() {
         let mut m = machine();
         let out = m.handle(ms(1234), Message::Ping { id: 9, t0_us: -7 }).unwrap();
-        assert_eq!(out, vec![NodeOutput::Send(Message::Pong { id: 9, t0_us: -7, t1_us: 1_234_000 })]);
+        assert_eq!(
+            out,
+            vec![NodeOutput::Send(Message::Pong { id: 9, t0_us: -7, t1_us: 1_234_000, resident_bytes: 0 })]
+        );
+        m.set_resident_bytes(300 << 20);
+        let out = m.handle(ms(2000), Message::Ping { id: 10, t0_us: 5 }).unwrap();
+        assert_eq!(
+            out,
+            vec![NodeOutput::Send(Message::Pong {
+                id: 10,
+                t0_us: 5,
+                t1_us: 2_000_000,
+                resident_bytes: 300 << 20
+            })]
+        );
         assert_eq!(m.handle(ms(0), Message::SnapshotRequest).unwrap(), vec![NodeOutput::SnapshotWanted]);
         assert_eq!(
             m.handle(ms(0), Message::ThumbnailRequest { divisor: 4 }).unwrap(),
