@@ -346,14 +346,14 @@ fn seed_occluded(p: vec3<f32>, w: vec3<f32>, f_p: f32) -> bool {
 
 @compute @workgroup_size(8, 8, 1)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
-    if gid.x >= params.window_size.x || gid.y >= params.window_size.y {
+    if gid.x >= params.rect_size.x || gid.y >= params.rect_size.y {
         return;
     }
-    let idx = gid.x + gid.y * params.window_size.x;
+    let idx = gid.x + gid.y * params.rect_size.x;
     if in_color[idx].w < 0.5 {
         return;
     }
-    let px = params.window_origin + gid.xy;
+    let px = params.rect_origin + gid.xy;
     let dir = pixel_dir(px);
     let g = in_geometry[idx];
     let p = params.eye.xyz + g.w * dir;

@@ -1,5 +1,5 @@
 // Kernel::Compose (daemon/render/src/gpu/compose.rs): a tile's presentable image from the other
-// kernels' outputs, on the GPU, one invocation per pixel of the tile's (full-resolution) window.
+// kernels' outputs, on the GPU, one invocation per pixel of the tile's (full-resolution) rectangle.
 //
 // - Colour exactly as the CPU reference composes it: exposure * (direct + albedo * E), with E the
 //   running sum of the AO kernel's IBL term over the accumulated frames divided by their count
@@ -9,22 +9,22 @@
 // - The sRGB transfer and 8-bit rounding of `output::srgb8` (round half up of 255 * srgb(c)); the
 //   stored value is that level / 255, which any unorm8 conversion keeps exactly.
 // - The low-resolution upsample (`isowall_model::lowres::upsample_nearest`): the kernels ran over
-//   the low window; full pixel (x, y) of the window takes low pixel
+//   the low rectangle; full pixel (x, y) of the rectangle takes low pixel
 //   ((origin + (x, y)) / scale - low_origin). Scale 1 is the identity.
 // - Depth per full pixel (distance along the ray, +inf without a hit: the bits of f32 infinity),
 //   what object space composites by.
-// - Per-frame counters of the low window (each low pixel counted once): trilinear fetches as a
-//   64-bit sum (low word, high word), hits and pixels, summed per row of the low window, then once
-//   per row into `counters`.
+// - Per-frame counters of the low rectangle (each low pixel counted once): trilinear fetches as a
+//   64-bit sum (low word, high word), hits and pixels, summed per row of the low rectangle, then
+//   once per row into `counters`.
 
 struct ComposeParams {
     background: vec4<f32>, // rgb: linear background; w: exposure
     albedo: vec4<f32>,     // rgb; w: 0
     ambient: vec4<f32>,    // rgb: E where neither AO nor IBL is on; w: 0
-    low_origin: vec2<u32>, // the low window's origin in the low image
-    low_size: vec2<u32>,   // the low window's size (the other kernels' window)
-    origin: vec2<u32>,     // the tile's window origin in the full image
-    size: vec2<u32>,       // the tile's window size
+    low_origin: vec2<u32>, // the low rectangle's origin in the low image
+    low_size: vec2<u32>,   // the low rectangle's size (the other kernels' rectangle)
+    origin: vec2<u32>,     // the tile's rectangle origin in the full image
+    size: vec2<u32>,       // the tile's rectangle size
     scale: u32,            // internal resolution divisor, 1 ..= 4
     frames: u32,           // frames in the running sums; 0: no AO or IBL (E = ambient)
     _pad0: u32,
@@ -33,17 +33,17 @@ struct ComposeParams {
 
 // A read-only storage buffer, not a uniform: see frame.wgsl (lavapipe's uniform inlining).
 @group(0) @binding(0) var<storage, read> params: ComposeParams;
-// From the isosurface kernel (low window): direct light, w = 1 on a hit.
+// From the isosurface kernel (low rectangle): direct light, w = 1 on a hit.
 @group(0) @binding(1) var<storage, read> in_color: array<vec4<f32>>;
-// From the isosurface kernel (low window): N and depth (w).
+// From the isosurface kernel (low rectangle): N and depth (w).
 @group(0) @binding(2) var<storage, read> in_geometry: array<vec4<f32>>;
-// From the AO kernel (low window): running sum of E (rgb).
+// From the AO kernel (low rectangle): running sum of E (rgb).
 @group(0) @binding(3) var<storage, read> acc_ibl: array<vec4<f32>>;
-// From both kernels (low window): trilinear fetches of this frame per pixel.
+// From both kernels (low rectangle): trilinear fetches of this frame per pixel.
 @group(0) @binding(4) var<storage, read> in_fetches: array<u32>;
 // The tile's presentable image, 8-bit sRGB values.
 @group(0) @binding(5) var out_image: texture_storage_2d<rgba8unorm, write>;
-// Depth per pixel of the window, as f32 bits.
+// Depth per pixel of the rectangle, as f32 bits.
 @group(0) @binding(6) var<storage, read_write> out_depth: array<u32>;
 // fetches (low word, high word), hits, pixels counted.
 @group(0) @binding(7) var<storage, read_write> counters: array<atomic<u32>, 4>;
@@ -69,7 +69,7 @@ fn encode(x: f32) -> f32 {
 
 @compute @workgroup_size(8, 8, 1)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
-    // The counters: the first invocation of each row of the low window sums that row and adds it
+    // The counters: the first invocation of each row of the low rectangle sums that row and adds it
     // once (no workgroup barrier: llvmpipe runs a workgroup that has one as coroutines).
     if gid.x == 0u && gid.y < params.low_size.y {
         var lo = 0u;

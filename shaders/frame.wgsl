@@ -18,8 +18,8 @@ struct FrameParams {
     dims: vec4<u32>,         // w: cells per block edge
     block_counts: vec4<u32>, // w: flags (bit 0: empty-space skipping)
     full_size: vec2<u32>,
-    window_origin: vec2<u32>,
-    window_size: vec2<u32>,
+    rect_origin: vec2<u32>,
+    rect_size: vec2<u32>,
     shading: u32,
     iso: f32,
     shininess: f32,

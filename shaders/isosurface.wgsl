@@ -1,7 +1,7 @@
 // Kernel::Isosurface (daemon/render/src/gpu/isosurface.rs): primary rays to the first hit of the
 // isosurface, exactly as DESIGN.md defines it, then the normal and the direct light.
 //
-// - Ray through the pixel centre of the *full* image (a window of it is rendered: wall tiles).
+// - Ray through the pixel centre of the *full* image (a rectangle of it is rendered: wall tiles).
 // - Box entry and exit; outside the box the field is empty, so entering the box where f >= iso is
 //   a hit on the box face (a cap) with the face's outward normal.
 // - A camera inside the box starts at the eye; inside the object it first has to leave it (the hit
@@ -29,11 +29,11 @@
 
 @compute @workgroup_size(8, 8, 1)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
-    if gid.x >= params.window_size.x || gid.y >= params.window_size.y {
+    if gid.x >= params.rect_size.x || gid.y >= params.rect_size.y {
         return;
     }
-    let out_index = gid.x + gid.y * params.window_size.x;
-    let dir = pixel_dir(params.window_origin + gid.xy);
+    let out_index = gid.x + gid.y * params.rect_size.x;
+    let dir = pixel_dir(params.rect_origin + gid.xy);
     let eye = params.eye.xyz;
     let iso = params.iso;
     let inv_dir = safe_inv(dir);

@@ -11,7 +11,7 @@ fn hash(x0: u32) -> u32 {
     return x;
 }
 
-// px, py: the pixel in the FULL image (the wall), never the window.
+// px, py: the pixel in the FULL image (the wall), never the rectangle.
 fn pixel_key(px: u32, py: u32, frame: u32, seed: u32) -> u32 {
     return hash(px ^ hash(py ^ hash(frame ^ hash(seed))));
 }

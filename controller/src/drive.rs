@@ -458,17 +458,18 @@ pub fn up(a: &UpArgs) -> Result<()> {
 
 /// Resident memory and open descriptors of the controller and its local daemons, sampled once the
 /// wall is warm (after a tenth of the frames, at most 100) and at the end, and the drift of the
-/// frame time between the first window after warm-up and the last one: what a soak run reports.
+/// frame time between the first run of frames after warm-up and the last one: what a soak run
+/// reports.
 struct ResourceWatch {
     warm: u64,
     pids: Vec<(String, u32)>,
     start: Vec<Option<crate::local::Resources>>,
-    first_window: Option<Duration>,
+    first_median: Option<Duration>,
 }
 
 impl ResourceWatch {
     fn new(frames: u64, pids: Vec<(String, u32)>) -> ResourceWatch {
-        ResourceWatch { warm: (frames / 10).clamp(1, 100), pids, start: Vec::new(), first_window: None }
+        ResourceWatch { warm: (frames / 10).clamp(1, 100), pids, start: Vec::new(), first_median: None }
     }
 
     fn sample(&self) -> Vec<Option<crate::local::Resources>> {
@@ -476,7 +477,7 @@ impl ResourceWatch {
     }
 
     /// Median barrier time of the last `n` released frames.
-    fn window(wall: &Wall, n: u64) -> Option<Duration> {
+    fn median_of_last(wall: &Wall, n: u64) -> Option<Duration> {
         let r = &wall.releases;
         let from = r.len().saturating_sub(n as usize);
         crate::wall::quantile(r[from..].iter().map(|x| x.1).collect(), 0.5)
@@ -487,7 +488,7 @@ impl ResourceWatch {
             self.start = self.sample();
         }
         if k + 1 == 2 * self.warm {
-            self.first_window = Self::window(wall, self.warm);
+            self.first_median = Self::median_of_last(wall, self.warm);
         }
     }
 
@@ -515,7 +516,7 @@ impl ResourceWatch {
                 _ => s += &format!("  {name} (pid {pid}): not readable (exited, or no /proc)\n"),
             }
         }
-        if let (Some(first), Some(last)) = (self.first_window, Self::window(wall, self.warm)) {
+        if let (Some(first), Some(last)) = (self.first_median, Self::median_of_last(wall, self.warm)) {
             s += &format!(
                 "frame time drift: barrier median {:.2} ms (frames {}..{}) -> {:.2} ms (last {} frames), x{:.2}\n",
                 first.as_secs_f64() * 1e3,

@@ -466,7 +466,7 @@ impl From<TileCanvas> for TileResult {
     }
 }
 
-/// A rendered window as the model composites it.
+/// A rendered rectangle as the model composites it.
 impl From<TileResult> for TileCanvas {
     fn from(r: TileResult) -> TileCanvas {
         TileCanvas { name: r.name, width: r.width, height: r.height, depth: r.depth, rgb8: r.rgb8 }

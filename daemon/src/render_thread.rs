@@ -636,7 +636,7 @@ impl RenderLoop {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use isowall_model::{Camera, Window};
+    use isowall_model::{Camera, Rect};
     use isowall_render::gpu::GpuError;
 
     type Results = tokio::sync::mpsc::UnboundedReceiver<Result<JobResult, String>>;
@@ -703,8 +703,8 @@ mod tests {
         scale: u32,
     ) -> Vec<u8> {
         let (w, h) = whole.full;
-        let left = View { window: Window { x: 0, y: 0, width: 47, height: h }, ..*whole };
-        let right = View { window: Window { x: 47, y: 0, width: w - 47, height: h }, ..*whole };
+        let left = View { rect: Rect { x: 0, y: 0, width: 47, height: h }, ..*whole };
+        let right = View { rect: Rect { x: 47, y: 0, width: w - 47, height: h }, ..*whole };
         let tiles = vec![("left".into(), left), ("right".into(), right)];
         let result = render(r, rx, scale as u64, tiles, settings, scale, true);
         let mut image = vec![0u8; (w * h * 3) as usize];

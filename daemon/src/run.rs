@@ -679,7 +679,7 @@ async fn execute(
                 let _span =
                     tracing::info_span!("frame", frame_id = spec.frame_id, node = %node.name).entered();
                 let (tiles, settings, bricks) = match node.object.as_mut() {
-                    // object space: each brick it holds over its covered window of every tile.
+                    // object space: each brick it holds over its covered rectangle of every tile.
                     Some(o) => {
                         let s = o.bound_settings(spec.frame_id, &spec.settings);
                         let v = o.views(spec.frame_id, spec.camera, &s);

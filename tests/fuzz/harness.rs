@@ -181,7 +181,7 @@ pub fn parse_config(data: &[u8]) -> Outcome {
             let frames_ok = FrameSpec::try_from(&state).is_ok();
             for t in &c.tiles {
                 let v = c.tile_view(camera, &t.name).expect("a configured tile has a view");
-                let win = v.window;
+                let win = v.rect;
                 assert!(
                     win.x as u64 + win.width as u64 <= w as u64
                         && win.y as u64 + win.height as u64 <= h as u64,

@@ -10,7 +10,7 @@
 //!   does a controller's connection that sends no Hello; a reconnect flood is refused before its
 //!   TLS handshakes (per source address) and the wall keeps its frame rate;
 //! - bincode limits: messages of every size around 4, 16 and 64 KiB reach the daemon;
-//! - limits: connections per identity, streams and flow-control windows, snapshot tiles checked
+//! - limits: connections per identity, streams and flow-control limits, snapshot tiles checked
 //!   against their node, a node's reason escaped before the terminal sees it;
 //! - start: a wall with one of four nodes down starts (`orbit`, `up`) and the node joins when it
 //!   comes up; in either space a killed node is down within 3 deadlines.
@@ -442,7 +442,7 @@ fn valid_messages_around_the_old_limits_reach_the_daemon() {
 // ---- 8: limits -------------------------------------------------------------------------------------
 
 #[test]
-fn connections_streams_and_windows_are_bounded_per_peer() {
+fn connections_streams_and_flow_control_are_bounded_per_peer() {
     let dir = tempfile::tempdir().unwrap();
     let ports = free_udp_ports(4);
     let config = wall_config(dir.path(), "bounded", &ports, 16, 12, 2, 5000, "keys");
@@ -469,7 +469,7 @@ fn connections_streams_and_windows_are_bounded_per_peer() {
             assert!(r.contains("no stream and Hello within 5 s"), "{r}");
         }
         eprintln!("silent connections closed {:.2} s after the third", t.elapsed().as_secs_f64());
-        // (b) Streams and windows: a peer that opens every stream it may and fills each. The
+        // (b) Streams and flow control: a peer that opens every stream it may and fills each. The
         // daemon reads none of them (it uses one bidirectional stream), so what it buffers is
         // what the limits let in.
         let rss_before = rss_kib(pid);
@@ -507,7 +507,10 @@ fn connections_streams_and_windows_are_bounded_per_peer() {
             rss_after as f64 / 1024.0
         );
         assert!(opened <= transport::MAX_UNI_STREAMS as usize, "{opened} streams opened");
-        assert!(accepted <= (transport::CONNECTION_WINDOW as usize) + (1 << 20), "{accepted} bytes let in");
+        assert!(
+            accepted <= (transport::CONNECTION_FLOW_LIMIT as usize) + (1 << 20),
+            "{accepted} bytes let in"
+        );
         assert!(rss_after < rss_before + 48 * 1024, "RSS {rss_before} -> {rss_after} KiB");
         ch.connection.close(0u32.into(), b"done");
     });

@@ -1,4 +1,4 @@
-//! Bad input against a running wall node (issue "Reliability and security", item "Bad input"):
+//! Bad input against a running wall node:
 //! the two daemons of a 2-node wall on loopback get
 //! (a) garbage UDP datagrams on their ports (random bytes, QUIC long-header packets that do not
 //!     decrypt, truncated ones, short-header ones);

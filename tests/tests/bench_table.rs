@@ -1,4 +1,4 @@
-//! The report's table (issue "Operations", item 4): `isowall bench CONFIG --table` on a small
+//! The report's table: `isowall bench CONFIG --table` on a small
 //! local 2-node wall measures every cell (fps and the slowest node's render time), a row per AO
 //! sample count and a column per node count, prints "—" where RTPara published no figure (here:
 //! not the engine volume), in screen and in object space, and lists per-node render times.

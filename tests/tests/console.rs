@@ -514,11 +514,11 @@ fn difference(a: &[u8], b: &[u8]) -> f64 {
     sum as f64 / a.len().max(1) as f64
 }
 
-/// Swaps per second over `window`, from the status's released counter.
-fn fps_over(con: &Console, window: Duration) -> (f64, Value, Value) {
+/// Swaps per second over `span`, from the status's released counter.
+fn fps_over(con: &Console, span: Duration) -> (f64, Value, Value) {
     let a = con.status();
     let t = Instant::now();
-    std::thread::sleep(window);
+    std::thread::sleep(span);
     let b = con.status();
     let frames = b["frame"]["released"].as_u64().unwrap() - a["frame"]["released"].as_u64().unwrap();
     (frames as f64 / t.elapsed().as_secs_f64(), a, b)
@@ -545,9 +545,9 @@ async fn the_page_shows_the_wall_its_nodes_and_drives_it_in_a_real_browser() {
         return;
     };
     let con = std::sync::Arc::new(con);
-    let measure = |window: u64| {
+    let measure = |secs: u64| {
         let con = con.clone();
-        tokio::task::spawn_blocking(move || fps_over(&con, Duration::from_secs(window)))
+        tokio::task::spawn_blocking(move || fps_over(&con, Duration::from_secs(secs)))
     };
     // The wall alone, no page open.
     let (fps_alone, a0, b0) = measure(10).await.unwrap();

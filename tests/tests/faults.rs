@@ -1,4 +1,4 @@
-//! Faults on a running wall (issue "Reliability and security", items 1 and 2, screen space):
+//! Faults on a running wall (screen space):
 //! a node killed with SIGKILL is reported by name within two deadlines while the others go on, and
 //! rejoins when restarted; the controller killed with SIGKILL leaves the daemons serving, and a new
 //! controller drives them without a restart of theirs.

@@ -1,4 +1,4 @@
-//! A node killed in object space (issue "Reliability and security", item 1): its brick goes to a
+//! A node killed in object space: its brick goes to a
 //! survivor, which loads it, and the image is correct again; restarted, the node gets its brick
 //! back and the whole wall is correct. A 2x2 wall of tiny tiles over the torus at 48^3, a fixed
 //! camera and no AO (so every frame is the same image, and each recorded frame is compared with

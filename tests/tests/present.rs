@@ -1,4 +1,4 @@
-//! Presentation in windows (issue "The wall", item 4): a one-node wall under a virtual X server
+//! Presentation in windows: a one-node wall under a virtual X server
 //! (Xvfb) with `isowalld run --display window --windowed`. After two frames the tile's window, as
 //! an X screenshot (`xwd`) shows it, must hold exactly the tile's image: the one the node's
 //! snapshot returns.

@@ -1,13 +1,13 @@
-//! Soak (issue "Reliability and security", item 5): a 4-node local wall with tiny tiles runs many
-//! frames through `isowall up`, which samples every process's resident memory and open descriptors
-//! once warm and at the end; neither may grow. Screen space and object space (every node renders
-//! its brick for every tile and sends its pixels to the other three each frame). CI runs 1,000
-//! screen-space and 2,000 object-space frames (each well under a minute on lavapipe);
-//! `ISOWALL_SOAK_FRAMES=10000` runs the issue's full soak of both (the closing note reports it).
+//! Soak: a 4-node local wall with tiny tiles runs many frames through `isowall up`, which samples
+//! every process's resident memory and open descriptors once warm and at the end; neither may grow.
+//! Screen space and object space (every node renders its brick for every tile and sends its pixels
+//! to the other three each frame). CI runs 1,000 screen-space and 2,000 object-space frames (each
+//! well under a minute on lavapipe); `ISOWALL_SOAK_FRAMES=10000` runs the long soak of both (10,000
+//! frames each).
 //!
-//! The orbit turns 3.6 degrees a frame, so the drift windows (100 frames after warm-up, and the
-//! last 100) see the same views. Frame-time drift is printed, not asserted: a shared 2-core
-//! machine's timing is too noisy to fail a build on.
+//! The orbit turns 3.6 degrees a frame, so the two runs of frames the drift compares (100 frames
+//! after warm-up, and the last 100) see the same views. Frame-time drift is printed, not asserted:
+//! a shared 2-core machine's timing is too noisy to fail a build on.
 
 use isowall_e2e::{free_udp_ports, gpu_ok, run_in, set_object_mode, wall_config};
 

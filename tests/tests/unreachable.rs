@@ -1,4 +1,4 @@
-//! Starting a wall (issue "Operations", item 5): a node that cannot be reached is named, with
+//! Starting a wall: a node that cannot be reached is named, with
 //! its address and the reason, as soon as the first attempt fails, and again when the
 //! controller gives up. No GPU needed: nothing listens on the nodes' ports.
 

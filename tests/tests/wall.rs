@@ -1,4 +1,4 @@
-//! The wall over real processes on loopback (issue "The wall"): a 2x2 wall of four daemons and the
+//! The wall over real processes on loopback: a 2x2 wall of four daemons and the
 //! controller, whose snapshot must equal a single render of the whole wall camera; a slow daemon
 //! reported by name while the others go on; a peer with another CA's certificate refused.
 
@@ -49,7 +49,7 @@ fn a_2x2_wall_snapshot_equals_the_single_render_of_the_whole_wall() {
     let (compared, max_diff, mean, lit) = (d.compared, d.max_diff, d.mean, d.lit);
     assert_eq!(compared, 4 * (w * h) as u64);
     assert!(lit > 200, "the torus is hardly in view ({lit} lit pixels)");
-    // Tiles are windows of the one wall image with the same per-pixel sample patterns: the same
+    // Tiles are rectangles of the one wall image with the same per-pixel sample patterns: the same
     // pixels, up to one 8-bit level where float sums round differently.
     eprintln!("wall snapshot vs single render: max difference {max_diff} levels, mean {mean:.4}");
     assert!(max_diff <= 1 && mean < 0.01, "max {max_diff}, mean {mean}");

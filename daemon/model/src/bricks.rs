@@ -21,7 +21,7 @@
 //!   samples a single-node render reads. An unbounded radius has no halo: object space refuses it
 //!   ([`BrickError::UnboundedRadius`]), and so the 2008 `seed` AO method, which marches 0.9 of the box.
 
-use crate::camera::{View, Window};
+use crate::camera::{Rect, View};
 use crate::render_state::{AoMethod, RenderSettings};
 use glam::DVec3;
 
@@ -229,11 +229,11 @@ fn split_box(
     split_box(occ, dims, spacing, by_count, right_lo, b1, k - k_left, out)
 }
 
-/// The part of `view`'s window where a box can show: the bounding rectangle of its eight corners
-/// projected (pixel centres, the DESIGN.md camera), widened by a pixel for rounding, clipped to
-/// the window; the whole window where a corner is at or behind the eye's plane; `None` where the
-/// rectangle misses the window.
-pub fn covered_window(view: &View, box_min: DVec3, box_max: DVec3) -> Option<Window> {
+/// The part of `view`'s rectangle where a box can show: the bounding rectangle of its eight corners
+/// projected (pixel centres, the DESIGN.md camera), widened by a pixel for rounding, clipped to the
+/// rectangle; the whole rectangle where a corner is at or behind the eye's plane; `None` where the
+/// bounding rectangle misses the view's.
+pub fn covered_rect(view: &View, box_min: DVec3, box_max: DVec3) -> Option<Rect> {
     let b = view.camera.basis();
     let (w, h) = (view.full.0 as f64, view.full.1 as f64);
     let tan_x = b.tan_half_fov * w / h;
@@ -247,7 +247,7 @@ pub fn covered_window(view: &View, box_min: DVec3, box_max: DVec3) -> Option<Win
         ) - view.camera.eye;
         let z = c.dot(b.forward);
         if z <= 1e-9 * c.length().max(1e-300) {
-            return Some(view.window);
+            return Some(view.rect);
         }
         // sx = ((px + 0.5) / W * 2 - 1) * tan_x  <=>  px = (sx / tan_x + 1) / 2 * W - 0.5
         let px = (c.dot(b.right) / z / tan_x + 1.0) * 0.5 * w - 0.5;
@@ -257,7 +257,7 @@ pub fn covered_window(view: &View, box_min: DVec3, box_max: DVec3) -> Option<Win
         y0 = y0.min(py);
         y1 = y1.max(py);
     }
-    let win = view.window;
+    let win = view.rect;
     let clip = |lo: f64, hi: f64, start: u32, len: u32| -> Option<(u32, u32)> {
         let lo = (lo.floor() - 1.0).max(start as f64);
         let hi = (hi.ceil() + 1.0).min((start + len) as f64 - 1.0);
@@ -265,7 +265,7 @@ pub fn covered_window(view: &View, box_min: DVec3, box_max: DVec3) -> Option<Win
     };
     let (x, width) = clip(x0, x1, win.x, win.width)?;
     let (y, height) = clip(y0, y1, win.y, win.height)?;
-    Some(Window { x, y, width, height })
+    Some(Rect { x, y, width, height })
 }
 
 /// The AO reach a brick's halo must cover for `settings`: R plus eps (the rays' start off the
@@ -406,7 +406,7 @@ mod tests {
     }
 
     #[test]
-    fn covered_window_holds_every_pixel_whose_ray_meets_the_box() {
+    fn covered_rect_holds_every_pixel_whose_ray_meets_the_box() {
         use crate::camera::Camera;
         let cam = Camera {
             eye: DVec3::new(60.0, -50.0, 40.0),
@@ -415,10 +415,10 @@ mod tests {
             fov_y_deg: 35.0,
         };
         let full = (96, 64);
-        let tile = Window { x: 48, y: 0, width: 48, height: 64 };
-        let view = View { camera: cam, full, window: tile };
+        let tile = Rect { x: 48, y: 0, width: 48, height: 64 };
+        let view = View { camera: cam, full, rect: tile };
         let (lo, hi) = (DVec3::new(16.0, 0.0, 0.0), DVec3::new(32.0, 32.0, 32.0));
-        let r = covered_window(&view, lo, hi).expect("the box shows in the tile");
+        let r = covered_rect(&view, lo, hi).expect("the box shows in the tile");
         assert!(r.x >= tile.x && r.x + r.width <= tile.x + tile.width && r.width < tile.width);
         let basis = cam.basis();
         let mut inside = 0;
@@ -437,9 +437,9 @@ mod tests {
         }
         assert!(inside > 100);
         // A box behind the camera's view of this tile misses it; one around the eye covers all.
-        let left = View { window: Window { x: 0, y: 0, width: 8, height: 8 }, ..view };
-        assert_eq!(covered_window(&left, lo, hi), None);
-        assert_eq!(covered_window(&view, cam.eye - DVec3::ONE, cam.eye + DVec3::ONE), Some(tile));
+        let left = View { rect: Rect { x: 0, y: 0, width: 8, height: 8 }, ..view };
+        assert_eq!(covered_rect(&left, lo, hi), None);
+        assert_eq!(covered_rect(&view, cam.eye - DVec3::ONE, cam.eye + DVec3::ONE), Some(tile));
     }
 
     #[test]

@@ -5,9 +5,9 @@
 //! `sy = (1-(py+0.5)/H*2) * tan(fov_y/2)`, `f = normalize(target - eye)`, `r = normalize(f x up)`,
 //! `u = r x f`.
 //!
-//! A [`View`] is that camera over a full image of `full` pixels, of which a [`Window`] is
-//! rendered. A wall tile is such a window of the one wall image (an off-axis sub-frustum), so the
-//! assembled wall is exactly one big image.
+//! A [`View`] is that camera over a full image of `full` pixels, of which a [`Rect`] is rendered. A
+//! wall tile is such a rectangle of the one wall image (an off-axis sub-frustum), so the assembled
+//! wall is exactly one big image.
 
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
@@ -105,30 +105,30 @@ impl Camera {
 
 /// A rectangle of pixels inside the full image: `x, y` its top-left pixel, `width x height` its size.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub struct Window {
+pub struct Rect {
     pub x: u32,
     pub y: u32,
     pub width: u32,
     pub height: u32,
 }
 
-/// A camera looking at a full image of `full` = (W, H) pixels, of which `window` is rendered.
+/// A camera looking at a full image of `full` = (W, H) pixels, of which `rect` is rendered.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct View {
     pub camera: Camera,
     pub full: (u32, u32),
-    pub window: Window,
+    pub rect: Rect,
 }
 
 impl View {
     /// The whole image of `width` x `height` pixels.
     pub fn whole(camera: Camera, width: u32, height: u32) -> View {
-        View { camera, full: (width, height), window: Window { x: 0, y: 0, width, height } }
+        View { camera, full: (width, height), rect: Rect { x: 0, y: 0, width, height } }
     }
 
-    /// Number of pixels rendered (the window's).
+    /// Number of pixels rendered (the rectangle's).
     pub fn pixel_count(&self) -> usize {
-        self.window.width as usize * self.window.height as usize
+        self.rect.width as usize * self.rect.height as usize
     }
 
     /// The unit ray direction through the centre of pixel (px, py) of the *full* image.
@@ -139,9 +139,9 @@ impl View {
         (basis.forward + sx * basis.right + sy * basis.up).normalize()
     }
 
-    /// The unit ray direction through the centre of pixel (x, y) of the *window*.
+    /// The unit ray direction through the centre of pixel (x, y) of the *rectangle*.
     pub fn ray_dir(&self, basis: &Basis, x: u32, y: u32) -> DVec3 {
-        self.ray_dir_full(basis, self.window.x + x, self.window.y + y)
+        self.ray_dir_full(basis, self.rect.x + x, self.rect.y + y)
     }
 }
 
@@ -183,11 +183,11 @@ mod tests {
     }
 
     #[test]
-    fn a_window_sees_the_same_rays_as_the_whole_image() {
+    fn a_rect_sees_the_same_rays_as_the_whole_image() {
         let camera =
             Camera { eye: DVec3::new(3.0, -7.0, 2.0), target: DVec3::ZERO, up: DVec3::Z, fov_y_deg: 40.0 };
         let whole = View::whole(camera, 64, 48);
-        let tile = View { window: Window { x: 32, y: 24, width: 32, height: 24 }, ..whole };
+        let tile = View { rect: Rect { x: 32, y: 24, width: 32, height: 24 }, ..whole };
         let b = camera.basis();
         assert_eq!(tile.ray_dir(&b, 3, 5), whole.ray_dir_full(&b, 35, 29));
         assert_ne!(tile.ray_dir(&b, 3, 5), whole.ray_dir_full(&b, 3, 5));

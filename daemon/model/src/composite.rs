@@ -1,15 +1,15 @@
 //! Object space compositing by direct send (DESIGN.md "Distribution"), sans-IO.
 //!
 //! Each frame, every node renders its brick over the covered rectangle of every tile
-//! (`bricks::covered_window`) and sends each tile's rectangles to the node that shows the tile:
-//! one [`PeerPixels`] per frame per peer (empty where its brick covers none of the peer's tiles,
-//! so the peer knows it is done). A rectangle's pixels travel planar: the depth of every pixel
-//! (f32 little-endian, distance along the ray, `+inf` where the brick has no hit), then their
-//! colours (8-bit sRGB), each plane compressing well; with [`PixelEncoding::Lz4`] the whole is
-//! LZ4-compressed (block format, lossless, after its decoded size as a u32 little-endian). The tile owner's [`Compositor`] keeps, per pixel,
-//! the nearest hit of all bricks (its own included); pixels no brick hits show the background.
-//! When its own render and every other node's pixels for a frame are in, the frame's tiles are
-//! done (then Ready and the swap as in screen space).
+//! (`bricks::covered_rect`) and sends each tile's rectangles to the node that shows the tile: one
+//! [`PeerPixels`] per frame per peer (empty where its brick covers none of the peer's tiles, so the
+//! peer knows it is done). A rectangle's pixels travel planar: the depth of every pixel (f32
+//! little-endian, distance along the ray, `+inf` where the brick has no hit), then their colours
+//! (8-bit sRGB), each plane compressing well; with [`PixelEncoding::Lz4`] the whole is
+//! LZ4-compressed (block format, lossless, after its decoded size as a u32 little-endian). The tile
+//! owner's [`Compositor`] keeps, per pixel, the nearest hit of all bricks (its own included);
+//! pixels no brick hits show the background. When its own render and every other node's pixels for
+//! a frame are in, the frame's tiles are done (then Ready and the swap as in screen space).
 //!
 //! Everything a peer sends is checked before use, and before anything is decompressed: the sender
 //! must be the node its certificate names, the frame no more than [`FRAMES_AHEAD`] frames past

@@ -32,7 +32,7 @@ use std::collections::{BTreeMap, VecDeque};
 use std::time::Duration;
 
 use crate::clock::{ClockEstimator, ClockOffset, ClockSample};
-use crate::messages::{printable, Message, ProtocolError, TileImage};
+use crate::messages::{printable, Message, ProtocolError, Role, TileImage};
 use crate::wire::FrameState;
 
 /// Pings and swaps remembered per node, at most (older ones are forgotten: their answers will be
@@ -654,15 +654,12 @@ impl FrameController {
             return Err(err("the node is not up (no Hello, or its connection is closed)".into()));
         }
         self.nodes.get_mut(node).expect("checked").waiting_since = None;
+        // Who sends what is `Message::sender`'s one list.
+        if msg.sender() == Some(Role::Controller) {
+            return Err(err("only the controller sends this".into()));
+        }
         match msg {
             Message::Hello { .. } => Err(err("a second Hello: the handshake is done".into())),
-            Message::FrameState(_)
-            | Message::Swap { .. }
-            | Message::Ping { .. }
-            | Message::SnapshotRequest
-            | Message::ThumbnailRequest { .. }
-            | Message::Bricks { .. }
-            | Message::LoadBrick { .. } => Err(err("only the controller sends this".into())),
             Message::BrickLoaded { brick, load_us, resident_bytes } => {
                 Ok(vec![ControllerOutput::BrickLoaded {
                     node: node.to_string(),
@@ -771,6 +768,8 @@ impl FrameController {
                 st.missing = missing.clone();
                 Ok(vec![ControllerOutput::PixelsMissing { node: node.to_string(), frame_id, peers: missing }])
             }
+            // What only the controller sends, refused above.
+            _ => Err(err("only the controller sends this".into())),
         }
     }
 

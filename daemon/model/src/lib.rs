@@ -1,8 +1,12 @@
-//! The shared model of Isowall: everything the controller, the daemons and the renderers agree on,
-//! with no I/O at all (no sockets, no GPU, no clocks, no files).
+//! The shared model of Isowall: everything the controller, the daemons and the renderers agree on.
+//! It opens no sockets, uses no GPU and reads no clock (time is passed in). It reads files in two
+//! places only: [`WallConfig::load`] (and [`WallConfig::check_report`], through it) reads the
+//! config file it is given, and the `cli` feature's `check_config` (the `check-config` command)
+//! also reads a DICOM volume's headers, no pixels, through `isowall-volume`. Everything else takes
+//! its input as values.
 //!
 //! - [`camera`]: the pinhole camera of DESIGN.md and the pixel-centre ray convention, for a whole
-//!   image or a window of it (a tile is a window of the wall image).
+//!   image or a rectangle of it (a tile is a rectangle of the wall image).
 //! - [`config`]: the wall config (TOML): wall, camera, volume, render defaults, tiles and nodes,
 //!   validated with every problem at its file, line and column.
 //! - [`render_state`]: what a frame is rendered with: iso value, shading, light, material, AOV.
@@ -11,7 +15,7 @@
 //!   (the one place bytes are made: bincode, length-prefixed frames, limits), [`clock`] (offsets
 //!   from Ping/Pong), [`frame_controller`] (the controller's swap barrier) and [`node_machine`] (a
 //!   daemon's side).
-//! - object space: [`bricks`] (the split, halos, covered windows), [`composite`] (depth
+//! - object space: [`bricks`] (the split, halos, covered rectangles), [`composite`] (depth
 //!   compositing of peers' pixels, its caps and deadline), [`adoption`] (which node renders each
 //!   brick when nodes die), [`object_machine`] (a node's object space: views, brick maps,
 //!   compositing and its messages).
@@ -44,7 +48,7 @@ pub mod render_state;
 pub mod sim;
 pub mod wire;
 
-pub use camera::{Camera, CameraError, View, Window};
+pub use camera::{Camera, CameraError, Rect, View};
 pub use config::{
     CameraConfig, CertConfig, ConfigErrors, NodeConfig, Problem, RenderConfig, TileConfig, VolumeConfig,
     WallConfig, WallMode, WallSection,

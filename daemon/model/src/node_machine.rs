@@ -179,16 +179,12 @@ impl NodeMachine {
                 Err(e) => err(e.to_string()),
             };
         }
+        // Who sends what is `Message::sender`'s one list.
+        if msg.sender() == Some(Role::Daemon) {
+            return err("only a daemon sends this".into());
+        }
         match msg {
             Message::Hello { .. } => err("a second Hello: the handshake is done".into()),
-            Message::Ready { .. }
-            | Message::Presented { .. }
-            | Message::Pong { .. }
-            | Message::Snapshot { .. }
-            | Message::Composited { .. }
-            | Message::BrickLoaded { .. }
-            | Message::BrickFailed { .. }
-            | Message::StepLate { .. } => err("only a daemon sends this".into()),
             Message::Bricks { from_frame, holders } => Ok(vec![NodeOutput::Bricks { from_frame, holders }]),
             Message::LoadBrick { brick } => Ok(vec![NodeOutput::LoadBrick { brick }]),
             Message::FrameState(state) => {
@@ -242,6 +238,8 @@ impl NodeMachine {
                 self.reset();
                 Ok(vec![NodeOutput::Closed { reason }])
             }
+            // What only a daemon sends, refused above.
+            _ => err("only a daemon sends this".into()),
         }
     }
 

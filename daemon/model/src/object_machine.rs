@@ -6,11 +6,11 @@
 //! - tells it of every frame state as it arrives ([`ObjectMachine::announce`]: peers' pixels may
 //!   come for frames up to [`crate::composite::FRAMES_AHEAD`] past it);
 //! - asks, when the frame machine says render, for the views to render
-//!   ([`ObjectMachine::views`]: the covered window of every wall tile for each brick the frame's
+//!   ([`ObjectMachine::views`]: the covered rectangle of every wall tile for each brick the frame's
 //!   brick map gives this node, and the adopted bricks to drop first); the frame starts waiting
 //!   for its peers then, each within its *footprint* (the rectangles its bricks may cover in this
 //!   node's tiles, by the same map and camera) and until the compositing deadline;
-//! - hands it the rendered windows ([`ObjectMachine::local_done`]): it encodes each tile's
+//! - hands it the rendered rectangles ([`ObjectMachine::local_done`]): it encodes each tile's
 //!   rectangles for the node that shows the tile ([`ObjectOutput::SendPixels`], one message per
 //!   peer per frame, empty where its bricks cover none of the peer's tiles) and composites its
 //!   own;
@@ -37,12 +37,12 @@ use crate::composite::{
 };
 use crate::config::WallConfig;
 use crate::messages::Message;
-use crate::{AoMethod, AoRadius, Camera, RenderSettings, View, Window};
+use crate::{AoMethod, AoRadius, Camera, Rect, RenderSettings, View};
 use glam::DVec3;
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::Duration;
 
-/// Frames whose records (windows rendered, timings) are kept.
+/// Frames whose records (rectangles rendered, timings) are kept.
 const FRAMES_KEPT: u64 = 16;
 
 /// What every node computes at start-up from the volume (`bricks::split`): the owned box (world)
@@ -114,8 +114,8 @@ pub struct ObjectMachine {
     compositor: Compositor,
     /// The other nodes that show tiles: each gets one message per frame.
     receivers: Vec<String>,
-    /// Per frame rendered: the covered window of each view, by tile.
-    submitted: BTreeMap<u64, Vec<(String, Window)>>,
+    /// Per frame rendered: the covered rectangle of each view, by tile.
+    submitted: BTreeMap<u64, Vec<(String, Rect)>>,
     local: BTreeMap<u64, LocalDone>,
     /// Per frame: time spent encoding, decoding and merging pixels ([`ObjectMachine::add_work`]).
     work: BTreeMap<u64, Duration>,
@@ -233,7 +233,7 @@ impl ObjectMachine {
         let Some(&(lo, hi)) = self.geometry.owned.get(brick) else { return };
         for t in self.config.tiles_of(&self.name) {
             let Some(view) = self.config.tile_view(camera, &t.name) else { continue };
-            if let Some(w) = bricks::covered_window(&view, lo, hi) {
+            if let Some(w) = bricks::covered_rect(&view, lo, hi) {
                 let rect = TileRect { x: w.x - t.x, y: w.y - t.y, width: w.width, height: w.height };
                 out.push((t.name.clone(), rect));
             }
@@ -283,13 +283,13 @@ impl ObjectMachine {
             let (lo, hi) = self.geometry.owned[b];
             for t in &self.config.tiles {
                 let Some(tile_view) = self.config.tile_view(camera, &t.name) else { continue };
-                if let Some(w) = bricks::covered_window(&tile_view, lo, hi) {
-                    views.push((t.name.clone(), View { window: w, ..tile_view }));
+                if let Some(w) = bricks::covered_rect(&tile_view, lo, hi) {
+                    views.push((t.name.clone(), View { rect: w, ..tile_view }));
                     bricks.push(b);
                 }
             }
         }
-        self.submitted.insert(frame_id, views.iter().map(|(n, v)| (n.clone(), v.window)).collect());
+        self.submitted.insert(frame_id, views.iter().map(|(n, v)| (n.clone(), v.rect)).collect());
         self.submitted.retain(|&id, _| id.saturating_add(FRAMES_KEPT) > frame_id);
         (FrameViews { views, bricks, unload, not_loaded }, refused.into_iter().map(refused_output).collect())
     }
@@ -349,7 +349,7 @@ impl ObjectMachine {
     }
 
     /// This node's render of `frame_id` is done at `now`, after `render`: `rendered` holds each
-    /// view of [`ObjectMachine::views`], in order (named by its tile, the window's size, depth
+    /// view of [`ObjectMachine::views`], in order (named by its tile, the rectangle's size, depth
     /// and sRGB8 colour). Returns each peer's pixels to send, and the frame when nothing else is
     /// awaited.
     pub fn local_done(
@@ -359,10 +359,10 @@ impl ObjectMachine {
         render: Duration,
         rendered: Vec<TileCanvas>,
     ) -> Vec<ObjectOutput> {
-        let windows = self.submitted.remove(&frame_id).unwrap_or_default();
+        let rects = self.submitted.remove(&frame_id).unwrap_or_default();
         // Layers by tile owner; rectangles without a hit carry nothing the owner needs.
         let mut by_owner: BTreeMap<String, Vec<(String, Layer)>> = BTreeMap::new();
-        for (r, (tile, w)) in rendered.into_iter().zip(&windows) {
+        for (r, (tile, w)) in rendered.into_iter().zip(&rects) {
             debug_assert_eq!(&r.name, tile);
             let (Some(t), Some(owner)) = (self.config.tile(tile), self.config.node_of_tile(tile)) else {
                 continue;

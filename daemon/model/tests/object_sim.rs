@@ -1,10 +1,10 @@
 //! Object space on a simulated network: four nodes of a 2x2 wall, each a `NodeMachine` beside an
 //! `ObjectMachine` as `isowalld run` pairs them, joined by links with latency, jitter and loss on a
-//! virtual clock with a seeded PRNG; every pixel message goes through the codec. The controller
-//! is scripted: a frame state every `period` at most (as `isowall orbit --fps`), the next once the
-//! frame is released (every node up composited it, or the barrier's deadline passed), the
-//! model's `BrickAssigner` when a node dies. A render takes a fixed time and gives, over each view's
-//! window, depth `brick + 1` everywhere (a brick covers its whole covered window), so every
+//! virtual clock with a seeded PRNG; every pixel message goes through the codec. The controller is
+//! scripted: a frame state every `period` at most (as `isowall orbit --fps`), the next once the
+//! frame is released (every node up composited it, or the barrier's deadline passed), the model's
+//! `BrickAssigner` when a node dies. A render takes a fixed time and gives, over each view's
+//! rectangle, depth `brick + 1` everywhere (a brick covers its whole covered rectangle), so every
 //! composited tile can be checked pixel by pixel against the bricks the frame should hold.
 //!
 //! The scenarios of DESIGN.md "Faults" in object space: a healthy wall, a silent peer, lossy
@@ -346,11 +346,11 @@ impl Sim {
                     .iter()
                     .zip(&views.bricks)
                     .map(|((tile, v), &b)| {
-                        let px = (v.window.width * v.window.height) as usize;
+                        let px = (v.rect.width * v.rect.height) as usize;
                         TileCanvas {
                             name: tile.clone(),
-                            width: v.window.width,
-                            height: v.window.height,
+                            width: v.rect.width,
+                            height: v.rect.height,
                             depth: vec![b as f32 + 1.0; px],
                             rgb8: vec![b as u8 * 40; px * 3],
                         }
@@ -461,7 +461,7 @@ impl Sim {
     }
 
     /// Whether node n's composited tile of `frame` holds exactly the bricks `bricks`: per pixel the
-    /// nearest (lowest-numbered) brick whose covered window holds it.
+    /// nearest (lowest-numbered) brick whose covered rectangle holds it.
     fn exact(&self, n: usize, frame: u64, bricks: &[usize]) -> bool {
         let Some(r) = self.records.get(&(n, frame)) else { return false };
         let tile = self.config.tile(&format!("t{n}")).unwrap();
@@ -474,7 +474,7 @@ impl Sim {
                 let want = bricks
                     .iter()
                     .filter(|&&b| {
-                        bricks::covered_window(&view, owned[b].0, owned[b].1).is_some_and(|w| {
+                        bricks::covered_rect(&view, owned[b].0, owned[b].1).is_some_and(|w| {
                             wx >= w.x && wx < w.x + w.width && wy >= w.y && wy < w.y + w.height
                         })
                     })

@@ -141,7 +141,7 @@ fn a_256_node_wall_runs_to_the_end_and_a_seed_decides_everything() {
 #[test]
 fn the_machines_send_what_the_footprints_say_and_wait_for_the_links() {
     // 16 ObjectMachines on 240x135 tiles, sized for 1080p, against the schedule's geometry of the
-    // same bricks at 1080p: the same bytes per node (within the covered windows' rounding, a
+    // same bricks at 1080p: the same bytes per node (within the covered rectangles' rounding, a
     // pixel at the small tiles' scale), and the compositing time of the busiest receiver no
     // shorter than its link carrying what it receives.
     let n = 16;

@@ -31,9 +31,9 @@ pub enum NetError {
 /// Unidirectional streams a peer may have open at once (object space: frames of pixels).
 pub const MAX_UNI_STREAMS: u32 = 8;
 /// Bytes a peer may have in flight on one stream (flow control), at most.
-pub const STREAM_WINDOW: u32 = 4 << 20;
+pub const STREAM_FLOW_LIMIT: u32 = 4 << 20;
 /// Bytes a peer may have in flight on one connection, all streams together, at most.
-pub const CONNECTION_WINDOW: u32 = 16 << 20;
+pub const CONNECTION_FLOW_LIMIT: u32 = 16 << 20;
 /// Connections a server endpoint lets wait for their handshake at once, at most.
 pub const MAX_INCOMING: usize = 64;
 
@@ -68,19 +68,19 @@ fn client_config(identity: &Identity) -> Result<quinn::ClientConfig, TlsError> {
 /// (both ends are quinn) every ack-eliciting packet is acknowledged at once and the delay asked
 /// of the peer is 1 ms; acknowledgements for a few messages per frame cost little.
 ///
-/// Limits, set here rather than left to quinn's defaults (which allow 100 streams of each kind, an
-/// unlimited connection window and datagrams): a peer may open one bidirectional stream at a time
-/// (the message channel) and [`MAX_UNI_STREAMS`] unidirectional ones (object space: one per frame
-/// of pixels), and have at most [`STREAM_WINDOW`] bytes in flight per stream and
-/// [`CONNECTION_WINDOW`] per connection, so what a connection can make the receiver buffer is
-/// bounded whatever the peer does; no datagrams.
+/// Limits, set here rather than left to quinn's defaults (which allow 100 streams of each kind, no
+/// flow-control limit per connection, and datagrams): a peer may open one bidirectional stream at
+/// a time (the message channel) and [`MAX_UNI_STREAMS`] unidirectional ones (object space: one per
+/// frame of pixels), and have at most [`STREAM_FLOW_LIMIT`] bytes in flight per stream and
+/// [`CONNECTION_FLOW_LIMIT`] per connection (QUIC flow control), so what a connection can make the
+/// receiver buffer is bounded whatever the peer does; no datagrams.
 pub fn transport_config() -> quinn::TransportConfig {
     let mut t = quinn::TransportConfig::default();
     t.max_concurrent_bidi_streams(quinn::VarInt::from_u32(1));
     t.max_concurrent_uni_streams(quinn::VarInt::from_u32(MAX_UNI_STREAMS));
-    t.stream_receive_window(quinn::VarInt::from_u32(STREAM_WINDOW));
-    t.receive_window(quinn::VarInt::from_u32(CONNECTION_WINDOW));
-    t.send_window(u64::from(CONNECTION_WINDOW));
+    t.stream_receive_window(quinn::VarInt::from_u32(STREAM_FLOW_LIMIT));
+    t.receive_window(quinn::VarInt::from_u32(CONNECTION_FLOW_LIMIT));
+    t.send_window(u64::from(CONNECTION_FLOW_LIMIT));
     t.datagram_receive_buffer_size(None);
     t.keep_alive_interval(Some(Duration::from_millis(500)));
     t.max_idle_timeout(Some(Duration::from_secs(5).try_into().expect("5 s is a valid idle timeout")));

@@ -1,8 +1,8 @@
-//! A rendered frame: every AOV of a window of pixels, rows top to bottom.
+//! A rendered frame: every AOV of a rectangle of pixels, rows top to bottom.
 
 use isowall_model::Aov;
 
-/// All AOVs of one rendered window. Pixels without a hit hold 0 in every AOV but `color`,
+/// All AOVs of one rendered rectangle. Pixels without a hit hold 0 in every AOV but `color`,
 /// which holds the background.
 #[derive(Clone, Debug, Default)]
 pub struct Frame {

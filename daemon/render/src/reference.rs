@@ -108,13 +108,13 @@ pub fn trace(volume: &Volume, eye: DVec3, dir: DVec3, iso: f64) -> Option<Hit> {
     trace_counted(volume, eye, dir, iso).0
 }
 
-/// Renders the window of `view` with the exact reference method, without an environment (an IBL
+/// Renders the rectangle of `view` with the exact reference method, without an environment (an IBL
 /// method other than `None` then lights with the constant ambient, see the module documentation).
 pub fn render(volume: &Volume, view: &View, settings: &RenderSettings) -> Frame {
     render_with_env(volume, view, settings, None)
 }
 
-/// Renders the window of `view` with the exact reference method, AO and IBL included (module
+/// Renders the rectangle of `view` with the exact reference method, AO and IBL included (module
 /// documentation), lit by `env` where the IBL method needs one. Rows are shared among
 /// `available_parallelism` threads; the output does not depend on how.
 pub fn render_with_env(
@@ -124,7 +124,7 @@ pub fn render_with_env(
     env: Option<&Environment>,
 ) -> Frame {
     let basis = view.camera.basis();
-    let (width, height) = (view.window.width, view.window.height);
+    let (width, height) = (view.rect.width, view.rect.height);
     let _span = tracing::debug_span!("reference_render", width, height, iso = settings.iso).entered();
     let mut frame = Frame::new(width, height);
     let light = settings.light.world_direction(basis.forward, basis.right, basis.up);
@@ -537,7 +537,7 @@ struct Pixel {
     ibl: [f32; 3],
 }
 
-/// Traces and shades the pixel (x, y) of the window; returns it and the fetches made.
+/// Traces and shades the pixel (x, y) of the rectangle; returns it and the fetches made.
 #[allow(clippy::too_many_arguments)]
 fn shade_pixel(
     volume: &Volume,
@@ -565,7 +565,7 @@ fn shade_pixel(
             let v = -dir;
             let surface = AoSurface::of_hit(volume, &h, dir);
             let n = surface.facing;
-            let pixel = (view.window.x + x, view.window.y + y);
+            let pixel = (view.rect.x + x, view.rect.y + y);
             let amb = ambient_at(volume, settings, lighting, &surface, pixel);
             fetches += amb.fetches;
             // albedo * (E + light * N.L) + specular: shade() with its ambient replaced by E.
@@ -907,7 +907,7 @@ fn quadratic_roots(a: f64, b: f64, c: f64) -> [f64; 2] {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use isowall_model::{Camera, Window};
+    use isowall_model::{Camera, Rect};
 
     /// A volume sampling `f` at the world positions of its samples.
     fn field(dims: [usize; 3], spacing: DVec3, origin: DVec3, f: impl Fn(DVec3) -> f64) -> Volume {
@@ -1163,7 +1163,7 @@ mod tests {
     }
 
     #[test]
-    fn render_matches_trace_and_windows_match_the_whole_image() {
+    fn render_matches_trace_and_rects_match_the_whole_image() {
         let c = DVec3::new(7.3, 6.8, 7.9);
         let v = field([16, 15, 17], DVec3::ONE, DVec3::ZERO, |p| 5.5 - (p - c).length());
         let whole = small_view(&v, 24, 18);
@@ -1189,7 +1189,7 @@ mod tests {
                 }
             }
         }
-        let tile = View { window: Window { x: 5, y: 7, width: 11, height: 6 }, ..whole };
+        let tile = View { rect: Rect { x: 5, y: 7, width: 11, height: 6 }, ..whole };
         let t = render(&v, &tile, &s);
         for y in 0..6 {
             for x in 0..11 {
@@ -1259,7 +1259,7 @@ mod tests {
     /// Viewer-facing normal of pixel i of a whole-image view, from the frame's N.
     fn facing(view: &View, f: &Frame, i: usize) -> DVec3 {
         let b = view.camera.basis();
-        let dir = view.ray_dir(&b, i as u32 % view.window.width, i as u32 / view.window.width);
+        let dir = view.ray_dir(&b, i as u32 % view.rect.width, i as u32 / view.rect.width);
         let n = DVec3::from(f.normal[i].map(f64::from));
         if n.dot(-dir) < 0.0 {
             -n

@@ -7,7 +7,7 @@
 //! hash(x)            "lowbias32" (Chris Wellons):
 //!                    x ^= x >> 16; x *= 0x7feb352d; x ^= x >> 15; x *= 0x846ca68b; x ^= x >> 16
 //! pixel_key(px, py, frame, seed) = hash(px ^ hash(py ^ hash(frame ^ hash(seed))))
-//!                    px, py: the pixel in the FULL image (the wall), never the window, so a tile
+//!                    px, py: the pixel in the FULL image (the wall), never the rectangle, so a tile
 //!                    of a wall draws exactly what the same pixel of one big render draws
 //! R2_A1 = 3242174889 = round(2^32 / g), R2_A2 = 2447445414 = round(2^32 / g^2),
 //!                    g = 1.32471795724474602596 (the plastic number)
@@ -66,7 +66,7 @@ pub fn hash(x: u32) -> u32 {
 }
 
 /// The per-pixel, per-frame key of the sample pattern. `px, py` are the pixel in the full image
-/// (the wall), not in the rendered window.
+/// (the wall), not in the rendered rectangle.
 #[inline]
 pub fn pixel_key(px: u32, py: u32, frame: u32, seed: u32) -> u32 {
     hash(px ^ hash(py ^ hash(frame ^ hash(seed))))

@@ -177,6 +177,12 @@ pub(crate) mod tests {
         }
     }
 
+    #[test]
+    fn the_present_pipelines_bind_group_layout_is_what_present_wgsl_declares() {
+        let entries = crate::gpu::present::entries();
+        assert_eq!(declared(&entries), reflected(Kernel::Present), "{}", Kernel::Present.file_name());
+    }
+
     /// Parses and validates a kernel with naga, panicking with the shader's own diagnostics.
     pub(crate) fn parse(kernel: Kernel) -> naga::Module {
         let src = source(kernel);

@@ -15,13 +15,13 @@
 //!   default sequence is the better one.
 //!
 //! The estimate marches every ray at 0.02 voxel, so it is computed once per scene (shared by the
-//! tests of this file) on every core; the renderers render 1x1 windows at the chosen pixels.
+//! tests of this file) on every core; the renderers render 1x1 rectangles at the chosen pixels.
 
 mod common;
 mod truth;
 
 use glam::DVec3;
-use isowall_model::{AoRadius, AoSequence, Camera, IblMethod, RenderSettings, View, Window};
+use isowall_model::{AoRadius, AoSequence, Camera, IblMethod, Rect, RenderSettings, View};
 use isowall_render::environment::Environment;
 use isowall_render::gpu::GpuRenderer;
 use isowall_render::reference;
@@ -216,7 +216,7 @@ struct Got {
 }
 
 fn one_pixel(view: &View, (px, py): (u32, u32)) -> View {
-    View { window: Window { x: px, y: py, width: 1, height: 1 }, ..*view }
+    View { rect: Rect { x: px, y: py, width: 1, height: 1 }, ..*view }
 }
 
 fn reference_at(

@@ -11,7 +11,7 @@ mod common;
 use common::{ao_at_gpu_hits, plate_scene};
 
 use glam::DVec3;
-use isowall_model::{AoMethod, AoRadius, Camera, IblMethod, RenderSettings, View, Window};
+use isowall_model::{AoMethod, AoRadius, Camera, IblMethod, Rect, RenderSettings, View};
 use isowall_render::environment::Environment;
 use isowall_render::reference;
 use isowall_render::Frame;
@@ -178,7 +178,7 @@ fn ao_is_reproducible_and_a_tile_matches_the_whole_image() {
     let Some(gpu) = common::gpu() else { return };
     let (volume, iso) = scene(Procedural::Engine, 64);
     let whole = framed(&volume, 64);
-    let tile = View { window: Window { x: 20, y: 16, width: 30, height: 28 }, ..whole };
+    let tile = View { rect: Rect { x: 20, y: 16, width: 30, height: 28 }, ..whole };
     let gv = gpu.upload(&volume).unwrap();
     let mut s = RenderSettings::new(iso);
     s.ao.samples = 8;
@@ -330,7 +330,7 @@ fn many_long_rays_in_one_frame_are_all_tested() {
     let Some(gpu) = common::gpu() else { return };
     let (volume, iso) = scene(Procedural::SphereOverPlane, 48);
     let view = framed(&volume, 64);
-    let view = View { window: Window { x: 24, y: 24, width: 16, height: 16 }, ..view };
+    let view = View { rect: Rect { x: 24, y: 24, width: 16, height: 16 }, ..view };
     let gv = gpu.upload(&volume).unwrap();
     let mut s = RenderSettings::new(iso);
     s.ao.samples = 2048;

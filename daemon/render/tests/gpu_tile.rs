@@ -196,7 +196,7 @@ fn a_steady_tile_allocates_nothing_and_reads_back_only_what_leaves_the_node() {
         let per_frame = 16 + timestamps + if share { pixels * 4 + pixels * 4 } else { 0 };
         assert_eq!(t.read_back, n * per_frame, "share {share}: bytes read back");
     }
-    // A resize (another window size) needs new resources, which the tile says.
+    // A resize (another tile size) needs new resources, which the tile says.
     let small = View::whole(view.camera, W / 2, H / 2);
     assert!(!tile.fits(&small, 2) && !tile.fits(&view, 1) && tile.fits(&view, 2));
 }

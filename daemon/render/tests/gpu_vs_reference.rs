@@ -6,7 +6,7 @@
 mod common;
 
 use glam::DVec3;
-use isowall_model::{Camera, RenderSettings, Shading, View, Window};
+use isowall_model::{Camera, Rect, RenderSettings, Shading, View};
 use isowall_render::reference;
 use isowall_volume::procedural::Procedural;
 use isowall_volume::VolumeSource;
@@ -109,7 +109,7 @@ fn a_tile_renders_exactly_the_pixels_of_the_whole_image() {
     let (volume, iso) = scene(Procedural::Torus, 48);
     let cam = Camera::framing(volume.box_min(), volume.box_max(), SIZE, SIZE);
     let whole = View::whole(cam, SIZE, SIZE);
-    let tile = View { window: Window { x: 40, y: 24, width: 33, height: 41 }, ..whole };
+    let tile = View { rect: Rect { x: 40, y: 24, width: 33, height: 41 }, ..whole };
     let gv = gpu.upload(&volume).unwrap();
     let s = RenderSettings::new(iso);
     let w = gpu.render(&gv, &whole, &s, None).unwrap().frame;

@@ -193,7 +193,7 @@ fn pixels_along_the_cut_agree_and_a_brick_without_halo_would_differ() {
 }
 
 #[test]
-fn the_covered_window_holds_every_hit_of_a_brick() {
+fn the_covered_rect_holds_every_hit_of_a_brick() {
     let s = settings_with_ao(0.0, 8.0);
     let cam = Camera {
         eye: DVec3::new(-40.0, -50.0, 60.0),
@@ -208,7 +208,7 @@ fn the_covered_window_holds_every_hit_of_a_brick() {
     let view = View::whole(cam, 80, 64);
     for ((f, _), b) in frames.iter().zip(&split) {
         let (lo, hi) = b.owned_box(DVec3::ZERO, DVec3::ONE);
-        let r = bricks::covered_window(&view, lo, hi).expect("each brick shows");
+        let r = bricks::covered_rect(&view, lo, hi).expect("each brick shows");
         for i in 0..f.pixel_count() {
             let (x, y) = ((i % 80) as u32, (i / 80) as u32);
             if f.hit[i] {

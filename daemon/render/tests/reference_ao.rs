@@ -7,20 +7,21 @@
 //! - IBL: a constant environment gives L (1 - A) with every method; under the sky, `rays`
 //!   converges to a brute-force visibility-weighted irradiance computed here independently of the
 //!   sample patterns, and the errors of `bent` and `seed` against it are reported;
-//! - renders are deterministic, windows agree with the whole image, the frame index decorrelates,
+//! - renders are deterministic, rectangles agree with the whole image, the frame index
+//!   decorrelates,
 //!   and progressive accumulation is the mean of the frames.
 
 mod common;
 
 use glam::DVec3;
-use isowall_model::{AoMethod, AoRadius, Camera, IblMethod, RenderSettings, View, Window};
+use isowall_model::{AoMethod, AoRadius, Camera, IblMethod, Rect, RenderSettings, View};
 use isowall_render::environment::Environment;
 use isowall_render::reference::{self, ao_origin, ao_ray_occluded, trace, Hit};
 use isowall_render::Frame;
 use isowall_volume::procedural::{sphere_over_plane_geometry, Procedural};
 use isowall_volume::Volume;
 
-/// Pixel (px, py) of `view` alone (a 1x1 window of it).
+/// Pixel (px, py) of `view` alone (a 1x1 rectangle of it).
 fn pixel(
     volume: &Volume,
     view: &View,
@@ -29,7 +30,7 @@ fn pixel(
     px: u32,
     py: u32,
 ) -> Frame {
-    let one = View { window: Window { x: px, y: py, width: 1, height: 1 }, ..*view };
+    let one = View { rect: Rect { x: px, y: py, width: 1, height: 1 }, ..*view };
     let f = reference::render_with_env(volume, &one, s, env);
     assert!(f.hit[0], "pixel ({px}, {py}) has no hit");
     f
@@ -367,8 +368,9 @@ fn renders_are_deterministic_and_frames_decorrelate() {
     );
     assert_eq!(a.fetches, b.fetches);
 
-    // A window draws exactly the pixels of the whole image (the pattern keys on full-image pixels).
-    let tile = View { window: Window { x: 9, y: 13, width: 12, height: 7 }, ..view };
+    // A rectangle draws exactly the pixels of the whole image (the pattern keys on full-image
+    // pixels).
+    let tile = View { rect: Rect { x: 9, y: 13, width: 12, height: 7 }, ..view };
     let t = reference::render_with_env(&volume, &tile, &s, Some(&env));
     for y in 0..7 {
         for x in 0..12 {

@@ -275,7 +275,7 @@ fn primary_misses(volume: &Volume, view: &View, iso: f64, g: &Frame, r: &Frame) 
         }
         misses += 1;
         // How long the ray stays in the object after the reference's hit (fine steps, f64).
-        let d = view.ray_dir(&b, i as u32 % view.window.width, i as u32 / view.window.width);
+        let d = view.ray_dir(&b, i as u32 % view.rect.width, i as u32 / view.rect.width);
         let t_hit = r.depth[i] as f64;
         let fine = step / 400.0;
         let mut t = t_hit + fine;

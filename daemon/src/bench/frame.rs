@@ -3,11 +3,14 @@
 //! then a snapshot) and in object space (the tile's share, colour and depth, read back each
 //! frame), per frame: GPU allocations, bytes read back, bytes uploaded, CPU ms outside GPU waits,
 //! ms per frame, and GPU ms per kernel (timestamp queries where the adapter has them; otherwise
-//! submit to done for the whole frame). `--variants before` runs the path of the build before the
-//! frame stayed on the GPU (every AOV made and read back each frame, composed, accumulated and
-//! encoded on the CPU, uploaded again to present) in the same run, for ratios.
+//! submit to done for the whole frame). `--variants plain` (or `before`) runs the path of the
+//! build before the frame stayed on the GPU (every AOV made and read back each frame, composed,
+//! accumulated and encoded on the CPU, uploaded again to present) in the same run, for ratios.
 
-use super::stats::{csv_records, median, sample_list, save_csv, scene_spec};
+use super::stats::{
+    baseline_row, csv_records, is_plain, median, print_baseline_heading, sample_list, save_csv, scene_spec,
+    PLAIN, PLAIN_ALIAS,
+};
 use crate::args;
 use crate::render::load_volume;
 use anyhow::{bail, Context, Result};
@@ -41,8 +44,8 @@ pub struct FrameArgs {
     /// (the share read back every frame)
     #[arg(long, default_value = "screen,object")]
     pub paths: String,
-    /// `default` (the frame on the GPU) and/or `before` (every AOV read back, the CPU composes,
-    /// accumulates, encodes and uploads to present), comma-separated
+    /// `default` (the frame on the GPU) and/or `plain` (or `before`: every AOV read back, the CPU
+    /// composes, accumulates, encodes and uploads to present), comma-separated
     #[arg(long, default_value = "default")]
     pub variants: String,
     /// Compare with the rows of this CSV (an earlier `--save`): ratios new / baseline
@@ -355,8 +358,8 @@ pub fn run(a: &FrameArgs) -> Result<()> {
         }
     }
     for v in &variants {
-        if v != "default" && v != "before" {
-            bail!("--variants: unknown variant '{v}' (default, before)");
+        if v != "default" && !is_plain(v) {
+            bail!("--variants: unknown variant '{v}' (default, plain)");
         }
     }
     let gpu = GpuRenderer::new()?;
@@ -425,18 +428,17 @@ pub fn run(a: &FrameArgs) -> Result<()> {
         save_csv(p, &header, HEADER, rows.iter().map(Row::csv))?;
     }
     if let (Some(base), Some(p)) = (baseline, &a.baseline) {
-        println!(
-            "# against the baseline {} (ratios new / baseline; below 1 is faster, fewer, smaller)",
-            p.display()
+        print_baseline_heading(
+            p,
+            "scene,size,samples,path,variant,baseline_variant,ms_ratio,cpu_ms_ratio,allocations_ratio,read_back_ratio,uploaded_ratio",
         );
-        println!("scene,size,samples,path,variant,baseline_variant,ms_ratio,cpu_ms_ratio,allocations_ratio,read_back_ratio,uploaded_ratio");
         for r in &rows {
-            // The same row of the baseline, else its `before` row (a build without this path).
-            let mut key = r.key();
-            let b = base.iter().find(|b| b.key() == key).or_else(|| {
-                key.4 = "before".into();
-                base.iter().find(|b| b.key() == key)
-            });
+            // The same row of the baseline, else its `plain` row (a build without this path),
+            // which a baseline made before that name calls `before`.
+            let key = r.key();
+            let plain = |name: &str| (key.0.clone(), key.1.clone(), key.2, key.3.clone(), name.to_string());
+            let b = baseline_row(&base, Row::key, &key, &plain(PLAIN))
+                .or_else(|| baseline_row(&base, Row::key, &key, &plain(PLAIN_ALIAS)));
             let ratio = |x: f64, y: f64| {
                 if y == 0.0 {
                     if x == 0.0 {

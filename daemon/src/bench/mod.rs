@@ -37,10 +37,10 @@ pub enum BenchCommand {
     /// file as ratios (docs/bench/baseline-lavapipe.csv).
     Suite(suite::SuiteArgs),
     /// One frame of a wall tile (default 1920x1080) by the node's frame path, in screen space
-    /// (presented offscreen, then a snapshot) and object space (the share read back): per frame
-    /// GPU allocations, bytes read back and uploaded, CPU ms outside GPU waits, ms per frame and
-    /// GPU ms per kernel; `--variants before` measures the earlier path in the same run; `--save`
-    /// and `--baseline` as `bench suite` has them.
+    /// (presented offscreen, then a snapshot) and object space (the share read back): per frame GPU
+    /// allocations, bytes read back and uploaded, CPU ms outside GPU waits, ms per frame and GPU ms
+    /// per kernel; `--variants plain` (or `before`) measures the earlier path in the same run;
+    /// `--save` and `--baseline` as `bench suite` has them.
     Frame(frame::FrameArgs),
 }
 

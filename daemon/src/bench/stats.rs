@@ -1,8 +1,21 @@
-//! What the benchmarks share: medians, error statistics and the scene and sample lists of their
-//! flags. It imports nothing of its sibling modules.
+//! What the benchmarks share: medians, error statistics, the scene and sample lists of their flags,
+//! their CSV files and the comparison with a baseline file. It imports nothing of its sibling
+//! modules.
 
 use anyhow::{bail, Context, Result};
 use std::path::Path;
+
+/// The variant that measures the renderer as it was before its performance work: in `bench suite`
+/// the options [`isowall_render::gpu::PerfOptions::PLAIN`], in `bench frame` the path that read
+/// every AOV back and composed on the CPU.
+pub const PLAIN: &str = "plain";
+/// [`PLAIN`]'s first name, still accepted (documented, and in saved baselines).
+pub const PLAIN_ALIAS: &str = "before";
+
+/// Whether `name` names the [`PLAIN`] variant.
+pub fn is_plain(name: &str) -> bool {
+    name == PLAIN || name == PLAIN_ALIAS
+}
 
 /// Writes a bench's rows to `path`: its `comment` line, the `header` line, then one line a row
 /// (what [`csv_records`] reads back).
@@ -15,6 +28,28 @@ pub fn save_csv(path: &Path, comment: &str, header: &str, rows: impl Iterator<It
     std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))?;
     println!("# saved {}", path.display());
     Ok(())
+}
+
+/// Prints the heading of a comparison with the baseline file `path`: what the ratios mean, then
+/// the `columns` line.
+pub fn print_baseline_heading(path: &Path, columns: &str) {
+    println!(
+        "# against the baseline {} (ratios new / baseline; below 1 is faster, fewer, smaller)",
+        path.display()
+    );
+    println!("{columns}");
+}
+
+/// The baseline row a row is held against: the one with the row's `key`, else the one with
+/// `fallback` (the same measurement of a variant every baseline has, for a variant or path the
+/// baseline's build did not have); `None` where neither is there.
+pub fn baseline_row<'a, R, K: PartialEq>(
+    baseline: &'a [R],
+    key_of: impl Fn(&R) -> K,
+    key: &K,
+    fallback: &K,
+) -> Option<&'a R> {
+    baseline.iter().find(|b| key_of(b) == *key).or_else(|| baseline.iter().find(|b| key_of(b) == *fallback))
 }
 
 /// The records of a CSV file a bench wrote: its `header` line first (blank lines and `#` comments

@@ -8,7 +8,10 @@
 //! pixels, the share of pixels whose hit differs from the reference's, and the median normal error
 //! in degrees over pixels both hit.
 
-use super::stats::{csv_records, error_stats, median, sample_list, save_csv, scene_spec};
+use super::stats::{
+    baseline_row, csv_records, error_stats, is_plain, median, print_baseline_heading, sample_list, save_csv,
+    scene_spec,
+};
 use crate::args;
 use crate::render::load_volume;
 use anyhow::{Context, Result};
@@ -17,7 +20,6 @@ use isowall_model::{AoSequence, Camera, RenderSettings, View};
 use isowall_render::gpu::{GpuRenderer, GpuVolume, PerfOptions};
 use isowall_render::Frame;
 use isowall_volume::VoxelFormat;
-use std::collections::BTreeMap;
 use std::path::PathBuf;
 
 /// The CSV header of `--save` and `--baseline` files (comment lines start with '#').
@@ -47,10 +49,11 @@ pub struct SuiteArgs {
     /// Write the rows to this CSV (e.g. docs/bench/baseline-lavapipe.csv)
     #[arg(long, value_name = "FILE")]
     pub save: Option<PathBuf>,
-    /// Renderer variants measured per row, comma-separated: `default`, `before` (the options of the
-    /// build before the performance work), or changes joined by '+': block=N, ao=N, coarse=N,
-    /// exit=on|off, wg=XxY, format=r32f|r16f|r16|r8, and the AO settings eps=V (origin off the
-    /// surface, voxels; 0.5 the old one), seq=r2|sobol (e.g. `ao=2+coarse=16`, `eps=0.5+seq=r2`)
+    /// Renderer variants measured per row, comma-separated: `default`, `plain` (the options of the
+    /// build before the performance work; also called `before`), or changes joined by '+': block=N,
+    /// ao=N, coarse=N, exit=on|off, wg=XxY, format=r32f|r16f|r16|r8, and the AO settings eps=V
+    /// (origin off the surface, voxels; 0.5 the old one), seq=r2|sobol (e.g. `ao=2+coarse=16`,
+    /// `eps=0.5+seq=r2`)
     #[arg(long, default_value = "default")]
     pub variants: String,
 }
@@ -127,13 +130,11 @@ pub struct Comparison {
 }
 
 pub fn compare(rows: &[Row], baseline: &[Row]) -> Vec<Comparison> {
-    let base: BTreeMap<_, _> = baseline.iter().map(|r| (r.key(), r)).collect();
     let ratio = |a: f64, b: f64| if b > 0.0 { a / b } else { f64::NAN };
     rows.iter()
         .map(|r| {
-            let b = base
-                .get(&r.key())
-                .or_else(|| base.get(&(r.scene.clone(), r.size.clone(), r.samples, "default".to_string())));
+            let default = (r.scene.clone(), r.size.clone(), r.samples, "default".to_string());
+            let b = baseline_row(baseline, Row::key, &r.key(), &default);
             match b {
                 Some(b) => Comparison {
                     row: r.clone(),
@@ -170,19 +171,19 @@ fn primary_error(f: &Frame, reference: &Frame) -> (f64, f64) {
     (mismatch as f64 * 100.0 / n.max(1) as f64, angle)
 }
 
-/// The renderer's performance options a variant name stands for: `default` (this build's), `before`
-/// (the build before the performance work), or changes of the default joined by '+': `block=N`
-/// (cells per block edge, primary rays), `ao=N` (AO rays' block, 0: the primary one), `coarse=N`
-/// (AO rays' coarse block, 0 none), `exit=on|off` (the block min early exit of AO rays), `wg=XxY`
-/// (workgroup shape), `format=r32f|r16f|r16|r8` (the voxels stored packed in that format on the
-/// GPU and read by kernels compiled for it: its speed and its error); e.g. `ao=2+coarse=16`.
+/// The renderer's performance options a variant name stands for: `default` (this build's), `plain`
+/// (or `before`: the build before the performance work), or changes of the default joined by '+':
+/// `block=N` (cells per block edge, primary rays), `ao=N` (AO rays' block, 0: the primary one),
+/// `coarse=N` (AO rays' coarse block, 0 none), `exit=on|off` (the block min early exit of AO rays),
+/// `wg=XxY` (workgroup shape), `format=r32f|r16f|r16|r8` (the voxels stored packed in that format
+/// on the GPU and read by kernels compiled for it: its speed and its error); e.g. `ao=2+coarse=16`.
 pub fn variant_options(name: &str) -> Result<PerfOptions> {
     let bad = |what: &str| anyhow::anyhow!("variant '{name}': {what}");
     let mut o = PerfOptions::default();
     for part in name.split('+') {
         match part.split_once('=') {
             None if part == "default" => {}
-            None if part == "before" => o = PerfOptions::PLAIN,
+            None if is_plain(part) => o = PerfOptions::PLAIN,
             Some(("block", v)) => o.block = v.parse().map_err(|_| bad("block is not a whole number"))?,
             Some(("ao", v)) => o.ao_block = v.parse().map_err(|_| bad("ao is not a whole number"))?,
             Some(("coarse", v)) => o.coarse = v.parse().map_err(|_| bad("coarse is not a whole number"))?,
@@ -194,7 +195,7 @@ pub fn variant_options(name: &str) -> Result<PerfOptions> {
             }
             _ => {
                 return Err(bad(&format!(
-                    "unknown part '{part}' (default, before, block=N, ao=N, coarse=N, exit=on|off, wg=XxY, format=r32f|r16f|r16|r8)"
+                    "unknown part '{part}' (default, plain, block=N, ao=N, coarse=N, exit=on|off, wg=XxY, format=r32f|r16f|r16|r8)"
                 )))
             }
         }
@@ -337,11 +338,10 @@ pub fn run(a: &SuiteArgs) -> Result<()> {
         save_csv(p, &header, HEADER, rows.iter().map(Row::csv))?;
     }
     if let (Some(base), Some(p)) = (baseline, &a.baseline) {
-        println!(
-            "# against the baseline {} (ratios new / baseline; below 1 is faster, fewer, smaller)",
-            p.display()
+        print_baseline_heading(
+            p,
+            "scene,size,samples,variant,baseline_variant,ms_ratio,fetch_ratio,occlusion_rmse_ratio",
         );
-        println!("scene,size,samples,variant,baseline_variant,ms_ratio,fetch_ratio,occlusion_rmse_ratio");
         for c in compare(&rows, &base) {
             let r = &c.row;
             println!(
@@ -381,6 +381,7 @@ mod tests {
     #[test]
     fn variant_names_change_the_default() {
         assert_eq!(variant_options("default").unwrap(), PerfOptions::default());
+        assert_eq!(variant_options("plain").unwrap(), PerfOptions::PLAIN);
         assert_eq!(variant_options("before").unwrap(), PerfOptions::PLAIN);
         assert_eq!(variant_options("format=r16").unwrap().format, VoxelFormat::R16);
         let o = variant_options("block=4+ao=2+coarse=8+exit=off+wg=16x4+format=r8").unwrap();

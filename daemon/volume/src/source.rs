@@ -33,8 +33,9 @@ impl FromStr for VolumeSource {
                     let size: usize = sz.parse().map_err(|_| {
                         VolumeError::Source(format!("{s}: size '{sz}' is not a whole number"))
                     })?;
-                    if !(2..=1024).contains(&size) {
-                        return Err(VolumeError::Source(format!("{s}: size {size} is outside 2..=1024")));
+                    if !crate::procedural::SIZES.contains(&size) {
+                        let sizes = crate::procedural::SIZES;
+                        return Err(VolumeError::Source(format!("{s}: size {size} is outside {sizes:?}")));
                     }
                     (n, Some(size))
                 }

@@ -45,13 +45,14 @@ impl Shared {
     }
 
     /// How many steps from the current one on the budget holds (at least the current one).
-    fn window(&self, s: &State) -> usize {
+    fn ahead(&self, s: &State) -> usize {
         let per = s.step_bytes.unwrap_or(usize::MAX).max(1);
         (self.cache_bytes / per).clamp(1, self.steps)
     }
 
-    fn in_window(&self, s: &State, step: usize) -> bool {
-        (step + self.steps - s.current) % self.steps < self.window(s)
+    /// Whether `step` is among those [`Shared::ahead`] keeps.
+    fn is_ahead(&self, s: &State, step: usize) -> bool {
+        (step + self.steps - s.current) % self.steps < self.ahead(s)
     }
 }
 
@@ -142,17 +143,18 @@ impl Drop for StepCache {
     }
 }
 
-/// The loader thread: keeps the window from the current step loaded, drops what falls out of it.
+/// The loader thread: keeps the steps the budget holds from the current one loaded, drops the
+/// others.
 fn load_ahead(shared: &Shared, source: &VolumeSource, raw: Option<&RawSpec>, limit: &VolumeLimit) {
     let mut s = shared.lock();
     loop {
         if s.stop {
             return;
         }
-        let keep: Vec<usize> = s.loaded.keys().copied().filter(|&k| shared.in_window(&s, k)).collect();
+        let keep: Vec<usize> = s.loaded.keys().copied().filter(|&k| shared.is_ahead(&s, k)).collect();
         s.loaded.retain(|k, _| keep.contains(k));
-        let window = shared.window(&s);
-        let next = (0..window)
+        let ahead = shared.ahead(&s);
+        let next = (0..ahead)
             .map(|d| (s.current + d) % shared.steps)
             .find(|k| !s.loaded.contains_key(k) && !s.failed.contains_key(k));
         let Some(step) = next else {
@@ -166,7 +168,7 @@ fn load_ahead(shared: &Shared, source: &VolumeSource, raw: Option<&RawSpec>, lim
         match result {
             Ok(v) => {
                 s.step_bytes.get_or_insert(v.resident_bytes());
-                if shared.in_window(&s, step) {
+                if shared.is_ahead(&s, step) {
                     s.loaded.insert(step, Arc::new(v));
                     s.peak_resident = s.peak_resident.max(s.loaded.len());
                 }
@@ -214,13 +216,13 @@ mod tests {
             std::thread::sleep(Duration::from_millis(5));
         }
         assert_eq!(c.shared.lock().loaded.keys().copied().collect::<Vec<_>>(), [0, 1, 2]);
-        // Playing on: step 4 drops 0..=3 behind it; the window wraps to 0.
+        // Playing on: step 4 drops 0..=3 behind it; the steps ahead wrap to 0.
         assert_eq!(ready(&c, 4).data()[0], 4.0);
         assert_eq!(ready(&c, 5).data()[0], 5.0);
         assert_eq!(ready(&c, 0).data()[0], 0.0);
         let (peak, loads) = c.counts();
         assert!(peak <= 3, "{peak} steps were resident at once");
-        // 0, 1, 2, then 4 and 5 (0 stays in the window from 4 on).
+        // 0, 1, 2, then 4 and 5 (0 stays among the steps ahead from 4 on).
         assert!(loads >= 5, "{loads}");
     }
 

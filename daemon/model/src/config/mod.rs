@@ -58,11 +58,11 @@
 //! tiles = ["t00"]
 //! ```
 //!
-//! A tile is a window of the one wall image: its bezels are hidden pixels of that image, so a
+//! A tile is a rectangle of the one wall image: its bezels are hidden pixels of that image, so a
 //! straight line stays straight across a mullion (DESIGN.md "Camera"). The model reads no files:
 //! [`WallConfig::parse`] takes the text; [`WallConfig::load`] is a thin helper that only reads it.
 
-use crate::camera::{Camera, View, Window};
+use crate::camera::{Camera, Rect, View};
 use crate::names::name_problem;
 use crate::render_state::{AoMethod, AoRadius, AoSequence, IblMethod, RenderSettings, Shading};
 use glam::DVec3;
@@ -333,7 +333,7 @@ impl Default for CertConfig {
     }
 }
 
-/// `[[tiles]]`: one screen, a window of the wall image.
+/// `[[tiles]]`: one screen, a rectangle of the wall image.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TileConfig {
@@ -349,9 +349,9 @@ pub struct TileConfig {
 }
 
 impl TileConfig {
-    /// The tile's visible pixels as a window of the wall image.
-    pub fn window(&self) -> Window {
-        Window { x: self.x, y: self.y, width: self.width, height: self.height }
+    /// The tile's visible pixels as a rectangle of the wall image.
+    pub fn rect(&self) -> Rect {
+        Rect { x: self.x, y: self.y, width: self.width, height: self.height }
     }
 
     /// The tile with its bezels, `[x0, x1) x [y0, y1)` in wall pixels (x0, y0 may be negative in
@@ -542,10 +542,11 @@ impl WallConfig {
         self.node(node).map(|n| n.tiles.iter().filter_map(|t| self.tile(t)).collect()).unwrap_or_default()
     }
 
-    /// What a tile shows: the wall camera over the whole wall image, the tile's pixels as the window.
+    /// What a tile shows: the wall camera over the whole wall image, the tile's pixels as the
+    /// rectangle.
     pub fn tile_view(&self, camera: Camera, tile: &str) -> Option<View> {
         let t = self.tile(tile)?;
-        Some(View { camera, full: self.wall_size(), window: t.window() })
+        Some(View { camera, full: self.wall_size(), rect: t.rect() })
     }
 
     /// The configured wall camera with its defaults filled for a volume box: target the box

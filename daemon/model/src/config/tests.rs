@@ -125,34 +125,30 @@ fn every_example_config_is_valid() {
     assert!(n >= 4, "only {n} example configs");
 }
 
+/// What the examples are for: every `local-*` wall runs on one machine (each node on loopback, so
+/// `isowall up` starts it), and the 3x1 wall is the irregular one (three tile widths).
 #[test]
-fn examples_say_what_the_brief_says() {
-    let one = example("local-1x1.toml");
-    assert_eq!((one.nodes.len(), one.wall_size()), (1, (320, 240)));
-    let two = example("local-2x2.toml");
-    assert_eq!(two.nodes.len(), 4);
-    for (i, n) in two.nodes.iter().enumerate() {
-        assert_eq!(n.address, format!("127.0.0.1:{}", 7401 + i));
+fn local_examples_run_on_loopback_and_the_3x1_wall_is_irregular() {
+    let mut local = 0;
+    for entry in std::fs::read_dir(examples_dir()).unwrap() {
+        let path = entry.unwrap().path();
+        let name = path.file_name().unwrap().to_string_lossy().into_owned();
+        if name.starts_with("local-") && name.ends_with(".toml") {
+            let c = WallConfig::load(&path).unwrap_or_else(|e| panic!("{e}"));
+            for n in &c.nodes {
+                assert!(n.address.starts_with("127.0.0.1:"), "{name}: node '{}' at {}", n.name, n.address);
+            }
+            local += 1;
+        }
     }
-    assert_eq!(two.volume_source(), "procedural:engine");
-    let s = two.render_settings(0.5);
-    assert_eq!((s.ao.samples, s.ao.ibl, s.exposure, s.iso), (8, IblMethod::Bent, 0.6, 0.5));
-    assert_eq!(two.env_source(), "sky");
+    assert!(local >= 3, "only {local} local examples");
     let three = example("local-3x1.toml");
-    assert_eq!(three.tiles.len(), 3);
     let widths: std::collections::BTreeSet<u32> = three.tiles.iter().map(|t| t.width).collect();
-    assert_eq!(widths.len(), 3, "the 3x1 wall is irregular");
-    assert_eq!(three.render_settings(0.0).ao.radius, AoRadius::Unbounded);
-    let sva = example("sva-4.toml");
-    assert_eq!(sva.wall_size(), (3900, 2460));
-    assert!(sva.nodes.iter().all(|n| n.address.ends_with(".cluster:7400")));
-    assert!(sva.volume_source().ends_with("wall-configs/../../shared/data/ct-cranium.nrrd"));
-    assert_eq!(sva.volume.iso, Some(300.0));
-    assert_eq!(sva.render_settings(300.0).ao.radius, AoRadius::World(12.0));
+    assert_eq!((three.tiles.len(), widths.len()), (3, 3), "the 3x1 wall has three tile widths");
 }
 
 #[test]
-fn the_2x2_windows_and_bezels_tile_the_wall_image_exactly() {
+fn the_2x2_rects_and_bezels_tile_the_wall_image_exactly() {
     let c = example("local-2x2.toml");
     let (w, h) = c.wall_size();
     assert_eq!((w, h), (328, 248));
@@ -163,7 +159,7 @@ fn the_2x2_windows_and_bezels_tile_the_wall_image_exactly() {
     for t in &c.tiles {
         let view = c.tile_view(camera, &t.name).unwrap();
         assert_eq!(view.full, (w, h));
-        assert_eq!(view.window, t.window());
+        assert_eq!(view.rect, t.rect());
         visible += view.pixel_count();
         let (x0, x1, y0, y1) = t.outer();
         for y in y0..y1 {
@@ -175,8 +171,8 @@ fn the_2x2_windows_and_bezels_tile_the_wall_image_exactly() {
     assert!(cover.iter().all(|&n| n == 1), "tiles with their bezels cover every wall pixel once");
     assert_eq!(visible, 4 * 160 * 120);
     assert_eq!(w * h - visible as u32, 8 * 248 + 8 * 320, "the hidden pixels are the two mullions");
-    let windows: Vec<(u32, u32)> = c.tiles.iter().map(|t| (t.x, t.y)).collect();
-    assert_eq!(windows, [(0, 0), (168, 0), (0, 128), (168, 128)]);
+    let origins: Vec<(u32, u32)> = c.tiles.iter().map(|t| (t.x, t.y)).collect();
+    assert_eq!(origins, [(0, 0), (168, 0), (0, 128), (168, 128)]);
     assert!(c.tile_view(camera, "nope").is_none());
 }
 

@@ -124,8 +124,11 @@ pub(crate) fn validate_volume(doc: &mut Doc<'_>, v: &VolumeConfig) {
         }
         if let Some(s) = size {
             match s.parse::<usize>() {
-                Ok(n) if (2..=1024).contains(&n) => {}
-                Ok(n) => doc.at(&at("source"), format!("volume: procedural size {n} is outside 2..=1024")),
+                Ok(n) if isowall_volume::procedural::SIZES.contains(&n) => {}
+                Ok(n) => {
+                    let sizes = isowall_volume::procedural::SIZES;
+                    doc.at(&at("source"), format!("volume: procedural size {n} is outside {sizes:?}"))
+                }
                 Err(_) => {
                     doc.at(&at("source"), format!("volume: procedural size '{s}' is not a whole number"))
                 }

@@ -21,7 +21,7 @@ pub use object::{run_object, ObjectReport, ObjectSpec, ObjectWall, PixelCost};
 pub use radix::{run_radix, PixelBox, RadixReport, Scene};
 pub use screen::{run_screen, ScreenReport, ScreenSpec};
 
-use crate::{Camera, View, Window};
+use crate::{Camera, Rect, View};
 
 /// Why a simulated wall cannot be built.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -46,7 +46,7 @@ impl Scene {
             .config
             .nodes
             .iter()
-            .map(|n| PixelBox::of(wall.config.tile(&n.tiles[0]).expect("a tile").window()))
+            .map(|n| PixelBox::of(wall.config.tile(&n.tiles[0]).expect("a tile").rect()))
             .collect();
         Scene { image, footprints, tiles }
     }
@@ -57,12 +57,10 @@ impl Scene {
         let owned = object::brick_boxes(nodes)?;
         let hi = glam::DVec3::from_array(object::VOLUME_DIMS.map(|d| (d - 1) as f64));
         let camera = Camera::framing(glam::DVec3::ZERO, hi, width, height);
-        let view = View { camera, full: (width, height), window: Window { x: 0, y: 0, width, height } };
+        let view = View { camera, full: (width, height), rect: Rect { x: 0, y: 0, width, height } };
         let footprints = owned
             .iter()
-            .map(|&(lo, hi)| {
-                crate::bricks::covered_window(&view, lo, hi).map(PixelBox::of).unwrap_or_default()
-            })
+            .map(|&(lo, hi)| crate::bricks::covered_rect(&view, lo, hi).map(PixelBox::of).unwrap_or_default())
             .collect();
         let image = PixelBox { x0: 0, y0: 0, x1: i64::from(width), y1: i64::from(height) };
         Ok(Scene { image, footprints, tiles: Vec::new() })

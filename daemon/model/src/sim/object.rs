@@ -7,8 +7,8 @@
 //! The machines run on tiles of 1920/`divisor` x 1080/`divisor` pixels so that a 256-node wall fits
 //! in memory; every pixel message is sized for 1080p tiles on the network: its real encoded length
 //! (`codec::encode_pixels`, raw rectangles) plus `divisor^2 - 1` times its rectangles' pixel bytes.
-//! A render gives, over each view's window, a hit at depth `brick + 1` in every pixel (a brick
-//! covers its whole covered window: the most a brick sends).
+//! A render gives, over each view's rectangle, a hit at depth `brick + 1` in every pixel (a brick
+//! covers its whole covered rectangle: the most a brick sends).
 //!
 //! The cost model, per 1080p pixel, on one compositing thread per node: encoding what is sent
 //! `encode_ns`, then each peer's message, once it has arrived, decoding and merging it
@@ -30,7 +30,7 @@ use crate::composite::{TileCanvas, BYTES_PER_PIXEL};
 use crate::config::WallConfig;
 use crate::messages::Message;
 use crate::object_machine::{BrickGeometry, FrameViews, ObjectMachine, ObjectOutput};
-use crate::{Camera, View, Window};
+use crate::{Camera, Rect, View};
 
 /// The volume the walls render: 512^3 samples, unit spacing.
 pub const VOLUME_DIMS: [usize; 3] = [512, 512, 512];
@@ -105,13 +105,12 @@ impl ObjectWall {
         Ok(ObjectWall { config, camera, owned, divisor, side })
     }
 
-    /// Each brick's covered window of the whole wall image (`bricks::covered_window`), in this
+    /// Each brick's covered rectangle of the whole wall image (`bricks::covered_rect`), in this
     /// wall's pixels.
-    pub fn footprints(&self) -> Vec<Option<Window>> {
+    pub fn footprints(&self) -> Vec<Option<Rect>> {
         let (w, h) = self.config.wall_size();
-        let view =
-            View { camera: self.camera, full: (w, h), window: Window { x: 0, y: 0, width: w, height: h } };
-        self.owned.iter().map(|&(lo, hi)| bricks::covered_window(&view, lo, hi)).collect()
+        let view = View { camera: self.camera, full: (w, h), rect: Rect { x: 0, y: 0, width: w, height: h } };
+        self.owned.iter().map(|&(lo, hi)| bricks::covered_rect(&view, lo, hi)).collect()
     }
 }
 
@@ -296,14 +295,14 @@ impl Sim {
                     .iter()
                     .zip(&views.bricks)
                     .map(|((tile, v), &b)| {
-                        let px = v.window.width as usize * v.window.height as usize;
+                        let px = v.rect.width as usize * v.rect.height as usize;
                         if self.wall.config.node_of_tile(tile).is_some_and(|o| o.name == self.names[n]) {
                             own_pixels += px as u64;
                         }
                         TileCanvas {
                             name: tile.clone(),
-                            width: v.window.width,
-                            height: v.window.height,
+                            width: v.rect.width,
+                            height: v.rect.height,
                             depth: vec![b as f32 + 1.0; px],
                             rgb8: vec![(b % 251) as u8; px * 3],
                         }

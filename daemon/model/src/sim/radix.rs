@@ -2,7 +2,7 @@
 //! direct-send is the one-round case (`k = N`) and binary swap the all-twos case, run as a
 //! discrete-event simulation over the brick footprints of a real split and camera, without pixels.
 //!
-//! Each node starts with its brick's footprint (its covered window of the whole image, every
+//! Each node starts with its brick's footprint (its covered rectangle of the whole image, every
 //! pixel a hit, as the object-space simulation renders). Round r with factor k groups the nodes
 //! whose indices differ only in digit r (mixed radix over the factors), splits the group's region
 //! into k parts (halving the longer side, lower half first; in a wall's one-round direct-send the
@@ -22,7 +22,7 @@ use std::time::Duration;
 use super::lan::{Events, Lan, LanCounts, LanModel};
 use super::object::PixelCost;
 use crate::composite::BYTES_PER_PIXEL;
-use crate::Window;
+use crate::Rect;
 
 /// A message's bytes besides its rectangles (frame id, sender, count; as `PeerPixels`).
 pub const MESSAGE_BYTES: u64 = 32;
@@ -39,7 +39,7 @@ pub struct PixelBox {
 }
 
 impl PixelBox {
-    pub fn of(w: Window) -> PixelBox {
+    pub fn of(w: Rect) -> PixelBox {
         let (x, y) = (i64::from(w.x), i64::from(w.y));
         PixelBox { x0: x, y0: y, x1: x + i64::from(w.width), y1: y + i64::from(w.height) }
     }

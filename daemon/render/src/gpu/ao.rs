@@ -171,7 +171,7 @@ impl AoKernel {
         })
     }
 
-    /// Records one frame of the kernel over a `size` window with a bind group from
+    /// Records one frame of the kernel over a `size` rectangle with a bind group from
     /// [`AoKernel::bind`]: `dispatches.count` dispatches, each adding its share of the samples.
     /// `timestamps` bracket them all (the first's beginning, the last's end).
     pub(crate) fn pass(
@@ -197,7 +197,7 @@ impl AoKernel {
         }
     }
 
-    /// Records one frame of the kernel over a `size` window. `io` is (direct + hit, N + depth,
+    /// Records one frame of the kernel over a `size` rectangle. `io` is (direct + hit, N + depth,
     /// accumulated bent + A, accumulated E, fetches).
     #[allow(clippy::too_many_arguments)]
     pub fn encode(

@@ -38,10 +38,10 @@ impl ComposeParams {
             background: c(s.background, s.exposure),
             albedo: c(s.material.albedo, 0.0),
             ambient: c(s.light.ambient, 0.0),
-            low_origin: [low.window.x, low.window.y],
-            low_size: [low.window.width, low.window.height],
-            origin: [view.window.x, view.window.y],
-            size: [view.window.width, view.window.height],
+            low_origin: [low.rect.x, low.rect.y],
+            low_size: [low.rect.width, low.rect.height],
+            origin: [view.rect.x, view.rect.y],
+            size: [view.rect.width, view.rect.height],
             scale: scale.max(1),
             frames,
             _pad0: 0,
@@ -58,7 +58,7 @@ pub struct ComposeKernel {
 }
 
 impl ComposeKernel {
-    /// The bind group layout: the low window's inputs, the image written, depth and counters (a
+    /// The bind group layout: the low rectangle's inputs, the image written, depth and counters (a
     /// test holds it to naga's reflection of the WGSL).
     pub(crate) fn entries() -> Vec<wgpu::BindGroupLayoutEntry> {
         vec![
@@ -89,8 +89,8 @@ impl ComposeKernel {
         Ok(ComposeKernel { pipeline, layout, workgroup })
     }
 
-    /// The bind group of a tile: parameters, the low window's (direct + hit, N + depth, summed E,
-    /// fetches), the image written, depth and counters.
+    /// The bind group of a tile: parameters, the low rectangle's (direct + hit, N + depth, summed
+    /// E, fetches), the image written, depth and counters.
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn bind(
         &self,
@@ -120,7 +120,7 @@ impl ComposeKernel {
         })
     }
 
-    /// Records the kernel over the tile's (full-resolution) window of `size`.
+    /// Records the kernel over the tile's (full-resolution) rectangle of `size`.
     pub(crate) fn pass(
         &self,
         enc: &mut wgpu::CommandEncoder,

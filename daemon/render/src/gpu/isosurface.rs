@@ -42,7 +42,8 @@ impl IsosurfaceKernel {
         super::bind_buffers(ctx, &self.layout, "isosurface", &io)
     }
 
-    /// Records the kernel over a `size` window with a bind group from [`IsosurfaceKernel::bind`].
+    /// Records the kernel over a `size` rectangle with a bind group from
+    /// [`IsosurfaceKernel::bind`].
     pub(crate) fn pass(
         &self,
         enc: &mut wgpu::CommandEncoder,
@@ -53,7 +54,8 @@ impl IsosurfaceKernel {
         super::pass(enc, &self.pipeline, bind_group, "isosurface", size, self.workgroup, timestamps);
     }
 
-    /// Records the kernel over a `size` window: `outputs` are (direct + hit, N + depth, fetches).
+    /// Records the kernel over a `size` rectangle: `outputs` are (direct + hit, N + depth,
+    /// fetches).
     pub fn encode(
         &self,
         ctx: &GpuContext,

@@ -338,7 +338,7 @@ pub(crate) fn bind_buffers(
 }
 
 /// Records one compute pass of `pipeline` (compiled with workgroup shape `workgroup`) over a `size`
-/// window with `bind_group` at group 0; `timestamps` where the pass is timed.
+/// rectangle with `bind_group` at group 0; `timestamps` where the pass is timed.
 pub(crate) fn pass(
     enc: &mut wgpu::CommandEncoder,
     pipeline: &wgpu::ComputePipeline,
@@ -667,16 +667,19 @@ impl GpuRenderer {
         env: Option<&'a GpuEnvironment>,
         frames: u32,
     ) -> Result<&'a GpuEnvironment, GpuError> {
-        let (w, h) = (view.window.width, view.window.height);
+        let (w, h) = (view.rect.width, view.rect.height);
         if w == 0 || h == 0 || view.full.0 == 0 || view.full.1 == 0 {
-            return Err(GpuError::View(format!("empty window {w}x{h} of {}x{}", view.full.0, view.full.1)));
+            return Err(GpuError::View(format!(
+                "empty rectangle {w}x{h} of {}x{}",
+                view.full.0, view.full.1
+            )));
         }
-        if view.window.x.checked_add(w).is_none_or(|r| r > view.full.0)
-            || view.window.y.checked_add(h).is_none_or(|b| b > view.full.1)
+        if view.rect.x.checked_add(w).is_none_or(|r| r > view.full.0)
+            || view.rect.y.checked_add(h).is_none_or(|b| b > view.full.1)
         {
             return Err(GpuError::View(format!(
-                "window {:?} lies outside the {}x{} image",
-                view.window, view.full.0, view.full.1
+                "rectangle {:?} lies outside the {}x{} image",
+                view.rect, view.full.0, view.full.1
             )));
         }
         view.camera.validate().map_err(|e| GpuError::View(e.to_string()))?;
@@ -719,7 +722,7 @@ impl GpuRenderer {
         frames: u32,
     ) -> Result<Rendered, GpuError> {
         let env = self.check_frame(volume, view, settings, env, frames)?;
-        let (w, h) = (view.window.width, view.window.height);
+        let (w, h) = (view.rect.width, view.rect.height);
         let n = w as u64 * h as u64;
         let device = &self.ctx.device;
         let with_ao = settings.ao.samples > 0 || settings.ao.ibl != IblMethod::None;

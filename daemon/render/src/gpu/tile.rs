@@ -1,5 +1,5 @@
 //! A wall tile's GPU resources, made once (at start, on a resize, on a change of internal scale)
-//! and reused every frame: the AOV and accumulation buffers of its (low-resolution) window, the
+//! and reused every frame: the AOV and accumulation buffers of its (low-resolution) rectangle, the
 //! parameters (written in place), [`IMAGES`] presentable images (the one on show, one waiting for
 //! its swap, the one being rendered), depth, counters, and the bind groups that tie them to the kernels.
 //!
@@ -57,7 +57,7 @@ pub struct TileTarget {
     size: (u32, u32),
     scale: u32,
     low_size: (u32, u32),
-    /// direct + hit, N + depth, fetches, summed bent + A, summed E (the low window).
+    /// direct + hit, N + depth, fetches, summed bent + A, summed E (the low rectangle).
     aov: [wgpu::Buffer; 5],
     params: wgpu::Buffer,
     compose_params: wgpu::Buffer,
@@ -91,7 +91,7 @@ pub struct FrameRead {
     pub image_only: bool,
 }
 
-/// The frame's counters over the tile's low window.
+/// The frame's counters over the tile's low rectangle.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct FrameCounters {
     pub fetches: u64,
@@ -113,15 +113,15 @@ pub struct TileOutput {
 }
 
 impl TileTarget {
-    /// The resources of a tile showing `view`'s window, rendered at internal scale `scale`.
+    /// The resources of a tile showing `view`'s rectangle, rendered at internal scale `scale`.
     pub fn new(gpu: &GpuRenderer, name: &str, view: &View, scale: u32) -> Result<TileTarget, GpuError> {
         let ctx = &gpu.ctx;
         let scale = scale.max(1);
         let low = lowres::scaled_view(view, scale);
-        let size = (view.window.width, view.window.height);
-        let low_size = (low.window.width, low.window.height);
+        let size = (view.rect.width, view.rect.height);
+        let low_size = (low.rect.width, low.rect.height);
         if size.0 == 0 || size.1 == 0 {
-            return Err(GpuError::View(format!("tile {name}: empty window {}x{}", size.0, size.1)));
+            return Err(GpuError::View(format!("tile {name}: empty rectangle {}x{}", size.0, size.1)));
         }
         let limits = ctx.device.limits();
         if size.0.max(size.1) > limits.max_texture_dimension_2d {
@@ -216,19 +216,19 @@ impl TileTarget {
         })
     }
 
-    /// Whether the resources fit `view`'s window at `scale` (else make new ones).
+    /// Whether the resources fit `view`'s rectangle at `scale` (else make new ones).
     pub fn fits(&self, view: &View, scale: u32) -> bool {
         let low = lowres::scaled_view(view, scale.max(1));
-        self.size == (view.window.width, view.window.height)
+        self.size == (view.rect.width, view.rect.height)
             && self.scale == scale.max(1)
-            && self.low_size == (low.window.width, low.window.height)
+            && self.low_size == (low.rect.width, low.rect.height)
     }
 
     pub fn id(&self) -> u64 {
         self.id
     }
 
-    /// The window's size in pixels.
+    /// The rectangle's size in pixels.
     pub fn size(&self) -> (u32, u32) {
         self.size
     }
@@ -295,7 +295,7 @@ impl FrameRead {
 pub struct TileFrame<'a> {
     pub frame_id: u64,
     pub volume: &'a GpuVolume,
-    /// The tile's view at full resolution (the resources' window).
+    /// The tile's view at full resolution (the resources' rectangle).
     pub view: &'a View,
     /// `settings.ao.frame` is this frame's index in the sample sequence.
     pub settings: &'a RenderSettings,
@@ -321,8 +321,8 @@ impl GpuRenderer {
         let scale = tile.scale;
         if !tile.fits(frame.view, scale) {
             return Err(GpuError::View(format!(
-                "tile {}: its resources are {}x{} at scale {scale}, the view's window is {}x{}",
-                tile.name, tile.size.0, tile.size.1, frame.view.window.width, frame.view.window.height
+                "tile {}: its resources are {}x{} at scale {scale}, the view's rectangle is {}x{}",
+                tile.name, tile.size.0, tile.size.1, frame.view.rect.width, frame.view.rect.height
             )));
         }
         let low = lowres::scaled_view(frame.view, scale);
@@ -366,7 +366,7 @@ impl GpuRenderer {
             .min_by_key(|&i| tile.images[i].frame_id.map_or(0, |f| f + 1))
             .expect("more than one image");
         let compose = ComposeParams::new(frame.view, &low, scale, s, frames);
-        let low_size = (low.window.width, low.window.height);
+        let low_size = (low.rect.width, low.rect.height);
         let timed = tile.timestamps.as_ref().map(|_| [restart, with_ao, true]);
         let share = frame.share;
         let slot = ctx.validated("tile frame", || -> Result<(usize, wgpu::CommandBuffer), GpuError> {

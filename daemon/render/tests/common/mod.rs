@@ -99,7 +99,7 @@ pub fn compare(gpu: &Frame, reference: &Frame, voxel: f64) -> Agreement {
 /// The world position of pixel i's hit.
 pub fn hit_position(view: &View, f: &Frame, i: usize) -> DVec3 {
     let b = view.camera.basis();
-    let (x, y) = (i as u32 % view.window.width, i as u32 / view.window.width);
+    let (x, y) = (i as u32 % view.rect.width, i as u32 / view.rect.width);
     view.camera.eye + f.depth[i] as f64 * view.ray_dir(&b, x, y)
 }
 
@@ -114,12 +114,12 @@ pub fn ao_at_gpu_hits(volume: &Volume, view: &View, s: &RenderSettings, g: &Fram
         if !g.hit[i] {
             continue;
         }
-        let (x, y) = (i as u32 % view.window.width, i as u32 / view.window.width);
+        let (x, y) = (i as u32 % view.rect.width, i as u32 / view.rect.width);
         let dir = view.ray_dir(&b, x, y);
         let nv = DVec3::from(g.normal[i].map(f64::from));
         let p = hit_position(view, g, i);
         let surface = reference::AoSurface::new(volume, p, nv, dir, is_cap(volume, p, nv));
-        let a = reference::ambient_at(volume, s, &lighting, &surface, (view.window.x + x, view.window.y + y));
+        let a = reference::ambient_at(volume, s, &lighting, &surface, (view.rect.x + x, view.rect.y + y));
         n += 1;
         off += usize::from((a.occlusion - g.occlusion[i] as f64).abs() > one_ray);
     }
