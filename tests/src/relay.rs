@@ -196,8 +196,10 @@ fn deliver(s: &Shared) {
             Some(at) if at <= now => {
                 let d = queue.pop().expect("peeked");
                 drop(queue);
-                if d.socket.send_to(&d.bytes, d.to).is_ok() {
-                    s.forwarded.fetch_add(1, Ordering::Relaxed);
+                // Counted before it is sent, so that whoever receives it sees it counted.
+                s.forwarded.fetch_add(1, Ordering::Relaxed);
+                if d.socket.send_to(&d.bytes, d.to).is_err() {
+                    s.forwarded.fetch_sub(1, Ordering::Relaxed);
                 }
                 queue = s.queue.lock().unwrap();
             }
