@@ -1,9 +1,12 @@
 //! Time-varying volumes on a wall: a 2x2 wall of local nodes plays a glob of time steps, a demo
 //! path's `step` track advancing one step a frame; every recorded frame equals the single render
 //! of its step (`isowalld render --step N`), so every node rendered the frame's own step, and the
-//! frames of different steps differ.
+//! frames of different steps differ. In screen space each node renders the whole step; in object
+//! space each node renders its brick and halo of the step and the tiles are composited by depth.
 
-use isowall_e2e::{compare_tiles, free_udp_ports, gpu_ok, in_bezel_2x2, render_whole, run_in, wall_config};
+use isowall_e2e::{
+    compare_tiles, free_udp_ports, gpu_ok, in_bezel_2x2, render_whole, run_in, set_object_mode, wall_config,
+};
 use std::path::Path;
 
 const STEPS: usize = 4;
@@ -33,6 +36,15 @@ fn write_steps(dir: &Path) {
 
 #[test]
 fn a_2x2_wall_renders_every_frames_time_step_on_every_node() {
+    play_steps_on_a_2x2_wall(false);
+}
+
+#[test]
+fn a_2x2_object_space_wall_renders_every_frames_time_step_from_every_nodes_brick() {
+    play_steps_on_a_2x2_wall(true);
+}
+
+fn play_steps_on_a_2x2_wall(object: bool) {
     let dir = tempfile::tempdir().unwrap();
     write_steps(dir.path());
     let (w, h, bezel) = (40u32, 30u32, 3u32);
@@ -40,6 +52,9 @@ fn a_2x2_wall_renders_every_frames_time_step_on_every_node() {
     let text = std::fs::read_to_string(&config).unwrap();
     let text = text.replace("source = \"procedural:torus:48\"", "source = \"steps/step_*.nrrd\"\niso = 0.5");
     std::fs::write(&config, text).unwrap();
+    if object {
+        set_object_mode(&config);
+    }
     // The wall camera all along; one step a second at 1 fps: frame k shows step k.
     let key = "eye = [60, -70, 45]\ntarget = [23.5, 23.5, 23.5]";
     let last = STEPS - 1;
@@ -66,6 +81,27 @@ fn a_2x2_wall_renders_every_frames_time_step_on_every_node() {
         String::from_utf8_lossy(&out.stderr)
     );
     assert!(stdout.contains("time steps: 3 step changes"), "{stdout}");
+    if object {
+        // Each node composited from its brick: the object-space statistics, every node holding
+        // less than the whole step (24^3 float32).
+        assert!(stdout.contains("object space"), "no object-space statistics:\n{stdout}");
+        for i in 0..4 {
+            let log =
+                std::fs::read_to_string(dir.path().join(format!("logs/node{i}.log"))).unwrap_or_default();
+            assert!(log.contains("time-varying volume: bricks per step"), "node{i}:\n{log}");
+            let line = stdout
+                .lines()
+                .find(|l| l.trim_start().starts_with(&format!("node{i}: sent")))
+                .unwrap_or_else(|| panic!("no object-space line for node{i}:\n{stdout}"));
+            let resident: usize = line
+                .split("resident volume ")
+                .nth(1)
+                .and_then(|r| r.split(' ').next())
+                .and_then(|n| n.parse().ok())
+                .unwrap_or_else(|| panic!("no resident bytes in {line:?}"));
+            assert!(resident < 24 * 24 * 24 * 4, "node{i} holds {resident} B, the whole step or more");
+        }
+    }
     let (fw, fh) = (2 * w + 2 * bezel, 2 * h + 2 * bezel);
     let mut frames = Vec::new();
     for k in 0..STEPS {
