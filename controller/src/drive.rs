@@ -146,8 +146,8 @@ pub(crate) fn scene_and_range(config: &WallConfig) -> Result<(Camera, RenderSett
         None => isowall_volume::io::VolumeLimit::default(),
     };
     // What the nodes would refuse, refused here from the header too; then only the value range
-    // is kept of the data (the block grid), never the whole volume. Time steps are not streamed
-    // (a region read is of one file): their first step gives the box and the range.
+    // is kept of the data (the block grid), never the whole volume. Time steps: their first
+    // step, read within the limit as a screen-space node reads it, gives the box and the range.
     let scanned = source.time_steps().map_err(anyhow::Error::from).and_then(|steps| {
         if steps > 1 {
             let v = source.load_step_within(raw.as_ref(), 0, &limit)?;

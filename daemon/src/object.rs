@@ -26,8 +26,17 @@
 //!   `BrickLoaded`. An adopted brick is dropped (its GPU volume freed) at the first frame whose map
 //!   gives it to another node. `--adopt-delay-ms` (hidden) delays the read, so tests can watch
 //!   frames run while it loads.
+//! - a time-varying volume ([`brick_steps`]): the split is made on the first step (its occupancy
+//!   at the iso) and kept for every step. The node's brick and halo of each step are read ahead
+//!   on a loader thread within `[volume] cache_bytes` (a [`StepCache`] of region reads), one
+//!   pass over each step giving the region and the step's block grid of the whole volume (every
+//!   node marches the whole box with the step's own empty-space skipping, as the single render
+//!   does). The render thread writes the frame's step into the brick's GPU buffers; a step not
+//!   loaded in time is waited for within the bound of screen space and reported (`StepLate`)
+//!   with the composited frame. A dead node's brick is not adopted: the survivors answer
+//!   `BrickFailed` with the reason and the wall composites without it until its node is back.
 
-use crate::render_thread::{BrickData, JobResult, TileResult};
+use crate::render_thread::{BrickData, JobResult, StepsOf, TileResult};
 use anyhow::{anyhow, Context, Result};
 use isowall_model::adoption::AdoptionError;
 use isowall_model::bricks::{self, Brick, Occupancy};
@@ -42,6 +51,7 @@ use isowall_net::Identity;
 use isowall_render::gpu::ObjectSpace;
 use isowall_volume::io::{RawSpec, VolumeLimit};
 use isowall_volume::region::VolumeStream;
+use isowall_volume::steps::StepCache;
 use isowall_volume::{BlockMinMax, VolumeInfo, VolumeSource, VoxelRange};
 use std::collections::HashMap;
 use std::net::SocketAddr;
@@ -156,6 +166,37 @@ pub fn load_brick(
     Ok(BrickSetup { data, halo, plan })
 }
 
+/// A time-varying volume (module notes): this node's brick and halo of every step, read ahead
+/// by a [`StepCache`] within `cache_bytes`, each step a region read of the step with the step's
+/// block grid ([`VolumeSource::read_step_region`]). The region is the same for every step, so
+/// the volume limit [`read_brick`] checked at start-up holds for all. `None` for a volume
+/// without time steps.
+pub fn brick_steps(setup: &BrickSetup, cache_bytes: usize) -> Result<Option<StepsOf>> {
+    let plan = setup.plan.clone();
+    let source = &plan.source;
+    let steps = source.time_steps().with_context(|| format!("volume {source}"))?;
+    if steps < 2 {
+        return Ok(None);
+    }
+    let index = setup.data.index;
+    let brick = plan.split.get(index).ok_or_else(|| anyhow!("no brick {index} in the split"))?;
+    let (lo, hi) = brick.data_range(plan.halo, plan.info.dims);
+    let range = VoxelRange { lo, hi };
+    tracing::info!(volume = %source, steps, cache_bytes, brick = index, "time-varying volume: bricks per step");
+    let name = source.to_string();
+    let load = {
+        let plan = plan.clone();
+        move |k| plan.source.read_step_region(plan.raw.as_ref(), k, &range, plan.blocks.block, &plan.info)
+    };
+    let cache = StepCache::with_loader(steps, cache_bytes, name, Box::new(load))?;
+    Ok(Some(StepsOf::Brick {
+        index,
+        info: setup.data.info.clone(),
+        object: setup.data.object.clone(),
+        cache,
+    }))
+}
+
 /// An adoption's outcome ([`spawn_load`]): the brick, its owned box and bytes, or why not.
 pub struct LoadDone {
     pub brick: u64,
@@ -217,6 +258,11 @@ pub struct ObjectNode {
     deadline: Duration,
     /// The peers the last composited frame went without (logged when it changes).
     missing: Vec<String>,
+    /// A time-varying volume: the frames whose step was late here (the render thread's
+    /// report), until they are composited.
+    step_late: HashMap<u64, (u32, Duration)>,
+    /// The volume has time steps: an adopted brick is refused (its steps are not loaded).
+    time_varying: bool,
 }
 
 impl ObjectNode {
@@ -253,6 +299,8 @@ impl ObjectNode {
             epoch: Instant::now(),
             deadline: Duration::from_millis(config.wall.deadline_ms),
             missing: Vec::new(),
+            step_late: HashMap::new(),
+            time_varying: plan.source.time_steps().map_err(|e| anyhow!("volume {}: {e}", plan.source))? > 1,
         })
     }
 
@@ -365,8 +413,10 @@ impl ObjectNode {
     fn finish(&mut self, c: Composited) -> JobResult {
         let render_time = self.machine.render_time(c.frame_id);
         let tiles = c.tiles.into_iter().map(TileResult::from).collect();
-        // Object space has no time steps (time-varying sources are refused there).
-        JobResult { frame_id: c.frame_id, tiles, render_time, step_late: None }
+        // This node's step was late for this frame (older frames are no longer composited).
+        let step_late = self.step_late.remove(&c.frame_id);
+        self.step_late.retain(|&id, _| id > c.frame_id);
+        JobResult { frame_id: c.frame_id, tiles, render_time, step_late }
     }
 
     /// A brick map from the controller (`Message::Bricks`): the frames it completes, or the
@@ -385,7 +435,24 @@ impl ObjectNode {
     /// [`ObjectNode::load_done`]), or the answer to send at once.
     pub fn load(&mut self, brick: u64, renderer: &crate::render_thread::RenderHandle) -> Option<Message> {
         let mut answer = None;
-        for out in self.machine.load(brick) {
+        let mut outputs = self.machine.load(brick);
+        if self.time_varying {
+            // Refused (the model's failed load): the adopter would need the brick of every step.
+            if let Some(ObjectOutput::Load { brick, .. }) =
+                outputs.iter().find(|o| matches!(o, ObjectOutput::Load { .. }))
+            {
+                let reason = format!(
+                    "{}: a time-varying volume's brick is not adopted (the adopter would have to load \
+                     it for every step); the wall composites without it until its node is back",
+                    self.plan.source
+                );
+                let brick = *brick;
+                outputs.retain(|o| !matches!(o, ObjectOutput::Load { .. }));
+                let done = LoadDone { brick, result: Err(reason), took: Duration::ZERO };
+                answer = Some(self.load_done(done));
+            }
+        }
+        for out in outputs {
             match out {
                 ObjectOutput::Load { brick, index } => {
                     tracing::info!(brick, "object space: adopting a brick: loading it");
@@ -428,6 +495,9 @@ impl ObjectNode {
     /// This node's render of a frame is done: sends each peer its pixels, composites its own.
     pub fn local_done(&mut self, done: JobResult) -> Vec<Done> {
         let (id, t0) = (done.frame_id, Instant::now());
+        if let Some(late) = done.step_late {
+            self.step_late.insert(id, late);
+        }
         let rendered = done.tiles.into_iter().map(TileCanvas::from).collect();
         let out = self.machine.local_done(self.now(), id, done.render_time, rendered);
         self.machine.add_work(id, t0.elapsed());

@@ -7,7 +7,8 @@
 //! from its own wgpu instance): the swap ([`RenderHandle::present`]) draws the tile's image of the
 //! frame. Only what leaves the node is read back, through a small ring of staging buffers mapped
 //! without stalling the next frame: per-frame counters, colour and depth of object-space shares,
-//! and the images of a snapshot ([`RenderHandle::snapshot`]).
+//! and the images of a snapshot ([`RenderHandle::snapshot`]). A time-varying volume's frame shows
+//! its own step ([`TimeSteps`]): the whole volume, or in object space the node's brick of it.
 
 use anyhow::{Context, Result};
 use isowall_model::{RenderSettings, View};
@@ -15,6 +16,7 @@ use isowall_render::environment::Environment;
 use isowall_render::gpu::present::{Presented, TileSurface};
 use isowall_render::gpu::ObjectSpace;
 use isowall_render::gpu::{FrameRead, GpuRenderer, ReadbackRing, TileFrame, TileTarget};
+use isowall_volume::region::StepRegion;
 use isowall_volume::steps::{StepCache, StepState};
 use isowall_volume::{BlockMinMax, Volume, VolumeInfo};
 use std::collections::VecDeque;
@@ -80,12 +82,60 @@ pub struct JobResult {
     pub step_late: Option<(u32, Duration)>,
 }
 
-/// A time-varying volume on the render thread (screen space): its steps, loaded ahead by the
-/// cache's own loader thread, and the longest a frame waits for a step that is not loaded yet
-/// before it renders the step it has (and says so).
+/// A time-varying volume on the render thread: its steps, loaded ahead by the cache's own loader
+/// thread, and the longest a frame waits for a step that is not loaded yet before it renders the
+/// step it has (and says so).
 pub struct TimeSteps {
-    pub cache: StepCache,
+    pub cache: StepsOf,
     pub wait: Duration,
+}
+
+/// What a time step is on a node: the whole volume (screen space) or, in object space, the
+/// node's own brick and halo with the step's block grid (`object.rs` makes the cache); the
+/// brick keeps its GPU buffers from step to step, rewritten in place.
+pub enum StepsOf {
+    Volume(StepCache<Volume>),
+    Brick {
+        /// The brick's index in the split, and what its GPU volume needs besides a step's data.
+        index: usize,
+        info: VolumeInfo,
+        object: ObjectSpace,
+        cache: StepCache<StepRegion>,
+    },
+}
+
+impl StepsOf {
+    fn steps(&self) -> usize {
+        match self {
+            StepsOf::Volume(c) => c.steps(),
+            StepsOf::Brick { cache, .. } => cache.steps(),
+        }
+    }
+}
+
+/// The frame's step `wanted` from `cache` where it is not the one `shown`: `Ok(Some(step))`
+/// loaded, `Ok(None)` not loaded after waiting at most `wait`, `Err` why it cannot be, and
+/// whether it was not loaded when asked for. `None`: the step shown is the one wanted.
+#[allow(clippy::type_complexity)]
+fn fetch<T>(
+    cache: &StepCache<T>,
+    wanted: u32,
+    shown: u32,
+    wait: Duration,
+) -> Option<(Result<Option<Arc<T>>, String>, bool)> {
+    // Asked even for the step shown: it makes the step current, so the ones after it load.
+    let first = cache.get(wanted as usize);
+    if wanted == shown {
+        return None;
+    }
+    let late = matches!(first, StepState::Loading);
+    let state = if late { cache.wait(wanted as usize, wait) } else { first };
+    let state = match state {
+        StepState::Ready(v) => Ok(Some(v)),
+        StepState::Loading => Ok(None),
+        StepState::Failed(e) => Err(e),
+    };
+    Some((state, late))
 }
 
 /// The steps and which one is on the GPU.
@@ -437,36 +487,59 @@ impl RenderLoop {
     }
 
     /// A time-varying volume: puts the frame's step on the GPU (the current one for the cache,
-    /// so it loads the ones after it). A step not loaded yet is waited for at most
-    /// [`TimeSteps::wait`]; then the frame renders the step it has. `Some((shown, waited))`
-    /// where the step was not loaded when the frame came.
+    /// so it loads the ones after it): the whole volume, or the node's brick written into its
+    /// buffers (a new upload only where the sizes differ). A step not loaded yet is waited for
+    /// at most [`TimeSteps::wait`]; then the frame renders the step it has. `Some((shown,
+    /// waited))` where the step was not loaded when the frame came.
     fn show_step(&mut self, frame_id: u64, wanted: u32) -> Option<(u32, Duration)> {
-        let on = self.steps.as_mut()?;
+        let RenderLoop { gpu, volumes, steps, .. } = self;
+        let on = steps.as_mut()?;
         let count = on.steps.cache.steps().max(1);
         let wanted = (wanted as usize % count) as u32;
-        let first = on.steps.cache.get(wanted as usize);
-        if wanted == on.shown {
-            return None;
-        }
         let t0 = Instant::now();
-        let late = matches!(first, StepState::Loading);
-        let state = if late { on.steps.cache.wait(wanted as usize, on.steps.wait) } else { first };
-        match state {
-            StepState::Ready(v) => match self.gpu.upload(&v) {
-                Ok(gv) => {
-                    self.volumes.retain(|v| v.0 != 0);
-                    self.volumes.insert(0, (0, gv));
-                    on.shown = wanted;
-                }
-                Err(e) => tracing::warn!(frame_id, "time step {wanted}: cannot upload it: {e}"),
-            },
-            StepState::Loading => tracing::warn!(
+        let (put, late) = match &on.steps.cache {
+            StepsOf::Volume(cache) => {
+                let (state, late) = fetch(cache, wanted, on.shown, on.steps.wait)?;
+                let put = state.and_then(|v| {
+                    v.map(|v| {
+                        let gv = gpu.upload(&v).map_err(|e| format!("cannot upload it: {e}"))?;
+                        volumes.retain(|v| v.0 != 0);
+                        volumes.insert(0, (0, gv));
+                        Ok(())
+                    })
+                    .transpose()
+                });
+                (put, late)
+            }
+            StepsOf::Brick { index, info, object, cache } => {
+                let (state, late) = fetch(cache, wanted, on.shown, on.steps.wait)?;
+                let put = state.and_then(|r| {
+                    r.map(|r| {
+                        let held = volumes.iter_mut().find(|v| v.0 == *index);
+                        if held.is_some_and(|v| v.1.rewrite_brick(&gpu.ctx, &r.region, &r.blocks).is_ok()) {
+                            return Ok(());
+                        }
+                        let gv = gpu
+                            .upload_brick(&r.region, info, &r.blocks, object.clone())
+                            .map_err(|e| format!("cannot upload brick {index}: {e}"))?;
+                        volumes.retain(|v| v.0 != *index);
+                        volumes.insert(0, (*index, gv));
+                        Ok(())
+                    })
+                    .transpose()
+                });
+                (put, late)
+            }
+        };
+        match put {
+            Ok(Some(())) => on.shown = wanted,
+            Ok(None) => tracing::warn!(
                 frame_id,
                 "time step {wanted} is not loaded after waiting {:.0} ms: rendering step {}",
                 on.steps.wait.as_secs_f64() * 1e3,
                 on.shown
             ),
-            StepState::Failed(e) => {
+            Err(e) => {
                 tracing::warn!(
                     frame_id,
                     "time step {wanted} cannot be shown: {e}; rendering step {}",

@@ -10,7 +10,9 @@
 use crate::display::{self, Display, DisplayMode, WindowSetup};
 use crate::object::{Done, LoadDone, ObjectNode};
 use crate::render::load_volume_within;
-use crate::render_thread::{JobResult, RenderHandle, RenderVolume, TileJob, TileRenderer, TileResult};
+use crate::render_thread::{
+    JobResult, RenderHandle, RenderVolume, StepsOf, TileJob, TileRenderer, TileResult, TimeSteps,
+};
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
 use isowall_model::config::{WallConfig, WallMode};
@@ -105,25 +107,32 @@ async fn shown_tiles(node: &Node, divisor: u32) -> Vec<TileImage> {
     }
 }
 
-/// A time-varying volume's steps for the render thread, loaded ahead within `[volume]
-/// cache_bytes`; a frame waits for a step not loaded yet at most half the wall's deadline (at
-/// most 10 s). `None` for a volume without time steps.
+/// A time-varying volume's budget on a node: the bytes of steps kept loaded ahead (`[volume]
+/// cache_bytes`) and the longest a frame waits for a step not loaded yet (half the wall's
+/// deadline, at most 10 s).
+fn step_budget(config: &WallConfig) -> (usize, std::time::Duration) {
+    let cache_bytes = usize::try_from(config.cache_bytes()).unwrap_or(usize::MAX);
+    let wait =
+        std::time::Duration::from_millis(config.wall.deadline_ms / 2).min(std::time::Duration::from_secs(10));
+    (cache_bytes, wait)
+}
+
+/// A time-varying volume's steps for the render thread in screen space (whole volumes), within
+/// [`step_budget`]. `None` for a volume without time steps.
 fn time_steps(
     config: &WallConfig,
     raw: Option<&isowall_volume::io::RawSpec>,
     limit: isowall_volume::io::VolumeLimit,
-) -> Result<Option<crate::render_thread::TimeSteps>> {
+) -> Result<Option<TimeSteps>> {
     let source: isowall_volume::VolumeSource = config.volume_source().parse()?;
     let count = source.time_steps().with_context(|| format!("volume {source}"))?;
     if count < 2 {
         return Ok(None);
     }
-    let cache_bytes = usize::try_from(config.cache_bytes()).unwrap_or(usize::MAX);
-    let wait =
-        std::time::Duration::from_millis(config.wall.deadline_ms / 2).min(std::time::Duration::from_secs(10));
+    let (cache_bytes, wait) = step_budget(config);
     tracing::info!(volume = %source, steps = count, cache_bytes, "time-varying volume");
     let cache = isowall_volume::steps::StepCache::new(source, raw.cloned(), cache_bytes, limit)?;
-    Ok(Some(crate::render_thread::TimeSteps { cache, wait }))
+    Ok(Some(TimeSteps { cache: StepsOf::Volume(cache), wait }))
 }
 
 pub fn run(a: &RunArgs) -> Result<()> {
@@ -152,9 +161,12 @@ pub fn run(a: &RunArgs) -> Result<()> {
     let volume_limit =
         crate::render::volume_limit(config.volume.max_bytes.map(|b| (b, "[volume] max_bytes")), true)?;
     // object space: only the brick and its halo.
-    let mut steps = None;
+    let steps;
     let (volume, object, peer_rx, inbox, load_rx) = if config.wall.mode == WallMode::Object {
         let setup = crate::object::load_brick(&config, &node.name, raw.as_ref(), volume_limit)?;
+        // A time-varying volume: the brick of every step, within the same budget.
+        let (cache_bytes, wait) = step_budget(&config);
+        steps = crate::object::brick_steps(&setup, cache_bytes)?.map(|cache| TimeSteps { cache, wait });
         let (load_tx, load_rx) = tokio::sync::mpsc::unbounded_channel();
         let mut object = ObjectNode::new(&config, &node.name, &setup, load_tx)?;
         object.adopt_delay = std::time::Duration::from_millis(a.adopt_delay_ms);

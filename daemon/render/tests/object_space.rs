@@ -220,3 +220,71 @@ fn the_covered_rect_holds_every_hit_of_a_brick() {
         }
     }
 }
+
+/// Object space, a time-varying volume: a brick's next step written into its buffers
+/// (`GpuVolume::rewrite_brick`) renders exactly as that step uploaded afresh, and not as the
+/// step before; a region of another size is refused.
+#[test]
+fn a_bricks_next_time_step_written_in_place_renders_as_a_fresh_upload() {
+    let Some(gpu) = common::gpu() else { return };
+    // Two steps of the torus at 32^3, the second moved 3 voxels along x.
+    let torus = "procedural:torus:32".parse::<VolumeSource>().unwrap().load(None).unwrap();
+    let [nx, ny, nz] = torus.dims();
+    let dir = tempfile::tempdir().unwrap();
+    for (k, shift) in [(0usize, 0usize), (1, 3)] {
+        let mut bytes = format!(
+            "NRRD0004\ntype: float\ndimension: 3\nsizes: {nx} {ny} {nz}\nendian: little\nencoding: raw\n\n"
+        )
+        .into_bytes();
+        for z in 0..nz {
+            for y in 0..ny {
+                for x in 0..nx {
+                    bytes.extend(torus.at((x + shift).min(nx - 1), y, z).to_le_bytes());
+                }
+            }
+        }
+        std::fs::write(dir.path().join(format!("step_{k}.nrrd")), bytes).unwrap();
+    }
+    let src: VolumeSource = format!("{}/step_*.nrrd", dir.path().display()).parse().unwrap();
+    let settings = settings_with_ao(0.0, 6.0);
+    let stream = src.stream(None).unwrap();
+    let info = stream.info().clone();
+    let blocks = stream.block_minmax(BlockMinMax::DEFAULT_BLOCK).unwrap();
+    let occ = Occupancy::from_minmax(blocks.block, blocks.counts, &blocks.minmax, settings.iso);
+    let split = bricks::split(&occ, info.dims, info.spacing, 2).unwrap();
+    let halo = bricks::halo_voxels(&settings, info.spacing).unwrap();
+    let (lo, hi) = split[0].data_range(halo, info.dims);
+    let range = VoxelRange { lo, hi };
+    let (owned_min, owned_max) = split[0].owned_planes(info.dims, info.origin, info.spacing);
+    let object = ObjectSpace { data_offset: lo, owned_min, owned_max };
+    let camera = Camera {
+        eye: DVec3::new(40.0, -45.0, 30.0),
+        target: DVec3::splat(15.5),
+        up: DVec3::Z,
+        fov_y_deg: 40.0,
+    };
+    let view = View::whole(camera, 96, 72);
+    let step = |k| src.read_step_region(None, k, &range, BlockMinMax::DEFAULT_BLOCK, &info).unwrap();
+    let (s0, s1) = (step(0), step(1));
+
+    let mut gv = gpu.upload_brick(&s0.region, &info, &s0.blocks, object.clone()).unwrap();
+    let first = gpu.render(&gv, &view, &settings, None).unwrap().frame;
+    let id = gv.id;
+    gv.rewrite_brick(&gpu.ctx, &s1.region, &s1.blocks).unwrap();
+    assert_eq!(gv.id, id, "the buffers (and the tiles' bind groups) are kept");
+    let rewritten = gpu.render(&gv, &view, &settings, None).unwrap().frame;
+    let fresh = gpu.upload_brick(&s1.region, &info, &s1.blocks, object.clone()).unwrap();
+    let fresh = gpu.render(&fresh, &view, &settings, None).unwrap().frame;
+    let (max, n) = colour_diff(&rewritten, &fresh);
+    assert_eq!((max, n), (0.0, 0), "the rewritten brick renders differently from a fresh upload");
+    assert_eq!(rewritten.depth, fresh.depth);
+    let lit = fresh.hit.iter().filter(|&&h| h).count();
+    assert!(lit > 200, "the brick is hardly in view ({lit} pixels)");
+    let (_, n) = colour_diff(&first, &fresh);
+    assert!(n > 100, "the two steps differ in only {n} pixels");
+    // Another size does not fit the buffers.
+    let smaller = VoxelRange { lo, hi: [hi[0] - 1, hi[1], hi[2]] };
+    let other = src.read_step_region(None, 1, &smaller, BlockMinMax::DEFAULT_BLOCK, &info).unwrap();
+    let e = gv.rewrite_brick(&gpu.ctx, &other.region, &other.blocks).unwrap_err().to_string();
+    assert!(e.contains("does not fit the buffers"), "{e}");
+}

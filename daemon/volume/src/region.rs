@@ -7,6 +7,13 @@
 //!   the block grid. It also checks the whole file (size, NaN/Inf) as a full read would.
 //! - [`VolumeStream::read_region`]: the samples of a [`VoxelRange`] only.
 //!
+//! Time-varying volumes ([`VolumeSource::stream_step`]): each step is opened alone (a glob's
+//! file; a 4-D NRRD's own slices of the file; a 4-D NIfTI read whole and the step cut out), and
+//! [`VolumeSource::read_step_region`] gives a step's region and the step's whole block grid in one
+//! pass over the step ([`VolumeStream::read_region_and_blocks`]): every node marches the whole box
+//! with the step's own empty-space skipping, so each node reads every step whole (a slice at a
+//! time) and keeps its region.
+//!
 //! How each source is read:
 //! - raw files and NRRD with `encoding: raw`: by seeking; a region reads, per z-slice of the range,
 //!   the rows of its y-range (whole rows: the x-range is cropped in memory, one slice at a time);
@@ -95,11 +102,20 @@ pub struct VolumeStream {
 }
 
 impl VolumeSource {
-    /// Opens the source for partial reads: reads a file's header only (MetaImage, NIfTI and
-    /// mirrored NRRD are read whole here; see the module's notes).
+    /// Opens the source (its first time step) for partial reads: [`VolumeSource::stream_step`]
+    /// of step 0.
     pub fn stream(&self, raw: Option<&RawSpec>) -> Result<VolumeStream, VolumeError> {
+        self.stream_step(raw, 0)
+    }
+
+    /// Opens time step `step` for partial reads: reads a file's header only (MetaImage, NIfTI and
+    /// mirrored NRRD are read whole here; see the module's notes). A glob's step is its file
+    /// `step`; a 4-D NRRD's step is read from its own slices of the file (a raw one by seeking);
+    /// a 4-D NIfTI is read whole and the step cut out (as [`VolumeSource::load_step`] does).
+    pub fn stream_step(&self, raw: Option<&RawSpec>, step: usize) -> Result<VolumeStream, VolumeError> {
         match self {
             VolumeSource::Procedural { kind, size } => {
+                self.only_step_0(step)?;
                 let dims = kind.dims(*size);
                 let info = VolumeInfo {
                     name: format!("procedural:{}:{}", kind.name(), dims[0]),
@@ -110,44 +126,88 @@ impl VolumeSource {
                 Ok(VolumeStream { info, kind: Kind::Procedural(*kind, *size), progress: None })
             }
             VolumeSource::DicomSeries { path, series } => {
+                self.only_step_0(step)?;
                 Ok(VolumeStream::dicom(crate::io::dicom::Series::open(path, Some(series))?, path))
             }
-            VolumeSource::Steps(_) => Err(time_series_refused(self)),
-            VolumeSource::File(path) if crate::io::time_steps(path)? > 1 => Err(time_series_refused(self)),
+            VolumeSource::Steps(_) => VolumeSource::File(self.step_file(step)?).stream_step(raw, 0),
             VolumeSource::File(path) if crate::io::dicom::is_dicom(path) => {
+                self.only_step_0(step)?;
                 Ok(VolumeStream::dicom(crate::io::dicom::Series::open(path, None)?, path))
             }
-            VolumeSource::File(path) => match crate::io::plan(path, raw)? {
-                Some((plan, spacing, origin)) => {
-                    let info = VolumeInfo {
-                        name: path.display().to_string(),
-                        dims: plan.layout.dims,
-                        spacing,
-                        origin,
-                    };
-                    Ok(VolumeStream { info, kind: Kind::File(plan), progress: None })
+            VolumeSource::File(path) => {
+                let steps = crate::io::time_steps(path)?;
+                if step >= steps {
+                    return Err(crate::io::format_err(
+                        path,
+                        format!("has no time step {step}: it holds {steps} (0 to {})", steps - 1),
+                    ));
                 }
-                None => {
-                    let v = crate::io::load(path, raw)?;
-                    let info = VolumeInfo {
-                        name: v.name.clone(),
-                        dims: v.dims(),
-                        spacing: v.spacing(),
-                        origin: v.origin(),
-                    };
-                    Ok(VolumeStream { info, kind: Kind::Whole(Box::new(v)), progress: None })
+                match crate::io::plan(path, raw)? {
+                    Some((plan, spacing, origin)) => {
+                        let plan = plan.time_step(step, steps);
+                        let info = VolumeInfo {
+                            name: path.display().to_string(),
+                            dims: plan.layout.dims,
+                            spacing,
+                            origin,
+                        };
+                        Ok(VolumeStream { info, kind: Kind::File(plan), progress: None })
+                    }
+                    None => {
+                        let v = crate::io::load_step(path, raw, step)?;
+                        let info = VolumeInfo {
+                            name: v.name.clone(),
+                            dims: v.dims(),
+                            spacing: v.spacing(),
+                            origin: v.origin(),
+                        };
+                        Ok(VolumeStream { info, kind: Kind::Whole(Box::new(v)), progress: None })
+                    }
                 }
-            },
+            }
         }
+    }
+
+    /// Object space, a time-varying source: step `step`'s samples of `range` and its whole block
+    /// grid (blocks of `block` cells), in one pass over the step
+    /// ([`VolumeStream::read_region_and_blocks`]). The step must have the grid of `first` (the
+    /// step the bricks were split on), or it is refused with both.
+    pub fn read_step_region(
+        &self,
+        raw: Option<&RawSpec>,
+        step: usize,
+        range: &VoxelRange,
+        block: usize,
+        first: &VolumeInfo,
+    ) -> Result<StepRegion, VolumeError> {
+        let stream = self.stream_step(raw, step)?;
+        let info = stream.info();
+        if info.dims != first.dims || info.spacing != first.spacing || info.origin != first.origin {
+            return Err(VolumeError::Source(format!(
+                "{self}: time step {step} ({}) has dims {:?}, spacing {:?}, origin {:?}, but the first \
+                 step has {:?}, {:?}, {:?}: object space splits every step as the first",
+                info.name, info.dims, info.spacing, info.origin, first.dims, first.spacing, first.origin
+            )));
+        }
+        let (region, blocks) = stream.read_region_and_blocks(range, block)?;
+        Ok(StepRegion { step, region, blocks })
     }
 }
 
-/// Object space reads one volume: time-varying sources are refused.
-fn time_series_refused(source: &VolumeSource) -> VolumeError {
-    VolumeError::Source(format!(
-        "{source}: a time-varying volume cannot be split into bricks (object space); render it on a \
-         screen-space wall or choose one step"
-    ))
+/// Object space, a time-varying volume: one step's brick and halo, and the step's block grid
+/// over the whole volume (empty-space skipping marches the whole box, so each node needs every
+/// block's min/max of the step to march as the single render does).
+#[derive(Debug)]
+pub struct StepRegion {
+    pub step: usize,
+    pub region: Volume,
+    pub blocks: BlockMinMax,
+}
+
+impl crate::steps::Resident for StepRegion {
+    fn resident_bytes(&self) -> usize {
+        self.region.resident_bytes() + self.blocks.minmax.len() * std::mem::size_of::<[f32; 2]>()
+    }
 }
 
 impl VolumeStream {
@@ -186,62 +246,59 @@ impl VolumeStream {
     /// Per-block min/max of the whole volume (blocks of `block` cells, as [`BlockMinMax::new`]),
     /// reading one z-slice at a time. Refuses NaN/Inf voxels like a full read.
     pub fn block_minmax(&self, block: usize) -> Result<BlockMinMax, VolumeError> {
-        assert!(block >= 1);
-        let dims = self.info.dims;
-        let cells = dims.map(|n| n.max(2) - 1);
-        let counts = cells.map(|c| c.div_ceil(block));
-        let mut minmax = vec![[f32::INFINITY, f32::NEG_INFINITY]; counts.iter().product()];
-        // The blocks whose closed sample range on an axis holds sample s (two at a shared face).
-        let blocks_of = |s: usize, a: usize| -> [Option<usize>; 2] {
-            let b = (s / block).min(counts[a] - 1);
-            let prev = (s.is_multiple_of(block) && s > 0).then(|| s / block - 1);
-            [Some(b), prev.filter(|&p| p != b)]
-        };
-        let [nx, ny, _] = dims;
-        let mut bad: Option<(usize, [usize; 3])> = None;
-        self.for_each_slice(Pass::Scan, &VoxelRange::whole(dims), &mut |k, slice| {
-            // Min/max of this slice per (bx, by) block column, shared edges in both.
-            let mut col = vec![[f32::INFINITY, f32::NEG_INFINITY]; counts[0] * counts[1]];
-            for j in 0..ny {
-                let bys = blocks_of(j, 1);
-                for i in 0..nx {
-                    let x = slice[i + nx * j];
-                    if !x.is_finite() {
-                        let e = bad.get_or_insert((0, [i, j, k]));
-                        e.0 += 1;
-                        continue;
-                    }
-                    for by in bys.into_iter().flatten() {
-                        for bx in blocks_of(i, 0).into_iter().flatten() {
-                            let m = &mut col[bx + counts[0] * by];
-                            m[0] = m[0].min(x);
-                            m[1] = m[1].max(x);
-                        }
-                    }
-                }
-            }
-            for bz in blocks_of(k, 2).into_iter().flatten() {
-                let layer = &mut minmax[counts[0] * counts[1] * bz..counts[0] * counts[1] * (bz + 1)];
-                for (m, c) in layer.iter_mut().zip(&col) {
-                    m[0] = m[0].min(c[0]);
-                    m[1] = m[1].max(c[1]);
+        let mut acc = BlockScan::new(self.info.dims, block);
+        self.for_each_slice(Pass::Scan, &VoxelRange::whole(self.info.dims), &mut |k, slice| {
+            acc.add_slice(k, slice)
+        })?;
+        acc.finish(&self.info.name)
+    }
+
+    /// The samples of `range` and the block min/max of the whole volume, in one pass over it
+    /// (one z-slice resident at a time besides the region): what a time step of object space
+    /// needs ([`VolumeSource::read_step_region`]). Reported as [`Pass::Scan`].
+    pub fn read_region_and_blocks(
+        &self,
+        range: &VoxelRange,
+        block: usize,
+    ) -> Result<(Volume, BlockMinMax), VolumeError> {
+        self.check_range(range)?;
+        let mut acc = BlockScan::new(self.info.dims, block);
+        let [rx, ry, _] = range.dims();
+        let nx = self.info.dims[0];
+        let mut data = Vec::with_capacity(range.count());
+        self.for_each_slice(Pass::Scan, &VoxelRange::whole(self.info.dims), &mut |k, slice| {
+            acc.add_slice(k, slice);
+            if (range.lo[2]..=range.hi[2]).contains(&k) {
+                for j in range.lo[1]..range.lo[1] + ry {
+                    let row = &slice[nx * j..nx * (j + 1)];
+                    data.extend_from_slice(&row[range.lo[0]..range.lo[0] + rx]);
                 }
             }
         })?;
-        if let Some((count, [i, j, k])) = bad {
-            return Err(VolumeError::NonFinite { path: PathBuf::from(&self.info.name), count, i, j, k });
-        }
-        Ok(BlockMinMax { block, counts, minmax })
+        let blocks = acc.finish(&self.info.name)?;
+        Ok((self.region_volume(range, data)?, blocks))
     }
 
-    /// The samples of `range`, read without the rest (see the module's notes).
-    pub fn read_region(&self, range: &VoxelRange) -> Result<Volume, VolumeError> {
+    fn check_range(&self, range: &VoxelRange) -> Result<(), VolumeError> {
         if !range.fits(self.info.dims) {
             return Err(VolumeError::Invalid(format!(
                 "{}: region {range:?} does not fit dims {:?}",
                 self.info.name, self.info.dims
             )));
         }
+        Ok(())
+    }
+
+    /// The region's samples as a volume at the world position of its first sample.
+    fn region_volume(&self, range: &VoxelRange, data: Vec<f32>) -> Result<Volume, VolumeError> {
+        let origin = self.info.origin
+            + self.info.spacing * DVec3::new(range.lo[0] as f64, range.lo[1] as f64, range.lo[2] as f64);
+        Volume::new(self.info.name.clone(), range.dims(), self.info.spacing, origin, data)
+    }
+
+    /// The samples of `range`, read without the rest (see the module's notes).
+    pub fn read_region(&self, range: &VoxelRange) -> Result<Volume, VolumeError> {
+        self.check_range(range)?;
         let slices = range.dims()[2];
         match &self.kind {
             Kind::Procedural(p, size) => {
@@ -264,10 +321,7 @@ impl VolumeStream {
                         data.extend_from_slice(&row[range.lo[0]..range.lo[0] + rx]);
                     }
                 })?;
-                let origin = self.info.origin
-                    + self.info.spacing
-                        * DVec3::new(range.lo[0] as f64, range.lo[1] as f64, range.lo[2] as f64);
-                Volume::new(self.info.name.clone(), range.dims(), self.info.spacing, origin, data)
+                self.region_volume(range, data)
             }
         }
     }
@@ -317,6 +371,74 @@ impl VolumeStream {
                 Ok(())
             }
         }
+    }
+}
+
+/// The block min/max of a volume accumulated z-slice by z-slice (whole slices, in order), and
+/// its non-finite voxels (the first and the count).
+struct BlockScan {
+    dims: [usize; 3],
+    block: usize,
+    counts: [usize; 3],
+    minmax: Vec<[f32; 2]>,
+    bad: Option<(usize, [usize; 3])>,
+}
+
+impl BlockScan {
+    fn new(dims: [usize; 3], block: usize) -> BlockScan {
+        assert!(block >= 1);
+        let cells = dims.map(|n| n.max(2) - 1);
+        let counts = cells.map(|c| c.div_ceil(block));
+        let minmax = vec![[f32::INFINITY, f32::NEG_INFINITY]; counts.iter().product()];
+        BlockScan { dims, block, counts, minmax, bad: None }
+    }
+
+    /// The blocks whose closed sample range on axis `a` holds sample s (two at a shared face).
+    fn blocks_of(&self, s: usize, a: usize) -> [Option<usize>; 2] {
+        let (block, counts) = (self.block, self.counts);
+        let b = (s / block).min(counts[a] - 1);
+        let prev = (s.is_multiple_of(block) && s > 0).then(|| s / block - 1);
+        [Some(b), prev.filter(|&p| p != b)]
+    }
+
+    /// Adds z-slice `k` (`nx * ny` samples).
+    fn add_slice(&mut self, k: usize, slice: &[f32]) {
+        let [nx, ny, _] = self.dims;
+        let counts = self.counts;
+        // Min/max of this slice per (bx, by) block column, shared edges in both.
+        let mut col = vec![[f32::INFINITY, f32::NEG_INFINITY]; counts[0] * counts[1]];
+        for j in 0..ny {
+            let bys = self.blocks_of(j, 1);
+            for i in 0..nx {
+                let x = slice[i + nx * j];
+                if !x.is_finite() {
+                    let e = self.bad.get_or_insert((0, [i, j, k]));
+                    e.0 += 1;
+                    continue;
+                }
+                for by in bys.into_iter().flatten() {
+                    for bx in self.blocks_of(i, 0).into_iter().flatten() {
+                        let m = &mut col[bx + counts[0] * by];
+                        m[0] = m[0].min(x);
+                        m[1] = m[1].max(x);
+                    }
+                }
+            }
+        }
+        for bz in self.blocks_of(k, 2).into_iter().flatten() {
+            let layer = &mut self.minmax[counts[0] * counts[1] * bz..counts[0] * counts[1] * (bz + 1)];
+            for (m, c) in layer.iter_mut().zip(&col) {
+                m[0] = m[0].min(c[0]);
+                m[1] = m[1].max(c[1]);
+            }
+        }
+    }
+
+    fn finish(self, name: &str) -> Result<BlockMinMax, VolumeError> {
+        if let Some((count, [i, j, k])) = self.bad {
+            return Err(VolumeError::NonFinite { path: PathBuf::from(name), count, i, j, k });
+        }
+        Ok(BlockMinMax { block: self.block, counts: self.counts, minmax: self.minmax })
     }
 }
 
@@ -451,5 +573,78 @@ mod tests {
         let s = VolumeSource::File(p).stream(Some(&spec)).unwrap();
         let e = s.block_minmax(2).unwrap_err();
         assert!(matches!(e, VolumeError::NonFinite { count: 1, i: 3, j: 1, k: 2, .. }), "{e}");
+    }
+
+    /// `n` steps of 9x7x6 short voxels, step k's voxel i = (i * 31 + 7 * k) % 97 - 40: as a glob
+    /// of raw-encoded NRRD files, and as 4-D NRRD files (raw and gzip).
+    fn step_sources(dir: &std::path::Path, n: usize) -> (Vec<VolumeSource>, Vec<Vec<f64>>) {
+        let dims = [9usize, 7, 6];
+        let count: usize = dims.iter().product();
+        let steps: Vec<Vec<f64>> =
+            (0..n).map(|k| (0..count).map(|i| ((i * 31 + 7 * k) % 97) as f64 - 40.0).collect()).collect();
+        let header = |dimension: usize, enc: &str| {
+            let sizes = if dimension == 3 { "9 7 6".to_string() } else { format!("9 7 6 {n}") };
+            let spacings = if dimension == 3 { "1 2 0.5" } else { "1 2 0.5 nan" };
+            format!(
+                "NRRD0004\ntype: short\ndimension: {dimension}\nsizes: {sizes}\nendian: little\n\
+                 encoding: {enc}\nspacings: {spacings}\n\n"
+            )
+        };
+        std::fs::create_dir_all(dir.join("steps")).unwrap();
+        let mut all = Vec::new();
+        for (k, values) in steps.iter().enumerate() {
+            let bytes = encode(values, VoxelType::I16, false);
+            all.extend_from_slice(&bytes);
+            let mut f = header(3, "raw").into_bytes();
+            f.extend_from_slice(&bytes);
+            std::fs::write(dir.join(format!("steps/step_{k:02}.nrrd")), f).unwrap();
+        }
+        let mut sources = vec![format!("{}/steps/step_*.nrrd", dir.display()).parse().unwrap()];
+        for (name, enc, data) in [("four.nrrd", "raw", all.clone()), ("four_gz.nrrd", "gzip", gzip(&all))] {
+            let mut f = header(4, enc).into_bytes();
+            f.extend_from_slice(&data);
+            std::fs::write(dir.join(name), f).unwrap();
+            sources.push(VolumeSource::File(dir.join(name)));
+        }
+        (sources, steps)
+    }
+
+    #[test]
+    fn a_time_steps_region_and_block_grid_equal_the_whole_steps() {
+        let dir = tempfile::tempdir().unwrap();
+        let (sources, steps) = step_sources(dir.path(), 3);
+        let r = VoxelRange { lo: [2, 1, 3], hi: [7, 6, 5] };
+        for src in &sources {
+            assert_eq!(src.time_steps().unwrap(), 3, "{src}");
+            let first = src.stream(None).unwrap().info().clone();
+            assert_eq!(first.dims, [9, 7, 6], "{src}");
+            for (k, values) in steps.iter().enumerate() {
+                let whole = src.load_step(None, k).unwrap();
+                assert_eq!(whole.data()[5], values[5] as f32, "{src} step {k}");
+                let s = src.stream_step(None, k).unwrap();
+                assert!(s.partial(), "{src}");
+                check_same(&s.read_region(&r).unwrap(), &whole, &r);
+                blocks_equal(&s.block_minmax(4).unwrap(), &BlockMinMax::new(&whole, 4));
+                // One pass: the region and the step's whole block grid.
+                let got = src.read_step_region(None, k, &r, 4, &first).unwrap();
+                assert_eq!(got.step, k);
+                check_same(&got.region, &whole, &r);
+                blocks_equal(&got.blocks, &BlockMinMax::new(&whole, 4));
+                use crate::steps::Resident;
+                assert_eq!(got.resident_bytes(), r.count() * 4 + got.blocks.minmax.len() * 8);
+            }
+            let e = src.stream_step(None, 3).err().unwrap().to_string();
+            assert!(e.contains("has no time step 3"), "{src}: {e}");
+        }
+        // A step whose grid is not the first's is refused, naming both.
+        let other = dir.path().join("steps/step_01.nrrd");
+        let text = "NRRD0004\ntype: uchar\ndimension: 3\nsizes: 9 7 5\nencoding: raw\n\n";
+        std::fs::write(&other, [text.as_bytes(), &[0u8; 9 * 7 * 5]].concat()).unwrap();
+        let first = sources[0].stream(None).unwrap().info().clone();
+        let e = sources[0].read_step_region(None, 1, &r, 4, &first).unwrap_err().to_string();
+        assert!(e.contains("time step 1") && e.contains("[9, 7, 5]") && e.contains("[9, 7, 6]"), "{e}");
+        // Sources of one step have step 0 only.
+        let torus: VolumeSource = "procedural:torus:21".parse().unwrap();
+        assert!(torus.stream_step(None, 1).err().unwrap().to_string().contains("has no time step 1"));
     }
 }

@@ -240,7 +240,8 @@ impl GpuContext {
             self.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some(name),
                 contents,
-                usage: wgpu::BufferUsages::STORAGE,
+                // COPY_DST: a brick's next time step is written into its buffers.
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
             })
         })
     }
@@ -489,9 +490,7 @@ impl GpuVolume {
         let value_range = (0.0, 0.0); // r32f and r16f need none
         let words = format.pack(region.data(), value_range);
         let voxels = ctx.storage_init(&format!("brick of {}", whole.name), bytemuck::cast_slice(&words))?;
-        // Rounding is monotone, so the stored voxels' block min/max are the rounded min/max.
-        let round = |v: f32| format.decode(format.encode(v, value_range), value_range);
-        let minmax: Vec<[f32; 2]> = blocks.minmax.iter().map(|m| [round(m[0]), round(m[1])]).collect();
+        let minmax = stored_minmax(format, blocks, value_range);
         let block_minmax = ctx.storage_init("block min/max", bytemuck::cast_slice(&minmax))?;
         Ok(GpuVolume {
             id: next_resource_id(),
@@ -515,6 +514,43 @@ impl GpuVolume {
             object: Some(object),
         })
     }
+
+    /// Object space, a time-varying volume: puts another step of the same brick in this
+    /// volume's buffers, `region` (its brick and halo) and `blocks` (the step's block min/max of
+    /// the whole volume), written in place (the buffers, and the tiles' bind groups made for
+    /// them, are kept). Frames submitted before read the old step, later ones the new. Refused
+    /// where the sizes differ from what the buffers hold (upload a new volume then).
+    pub fn rewrite_brick(
+        &mut self,
+        ctx: &GpuContext,
+        region: &Volume,
+        blocks: &BlockMinMax,
+    ) -> Result<(), GpuError> {
+        let d = region.dims();
+        let dims = [d[0] as u32, d[1] as u32, d[2] as u32];
+        if self.object.is_none()
+            || dims != self.dims
+            || blocks.block as u32 != self.block
+            || blocks.counts.map(|c| c as u32) != self.counts
+        {
+            return Err(GpuError::Settings(format!(
+                "brick region {d:?} with blocks {:?} does not fit the buffers of {} ({:?}, blocks {:?})",
+                blocks.counts, self.name, self.dims, self.counts
+            )));
+        }
+        let words = self.format.pack(region.data(), self.value_range);
+        let minmax = stored_minmax(self.format, blocks, self.value_range);
+        ctx.queue.write_buffer(&self.voxels, 0, bytemuck::cast_slice(&words));
+        ctx.queue.write_buffer(&self.block_minmax, 0, bytemuck::cast_slice(&minmax));
+        Ok(())
+    }
+}
+
+/// A brick's block min/max as its voxels are stored: rounding is monotone, so the stored voxels'
+/// block min/max are the rounded min/max.
+fn stored_minmax(format: VoxelFormat, blocks: &BlockMinMax, value_range: (f32, f32)) -> Vec<[f32; 2]> {
+    let round = |v: f32| format.decode(format.encode(v, value_range), value_range);
+    blocks.minmax.iter().map(|m| [round(m[0]), round(m[1])]).collect()
 }
 
 /// A block level uploaded after the primary rays' one: its counts, cells per edge and where its

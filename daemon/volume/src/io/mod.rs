@@ -217,6 +217,7 @@ pub(crate) fn plan(
                 start: spec.header_bytes,
                 encoding: Encoding::Raw,
                 decoded_skip: 0,
+                trailing: false,
             };
             Ok(Some((plan, spec.spacing, DVec3::ZERO)))
         }

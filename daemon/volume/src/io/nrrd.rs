@@ -150,6 +150,7 @@ pub(crate) fn plan(path: &Path) -> Result<Option<(super::FilePlan, DVec3, DVec3)
         start,
         encoding: header.encoding,
         decoded_skip,
+        trailing: false,
     };
     Ok(Some((plan, spacing, origin)))
 }
@@ -564,10 +565,12 @@ mod tests {
         write(&p, &four("raw", "spacings: 0.5 1 2 nan"), &raw[..24 * 2]);
         let e = load(&p, None).unwrap_err().to_string();
         assert!(e.contains("data is truncated"), "{e}");
-        // Object space refuses a time series.
+        // Object space reads a step's slices alone: step 1 of the 4-D file is its second half.
         let p = dir.path().join("r.nrrd");
-        let e = crate::VolumeSource::File(p).stream(None).err().unwrap().to_string();
-        assert!(e.contains("time-varying volume cannot be split into bricks"), "{e}");
+        let s = crate::VolumeSource::File(p).stream_step(None, 1).unwrap();
+        assert_eq!(s.info().dims, [4, 3, 2]);
+        let whole = crate::VoxelRange::whole([4, 3, 2]);
+        check(&s.read_region(&whole).unwrap(), [4, 3, 2], spacing, DVec3::new(1.0, 2.0, 3.0), &vals[24..]);
     }
 
     #[test]

@@ -19,9 +19,31 @@ pub(crate) struct FilePlan {
     pub encoding: crate::io::Encoding,
     /// Compressed only: decoded bytes before voxel 0.
     pub decoded_skip: u64,
+    /// More voxels follow the plan's in the data (the later time steps of a 4-D file), so a
+    /// whole pass does not check that the stream ends with them.
+    pub trailing: bool,
 }
 
 impl FilePlan {
+    /// The plan of time step `step` of the `steps` a 4-D file stacks along z (the layout's z
+    /// holds them all): its voxels alone, skipped to without reading the steps before them
+    /// where the encoding allows (raw: by seeking; compressed: decoded and dropped).
+    pub(crate) fn time_step(mut self, step: usize, steps: usize) -> FilePlan {
+        if steps <= 1 {
+            return self;
+        }
+        let [nx, ny, nzt] = self.layout.dims;
+        let nz = nzt / steps;
+        let skip = (nx * ny * nz * step) as u64 * self.layout.voxel.size() as u64;
+        match self.encoding {
+            crate::io::Encoding::Raw => self.start += skip,
+            _ => self.decoded_skip += skip,
+        }
+        self.layout.dims[2] = nz;
+        self.trailing = self.trailing || step + 1 < steps;
+        self
+    }
+
     fn files(&self) -> crate::io::Files<'_> {
         crate::io::Files { header: &self.header, data: &self.data }
     }
@@ -87,7 +109,7 @@ impl FilePlan {
                     }
                     decode(k, &bytes, &mut values);
                 }
-                if whole {
+                if whole && !self.trailing {
                     // A whole pass also checks that the stream ends where the voxels do.
                     let mut probe = [0u8; 1];
                     if crate::io::read_full(&mut *dec, &mut probe).map_err(|e| files.io(e))? > 0 {
