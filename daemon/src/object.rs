@@ -261,8 +261,6 @@ pub struct ObjectNode {
     /// A time-varying volume: the frames whose step was late here (the render thread's
     /// report), until they are composited.
     step_late: HashMap<u64, (u32, Duration)>,
-    /// The volume has time steps: an adopted brick is refused (its steps are not loaded).
-    time_varying: bool,
 }
 
 impl ObjectNode {
@@ -282,7 +280,15 @@ impl ObjectNode {
             spacing: plan.info.spacing,
             halo: setup.halo,
         };
-        let machine = ObjectMachine::new(config, name, geometry);
+        let mut machine = ObjectMachine::new(config, name, geometry);
+        let steps = plan.source.time_steps().map_err(|e| anyhow!("volume {}: {e}", plan.source))?;
+        if steps > 1 {
+            machine.refuse_adoptions(format!(
+                "{}: a time-varying volume's brick is not adopted (the adopter would have to load it \
+                 for every step); the wall composites without it until its node is back",
+                plan.source
+            ));
+        }
         let mut addrs = HashMap::new();
         for peer in machine.receivers() {
             let n = config.node(peer).ok_or_else(|| anyhow!("no node '{peer}' in the wall config"))?;
@@ -300,7 +306,6 @@ impl ObjectNode {
             deadline: Duration::from_millis(config.wall.deadline_ms),
             missing: Vec::new(),
             step_late: HashMap::new(),
-            time_varying: plan.source.time_steps().map_err(|e| anyhow!("volume {}: {e}", plan.source))? > 1,
         })
     }
 
@@ -435,24 +440,7 @@ impl ObjectNode {
     /// [`ObjectNode::load_done`]), or the answer to send at once.
     pub fn load(&mut self, brick: u64, renderer: &crate::render_thread::RenderHandle) -> Option<Message> {
         let mut answer = None;
-        let mut outputs = self.machine.load(brick);
-        if self.time_varying {
-            // Refused (the model's failed load): the adopter would need the brick of every step.
-            if let Some(ObjectOutput::Load { brick, .. }) =
-                outputs.iter().find(|o| matches!(o, ObjectOutput::Load { .. }))
-            {
-                let reason = format!(
-                    "{}: a time-varying volume's brick is not adopted (the adopter would have to load \
-                     it for every step); the wall composites without it until its node is back",
-                    self.plan.source
-                );
-                let brick = *brick;
-                outputs.retain(|o| !matches!(o, ObjectOutput::Load { .. }));
-                let done = LoadDone { brick, result: Err(reason), took: Duration::ZERO };
-                answer = Some(self.load_done(done));
-            }
-        }
-        for out in outputs {
+        for out in self.machine.load(brick) {
             match out {
                 ObjectOutput::Load { brick, index } => {
                     tracing::info!(brick, "object space: adopting a brick: loading it");

@@ -346,11 +346,12 @@ impl Loop {
         if !self.waiting.is_empty() {
             self.ask_thumbnail(wall).await;
         }
-        if let Some(d) = daemons.as_mut() {
-            self.pids = d.pids().into_iter().collect();
-        }
         if self.published.is_none_or(|t| t.elapsed() >= PUBLISH_EVERY) {
             self.published = Some(Instant::now());
+            // The status is the pids' only reader: looked up when it is published, not every frame.
+            if let Some(d) = daemons.as_mut() {
+                self.pids = d.pids().into_iter().collect();
+            }
             let status = self.status(wall);
             self.shared.status.send_replace(Some(Arc::new(status)));
         }

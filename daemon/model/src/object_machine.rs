@@ -111,6 +111,8 @@ pub struct ObjectMachine {
     maps: MapHistory,
     /// Adoptions under way (LoadBrick received, not answered).
     loading: BTreeSet<u64>,
+    /// Why this node adopts no brick, where it cannot ([`ObjectMachine::refuse_adoptions`]).
+    adoptions_refused: Option<String>,
     compositor: Compositor,
     /// The other nodes that show tiles: each gets one message per frame.
     receivers: Vec<String>,
@@ -140,6 +142,7 @@ impl ObjectMachine {
             geometry,
             maps: MapHistory::new(nodes.clone()),
             loading: BTreeSet::new(),
+            adoptions_refused: None,
             compositor: Compositor::new(name, nodes, tiles, deadline),
             receivers,
             submitted: BTreeMap::new(),
@@ -325,11 +328,21 @@ impl ObjectMachine {
             let resident_bytes = self.resident_bytes();
             return vec![ObjectOutput::Send(Message::BrickLoaded { brick, load_us: 0, resident_bytes })];
         }
+        if let Some(reason) = &self.adoptions_refused {
+            return vec![ObjectOutput::Send(Message::BrickFailed { brick, reason: reason.clone() })];
+        }
         if self.loading.insert(brick) {
             vec![ObjectOutput::Load { brick, index }]
         } else {
             Vec::new()
         }
+    }
+
+    /// From now on every `LoadBrick` of a brick this node does not hold is answered
+    /// `BrickFailed` with `reason` (a node that cannot adopt, e.g. one whose volume has time
+    /// steps: the adopter would have to load the brick of every step).
+    pub fn refuse_adoptions(&mut self, reason: String) {
+        self.adoptions_refused = Some(reason);
     }
 
     /// An adoption's outcome (the brick's volume bytes, or why not) after `took`: the answer

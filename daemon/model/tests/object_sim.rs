@@ -666,3 +666,26 @@ fn a_duplicate_is_dropped_and_an_early_refusal_closes_the_link_that_carried_it()
         "{out:?}"
     );
 }
+
+/// A node told to refuse adoptions (a time-varying volume's) answers a `LoadBrick` of another
+/// brick with `BrickFailed` and the reason, loads nothing, and still answers for its own brick.
+#[test]
+fn a_node_that_refuses_adoptions_answers_brick_failed_and_loads_nothing() {
+    let config = config();
+    let geometry =
+        || BrickGeometry { owned: owned(), own: 0, own_bytes: 1000, spacing: DVec3::ONE, halo: [3; 3] };
+    let mut m = ObjectMachine::new(&config, "node0", geometry());
+    assert!(
+        matches!(&m.load(1)[..], [ObjectOutput::Load { brick: 1, index: 1 }]),
+        "without the refusal the brick is loaded"
+    );
+    let mut m = ObjectMachine::new(&config, "node0", geometry());
+    m.refuse_adoptions("steps: not adopted".into());
+    let out = m.load(1);
+    assert!(
+        matches!(&out[..], [ObjectOutput::Send(Message::BrickFailed { brick: 1, reason })] if reason == "steps: not adopted"),
+        "{out:?}"
+    );
+    let own = m.load(0);
+    assert!(matches!(&own[..], [ObjectOutput::Send(Message::BrickLoaded { brick: 0, .. })]), "{own:?}");
+}
