@@ -289,6 +289,64 @@ fn the_api_refuses_missing_tokens_and_bad_input_and_changes_nothing() {
     let img = image::load_from_memory(&full.body).unwrap();
     assert_eq!((img.width(), img.height()), (34, 26), "the whole wall, bezels included");
     assert!(full.header("content-disposition").is_some_and(|d| d.contains("attachment")));
+
+    // The frame statistics the charts and cards show: rolling series, ordered quantiles, and the
+    // node's own render and ready times (ready: the frame began -> its Ready arrived, so never less
+    // than its render time).
+    let s = con.status();
+    let (frames, p50, p99) = (
+        s["frame"]["frame_ms"].as_array().unwrap(),
+        s["frame"]["frame_ms_p50"].as_f64().expect("frame_ms_p50"),
+        s["frame"]["frame_ms_p99"].as_f64().expect("frame_ms_p99"),
+    );
+    assert!(!frames.is_empty() && 0.0 < p50 && p50 <= p99, "frame ms p50 {p50}, p99 {p99}, {} frames", frames.len());
+    let (lo, hi) = frames.iter().filter_map(Value::as_f64).fold((f64::MAX, 0.0_f64), |(l, h), x| (l.min(x), h.max(x)));
+    assert!(lo <= p99 && p50 <= hi, "quantiles {p50}/{p99} outside the series' {lo}..{hi}");
+    let (skew50, skew99) = (s["frame"]["skew_ms_p50"].as_f64(), s["frame"]["skew_ms_p99"].as_f64());
+    assert!(skew50.zip(skew99).is_some_and(|(a, b)| 0.0 <= a && a <= b), "skew p50 {skew50:?}, p99 {skew99:?}");
+    let node = &s["nodes"][0];
+    let (render, ready) = (node["render_ms"].as_f64(), node["ready_ms"].as_f64());
+    assert!(
+        render.zip(ready).is_some_and(|(r, q)| 0.0 < r && r <= q && q < 20_000.0),
+        "node0 render {render:?} ms, ready {ready:?} ms"
+    );
+
+    // A camera change through the API: the status's camera moves and the next picture differs;
+    // the orbit plays and pauses; reset brings back the config's camera.
+    let eye0 = s["camera"]["eye"].clone();
+    let picture0 = snapshot(&con);
+    let r = con.post("/api/camera", "{\"yaw_deg\": 40, \"zoom\": 0.8}");
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    let give_up = Instant::now() + Duration::from_secs(30);
+    while con.status()["camera"]["eye"] == eye0 {
+        assert!(Instant::now() < give_up, "the camera change never showed in the status");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let give_up = Instant::now() + Duration::from_secs(30);
+    loop {
+        let moved = changed_pixels(&picture0, &snapshot(&con));
+        if moved > 26 * 34 / 20 {
+            break;
+        }
+        assert!(Instant::now() < give_up, "only {moved} pixels changed after the camera moved");
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    assert_eq!(con.post("/api/camera", "{\"orbit\": \"play\"}").status, 200);
+    let give_up = Instant::now() + Duration::from_secs(30);
+    while con.status()["orbit"]["playing"] != true {
+        assert!(Instant::now() < give_up, "the orbit never played");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    assert_eq!(con.post("/api/camera", "{\"orbit\": \"pause\", \"reset\": true}").status, 200);
+    let give_up = Instant::now() + Duration::from_secs(30);
+    loop {
+        let s = con.status();
+        if s["orbit"]["playing"] == false && s["camera"]["eye"] == eye0 {
+            break;
+        }
+        assert!(Instant::now() < give_up, "reset kept eye {} (was {eye0})", s["camera"]["eye"]);
+        std::thread::sleep(Duration::from_millis(100));
+    }
 }
 
 #[test]
@@ -466,7 +524,7 @@ async fn browser(driver: &Driver, chromium: &Path, profile: &Path) -> fantoccini
             "args": [
                 "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                 "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                "--window-size=1280,1000", format!("--user-data-dir={}", profile.display()),
+                "--window-size=1280,1200", format!("--user-data-dir={}", profile.display()),
             ],
         }),
     );
@@ -574,6 +632,15 @@ async fn the_page_shows_the_wall_its_nodes_and_drives_it_in_a_real_browser() {
     let cards_with_memory =
         "[...document.querySelectorAll('.node-card')].filter(c => /\\d+ MiB/.test(c.textContent)).length";
     until(&page, &format!("{cards_with_memory} === 4"), Duration::from_secs(10)).await;
+    // ... and its render and ready times, in ms, as /api/status has them.
+    let cards_with_times = "[...document.querySelectorAll('.node-card')].filter(c => \
+        /render\\s*\\d+\\.\\d ms/.test(c.textContent) && /ready\\s*\\d+\\.\\d ms/.test(c.textContent)).length";
+    until(&page, &format!("{cards_with_times} === 4"), Duration::from_secs(10)).await;
+    let frame = &con.status()["frame"];
+    assert!(
+        frame["frame_ms_p50"].as_f64().zip(frame["frame_ms_p99"].as_f64()).is_some_and(|(a, b)| 0.0 < a && a <= b),
+        "frame quantiles: {frame}"
+    );
     let latencies = js(&page, "window.isowall.latencies").await;
     let mut lat: Vec<f64> = latencies.as_array().unwrap().iter().filter_map(Value::as_f64).collect();
     lat.sort_by(f64::total_cmp);

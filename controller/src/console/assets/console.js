@@ -1,9 +1,13 @@
 // The Isowall operator console: live status over the /api/live WebSocket, the wall thumbnail
 // fetched at THUMB_HZ from /api/snapshot.png?width=, charts drawn by hand on canvases, and the
 // controls posting to /api/render, /api/camera and /api/time. No build step, no libraries.
+// The page is cheap to keep open: it changes only the text and attributes that changed, redraws
+// a chart only when a frame was added to it and the wall only when a thumbnail or a node's state
+// is new, and asks for nothing while it is hidden (a tab in the background).
 "use strict";
 
-const THUMB_HZ = 2;
+const THUMB_HZ = 1;
+const LIVE_HZ = 2;
 const AO_STEPS = [0, 1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024];
 
 // A token given as #token=T in the address (kept for this tab only).
@@ -26,12 +30,12 @@ window.isowall = { thumbnails: 0, thumbBytes: 0, statusMessages: 0, lastFrame: n
 // ---- live status ----
 function connect() {
   const proto = location.protocol === "https:" ? "wss:" : "ws:";
-  const ws = new WebSocket(withToken(proto + "//" + location.host + "/api/live?hz=4"));
+  const ws = new WebSocket(withToken(proto + "//" + location.host + "/api/live?hz=" + LIVE_HZ));
   ws.onopen = () => { $("link").textContent = "live"; $("link").className = "good"; };
   ws.onmessage = (ev) => {
     window.isowall.statusMessages++;
     status = JSON.parse(ev.data);
-    show(status);
+    if (!document.hidden) show(status);
   };
   ws.onclose = () => {
     $("link").textContent = "reconnecting…";
@@ -50,48 +54,76 @@ function since(s) {
   return (s / 3600).toFixed(1) + " h";
 }
 
+// Changes an element's text, attribute or property only when it differs: the browser then lays
+// out and paints only what changed.
+function setText(el, t) { if (el.textContent !== t) el.textContent = t; }
+function setProp(el, k, v) { if (el[k] !== v) el[k] = v; }
+function setData(el, k, v) { if (el.dataset[k] !== v) el.dataset[k] = v; }
+
+let charted = null; // the frame the charts show
+let wallKey = null; // the wall's tiles and node states last drawn
+
 function show(s) {
-  $("wall-name").textContent = s.wall.name + " (" + s.wall.width + "×" + s.wall.height + ", " + s.wall.mode + " space)";
-  $("fps").textContent = fmt(s.frame.fps, 1) + " fps";
-  $("frame").textContent = "frame " + s.frame.id;
-  $("ro-badge").hidden = !s.console.read_only;
-  $("controls").hidden = s.console.read_only;
+  setText($("wall-name"), s.wall.name + " (" + s.wall.width + "×" + s.wall.height + ", " + s.wall.mode + " space)");
+  setText($("fps"), fmt(s.frame.fps, 1) + " fps");
+  setText($("frame"), "frame " + s.frame.id);
+  setProp($("ro-badge"), "hidden", !s.console.read_only);
+  setProp($("controls"), "hidden", s.console.read_only);
   showNodes(s);
   showControls(s);
-  chart($("chart-frame"), s.frame.frame_ms, s.frame.frame_ms_p50, s.frame.frame_ms_p99, "#58a6ff");
-  chart($("chart-skew"), s.frame.skew_ms, s.frame.skew_ms_p50, s.frame.skew_ms_p99, "#d29922");
-  drawWall();
+  if (charted !== s.frame.id) {
+    charted = s.frame.id;
+    chart($("chart-frame"), s.frame.frame_ms, s.frame.frame_ms_p50, s.frame.frame_ms_p99, "#58a6ff");
+    chart($("chart-skew"), s.frame.skew_ms, s.frame.skew_ms_p50, s.frame.skew_ms_p99, "#d29922");
+  }
+  const key = JSON.stringify([s.wall.width, s.wall.height, s.wall.tiles, s.nodes.map((n) => n.state)]);
+  if (key !== wallKey) { wallKey = key; drawWall(); }
+}
+
+// A node's card: made once, then only its fields' text changes.
+const FIELDS = ["since", "render", "ready", "memory", "shows", "address"];
+function card(box, name) {
+  let c = box.querySelector('.node-card[data-node="' + CSS.escape(name) + '"]');
+  if (c) return c;
+  c = document.createElement("div");
+  c.className = "node-card";
+  c.dataset.node = name;
+  const state = document.createElement("span");
+  state.className = "state";
+  const title = document.createElement("div");
+  title.className = "name";
+  title.textContent = name;
+  const dl = document.createElement("dl");
+  for (const f of FIELDS) {
+    const dt = document.createElement("dt");
+    dt.textContent = f;
+    const dd = document.createElement("dd");
+    dd.dataset.field = f;
+    dl.append(dt, dd);
+  }
+  c.append(state, title, dl);
+  box.appendChild(c);
+  return c;
 }
 
 function showNodes(s) {
   const box = $("nodes");
   for (const n of s.nodes) {
-    let card = box.querySelector('.node-card[data-node="' + CSS.escape(n.name) + '"]');
-    if (!card) {
-      card = document.createElement("div");
-      card.className = "node-card";
-      card.dataset.node = n.name;
-      box.appendChild(card);
-    }
-    card.dataset.state = n.state;
+    const c = card(box, n.name);
+    setData(c, "state", n.state);
+    setText(c.querySelector(".state"), n.state);
     const what = n.bricks.length ? "bricks " + n.bricks.join(", ") : "tiles " + n.tiles.join(", ");
-    card.innerHTML =
-      '<span class="state">' + n.state + "</span>" +
-      '<div class="name">' + escapeHtml(n.name) + "</div>" +
-      "<dl>" +
-      "<dt>since</dt><dd>" + since(n.since_s) + (n.reason ? " (" + escapeHtml(n.reason) + ")" : "") + "</dd>" +
-      "<dt>render</dt><dd>" + fmt(n.render_ms, 1) + " ms</dd>" +
-      "<dt>ready</dt><dd>" + fmt(n.ready_ms, 1) + " ms</dd>" +
-      "<dt>memory</dt><dd>" + (n.rss_kib === null ? "–" : (n.rss_kib / 1024).toFixed(0) + " MiB") +
-      (n.resident_volume_bytes === null ? "" : ", volume " + (n.resident_volume_bytes / 1048576).toFixed(1) + " MiB") + "</dd>" +
-      "<dt>shows</dt><dd>" + escapeHtml(what) + "</dd>" +
-      "<dt>address</dt><dd>" + escapeHtml(n.address) + "</dd>" +
-      "</dl>";
+    const text = {
+      since: since(n.since_s) + (n.reason ? " (" + n.reason + ")" : ""),
+      render: fmt(n.render_ms, 1) + " ms",
+      ready: fmt(n.ready_ms, 1) + " ms",
+      memory: (n.rss_kib === null ? "–" : (n.rss_kib / 1024).toFixed(0) + " MiB") +
+        (n.resident_volume_bytes === null ? "" : ", volume " + (n.resident_volume_bytes / 1048576).toFixed(1) + " MiB"),
+      shows: what,
+      address: n.address,
+    };
+    for (const f of FIELDS) setText(c.querySelector('dd[data-field="' + f + '"]'), text[f]);
   }
-}
-
-function escapeHtml(t) {
-  return String(t).replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" })[c]);
 }
 
 // ---- controls ----
@@ -102,40 +134,41 @@ function showControls(s) {
   const r = s.render;
   const iso = $("iso");
   const span = s.volume.max - s.volume.min;
-  iso.min = s.volume.min;
-  iso.max = s.volume.max;
-  iso.step = span > 0 ? span / 200 : 0.001;
-  $("iso-min").textContent = fmt(s.volume.min, 3);
-  $("iso-max").textContent = fmt(s.volume.max, 3);
-  if (!touched("iso")) { iso.value = r.iso; $("iso-value").textContent = fmt(r.iso, 4); }
+  setProp(iso, "min", String(s.volume.min));
+  setProp(iso, "max", String(s.volume.max));
+  setProp(iso, "step", String(span > 0 ? span / 200 : 0.001));
+  setText($("iso-min"), fmt(s.volume.min, 3));
+  setText($("iso-max"), fmt(s.volume.max, 3));
+  if (!touched("iso")) { setProp(iso, "value", String(r.iso)); setText($("iso-value"), fmt(r.iso, 4)); }
   if (!touched("ao-samples")) {
     let k = AO_STEPS.findIndex((x) => x >= r.ao_samples);
-    $("ao-samples").value = k < 0 ? AO_STEPS.length - 1 : k;
-    $("ao-samples-value").textContent = r.ao_samples + (r.target_frame_ms ? " (governor: " + r.frame_ao_samples + (r.frame_scale > 1 ? " at 1/" + r.frame_scale : "") + ")" : "");
+    setProp($("ao-samples"), "value", String(k < 0 ? AO_STEPS.length - 1 : k));
+    setText($("ao-samples-value"), r.ao_samples + (r.target_frame_ms ? " (governor: " + r.frame_ao_samples + (r.frame_scale > 1 ? " at 1/" + r.frame_scale : "") + ")" : ""));
   }
-  if (!touched("ao-method")) $("ao-method").value = r.ao_method;
-  if (!touched("ibl")) $("ibl").value = r.ibl;
-  if (!touched("exposure")) { $("exposure").value = r.exposure; $("exposure-value").textContent = fmt(r.exposure, 2); }
+  if (!touched("ao-method")) setProp($("ao-method"), "value", r.ao_method);
+  if (!touched("ibl")) setProp($("ibl"), "value", r.ibl);
+  if (!touched("exposure")) { setProp($("exposure"), "value", String(r.exposure)); setText($("exposure-value"), fmt(r.exposure, 2)); }
   if (!touched("target-frame-ms") && document.activeElement !== $("target-frame-ms")) {
-    $("target-frame-ms").value = r.target_frame_ms === null ? "" : r.target_frame_ms;
+    setProp($("target-frame-ms"), "value", r.target_frame_ms === null ? "" : String(r.target_frame_ms));
   }
   // Time steps: shown only for a volume that has more than one.
   const t = s.time;
-  $("time").hidden = t.steps < 2;
-  $("step").max = Math.max(0, t.steps - 1);
+  setProp($("time"), "hidden", t.steps < 2);
+  setProp($("step"), "max", String(Math.max(0, t.steps - 1)));
   if (!touched("step")) {
-    $("step").value = t.step;
-    $("step-value").textContent = t.step + " of 0–" + (t.steps - 1) + (t.waited ? " (a node waited for it)" : "");
+    setProp($("step"), "value", String(t.step));
+    setText($("step-value"), t.step + " of 0–" + (t.steps - 1) + (t.waited ? " (a node waited for it)" : ""));
   }
-  $("rate").min = t.min_rate;
-  $("rate").max = t.max_rate;
-  if (!touched("rate") && document.activeElement !== $("rate")) $("rate").value = t.rate;
-  $("play").textContent = t.playing ? "pause" : "play";
-  $("orbit").textContent = s.orbit.playing ? "pause orbit" : "play orbit";
-  $("demo").textContent = s.demo.playing ? "stop demo path" : "start demo path";
-  $("demo").disabled = !s.demo.path;
-  $("demo").title = s.demo.path ? s.demo.path : "start the console with --demo-path FILE";
-  $("download").href = withToken("/api/snapshot.png?download=1");
+  setProp($("rate"), "min", String(t.min_rate));
+  setProp($("rate"), "max", String(t.max_rate));
+  if (!touched("rate") && document.activeElement !== $("rate")) setProp($("rate"), "value", String(t.rate));
+  setText($("play"), t.playing ? "pause" : "play");
+  setText($("orbit"), s.orbit.playing ? "pause orbit" : "play orbit");
+  setText($("demo"), s.demo.playing ? "stop demo path" : "start demo path");
+  setProp($("demo"), "disabled", !s.demo.path);
+  setProp($("demo"), "title", s.demo.path ? s.demo.path : "start the console with --demo-path FILE");
+  const download = withToken("/api/snapshot.png?download=1");
+  if ($("download").getAttribute("href") !== download) $("download").setAttribute("href", download);
 }
 
 async function post(path, body) {
@@ -246,7 +279,7 @@ function drawWall() {
 async function thumbLoop() {
   for (;;) {
     const t0 = performance.now();
-    if (status) {
+    if (status && !document.hidden) {
       const c = $("wall");
       const width = Math.max(1, Math.min(status.wall.width, Math.round(c.width)));
       try {
@@ -256,7 +289,9 @@ async function thumbLoop() {
           const age = parseFloat(r.headers.get("x-isowall-frame-age-ms"));
           const frame = r.headers.get("x-isowall-frame");
           const blob = await r.blob();
-          thumb = await createImageBitmap(blob);
+          const bitmap = await createImageBitmap(blob);
+          if (thumb) thumb.close();
+          thumb = bitmap;
           drawWall();
           // Shown once the browser has painted it.
           await new Promise((res) => requestAnimationFrame(() => requestAnimationFrame(res)));
@@ -267,9 +302,9 @@ async function thumbLoop() {
           w.lastFrame = frame === null ? null : Number(frame);
           w.latencyMs = latency;
           if (latency !== null) { w.latencies.push(latency); if (w.latencies.length > 100) w.latencies.shift(); }
-          $("latency").textContent = "latency " + fmt(latency, 0) + " ms";
-          $("thumb-note").textContent = "thumbnail of frame " + frame + " (" + r.headers.get("x-isowall-size") +
-            ", downscaled at the nodes), " + (blob.size / 1024).toFixed(1) + " KiB";
+          setText($("latency"), "latency " + fmt(latency, 0) + " ms");
+          setText($("thumb-note"), "thumbnail of frame " + frame + " (" + r.headers.get("x-isowall-size") +
+            ", downscaled at the nodes), " + (blob.size / 1024).toFixed(1) + " KiB");
           c.dataset.frame = frame;
         }
       } catch (e) {
@@ -322,5 +357,6 @@ function chart(c, values, p50, p99, color) {
   mark(p99, "p99", [1, 2]);
 }
 
+document.addEventListener("visibilitychange", () => { if (!document.hidden && status) { charted = wallKey = null; show(status); } });
 connect();
 thumbLoop();
