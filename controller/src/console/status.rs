@@ -227,9 +227,10 @@ impl NodeHealth {
     }
 }
 
-/// Milliseconds of a duration, as the API reports them.
+/// Milliseconds of a duration, as the API reports them: to the microsecond (finer is noise, and
+/// the digits would be most of the live status's bytes).
 pub fn ms(d: Duration) -> f64 {
-    d.as_secs_f64() * 1e3
+    (d.as_secs_f64() * 1e6).round() / 1e3
 }
 
 /// The last value of each node's render and ready times over `finished` (newest last).
@@ -278,5 +279,13 @@ mod tests {
         assert_eq!((h.state, h.since_unix_ms), (NodeState::Up, 5000));
         h.observe(at(6), 6000, true, Some(false));
         assert_eq!((h.state, h.since_unix_ms, h.reason), (NodeState::Up, 5000, None));
+    }
+
+    #[test]
+    fn durations_are_reported_in_ms_to_the_microsecond() {
+        assert_eq!(ms(Duration::from_nanos(23_464_399)), 23.464);
+        assert_eq!(ms(Duration::from_nanos(23_464_500)), 23.465);
+        assert_eq!(serde_json::to_string(&ms(Duration::from_micros(1_500))).unwrap(), "1.5");
+        assert_eq!(ms(Duration::ZERO), 0.0);
     }
 }
