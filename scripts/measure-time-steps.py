@@ -11,7 +11,8 @@ Usage: scripts/measure-time-steps.py [BIN_DIR] [N[:CACHE_MIB] ...]
   BIN_DIR: target/debug (needs isowall, isowalld and examples/play_steps:
   `cargo build -p isowall -p isowalld && cargo build -p isowall-volume --example play_steps`)
   N:CACHE_MIB: default 64:64 256:256 (cache_bytes in MiB; 0: no steps loaded ahead)
-Environment: FRAMES (64), TILE_W (160), TILE_H (90), KEEP=1 keeps the work folder.
+Environment: FRAMES (64), TILE_W (160), TILE_H (90), MODE (screen; object: each node plays its
+brick of every step), AO (AO samples, 0), IBL (none; bent with AO), KEEP=1 keeps the work folder.
 """
 import os, re, shutil, socket, subprocess, sys, tempfile, time
 
@@ -27,6 +28,11 @@ def run_of(a):
 runs = [run_of(a) for a in args] or [(64, 64), (256, 256)]
 FRAMES = int(os.environ.get("FRAMES", "64"))
 TW, TH = int(os.environ.get("TILE_W", "160")), int(os.environ.get("TILE_H", "90"))
+MODE = os.environ.get("MODE", "screen")
+AO = int(os.environ.get("AO", "0"))
+IBL = os.environ.get("IBL", "none")
+if MODE not in ("screen", "object"):
+    sys.exit(f"MODE={MODE}: screen or object")
 STEPS = 16
 for exe in ["isowall", "isowalld", "examples/play_steps"]:
     if not os.path.exists(os.path.join(BIN, exe)):
@@ -47,10 +53,10 @@ def free_ports(n):
 
 def config(n, cache_mib):
     ports = free_ports(4)
-    s = (f'[wall]\nname = "steps-{n}"\ndeadline_ms = 30000\nmessage_limit_bytes = 67108864\n\n'
+    s = (f'[wall]\nname = "steps-{n}"\nmode = "{MODE}"\ndeadline_ms = 30000\nmessage_limit_bytes = 67108864\n\n'
          f'[camera]\nup = [0, 0, 1]\nfov_y = 35.0\n\n'
          f'[volume]\nsource = "steps-{n}/step_*.nrrd"\niso = 0.0\ncache_bytes = {cache_mib << 20}\n\n'
-         f'[render]\nao_samples = 0\nibl = "none"\nenv = "sky"\n\n[certificates]\ndir = "keys"\n')
+         f'[render]\nao_samples = {AO}\nibl = "{IBL}"\nenv = "sky"\n\n[certificates]\ndir = "keys"\n')
     for i, port in enumerate(ports):
         cx, cy = i % 2, i // 2
         s += (f'\n[[tiles]]\nname = "t{cx}{cy}"\nx = {cx * TW}\ny = {cy * TH}\nwidth = {TW}\nheight = {TH}\n'
@@ -61,7 +67,7 @@ def config(n, cache_mib):
     return path
 
 
-print(f"2x2 wall of {TW}x{TH} tiles (local nodes, lavapipe where no GPU), AO samples 0, IBL none, "
+print(f"2x2 wall of {TW}x{TH} tiles in {MODE} space (local nodes, lavapipe where no GPU), AO samples {AO}, IBL {IBL}, "
       f"{STEPS} steps, {FRAMES} frames, one step a frame, camera still; work folder {work}")
 for n, cache_mib in runs:
     t = time.time()
