@@ -9,6 +9,11 @@
 // - March with `params.spacing.w` (world units; at most half a voxel by default), skipping blocks
 //   whose max < iso (empty-space skipping, when flag bit 0 is set), then bisect the bracketing step
 //   `params.refine_steps` times and finish with one secant step.
+// - `TEXTURE_MARCH` (a pipeline constant, `PerfOptions::texture`): the march's samples come from
+//   the hardware's trilinear filter of a copy of the volume (`march_volume`, a `texture_3d`
+//   with a linear sampler) instead of the 8 loads of `field`; the bracketing step found is checked
+//   and refined from the storage volume exactly as above (a bracket the exact field does not
+//   confirm is marched on), so the hit is the exact field's wherever both see the crossing.
 // - Object space (bricks.rs): the march runs over the whole box as above, but only the steps that
 //   start in this brick (`owns`) sample and look for a crossing; the others only advance t, so t,
 //   the samples and the hit are the single-node render's bit for bit, and each step's crossing is
@@ -26,6 +31,29 @@
 @group(0) @binding(4) var<storage, read_write> out_geometry: array<vec4<f32>>;
 // Per pixel: trilinear fetches made.
 @group(0) @binding(5) var<storage, read_write> out_fetches: array<u32>;
+// The volume as a filterable texture (`TEXTURE_MARCH`; a 1x1x1 texel where it is off) and its
+// linear, clamp-to-edge sampler.
+@group(0) @binding(6) var march_volume: texture_3d<f32>;
+@group(0) @binding(7) var march_sampler: sampler;
+
+// Whether the march samples `march_volume` (`PerfOptions::texture`). A pipeline constant, so each
+// pipeline holds only its own branch.
+override TEXTURE_MARCH: bool = false;
+
+// The field the march looks for a crossing with: `field`, or with `TEXTURE_MARCH` the hardware's
+// trilinear filter of the same samples. Texel i's centre is sample i (texture coordinate
+// (u + 0.5) / n, DESIGN.md's voxel-centre convention), u clamped to the box as `trilinear_voxel`
+// clamps it, so both interpolate the same samples with the same weights (up to the filter's own
+// weight precision).
+fn march_field(p: vec3<f32>) -> f32 {
+    if TEXTURE_MARCH {
+        fetches += 1u;
+        let n = vec3<f32>(params.dims.xyz);
+        let u = clamp(to_voxel(p).xyz, vec3<f32>(0.0), max(n - 1.0, vec3<f32>(0.0)));
+        return textureSampleLevel(march_volume, march_sampler, (u + 0.5) / n, 0.0).x;
+    }
+    return field(p);
+}
 
 @compute @workgroup_size(8, 8, 1)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
@@ -108,10 +136,15 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             }
             was_owned = true;
             if !known {
-                below = field(eye + t * dir) < iso;
+                below = march_field(eye + t * dir) < iso;
                 known = true;
             }
-            let f_next = field(eye + t_next * dir);
+            var f_next = march_field(eye + t_next * dir);
+            if TEXTURE_MARCH && below && f_next >= iso {
+                // The filter's bracket, checked on the exact field: where the exact field is
+                // still below iso at t_next, the march goes on from there.
+                f_next = field(eye + t_next * dir);
+            }
             if below && f_next >= iso {
                 // Refine in [lo, hi] with f(lo) < iso <= f(hi).
                 var lo = t;

@@ -158,9 +158,21 @@ fn coarse_level() -> Level {
     return Level(params.coarse.xyz, params.coarse.w, params.perf.z);
 }
 
+// Whether every block level's cells per edge is a power of two (`PerfOptions::pow2_levels`): then
+// a cell's block is a shift, not an integer division, which a SIMD CPU driver (llvmpipe) runs
+// lane by lane. A pipeline constant, so each pipeline holds only its own branch.
+override POW2_LEVELS: bool = false;
+
 // The block of `level` holding cell c.
 fn level_block(level: Level, c: vec3<i32>) -> vec3<u32> {
-    return min(vec3<u32>(max(c, vec3<i32>(0))) / level.cells, level.counts - 1u);
+    let u = vec3<u32>(max(c, vec3<i32>(0)));
+    var b: vec3<u32>;
+    if POW2_LEVELS {
+        b = u >> vec3<u32>(countTrailingZeros(level.cells));
+    } else {
+        b = u / level.cells;
+    }
+    return min(b, level.counts - 1u);
 }
 
 // Min and max of the samples of block b of `level`.

@@ -51,7 +51,8 @@ pub struct SuiteArgs {
     pub save: Option<PathBuf>,
     /// Renderer variants measured per row, comma-separated: `default`, `plain` (the options of the
     /// build before the performance work; also called `before`), or changes joined by '+': block=N,
-    /// ao=N, coarse=N, exit=on|off, wg=XxY, format=r32f|r16f|r16|r8, and the AO settings eps=V
+    /// ao=N, coarse=N, exit=on|off, wg=XxY, format=r32f|r16f|r16|r8, texture (the primary march
+    /// on a hardware-filtered 3D texture), and the AO settings eps=V
     /// (origin off the surface, voxels; 0.5 the old one), seq=r2|sobol (e.g. `ao=2+coarse=16`,
     /// `eps=0.5+seq=r2`)
     #[arg(long, default_value = "default")]
@@ -176,7 +177,9 @@ fn primary_error(f: &Frame, reference: &Frame) -> (f64, f64) {
 /// `block=N` (cells per block edge, primary rays), `ao=N` (AO rays' block, 0: the primary one),
 /// `coarse=N` (AO rays' coarse block, 0 none), `exit=on|off` (the block min early exit of AO rays),
 /// `wg=XxY` (workgroup shape), `format=r32f|r16f|r16|r8` (the voxels stored packed in that format
-/// on the GPU and read by kernels compiled for it: its speed and its error); e.g. `ao=2+coarse=16`.
+/// on the GPU and read by kernels compiled for it: its speed and its error), `texture` (the primary
+/// march samples a hardware-filtered `texture_3d` copy of the volume, refinement exact from the
+/// storage volume); e.g. `ao=2+coarse=16`, `texture+format=r16f`.
 pub fn variant_options(name: &str) -> Result<PerfOptions> {
     let bad = |what: &str| anyhow::anyhow!("variant '{name}': {what}");
     let mut o = PerfOptions::default();
@@ -184,6 +187,7 @@ pub fn variant_options(name: &str) -> Result<PerfOptions> {
         match part.split_once('=') {
             None if part == "default" => {}
             None if is_plain(part) => o = PerfOptions::PLAIN,
+            None if part == "texture" => o.texture = true,
             Some(("block", v)) => o.block = v.parse().map_err(|_| bad("block is not a whole number"))?,
             Some(("ao", v)) => o.ao_block = v.parse().map_err(|_| bad("ao is not a whole number"))?,
             Some(("coarse", v)) => o.coarse = v.parse().map_err(|_| bad("coarse is not a whole number"))?,
@@ -195,7 +199,7 @@ pub fn variant_options(name: &str) -> Result<PerfOptions> {
             }
             _ => {
                 return Err(bad(&format!(
-                    "unknown part '{part}' (default, plain, block=N, ao=N, coarse=N, exit=on|off, wg=XxY, format=r32f|r16f|r16|r8)"
+                    "unknown part '{part}' (default, plain, texture, block=N, ao=N, coarse=N, exit=on|off, wg=XxY, format=r32f|r16f|r16|r8)"
                 )))
             }
         }
@@ -268,19 +272,20 @@ pub fn run(a: &SuiteArgs) -> Result<()> {
         gpu.set_perf(PerfOptions::default())?;
         let gv = gpu.upload(&volume)?;
         // The volume as each variant's block levels and voxel format need it.
-        let mut uploads: Vec<((u32, u32, u32, VoxelFormat), GpuVolume)> = Vec::new();
+        let mut uploads: Vec<((u32, u32, u32, VoxelFormat, bool), GpuVolume)> = Vec::new();
         for (variant, o, _, _) in &variants {
-            let key = (o.block, o.ao_block, o.coarse, o.format);
+            let key = (o.block, o.ao_block, o.coarse, o.format, o.texture);
             if !uploads.iter().any(|(k, _)| *k == key) {
                 gpu.set_perf(*o)?;
                 let gv = gpu.upload(&volume)?;
                 println!(
-                    "# resident on the GPU, {} as {variant}: voxels {} bytes ({} per voxel, {}), block min/max {} bytes",
+                    "# resident on the GPU, {} as {variant}: voxels {} bytes ({} per voxel, {}), block min/max {} bytes, march texture {} bytes",
                     volume.name,
                     gv.voxel_bytes,
                     o.format.bytes(),
                     o.format.name(),
-                    gv.minmax_bytes
+                    gv.minmax_bytes,
+                    if gv.march.enabled { gv.march.bytes } else { 0 }
                 );
                 uploads.push((key, gv));
             }
@@ -295,7 +300,7 @@ pub fn run(a: &SuiteArgs) -> Result<()> {
             for &n in &samples {
                 for (variant, o, eps, seq) in &variants {
                     gpu.set_perf(*o)?;
-                    let key = (o.block, o.ao_block, o.coarse, o.format);
+                    let key = (o.block, o.ao_block, o.coarse, o.format, o.texture);
                     let gv = &uploads.iter().find(|(k, _)| *k == key).expect("uploaded").1;
                     let mut s = RenderSettings::new(iso);
                     s.ao.samples = n;
@@ -393,10 +398,13 @@ mod tests {
                 coarse: 8,
                 block_min_exit: false,
                 workgroup: (16, 4),
-                format: VoxelFormat::R8
+                format: VoxelFormat::R8,
+                texture: false,
             }
         );
         assert_eq!(variant_options("before+wg=4x4").unwrap().workgroup, (4, 4));
+        let t = variant_options("texture+format=r16f").unwrap();
+        assert!(t.texture && t.format == VoxelFormat::R16F && !variant_options("default").unwrap().texture);
         for bad in ["fast", "block=x", "wg=0x8", "wg=32x32", "exit=maybe", "format=r4"] {
             assert!(variant_options(bad).is_err(), "{bad}");
         }

@@ -1,10 +1,9 @@
 //! `Kernel::Ao` (shaders/ao.wgsl): ambient occlusion (ours, or the 2008 `seed` baseline), bent
 //! normal and the IBL term of one frame at every hit, added into accumulators.
 
-use super::{frame_entries, storage_entry, FrameParams, GpuContext, GpuError, GpuVolume};
+use super::{frame_entries, storage_entry, FrameParams, GpuContext, GpuError, GpuVolume, PerfOptions};
 use crate::shaders::Kernel;
 use isowall_model::{AoMethod, RenderSettings};
-use isowall_volume::VoxelFormat;
 
 /// The most dispatches one frame's AO samples are split over.
 pub const MAX_AO_DISPATCHES: u32 = 256;
@@ -123,9 +122,11 @@ impl AoKernel {
         ]
     }
 
-    pub fn new(ctx: &GpuContext, workgroup: (u32, u32), format: VoxelFormat) -> Result<AoKernel, GpuError> {
+    /// The kernel compiled for `perf`'s workgroup shape, voxel format and block levels.
+    pub fn new(ctx: &GpuContext, perf: &PerfOptions) -> Result<AoKernel, GpuError> {
         let entries = Self::entries();
-        let (pipeline, layout) = ctx.pipeline(Kernel::Ao, &entries, workgroup, format)?;
+        let workgroup = perf.workgroup;
+        let (pipeline, layout) = ctx.pipeline(Kernel::Ao, &entries, workgroup, &perf.volume_constants())?;
         let dispatch_stride = ctx.device.limits().min_storage_buffer_offset_alignment.max(16);
         let mut indices = vec![0u8; (dispatch_stride * MAX_AO_DISPATCHES) as usize];
         for k in 0..MAX_AO_DISPATCHES {

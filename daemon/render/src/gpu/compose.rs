@@ -7,7 +7,6 @@ use super::{storage_entry, GpuContext, GpuError};
 use crate::shaders::Kernel;
 use bytemuck::{Pod, Zeroable};
 use isowall_model::{RenderSettings, View};
-use isowall_volume::VoxelFormat;
 
 /// Twin of WGSL `ComposeParams`.
 #[repr(C)]
@@ -85,7 +84,7 @@ impl ComposeKernel {
     pub fn new(ctx: &GpuContext, workgroup: (u32, u32)) -> Result<ComposeKernel, GpuError> {
         let entries = Self::entries();
         // The voxel format is a constant of the volume kernels only.
-        let (pipeline, layout) = ctx.pipeline(Kernel::Compose, &entries, workgroup, VoxelFormat::R32F)?;
+        let (pipeline, layout) = ctx.pipeline(Kernel::Compose, &entries, workgroup, &[])?;
         Ok(ComposeKernel { pipeline, layout, workgroup })
     }
 

@@ -1,9 +1,8 @@
 //! `Kernel::Isosurface` (shaders/isosurface.wgsl): primary rays, first hit, normal, direct light.
 //! Outputs per pixel: direct light + hit flag, N + depth, trilinear fetches.
 
-use super::{frame_entries, storage_entry, GpuContext, GpuError, GpuVolume};
+use super::{frame_entries, storage_entry, GpuContext, GpuError, GpuVolume, PerfOptions};
 use crate::shaders::Kernel;
-use isowall_volume::VoxelFormat;
 
 /// The compiled kernel.
 pub struct IsosurfaceKernel {
@@ -13,19 +12,43 @@ pub struct IsosurfaceKernel {
 }
 
 impl IsosurfaceKernel {
-    /// The bind group layout: the frame's inputs (0-2), then the three outputs (a test holds it
-    /// to naga's reflection of the WGSL).
+    /// The bind group layout: the frame's inputs (0-2), the three outputs, then the texture
+    /// march's volume and sampler (a test holds it to naga's reflection of the WGSL).
     pub(crate) fn entries() -> Vec<wgpu::BindGroupLayoutEntry> {
         let [e0, e1, e2] = frame_entries();
-        vec![e0, e1, e2, storage_entry(3, false), storage_entry(4, false), storage_entry(5, false)]
+        vec![
+            e0,
+            e1,
+            e2,
+            storage_entry(3, false),
+            storage_entry(4, false),
+            storage_entry(5, false),
+            wgpu::BindGroupLayoutEntry {
+                binding: 6,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Texture {
+                    sample_type: wgpu::TextureSampleType::Float { filterable: true },
+                    view_dimension: wgpu::TextureViewDimension::D3,
+                    multisampled: false,
+                },
+                count: None,
+            },
+            wgpu::BindGroupLayoutEntry {
+                binding: 7,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
+                count: None,
+            },
+        ]
     }
 
-    pub fn new(
-        ctx: &GpuContext,
-        workgroup: (u32, u32),
-        format: VoxelFormat,
-    ) -> Result<IsosurfaceKernel, GpuError> {
-        let (pipeline, layout) = ctx.pipeline(Kernel::Isosurface, &Self::entries(), workgroup, format)?;
+    /// The kernel compiled for `perf`'s workgroup shape, voxel format and block levels, its march
+    /// sampling the volume's texture where `perf.texture` (`TEXTURE_MARCH`).
+    pub fn new(ctx: &GpuContext, perf: &PerfOptions) -> Result<IsosurfaceKernel, GpuError> {
+        let [format, pow2] = perf.volume_constants();
+        let constants = [format, pow2, ("TEXTURE_MARCH", f64::from(u8::from(perf.texture)))];
+        let workgroup = perf.workgroup;
+        let (pipeline, layout) = ctx.pipeline(Kernel::Isosurface, &Self::entries(), workgroup, &constants)?;
         Ok(IsosurfaceKernel { pipeline, layout, workgroup })
     }
 
@@ -39,7 +62,24 @@ impl IsosurfaceKernel {
         outputs: [&wgpu::Buffer; 3],
     ) -> wgpu::BindGroup {
         let io = [params, &volume.voxels, &volume.block_minmax, outputs[0], outputs[1], outputs[2]];
-        super::bind_buffers(ctx, &self.layout, "isosurface", &io)
+        let mut entries: Vec<wgpu::BindGroupEntry> = io
+            .iter()
+            .enumerate()
+            .map(|(i, b)| wgpu::BindGroupEntry { binding: i as u32, resource: b.as_entire_binding() })
+            .collect();
+        entries.push(wgpu::BindGroupEntry {
+            binding: 6,
+            resource: wgpu::BindingResource::TextureView(&volume.march.view),
+        });
+        entries.push(wgpu::BindGroupEntry {
+            binding: 7,
+            resource: wgpu::BindingResource::Sampler(&volume.march.sampler),
+        });
+        ctx.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("isosurface"),
+            layout: &self.layout,
+            entries: &entries,
+        })
     }
 
     /// Records the kernel over a `size` rectangle with a bind group from

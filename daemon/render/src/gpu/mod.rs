@@ -151,7 +151,10 @@ impl GpuContext {
             label: Some("isowall"),
             required_limits: adapter.limits(),
             // Per-pass GPU times of a tile's frame (`isowalld bench frame`), where the adapter has them.
-            required_features: adapter.features() & wgpu::Features::TIMESTAMP_QUERY,
+            // The texture march samples an r32float volume with a linear filter where the adapter
+            // can (`GpuContext::march_format`).
+            required_features: adapter.features()
+                & (wgpu::Features::TIMESTAMP_QUERY | wgpu::Features::FLOAT32_FILTERABLE),
             ..Default::default()
         }))
         .map_err(|source| GpuError::Device { adapter: info.name.clone(), source })?;
@@ -186,6 +189,24 @@ impl GpuContext {
     pub fn create_texture(&self, desc: &wgpu::TextureDescriptor) -> wgpu::Texture {
         self.traffic.allocations.fetch_add(1, Ordering::Relaxed);
         self.device.create_texture(desc)
+    }
+
+    /// `device.create_sampler`, counted.
+    pub fn create_sampler(&self, desc: &wgpu::SamplerDescriptor) -> wgpu::Sampler {
+        self.traffic.allocations.fetch_add(1, Ordering::Relaxed);
+        self.device.create_sampler(desc)
+    }
+
+    /// The texel format of the texture march's copy of the volume (`PerfOptions::texture`):
+    /// r32float where the device filters it linearly (`FLOAT32_FILTERABLE`: the voxels exactly),
+    /// else r16float (always filterable; the march's values rounded to halves, the refinement
+    /// still exact).
+    pub fn march_format(&self) -> wgpu::TextureFormat {
+        if self.device.features().contains(wgpu::Features::FLOAT32_FILTERABLE) {
+            wgpu::TextureFormat::R32Float
+        } else {
+            wgpu::TextureFormat::R16Float
+        }
     }
 
     /// `device.create_bind_group`, counted.
@@ -248,15 +269,15 @@ impl GpuContext {
 
     /// A compute pipeline for `kernel` with one bind group of `entries`.
     /// `workgroup` is the kernel's workgroup shape (x, y), replacing the `@workgroup_size` the
-    /// WGSL declares; `format` the voxel storage the kernel reads (`VOXEL_FORMAT`).
+    /// WGSL declares; `constants` the values of the pipeline constants (`override`s) the kernel
+    /// declares, e.g. `VOXEL_FORMAT` (the voxel storage the volume kernels read).
     pub(crate) fn pipeline(
         &self,
         kernel: Kernel,
         entries: &[wgpu::BindGroupLayoutEntry],
         workgroup: (u32, u32),
-        format: VoxelFormat,
+        constants: &[(&str, f64)],
     ) -> Result<(wgpu::ComputePipeline, wgpu::BindGroupLayout), GpuError> {
-        let voxel_format = &[("VOXEL_FORMAT", format.code() as f64)];
         self.validated("pipeline", || {
             let device = &self.device;
             let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
@@ -277,11 +298,7 @@ impl GpuContext {
                 layout: Some(&pipeline_layout),
                 module: &module,
                 entry_point: Some("main"),
-                compilation_options: wgpu::PipelineCompilationOptions {
-                    // Only the volume kernels declare the voxel format.
-                    constants: if Kernel::FRAME.contains(&kernel) { voxel_format } else { &[] },
-                    ..Default::default()
-                },
+                compilation_options: wgpu::PipelineCompilationOptions { constants, ..Default::default() },
                 cache: None,
             });
             (pipeline, layout)
@@ -322,22 +339,6 @@ pub(crate) fn storage_entry(binding: u32, read_only: bool) -> wgpu::BindGroupLay
     }
 }
 
-/// A bind group of `buffers` bound in order at bindings 0, 1, 2, ... of group 0 (every kernel
-/// declares its bindings that way).
-pub(crate) fn bind_buffers(
-    ctx: &GpuContext,
-    layout: &wgpu::BindGroupLayout,
-    label: &str,
-    buffers: &[&wgpu::Buffer],
-) -> wgpu::BindGroup {
-    let entries: Vec<wgpu::BindGroupEntry> = buffers
-        .iter()
-        .enumerate()
-        .map(|(i, b)| wgpu::BindGroupEntry { binding: i as u32, resource: b.as_entire_binding() })
-        .collect();
-    ctx.create_bind_group(&wgpu::BindGroupDescriptor { label: Some(label), layout, entries: &entries })
-}
-
 /// Records one compute pass of `pipeline` (compiled with workgroup shape `workgroup`) over a `size`
 /// rectangle with `bind_group` at group 0; `timestamps` where the pass is timed.
 pub(crate) fn pass(
@@ -371,6 +372,8 @@ pub struct GpuVolume {
     pub id: u64,
     voxels: wgpu::Buffer,
     block_minmax: wgpu::Buffer,
+    /// The texture march's copy of the voxels (`PerfOptions::texture`), or one texel.
+    pub march: MarchTexture,
     /// How the voxels are stored; the kernels that read them must be compiled for it.
     pub format: VoxelFormat,
     /// The value range the unorm formats span (the whole volume's).
@@ -394,6 +397,99 @@ pub struct GpuVolume {
     pub object: Option<ObjectSpace>,
 }
 
+/// The volume as a `texture_3d` the primary march samples through the hardware's trilinear filter
+/// (`PerfOptions::texture`, `TEXTURE_MARCH` in shaders/isosurface.wgsl), texel i holding sample i,
+/// with its linear, clamp-to-edge sampler. Where the march reads the storage volume it is a single
+/// texel, bound (the kernel's layout has it) and never sampled.
+pub struct MarchTexture {
+    texture: wgpu::Texture,
+    pub(crate) view: wgpu::TextureView,
+    pub(crate) sampler: wgpu::Sampler,
+    /// Whether it holds the volume.
+    pub enabled: bool,
+    /// Bytes resident on the GPU.
+    pub bytes: u64,
+}
+
+impl MarchTexture {
+    /// The texture of `voxels` (x fastest, `dims`) in [`GpuContext::march_format`], or one texel
+    /// where `voxels` is `None`.
+    fn new(
+        ctx: &GpuContext,
+        name: &str,
+        voxels: Option<(&[f32], [usize; 3])>,
+    ) -> Result<MarchTexture, GpuError> {
+        let dims = voxels.map_or([1, 1, 1], |(_, d)| d);
+        let max = ctx.device.limits().max_texture_dimension_3d as usize;
+        if dims.iter().any(|&d| d > max) {
+            return Err(GpuError::Settings(format!(
+                "texture march: {name} is {dims:?} samples but the adapter's 3D textures hold at most {max} per axis"
+            )));
+        }
+        let format = ctx.march_format();
+        let texture = ctx.validated("upload", || {
+            ctx.create_texture(&wgpu::TextureDescriptor {
+                label: Some(name),
+                size: wgpu::Extent3d {
+                    width: dims[0] as u32,
+                    height: dims[1] as u32,
+                    depth_or_array_layers: dims[2] as u32,
+                },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D3,
+                format,
+                usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+                view_formats: &[],
+            })
+        })?;
+        let view = texture.create_view(&wgpu::TextureViewDescriptor::default());
+        let sampler = ctx.create_sampler(&wgpu::SamplerDescriptor {
+            label: Some("march"),
+            address_mode_u: wgpu::AddressMode::ClampToEdge,
+            address_mode_v: wgpu::AddressMode::ClampToEdge,
+            address_mode_w: wgpu::AddressMode::ClampToEdge,
+            mag_filter: wgpu::FilterMode::Linear,
+            min_filter: wgpu::FilterMode::Linear,
+            ..Default::default()
+        });
+        let texel = format.block_copy_size(None).unwrap_or(4) as u64;
+        let bytes = texel * dims.iter().map(|&d| d as u64).product::<u64>();
+        let march = MarchTexture { texture, view, sampler, enabled: voxels.is_some(), bytes };
+        if let Some((data, _)) = voxels {
+            march.write(ctx, data, dims);
+        }
+        Ok(march)
+    }
+
+    /// Writes `voxels` (x fastest, `dims`: the texture's own) into the texture.
+    fn write(&self, ctx: &GpuContext, voxels: &[f32], dims: [usize; 3]) {
+        let bytes: Vec<u8> = if self.texture.format() == wgpu::TextureFormat::R32Float {
+            bytemuck::cast_slice(voxels).to_vec()
+        } else {
+            // r16float: IEEE halves, as the r16f voxel format packs them (first in the low bits).
+            let words = VoxelFormat::R16F.pack(voxels, (0.0, 0.0));
+            bytemuck::cast_slice::<u32, u8>(&words)[..voxels.len() * 2].to_vec()
+        };
+        let texel = bytes.len() / voxels.len().max(1);
+        ctx.write_texture(
+            wgpu::TexelCopyTextureInfo {
+                texture: &self.texture,
+                mip_level: 0,
+                origin: wgpu::Origin3d::ZERO,
+                aspect: wgpu::TextureAspect::All,
+            },
+            &bytes,
+            wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some((dims[0] * texel) as u32),
+                rows_per_image: Some(dims[1] as u32),
+            },
+            self.texture.size(),
+        );
+    }
+}
+
 /// Object space: the GPU volume holds a brick and its halo (`isowall_model::bricks`). The box,
 /// spacing and block grid stay the whole volume's; the voxels are the region starting at
 /// `data_offset`.
@@ -411,7 +507,8 @@ impl GpuVolume {
     /// Uploads the voxels packed as `format` and the block min/max of the primary rays (`blocks`),
     /// then of AO rays' own levels where given: `ao` (their fine level) and `coarse`
     /// (hierarchical skipping). The block levels must be those of the voxels as `format` stores
-    /// them (`Volume::stored_as`), so that skipping stays conservative.
+    /// them (`Volume::stored_as`), so that skipping stays conservative. With `texture` the voxels
+    /// also go into the texture march's texture ([`MarchTexture`]).
     pub fn upload(
         ctx: &GpuContext,
         v: &Volume,
@@ -419,10 +516,12 @@ impl GpuVolume {
         blocks: &BlockMinMax,
         ao: Option<&BlockMinMax>,
         coarse: Option<&BlockMinMax>,
+        texture: bool,
     ) -> Result<GpuVolume, GpuError> {
         let value_range = v.value_range();
         let words = format.pack(v.data(), value_range);
         let voxels = ctx.storage_init(&format!("volume {}", v.name), bytemuck::cast_slice(&words))?;
+        let march = MarchTexture::new(ctx, &v.name, texture.then(|| (v.data(), v.dims())))?;
         let mut minmax = blocks.minmax.clone();
         let mut append = |b: Option<&BlockMinMax>| {
             b.map(|b| {
@@ -443,6 +542,7 @@ impl GpuVolume {
             id: next_resource_id(),
             voxels,
             block_minmax,
+            march,
             format,
             value_range,
             voxel_bytes: words.len() as u64 * 4,
@@ -464,7 +564,8 @@ impl GpuVolume {
     /// on) of the volume `whole` describes, with the whole volume's block min/max `blocks`, the
     /// voxels packed as `format`. The unorm formats are refused: they span the whole volume's
     /// value range, which a brick node does not know, and bricks rounding alike is what keeps
-    /// their seams invisible.
+    /// their seams invisible. With `texture` the region also goes into the texture march's
+    /// texture.
     pub fn upload_brick(
         ctx: &GpuContext,
         region: &Volume,
@@ -472,6 +573,7 @@ impl GpuVolume {
         blocks: &BlockMinMax,
         object: ObjectSpace,
         format: VoxelFormat,
+        texture: bool,
     ) -> Result<GpuVolume, GpuError> {
         if format.is_unorm() {
             return Err(GpuError::Settings(format!(
@@ -492,10 +594,15 @@ impl GpuVolume {
         let voxels = ctx.storage_init(&format!("brick of {}", whole.name), bytemuck::cast_slice(&words))?;
         let minmax = stored_minmax(format, blocks, value_range);
         let block_minmax = ctx.storage_init("block min/max", bytemuck::cast_slice(&minmax))?;
+        // The texture holds the voxels as stored (r16f rounds them).
+        let stored = (format != VoxelFormat::R32F).then(|| region.stored_as(format));
+        let texels = stored.as_ref().unwrap_or(region);
+        let march = MarchTexture::new(ctx, &whole.name, texture.then(|| (texels.data(), d)))?;
         Ok(GpuVolume {
             id: next_resource_id(),
             voxels,
             block_minmax,
+            march,
             format,
             value_range,
             voxel_bytes: words.len() as u64 * 4,
@@ -513,6 +620,13 @@ impl GpuVolume {
             coarse_level: None,
             object: Some(object),
         })
+    }
+
+    /// Whether every block level's cells per edge is a power of two (what kernels compiled for
+    /// `PerfOptions::pow2_levels` need: they find a cell's block by a shift).
+    pub fn pow2_levels(&self) -> bool {
+        let levels = [self.ao_level, self.coarse_level];
+        self.block.is_power_of_two() && levels.iter().flatten().all(|l| l.cells.is_power_of_two())
     }
 
     /// Object space, a time-varying volume: puts another step of the same brick in this
@@ -542,6 +656,10 @@ impl GpuVolume {
         let minmax = stored_minmax(self.format, blocks, self.value_range);
         ctx.queue.write_buffer(&self.voxels, 0, bytemuck::cast_slice(&words));
         ctx.queue.write_buffer(&self.block_minmax, 0, bytemuck::cast_slice(&minmax));
+        if self.march.enabled {
+            let stored = (self.format != VoxelFormat::R32F).then(|| region.stored_as(self.format));
+            self.march.write(ctx, stored.as_ref().unwrap_or(region).data(), d);
+        }
         Ok(())
     }
 }
@@ -621,8 +739,8 @@ impl GpuRenderer {
     pub fn new() -> Result<GpuRenderer, GpuError> {
         let ctx = GpuContext::new()?;
         let perf = PerfOptions::default();
-        let isosurface = IsosurfaceKernel::new(&ctx, perf.workgroup, perf.format)?;
-        let ao = AoKernel::new(&ctx, perf.workgroup, perf.format)?;
+        let isosurface = IsosurfaceKernel::new(&ctx, &perf)?;
+        let ao = AoKernel::new(&ctx, &perf)?;
         let compose = ComposeKernel::new(&ctx, perf.workgroup)?;
         let no_env = GpuEnvironment::upload(&ctx, &Environment::constant([0.0; 3]))?;
         Ok(GpuRenderer { ctx, isosurface, ao, compose, perf, no_env })
@@ -634,14 +752,16 @@ impl GpuRenderer {
     }
 
     /// Changes the performance options (for benchmarks: the defaults are the measured best). A new
-    /// workgroup shape or voxel format recompiles the kernels; block sizes and the format apply to
-    /// volumes uploaded afterwards (a volume stored in another format than the kernels read is
+    /// workgroup shape, voxel format, march or power-of-two-ness of the block levels recompiles
+    /// the kernels; block sizes, the format and
+    /// the march's texture apply to volumes uploaded afterwards (a volume stored in another format than the kernels read is
     /// refused at render).
     pub fn set_perf(&mut self, perf: PerfOptions) -> Result<(), GpuError> {
         perf.validate().map_err(GpuError::Settings)?;
-        if (perf.workgroup, perf.format) != (self.perf.workgroup, self.perf.format) {
-            self.isosurface = IsosurfaceKernel::new(&self.ctx, perf.workgroup, perf.format)?;
-            self.ao = AoKernel::new(&self.ctx, perf.workgroup, perf.format)?;
+        let compiled = |p: &PerfOptions| (p.workgroup, p.format, p.texture, p.pow2_levels());
+        if compiled(&perf) != compiled(&self.perf) {
+            self.isosurface = IsosurfaceKernel::new(&self.ctx, &perf)?;
+            self.ao = AoKernel::new(&self.ctx, &perf)?;
             self.compose = ComposeKernel::new(&self.ctx, perf.workgroup)?;
         }
         self.perf = perf;
@@ -675,7 +795,7 @@ impl GpuRenderer {
         };
         let ao = level(p.ao_block);
         let coarse = (p.coarse > 0).then(|| BlockMinMax::new(volume, p.coarse as usize));
-        GpuVolume::upload(&self.ctx, volume, p.format, &blocks, ao.as_ref(), coarse.as_ref())
+        GpuVolume::upload(&self.ctx, volume, p.format, &blocks, ao.as_ref(), coarse.as_ref(), p.texture)
     }
 
     /// Object space: uploads a brick and its halo ([`GpuVolume::upload_brick`]).
@@ -686,7 +806,7 @@ impl GpuRenderer {
         blocks: &BlockMinMax,
         object: ObjectSpace,
     ) -> Result<GpuVolume, GpuError> {
-        GpuVolume::upload_brick(&self.ctx, region, whole, blocks, object, self.perf.format)
+        GpuVolume::upload_brick(&self.ctx, region, whole, blocks, object, self.perf.format, self.perf.texture)
     }
 
     /// Uploads an environment for IBL.
@@ -728,6 +848,18 @@ impl GpuRenderer {
                 volume.name,
                 volume.format.name(),
                 self.perf.format.name()
+            )));
+        }
+        if self.perf.pow2_levels() && !volume.pow2_levels() {
+            return Err(GpuError::Settings(format!(
+                "volume {} has block levels that are not powers of two but the kernels were compiled for them (upload it after set_perf)",
+                volume.name
+            )));
+        }
+        if self.perf.texture && !volume.march.enabled {
+            return Err(GpuError::Settings(format!(
+                "the texture march needs volume {} uploaded with its texture (upload it after set_perf)",
+                volume.name
             )));
         }
         if settings.ibl_needs_environment() && env.is_none() {

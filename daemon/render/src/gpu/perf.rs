@@ -25,6 +25,12 @@ pub struct PerfOptions {
     /// for it: `VOXEL_FORMAT` in shaders/volume.wgsl). Not exact like the others: the voxels are
     /// rounded, and the CPU twin is `Volume::stored_as`.
     pub format: VoxelFormat,
+    /// The primary rays march on a copy of the volume in a `texture_3d`, sampled through the
+    /// hardware's trilinear filter (one sample instead of 8 loads), and refine the bracketing step
+    /// from the storage volume exactly (`TEXTURE_MARCH` in shaders/isosurface.wgsl). Not exact
+    /// like the others either: the filter's weights (and, without `FLOAT32_FILTERABLE`, the
+    /// texture's r16float texels) can move which step brackets a crossing.
+    pub texture: bool,
 }
 
 impl Default for PerfOptions {
@@ -43,6 +49,7 @@ impl Default for PerfOptions {
             block_min_exit: true,
             workgroup: (8, 8),
             format: VoxelFormat::R32F,
+            texture: false,
         }
     }
 }
@@ -57,6 +64,7 @@ impl PerfOptions {
         block_min_exit: false,
         workgroup: (8, 8),
         format: VoxelFormat::R32F,
+        texture: false,
     };
 
     /// Refuses shapes a device need not support (at most 256 invocations, 256 per axis).
@@ -74,6 +82,23 @@ impl PerfOptions {
             }
         }
         Ok(())
+    }
+
+    /// Whether every block level's cells per edge is a power of two (the kernels then find a
+    /// cell's block by a shift, `POW2_LEVELS` in shaders/volume.wgsl; an integer division runs
+    /// lane by lane on a SIMD CPU driver).
+    pub fn pow2_levels(&self) -> bool {
+        let pow2 = |cells: u32| cells == 0 || cells.is_power_of_two();
+        self.block.is_power_of_two() && pow2(self.ao_block) && pow2(self.coarse)
+    }
+
+    /// The pipeline constants of the volume kernels (shaders/volume.wgsl): the voxel format and
+    /// whether the block levels are powers of two.
+    pub fn volume_constants(&self) -> [(&'static str, f64); 2] {
+        [
+            ("VOXEL_FORMAT", self.format.code() as f64),
+            ("POW2_LEVELS", f64::from(u8::from(self.pow2_levels()))),
+        ]
     }
 
     /// The `perf.x` flags of `FrameParams`.
@@ -100,6 +125,15 @@ mod tests {
         assert!(PerfOptions { block: 0, ..Default::default() }.validate().is_err());
         assert!(PerfOptions { coarse: 257, ..Default::default() }.validate().is_err());
         assert!(PerfOptions { ao_block: 300, ..Default::default() }.validate().is_err());
+    }
+
+    #[test]
+    fn power_of_two_levels_are_recognised() {
+        assert!(PerfOptions::default().pow2_levels());
+        assert!(PerfOptions::PLAIN.pow2_levels());
+        assert!(!PerfOptions { ao_block: 3, ..Default::default() }.pow2_levels());
+        assert!(!PerfOptions { block: 6, ..Default::default() }.pow2_levels());
+        assert!(!PerfOptions { coarse: 24, ..Default::default() }.pow2_levels());
     }
 
     #[test]
