@@ -86,7 +86,7 @@ fn the_gpu_filter_is_its_cpu_twin() {
             "{frames} frames: GPU vs CPU twin max |diff| {max:.2e}; mean change by the filter {changed:.4}"
         );
         // The filter does something (so the comparison means something) ...
-        assert!(changed > 0.01, "the filter changed the occlusion by {changed} on average");
+        assert!(changed > 0.003, "the filter changed the occlusion by {changed} on average");
         // ... and the GPU does what the CPU twin does (f32 exp on both; rounding only).
         assert!(max < 1e-3, "GPU and CPU twin differ by up to {max}");
     }

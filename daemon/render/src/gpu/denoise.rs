@@ -249,13 +249,13 @@ mod tests {
     fn passes_double_their_step_and_only_the_first_reads_the_sums() {
         let mut f: FrameParams = Zeroable::zeroed();
         f.ao_samples = 4;
-        let p: Vec<DenoiseParams> = (0..PASSES).map(|k| DenoiseParams::new(&f, 2, k)).collect();
+        let p: Vec<DenoiseParams> = (0..PASSES).map(|k| DenoiseParams::new(&f, 4, k)).collect();
         assert_eq!(p.iter().map(|p| p.step).collect::<Vec<_>>(), vec![1, 2, 4, 8, 16]);
         assert_eq!(p.iter().map(|p| p.first).sum::<u32>(), 1);
         assert_eq!(p[0].first, 1);
         assert_eq!(p.iter().map(|p| p.last).sum::<u32>(), 1);
         assert_eq!(p[PASSES as usize - 1].last, 1);
-        assert_eq!(p[0].samples, 8.0);
-        assert_eq!(p[0].strength, 1.0);
+        assert_eq!(p[0].samples, 16.0);
+        assert_eq!(p[0].strength, 0.5);
     }
 }
