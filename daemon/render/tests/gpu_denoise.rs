@@ -2,7 +2,8 @@
 //! (`isowall_render::denoise::filter`) on the same inputs; what it is for (a few samples closer to
 //! the converged occlusion than raw); what it must not do (change a converged image, blur across a
 //! silhouette); and wall consistency: tiles rendered with a guard band of the filter's reach
-//! compose the whole image's pixels, the edges included, and a narrower band does not.
+//! compose the whole image's pixels, the edges included, and a narrower band does not; a steady
+//! denoised tile allocates nothing.
 
 mod common;
 
@@ -294,4 +295,52 @@ fn sweep_the_stops() {
             }
         }
     }
+}
+
+#[test]
+fn a_steady_denoised_tile_allocates_nothing() {
+    // The filter's buffers are made on the tile's first denoised frame and kept; a steady frame
+    // uploads only the parameters (the frame's, compose's and the passes').
+    let Some(gpu) = common::gpu() else { return };
+    let (volume, view, mut s) = scene(64, 48);
+    s.denoise = Denoise::On;
+    let gv = gpu.upload(&volume).unwrap();
+    let rect = Rect { x: 0, y: 0, width: 32, height: 24 };
+    let tile_view = View { rect, ..view };
+    let mut tile = TileTarget::with_guard(&gpu, "t", &tile_view, 1, denoise::reach()).unwrap();
+    assert!(tile.fits_with_guard(&tile_view, 1, denoise::reach()) && !tile.fits(&tile_view, 1));
+    let mut ring = ReadbackRing::new(3);
+    let mut run = |ring: &mut ReadbackRing<FrameRead>, k: u32| {
+        let mut f = s;
+        f.ao.frame = k;
+        let tf = TileFrame {
+            frame_id: k as u64,
+            volume: &gv,
+            view: &tile_view,
+            settings: &f,
+            env: None,
+            accumulate: true,
+            share: false,
+        };
+        if !ring.has_free_slot() {
+            ring.wait_oldest(&gpu.ctx).unwrap();
+        }
+        gpu.render_tile(&mut tile, &tf, ring).unwrap();
+    };
+    for k in 0..3 {
+        run(&mut ring, k);
+    }
+    while ring.in_flight() > 0 {
+        ring.wait_oldest(&gpu.ctx).unwrap();
+    }
+    ring.take_ready();
+    let before = gpu.ctx.traffic.now();
+    for k in 3..9 {
+        run(&mut ring, k);
+    }
+    while ring.in_flight() > 0 {
+        ring.wait_oldest(&gpu.ctx).unwrap();
+    }
+    let t = gpu.ctx.traffic.now() - before;
+    assert_eq!(t.allocations, 0, "{} GPU allocations in 6 steady denoised frames", t.allocations);
 }
