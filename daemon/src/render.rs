@@ -440,11 +440,11 @@ fn denoise_reference(frame: &mut Frame, view: &View, s: &RenderSettings, frames:
         ibl: &frame.ibl,
         samples,
     });
-    for i in 0..frame.pixel_count() {
+    for (i, new) in ibl.iter().enumerate() {
         if frame.hit[i] {
-            for c in 0..3 {
-                let de = ibl[i][c] - frame.ibl[i][c];
-                frame.color[i][c] += (s.exposure * s.material.albedo[c]) as f32 * de;
+            let old = frame.ibl[i];
+            for (c, colour) in frame.color[i].iter_mut().enumerate() {
+                *colour += (s.exposure * s.material.albedo[c]) as f32 * (new[c] - old[c]);
             }
         }
     }

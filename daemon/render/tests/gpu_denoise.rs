@@ -77,8 +77,8 @@ fn the_gpu_filter_is_its_cpu_twin() {
         for i in 0..raw.pixel_count() {
             assert_eq!(gpu_den.hit[i], raw.hit[i]);
             max = max.max((gpu_den.occlusion[i] - occ[i]).abs());
-            for c in 0..3 {
-                max = max.max((gpu_den.ibl[i][c] - ibl[i][c]).abs());
+            for (g, c) in gpu_den.ibl[i].iter().zip(&ibl[i]) {
+                max = max.max((g - c).abs());
             }
             changed += (gpu_den.occlusion[i] - raw.occlusion[i]).abs() as f64;
         }

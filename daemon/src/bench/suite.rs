@@ -246,6 +246,9 @@ pub fn variant_denoise(name: &str) -> Result<(String, Denoise)> {
     Ok((rest, denoise))
 }
 
+/// A measured variant: its name, performance options, AO origin offset and sequence, and filter.
+type Variant = (String, PerfOptions, Option<f64>, Option<AoSequence>, Denoise);
+
 pub fn run(a: &SuiteArgs) -> Result<()> {
     let baseline = match &a.baseline {
         Some(p) => {
@@ -255,7 +258,7 @@ pub fn run(a: &SuiteArgs) -> Result<()> {
         }
         None => None,
     };
-    let variants: Vec<(String, PerfOptions, Option<f64>, Option<AoSequence>, Denoise)> = a
+    let variants: Vec<Variant> = a
         .variants
         .split(',')
         .map(str::trim)
