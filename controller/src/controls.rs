@@ -5,7 +5,7 @@
 use glam::{DQuat, DVec3};
 use isowall_model::joystick::JoystickConfig;
 use isowall_model::render_state::MAX_AO_SAMPLES;
-use isowall_model::{Camera, IblMethod, RenderSettings};
+use isowall_model::{Camera, Denoise, IblMethod, RenderSettings};
 
 /// A key, as the session sees it (the glue converts terminal key events).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -37,6 +37,8 @@ pub enum Action {
     AoSamples(i8),
     /// The next IBL method (none, seed, bent, rays).
     NextIbl,
+    /// Turn the spatial filter of the occlusion and IBL terms on or off.
+    ToggleDenoise,
     /// Time steps: play or pause.
     PlayPause,
     /// Time steps: one step on (+) or back (-).
@@ -49,7 +51,7 @@ pub enum Action {
 
 /// The key help shown by `isowall session`.
 pub const KEY_HELP: &str =
-    "arrows/wasd orbit, ijkl pan, +/- zoom, ]/[ iso, >/< AO samples, b IBL, space play/pause, n/N step, )/( rate, p screenshot, q quit";
+    "arrows/wasd orbit, ijkl pan, +/- zoom, ]/[ iso, >/< AO samples, b IBL, f denoise, space play/pause, n/N step, )/( rate, p screenshot, q quit";
 
 /// The action of a key, if any.
 pub fn action_for_key(key: Key) -> Option<Action> {
@@ -70,6 +72,7 @@ pub fn action_for_key(key: Key) -> Option<Action> {
         Key::Char('>') | Key::Char('.') => AoSamples(1),
         Key::Char('<') | Key::Char(',') => AoSamples(-1),
         Key::Char('b') => NextIbl,
+        Key::Char('f') => ToggleDenoise,
         Key::Char(' ') => PlayPause,
         Key::Char('n') => Step(1),
         Key::Char('N') => Step(-1),
@@ -170,6 +173,12 @@ impl SessionState {
                     IblMethod::Seed => IblMethod::Bent,
                     IblMethod::Bent => IblMethod::Rays,
                     IblMethod::Rays => IblMethod::None,
+                }
+            }
+            Action::ToggleDenoise => {
+                self.settings.denoise = match self.settings.denoise {
+                    Denoise::Off => Denoise::On,
+                    Denoise::On => Denoise::Off,
                 }
             }
             Action::PlayPause => self.playback.playing = !self.playback.playing,
@@ -297,6 +306,7 @@ mod tests {
         assert_eq!(action_for_key(Key::Char(']')), Some(Action::Iso(1)));
         assert_eq!(action_for_key(Key::Char('<')), Some(Action::AoSamples(-1)));
         assert_eq!(action_for_key(Key::Char('b')), Some(Action::NextIbl));
+        assert_eq!(action_for_key(Key::Char('f')), Some(Action::ToggleDenoise));
         assert_eq!(action_for_key(Key::Char('p')), Some(Action::Screenshot));
         assert_eq!(action_for_key(Key::CtrlC), Some(Action::Quit));
         assert_eq!(action_for_key(Key::Char(' ')), Some(Action::PlayPause));
@@ -356,6 +366,11 @@ mod tests {
             })
             .collect();
         assert_eq!(seen, [IblMethod::Seed, IblMethod::Bent, IblMethod::Rays, IblMethod::None]);
+        assert_eq!(s.settings.denoise, Denoise::Off);
+        s.apply(Action::ToggleDenoise);
+        assert_eq!(s.settings.denoise, Denoise::On);
+        s.apply(Action::ToggleDenoise);
+        assert_eq!(s.settings.denoise, Denoise::Off);
         assert!(s.apply(Action::Quit));
     }
 

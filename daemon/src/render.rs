@@ -4,7 +4,9 @@ use crate::args;
 use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
 use glam::DVec3;
-use isowall_model::{AoMethod, AoRadius, AoSequence, Aov, Camera, IblMethod, RenderSettings, Shading, View};
+use isowall_model::{
+    AoMethod, AoRadius, AoSequence, Aov, Camera, Denoise, IblMethod, RenderSettings, Shading, View,
+};
 use isowall_render::environment::{EnvSource, Environment};
 use isowall_render::gpu::GpuRenderer;
 use isowall_render::{output, reference, Frame};
@@ -74,6 +76,23 @@ pub enum IblArg {
     Bent,
     /// Every escaping AO ray looks up the environment (unbiased)
     Rays,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum DenoiseArg {
+    /// The running sums as they are
+    Off,
+    /// The edge-aware spatial filter of the occlusion and IBL terms
+    On,
+}
+
+impl From<DenoiseArg> for Denoise {
+    fn from(d: DenoiseArg) -> Denoise {
+        match d {
+            DenoiseArg::Off => Denoise::Off,
+            DenoiseArg::On => Denoise::On,
+        }
+    }
 }
 
 /// `--ao-radius R|unbounded`.
@@ -195,6 +214,10 @@ pub struct RenderArgs {
     /// with an IBL method, whose environment adds about as much light as the direct light]
     #[arg(long, value_name = "X")]
     pub exposure: Option<f64>,
+    /// The edge-aware spatial filter (a-trous, guided by depth, normal and the occlusion
+    /// estimate's variance) of the occlusion and IBL terms; it needs AO samples [default: off]
+    #[arg(long, value_enum)]
+    pub denoise: Option<DenoiseArg>,
 }
 
 impl RenderArgs {
@@ -342,6 +365,10 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         };
     }
     settings.ao.seed = a.seed.unwrap_or(0);
+    settings.denoise = a.denoise.map(Denoise::from).unwrap_or_default();
+    if settings.denoise.is_on() && settings.ao.samples == 0 {
+        tracing::warn!("--denoise on filters nothing without --ao-samples");
+    }
     settings.exposure = match a.exposure {
         Some(x) if x.is_finite() && x >= 0.0 => x,
         Some(x) => bail!("--exposure {x} must be a finite number >= 0"),
@@ -379,10 +406,13 @@ pub fn run(a: &RenderArgs) -> Result<()> {
                 format!("gpu '{}', {:.1} ms on the GPU", gpu.adapter_name(), r.gpu_time.as_secs_f64() * 1e3),
             )
         }
-        RendererKind::Reference => (
-            reference::render_accumulated(&volume, &view, &settings, env.as_ref(), frames),
-            "reference".to_string(),
-        ),
+        RendererKind::Reference => {
+            let mut frame = reference::render_accumulated(&volume, &view, &settings, env.as_ref(), frames);
+            if settings.denoise.is_on() {
+                denoise_reference(&mut frame, &view, &settings, frames);
+            }
+            (frame, "reference".to_string())
+        }
     };
     output::write_aov(&frame, aov, &out).with_context(|| format!("cannot write {}", out.display()))?;
     let hits = frame.hit_count() as f64 / frame.pixel_count() as f64 * 100.0;
@@ -395,4 +425,29 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         frame.fetches_per_pixel(),
     );
     Ok(())
+}
+
+/// The filter's CPU twin on a reference frame: occlusion and IBL filtered, the colour's IBL part
+/// replaced (colour = exposure (direct + albedo E), so the new E enters by its difference).
+fn denoise_reference(frame: &mut Frame, view: &View, s: &RenderSettings, frames: u32) {
+    let samples = s.ao.samples as u64 * frames as u64;
+    let (occlusion, ibl) = isowall_render::denoise::filter(&isowall_render::denoise::Input {
+        view,
+        hit: &frame.hit,
+        depth: &frame.depth,
+        normal: &frame.normal,
+        occlusion: &frame.occlusion,
+        ibl: &frame.ibl,
+        samples,
+    });
+    for (i, new) in ibl.iter().enumerate() {
+        if frame.hit[i] {
+            let old = frame.ibl[i];
+            for (c, colour) in frame.color[i].iter_mut().enumerate() {
+                *colour += (s.exposure * s.material.albedo[c]) as f32 * (new[c] - old[c]);
+            }
+        }
+    }
+    frame.occlusion = occlusion;
+    frame.ibl = ibl;
 }

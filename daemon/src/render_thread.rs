@@ -551,14 +551,22 @@ impl RenderLoop {
     }
 
     fn submit(&mut self, job: &TileJob) -> Result<(), String> {
-        // The tiles' resources, kept where they fit, made where they do not (start, resize, scale).
+        // The tiles' resources, kept where they fit, made where they do not (start, resize, scale,
+        // the filter turned on or off: a denoised tile renders a guard band of the filter's reach
+        // beyond its edges, so that the wall's tiles filter their edge pixels as one image).
+        // Object space (a brick per tile) does not filter: a brick's pixels are not the image's
+        // until composited, and the filter must run on the composited tile.
+        let object_space = !job.bricks.is_empty();
+        let denoise = job.settings.denoise.is_on() && !object_space;
+        let guard = if denoise { isowall_render::denoise::reach() } else { 0 };
         let mut targets = std::mem::take(&mut self.targets);
         let mut kept = Vec::with_capacity(job.tiles.len());
         for (name, view) in &job.tiles {
-            let reuse = targets.iter().position(|t| t.name == *name && t.fits(view, job.scale));
+            let reuse =
+                targets.iter().position(|t| t.name == *name && t.fits_with_guard(view, job.scale, guard));
             let target = match reuse {
                 Some(i) => targets.swap_remove(i),
-                None => TileTarget::new(&self.gpu, name, view, job.scale)
+                None => TileTarget::with_guard(&self.gpu, name, view, job.scale, guard)
                     .map_err(|e| format!("tile {name}: {e}"))?,
             };
             kept.push(target);
@@ -579,6 +587,9 @@ impl RenderLoop {
             };
             let mut settings = job.settings;
             settings.ao.frame = settings.ao.frame.wrapping_add(job.accumulate_frame);
+            if !denoise {
+                settings.denoise = isowall_model::Denoise::Off;
+            }
             let frame = TileFrame {
                 frame_id: job.frame_id,
                 volume: gv,

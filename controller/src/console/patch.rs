@@ -5,7 +5,7 @@
 
 use crate::controls::{SessionState, MAX_RATE, MIN_RATE};
 use isowall_model::config::{render_problems, RenderConfig};
-use isowall_model::{AoMethod, Camera, IblMethod, RenderSettings, Shading};
+use isowall_model::{AoMethod, Camera, Denoise, IblMethod, RenderSettings, Shading};
 use serde::{Deserialize, Deserializer};
 
 /// A refused change: the field it is about and why.
@@ -32,6 +32,8 @@ pub struct RenderPatch {
     pub ibl: Option<IblMethod>,
     pub exposure: Option<f64>,
     pub shading: Option<Shading>,
+    /// `"off"` | `"on"`: the spatial filter of the occlusion and IBL terms.
+    pub denoise: Option<Denoise>,
     /// A number turns the quality governor on for that frame time; `null` turns it off.
     #[serde(default, deserialize_with = "present")]
     pub target_frame_ms: Option<Option<f64>>,
@@ -145,6 +147,9 @@ impl Controls {
         if let Some(x) = p.shading {
             s.shading = x;
         }
+        if let Some(d) = p.denoise {
+            s.denoise = d;
+        }
         if let Some(t) = p.target_frame_ms {
             target = t;
         }
@@ -159,6 +164,7 @@ impl Controls {
             env: self.env.clone(),
             exposure: Some(s.exposure),
             target_frame_ms: target,
+            denoise: s.denoise,
         };
         if let Some((field, message)) = render_problems(&table).into_iter().next() {
             return Err(Refusal { field, message });
@@ -321,6 +327,12 @@ mod tests {
         assert_eq!(c.target_frame_ms, Some(40.0), "left out: unchanged");
         c.apply_render(&render(r#"{"target_frame_ms": null}"#)).unwrap();
         assert_eq!(c.target_frame_ms, None);
+        assert_eq!(c.session.settings.denoise, Denoise::Off);
+        c.apply_render(&render(r#"{"denoise": "on"}"#)).unwrap();
+        assert_eq!(c.session.settings.denoise, Denoise::On);
+        assert_eq!(c.session.settings.exposure, 0.8, "left out: unchanged");
+        let e = serde_json::from_str::<RenderPatch>(r#"{"denoise": "maybe"}"#).unwrap_err().to_string();
+        assert!(e.contains("unknown variant `maybe`"), "{e}");
     }
 
     #[test]

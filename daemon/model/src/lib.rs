@@ -58,6 +58,7 @@ pub use governor::{Governor, GovernorError, Motion, MAX_SCALE};
 pub use messages::{Message, ProtocolError, Role, TileImage, PROTOCOL_VERSION};
 pub use node_machine::{NodeMachine, NodeOutput};
 pub use render_state::{
-    AoMethod, AoRadius, AoSequence, AoSettings, Aov, IblMethod, Light, Material, RenderSettings, Shading,
+    AoMethod, AoRadius, AoSequence, AoSettings, Aov, Denoise, IblMethod, Light, Material, RenderSettings,
+    Shading,
 };
 pub use wire::{FrameSpec, FrameState};

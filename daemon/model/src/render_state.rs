@@ -19,6 +19,25 @@ impl Shading {
     pub const ALL: [Shading; 2] = [Shading::Lambert, Shading::BlinnPhong];
 }
 
+/// The edge-aware spatial filter of the occlusion and IBL terms before compose (`--denoise`,
+/// `[render] denoise`): off shows the running sums as they are.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum Denoise {
+    #[default]
+    Off,
+    On,
+}
+
+impl Denoise {
+    /// Every setting.
+    pub const ALL: [Denoise; 2] = [Denoise::Off, Denoise::On];
+
+    pub fn is_on(self) -> bool {
+        self == Denoise::On
+    }
+}
+
 /// A directional light. `direction` points *towards* the light. When `camera_relative` is set,
 /// `direction` is given in the camera frame (x right, y up, z towards the viewer), so the light
 /// follows the camera: the default, a key light above-left of the viewer.
@@ -274,6 +293,9 @@ pub struct RenderSettings {
     /// Linear RGB of pixels without a hit, in the colour image.
     pub background: [f64; 3],
     pub ao: AoSettings,
+    /// The spatial filter of the occlusion and IBL terms (not part of the running sums: turning it
+    /// on or off keeps the accumulation).
+    pub denoise: Denoise,
 }
 
 impl RenderSettings {
@@ -293,6 +315,7 @@ impl RenderSettings {
             exposure: 1.0,
             background: [0.02, 0.025, 0.035],
             ao: AoSettings::default(),
+            denoise: Denoise::Off,
         }
     }
 }

@@ -17,7 +17,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::camera::{Camera, CameraError};
 use crate::render_state::{
-    AoMethod, AoRadius, AoSequence, AoSettings, IblMethod, Light, Material, RenderSettings, Shading,
+    AoMethod, AoRadius, AoSequence, AoSettings, Denoise, IblMethod, Light, Material, RenderSettings, Shading,
 };
 
 /// A camera on the wire: [`Camera`] with plain arrays.
@@ -80,6 +80,8 @@ pub struct WireSettings {
     pub exposure: f64,
     pub background: [f64; 3],
     pub ao: WireAo,
+    /// 0 off, 1 on.
+    pub denoise: u8,
 }
 
 /// What the controller broadcasts each frame.
@@ -303,6 +305,13 @@ fn shading_code(s: Shading) -> u8 {
     }
 }
 
+fn denoise_code(d: Denoise) -> u8 {
+    match d {
+        Denoise::Off => 0,
+        Denoise::On => 1,
+    }
+}
+
 fn ao_method_code(m: AoMethod) -> u8 {
     match m {
         AoMethod::Ours => 0,
@@ -404,6 +413,7 @@ impl From<&RenderSettings> for WireSettings {
             exposure: s.exposure,
             background: s.background,
             ao: (&s.ao).into(),
+            denoise: denoise_code(s.denoise),
         }
     }
 }
@@ -437,6 +447,7 @@ impl TryFrom<WireSettings> for RenderSettings {
             exposure: non_negative("settings.exposure", w.exposure)?,
             background: finite3("settings.background", w.background)?,
             ao: AoSettings::try_from(w.ao)?,
+            denoise: decode_code(&Denoise::ALL, denoise_code, "settings.denoise", w.denoise)?,
         })
     }
 }
@@ -460,6 +471,7 @@ mod tests {
         check(&AoMethod::ALL, ao_method_code);
         check(&AoSequence::ALL, ao_sequence_code);
         check(&IblMethod::ALL, ibl_code);
+        check(&Denoise::ALL, denoise_code);
     }
 
     fn camera() -> Camera {

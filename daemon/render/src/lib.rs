@@ -3,6 +3,7 @@
 //! cell) that the GPU is tested against. Both produce a [`Frame`] for a
 //! [`View`](isowall_model::View) of a volume. Nothing here touches the network.
 
+pub mod denoise;
 pub mod environment;
 pub mod frame;
 pub mod gpu;

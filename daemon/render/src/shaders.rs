@@ -14,14 +14,18 @@ pub enum Kernel {
     /// The tile's presentable image: colour, accumulation, sRGB, upsample (its own parameters,
     /// `ComposeParams`, not the frame's).
     Compose,
+    /// The edge-aware spatial filter of the occlusion and IBL terms, one a-trous pass per dispatch
+    /// (its own parameters, `DenoiseParams`).
+    Denoise,
     /// Not a compute kernel: the render pass that draws a tile's image into its window.
     Present,
 }
 
 impl Kernel {
-    pub const ALL: [Kernel; 4] = [Kernel::Isosurface, Kernel::Ao, Kernel::Compose, Kernel::Present];
+    pub const ALL: [Kernel; 5] =
+        [Kernel::Isosurface, Kernel::Ao, Kernel::Compose, Kernel::Denoise, Kernel::Present];
     /// The compute kernels (entry point `main`).
-    pub const COMPUTE: [Kernel; 3] = [Kernel::Isosurface, Kernel::Ao, Kernel::Compose];
+    pub const COMPUTE: [Kernel; 4] = [Kernel::Isosurface, Kernel::Ao, Kernel::Compose, Kernel::Denoise];
     /// The kernels that read the frame parameters of `frame.wgsl`.
     pub const FRAME: [Kernel; 2] = [Kernel::Isosurface, Kernel::Ao];
 
@@ -30,6 +34,7 @@ impl Kernel {
             Kernel::Isosurface => "isosurface.wgsl",
             Kernel::Ao => "ao.wgsl",
             Kernel::Compose => "compose.wgsl",
+            Kernel::Denoise => "denoise.wgsl",
             Kernel::Present => "present.wgsl",
         }
     }
@@ -37,7 +42,7 @@ impl Kernel {
     /// The entry points the host uses.
     pub fn entry_points(self) -> &'static [&'static str] {
         match self {
-            Kernel::Isosurface | Kernel::Ao | Kernel::Compose => &["main"],
+            Kernel::Isosurface | Kernel::Ao | Kernel::Compose | Kernel::Denoise => &["main"],
             Kernel::Present => &["vs_main", "fs_main"],
         }
     }
@@ -47,6 +52,7 @@ impl Kernel {
             Kernel::Isosurface => include_str!("../../../shaders/isosurface.wgsl"),
             Kernel::Ao => include_str!("../../../shaders/ao.wgsl"),
             Kernel::Compose => include_str!("../../../shaders/compose.wgsl"),
+            Kernel::Denoise => include_str!("../../../shaders/denoise.wgsl"),
             Kernel::Present => include_str!("../../../shaders/present.wgsl"),
         }
     }
@@ -167,11 +173,14 @@ pub(crate) mod tests {
 
     #[test]
     fn every_compute_kernels_bind_group_layout_is_what_its_wgsl_declares() {
-        use crate::gpu::{ao::AoKernel, compose::ComposeKernel, isosurface::IsosurfaceKernel};
+        use crate::gpu::{
+            ao::AoKernel, compose::ComposeKernel, denoise::DenoiseKernel, isosurface::IsosurfaceKernel,
+        };
         for (kernel, entries) in [
             (Kernel::Isosurface, IsosurfaceKernel::entries()),
             (Kernel::Ao, AoKernel::entries()),
             (Kernel::Compose, ComposeKernel::entries()),
+            (Kernel::Denoise, DenoiseKernel::entries()),
         ] {
             assert_eq!(declared(&entries), reflected(kernel), "{}", kernel.file_name());
         }

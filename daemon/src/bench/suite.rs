@@ -16,7 +16,7 @@ use crate::args;
 use crate::render::load_volume;
 use anyhow::{Context, Result};
 use clap::Args;
-use isowall_model::{AoSequence, Camera, RenderSettings, View};
+use isowall_model::{AoSequence, Camera, Denoise, RenderSettings, View};
 use isowall_render::gpu::{GpuRenderer, GpuVolume, PerfOptions};
 use isowall_render::Frame;
 use isowall_volume::VoxelFormat;
@@ -54,7 +54,8 @@ pub struct SuiteArgs {
     /// ao=N, coarse=N, exit=on|off, wg=XxY, format=r32f|r16f|r16|r8, texture (the primary march
     /// on a hardware-filtered 3D texture), and the AO settings eps=V
     /// (origin off the surface, voxels; 0.5 the old one), seq=r2|sobol (e.g. `ao=2+coarse=16`,
-    /// `eps=0.5+seq=r2`)
+    /// `eps=0.5+seq=r2`), and denoise=on|off (the spatial filter of occlusion and IBL, e.g.
+    /// `default,denoise=on`)
     #[arg(long, default_value = "default")]
     pub variants: String,
 }
@@ -231,6 +232,27 @@ pub fn variant_ao(name: &str) -> Result<(String, Option<f64>, Option<AoSequence>
     Ok((rest, eps, seq))
 }
 
+/// The filter a variant asks for: `denoise=on|off` (the edge-aware spatial filter of the
+/// occlusion and IBL terms, timed with the frame), and the variant name without it (`default`
+/// where nothing is left).
+pub fn variant_denoise(name: &str) -> Result<(String, Denoise)> {
+    let mut rest = Vec::new();
+    let mut denoise = Denoise::Off;
+    for part in name.split('+') {
+        match part.split_once('=') {
+            Some(("denoise", "on")) => denoise = Denoise::On,
+            Some(("denoise", "off")) => denoise = Denoise::Off,
+            Some(("denoise", _)) => return Err(anyhow::anyhow!("variant '{name}': denoise is on or off")),
+            _ => rest.push(part),
+        }
+    }
+    let rest = if rest.is_empty() { "default".to_string() } else { rest.join("+") };
+    Ok((rest, denoise))
+}
+
+/// A measured variant: its name, performance options, AO origin offset and sequence, and filter.
+type Variant = (String, PerfOptions, Option<f64>, Option<AoSequence>, Denoise);
+
 pub fn run(a: &SuiteArgs) -> Result<()> {
     let baseline = match &a.baseline {
         Some(p) => {
@@ -240,14 +262,15 @@ pub fn run(a: &SuiteArgs) -> Result<()> {
         }
         None => None,
     };
-    let variants: Vec<(String, PerfOptions, Option<f64>, Option<AoSequence>)> = a
+    let variants: Vec<Variant> = a
         .variants
         .split(',')
         .map(str::trim)
         .filter(|v| !v.is_empty())
         .map(|v| {
-            let (perf, eps, seq) = variant_ao(v)?;
-            Ok((v.to_string(), variant_options(&perf)?, eps, seq))
+            let (rest, denoise) = variant_denoise(v)?;
+            let (perf, eps, seq) = variant_ao(&rest)?;
+            Ok((v.to_string(), variant_options(&perf)?, eps, seq, denoise))
         })
         .collect::<Result<_>>()?;
     let mut gpu = GpuRenderer::new()?;
@@ -273,7 +296,7 @@ pub fn run(a: &SuiteArgs) -> Result<()> {
         let gv = gpu.upload(&volume)?;
         // The volume as each variant's block levels and voxel format need it.
         let mut uploads: Vec<((u32, u32, u32, VoxelFormat, bool), GpuVolume)> = Vec::new();
-        for (variant, o, _, _) in &variants {
+        for (variant, o, _, _, _) in &variants {
             let key = (o.block, o.ao_block, o.coarse, o.format, o.texture);
             if !uploads.iter().any(|(k, _)| *k == key) {
                 gpu.set_perf(*o)?;
@@ -298,7 +321,7 @@ pub fn run(a: &SuiteArgs) -> Result<()> {
             s.ao.frame = 1_000_000; // disjoint from the measured frames' patterns
             let reference = gpu.render_accumulated(&gv, &view, &s, None, a.reference_frames.max(1))?.frame;
             for &n in &samples {
-                for (variant, o, eps, seq) in &variants {
+                for (variant, o, eps, seq, denoise) in &variants {
                     gpu.set_perf(*o)?;
                     let key = (o.block, o.ao_block, o.coarse, o.format, o.texture);
                     let gv = &uploads.iter().find(|(k, _)| *k == key).expect("uploaded").1;
@@ -310,6 +333,7 @@ pub fn run(a: &SuiteArgs) -> Result<()> {
                     if let Some(q) = seq {
                         s.ao.sequence = *q;
                     }
+                    s.denoise = *denoise;
                     gpu.render(gv, &view, &s, None)?; // warm-up
                     let mut times = Vec::new();
                     let mut last = None;
@@ -416,6 +440,10 @@ mod tests {
         for bad in ["eps=-1", "eps=x", "seq=halton"] {
             assert!(variant_ao(bad).is_err(), "{bad}");
         }
+        assert_eq!(variant_denoise("denoise=on").unwrap(), ("default".into(), Denoise::On));
+        assert_eq!(variant_denoise("ao=2+denoise=on").unwrap(), ("ao=2".into(), Denoise::On));
+        assert_eq!(variant_denoise("ao=2").unwrap(), ("ao=2".into(), Denoise::Off));
+        assert!(variant_denoise("denoise=yes").is_err());
     }
 
     #[test]

@@ -38,6 +38,7 @@
 //! ibl = "bent"                    # none | seed | bent | rays
 //! env = "sky"                     # sky | FILE.hdr | DIR (relative to this file's folder)
 //! exposure = 0.6                  # default 0.6 with an IBL method, else 1
+//! denoise = "on"                  # off | on: the spatial filter of occlusion and IBL (default off)
 //! target_frame_ms = 100.0         # quality governor: AO samples chosen per frame for this
 //!                                 # frame time while the camera moves (omitted: off)
 //!
@@ -64,7 +65,7 @@
 
 use crate::camera::{Camera, Rect, View};
 use crate::names::name_problem;
-use crate::render_state::{AoMethod, AoRadius, AoSequence, IblMethod, RenderSettings, Shading};
+use crate::render_state::{AoMethod, AoRadius, AoSequence, Denoise, IblMethod, RenderSettings, Shading};
 use glam::DVec3;
 use isowall_volume::io::{RawSpec, VoxelType};
 use isowall_volume::procedural::Procedural;
@@ -252,6 +253,8 @@ pub struct RenderConfig {
     pub exposure: Option<f64>,
     /// The quality governor's target frame time (ms); `None`: off (`ao_samples` every frame).
     pub target_frame_ms: Option<f64>,
+    /// The spatial filter of the occlusion and IBL terms (`off` | `on`).
+    pub denoise: Denoise,
 }
 
 impl Default for RenderConfig {
@@ -266,6 +269,7 @@ impl Default for RenderConfig {
             env: "sky".into(),
             exposure: None,
             target_frame_ms: None,
+            denoise: Denoise::Off,
         }
     }
 }
@@ -578,6 +582,7 @@ impl WallConfig {
         s.ao.sequence = r.ao_sequence;
         s.ao.ibl = r.ibl;
         s.exposure = r.exposure.unwrap_or(if s.ibl_needs_environment() { 0.6 } else { 1.0 });
+        s.denoise = r.denoise;
         s
     }
 

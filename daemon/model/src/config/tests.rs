@@ -545,6 +545,8 @@ fn render_values_are_checked() {
     expect(&render("shading = \"phong\""), Some(2), "unknown variant `phong`");
     expect(&render("ibl = \"sh\""), Some(2), "unknown variant `sh`");
     expect(&render("ao_method = \"theirs\""), Some(2), "unknown variant `theirs`");
+    expect(&render("denoise = \"maybe\""), Some(2), "unknown variant `maybe`");
+    expect(&render("denoise = \"on\""), Some(2), "`denoise` \"on\" filters the occlusion estimate");
     expect(&render("ao_samples = -1"), Some(2), "invalid value");
     expect(&render("env = \"\""), Some(2), "render: `env` is empty");
     expect(&format!("[certificates]\ndir = \"\"\n\n{GOOD}"), Some(2), "certificates: `dir` is empty");
@@ -641,8 +643,9 @@ fn the_default_camera_frames_the_volume_over_the_whole_wall() {
 fn render_settings_take_the_render_defaults() {
     let c = WallConfig::parse(GOOD, Path::new("w.toml")).unwrap();
     assert_eq!(c.render_settings(2.0), RenderSettings::new(2.0));
-    let text = format!("[render]\nshading = \"lambert\"\nao_samples = 16\nao_radius = 4\nao_method = \"seed\"\nao_sequence = \"r2\"\nibl = \"rays\"\nexposure = 0.8\n\n{GOOD}");
+    let text = format!("[render]\nshading = \"lambert\"\nao_samples = 16\nao_radius = 4\nao_method = \"seed\"\nao_sequence = \"r2\"\nibl = \"rays\"\nexposure = 0.8\ndenoise = \"on\"\n\n{GOOD}");
     let s = WallConfig::parse(&text, Path::new("w.toml")).unwrap().render_settings(1.0);
+    assert_eq!(s.denoise, Denoise::On);
     assert_eq!((s.shading, s.ao.samples, s.ao.radius), (Shading::Lambert, 16, AoRadius::World(4.0)));
     assert_eq!(s.ao.sequence, AoSequence::R2);
     assert_eq!((s.ao.method, s.ao.ibl, s.exposure), (AoMethod::Seed, IblMethod::Rays, 0.8));

@@ -5,7 +5,9 @@
 //! direct light) and, when AO or IBL is on, [`Kernel::Ao`](crate::shaders::Kernel) once per
 //! accumulated frame (occlusion, bent normal, IBL term, added into accumulators). Colour is
 //! composed exactly as the CPU reference does, `exposure * (direct + albedo * E)` with
-//! `E = ambient` when neither AO nor IBL is on:
+//! `E = ambient` when neither AO nor IBL is on, and with `settings.denoise` on E (and A) first
+//! filtered by [`Kernel::Denoise`](crate::shaders::Kernel) (`denoise.rs`; its CPU twin is
+//! [`crate::denoise`]):
 //! - a wall tile ([`TileTarget`], `tile.rs`): on the GPU by [`Kernel::Compose`](crate::shaders::Kernel)
 //!   into the tile's presentable image, with resources made once and only what leaves the node
 //!   read back ([`ReadbackRing`]);
@@ -17,6 +19,7 @@
 
 pub mod ao;
 pub mod compose;
+pub mod denoise;
 pub mod frame_params;
 pub mod isosurface;
 pub mod perf;
@@ -35,6 +38,7 @@ use wgpu::util::DeviceExt;
 
 pub use ao::AoKernel;
 pub use compose::{ComposeKernel, ComposeParams};
+pub use denoise::{DenoiseKernel, DenoiseParams};
 pub use frame_params::FrameParams;
 pub use isosurface::IsosurfaceKernel;
 pub use perf::PerfOptions;
@@ -719,6 +723,7 @@ pub struct GpuRenderer {
     isosurface: IsosurfaceKernel,
     ao: AoKernel,
     compose: ComposeKernel,
+    denoise: DenoiseKernel,
     perf: PerfOptions,
     /// Bound where no environment is given (IBL off): one black texel.
     no_env: GpuEnvironment,
@@ -742,8 +747,9 @@ impl GpuRenderer {
         let isosurface = IsosurfaceKernel::new(&ctx, &perf)?;
         let ao = AoKernel::new(&ctx, &perf)?;
         let compose = ComposeKernel::new(&ctx, perf.workgroup)?;
+        let denoise = DenoiseKernel::new(&ctx, perf.workgroup)?;
         let no_env = GpuEnvironment::upload(&ctx, &Environment::constant([0.0; 3]))?;
-        Ok(GpuRenderer { ctx, isosurface, ao, compose, perf, no_env })
+        Ok(GpuRenderer { ctx, isosurface, ao, compose, denoise, perf, no_env })
     }
 
     /// The performance options in use.
@@ -763,6 +769,7 @@ impl GpuRenderer {
             self.isosurface = IsosurfaceKernel::new(&self.ctx, &perf)?;
             self.ao = AoKernel::new(&self.ctx, &perf)?;
             self.compose = ComposeKernel::new(&self.ctx, perf.workgroup)?;
+            self.denoise = DenoiseKernel::new(&self.ctx, perf.workgroup)?;
         }
         self.perf = perf;
         Ok(())
@@ -880,7 +887,9 @@ impl GpuRenderer {
     }
 
     /// Renders `frames` frames with frame indices `settings.ao.frame ..` (fresh decorrelation each)
-    /// and averages their AO and IBL (progressive accumulation); reads every AOV back.
+    /// and averages their AO and IBL (progressive accumulation); reads every AOV back. With
+    /// `settings.denoise` on (and AO samples), the occlusion and IBL terms are the filter's
+    /// ([`Kernel::Denoise`](crate::shaders::Kernel) over the view's rectangle).
     pub fn render_accumulated(
         &self,
         volume: &GpuVolume,
@@ -894,6 +903,7 @@ impl GpuRenderer {
         let n = w as u64 * h as u64;
         let device = &self.ctx.device;
         let with_ao = settings.ao.samples > 0 || settings.ao.ibl != IblMethod::None;
+        let denoised = with_ao && settings.denoise.is_on() && settings.ao.samples > 0;
 
         let sizes = [n * 16, n * 16, n * 4, n * 16, n * 16];
         let (buffers, staging) = self.ctx.validated("frame buffers", || {
@@ -909,9 +919,15 @@ impl GpuRenderer {
             let read = wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST;
             let labels = ["direct", "geometry", "fetches", "acc ao", "acc ibl"];
             let buffers: Vec<_> = labels.iter().zip(sizes).map(|(l, s)| make(l, s, storage)).collect();
-            let staging: Vec<_> = labels.iter().zip(sizes).map(|(l, s)| make(l, s, read)).collect();
+            let mut staging: Vec<_> = labels.iter().zip(sizes).map(|(l, s)| make(l, s, read)).collect();
+            if denoised {
+                staging.push(make("denoised", n * 16, read));
+            }
             (buffers, staging)
         })?;
+        let denoise = denoised.then(|| {
+            self.denoise.buffers(&self.ctx, n, [&buffers[0], &buffers[1], &buffers[3], &buffers[4]])
+        });
 
         let mut enc = device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
         let mut uniforms = Vec::new();
@@ -951,6 +967,9 @@ impl GpuRenderer {
                         dispatches,
                     );
                 }
+                if let Some(d) = &denoise {
+                    self.denoise.encode(&self.ctx, &mut enc, d, &params, frames);
+                }
             }
         })?;
         let start = Instant::now();
@@ -960,7 +979,8 @@ impl GpuRenderer {
 
         let mut enc =
             device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("readback") });
-        for (src, dst) in buffers.iter().zip(&staging) {
+        let sources = buffers.iter().chain(denoise.as_ref().map(|d| &d.out));
+        for (src, dst) in sources.zip(&staging) {
             enc.copy_buffer_to_buffer(src, 0, dst, 0, None);
         }
         self.ctx.queue.submit([enc.finish()]);
@@ -971,6 +991,8 @@ impl GpuRenderer {
         let fetches: &[u32] = bytemuck::cast_slice(&bytes[2]);
         let acc_ao: &[[f32; 4]] = bytemuck::cast_slice(&bytes[3]);
         let acc_ibl: &[[f32; 4]] = bytemuck::cast_slice(&bytes[4]);
+        // Denoised: E * frames (rgb) and A * frames (w) of the filter, in place of the sums'.
+        let filtered: Option<&[[f32; 4]]> = bytes.get(5).map(|b| bytemuck::cast_slice(b));
         let mut frame = Frame::new(w, h);
         let k = if with_ao { frames as f32 } else { 1.0 };
         let exposure = settings.exposure as f32;
@@ -987,7 +1009,10 @@ impl GpuRenderer {
             frame.depth[i] = g[3];
             let (a, bent, e) = if with_ao {
                 let b = glam::Vec3::new(acc_ao[i][0], acc_ao[i][1], acc_ao[i][2]).normalize_or_zero();
-                (acc_ao[i][3] / k, b, [0, 1, 2].map(|c| acc_ibl[i][c] / k))
+                match filtered {
+                    Some(f) => (f[i][3] / k, b, [0, 1, 2].map(|c| f[i][c] / k)),
+                    None => (acc_ao[i][3] / k, b, [0, 1, 2].map(|c| acc_ibl[i][c] / k)),
+                }
             } else {
                 let nv = glam::Vec3::from_array(frame.normal[i]);
                 let d = view.ray_dir(&basis, (i % w as usize) as u32, (i / w as usize) as u32);

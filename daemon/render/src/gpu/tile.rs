@@ -6,12 +6,16 @@
 //! A frame ([`GpuRenderer::render_tile`]) stays on the GPU: the isosurface kernel (only when the
 //! accumulation restarts: the primary hits do not change while the frame state does not), the AO
 //! kernel adding one frame into the running sums, and [`Kernel::Compose`](crate::shaders::Kernel)
-//! writing the presentable image, depth and the frame's counters. Only what leaves the node is
+//! writing the presentable image, depth and the frame's counters; with `settings.denoise` on,
+//! [`Kernel::Denoise`](crate::shaders::Kernel) filters the occlusion and IBL terms between AO and
+//! compose (its buffers made on the first denoised frame and kept), over the rectangle grown by
+//! the tile's guard band ([`work_view`]; the counters count the band's pixels too). Only what leaves the node is
 //! read back, through a [`ReadbackRing`]: the counters (and kernel timestamps) every frame, colour
 //! and depth where the tile's pixels travel (object space), the image when a snapshot is asked
 //! for ([`GpuRenderer::read_tile_image`]).
 
 use super::compose::ComposeParams;
+use super::denoise::DenoiseBuffers;
 use super::readback::{Read, ReadbackRing, Source};
 use super::{FrameParams, GpuEnvironment, GpuError, GpuRenderer, GpuVolume};
 use isowall_model::{lowres, IblMethod, RenderSettings, View};
@@ -31,6 +35,13 @@ struct Bound {
     env: u64,
     isosurface: wgpu::BindGroup,
     ao: wgpu::BindGroup,
+}
+
+/// A tile's filter resources ([`Kernel::Denoise`](crate::shaders::Kernel)), made on its first
+/// denoised frame and kept: the passes' buffers and compose's bind groups reading their output.
+struct TileDenoise {
+    buffers: DenoiseBuffers,
+    compose: [wgpu::BindGroup; IMAGES],
 }
 
 /// The timestamp queries of a tile's frame (where the adapter has them): begin and end of the
@@ -56,6 +67,9 @@ pub struct TileTarget {
     id: u64,
     size: (u32, u32),
     scale: u32,
+    /// Low pixels rendered beyond the rectangle on each side (within the full image): the
+    /// filter's guard band, so that a tile filters its edge pixels as the whole image does.
+    guard: u32,
     low_size: (u32, u32),
     /// direct + hit, N + depth, fetches, summed bent + A, summed E (the low rectangle).
     aov: [wgpu::Buffer; 5],
@@ -65,6 +79,7 @@ pub struct TileTarget {
     counters: wgpu::Buffer,
     images: [TileImage; IMAGES],
     compose: [wgpu::BindGroup; IMAGES],
+    denoise: Option<TileDenoise>,
     bound: Option<Bound>,
     timestamps: Option<Timestamps>,
     /// Frames in the running sums.
@@ -112,12 +127,37 @@ pub struct TileOutput {
     pub depth: Option<Vec<f32>>,
 }
 
+/// The rectangle the kernels of a tile showing `view` at `scale` run over: the low-resolution
+/// rectangle grown by `guard` pixels on each side, within the (low) full image.
+pub fn work_view(view: &View, scale: u32, guard: u32) -> View {
+    let mut low = lowres::scaled_view(view, scale.max(1));
+    let r = low.rect;
+    let (x0, y0) = (r.x.saturating_sub(guard), r.y.saturating_sub(guard));
+    let x1 = (r.x + r.width).saturating_add(guard).min(low.full.0);
+    let y1 = (r.y + r.height).saturating_add(guard).min(low.full.1);
+    low.rect = isowall_model::Rect { x: x0, y: y0, width: x1 - x0, height: y1 - y0 };
+    low
+}
+
 impl TileTarget {
     /// The resources of a tile showing `view`'s rectangle, rendered at internal scale `scale`.
     pub fn new(gpu: &GpuRenderer, name: &str, view: &View, scale: u32) -> Result<TileTarget, GpuError> {
+        TileTarget::with_guard(gpu, name, view, scale, 0)
+    }
+
+    /// The resources of a tile whose kernels also render `guard` (low) pixels beyond its
+    /// rectangle on each side ([`work_view`]): with `guard >= denoise::reach()` its denoised pixels
+    /// are the whole image's.
+    pub fn with_guard(
+        gpu: &GpuRenderer,
+        name: &str,
+        view: &View,
+        scale: u32,
+        guard: u32,
+    ) -> Result<TileTarget, GpuError> {
         let ctx = &gpu.ctx;
         let scale = scale.max(1);
-        let low = lowres::scaled_view(view, scale);
+        let low = work_view(view, scale, guard);
         let size = (view.rect.width, view.rect.height);
         let low_size = (low.rect.width, low.rect.height);
         if size.0 == 0 || size.1 == 0 {
@@ -199,6 +239,7 @@ impl TileTarget {
                 id: super::next_resource_id(),
                 size,
                 scale,
+                guard,
                 low_size,
                 aov,
                 params,
@@ -207,6 +248,7 @@ impl TileTarget {
                 counters,
                 images,
                 compose,
+                denoise: None,
                 bound: None,
                 timestamps,
                 frames: 0,
@@ -216,12 +258,24 @@ impl TileTarget {
         })
     }
 
-    /// Whether the resources fit `view`'s rectangle at `scale` (else make new ones).
+    /// Whether the resources fit `view`'s rectangle at `scale` (else make new ones), without a
+    /// guard band.
     pub fn fits(&self, view: &View, scale: u32) -> bool {
-        let low = lowres::scaled_view(view, scale.max(1));
+        self.fits_with_guard(view, scale, 0)
+    }
+
+    /// Whether the resources fit `view`'s rectangle at `scale` with a `guard` band.
+    pub fn fits_with_guard(&self, view: &View, scale: u32, guard: u32) -> bool {
+        let low = work_view(view, scale.max(1), guard);
         self.size == (view.rect.width, view.rect.height)
             && self.scale == scale.max(1)
+            && self.guard == guard
             && self.low_size == (low.rect.width, low.rect.height)
+    }
+
+    /// The guard band, low pixels each way.
+    pub fn guard(&self) -> u32 {
+        self.guard
     }
 
     pub fn id(&self) -> u64 {
@@ -319,13 +373,13 @@ impl GpuRenderer {
     ) -> Result<(), GpuError> {
         let ctx = &self.ctx;
         let scale = tile.scale;
-        if !tile.fits(frame.view, scale) {
+        if !tile.fits_with_guard(frame.view, scale, tile.guard) {
             return Err(GpuError::View(format!(
                 "tile {}: its resources are {}x{} at scale {scale}, the view's rectangle is {}x{}",
                 tile.name, tile.size.0, tile.size.1, frame.view.rect.width, frame.view.rect.height
             )));
         }
-        let low = lowres::scaled_view(frame.view, scale);
+        let low = work_view(frame.view, scale, tile.guard);
         let env = self.check_frame(frame.volume, &low, frame.settings, frame.env, 1)?;
         let s = frame.settings;
         let with_ao = s.ao.samples > 0 || s.ao.ibl != IblMethod::None;
@@ -354,6 +408,27 @@ impl GpuRenderer {
                     [&a[0], &a[1], &a[3], &a[4], &a[2]],
                 ),
             });
+        }
+        let denoised = with_ao && s.denoise.is_on() && super::denoise::applies(&params);
+        if denoised && tile.denoise.is_none() {
+            let a = &tile.aov;
+            let n = low.rect.width as u64 * low.rect.height as u64;
+            let made = ctx.validated("tile denoise resources", || {
+                let buffers = self.denoise.buffers(ctx, n, [&a[0], &a[1], &a[3], &a[4]]);
+                let inputs = [&a[0], &a[1], &buffers.out, &a[2]];
+                let compose = [0, 1, 2].map(|i| {
+                    self.compose.bind(
+                        ctx,
+                        &tile.compose_params,
+                        inputs,
+                        &tile.images[i].storage,
+                        &tile.depth,
+                        &tile.counters,
+                    )
+                });
+                TileDenoise { buffers, compose }
+            })?;
+            tile.denoise = Some(made);
         }
         let bound = tile.bound.as_ref().expect("bound above");
         if restart {
@@ -392,8 +467,13 @@ impl GpuRenderer {
             if with_ao {
                 self.ao.pass(&mut enc, &bound.ao, low_size, dispatches, ts(1));
             }
+            let mut compose_group = &tile.compose[back];
+            if let (true, Some(d)) = (denoised, &tile.denoise) {
+                self.denoise.encode(ctx, &mut enc, &d.buffers, &params, frames);
+                compose_group = &d.compose[back];
+            }
             enc.clear_buffer(&tile.counters, 0, None);
-            self.compose.pass(&mut enc, &tile.compose[back], tile.size, ts(2));
+            self.compose.pass(&mut enc, compose_group, tile.size, ts(2));
             let mut sources = vec![Source::Buffer(&tile.counters, COUNTER_BYTES)];
             if let Some(t) = &tile.timestamps {
                 enc.resolve_query_set(&t.set, 0..QUERIES, &t.resolved, 0);

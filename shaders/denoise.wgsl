@@ -1,0 +1,175 @@
+// Kernel::Denoise (daemon/render/src/gpu/denoise.rs): one a-trous pass of the edge-aware spatial
+// filter of the occlusion and IBL terms, one invocation per pixel of the (low) rectangle the other
+// kernels ran over. The filter's definition and its CPU twin are daemon/render/src/denoise.rs: the
+// B3-spline weights at offsets step * (-2 ..= 2) per axis, times the plane, normal and occlusion
+// stops; the variance carried as sum w^2 var / (sum w)^2; no-hit pixels and pixels outside the
+// rectangle are no one's neighbour.
+//
+// Pass 0 reads the running sums (divided by the frame count) and the binomial variance; later
+// passes read the previous pass's signal (A, E.rgb) and variance. The last pass writes
+// `raw + strength (filtered - raw)` in running-sum form (E * frames in rgb, A * frames in w) into
+// `out_denoised`, which compose reads in place of the running sum of E.
+
+struct DenoiseParams {
+    forward: vec4<f32>,     // w: tan(fov_y / 2)
+    right: vec4<f32>,
+    up: vec4<f32>,
+    full_size: vec2<u32>,   // the (low) full image
+    rect_origin: vec2<u32>, // the rectangle filtered, in the full image
+    rect_size: vec2<u32>,
+    step: u32,              // this pass's step, pixels
+    first: u32,             // 1: read the running sums
+    last: u32,              // 1: write `out_denoised`
+    frames: u32,            // frames in the running sums
+    samples: f32,           // visibility samples per pixel in all (AO samples x frames)
+    strength: f32,          // the filtered value's share of the output (last pass)
+    sigma_plane: f32,
+    sigma_occlusion: f32,
+    normal_squarings: u32,  // the normal stop is max(n_p . n_q, 0)^(2^normal_squarings)
+    _pad0: u32,
+}
+
+// One entry per pass, at a dynamic offset (a read-only storage buffer: see frame.wgsl).
+@group(0) @binding(0) var<storage, read> params: DenoiseParams;
+// From the isosurface kernel: w = 1 on a hit.
+@group(0) @binding(1) var<storage, read> in_color: array<vec4<f32>>;
+// From the isosurface kernel: N (outward) and depth (w).
+@group(0) @binding(2) var<storage, read> in_geometry: array<vec4<f32>>;
+// Running sums of the AO kernel: bent normal + A (w); E (rgb).
+@group(0) @binding(3) var<storage, read> acc_ao: array<vec4<f32>>;
+@group(0) @binding(4) var<storage, read> acc_ibl: array<vec4<f32>>;
+// The previous pass's (A, E.rgb) and variance (pass 0 reads none).
+@group(0) @binding(5) var<storage, read> src_signal: array<vec4<f32>>;
+@group(0) @binding(6) var<storage, read> src_variance: array<f32>;
+// This pass's (A, E.rgb) and variance.
+@group(0) @binding(7) var<storage, read_write> dst_signal: array<vec4<f32>>;
+@group(0) @binding(8) var<storage, read_write> dst_variance: array<f32>;
+// The last pass's output, in running-sum form: E * frames (rgb), A * frames (w).
+@group(0) @binding(9) var<storage, read_write> out_denoised: array<vec4<f32>>;
+
+// The B3-spline weight of offset i (-2 ..= 2) along one axis.
+fn b3(i: i32) -> f32 {
+    let a = abs(i);
+    if a == 0 {
+        return 0.375;
+    }
+    if a == 1 {
+        return 0.25;
+    }
+    return 0.0625;
+}
+
+// frame.wgsl's `pixel_dir` with this kernel's parameters.
+fn pixel_dir(px: vec2<u32>) -> vec3<f32> {
+    let size = vec2<f32>(params.full_size);
+    let tan_half = params.forward.w;
+    let sx = ((f32(px.x) + 0.5) / size.x * 2.0 - 1.0) * tan_half * size.x / size.y;
+    let sy = (1.0 - (f32(px.y) + 0.5) / size.y * 2.0) * tan_half;
+    return normalize(params.forward.xyz + sx * params.right.xyz + sy * params.up.xyz);
+}
+
+fn position(q: vec2<u32>, depth: f32) -> vec3<f32> {
+    return pixel_dir(params.rect_origin + q) * depth;
+}
+
+// The raw (A, E.rgb) of pixel i: the running sums over the frame count.
+fn raw(i: u32) -> vec4<f32> {
+    let k = f32(params.frames);
+    return vec4<f32>(acc_ao[i].w / k, acc_ibl[i].xyz / k);
+}
+
+fn variance_of(a: f32) -> f32 {
+    let n = params.samples;
+    let p = (n * a + 1.0) / (n + 2.0);
+    return p * (1.0 - p) / n;
+}
+
+fn signal_at(i: u32) -> vec4<f32> {
+    if params.first == 1u {
+        return raw(i);
+    }
+    return src_signal[i];
+}
+
+fn variance_at(i: u32) -> f32 {
+    if params.first == 1u {
+        return variance_of(raw(i).x);
+    }
+    return src_variance[i];
+}
+
+// x^(2^normal_squarings) by squarings (a few loop iterations per neighbour, well within
+// lavapipe's budget of an invocation's loop iterations).
+fn normal_stop(x: f32) -> f32 {
+    var y = x;
+    for (var k = 0u; k < params.normal_squarings; k += 1u) {
+        y = y * y;
+    }
+    return y;
+}
+
+@compute @workgroup_size(8, 8, 1)
+fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if gid.x >= params.rect_size.x || gid.y >= params.rect_size.y {
+        return;
+    }
+    let w = params.rect_size.x;
+    let i = gid.x + gid.y * w;
+    if in_color[i].w < 0.5 {
+        if params.last == 1u {
+            out_denoised[i] = acc_ibl[i];
+        }
+        return;
+    }
+    let g = in_geometry[i];
+    let np = g.xyz;
+    let pp = position(gid.xy, g.w);
+    let sp = signal_at(i);
+    let pixel_size = 2.0 * params.forward.w / f32(params.full_size.y);
+    let footprint = params.sigma_plane * g.w * pixel_size;
+    let sigma_a = params.sigma_occlusion * sqrt(max(variance_at(i), 0.0)) + 1e-6;
+    let step = i32(params.step);
+    var sum = vec4<f32>(0.0);
+    var wsum = 0.0;
+    var vsum = 0.0;
+    for (var dy = -2; dy <= 2; dy += 1) {
+        for (var dx = -2; dx <= 2; dx += 1) {
+            let qx = i32(gid.x) + dx * step;
+            let qy = i32(gid.y) + dy * step;
+            if qx < 0 || qy < 0 || qx >= i32(params.rect_size.x) || qy >= i32(params.rect_size.y) {
+                continue;
+            }
+            let q = u32(qx) + u32(qy) * w;
+            if in_color[q].w < 0.5 {
+                continue;
+            }
+            let k = b3(dx) * b3(dy);
+            let offset = sqrt(f32((dx * dx + dy * dy) * step * step));
+            let gq = in_geometry[q];
+            let pq = position(vec2<u32>(u32(qx), u32(qy)), gq.w);
+            let plane = abs(dot(np, pq - pp));
+            let w_plane = exp(-plane / max(footprint * offset, 1e-20));
+            let w_normal = normal_stop(max(dot(np, gq.xyz), 0.0));
+            let s = signal_at(q);
+            let w_occ = exp(-abs(sp.x - s.x) / sigma_a);
+            let wq = k * w_plane * w_normal * w_occ;
+            sum += wq * s;
+            wsum += wq;
+            vsum += wq * wq * variance_at(q);
+        }
+    }
+    var filtered = sp;
+    var variance = variance_at(i);
+    if wsum > 0.0 {
+        filtered = sum / wsum;
+        variance = vsum / (wsum * wsum);
+    }
+    dst_signal[i] = filtered;
+    dst_variance[i] = variance;
+    if params.last == 1u {
+        let r = raw(i);
+        let v = r + params.strength * (filtered - r);
+        let k = f32(params.frames);
+        out_denoised[i] = vec4<f32>(v.yzw * k, v.x * k);
+    }
+}
