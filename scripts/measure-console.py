@@ -83,7 +83,9 @@ if nice:
     os.chmod(browser, 0o755)
 args = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
         "--disable-background-networking", "--disable-component-update", "--disable-sync",
-        "--window-size=1280,1200", "--user-data-dir=" + os.path.join(work, "profile")]
+        "--window-size=1280,1200",
+        # The page closed must be closed: no back-forward cache keeping it (and its WebSocket).
+        "--disable-features=BackForwardCache", "--user-data-dir=" + os.path.join(work, "profile")]
 sess = http("POST", "http://127.0.0.1:19515/session",
             {"capabilities": {"alwaysMatch": {"goog:chromeOptions": {"binary": browser, "args": args}}}})
 sid = sess["value"]["sessionId"]

@@ -44,6 +44,9 @@ pub const MAX_THUMBNAIL_WIDTH: u32 = 16384;
 /// The live status rate bounds, per second.
 pub const LIVE_MAX_HZ: f64 = 10.0;
 const LIVE_DEFAULT_HZ: f64 = 4.0;
+/// How long a status message may take to leave for a page; a page that does not read (frozen,
+/// gone without closing) is dropped after it instead of holding its task and buffers.
+const LIVE_SEND_DEADLINE: Duration = Duration::from_secs(10);
 /// How long a request waits for the frame loop.
 const LOOP_TIMEOUT: Duration = Duration::from_secs(30);
 
@@ -376,8 +379,13 @@ async fn push_status(mut socket: WebSocket, shared: Arc<Shared>, hz: f64) {
         let Some(s) = rx.borrow_and_update().clone() else { continue };
         let Ok(text) = serde_json::to_string(&*s) else { continue };
         shared.served_bytes.fetch_add(text.len() as u64, Ordering::Relaxed);
-        if socket.send(Message::Text(text.into())).await.is_err() {
-            return;
+        match tokio::time::timeout(LIVE_SEND_DEADLINE, socket.send(Message::Text(text.into()))).await {
+            Ok(Ok(())) => {}
+            Ok(Err(_)) => return,
+            Err(_) => {
+                tracing::info!("/api/live: a page read nothing for {LIVE_SEND_DEADLINE:?}; its WebSocket is closed");
+                return;
+            }
         }
     }
 }

@@ -8,7 +8,6 @@ use super::{storage_entry, FrameParams, GpuContext, GpuError};
 use crate::denoise::{self, PASSES};
 use crate::shaders::Kernel;
 use bytemuck::{Pod, Zeroable};
-use isowall_volume::VoxelFormat;
 
 /// Twin of WGSL `DenoiseParams`.
 #[repr(C)]
@@ -117,7 +116,7 @@ impl DenoiseKernel {
     pub fn new(ctx: &GpuContext, workgroup: (u32, u32)) -> Result<DenoiseKernel, GpuError> {
         let entries = Self::entries();
         // The voxel format is a constant of the volume kernels only.
-        let (pipeline, layout) = ctx.pipeline(Kernel::Denoise, &entries, workgroup, VoxelFormat::R32F)?;
+        let (pipeline, layout) = ctx.pipeline(Kernel::Denoise, &entries, workgroup, &[])?;
         let align = ctx.device.limits().min_storage_buffer_offset_alignment.max(16) as u64;
         let stride = (std::mem::size_of::<DenoiseParams>() as u64).div_ceil(align) * align;
         Ok(DenoiseKernel { pipeline, layout, workgroup, stride })
