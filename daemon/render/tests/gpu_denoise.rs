@@ -261,42 +261,6 @@ fn a_2x2_wall_with_the_guard_band_is_the_whole_denoised_image() {
     );
 }
 
-/// Tuning aid (not a check): occlusion RMSE against 1024 spp of the CPU twin with other stops.
-#[test]
-#[ignore]
-fn sweep_the_stops() {
-    let Some(gpu) = common::gpu() else { return };
-    for (w, h) in [(64, 48), (256, 192)] {
-        let (volume, view, s) = scene(w, h);
-        let gv = gpu.upload(&volume).unwrap();
-        let converged = render(&gpu, &gv, &view, &s, 256, false);
-        let raw = render(&gpu, &gv, &view, &s, 1, false);
-        let r = |o: &[f32]| {
-            let f = Frame { occlusion: o.to_vec(), ..raw.clone() };
-            rmse(&f, &converged.occlusion, &converged.hit)
-        };
-        eprintln!("{w}x{h} raw {:.4}", r(&raw.occlusion));
-        for sq in [3, 4, 5, 7] {
-            for so in [2.0, 4.0, 8.0, 1e6] {
-                for sp in [1.0, 4.0] {
-                    let stops = denoise::Stops { sigma_plane: sp, sigma_occlusion: so, normal_squarings: sq };
-                    let input = Input {
-                        view: &view,
-                        hit: &raw.hit,
-                        depth: &raw.depth,
-                        normal: &raw.normal,
-                        occlusion: &raw.occlusion,
-                        ibl: &raw.ibl,
-                        samples: 4,
-                    };
-                    let (o, _) = denoise::filter_with(&input, &stops);
-                    eprintln!("{w}x{h} squarings {sq} sigma_occ {so} sigma_plane {sp}: {:.4}", r(&o));
-                }
-            }
-        }
-    }
-}
-
 #[test]
 fn a_steady_denoised_tile_allocates_nothing() {
     // The filter's buffers are made on the tile's first denoised frame and kept; a steady frame
