@@ -264,10 +264,15 @@ fn the_api_refuses_missing_tokens_and_bad_input_and_changes_nothing() {
     assert_eq!(after["render"], before["render"]);
     assert_eq!((after["time"]["steps"].as_u64(), after["time"]["playing"].as_bool()), (Some(1), Some(false)));
     // A valid change is applied, and the thumbnail is the wall's size over the divisor.
-    assert_eq!(con.post("/api/render", "{\"ao_samples\": 2, \"exposure\": 0.9}").status, 200);
+    assert_eq!(before["render"]["denoise"], "off");
+    assert_eq!(con.post("/api/render", "{\"ao_samples\": 2, \"exposure\": 0.9, \"denoise\": \"on\"}").status, 200);
     let give_up = Instant::now() + Duration::from_secs(30);
-    while con.status()["render"]["ao_samples"] != 2 {
-        assert!(Instant::now() < give_up, "the change never showed in the status");
+    loop {
+        let r = &con.status()["render"];
+        if r["ao_samples"] == 2 && r["denoise"] == "on" {
+            break;
+        }
+        assert!(Instant::now() < give_up, "the change never showed in the status: {r}");
         std::thread::sleep(Duration::from_millis(100));
     }
     // The wall is its 32x24 tile and the tile's 2-pixel bezels on the right and at the bottom:

@@ -454,6 +454,7 @@ impl Loop {
                 ibl: s.ao.ibl,
                 exposure: s.exposure,
                 shading: s.shading,
+                denoise: s.denoise,
                 target_frame_ms: self.controls.target_frame_ms,
                 frame_ao_samples: self.frame_samples.0,
                 frame_scale: self.frame_samples.1,

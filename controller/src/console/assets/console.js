@@ -147,6 +147,7 @@ function showControls(s) {
   }
   if (!touched("ao-method")) setProp($("ao-method"), "value", r.ao_method);
   if (!touched("ibl")) setProp($("ibl"), "value", r.ibl);
+  if (!touched("denoise")) setProp($("denoise"), "value", r.denoise);
   if (!touched("exposure")) { setProp($("exposure"), "value", String(r.exposure)); setText($("exposure-value"), fmt(r.exposure, 2)); }
   if (!touched("target-frame-ms") && document.activeElement !== $("target-frame-ms")) {
     setProp($("target-frame-ms"), "value", r.target_frame_ms === null ? "" : String(r.target_frame_ms));
@@ -212,6 +213,7 @@ wire("ao-samples", "change", (el) => post("/api/render", { ao_samples: AO_STEPS[
 wire("ao-samples", "input", (el) => { $("ao-samples-value").textContent = AO_STEPS[Number(el.value)]; });
 wire("ao-method", "change", (el) => post("/api/render", { ao_method: el.value }));
 wire("ibl", "change", (el) => post("/api/render", { ibl: el.value }));
+wire("denoise", "change", (el) => post("/api/render", { denoise: el.value }));
 const sendExposure = throttled(() => post("/api/render", { exposure: Number($("exposure").value) }));
 wire("exposure", "input", (el) => { $("exposure-value").textContent = fmt(Number(el.value), 2); sendExposure(); });
 wire("target-frame-ms", "change", (el) =>
