@@ -31,6 +31,7 @@
 // E = irradiance_SH9(bent) (1 - A); 3 rays: E = mean over samples of (1 - V_i) L_env(w_i).
 // With 0 samples: A = 0, bent = N, and `rays` falls back to the SH9 irradiance at N.
 //
+//#include camera.wgsl
 //#include frame.wgsl
 //#include volume.wgsl
 //#include sampling.wgsl

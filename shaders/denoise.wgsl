@@ -9,6 +9,8 @@
 // passes read the previous pass's signal (A, E.rgb) and variance. The last pass writes
 // `raw + strength (filtered - raw)` in running-sum form (E * frames in rgb, A * frames in w) into
 // `out_denoised`, which compose reads in place of the running sum of E.
+//
+//#include camera.wgsl
 
 struct DenoiseParams {
     forward: vec4<f32>,     // w: tan(fov_y / 2)
@@ -59,13 +61,9 @@ fn b3(i: i32) -> f32 {
     return 0.0625;
 }
 
-// frame.wgsl's `pixel_dir` with this kernel's parameters.
+// The pixel's ray from this kernel's parameters (camera.wgsl).
 fn pixel_dir(px: vec2<u32>) -> vec3<f32> {
-    let size = vec2<f32>(params.full_size);
-    let tan_half = params.forward.w;
-    let sx = ((f32(px.x) + 0.5) / size.x * 2.0 - 1.0) * tan_half * size.x / size.y;
-    let sy = (1.0 - (f32(px.y) + 0.5) / size.y * 2.0) * tan_half;
-    return normalize(params.forward.xyz + sx * params.right.xyz + sy * params.up.xyz);
+    return camera_ray(px, params.full_size, params.forward, params.right.xyz, params.up.xyz);
 }
 
 fn position(q: vec2<u32>, depth: f32) -> vec3<f32> {

@@ -65,11 +65,8 @@ const PERF_BLOCK_MIN_EXIT: u32 = 1u;
 @group(0) @binding(1) var<storage, read> volume: array<u32>;
 @group(0) @binding(2) var<storage, read> block_minmax: array<vec2<f32>>; // primary, AO, coarse levels
 
-// Unit ray through the centre of pixel px of the FULL image (DESIGN.md "Camera").
+// Unit ray through the centre of pixel px of the FULL image (camera.wgsl, which the kernel
+// includes before this file).
 fn pixel_dir(px: vec2<u32>) -> vec3<f32> {
-    let size = vec2<f32>(params.full_size);
-    let tan_half = params.forward.w;
-    let sx = ((f32(px.x) + 0.5) / size.x * 2.0 - 1.0) * tan_half * size.x / size.y;
-    let sy = (1.0 - (f32(px.y) + 0.5) / size.y * 2.0) * tan_half;
-    return normalize(params.forward.xyz + sx * params.right.xyz + sy * params.up.xyz);
+    return camera_ray(px, params.full_size, params.forward, params.right.xyz, params.up.xyz);
 }

@@ -21,6 +21,7 @@
 // - Normal: N = -grad f / |grad f| by central differences (h = one voxel per axis); the direction
 //   towards the viewer where the gradient vanishes. Shading uses N turned towards the viewer.
 //
+//#include camera.wgsl
 //#include frame.wgsl
 //#include volume.wgsl
 //#include shading.wgsl

@@ -60,6 +60,7 @@ impl Kernel {
 
 /// Shared include files, by name.
 const INCLUDES: &[(&str, &str)] = &[
+    ("camera.wgsl", include_str!("../../../shaders/camera.wgsl")),
     ("frame.wgsl", include_str!("../../../shaders/frame.wgsl")),
     ("sampling.wgsl", include_str!("../../../shaders/sampling.wgsl")),
     ("environment.wgsl", include_str!("../../../shaders/environment.wgsl")),
