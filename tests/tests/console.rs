@@ -265,7 +265,10 @@ fn the_api_refuses_missing_tokens_and_bad_input_and_changes_nothing() {
     assert_eq!((after["time"]["steps"].as_u64(), after["time"]["playing"].as_bool()), (Some(1), Some(false)));
     // A valid change is applied, and the thumbnail is the wall's size over the divisor.
     assert_eq!(before["render"]["denoise"], "off");
-    assert_eq!(con.post("/api/render", "{\"ao_samples\": 2, \"exposure\": 0.9, \"denoise\": \"on\"}").status, 200);
+    assert_eq!(
+        con.post("/api/render", "{\"ao_samples\": 2, \"exposure\": 0.9, \"denoise\": \"on\"}").status,
+        200
+    );
     let give_up = Instant::now() + Duration::from_secs(30);
     loop {
         let r = &con.status()["render"];
@@ -304,11 +307,19 @@ fn the_api_refuses_missing_tokens_and_bad_input_and_changes_nothing() {
         s["frame"]["frame_ms_p50"].as_f64().expect("frame_ms_p50"),
         s["frame"]["frame_ms_p99"].as_f64().expect("frame_ms_p99"),
     );
-    assert!(!frames.is_empty() && 0.0 < p50 && p50 <= p99, "frame ms p50 {p50}, p99 {p99}, {} frames", frames.len());
-    let (lo, hi) = frames.iter().filter_map(Value::as_f64).fold((f64::MAX, 0.0_f64), |(l, h), x| (l.min(x), h.max(x)));
+    assert!(
+        !frames.is_empty() && 0.0 < p50 && p50 <= p99,
+        "frame ms p50 {p50}, p99 {p99}, {} frames",
+        frames.len()
+    );
+    let (lo, hi) =
+        frames.iter().filter_map(Value::as_f64).fold((f64::MAX, 0.0_f64), |(l, h), x| (l.min(x), h.max(x)));
     assert!(lo <= p99 && p50 <= hi, "quantiles {p50}/{p99} outside the series' {lo}..{hi}");
     let (skew50, skew99) = (s["frame"]["skew_ms_p50"].as_f64(), s["frame"]["skew_ms_p99"].as_f64());
-    assert!(skew50.zip(skew99).is_some_and(|(a, b)| 0.0 <= a && a <= b), "skew p50 {skew50:?}, p99 {skew99:?}");
+    assert!(
+        skew50.zip(skew99).is_some_and(|(a, b)| 0.0 <= a && a <= b),
+        "skew p50 {skew50:?}, p99 {skew99:?}"
+    );
     let node = &s["nodes"][0];
     let (render, ready) = (node["render_ms"].as_f64(), node["ready_ms"].as_f64());
     assert!(
@@ -643,7 +654,10 @@ async fn the_page_shows_the_wall_its_nodes_and_drives_it_in_a_real_browser() {
     until(&page, &format!("{cards_with_times} === 4"), Duration::from_secs(10)).await;
     let frame = &con.status()["frame"];
     assert!(
-        frame["frame_ms_p50"].as_f64().zip(frame["frame_ms_p99"].as_f64()).is_some_and(|(a, b)| 0.0 < a && a <= b),
+        frame["frame_ms_p50"]
+            .as_f64()
+            .zip(frame["frame_ms_p99"].as_f64())
+            .is_some_and(|(a, b)| 0.0 < a && a <= b),
         "frame quantiles: {frame}"
     );
     let latencies = js(&page, "window.isowall.latencies").await;

@@ -383,7 +383,9 @@ async fn push_status(mut socket: WebSocket, shared: Arc<Shared>, hz: f64) {
             Ok(Ok(())) => {}
             Ok(Err(_)) => return,
             Err(_) => {
-                tracing::info!("/api/live: a page read nothing for {LIVE_SEND_DEADLINE:?}; its WebSocket is closed");
+                tracing::info!(
+                    "/api/live: a page read nothing for {LIVE_SEND_DEADLINE:?}; its WebSocket is closed"
+                );
                 return;
             }
         }
