@@ -164,7 +164,7 @@ impl Controls {
             env: self.env.clone(),
             exposure: Some(s.exposure),
             target_frame_ms: target,
-            denoise: s.denoise,
+            denoise: s.denoise.into(),
         };
         if let Some((field, message)) = render_problems(&table).into_iter().next() {
             return Err(Refusal { field, message });

@@ -27,6 +27,11 @@
 //! lowers it by one (resolution returns before any sample is added back). A still frame is always
 //! rendered at scale 1: progressive refinement happens at full resolution (the moving scale is
 //! remembered for when the camera moves again).
+//!
+//! A governed wall's moving frames, at few samples, are its noisiest: with the config's
+//! `[render] denoise = "auto"` (the default) a wall with a governor target filters them
+//! ([`DenoiseSetting::resolve`](crate::config::DenoiseSetting::resolve)); the filter fades as still
+//! frames accumulate samples.
 
 /// A frame more than this fraction over the target lowers the count.
 pub const OVER: f64 = 0.10;

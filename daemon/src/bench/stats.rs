@@ -17,6 +17,24 @@ pub fn is_plain(name: &str) -> bool {
     name == PLAIN || name == PLAIN_ALIAS
 }
 
+/// CPU milliseconds this process has used, user and system (`/proc/self/stat`; Linux's clock
+/// ticks are 1/100 s to user space), or `None` where that file cannot be read. On a CPU driver
+/// (lavapipe) the kernels run on this process's threads, so a frame's CPU time is its cost
+/// whatever else the machine runs, where its wall time is not.
+pub fn process_cpu_ms() -> Option<f64> {
+    cpu_ms_of(&std::fs::read_to_string("/proc/self/stat").ok()?)
+}
+
+/// utime + stime of a `/proc/PID/stat` line, in ms. The command name (2nd field, in parentheses)
+/// may hold spaces and parentheses, so the fields are counted from its last ')': state is the 3rd
+/// field, utime the 14th and stime the 15th.
+fn cpu_ms_of(stat: &str) -> Option<f64> {
+    let rest = &stat[stat.rfind(')')? + 1..];
+    let fields: Vec<&str> = rest.split_whitespace().collect();
+    let ticks = |i: usize| fields.get(i - 3)?.parse::<u64>().ok();
+    Some((ticks(14)? + ticks(15)?) as f64 * 10.0)
+}
+
 /// Writes a bench's rows to `path`: its `comment` line, the `header` line, then one line a row
 /// (what [`csv_records`] reads back).
 pub fn save_csv(path: &Path, comment: &str, header: &str, rows: impl Iterator<Item = String>) -> Result<()> {
@@ -121,4 +139,15 @@ pub fn sample_list(list: &str) -> Result<Vec<u32>> {
             s.trim().parse::<u32>().map_err(|_| anyhow::anyhow!("--samples: '{s}' is not a whole number"))
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn cpu_time_is_read_past_an_odd_command_name() {
+        let line = "4242 (isowalld (bench) x) R 1 2 3 4 5 6 7 8 9 10 123 45 0 0 20 0 9 0 100 2000 30";
+        assert_eq!(super::cpu_ms_of(line), Some(1680.0));
+        assert_eq!(super::cpu_ms_of("4242 (short) R 1 2"), None);
+        assert!(super::process_cpu_ms().is_some(), "/proc/self/stat");
+    }
 }

@@ -9,8 +9,8 @@
 //! in degrees over pixels both hit.
 
 use super::stats::{
-    baseline_row, csv_records, error_stats, is_plain, median, print_baseline_heading, sample_list, save_csv,
-    scene_spec,
+    baseline_row, csv_records, error_stats, is_plain, median, print_baseline_heading, process_cpu_ms,
+    sample_list, save_csv, scene_spec,
 };
 use crate::args;
 use crate::render::load_volume;
@@ -336,10 +336,15 @@ pub fn run(a: &SuiteArgs) -> Result<()> {
                     s.denoise = *denoise;
                     gpu.render(gv, &view, &s, None)?; // warm-up
                     let mut times = Vec::new();
+                    let mut cpu = Vec::new();
                     let mut last = None;
                     for r in 0..a.repeats.max(1) {
                         s.ao.frame = r as u32;
+                        let cpu0 = process_cpu_ms();
                         let out = gpu.render(gv, &view, &s, None)?;
+                        if let (Some(c0), Some(c1)) = (cpu0, process_cpu_ms()) {
+                            cpu.push(c1 - c0);
+                        }
                         times.push(out.gpu_time.as_secs_f64() * 1e3);
                         last = Some(out.frame);
                     }
@@ -358,6 +363,15 @@ pub fn run(a: &SuiteArgs) -> Result<()> {
                         normal_error_deg: angle,
                     };
                     println!("{}", row.csv());
+                    let measured = cpu.len();
+                    if measured > 0 {
+                        // On a CPU driver the frame's own cost, whatever else the machine runs.
+                        println!(
+                            "# cpu {},{w}x{h},{n},{variant}: {:.0} ms of process CPU per frame (median of {measured})",
+                            volume.name,
+                            median(cpu),
+                        );
+                    }
                     rows.push(row);
                 }
             }

@@ -38,7 +38,10 @@
 //! ibl = "bent"                    # none | seed | bent | rays
 //! env = "sky"                     # sky | FILE.hdr | DIR (relative to this file's folder)
 //! exposure = 0.6                  # default 0.6 with an IBL method, else 1
-//! denoise = "on"                  # off | on: the spatial filter of occlusion and IBL (default off)
+//! denoise = "auto"                # off | on | auto: the spatial filter of occlusion and IBL;
+//!                                 # auto (the default): on where target_frame_ms is set and
+//!                                 # ao_samples > 0, so that a governed wall's moving frames (at
+//!                                 # few samples) are filtered; screen space only
 //! target_frame_ms = 100.0         # quality governor: AO samples chosen per frame for this
 //!                                 # frame time while the camera moves (omitted: off)
 //!
@@ -253,8 +256,44 @@ pub struct RenderConfig {
     pub exposure: Option<f64>,
     /// The quality governor's target frame time (ms); `None`: off (`ao_samples` every frame).
     pub target_frame_ms: Option<f64>,
-    /// The spatial filter of the occlusion and IBL terms (`off` | `on`).
-    pub denoise: Denoise,
+    /// The spatial filter of the occlusion and IBL terms (`off` | `on` | `auto`).
+    pub denoise: DenoiseSetting,
+}
+
+/// `[render] denoise`: the spatial filter of the occlusion and IBL terms, or `auto` (the default):
+/// on where the quality governor sets the frame time (`target_frame_ms`) and there are AO samples
+/// to filter. A governed wall renders its moving frames at few samples, the noisiest images it
+/// shows; the filter's strength falls as still frames accumulate samples
+/// (`isowall_render::denoise::strength`), so the still image converges to the unfiltered one.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum DenoiseSetting {
+    Off,
+    On,
+    #[default]
+    Auto,
+}
+
+impl DenoiseSetting {
+    /// The filter a wall with this setting renders with: `auto` is on with a governor's target
+    /// and AO samples, off otherwise.
+    pub fn resolve(self, target_frame_ms: Option<f64>, ao_samples: u32) -> Denoise {
+        match self {
+            DenoiseSetting::Off => Denoise::Off,
+            DenoiseSetting::On => Denoise::On,
+            DenoiseSetting::Auto if target_frame_ms.is_some() && ao_samples > 0 => Denoise::On,
+            DenoiseSetting::Auto => Denoise::Off,
+        }
+    }
+}
+
+impl From<Denoise> for DenoiseSetting {
+    fn from(d: Denoise) -> DenoiseSetting {
+        match d {
+            Denoise::Off => DenoiseSetting::Off,
+            Denoise::On => DenoiseSetting::On,
+        }
+    }
 }
 
 impl Default for RenderConfig {
@@ -269,7 +308,7 @@ impl Default for RenderConfig {
             env: "sky".into(),
             exposure: None,
             target_frame_ms: None,
-            denoise: Denoise::Off,
+            denoise: DenoiseSetting::Auto,
         }
     }
 }
@@ -470,8 +509,15 @@ impl WallConfig {
         if let Some(r) = &render {
             validate_render(&mut doc, r);
         }
-        // object space: the halo bounds the AO reach.
+        // object space: the halo bounds the AO reach; bricks are not filtered.
         if let (Some(w), Some(r)) = (&wall, &render) {
+            if w.mode == WallMode::Object && r.denoise == DenoiseSetting::On {
+                doc.at(
+                    &[Seg::K("render"), Seg::K("denoise")],
+                    "render: `denoise` \"on\": an object-space wall does not filter (its bricks' pixels \
+                     are the image's only once composited); use \"off\" or \"auto\"",
+                );
+            }
             if w.mode == WallMode::Object {
                 let mut s = RenderSettings::new(0.0);
                 s.ao.radius = r.ao_radius;
@@ -582,7 +628,11 @@ impl WallConfig {
         s.ao.sequence = r.ao_sequence;
         s.ao.ibl = r.ibl;
         s.exposure = r.exposure.unwrap_or(if s.ibl_needs_environment() { 0.6 } else { 1.0 });
-        s.denoise = r.denoise;
+        s.denoise = match self.wall.mode {
+            // Bricks are not filtered (the filter would have to run on the composited tile).
+            WallMode::Object => Denoise::Off,
+            WallMode::Screen => r.denoise.resolve(r.target_frame_ms, r.ao_samples),
+        };
         s
     }
 

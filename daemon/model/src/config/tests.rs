@@ -85,6 +85,13 @@ fn object_mode_parses_and_refuses_an_unbounded_radius_or_the_seed_method() {
     expect(&unbounded, Some(35), "object space needs a bounded AO radius");
     let seed = format!("{}\n[render]\nao_method = \"seed\"\n", with("name = \"test\"", obj));
     expect(&seed, Some(35), "cannot use the `seed` AO method");
+    let filtered = format!("{}\n[render]\nao_samples = 4\ndenoise = \"on\"\n", with("name = \"test\"", obj));
+    expect(&filtered, Some(35), "an object-space wall does not filter");
+    let governed =
+        format!("{}\n[render]\nao_samples = 4\ntarget_frame_ms = 50\n", with("name = \"test\"", obj));
+    let c = WallConfig::parse(&governed, Path::new("w.toml")).unwrap();
+    assert_eq!(c.render.denoise, DenoiseSetting::Auto);
+    assert_eq!(c.render_settings(1.0).denoise, Denoise::Off, "auto does not filter bricks");
     expect(&with("name = \"test\"", "name = \"test\"\nmode = \"sideways\""), Some(3), "sideways");
 }
 
@@ -649,6 +656,26 @@ fn render_settings_take_the_render_defaults() {
     assert_eq!((s.shading, s.ao.samples, s.ao.radius), (Shading::Lambert, 16, AoRadius::World(4.0)));
     assert_eq!(s.ao.sequence, AoSequence::R2);
     assert_eq!((s.ao.method, s.ao.ibl, s.exposure), (AoMethod::Seed, IblMethod::Rays, 0.8));
+}
+
+#[test]
+fn auto_denoise_filters_a_governed_wall_with_ao_samples() {
+    let settings = |body: &str| {
+        WallConfig::parse(&format!("[render]\n{body}\n\n{GOOD}"), Path::new("w.toml"))
+            .unwrap()
+            .render_settings(1.0)
+            .denoise
+    };
+    assert_eq!(WallConfig::parse(GOOD, Path::new("w.toml")).unwrap().render.denoise, DenoiseSetting::Auto);
+    assert_eq!(settings("ao_samples = 4\ntarget_frame_ms = 50"), Denoise::On);
+    assert_eq!(settings("ao_samples = 4"), Denoise::Off, "no governor");
+    assert_eq!(settings("target_frame_ms = 50"), Denoise::Off, "no AO samples");
+    assert_eq!(settings("ao_samples = 4\ntarget_frame_ms = 50\ndenoise = \"off\""), Denoise::Off);
+    assert_eq!(settings("ao_samples = 4\ndenoise = \"on\""), Denoise::On);
+    // auto with no samples is not a contradiction (it resolves to off); on is.
+    assert!(
+        WallConfig::parse(&format!("[render]\ndenoise = \"auto\"\n\n{GOOD}"), Path::new("w.toml")).is_ok()
+    );
 }
 
 #[test]

@@ -237,7 +237,7 @@ pub fn render_problems(r: &RenderConfig) -> Vec<(&'static str, String)> {
     if r.env.trim().is_empty() {
         problems.push(("env", "render: `env` is empty (sky, FILE.hdr or DIR)".to_string()));
     }
-    if r.denoise.is_on() && r.ao_samples == 0 {
+    if r.denoise == DenoiseSetting::On && r.ao_samples == 0 {
         problems.push((
             "denoise",
             "render: `denoise` \"on\" filters the occlusion estimate: it needs `ao_samples` > 0".to_string(),
