@@ -189,11 +189,17 @@ pub fn orbit_camera(base: &Camera, k: u64, degrees_per_frame: f64) -> Camera {
 }
 
 /// The governor of a drive, if a target is set (the flag before the config): it starts at the
-/// configured samples (at least 1) and chooses 1 ..= MAX_AO_SAMPLES.
-fn governor(config: &WallConfig, settings: &RenderSettings, o: &OrbitOptions) -> Result<Option<Governor>> {
+/// configured samples (at least 1) and chooses 1 ..= MAX_AO_SAMPLES. With the flag's target, the
+/// config's `denoise = "auto"` filters as with a target in the config.
+fn governor(
+    config: &WallConfig,
+    settings: &mut RenderSettings,
+    o: &OrbitOptions,
+) -> Result<Option<Governor>> {
     let Some(target) = o.target_frame_ms.or(config.render.target_frame_ms) else {
         return Ok(None);
     };
+    settings.denoise = config.denoise(Some(target));
     let g = Governor::new(target, settings.ao.samples.max(1), 1, isowall_model::render_state::MAX_AO_SAMPLES)
         .map_err(|e| anyhow!("--target-frame-ms: {e}"))?;
     Ok(Some(g))
@@ -411,8 +417,8 @@ pub(crate) async fn write_snapshot(wall: &mut Wall, out: &std::path::Path) -> Re
 pub fn up(a: &UpArgs) -> Result<()> {
     let started = Instant::now();
     let config = load(&a.config)?;
-    let (base, settings) = scene(&config)?;
-    let gov = governor(&config, &settings, &a.orbit)?;
+    let (base, mut settings) = scene(&config)?;
+    let gov = governor(&config, &mut settings, &a.orbit)?;
     let log_dir = config.resolve("logs");
     let mut daemons = LocalDaemons::start(&config, &log_dir, &a.display, a.windowed)?;
     eprintln!("isowall: starting wall '{}': {} local node(s)", config.wall.name, daemons.len());
@@ -533,8 +539,8 @@ impl ResourceWatch {
 
 pub fn orbit(a: &OrbitArgs) -> Result<()> {
     let config = load(&a.config)?;
-    let (base, settings) = scene(&config)?;
-    let gov = governor(&config, &settings, &a.orbit)?;
+    let (base, mut settings) = scene(&config)?;
+    let gov = governor(&config, &mut settings, &a.orbit)?;
     runtime()?.block_on(async {
         let mut wall = Wall::connect(config, Duration::from_secs(10), START_GRACE).await?;
         let (elapsed, _, governed) =

@@ -628,12 +628,18 @@ impl WallConfig {
         s.ao.sequence = r.ao_sequence;
         s.ao.ibl = r.ibl;
         s.exposure = r.exposure.unwrap_or(if s.ibl_needs_environment() { 0.6 } else { 1.0 });
-        s.denoise = match self.wall.mode {
-            // Bricks are not filtered (the filter would have to run on the composited tile).
-            WallMode::Object => Denoise::Off,
-            WallMode::Screen => r.denoise.resolve(r.target_frame_ms, r.ao_samples),
-        };
+        s.denoise = self.denoise(r.target_frame_ms);
         s
+    }
+
+    /// The filter this wall renders with when its governor aims at `target_frame_ms` (`None`: no
+    /// governor): `[render] denoise` resolved ([`DenoiseSetting::resolve`]); off in object space,
+    /// whose bricks are not filtered (the filter would have to run on the composited tile).
+    pub fn denoise(&self, target_frame_ms: Option<f64>) -> Denoise {
+        match self.wall.mode {
+            WallMode::Object => Denoise::Off,
+            WallMode::Screen => self.render.denoise.resolve(target_frame_ms, self.render.ao_samples),
+        }
     }
 
     /// A path relative to the config file's folder (absolute paths are kept).

@@ -86,7 +86,7 @@ fn object_mode_parses_and_refuses_an_unbounded_radius_or_the_seed_method() {
     let seed = format!("{}\n[render]\nao_method = \"seed\"\n", with("name = \"test\"", obj));
     expect(&seed, Some(35), "cannot use the `seed` AO method");
     let filtered = format!("{}\n[render]\nao_samples = 4\ndenoise = \"on\"\n", with("name = \"test\"", obj));
-    expect(&filtered, Some(35), "an object-space wall does not filter");
+    expect(&filtered, Some(36), "an object-space wall does not filter");
     let governed =
         format!("{}\n[render]\nao_samples = 4\ntarget_frame_ms = 50\n", with("name = \"test\"", obj));
     let c = WallConfig::parse(&governed, Path::new("w.toml")).unwrap();
