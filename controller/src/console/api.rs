@@ -29,6 +29,7 @@ use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
+use futures_util::{Sink, SinkExt, Stream, StreamExt};
 use serde::Deserialize;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
@@ -358,16 +359,33 @@ async fn live(
     Ok(ws.max_message_size(4096).on_upgrade(move |socket| push_status(socket, shared, hz)))
 }
 
-/// Pushes the status at most `hz` times a second, when it changed; stops when the page goes.
-async fn push_status(mut socket: WebSocket, shared: Arc<Shared>, hz: f64) {
-    let mut rx = shared.status.subscribe();
+/// Pushes the status at most `hz` times a second, when it changed; stops when the page goes, or
+/// reads nothing for [`LIVE_SEND_DEADLINE`].
+async fn push_status(socket: WebSocket, shared: Arc<Shared>, hz: f64) {
+    push_changes(socket, shared.status.subscribe(), &shared.served_bytes, hz, LIVE_SEND_DEADLINE).await
+}
+
+/// [`push_status`]'s loop over any WebSocket (`socket`) and status type: each change of `rx`, at
+/// most `hz` times a second, as a JSON text message (its bytes added to `served`). Returns when the
+/// page closes or fails, or when a message waits longer than `deadline` to be sent (a page that
+/// reads nothing: its task and buffers are freed).
+async fn push_changes<S, E, T>(
+    mut socket: S,
+    mut rx: watch::Receiver<Option<Arc<T>>>,
+    served: &AtomicU64,
+    hz: f64,
+    deadline: Duration,
+) where
+    S: Stream<Item = Result<Message, E>> + Sink<Message> + Unpin,
+    T: serde::Serialize,
+{
     let mut tick = tokio::time::interval(Duration::from_secs_f64(1.0 / hz));
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     rx.mark_changed();
     loop {
         tokio::select! {
             _ = tick.tick() => {}
-            m = socket.recv() => match m {
+            m = socket.next() => match m {
                 // The page says nothing; anything but a close is ignored.
                 Some(Ok(Message::Close(_))) | None | Some(Err(_)) => return,
                 Some(Ok(_)) => continue,
@@ -378,14 +396,12 @@ async fn push_status(mut socket: WebSocket, shared: Arc<Shared>, hz: f64) {
         }
         let Some(s) = rx.borrow_and_update().clone() else { continue };
         let Ok(text) = serde_json::to_string(&*s) else { continue };
-        shared.served_bytes.fetch_add(text.len() as u64, Ordering::Relaxed);
-        match tokio::time::timeout(LIVE_SEND_DEADLINE, socket.send(Message::Text(text.into()))).await {
+        served.fetch_add(text.len() as u64, Ordering::Relaxed);
+        match tokio::time::timeout(deadline, socket.send(Message::Text(text.into()))).await {
             Ok(Ok(())) => {}
             Ok(Err(_)) => return,
             Err(_) => {
-                tracing::info!(
-                    "/api/live: a page read nothing for {LIVE_SEND_DEADLINE:?}; its WebSocket is closed"
-                );
+                tracing::info!("/api/live: a page read nothing for {deadline:?}; its WebSocket is closed");
                 return;
             }
         }
@@ -395,6 +411,85 @@ async fn push_status(mut socket: WebSocket, shared: Arc<Shared>, hz: f64) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::pin::Pin;
+    use std::task::{Context, Poll};
+
+    /// A page's WebSocket that reads nothing (every send waits for room forever) and says nothing;
+    /// or, `open`, one that takes every message into `sent`.
+    struct Page {
+        open: bool,
+        sent: Vec<String>,
+    }
+
+    impl Stream for Page {
+        type Item = Result<Message, std::convert::Infallible>;
+        fn poll_next(self: Pin<&mut Self>, _: &mut Context<'_>) -> Poll<Option<Self::Item>> {
+            Poll::Pending
+        }
+    }
+
+    impl Sink<Message> for Page {
+        type Error = std::convert::Infallible;
+        fn poll_ready(self: Pin<&mut Self>, _: &mut Context<'_>) -> Poll<Result<(), Self::Error>> {
+            if self.open {
+                Poll::Ready(Ok(()))
+            } else {
+                Poll::Pending
+            }
+        }
+        fn start_send(mut self: Pin<&mut Self>, m: Message) -> Result<(), Self::Error> {
+            if let Message::Text(t) = m {
+                self.sent.push(t.to_string());
+            }
+            Ok(())
+        }
+        fn poll_flush(self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Result<(), Self::Error>> {
+            self.poll_ready(cx)
+        }
+        fn poll_close(self: Pin<&mut Self>, _: &mut Context<'_>) -> Poll<Result<(), Self::Error>> {
+            Poll::Ready(Ok(()))
+        }
+    }
+
+    #[tokio::test]
+    async fn a_page_that_reads_nothing_is_dropped_after_the_send_deadline() {
+        let (_tx, rx) = watch::channel(Some(Arc::new(vec![1u32, 2, 3])));
+        let served = AtomicU64::new(0);
+        let page = Page { open: false, sent: Vec::new() };
+        let deadline = Duration::from_millis(200);
+        let started = std::time::Instant::now();
+        let pushed = tokio::time::timeout(
+            Duration::from_secs(30),
+            push_changes(page, rx, &served, LIVE_MAX_HZ, deadline),
+        )
+        .await;
+        assert!(pushed.is_ok(), "still pushing to a page that reads nothing after 30 s");
+        assert!(started.elapsed() >= deadline, "dropped before its deadline: {:?}", started.elapsed());
+        assert_eq!(served.load(Ordering::Relaxed), "[1,2,3]".len() as u64, "one message tried");
+    }
+
+    #[tokio::test]
+    async fn a_reading_page_gets_each_change_once() {
+        let (tx, rx) = watch::channel(Some(Arc::new(1u32)));
+        let served = AtomicU64::new(0);
+        let mut page = Page { open: true, sent: Vec::new() };
+        let task = async {
+            for v in 2..=3u32 {
+                tokio::time::sleep(Duration::from_millis(150)).await;
+                tx.send_replace(Some(Arc::new(v)));
+            }
+            tokio::time::sleep(Duration::from_millis(150)).await;
+        };
+        // The page is read until the changes are done.
+        tokio::select! {
+            _ = push_changes(&mut page, rx.clone(), &served, LIVE_MAX_HZ, Duration::from_secs(10)) => {
+                panic!("the push ended while the page reads")
+            }
+            _ = task => {}
+        }
+        assert_eq!(page.sent, vec!["1", "2", "3"]);
+        assert_eq!(served.load(Ordering::Relaxed), 3);
+    }
 
     #[test]
     fn hosts_and_tokens() {
