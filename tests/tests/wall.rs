@@ -1,5 +1,6 @@
 //! The wall over real processes on loopback: a 2x2 wall of four daemons and the
-//! controller, whose snapshot must equal a single render of the whole wall camera; a slow daemon
+//! controller, whose snapshot must equal a single render of the whole wall camera (and so with the
+//! AO filter on: the tiles' guard bands give the seams the whole image's pixels); a slow daemon
 //! reported by name while the others go on; a peer with another CA's certificate refused.
 
 use isowall_e2e::{
@@ -53,6 +54,76 @@ fn a_2x2_wall_snapshot_equals_the_single_render_of_the_whole_wall() {
     // pixels, up to one 8-bit level where float sums round differently.
     eprintln!("wall snapshot vs single render: max difference {max_diff} levels, mean {mean:.4}");
     assert!(max_diff <= 1 && mean < 0.01, "max {max_diff}, mean {mean}");
+}
+
+/// With `[render] denoise = "on"` (4 AO samples, so the filter applies in full) the snapshot is the
+/// single denoised render of the whole wall camera, seams included: the tolerance is the undenoised
+/// test's (one 8-bit level where float sums round differently, mean below 0.01 level). The filter
+/// ran: the snapshot differs from the single render with the filter off (which the test above holds
+/// equal to the undenoised snapshot) by 5 levels or more somewhere and a mean over the tiles (the
+/// background included) above 0.05 level (measured: 13 levels, mean 0.10; the denoised snapshot
+/// against the denoised single render: max 0).
+#[test]
+fn a_denoised_2x2_wall_snapshot_equals_the_single_denoised_render() {
+    let dir = tempfile::tempdir().unwrap();
+    let (w, h, bezel) = (40u32, 30u32, 3u32);
+    let config = wall_config(dir.path(), "w2x2d", &free_udp_ports(4), w, h, bezel, 60_000, "keys");
+    let text = std::fs::read_to_string(&config).unwrap();
+    assert!(text.contains("ao_samples = 4\n"), "the wall config has AO samples:\n{text}");
+    std::fs::write(&config, text.replacen("[render]\n", "[render]\ndenoise = \"on\"\n", 1)).unwrap();
+    let out = run_in(dir.path(), "isowall", &["keygen", "--config", config.to_str().unwrap()]);
+    assert!(out.status.success(), "keygen: {}", String::from_utf8_lossy(&out.stderr));
+    let out = run_in(
+        dir.path(),
+        "isowall",
+        &[
+            "up",
+            config.to_str().unwrap(),
+            "--frames",
+            "1",
+            "--snapshot",
+            "wall.png",
+            "--start-timeout",
+            "120",
+        ],
+    );
+    if !gpu_ok("isowall up", &out) {
+        return;
+    }
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(stdout.contains("4 of 4 tiles"), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+    let (fw, fh) = (2 * w + 2 * bezel, 2 * h + 2 * bezel);
+    for (file, denoise) in [("whole-on.png", "on"), ("whole-off.png", "off")] {
+        let out = render_whole(
+            dir.path(),
+            "procedural:torus:48",
+            (fw, fh),
+            4,
+            &["--denoise", denoise, "--out", file],
+        );
+        assert!(gpu_ok("isowalld render", &out));
+    }
+    let wall = image::open(dir.path().join("wall.png")).unwrap().to_rgb8();
+    let on = image::open(dir.path().join("whole-on.png")).unwrap().to_rgb8();
+    let off = image::open(dir.path().join("whole-off.png")).unwrap().to_rgb8();
+    assert_eq!(wall.dimensions(), (fw, fh));
+    let bezel_at = |x, y| in_bezel_2x2(x, y, w, h, bezel);
+    let d = compare_tiles(&wall, &on, bezel_at);
+    let raw = compare_tiles(&wall, &off, bezel_at);
+    eprintln!(
+        "denoised wall snapshot vs the single denoised render: max {} levels, mean {:.4}; \
+         vs the single render without the filter: max {}, mean {:.4}",
+        d.max_diff, d.mean, raw.max_diff, raw.mean
+    );
+    assert_eq!(d.compared, 4 * (w * h) as u64);
+    assert!(d.lit > 200, "the torus is hardly in view ({} lit pixels)", d.lit);
+    assert!(d.max_diff <= 1 && d.mean < 0.01, "max {}, mean {}", d.max_diff, d.mean);
+    assert!(
+        raw.max_diff >= 5 && raw.mean > 0.05,
+        "the filter did not run: max {} level(s), mean {} from the unfiltered render",
+        raw.max_diff,
+        raw.mean
+    );
 }
 
 #[test]

@@ -1,6 +1,6 @@
-//! Both renderers' AO against an independent estimate of DESIGN.md "AO" (`truth/`: its own field,
-//! march and directions, f64, nothing shared with the renderers but the loaded voxels), and
-//! against the outside answers of `../shared/conventions/ao-known-answers.json`.
+//! Both renderers' AO against an independent estimate of DESIGN.md "AO" (the crate
+//! `isowall-truth`, `daemon/truth/`: its own field, march and directions, f64, nothing shared with
+//! the renderers but the loaded voxels), and against the outside answers of `../shared/conventions/ao-known-answers.json`.
 //!
 //! - The real scans of `../shared/data` (CT at iso 300, MRI at iso 40; skipped with a message
 //!   where that folder is absent) at radius 8 (world units) and unbounded, at the 300 pixels of the
@@ -18,13 +18,13 @@
 //! tests of this file) on every core; the renderers render 1x1 rectangles at the chosen pixels.
 
 mod common;
-mod truth;
 
 use glam::DVec3;
 use isowall_model::{AoRadius, AoSequence, Camera, IblMethod, Rect, RenderSettings, View};
 use isowall_render::environment::Environment;
 use isowall_render::gpu::GpuRenderer;
 use isowall_render::reference;
+use isowall_truth as truth;
 use isowall_volume::procedural::{sphere_over_plane_geometry, Procedural};
 use isowall_volume::{Volume, VolumeSource};
 use std::path::PathBuf;
@@ -55,15 +55,9 @@ struct Scene {
     truth: Vec<Option<Truth>>,
 }
 
-/// The unit ray through the centre of pixel (px, py), from DESIGN.md "Camera" (written here anew).
-fn pixel_ray(c: &Camera, (w, h): (u32, u32), px: u32, py: u32) -> DVec3 {
-    let f = (c.target - c.eye).normalize();
-    let r = f.cross(c.up).normalize();
-    let u = r.cross(f);
-    let t = (c.fov_y_deg.to_radians() / 2.0).tan();
-    let sx = ((px as f64 + 0.5) / w as f64 * 2.0 - 1.0) * t * w as f64 / h as f64;
-    let sy = (1.0 - (py as f64 + 0.5) / h as f64 * 2.0) * t;
-    (f + sx * r + sy * u).normalize()
+/// The unit ray through the centre of pixel (px, py): the estimator's own.
+fn pixel_ray(c: &Camera, size: (u32, u32), px: u32, py: u32) -> DVec3 {
+    truth::pixel_ray((c.eye, c.target, c.up), c.fov_y_deg, size, px, py)
 }
 
 fn estimate_all(volume: &Volume, iso: f64, view: &View, pixels: &[(u32, u32)]) -> Vec<Option<Truth>> {

@@ -3,6 +3,7 @@
 
 mod accuracy;
 mod chart;
+mod denoise;
 mod frame;
 mod stats;
 mod suite;
@@ -42,6 +43,12 @@ pub enum BenchCommand {
     /// per kernel; `--variants plain` (or `before`) measures the earlier path in the same run;
     /// `--save` and `--baseline` as `bench suite` has them.
     Frame(frame::FrameArgs),
+    /// The AO filter (`--denoise on`) judged by the independent estimate of DESIGN.md "AO"
+    /// (isowall-truth), on the CT, the MRI and the engine: for 1..32 samples in one frame, raw and
+    /// denoised, the occlusion RMSE, p99 of |error| and bias at chosen hit pixels, and the median
+    /// ms per frame; then the goal check (denoised 4 spp against raw 32 spp: its RMSE in at most a
+    /// third of the time, p99 at most 1.5x). `--out DIR` writes denoise.csv and chart.svg.
+    Denoise(denoise::DenoiseArgs),
 }
 
 #[derive(Args)]
@@ -85,6 +92,7 @@ pub fn run(cmd: &BenchCommand) -> Result<()> {
         BenchCommand::Accuracy(a) => accuracy::run(a),
         BenchCommand::Suite(a) => suite::run(a),
         BenchCommand::Frame(a) => frame::run(a),
+        BenchCommand::Denoise(a) => denoise::run(a),
     }
 }
 

@@ -1,6 +1,8 @@
-//! An independent estimate of DESIGN.md "AO" (and of the IBL integral), the judge of the AO tests.
+//! An independent estimate of DESIGN.md "AO" (and of the IBL integral), the judge of the AO tests
+//! (`daemon/render/tests/ao_truth.rs`) and of `isowalld bench denoise`.
 //!
-//! Written apart from both renderers on purpose: nothing here calls `isowall_render` (not its
+//! Written apart from both renderers on purpose: this crate depends on glam alone and nothing here
+//! calls `isowall_render` (not its
 //! sampling, not the reference's cell walk or cubic, not the volume crate's trilinear field or
 //! gradient). It takes the voxels, dims, spacing and origin of a loaded volume and does the rest
 //! itself, brute force, in f64:
@@ -16,6 +18,7 @@
 //!   from its own set: jittered-stratified points of the unit square (a splitmix64 stream seeded
 //!   per pixel, fixed) mapped by the polar (not the concentric) map, cosine-weighted about N in its
 //!   own orthonormal basis. One march serves every radius: the first occluding distance is kept.
+//! - the camera: its own pixel-centre ray ([`pixel_ray`]), from DESIGN.md "Camera".
 
 use glam::DVec3;
 use std::f64::consts::PI;
@@ -262,6 +265,25 @@ impl Field {
         let first_hits = directions.iter().map(|&w| self.first_occluder(o, w, t_max)).collect();
         Some(Truth { px, py, depth, position: p, normal: n, first_hits, directions })
     }
+}
+
+/// The unit ray through the centre of pixel (px, py) of a `w` x `h` image (py = 0 the top row) of
+/// the pinhole camera at `eye` looking at `target` with `up` and a vertical field of view of
+/// `fov_y_deg` degrees, from DESIGN.md "Camera" (written here anew).
+pub fn pixel_ray(
+    (eye, target, up): (DVec3, DVec3, DVec3),
+    fov_y_deg: f64,
+    (w, h): (u32, u32),
+    px: u32,
+    py: u32,
+) -> DVec3 {
+    let f = (target - eye).normalize();
+    let r = f.cross(up).normalize();
+    let u = r.cross(f);
+    let t = (fov_y_deg.to_radians() / 2.0).tan();
+    let sx = ((px as f64 + 0.5) / w as f64 * 2.0 - 1.0) * t * w as f64 / h as f64;
+    let sy = (1.0 - (py as f64 + 0.5) / h as f64 * 2.0) * t;
+    (f + sx * r + sy * u).normalize()
 }
 
 /// splitmix64 (Steele, Lea, Flood 2014).
