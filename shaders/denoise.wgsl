@@ -125,7 +125,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let sp = signal_at(i);
     let pixel_size = 2.0 * params.forward.w / f32(params.full_size.y);
     let footprint = params.sigma_plane * g.w * pixel_size;
-    let sigma_a = params.sigma_occlusion * sqrt(max(variance_at(i), 0.0)) + 1e-6;
+    let var_p = variance_at(i);
     let step = i32(params.step);
     var sum = vec4<f32>(0.0);
     var wsum = 0.0;
@@ -149,15 +149,18 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             let w_plane = exp(-plane / max(footprint * offset, 1e-20));
             let w_normal = normal_stop(max(dot(np, gq.xyz), 0.0));
             let s = signal_at(q);
+            let var_q = variance_at(q);
+            // Symmetric: the larger of the two estimates' variances (denoise.rs).
+            let sigma_a = params.sigma_occlusion * sqrt(max(max(var_p, var_q), 0.0)) + 1e-6;
             let w_occ = exp(-abs(sp.x - s.x) / sigma_a);
             let wq = k * w_plane * w_normal * w_occ;
             sum += wq * s;
             wsum += wq;
-            vsum += wq * wq * variance_at(q);
+            vsum += wq * wq * var_q;
         }
     }
     var filtered = sp;
-    var variance = variance_at(i);
+    var variance = var_p;
     if wsum > 0.0 {
         filtered = sum / wsum;
         variance = vsum / (wsum * wsum);
