@@ -8,32 +8,36 @@ use isowall_e2e::{
 };
 use std::time::Duration;
 
-#[test]
-fn a_2x2_wall_snapshot_equals_the_single_render_of_the_whole_wall() {
-    let dir = tempfile::tempdir().unwrap();
-    let (w, h, bezel) = (40u32, 30u32, 3u32);
-    let config = wall_config(dir.path(), "w2x2", &free_udp_ports(4), w, h, bezel, 60_000, "keys");
-    let out = run_in(dir.path(), "isowall", &["keygen", "--config", config.to_str().unwrap()]);
+/// Tile size and bezel of the 2x2 walls compared with a single render.
+const TILE: (u32, u32, u32) = (40, 30, 3);
+
+/// Starts a 2x2 wall of `TILE`s (the config `wall_config` writes, changed by `edit`) in `dir`,
+/// renders one frame and writes its snapshot to `dir/wall.png`; `false` (skip) where there is no
+/// GPU outside CI.
+fn snapshot_2x2(dir: &std::path::Path, name: &str, edit: impl Fn(String) -> String) -> bool {
+    let (w, h, bezel) = TILE;
+    let config = wall_config(dir, name, &free_udp_ports(4), w, h, bezel, 60_000, "keys");
+    std::fs::write(&config, edit(std::fs::read_to_string(&config).unwrap())).unwrap();
+    let out = run_in(dir, "isowall", &["keygen", "--config", config.to_str().unwrap()]);
     assert!(out.status.success(), "keygen: {}", String::from_utf8_lossy(&out.stderr));
-    let out = run_in(
-        dir.path(),
-        "isowall",
-        &[
-            "up",
-            config.to_str().unwrap(),
-            "--frames",
-            "1",
-            "--snapshot",
-            "wall.png",
-            "--start-timeout",
-            "120",
-        ],
-    );
+    let args =
+        ["up", config.to_str().unwrap(), "--frames", "1", "--snapshot", "wall.png", "--start-timeout", "120"];
+    let out = run_in(dir, "isowall", &args);
     if !gpu_ok("isowall up", &out) {
-        return;
+        return false;
     }
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(stdout.contains("4 of 4 tiles"), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+    true
+}
+
+#[test]
+fn a_2x2_wall_snapshot_equals_the_single_render_of_the_whole_wall() {
+    let dir = tempfile::tempdir().unwrap();
+    let (w, h, bezel) = TILE;
+    if !snapshot_2x2(dir.path(), "w2x2", |text| text) {
+        return;
+    }
     // The whole wall image: tiles plus two mullions each way.
     let (fw, fh) = (2 * w + 2 * bezel, 2 * h + 2 * bezel);
     let out = render_whole(dir.path(), "procedural:torus:48", (fw, fh), 4, &["--out", "whole.png"]);
@@ -66,32 +70,14 @@ fn a_2x2_wall_snapshot_equals_the_single_render_of_the_whole_wall() {
 #[test]
 fn a_denoised_2x2_wall_snapshot_equals_the_single_denoised_render() {
     let dir = tempfile::tempdir().unwrap();
-    let (w, h, bezel) = (40u32, 30u32, 3u32);
-    let config = wall_config(dir.path(), "w2x2d", &free_udp_ports(4), w, h, bezel, 60_000, "keys");
-    let text = std::fs::read_to_string(&config).unwrap();
-    assert!(text.contains("ao_samples = 4\n"), "the wall config has AO samples:\n{text}");
-    std::fs::write(&config, text.replacen("[render]\n", "[render]\ndenoise = \"on\"\n", 1)).unwrap();
-    let out = run_in(dir.path(), "isowall", &["keygen", "--config", config.to_str().unwrap()]);
-    assert!(out.status.success(), "keygen: {}", String::from_utf8_lossy(&out.stderr));
-    let out = run_in(
-        dir.path(),
-        "isowall",
-        &[
-            "up",
-            config.to_str().unwrap(),
-            "--frames",
-            "1",
-            "--snapshot",
-            "wall.png",
-            "--start-timeout",
-            "120",
-        ],
-    );
-    if !gpu_ok("isowall up", &out) {
+    let (w, h, bezel) = TILE;
+    let denoised = |text: String| {
+        assert!(text.contains("ao_samples = 4\n"), "the wall config has AO samples:\n{text}");
+        text.replacen("[render]\n", "[render]\ndenoise = \"on\"\n", 1)
+    };
+    if !snapshot_2x2(dir.path(), "w2x2d", denoised) {
         return;
     }
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(stdout.contains("4 of 4 tiles"), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
     let (fw, fh) = (2 * w + 2 * bezel, 2 * h + 2 * bezel);
     for (file, denoise) in [("whole-on.png", "on"), ("whole-off.png", "off")] {
         let out = render_whole(
