@@ -3,7 +3,8 @@
 
 use isowall_e2e::{gpu_ok, run_in};
 
-const COLUMNS: &str = "scene,spp,denoise,ms_per_frame,occlusion_rmse,occlusion_p99,occlusion_bias,pixels";
+const COLUMNS: &str =
+    "scene,spp,denoise,ms_per_frame,occlusion_rmse,occlusion_p99,occlusion_bias,pixels,cpu_ms_per_frame";
 
 #[test]
 fn tiny_denoise_bench_writes_csv_and_chart_and_the_filter_lowers_the_error() {
@@ -45,7 +46,7 @@ fn tiny_denoise_bench_writes_csv_and_chart_and_the_filter_lowers_the_error() {
     let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
     assert_eq!(rows.len(), 4, "spp 1 and 4, raw and denoised:\n{csv}");
     for r in &rows {
-        assert_eq!(r.len(), 8, "{r:?}");
+        assert_eq!(r.len(), 9, "{r:?}");
         let num = |i: usize| r[i].parse::<f64>().unwrap_or_else(|_| panic!("column {i} of {r:?}"));
         assert!(num(3) > 0.0 && num(3).is_finite(), "{r:?}");
         for i in 4..7 {
@@ -54,6 +55,7 @@ fn tiny_denoise_bench_writes_csv_and_chart_and_the_filter_lowers_the_error() {
         assert!(num(4) >= 0.0 && num(5) >= 0.0 && num(4) <= 1.0, "{r:?}");
         let pixels = num(7);
         assert!((15.0..=20.0).contains(&pixels), "pixels compared: {r:?}");
+        assert!(num(8) >= 0.0, "process CPU per frame: {r:?}");
     }
     let rmse = |spp: &str, den: &str| {
         rows.iter().find(|r| r[1] == spp && r[2] == den).unwrap_or_else(|| panic!("no {spp}/{den} row"))[4]

@@ -9,11 +9,12 @@
 //! each sample count, one frame of that many samples (as `bench suite`'s samples axis renders it),
 //! raw and denoised, `--repeats` times with different frame indices: the occlusion RMSE, p99 of
 //! |error| and bias over every (pixel, repeat) where the GPU's hit is the estimate's (depths within
-//! 0.05 voxel), and the median frame time (submit to done; the filter included). The goal check
+//! 0.05 voxel), and the median frame time (submit to done; the filter included) and process CPU
+//! time (on a CPU driver the frame's cost whatever else runs). The goal check
 //! compares denoised 4 spp with raw 32 spp.
 
 use super::chart::{Chart, Marker, Panel, Series};
-use super::stats::{median, sample_list, scene_spec};
+use super::stats::{median, process_cpu_ms, sample_list, scene_spec};
 use crate::args;
 use crate::render::load_volume;
 use anyhow::{bail, Context, Result};
@@ -28,7 +29,8 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// The CSV header of `denoise.csv`.
-pub const HEADER: &str = "scene,spp,denoise,ms_per_frame,occlusion_rmse,occlusion_p99,occlusion_bias,pixels";
+pub const HEADER: &str =
+    "scene,spp,denoise,ms_per_frame,occlusion_rmse,occlusion_p99,occlusion_bias,pixels,cpu_ms_per_frame";
 
 #[derive(Args)]
 pub struct DenoiseArgs {
@@ -74,6 +76,9 @@ struct Row {
     spp: u32,
     denoise: bool,
     ms: f64,
+    /// Median process CPU per frame (`stats::process_cpu_ms`): on a CPU driver the frame's cost
+    /// whatever else the machine runs; NaN where it cannot be read.
+    cpu_ms: f64,
     rmse: f64,
     p99: f64,
     bias: f64,
@@ -83,7 +88,7 @@ struct Row {
 impl Row {
     fn csv(&self) -> String {
         format!(
-            "{},{},{},{:.2},{:.5},{:.5},{:+.5},{}",
+            "{},{},{},{:.2},{:.5},{:.5},{:+.5},{},{:.0}",
             self.scene,
             self.spp,
             if self.denoise { "on" } else { "off" },
@@ -91,7 +96,8 @@ impl Row {
             self.rmse,
             self.p99,
             self.bias,
-            self.pixels
+            self.pixels,
+            self.cpu_ms
         )
     }
 }
@@ -278,10 +284,15 @@ pub fn run(a: &DenoiseArgs) -> Result<()> {
                 s.ao.samples = n;
                 s.denoise = if den { Denoise::On } else { Denoise::Off };
                 gpu.render(&gv, &view, &s, None)?; // warm-up
-                let (mut times, mut d) = (Vec::new(), Vec::new());
+                let (mut times, mut cpu, mut d) = (Vec::new(), Vec::new(), Vec::new());
                 for r in 0..a.repeats.max(1) {
                     s.ao.frame = r as u32;
+                    let cpu0 = process_cpu_ms();
                     let out = gpu.render(&gv, &view, &s, None)?;
+                    cpu.push(match (cpu0, process_cpu_ms()) {
+                        (Some(c0), Some(c1)) => c1 - c0,
+                        _ => f64::NAN,
+                    });
                     times.push(out.gpu_time.as_secs_f64() * 1e3);
                     d.extend(kept.iter().map(|&(i, want)| out.frame.occlusion[i] as f64 - want));
                 }
@@ -291,6 +302,7 @@ pub fn run(a: &DenoiseArgs) -> Result<()> {
                     spp: n,
                     denoise: den,
                     ms: median(times),
+                    cpu_ms: median(cpu),
                     rmse,
                     p99,
                     bias,
@@ -330,9 +342,10 @@ fn field_of(volume: &Volume, iso: f64) -> Field {
 fn goal_line(name: &str, d4: &Row, r32: &Row) -> String {
     let time = d4.ms / r32.ms;
     let p99 = d4.p99 / r32.p99;
+    let cpu = d4.cpu_ms / r32.cpu_ms;
     let met = d4.rmse <= r32.rmse && time <= 1.0 / 3.0 && p99 <= 1.5;
     format!(
-        "{name}: denoised 4 spp RMSE {:.4} vs raw 32 spp {:.4} (ratio {:.2}), time ratio {time:.3}, p99 {:.4} vs {:.4} (ratio {p99:.2}): {}",
+        "{name}: denoised 4 spp RMSE {:.4} vs raw 32 spp {:.4} (ratio {:.2}), time ratio {time:.3} (process CPU {cpu:.3}), p99 {:.4} vs {:.4} (ratio {p99:.2}): {}",
         d4.rmse,
         r32.rmse,
         d4.rmse / r32.rmse,
