@@ -98,21 +98,21 @@ pub struct Input<'a> {
     pub samples: u64,
 }
 
-/// The camera as the kernel holds it, in f32.
-struct Rays {
-    forward: [f32; 3],
-    right: [f32; 3],
-    up: [f32; 3],
-    tan_half: f32,
-    full: (f32, f32),
+/// The camera as the kernels hold it, in f32.
+pub(crate) struct Rays {
+    pub(crate) forward: [f32; 3],
+    pub(crate) right: [f32; 3],
+    pub(crate) up: [f32; 3],
+    pub(crate) tan_half: f32,
+    pub(crate) full: (f32, f32),
 }
 
-fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
+pub(crate) fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
 impl Rays {
-    fn new(view: &View) -> Rays {
+    pub(crate) fn new(view: &View) -> Rays {
         let b = view.camera.basis();
         let f = |v: glam::DVec3| [v.x as f32, v.y as f32, v.z as f32];
         Rays {
@@ -125,7 +125,7 @@ impl Rays {
     }
 
     /// shaders/frame.wgsl's `pixel_dir` in f32.
-    fn dir(&self, px: u32, py: u32) -> [f32; 3] {
+    pub(crate) fn dir(&self, px: u32, py: u32) -> [f32; 3] {
         let (w, h) = self.full;
         let sx = ((px as f32 + 0.5) / w * 2.0 - 1.0) * self.tan_half * w / h;
         let sy = (1.0 - (py as f32 + 0.5) / h * 2.0) * self.tan_half;

@@ -194,6 +194,7 @@ fn tile_image(
         settings: s,
         env: None,
         accumulate: false,
+        temporal: false,
         share: true,
     };
     gpu.render_tile(&mut tile, &f, &mut ring).unwrap();
@@ -284,6 +285,8 @@ fn a_steady_denoised_tile_allocates_nothing() {
             settings: &f,
             env: None,
             accumulate: true,
+            // A still camera never reprojects: temporal on changes nothing.
+            temporal: true,
             share: false,
         };
         if !ring.has_free_slot() {

@@ -4,6 +4,7 @@
 mod accuracy;
 mod chart;
 mod frame;
+mod orbit;
 mod stats;
 mod suite;
 
@@ -42,6 +43,14 @@ pub enum BenchCommand {
     /// per kernel; `--variants plain` (or `before`) measures the earlier path in the same run;
     /// `--save` and `--baseline` as `bench suite` has them.
     Frame(frame::FrameArgs),
+    /// A moving camera through the wall's tile path: a `--frames` orbit of `--degrees` a frame,
+    /// every frame a camera change, in four variants (raw: each frame restarts, as a moving wall
+    /// did before; reprojected: each pixel's history carried over; denoised; reprojected and
+    /// denoised). Per variant: the occlusion RMSE and p99 |error| against a converged render of
+    /// each frame's camera, flicker (mean change of the occlusion of a surface point between
+    /// consecutive frames; the converged references' own is the floor) and the median ms per
+    /// frame; `--out` writes every frame's numbers as CSV.
+    Orbit(orbit::OrbitArgs),
 }
 
 #[derive(Args)]
@@ -85,6 +94,7 @@ pub fn run(cmd: &BenchCommand) -> Result<()> {
         BenchCommand::Accuracy(a) => accuracy::run(a),
         BenchCommand::Suite(a) => suite::run(a),
         BenchCommand::Frame(a) => frame::run(a),
+        BenchCommand::Orbit(a) => orbit::run(a),
     }
 }
 
