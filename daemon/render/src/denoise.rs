@@ -24,6 +24,9 @@
 //! samples, a half at 16, 1/8 at 256, 1/32 at 4096; and as n grows, var_p shrinks and the occlusion stop
 //! holds neighbours that differ by more than the remaining noise. A converged image stays (a test
 //! bounds the change).
+//!
+//! A reprojected history ([`crate::reproject`]) gives each pixel its own count, n = AO samples per
+//! frame times its weight ([`Input::pixel_samples`]): its variance and strength follow that count.
 
 use isowall_model::View;
 
@@ -69,6 +72,14 @@ pub fn strength(samples: u64) -> f32 {
     (FULL_STRENGTH_SAMPLES as f32 / samples as f32).sqrt().min(1.0)
 }
 
+/// [`strength`] of a pixel's own sample count (a reprojected history's, not a whole number).
+pub fn pixel_strength(samples: f32) -> f32 {
+    if samples <= 0.0 {
+        return 0.0;
+    }
+    (FULL_STRENGTH_SAMPLES as f32 / samples).sqrt().min(1.0)
+}
+
 /// The variance of an occlusion estimate `a` over `n` samples (binomial, with the rule of
 /// succession for p so that 0 and 1 keep a variance).
 pub fn occlusion_variance(a: f32, n: f32) -> f32 {
@@ -96,6 +107,9 @@ pub struct Input<'a> {
     pub ibl: &'a [[f32; 3]],
     /// Visibility samples per pixel in all (AO samples per frame times frames).
     pub samples: u64,
+    /// Where each pixel has its own count (a reprojected history: AO samples per frame times the
+    /// pixel's weight), those counts, in place of `samples` for its variance and strength.
+    pub pixel_samples: Option<&'a [f32]>,
 }
 
 /// The camera as the kernels hold it, in f32.
@@ -154,7 +168,7 @@ pub fn filter_with(input: &Input, stops: &Stops) -> (Vec<f32>, Vec<[f32; 3]>) {
         })
         .collect();
     let pixel_size = 2.0 * rays.tan_half / rays.full.1;
-    let count = input.samples as f32;
+    let count = |i: usize| input.pixel_samples.map_or(input.samples as f32, |p| p[i]);
     let raw: Vec<[f32; 4]> = (0..n)
         .map(|i| {
             let e = input.ibl[i];
@@ -162,7 +176,8 @@ pub fn filter_with(input: &Input, stops: &Stops) -> (Vec<f32>, Vec<[f32; 3]>) {
         })
         .collect();
     let mut signal = raw.clone();
-    let mut variance: Vec<f32> = raw.iter().map(|s| occlusion_variance(s[0], count)).collect();
+    let mut variance: Vec<f32> =
+        raw.iter().enumerate().map(|(i, s)| occlusion_variance(s[0], count(i))).collect();
     for pass in 0..PASSES {
         let step = 1i64 << pass;
         let mut next_signal = signal.clone();
@@ -214,11 +229,12 @@ pub fn filter_with(input: &Input, stops: &Stops) -> (Vec<f32>, Vec<[f32; 3]>) {
         signal = next_signal;
         variance = next_variance;
     }
-    let s = strength(input.samples);
+    let uniform = strength(input.samples);
     let mut occlusion = input.occlusion.to_vec();
     let mut ibl = input.ibl.to_vec();
     for i in 0..n {
         if input.hit[i] {
+            let s = input.pixel_samples.map_or(uniform, |p| pixel_strength(p[i]));
             let out: [f32; 4] = std::array::from_fn(|c| raw[i][c] + s * (signal[i][c] - raw[i][c]));
             occlusion[i] = out[0];
             ibl[i] = [out[1], out[2], out[3]];

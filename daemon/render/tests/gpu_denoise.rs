@@ -48,6 +48,7 @@ fn cpu_filter(view: &View, raw: &Frame, samples: u64) -> (Vec<f32>, Vec<[f32; 3]
         occlusion: &raw.occlusion,
         ibl: &raw.ibl,
         samples,
+        pixel_samples: None,
     })
 }
 

@@ -8,6 +8,7 @@ mod common;
 
 use glam::{DQuat, DVec3};
 use isowall_model::{AoRadius, Camera, Denoise, Rect, RenderSettings, View};
+use isowall_render::denoise::{self, Input};
 use isowall_render::gpu::{
     tile::work_view, FrameRead, GpuRenderer, GpuVolume, ReadbackRing, TileFrame, TileOutput, TileSums,
     TileTarget,
@@ -173,6 +174,53 @@ fn the_gpu_reprojection_is_its_cpu_twin() {
     // Borderline pixels (a projection on a pixel edge, a plane distance at the tolerance) may fall
     // either way in f32 on the two sides.
     assert!(mismatched * 200 <= hits, "{mismatched} of {hits} differ");
+}
+
+#[test]
+fn the_filter_of_a_reprojected_history_is_its_cpu_twin_with_per_pixel_counts() {
+    let Some(gpu) = common::gpu() else { return };
+    let (volume, view, mut s) = scene(64, 48);
+    s.denoise = Denoise::On;
+    let gv = gpu.upload(&volume).unwrap();
+    let moved = orbit(&view, 3.0);
+    let (_, after, tile) = move_once(&gpu, &gv, &view, &moved, &s, 2, true);
+    assert!(tile.reprojected());
+    let (hit, depth, normal) = geometry(&after);
+    let weight: Vec<f32> = after.ibl.iter().map(|e| e[3]).collect();
+    let occ: Vec<f32> = occlusion(&after).iter().map(|a| if a.is_finite() { *a } else { 0.0 }).collect();
+    let ibl: Vec<[f32; 3]> = after
+        .ibl
+        .iter()
+        .map(|e| if e[3] > 0.0 { [e[0] / e[3], e[1] / e[3], e[2] / e[3]] } else { [0.0; 3] })
+        .collect();
+    let samples: Vec<f32> = weight.iter().map(|w| s.ao.samples as f32 * w).collect();
+    // Pixels carried over and pixels that restarted: the counts differ across the image.
+    assert!(weight.iter().any(|&w| w > 2.5) && weight.iter().zip(&hit).any(|(&w, &h)| h && w == 1.0));
+    let input = Input {
+        view: &moved,
+        hit: &hit,
+        depth: &depth,
+        normal: &normal,
+        occlusion: &occ,
+        ibl: &ibl,
+        samples: 0,
+        pixel_samples: Some(&samples),
+    };
+    let (cpu_occ, cpu_ibl) = denoise::filter(&input);
+    let den = after.denoised.as_ref().expect("the frame was denoised");
+    let k = tile.frames() as f32;
+    let (mut max, mut changed) = (0.0f32, 0.0f64);
+    for i in (0..hit.len()).filter(|&i| hit[i]) {
+        max = max.max((den[i][3] / k - cpu_occ[i]).abs());
+        for c in 0..3 {
+            max = max.max((den[i][c] / k - cpu_ibl[i][c]).abs());
+        }
+        changed += (den[i][3] / k - occ[i]).abs() as f64;
+    }
+    let changed = changed / hit.iter().filter(|&&h| h).count() as f64;
+    eprintln!("reprojected + denoised: GPU vs CPU twin max |diff| {max:.2e}; mean change by the filter {changed:.4}");
+    assert!(changed > 0.003, "the filter changed the occlusion by {changed} on average");
+    assert!(max < 1e-3, "GPU and CPU twin differ by up to {max}");
 }
 
 /// Root mean square of a - truth over the pixels where both have a value.
