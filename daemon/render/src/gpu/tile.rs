@@ -9,7 +9,12 @@
 //! writing the presentable image, depth and the frame's counters; with `settings.denoise` on,
 //! [`Kernel::Denoise`](crate::shaders::Kernel) filters the occlusion and IBL terms between AO and
 //! compose (its buffers made on the first denoised frame and kept), over the rectangle grown by
-//! the tile's guard band ([`work_view`]; the counters count the band's pixels too). Only what leaves the node is
+//! the tile's guard band ([`work_view`]; the counters count the band's pixels too). With
+//! `temporal` on, a frame whose state differs from the last only by the camera keeps the history:
+//! after the isosurface kernel, [`Kernel::Reproject`](crate::shaders::Kernel) carries each pixel's
+//! sums over from the previous frame's pixel that saw the same point ([`crate::reproject`]; the
+//! previous frame's hits and sums are copied into buffers made on the first such frame and kept),
+//! and compose and the filter divide by each pixel's weight. Only what leaves the node is
 //! read back, through a [`ReadbackRing`]: the counters (and kernel timestamps) every frame, colour
 //! and depth where the tile's pixels travel (object space), the image when a snapshot is asked
 //! for ([`GpuRenderer::read_tile_image`]).
