@@ -45,7 +45,8 @@
 @group(0) @binding(5) var<storage, read> env: array<vec4<f32>>;
 // Accumulated per frame: bent normal (xyz), A (w).
 @group(0) @binding(6) var<storage, read_write> acc_ao: array<vec4<f32>>;
-// Accumulated per frame: E (rgb).
+// Accumulated per frame: E (rgb); w: the frames' worth of samples added (each frame's shares sum
+// to 1, so a still tile's w is its frame count; reproject.wgsl carries and ages it).
 @group(0) @binding(7) var<storage, read_write> acc_ibl: array<vec4<f32>>;
 // Trilinear fetches, added to the isosurface kernel's.
 @group(0) @binding(8) var<storage, read_write> out_fetches: array<u32>;
@@ -452,6 +453,6 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         }
     }
     acc_ao[idx] += share * vec4<f32>(bent_n, a);
-    acc_ibl[idx] += vec4<f32>(share * e, 0.0);
+    acc_ibl[idx] += vec4<f32>(share * e, share);
     out_fetches[idx] += fetches;
 }

@@ -3,7 +3,8 @@
 //
 // - Colour exactly as the CPU reference composes it: exposure * (direct + albedo * E), with E the
 //   running sum of the AO kernel's IBL term over the accumulated frames divided by their count
-//   (progressive accumulation: the mean of the frames' colours is the colour of their mean E), or
+//   (progressive accumulation: the mean of the frames' colours is the colour of their mean E; a
+//   reprojected history divides by the pixel's own weight, the sum's w), or
 //   the ambient light where neither AO nor IBL is on (count 0). Pixels without a hit take the
 //   background as it is (no exposure).
 // - The sRGB transfer and 8-bit rounding of `output::srgb8` (round half up of 255 * srgb(c)); the
@@ -27,7 +28,7 @@ struct ComposeParams {
     size: vec2<u32>,       // the tile's rectangle size
     scale: u32,            // internal resolution divisor, 1 ..= 4
     frames: u32,           // frames in the running sums; 0: no AO or IBL (E = ambient)
-    _pad0: u32,
+    per_pixel: u32,        // 1: divide by each pixel's weight (the sum's w) instead of `frames`
     _pad1: u32,
 }
 
@@ -102,7 +103,10 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     if d.w >= 0.5 {
         var e = params.ambient.xyz;
         if params.frames > 0u {
-            let k = f32(params.frames);
+            var k = f32(params.frames);
+            if params.per_pixel == 1u {
+                k = acc_ibl[i].w;
+            }
             e = acc_ibl[i].xyz / k;
         }
         rgb = params.background.w * (d.xyz + params.albedo.xyz * e);

@@ -5,7 +5,8 @@
 // stops; the variance carried as sum w^2 var / (sum w)^2; no-hit pixels and pixels outside the
 // rectangle are no one's neighbour.
 //
-// Pass 0 reads the running sums (divided by the frame count) and the binomial variance; later
+// Pass 0 reads the running sums (divided by the frame count, or by each pixel's own weight where
+// the history was reprojected) and the binomial variance; later
 // passes read the previous pass's signal (A, E.rgb) and variance. The last pass writes
 // `raw + strength (filtered - raw)` in running-sum form (E * frames in rgb, A * frames in w) into
 // `out_denoised`, which compose reads in place of the running sum of E.
@@ -28,7 +29,11 @@ struct DenoiseParams {
     sigma_plane: f32,
     sigma_occlusion: f32,
     normal_squarings: u32,  // the normal stop is max(n_p . n_q, 0)^(2^normal_squarings)
-    _pad0: u32,
+    per_pixel: u32,         // 1: a pixel's frames are its weight (acc_ibl.w), not `frames`
+    frame_samples: f32,     // AO samples per frame (per_pixel)
+    full_strength: f32,     // samples up to which the filter applies in full (per_pixel)
+    _pad1: u32,
+    _pad2: u32,
 }
 
 // One entry per pass, at a dynamic offset (a read-only storage buffer: see frame.wgsl).
@@ -70,14 +75,42 @@ fn position(q: vec2<u32>, depth: f32) -> vec3<f32> {
     return pixel_dir(params.rect_origin + q) * depth;
 }
 
+// The frames' worth of samples in pixel i's running sums: the uniform count, or (a reprojected
+// history) the pixel's own weight.
+fn frames_of(i: u32) -> f32 {
+    if params.per_pixel == 1u {
+        return acc_ibl[i].w;
+    }
+    return f32(params.frames);
+}
+
+// Visibility samples behind pixel i's estimate.
+fn samples_of(i: u32) -> f32 {
+    if params.per_pixel == 1u {
+        return params.frame_samples * acc_ibl[i].w;
+    }
+    return params.samples;
+}
+
+// The filtered value's share of pixel i's output (`denoise::strength`).
+fn strength_of(i: u32) -> f32 {
+    if params.per_pixel == 1u {
+        let n = samples_of(i);
+        if n <= 0.0 {
+            return 0.0;
+        }
+        return min(sqrt(params.full_strength / n), 1.0);
+    }
+    return params.strength;
+}
+
 // The raw (A, E.rgb) of pixel i: the running sums over the frame count.
 fn raw(i: u32) -> vec4<f32> {
-    let k = f32(params.frames);
+    let k = frames_of(i);
     return vec4<f32>(acc_ao[i].w / k, acc_ibl[i].xyz / k);
 }
 
-fn variance_of(a: f32) -> f32 {
-    let n = params.samples;
+fn variance_of(a: f32, n: f32) -> f32 {
     let p = (n * a + 1.0) / (n + 2.0);
     return p * (1.0 - p) / n;
 }
@@ -91,7 +124,7 @@ fn signal_at(i: u32) -> vec4<f32> {
 
 fn variance_at(i: u32) -> f32 {
     if params.first == 1u {
-        return variance_of(raw(i).x);
+        return variance_of(raw(i).x, samples_of(i));
     }
     return src_variance[i];
 }
@@ -169,7 +202,8 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     dst_variance[i] = variance;
     if params.last == 1u {
         let r = raw(i);
-        let v = r + params.strength * (filtered - r);
+        let v = r + strength_of(i) * (filtered - r);
+        // Running-sum form over the uniform count, which compose divides by.
         let k = f32(params.frames);
         out_denoised[i] = vec4<f32>(v.yzw * k, v.x * k);
     }

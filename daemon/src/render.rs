@@ -439,6 +439,7 @@ fn denoise_reference(frame: &mut Frame, view: &View, s: &RenderSettings, frames:
         occlusion: &frame.occlusion,
         ibl: &frame.ibl,
         samples,
+        pixel_samples: None,
     });
     for (i, new) in ibl.iter().enumerate() {
         if frame.hit[i] {

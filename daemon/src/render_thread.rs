@@ -597,6 +597,9 @@ impl RenderLoop {
                 settings: &settings,
                 env: self.env.as_ref(),
                 accumulate: job.accumulate_frame > 0,
+                // A moving camera carries each pixel's history over; object space does not (a
+                // brick's pixels are not the tile's until composited).
+                temporal: !object_space,
                 share: job.read_pixels,
             };
             self.gpu

@@ -27,6 +27,9 @@
 //! samples, a half at 16, 1/8 at 256, 1/32 at 4096; and as n grows, var_p shrinks and the occlusion stop
 //! holds neighbours that differ by more than the remaining noise. A converged image stays (a test
 //! bounds the change).
+//!
+//! A reprojected history ([`crate::reproject`]) gives each pixel its own count, n = AO samples per
+//! frame times its weight ([`Input::pixel_samples`]): its variance and strength follow that count.
 
 use isowall_model::View;
 
@@ -72,6 +75,14 @@ pub fn strength(samples: u64) -> f32 {
     (FULL_STRENGTH_SAMPLES as f32 / samples as f32).sqrt().min(1.0)
 }
 
+/// [`strength`] of a pixel's own sample count (a reprojected history's, not a whole number).
+pub fn pixel_strength(samples: f32) -> f32 {
+    if samples <= 0.0 {
+        return 0.0;
+    }
+    (FULL_STRENGTH_SAMPLES as f32 / samples).sqrt().min(1.0)
+}
+
 /// The variance of an occlusion estimate `a` over `n` samples (binomial, with the rule of
 /// succession for p so that 0 and 1 keep a variance).
 pub fn occlusion_variance(a: f32, n: f32) -> f32 {
@@ -99,23 +110,26 @@ pub struct Input<'a> {
     pub ibl: &'a [[f32; 3]],
     /// Visibility samples per pixel in all (AO samples per frame times frames).
     pub samples: u64,
+    /// Where each pixel has its own count (a reprojected history: AO samples per frame times the
+    /// pixel's weight), those counts, in place of `samples` for its variance and strength.
+    pub pixel_samples: Option<&'a [f32]>,
 }
 
-/// The camera as the kernel holds it, in f32.
-struct Rays {
-    forward: [f32; 3],
-    right: [f32; 3],
-    up: [f32; 3],
-    tan_half: f32,
-    full: (f32, f32),
+/// The camera as the kernels hold it, in f32.
+pub(crate) struct Rays {
+    pub(crate) forward: [f32; 3],
+    pub(crate) right: [f32; 3],
+    pub(crate) up: [f32; 3],
+    pub(crate) tan_half: f32,
+    pub(crate) full: (f32, f32),
 }
 
-fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
+pub(crate) fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
 impl Rays {
-    fn new(view: &View) -> Rays {
+    pub(crate) fn new(view: &View) -> Rays {
         let b = view.camera.basis();
         let f = |v: glam::DVec3| [v.x as f32, v.y as f32, v.z as f32];
         Rays {
@@ -128,7 +142,7 @@ impl Rays {
     }
 
     /// shaders/frame.wgsl's `pixel_dir` in f32.
-    fn dir(&self, px: u32, py: u32) -> [f32; 3] {
+    pub(crate) fn dir(&self, px: u32, py: u32) -> [f32; 3] {
         let (w, h) = self.full;
         let sx = ((px as f32 + 0.5) / w * 2.0 - 1.0) * self.tan_half * w / h;
         let sy = (1.0 - (py as f32 + 0.5) / h * 2.0) * self.tan_half;
@@ -157,7 +171,7 @@ pub fn filter_with(input: &Input, stops: &Stops) -> (Vec<f32>, Vec<[f32; 3]>) {
         })
         .collect();
     let pixel_size = 2.0 * rays.tan_half / rays.full.1;
-    let count = input.samples as f32;
+    let count = |i: usize| input.pixel_samples.map_or(input.samples as f32, |p| p[i]);
     let raw: Vec<[f32; 4]> = (0..n)
         .map(|i| {
             let e = input.ibl[i];
@@ -165,7 +179,8 @@ pub fn filter_with(input: &Input, stops: &Stops) -> (Vec<f32>, Vec<[f32; 3]>) {
         })
         .collect();
     let mut signal = raw.clone();
-    let mut variance: Vec<f32> = raw.iter().map(|s| occlusion_variance(s[0], count)).collect();
+    let mut variance: Vec<f32> =
+        raw.iter().enumerate().map(|(i, s)| occlusion_variance(s[0], count(i))).collect();
     for pass in 0..PASSES {
         let step = 1i64 << pass;
         let mut next_signal = signal.clone();
@@ -218,11 +233,12 @@ pub fn filter_with(input: &Input, stops: &Stops) -> (Vec<f32>, Vec<[f32; 3]>) {
         signal = next_signal;
         variance = next_variance;
     }
-    let s = strength(input.samples);
+    let uniform = strength(input.samples);
     let mut occlusion = input.occlusion.to_vec();
     let mut ibl = input.ibl.to_vec();
     for i in 0..n {
         if input.hit[i] {
+            let s = input.pixel_samples.map_or(uniform, |p| pixel_strength(p[i]));
             let out: [f32; 4] = std::array::from_fn(|c| raw[i][c] + s * (signal[i][c] - raw[i][c]));
             occlusion[i] = out[0];
             ibl[i] = [out[1], out[2], out[3]];
@@ -295,6 +311,7 @@ mod tests {
             occlusion: &occlusion,
             ibl: &vec![[0.0; 3]; n],
             samples: samples as u64,
+            pixel_samples: None,
         };
         let (filtered, _) = filter(&input);
         let mean = |v: &[f32]| v.iter().map(|&x| x as f64).sum::<f64>() / n as f64;

@@ -9,6 +9,7 @@ pub mod frame;
 pub mod gpu;
 pub mod output;
 pub mod reference;
+pub mod reproject;
 pub mod sampling;
 pub mod shaders;
 

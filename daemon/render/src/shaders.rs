@@ -17,15 +17,25 @@ pub enum Kernel {
     /// The edge-aware spatial filter of the occlusion and IBL terms, one a-trous pass per dispatch
     /// (its own parameters, `DenoiseParams`).
     Denoise,
+    /// A tile's running sums carried over from its previous frame where only the camera moved
+    /// (its own parameters, `ReprojectParams`).
+    Reproject,
     /// Not a compute kernel: the render pass that draws a tile's image into its window.
     Present,
 }
 
 impl Kernel {
-    pub const ALL: [Kernel; 5] =
-        [Kernel::Isosurface, Kernel::Ao, Kernel::Compose, Kernel::Denoise, Kernel::Present];
+    pub const ALL: [Kernel; 6] = [
+        Kernel::Isosurface,
+        Kernel::Ao,
+        Kernel::Compose,
+        Kernel::Denoise,
+        Kernel::Reproject,
+        Kernel::Present,
+    ];
     /// The compute kernels (entry point `main`).
-    pub const COMPUTE: [Kernel; 4] = [Kernel::Isosurface, Kernel::Ao, Kernel::Compose, Kernel::Denoise];
+    pub const COMPUTE: [Kernel; 5] =
+        [Kernel::Isosurface, Kernel::Ao, Kernel::Compose, Kernel::Denoise, Kernel::Reproject];
     /// The kernels that read the frame parameters of `frame.wgsl`.
     pub const FRAME: [Kernel; 2] = [Kernel::Isosurface, Kernel::Ao];
 
@@ -35,6 +45,7 @@ impl Kernel {
             Kernel::Ao => "ao.wgsl",
             Kernel::Compose => "compose.wgsl",
             Kernel::Denoise => "denoise.wgsl",
+            Kernel::Reproject => "reproject.wgsl",
             Kernel::Present => "present.wgsl",
         }
     }
@@ -42,7 +53,9 @@ impl Kernel {
     /// The entry points the host uses.
     pub fn entry_points(self) -> &'static [&'static str] {
         match self {
-            Kernel::Isosurface | Kernel::Ao | Kernel::Compose | Kernel::Denoise => &["main"],
+            Kernel::Isosurface | Kernel::Ao | Kernel::Compose | Kernel::Denoise | Kernel::Reproject => {
+                &["main"]
+            }
             Kernel::Present => &["vs_main", "fs_main"],
         }
     }
@@ -53,6 +66,7 @@ impl Kernel {
             Kernel::Ao => include_str!("../../../shaders/ao.wgsl"),
             Kernel::Compose => include_str!("../../../shaders/compose.wgsl"),
             Kernel::Denoise => include_str!("../../../shaders/denoise.wgsl"),
+            Kernel::Reproject => include_str!("../../../shaders/reproject.wgsl"),
             Kernel::Present => include_str!("../../../shaders/present.wgsl"),
         }
     }
@@ -176,12 +190,14 @@ pub(crate) mod tests {
     fn every_compute_kernels_bind_group_layout_is_what_its_wgsl_declares() {
         use crate::gpu::{
             ao::AoKernel, compose::ComposeKernel, denoise::DenoiseKernel, isosurface::IsosurfaceKernel,
+            reproject::ReprojectKernel,
         };
         for (kernel, entries) in [
             (Kernel::Isosurface, IsosurfaceKernel::entries()),
             (Kernel::Ao, AoKernel::entries()),
             (Kernel::Compose, ComposeKernel::entries()),
             (Kernel::Denoise, DenoiseKernel::entries()),
+            (Kernel::Reproject, ReprojectKernel::entries()),
         ] {
             assert_eq!(declared(&entries), reflected(kernel), "{}", kernel.file_name());
         }

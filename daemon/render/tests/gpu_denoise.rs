@@ -48,6 +48,7 @@ fn cpu_filter(view: &View, raw: &Frame, samples: u64) -> (Vec<f32>, Vec<[f32; 3]
         occlusion: &raw.occlusion,
         ibl: &raw.ibl,
         samples,
+        pixel_samples: None,
     })
 }
 
@@ -194,6 +195,7 @@ fn tile_image(
         settings: s,
         env: None,
         accumulate: false,
+        temporal: false,
         share: true,
     };
     gpu.render_tile(&mut tile, &f, &mut ring).unwrap();
@@ -284,6 +286,8 @@ fn a_steady_denoised_tile_allocates_nothing() {
             settings: &f,
             env: None,
             accumulate: true,
+            // A still camera never reprojects: temporal on changes nothing.
+            temporal: true,
             share: false,
         };
         if !ring.has_free_slot() {

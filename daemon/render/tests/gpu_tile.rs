@@ -36,7 +36,16 @@ fn frame(
     s: &RenderSettings,
     accumulate: bool,
 ) -> TileOutput {
-    let f = TileFrame { frame_id: 1, volume: gv, view, settings: s, env: None, accumulate, share: true };
+    let f = TileFrame {
+        frame_id: 1,
+        volume: gv,
+        view,
+        settings: s,
+        env: None,
+        accumulate,
+        temporal: false,
+        share: true,
+    };
     gpu.render_tile(tile, &f, ring).unwrap();
     ring.wait_oldest(&gpu.ctx).unwrap();
     let mut reads = ring.take_ready();
@@ -164,6 +173,8 @@ fn a_steady_tile_allocates_nothing_and_reads_back_only_what_leaves_the_node() {
                 settings: &f,
                 env: None,
                 accumulate: true,
+                // A still camera never reprojects: temporal on changes nothing.
+                temporal: true,
                 share,
             };
             gpu.render_tile(tile, &tf, ring).unwrap();

@@ -175,6 +175,7 @@ impl Current {
             settings: &f,
             env: None,
             accumulate: k > 0,
+            temporal: false,
             share,
         };
         gpu.render_tile(&mut self.tile, &tf, &mut self.ring)?;

@@ -5,6 +5,7 @@ mod accuracy;
 mod chart;
 mod denoise;
 mod frame;
+mod orbit;
 mod stats;
 mod suite;
 
@@ -49,6 +50,14 @@ pub enum BenchCommand {
     /// ms per frame; then the goal check (denoised 4 spp against raw 32 spp: its RMSE in at most a
     /// third of the time, p99 at most 1.5x). `--out DIR` writes denoise.csv and chart.svg.
     Denoise(denoise::DenoiseArgs),
+    /// A moving camera through the wall's tile path: a `--frames` orbit of `--degrees` a frame,
+    /// every frame a camera change, in four variants (raw: each frame restarts, as a moving wall
+    /// did before; reprojected: each pixel's history carried over; denoised; reprojected and
+    /// denoised). Per variant: the occlusion RMSE and p99 |error| against a converged render of
+    /// each frame's camera, flicker (mean change of the occlusion of a surface point between
+    /// consecutive frames; the converged references' own is the floor) and the median ms per
+    /// frame; `--out` writes every frame's numbers as CSV.
+    Orbit(orbit::OrbitArgs),
 }
 
 #[derive(Args)]
@@ -93,6 +102,7 @@ pub fn run(cmd: &BenchCommand) -> Result<()> {
         BenchCommand::Suite(a) => suite::run(a),
         BenchCommand::Frame(a) => frame::run(a),
         BenchCommand::Denoise(a) => denoise::run(a),
+        BenchCommand::Orbit(a) => orbit::run(a),
     }
 }
 

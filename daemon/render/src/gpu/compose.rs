@@ -24,7 +24,9 @@ pub struct ComposeParams {
     pub scale: u32,
     /// Frames in the running sums; 0: no AO or IBL.
     pub frames: u32,
-    pub _pad0: u32,
+    /// 1: divide each pixel's E sum by its own weight (the sum's w: a reprojected history) instead
+    /// of `frames`.
+    pub per_pixel: u32,
     pub _pad1: u32,
 }
 
@@ -43,7 +45,7 @@ impl ComposeParams {
             size: [view.rect.width, view.rect.height],
             scale: scale.max(1),
             frames,
-            _pad0: 0,
+            per_pixel: 0,
             _pad1: 0,
         }
     }
@@ -152,7 +154,7 @@ mod tests {
                 ("size", offset_of!(ComposeParams, size)),
                 ("scale", offset_of!(ComposeParams, scale)),
                 ("frames", offset_of!(ComposeParams, frames)),
-                ("_pad0", offset_of!(ComposeParams, _pad0)),
+                ("per_pixel", offset_of!(ComposeParams, per_pixel)),
                 ("_pad1", offset_of!(ComposeParams, _pad1)),
             ],
         );

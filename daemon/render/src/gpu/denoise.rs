@@ -29,13 +29,23 @@ pub struct DenoiseParams {
     pub sigma_plane: f32,
     pub sigma_occlusion: f32,
     pub normal_squarings: u32,
-    pub _pad0: u32,
+    /// 1: each pixel's frames are its own weight (the E sum's w: a reprojected history), its
+    /// samples `frame_samples` times that, its strength from them; 0: `frames`, `samples`,
+    /// `strength` for every pixel.
+    pub per_pixel: u32,
+    /// AO samples per frame.
+    pub frame_samples: f32,
+    /// [`denoise::FULL_STRENGTH_SAMPLES`].
+    pub full_strength: f32,
+    pub _pad1: u32,
+    pub _pad2: u32,
 }
 
 impl DenoiseParams {
     /// Pass `pass` over the rectangle of the frame `frame` (the AO kernel's parameters), with
-    /// `frames` frames of `frame.ao_samples` samples in the running sums.
-    pub fn new(frame: &FrameParams, frames: u32, pass: u32) -> DenoiseParams {
+    /// `frames` frames of `frame.ao_samples` samples in the running sums (`per_pixel`: each pixel's
+    /// own weight instead, the output still in running-sum form over `frames`).
+    pub fn new(frame: &FrameParams, frames: u32, pass: u32, per_pixel: bool) -> DenoiseParams {
         let samples = frame.ao_samples as u64 * frames as u64;
         DenoiseParams {
             forward: frame.forward,
@@ -53,7 +63,11 @@ impl DenoiseParams {
             sigma_plane: denoise::STOPS.sigma_plane,
             sigma_occlusion: denoise::STOPS.sigma_occlusion,
             normal_squarings: denoise::STOPS.normal_squarings,
-            _pad0: 0,
+            per_pixel: u32::from(per_pixel),
+            frame_samples: frame.ao_samples as f32,
+            full_strength: denoise::FULL_STRENGTH_SAMPLES as f32,
+            _pad1: 0,
+            _pad2: 0,
         }
     }
 }
@@ -174,7 +188,8 @@ impl DenoiseKernel {
     }
 
     /// Writes the passes' parameters for a frame of `frame` (the AO kernel's parameters) with
-    /// `frames` frames in the running sums, and records the passes over its rectangle.
+    /// `frames` frames in the running sums (`per_pixel`: each pixel's own weight), and records the
+    /// passes over its rectangle.
     pub(crate) fn encode(
         &self,
         ctx: &GpuContext,
@@ -182,12 +197,13 @@ impl DenoiseKernel {
         buffers: &DenoiseBuffers,
         frame: &FrameParams,
         frames: u32,
+        per_pixel: bool,
     ) {
         let size = (frame.rect_size[0], frame.rect_size[1]);
         debug_assert_eq!(size.0 as u64 * size.1 as u64, buffers.pixels);
         let mut bytes = vec![0u8; (self.stride * PASSES as u64) as usize];
         for pass in 0..PASSES {
-            let p = DenoiseParams::new(frame, frames, pass);
+            let p = DenoiseParams::new(frame, frames, pass, per_pixel);
             let at = (pass as u64 * self.stride) as usize;
             bytes[at..at + std::mem::size_of::<DenoiseParams>()].copy_from_slice(bytemuck::bytes_of(&p));
         }
@@ -239,7 +255,11 @@ mod tests {
                 ("sigma_plane", offset_of!(DenoiseParams, sigma_plane)),
                 ("sigma_occlusion", offset_of!(DenoiseParams, sigma_occlusion)),
                 ("normal_squarings", offset_of!(DenoiseParams, normal_squarings)),
-                ("_pad0", offset_of!(DenoiseParams, _pad0)),
+                ("per_pixel", offset_of!(DenoiseParams, per_pixel)),
+                ("frame_samples", offset_of!(DenoiseParams, frame_samples)),
+                ("full_strength", offset_of!(DenoiseParams, full_strength)),
+                ("_pad1", offset_of!(DenoiseParams, _pad1)),
+                ("_pad2", offset_of!(DenoiseParams, _pad2)),
             ],
         );
     }
@@ -248,7 +268,7 @@ mod tests {
     fn passes_double_their_step_and_only_the_first_reads_the_sums() {
         let mut f: FrameParams = Zeroable::zeroed();
         f.ao_samples = 4;
-        let p: Vec<DenoiseParams> = (0..PASSES).map(|k| DenoiseParams::new(&f, 4, k)).collect();
+        let p: Vec<DenoiseParams> = (0..PASSES).map(|k| DenoiseParams::new(&f, 4, k, false)).collect();
         assert_eq!(p.iter().map(|p| p.step).collect::<Vec<_>>(), vec![1, 2, 4, 8, 16]);
         assert_eq!(p.iter().map(|p| p.first).sum::<u32>(), 1);
         assert_eq!(p[0].first, 1);

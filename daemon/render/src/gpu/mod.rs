@@ -25,6 +25,7 @@ pub mod isosurface;
 pub mod perf;
 pub mod present;
 pub mod readback;
+pub mod reproject;
 pub mod tile;
 
 use crate::environment::Environment;
@@ -43,7 +44,8 @@ pub use frame_params::FrameParams;
 pub use isosurface::IsosurfaceKernel;
 pub use perf::PerfOptions;
 pub use readback::ReadbackRing;
-pub use tile::{FrameCounters, FrameRead, TileFrame, TileOutput, TileTarget};
+pub use reproject::{ReprojectKernel, ReprojectParams};
+pub use tile::{FrameCounters, FrameRead, TileFrame, TileOutput, TileSums, TileTarget};
 
 #[derive(Debug, thiserror::Error)]
 pub enum GpuError {
@@ -724,6 +726,7 @@ pub struct GpuRenderer {
     ao: AoKernel,
     compose: ComposeKernel,
     denoise: DenoiseKernel,
+    reproject: ReprojectKernel,
     perf: PerfOptions,
     /// Bound where no environment is given (IBL off): one black texel.
     no_env: GpuEnvironment,
@@ -748,8 +751,9 @@ impl GpuRenderer {
         let ao = AoKernel::new(&ctx, &perf)?;
         let compose = ComposeKernel::new(&ctx, perf.workgroup)?;
         let denoise = DenoiseKernel::new(&ctx, perf.workgroup)?;
+        let reproject = ReprojectKernel::new(&ctx, perf.workgroup)?;
         let no_env = GpuEnvironment::upload(&ctx, &Environment::constant([0.0; 3]))?;
-        Ok(GpuRenderer { ctx, isosurface, ao, compose, denoise, perf, no_env })
+        Ok(GpuRenderer { ctx, isosurface, ao, compose, denoise, reproject, perf, no_env })
     }
 
     /// The performance options in use.
@@ -770,6 +774,7 @@ impl GpuRenderer {
             self.ao = AoKernel::new(&self.ctx, &perf)?;
             self.compose = ComposeKernel::new(&self.ctx, perf.workgroup)?;
             self.denoise = DenoiseKernel::new(&self.ctx, perf.workgroup)?;
+            self.reproject = ReprojectKernel::new(&self.ctx, perf.workgroup)?;
         }
         self.perf = perf;
         Ok(())
@@ -968,7 +973,7 @@ impl GpuRenderer {
                     );
                 }
                 if let Some(d) = &denoise {
-                    self.denoise.encode(&self.ctx, &mut enc, d, &params, frames);
+                    self.denoise.encode(&self.ctx, &mut enc, d, &params, frames, false);
                 }
             }
         })?;

@@ -9,7 +9,12 @@
 //! writing the presentable image, depth and the frame's counters; with `settings.denoise` on,
 //! [`Kernel::Denoise`](crate::shaders::Kernel) filters the occlusion and IBL terms between AO and
 //! compose (its buffers made on the first denoised frame and kept), over the rectangle grown by
-//! the tile's guard band ([`work_view`]; the counters count the band's pixels too). Only what leaves the node is
+//! the tile's guard band ([`work_view`]; the counters count the band's pixels too). With
+//! `temporal` on, a frame whose state differs from the last only by the camera keeps the history:
+//! after the isosurface kernel, [`Kernel::Reproject`](crate::shaders::Kernel) carries each pixel's
+//! sums over from the previous frame's pixel that saw the same point ([`crate::reproject`]; the
+//! previous frame's hits and sums are copied into buffers made on the first such frame and kept),
+//! and compose and the filter divide by each pixel's weight. Only what leaves the node is
 //! read back, through a [`ReadbackRing`]: the counters (and kernel timestamps) every frame, colour
 //! and depth where the tile's pixels travel (object space), the image when a snapshot is asked
 //! for ([`GpuRenderer::read_tile_image`]).
@@ -17,7 +22,9 @@
 use super::compose::ComposeParams;
 use super::denoise::DenoiseBuffers;
 use super::readback::{Read, ReadbackRing, Source};
+use super::reproject::ReprojectParams;
 use super::{FrameParams, GpuEnvironment, GpuError, GpuRenderer, GpuVolume};
+use crate::reproject::RULE;
 use isowall_model::{lowres, IblMethod, RenderSettings, View};
 
 /// A presentable image of a tile: 8-bit sRGB values in an RGBA8 texture the size of the tile's
@@ -42,6 +49,16 @@ struct Bound {
 struct TileDenoise {
     buffers: DenoiseBuffers,
     compose: [wgpu::BindGroup; IMAGES],
+}
+
+/// A tile's previous frame, kept for temporal reprojection ([`Kernel::Reproject`](crate::shaders::Kernel)):
+/// copies of its hit flags, geometry and running sums, the kernel's parameters and bind group,
+/// made on the tile's first reprojected frame and kept.
+struct TileHistory {
+    /// direct + hit, N + depth, summed bent + A, summed E (+ weight), of the previous frame.
+    prev: [wgpu::Buffer; 4],
+    params: wgpu::Buffer,
+    bind: wgpu::BindGroup,
 }
 
 /// The timestamp queries of a tile's frame (where the adapter has them): begin and end of the
@@ -80,10 +97,17 @@ pub struct TileTarget {
     images: [TileImage; IMAGES],
     compose: [wgpu::BindGroup; IMAGES],
     denoise: Option<TileDenoise>,
+    history: Option<TileHistory>,
     bound: Option<Bound>,
     timestamps: Option<Timestamps>,
-    /// Frames in the running sums.
+    /// Frames rendered since the running sums were last cleared or reprojected (with
+    /// `per_pixel`, a pixel's own count is its weight).
     frames: u32,
+    /// The running sums hold a reprojected history: each pixel's weight (the E sum's w) is its
+    /// frame count, not `frames`.
+    per_pixel: bool,
+    /// The last frame was denoised.
+    filtered: bool,
     /// The last frame's parameters with the frame index cleared, and its volume and environment:
     /// any difference restarts the accumulation.
     state: Option<(FrameParams, u64, u64)>,
@@ -249,9 +273,12 @@ impl TileTarget {
                 images,
                 compose,
                 denoise: None,
+                history: None,
                 bound: None,
                 timestamps,
                 frames: 0,
+                per_pixel: false,
+                filtered: false,
                 state: None,
                 latest: 0,
             }
@@ -290,6 +317,11 @@ impl TileTarget {
     /// Frames in the running sums after the last frame.
     pub fn frames(&self) -> u32 {
         self.frames
+    }
+
+    /// Whether the running sums hold a reprojected history (since they were last cleared).
+    pub fn reprojected(&self) -> bool {
+        self.per_pixel
     }
 
     /// The image holding `frame_id`, if it is still held.
@@ -345,6 +377,37 @@ impl FrameRead {
     }
 }
 
+/// A frame's parameters without what the camera sets (eye, axes, field of view, and the light's
+/// direction, which may follow the camera): two frames whose parameters agree on the rest differ
+/// only by the camera, and their occlusion and IBL terms are the same at a surface point.
+fn without_camera(p: &FrameParams) -> FrameParams {
+    let mut q = *p;
+    q.eye = [0.0; 4];
+    q.forward = [0.0; 4];
+    q.right = [0.0; 4];
+    q.up = [0.0; 4];
+    q.light_dir = [0.0; 4];
+    q.frame = 0;
+    q
+}
+
+/// A tile's low rectangle read back ([`GpuRenderer::read_tile_sums`]): per pixel of the work
+/// rectangle ([`work_view`]), rows top to bottom.
+#[derive(Clone, Debug, Default)]
+pub struct TileSums {
+    /// Direct light (rgb) and hit flag (w = 1 on a hit).
+    pub color: Vec<[f32; 4]>,
+    /// N (outward) and depth (w).
+    pub geometry: Vec<[f32; 4]>,
+    /// Summed bent normal (xyz) and occlusion (w).
+    pub ao: Vec<[f32; 4]>,
+    /// Summed E (rgb) and the pixel's weight (w: frames' worth of samples).
+    pub ibl: Vec<[f32; 4]>,
+    /// Where the last frame was denoised, the filter's output in running-sum form over
+    /// [`TileTarget::frames`]: E * frames (rgb), A * frames (w).
+    pub denoised: Option<Vec<[f32; 4]>>,
+}
+
 /// One frame of a tile ([`GpuRenderer::render_tile`]).
 pub struct TileFrame<'a> {
     pub frame_id: u64,
@@ -357,6 +420,11 @@ pub struct TileFrame<'a> {
     /// Keep accumulating onto the running sums where the frame state is unchanged (false:
     /// restart).
     pub accumulate: bool,
+    /// Temporal reprojection: where the frame state differs from the previous frame's only by the
+    /// camera, carry the running sums over ([`crate::reproject`]) instead of restarting. A tile
+    /// whose sums hold a reprojected history draws its samples with index `settings.ao.frame +
+    /// frame_id` (new samples every frame, the same on every node).
+    pub temporal: bool,
     /// Read colour and depth back (object space shares).
     pub share: bool,
 }
@@ -392,8 +460,55 @@ impl GpuRenderer {
         let same = tile.state.as_ref().is_some_and(|(p, v, e)| {
             bytemuck::bytes_of(p) == bytemuck::bytes_of(&state.0) && (*v, *e) == (state.1, state.2)
         });
-        let restart = !frame.accumulate || !same || tile.frames >= super::MAX_FRAMES;
+        let camera_moved = !same
+            && tile.state.as_ref().is_some_and(|(p, v, e)| {
+                bytemuck::bytes_of(&without_camera(p)) == bytemuck::bytes_of(&without_camera(&state.0))
+                    && (*v, *e) == (state.1, state.2)
+            });
+        let reproject = frame.temporal && with_ao && camera_moved && tile.frames > 0;
+        let restart = !reproject && (!frame.accumulate || !same || tile.frames >= super::MAX_FRAMES);
+        let prev = tile.state.map(|(p, _, _)| p);
         tile.state = Some(state);
+        if restart {
+            tile.per_pixel = false;
+        } else if reproject {
+            tile.per_pixel = true;
+        }
+        if tile.per_pixel {
+            params.frame = s.ao.frame.wrapping_add(frame.frame_id as u32);
+        }
+        if reproject && tile.history.is_none() {
+            let a = &tile.aov;
+            let n = low.rect.width as u64 * low.rect.height as u64;
+            let made = ctx.validated("tile history resources", || {
+                let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
+                    ctx.create_buffer(&wgpu::BufferDescriptor {
+                        label: Some(label),
+                        size,
+                        usage,
+                        mapped_at_creation: false,
+                    })
+                };
+                let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST;
+                let prev = [
+                    buffer("previous direct", n * 16, storage),
+                    buffer("previous geometry", n * 16, storage),
+                    buffer("previous acc ao", n * 16, storage),
+                    buffer("previous acc ibl", n * 16, storage),
+                ];
+                let params =
+                    buffer("reproject params", std::mem::size_of::<ReprojectParams>() as u64, storage);
+                let bind = self.reproject.bind(
+                    ctx,
+                    &params,
+                    [&a[0], &a[1]],
+                    [&prev[0], &prev[1], &prev[2], &prev[3]],
+                    [&a[3], &a[4]],
+                );
+                TileHistory { prev, params, bind }
+            })?;
+            tile.history = Some(made);
+        }
         if tile.bound.as_ref().is_none_or(|b| (b.volume, b.env) != (frame.volume.id, env.id)) {
             let a = &tile.aov;
             tile.bound = Some(Bound {
@@ -431,18 +546,21 @@ impl GpuRenderer {
             tile.denoise = Some(made);
         }
         let bound = tile.bound.as_ref().expect("bound above");
-        if restart {
+        if restart || reproject {
             tile.frames = 0;
         }
         let frames = if with_ao { tile.frames + 1 } else { 0 };
+        let per_pixel = tile.per_pixel;
         // The image holding the oldest frame (or none).
         let back = (0..IMAGES)
             .filter(|&i| i != tile.latest)
             .min_by_key(|&i| tile.images[i].frame_id.map_or(0, |f| f + 1))
             .expect("more than one image");
-        let compose = ComposeParams::new(frame.view, &low, scale, s, frames);
+        let mut compose = ComposeParams::new(frame.view, &low, scale, s, frames);
+        // The filter's output is in running-sum form over `frames` whatever the pixel's weight.
+        compose.per_pixel = u32::from(per_pixel && !denoised);
         let low_size = (low.rect.width, low.rect.height);
-        let timed = tile.timestamps.as_ref().map(|_| [restart, with_ao, true]);
+        let timed = tile.timestamps.as_ref().map(|_| [restart || reproject, with_ao, true]);
         let share = frame.share;
         let slot = ctx.validated("tile frame", || -> Result<(usize, wgpu::CommandBuffer), GpuError> {
             ctx.write_buffer(&tile.params, 0, bytemuck::bytes_of(&params));
@@ -456,7 +574,17 @@ impl GpuRenderer {
                     end_of_pass_write_index: Some(2 * k + 1),
                 })
             };
-            if restart {
+            if let (true, Some(h), Some(prev)) = (reproject, &tile.history, &prev) {
+                // The previous frame's hits and sums, before this frame's isosurface kernel
+                // overwrites them; then the sums carried over onto this frame's hits.
+                for (src, dst) in [0, 1, 3, 4].iter().zip(&h.prev) {
+                    enc.copy_buffer_to_buffer(&tile.aov[*src], 0, dst, 0, None);
+                }
+                let rp = ReprojectParams::new(&params, prev, &RULE);
+                ctx.write_buffer(&h.params, 0, bytemuck::bytes_of(&rp));
+                self.isosurface.pass(&mut enc, &bound.isosurface, low_size, ts(0));
+                self.reproject.pass(&mut enc, &h.bind, low_size);
+            } else if restart {
                 enc.clear_buffer(&tile.aov[3], 0, None);
                 enc.clear_buffer(&tile.aov[4], 0, None);
                 self.isosurface.pass(&mut enc, &bound.isosurface, low_size, ts(0));
@@ -469,7 +597,7 @@ impl GpuRenderer {
             }
             let mut compose_group = &tile.compose[back];
             if let (true, Some(d)) = (denoised, &tile.denoise) {
-                self.denoise.encode(ctx, &mut enc, &d.buffers, &params, frames);
+                self.denoise.encode(ctx, &mut enc, &d.buffers, &params, frames, per_pixel);
                 compose_group = &d.compose[back];
             }
             enc.clear_buffer(&tile.counters, 0, None);
@@ -499,9 +627,43 @@ impl GpuRenderer {
         let submission = ctx.queue.submit([commands]);
         ring.submitted(slot, submission);
         tile.frames = frames;
+        tile.filtered = denoised;
         tile.latest = back;
         tile.images[back].frame_id = Some(frame.frame_id);
         Ok(())
+    }
+
+    /// Reads back the tile's low rectangle as its last frame left it (hit flags, geometry, running
+    /// sums), waiting for the GPU: for tests and benchmarks, not the frame path (it allocates).
+    pub fn read_tile_sums(&self, tile: &TileTarget) -> Result<TileSums, GpuError> {
+        let ctx = &self.ctx;
+        let mut picked = vec![&tile.aov[0], &tile.aov[1], &tile.aov[3], &tile.aov[4]];
+        if let (true, Some(d)) = (tile.filtered, &tile.denoise) {
+            picked.push(&d.buffers.out);
+        }
+        let staging = ctx.validated("tile sums readback", || {
+            picked
+                .iter()
+                .map(|b| {
+                    ctx.create_buffer(&wgpu::BufferDescriptor {
+                        label: Some("tile sums"),
+                        size: b.size(),
+                        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                        mapped_at_creation: false,
+                    })
+                })
+                .collect::<Vec<_>>()
+        })?;
+        let mut enc =
+            ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("tile sums") });
+        for (src, dst) in picked.iter().zip(&staging) {
+            enc.copy_buffer_to_buffer(src, 0, dst, 0, None);
+        }
+        ctx.queue.submit([enc.finish()]);
+        let (bytes, _) = super::read_buffers(ctx, &staging)?;
+        let v = |k: usize| bytemuck::pod_collect_to_vec::<u8, [f32; 4]>(&bytes[k]);
+        let denoised = (bytes.len() > 4).then(|| v(4));
+        Ok(TileSums { color: v(0), geometry: v(1), ao: v(2), ibl: v(3), denoised })
     }
 
     /// Records a read of the image holding `frame_id` (a snapshot) into `ring` and submits it;

@@ -1,0 +1,152 @@
+//! `Kernel::Reproject` (shaders/reproject.wgsl): a tile's running sums carried from its previous
+//! frame into a frame whose camera alone moved (temporal reprojection). The rule and its CPU twin
+//! are [`crate::reproject`]; [`ReprojectParams`] is the twin of the WGSL struct.
+
+use super::{storage_entry, FrameParams, GpuContext, GpuError};
+use crate::reproject::Rule;
+use crate::shaders::Kernel;
+use bytemuck::{Pod, Zeroable};
+
+/// Twin of WGSL `ReprojectParams`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+pub struct ReprojectParams {
+    pub eye: [f32; 4],
+    /// w: tan(fov_y / 2)
+    pub forward: [f32; 4],
+    pub right: [f32; 4],
+    pub up: [f32; 4],
+    pub prev_eye: [f32; 4],
+    /// w: tan(fov_y / 2)
+    pub prev_forward: [f32; 4],
+    pub prev_right: [f32; 4],
+    pub prev_up: [f32; 4],
+    pub full_size: [u32; 2],
+    pub rect_origin: [u32; 2],
+    pub rect_size: [u32; 2],
+    pub prev_full_size: [u32; 2],
+    pub prev_rect_origin: [u32; 2],
+    pub prev_rect_size: [u32; 2],
+    pub max_age: f32,
+    pub plane_tolerance: f32,
+    pub normal_agreement: f32,
+    pub _pad0: u32,
+}
+
+impl ReprojectParams {
+    /// From the frame `next` to be rendered and the previous frame `prev` (the kernels'
+    /// parameters of each), under `rule`.
+    pub fn new(next: &FrameParams, prev: &FrameParams, rule: &Rule) -> ReprojectParams {
+        ReprojectParams {
+            eye: next.eye,
+            forward: next.forward,
+            right: next.right,
+            up: next.up,
+            prev_eye: prev.eye,
+            prev_forward: prev.forward,
+            prev_right: prev.right,
+            prev_up: prev.up,
+            full_size: next.full_size,
+            rect_origin: next.rect_origin,
+            rect_size: next.rect_size,
+            prev_full_size: prev.full_size,
+            prev_rect_origin: prev.rect_origin,
+            prev_rect_size: prev.rect_size,
+            max_age: rule.max_age,
+            plane_tolerance: rule.plane_tolerance,
+            normal_agreement: rule.normal_agreement,
+            _pad0: 0,
+        }
+    }
+}
+
+/// The compiled kernel.
+pub struct ReprojectKernel {
+    pipeline: wgpu::ComputePipeline,
+    layout: wgpu::BindGroupLayout,
+    workgroup: (u32, u32),
+}
+
+impl ReprojectKernel {
+    /// The bind group layout: parameters, this frame's hit flags and geometry, the previous
+    /// frame's hit flags, geometry and sums, this frame's sums written (a test holds it to naga's
+    /// reflection of the WGSL).
+    pub(crate) fn entries() -> Vec<wgpu::BindGroupLayoutEntry> {
+        let mut entries: Vec<_> = (0..=6).map(|b| storage_entry(b, true)).collect();
+        entries.extend((7..=8).map(|b| storage_entry(b, false)));
+        entries
+    }
+
+    pub fn new(ctx: &GpuContext, workgroup: (u32, u32)) -> Result<ReprojectKernel, GpuError> {
+        let (pipeline, layout) = ctx.pipeline(Kernel::Reproject, &Self::entries(), workgroup, &[])?;
+        Ok(ReprojectKernel { pipeline, layout, workgroup })
+    }
+
+    /// The bind group of a tile: `params`, this frame's (direct + hit, N + depth), the previous
+    /// frame's (direct + hit, N + depth, summed bent + A, summed E), this frame's sums.
+    pub(crate) fn bind(
+        &self,
+        ctx: &GpuContext,
+        params: &wgpu::Buffer,
+        next: [&wgpu::Buffer; 2],
+        prev: [&wgpu::Buffer; 4],
+        sums: [&wgpu::Buffer; 2],
+    ) -> wgpu::BindGroup {
+        let all = [params, next[0], next[1], prev[0], prev[1], prev[2], prev[3], sums[0], sums[1]];
+        let entries: Vec<_> = all
+            .iter()
+            .enumerate()
+            .map(|(i, b)| wgpu::BindGroupEntry { binding: i as u32, resource: b.as_entire_binding() })
+            .collect();
+        ctx.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("reproject"),
+            layout: &self.layout,
+            entries: &entries,
+        })
+    }
+
+    /// Records the kernel over a `size` rectangle.
+    pub(crate) fn pass(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        bind_group: &wgpu::BindGroup,
+        size: (u32, u32),
+    ) {
+        super::pass(enc, &self.pipeline, bind_group, "reproject", size, self.workgroup, None);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::mem::offset_of;
+
+    #[test]
+    fn reproject_params_layout_matches_the_wgsl() {
+        crate::shaders::tests::check_layout(
+            Kernel::Reproject,
+            "ReprojectParams",
+            std::mem::size_of::<ReprojectParams>(),
+            &[
+                ("eye", offset_of!(ReprojectParams, eye)),
+                ("forward", offset_of!(ReprojectParams, forward)),
+                ("right", offset_of!(ReprojectParams, right)),
+                ("up", offset_of!(ReprojectParams, up)),
+                ("prev_eye", offset_of!(ReprojectParams, prev_eye)),
+                ("prev_forward", offset_of!(ReprojectParams, prev_forward)),
+                ("prev_right", offset_of!(ReprojectParams, prev_right)),
+                ("prev_up", offset_of!(ReprojectParams, prev_up)),
+                ("full_size", offset_of!(ReprojectParams, full_size)),
+                ("rect_origin", offset_of!(ReprojectParams, rect_origin)),
+                ("rect_size", offset_of!(ReprojectParams, rect_size)),
+                ("prev_full_size", offset_of!(ReprojectParams, prev_full_size)),
+                ("prev_rect_origin", offset_of!(ReprojectParams, prev_rect_origin)),
+                ("prev_rect_size", offset_of!(ReprojectParams, prev_rect_size)),
+                ("max_age", offset_of!(ReprojectParams, max_age)),
+                ("plane_tolerance", offset_of!(ReprojectParams, plane_tolerance)),
+                ("normal_agreement", offset_of!(ReprojectParams, normal_agreement)),
+                ("_pad0", offset_of!(ReprojectParams, _pad0)),
+            ],
+        );
+    }
+}
