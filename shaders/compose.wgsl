@@ -14,7 +14,7 @@
 //   ((origin + (x, y)) / scale - low_origin). Scale 1 is the identity.
 // - Depth per full pixel (distance along the ray, +inf without a hit: the bits of f32 infinity),
 //   what object space composites by.
-// - Per-frame counters of the low rectangle (each low pixel counted once): trilinear fetches as a
+// - Per-frame counters of the tile's own low rectangle (each low pixel counted once; not the guard band): trilinear fetches as a
 //   64-bit sum (low word, high word), hits and pixels, summed per row of the low rectangle, then
 //   once per row into `counters`.
 
@@ -30,6 +30,8 @@ struct ComposeParams {
     frames: u32,           // frames in the running sums; 0: no AO or IBL (E = ambient)
     per_pixel: u32,        // 1: divide by each pixel's weight (the sum's w) instead of `frames`
     _pad1: u32,
+    counted_origin: vec2<u32>, // the tile's own low rectangle within the low rectangle (a guard
+    counted_size: vec2<u32>,   // band grows the latter): the pixels the counters count
 }
 
 // A read-only storage buffer, not a uniform: see frame.wgsl (lavapipe's uniform inlining).
@@ -70,14 +72,14 @@ fn encode(x: f32) -> f32 {
 
 @compute @workgroup_size(8, 8, 1)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
-    // The counters: the first invocation of each row of the low rectangle sums that row and adds it
+    // The counters: the first invocation of each row of the tile's own low rectangle sums that row and adds it
     // once (no workgroup barrier: llvmpipe runs a workgroup that has one as coroutines).
-    if gid.x == 0u && gid.y < params.low_size.y {
+    if gid.x == 0u && gid.y < params.counted_size.y {
         var lo = 0u;
         var hi = 0u;
         var hits = 0u;
-        let row = gid.y * params.low_size.x;
-        for (var x = 0u; x < params.low_size.x; x += 1u) {
+        let row = (gid.y + params.counted_origin.y) * params.low_size.x + params.counted_origin.x;
+        for (var x = 0u; x < params.counted_size.x; x += 1u) {
             let f = in_fetches[row + x];
             let sum = lo + f;
             hi += select(0u, 1u, sum < lo);
@@ -88,7 +90,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         hi += select(0u, 1u, old + lo < old); // carry into the high word
         atomicAdd(&counters[1], hi);
         atomicAdd(&counters[2], hits);
-        atomicAdd(&counters[3], params.low_size.x);
+        atomicAdd(&counters[3], params.counted_size.x);
     }
 
     if gid.x >= params.size.x || gid.y >= params.size.y {

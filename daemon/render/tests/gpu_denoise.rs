@@ -3,7 +3,7 @@
 //! the converged occlusion than raw); what it must not do (change a converged image, blur across a
 //! silhouette); and wall consistency: tiles rendered with a guard band of the filter's reach
 //! compose the whole image's pixels, the edges included, and a narrower band does not; a steady
-//! denoised tile allocates nothing.
+//! denoised tile allocates nothing and counts its own pixels, not its guard band's.
 
 mod common;
 
@@ -311,4 +311,12 @@ fn a_steady_denoised_tile_allocates_nothing() {
     }
     let t = gpu.ctx.traffic.now() - before;
     assert_eq!(t.allocations, 0, "{} GPU allocations in 6 steady denoised frames", t.allocations);
+    // The frame's counters count the tile's own pixels, not its guard band's.
+    let reads = ring.take_ready();
+    assert_eq!(reads.len(), 6);
+    for read in reads {
+        let (tag, out) = FrameRead::decode(read, gpu.ctx.queue.get_timestamp_period()).unwrap();
+        assert_eq!(out.counters.pixels, 32 * 24, "frame {}: pixels counted", tag.frame_id);
+        assert!(out.counters.hits <= 32 * 24, "frame {}: {} hits", tag.frame_id, out.counters.hits);
+    }
 }

@@ -28,6 +28,10 @@ pub struct ComposeParams {
     /// of `frames`.
     pub per_pixel: u32,
     pub _pad1: u32,
+    /// The tile's own low rectangle within the low rectangle the kernels ran over (which a guard
+    /// band grows): the pixels the counters count.
+    pub counted_origin: [u32; 2],
+    pub counted_size: [u32; 2],
 }
 
 impl ComposeParams {
@@ -35,6 +39,7 @@ impl ComposeParams {
     /// with `frames` frames in the running sums (0 where neither AO nor IBL is on).
     pub fn new(view: &View, low: &View, scale: u32, s: &RenderSettings, frames: u32) -> ComposeParams {
         let c = |v: [f64; 3], w: f64| [v[0] as f32, v[1] as f32, v[2] as f32, w as f32];
+        let own = isowall_model::lowres::scaled_view(view, scale.max(1)).rect;
         ComposeParams {
             background: c(s.background, s.exposure),
             albedo: c(s.material.albedo, 0.0),
@@ -47,6 +52,8 @@ impl ComposeParams {
             frames,
             per_pixel: 0,
             _pad1: 0,
+            counted_origin: [own.x.saturating_sub(low.rect.x), own.y.saturating_sub(low.rect.y)],
+            counted_size: [own.width, own.height],
         }
     }
 }
@@ -156,6 +163,8 @@ mod tests {
                 ("frames", offset_of!(ComposeParams, frames)),
                 ("per_pixel", offset_of!(ComposeParams, per_pixel)),
                 ("_pad1", offset_of!(ComposeParams, _pad1)),
+                ("counted_origin", offset_of!(ComposeParams, counted_origin)),
+                ("counted_size", offset_of!(ComposeParams, counted_size)),
             ],
         );
     }

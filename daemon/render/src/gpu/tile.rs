@@ -9,7 +9,7 @@
 //! writing the presentable image, depth and the frame's counters; with `settings.denoise` on,
 //! [`Kernel::Denoise`](crate::shaders::Kernel) filters the occlusion and IBL terms between AO and
 //! compose (its buffers made on the first denoised frame and kept), over the rectangle grown by
-//! the tile's guard band ([`work_view`]; the counters count the band's pixels too). With
+//! the tile's guard band ([`work_view`]; the counters count the tile's own pixels only). With
 //! `temporal` on, a frame whose state differs from the last only by the camera keeps the history:
 //! after the isosurface kernel, [`Kernel::Reproject`](crate::shaders::Kernel) carries each pixel's
 //! sums over from the previous frame's pixel that saw the same point ([`crate::reproject`]; the
