@@ -139,22 +139,18 @@ impl DenoiseKernel {
     /// The resources of an `n`-pixel rectangle whose isosurface and AO outputs are `inputs`
     /// (direct + hit, N + depth, summed bent + A, summed E).
     pub(crate) fn buffers(&self, ctx: &GpuContext, n: u64, inputs: [&wgpu::Buffer; 4]) -> DenoiseBuffers {
-        let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
-            ctx.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size,
-                usage,
-                mapped_at_creation: false,
-            })
-        };
         let storage = wgpu::BufferUsages::STORAGE;
-        let signal =
-            [buffer("denoise signal 0", n * 16, storage), buffer("denoise signal 1", n * 16, storage)];
-        let variance =
-            [buffer("denoise variance 0", n * 4, storage), buffer("denoise variance 1", n * 4, storage)];
-        let out = buffer("denoised", n * 16, storage | wgpu::BufferUsages::COPY_SRC);
+        let signal = [
+            ctx.buffer("denoise signal 0", n * 16, storage),
+            ctx.buffer("denoise signal 1", n * 16, storage),
+        ];
+        let variance = [
+            ctx.buffer("denoise variance 0", n * 4, storage),
+            ctx.buffer("denoise variance 1", n * 4, storage),
+        ];
+        let out = ctx.buffer("denoised", n * 16, storage | wgpu::BufferUsages::COPY_SRC);
         let params =
-            buffer("denoise params", self.stride * PASSES as u64, storage | wgpu::BufferUsages::COPY_DST);
+            ctx.buffer("denoise params", self.stride * PASSES as u64, storage | wgpu::BufferUsages::COPY_DST);
         fn b(binding: u32, buf: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
             wgpu::BindGroupEntry { binding, resource: buf.as_entire_binding() }
         }

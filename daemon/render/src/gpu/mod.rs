@@ -184,6 +184,16 @@ impl GpuContext {
         self.device.create_buffer(desc)
     }
 
+    /// A labelled buffer of `size` bytes for `usage`, not mapped at creation ([`Self::create_buffer`]).
+    pub fn buffer(&self, label: &str, size: u64, usage: wgpu::BufferUsages) -> wgpu::Buffer {
+        self.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size,
+            usage,
+            mapped_at_creation: false,
+        })
+    }
+
     /// `device.create_buffer_init`, counted (an allocation and its bytes uploaded).
     pub fn create_buffer_init(&self, desc: &wgpu::util::BufferInitDescriptor) -> wgpu::Buffer {
         self.traffic.allocations.fetch_add(1, Ordering::Relaxed);

@@ -201,29 +201,21 @@ impl TileTarget {
             return Err(GpuError::TooLarge { name: format!("tile {name}'s AOVs"), bytes: n * 16, limit });
         }
         ctx.validated("tile resources", || {
-            let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
-                ctx.create_buffer(&wgpu::BufferDescriptor {
-                    label: Some(label),
-                    size,
-                    usage,
-                    mapped_at_creation: false,
-                })
-            };
             let storage =
                 wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::COPY_SRC;
             let aov = [
-                buffer("direct", n * 16, storage),
-                buffer("geometry", n * 16, storage),
-                buffer("fetches", n * 4, storage),
-                buffer("acc ao", n * 16, storage),
-                buffer("acc ibl", n * 16, storage),
+                ctx.buffer("direct", n * 16, storage),
+                ctx.buffer("geometry", n * 16, storage),
+                ctx.buffer("fetches", n * 4, storage),
+                ctx.buffer("acc ao", n * 16, storage),
+                ctx.buffer("acc ibl", n * 16, storage),
             ];
             let params_usage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST;
-            let params = buffer("frame params", std::mem::size_of::<FrameParams>() as u64, params_usage);
+            let params = ctx.buffer("frame params", std::mem::size_of::<FrameParams>() as u64, params_usage);
             let compose_params =
-                buffer("compose params", std::mem::size_of::<ComposeParams>() as u64, params_usage);
-            let depth = buffer("depth", size.0 as u64 * size.1 as u64 * 4, storage);
-            let counters = buffer("counters", COUNTER_BYTES, storage);
+                ctx.buffer("compose params", std::mem::size_of::<ComposeParams>() as u64, params_usage);
+            let depth = ctx.buffer("depth", size.0 as u64 * size.1 as u64 * 4, storage);
+            let counters = ctx.buffer("counters", COUNTER_BYTES, storage);
             let image = || {
                 let texture = ctx.create_texture(&wgpu::TextureDescriptor {
                     label: Some(name),
@@ -252,7 +244,7 @@ impl TileTarget {
                         ty: wgpu::QueryType::Timestamp,
                         count: QUERIES,
                     }),
-                    resolved: buffer(
+                    resolved: ctx.buffer(
                         "timestamps",
                         8 * QUERIES as u64,
                         wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
@@ -481,23 +473,15 @@ impl GpuRenderer {
             let a = &tile.aov;
             let n = low.rect.width as u64 * low.rect.height as u64;
             let made = ctx.validated("tile history resources", || {
-                let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
-                    ctx.create_buffer(&wgpu::BufferDescriptor {
-                        label: Some(label),
-                        size,
-                        usage,
-                        mapped_at_creation: false,
-                    })
-                };
                 let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST;
                 let prev = [
-                    buffer("previous direct", n * 16, storage),
-                    buffer("previous geometry", n * 16, storage),
-                    buffer("previous acc ao", n * 16, storage),
-                    buffer("previous acc ibl", n * 16, storage),
+                    ctx.buffer("previous direct", n * 16, storage),
+                    ctx.buffer("previous geometry", n * 16, storage),
+                    ctx.buffer("previous acc ao", n * 16, storage),
+                    ctx.buffer("previous acc ibl", n * 16, storage),
                 ];
                 let params =
-                    buffer("reproject params", std::mem::size_of::<ReprojectParams>() as u64, storage);
+                    ctx.buffer("reproject params", std::mem::size_of::<ReprojectParams>() as u64, storage);
                 let bind = self.reproject.bind(
                     ctx,
                     &params,
