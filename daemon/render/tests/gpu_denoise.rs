@@ -7,24 +7,10 @@
 
 mod common;
 
-use isowall_model::{Camera, Denoise, Rect, RenderSettings, View};
+use isowall_model::{Denoise, Rect, RenderSettings, View};
 use isowall_render::denoise::{self, Input};
 use isowall_render::gpu::{FrameRead, GpuRenderer, GpuVolume, ReadbackRing, TileFrame, TileTarget};
 use isowall_render::Frame;
-use isowall_volume::procedural::Procedural;
-use isowall_volume::{Volume, VolumeSource};
-
-fn scene(w: u32, h: u32) -> (Volume, View, RenderSettings) {
-    let src = VolumeSource::Procedural { kind: Procedural::SphereOverPlane, size: Some(40) };
-    let volume = src.load(None).unwrap();
-    let view = View::whole(Camera::framing(volume.box_min(), volume.box_max(), w, h), w, h);
-    let mut s = RenderSettings::new(Procedural::SphereOverPlane.natural_iso());
-    // Ambient light only: the colour is albedo * ambient * (1 - A), the occlusion made visible.
-    s.light.color = [0.0; 3];
-    s.light.ambient = [1.0; 3];
-    s.ao.samples = 4;
-    (volume, view, s)
-}
 
 fn render(
     gpu: &GpuRenderer,
@@ -52,23 +38,10 @@ fn cpu_filter(view: &View, raw: &Frame, samples: u64) -> (Vec<f32>, Vec<[f32; 3]
     })
 }
 
-/// Root mean square of a - b over the pixels both hit.
-fn rmse(a: &Frame, b: &[f32], hit: &[bool]) -> f64 {
-    let (mut sum, mut n) = (0.0, 0usize);
-    for i in 0..hit.len() {
-        if hit[i] && a.hit[i] {
-            sum += ((a.occlusion[i] - b[i]) as f64).powi(2);
-            n += 1;
-        }
-    }
-    assert!(n > 100, "only {n} pixels hit");
-    (sum / n as f64).sqrt()
-}
-
 #[test]
 fn the_gpu_filter_is_its_cpu_twin() {
     let Some(gpu) = common::gpu() else { return };
-    let (volume, view, s) = scene(64, 48);
+    let (volume, view, s) = common::ambient_sphere_scene(64, 48);
     let gv = gpu.upload(&volume).unwrap();
     for frames in [1, 3] {
         let raw = render(&gpu, &gv, &view, &s, frames, false);
@@ -97,14 +70,15 @@ fn the_gpu_filter_is_its_cpu_twin() {
 #[test]
 fn four_samples_denoised_are_closer_to_the_converged_occlusion_than_raw() {
     let Some(gpu) = common::gpu() else { return };
-    let (volume, view, s) = scene(192, 144);
+    let (volume, view, s) = common::ambient_sphere_scene(192, 144);
     let gv = gpu.upload(&volume).unwrap();
     // 4 x 128 samples per pixel: the converged occlusion of the same estimator.
     let converged = render(&gpu, &gv, &view, &s, 128, false);
     let raw = render(&gpu, &gv, &view, &s, 1, false);
     let den = render(&gpu, &gv, &view, &s, 1, true);
-    let e_raw = rmse(&raw, &converged.occlusion, &converged.hit);
-    let e_den = rmse(&den, &converged.occlusion, &converged.hit);
+    let error =
+        |f: &Frame| common::rmse(&f.occlusion, &converged.occlusion, |i| converged.hit[i] && f.hit[i]);
+    let (e_raw, e_den) = (error(&raw), error(&den));
     eprintln!("occlusion RMSE against 512 spp: raw 4 spp {e_raw:.4}, denoised 4 spp {e_den:.4}");
     assert!(e_den < 0.5 * e_raw, "denoised {e_den} against raw {e_raw}");
 }
@@ -112,7 +86,7 @@ fn four_samples_denoised_are_closer_to_the_converged_occlusion_than_raw() {
 #[test]
 fn a_converged_image_barely_changes() {
     let Some(gpu) = common::gpu() else { return };
-    let (volume, view, s) = scene(64, 48);
+    let (volume, view, s) = common::ambient_sphere_scene(64, 48);
     let gv = gpu.upload(&volume).unwrap();
     let change = |frames: u32| {
         let raw = render(&gpu, &gv, &view, &s, frames, false);
@@ -137,7 +111,7 @@ fn silhouettes_keep_their_edges() {
     // it (a depth step) takes nothing from them, so a converged-enough image keeps the occlusion
     // step at the outline: the filter changes outline pixels no more than it changes others.
     let Some(gpu) = common::gpu() else { return };
-    let (volume, view, s) = scene(64, 48);
+    let (volume, view, s) = common::ambient_sphere_scene(64, 48);
     let gv = gpu.upload(&volume).unwrap();
     let converged = render(&gpu, &gv, &view, &s, 256, false);
     let raw = render(&gpu, &gv, &view, &s, 4, false);
@@ -244,7 +218,7 @@ fn seam_error(gpu: &GpuRenderer, gv: &GpuVolume, view: &View, s: &RenderSettings
 fn a_2x2_wall_with_the_guard_band_is_the_whole_denoised_image() {
     let Some(gpu) = common::gpu() else { return };
     // Larger than twice the reach, so that a tile's band does not cover the whole image.
-    let (volume, view, mut s) = scene(256, 192);
+    let (volume, view, mut s) = common::ambient_sphere_scene(256, 192);
     s.denoise = Denoise::On;
     let gv = gpu.upload(&volume).unwrap();
     let (max, edge) = seam_error(&gpu, &gv, &view, &s, denoise::reach());
@@ -268,7 +242,7 @@ fn a_steady_denoised_tile_allocates_nothing() {
     // The filter's buffers are made on the tile's first denoised frame and kept; a steady frame
     // uploads only the parameters (the frame's, compose's and the passes').
     let Some(gpu) = common::gpu() else { return };
-    let (volume, view, mut s) = scene(64, 48);
+    let (volume, view, mut s) = common::ambient_sphere_scene(64, 48);
     s.denoise = Denoise::On;
     let gv = gpu.upload(&volume).unwrap();
     let rect = Rect { x: 0, y: 0, width: 32, height: 24 };

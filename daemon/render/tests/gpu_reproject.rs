@@ -14,20 +14,6 @@ use isowall_render::gpu::{
     TileTarget,
 };
 use isowall_render::reproject::{self, Geometry, RULE};
-use isowall_volume::procedural::Procedural;
-use isowall_volume::{Volume, VolumeSource};
-
-fn scene(w: u32, h: u32) -> (Volume, View, RenderSettings) {
-    let src = VolumeSource::Procedural { kind: Procedural::SphereOverPlane, size: Some(40) };
-    let volume = src.load(None).unwrap();
-    let view = View::whole(Camera::framing(volume.box_min(), volume.box_max(), w, h), w, h);
-    let mut s = RenderSettings::new(Procedural::SphereOverPlane.natural_iso());
-    // Ambient light only: the colour shows the occlusion.
-    s.light.color = [0.0; 3];
-    s.light.ambient = [1.0; 3];
-    s.ao.samples = 4;
-    (volume, view, s)
-}
 
 /// `view` with its camera turned by `deg` degrees about the world's z axis through its target.
 fn orbit(view: &View, deg: f64) -> View {
@@ -89,7 +75,7 @@ fn occlusion(sums: &TileSums) -> Vec<f32> {
 #[test]
 fn a_still_camera_with_temporal_on_is_bit_identical_to_temporal_off() {
     let Some(gpu) = common::gpu() else { return };
-    let (volume, view, mut s) = scene(64, 48);
+    let (volume, view, mut s) = common::ambient_sphere_scene(64, 48);
     let gv = gpu.upload(&volume).unwrap();
     for denoise in [Denoise::Off, Denoise::On] {
         s.denoise = denoise;
@@ -134,7 +120,7 @@ fn move_once(
 #[test]
 fn the_gpu_reprojection_is_its_cpu_twin() {
     let Some(gpu) = common::gpu() else { return };
-    let (volume, view, s) = scene(96, 72);
+    let (volume, view, s) = common::ambient_sphere_scene(96, 72);
     let gv = gpu.upload(&volume).unwrap();
     let moved = orbit(&view, 4.0);
     // 20 still frames: older than the maximum age, so the carried sums are scaled down.
@@ -179,7 +165,7 @@ fn the_gpu_reprojection_is_its_cpu_twin() {
 #[test]
 fn the_filter_of_a_reprojected_history_is_its_cpu_twin_with_per_pixel_counts() {
     let Some(gpu) = common::gpu() else { return };
-    let (volume, view, mut s) = scene(64, 48);
+    let (volume, view, mut s) = common::ambient_sphere_scene(64, 48);
     s.denoise = Denoise::On;
     let gv = gpu.upload(&volume).unwrap();
     let moved = orbit(&view, 3.0);
@@ -223,23 +209,10 @@ fn the_filter_of_a_reprojected_history_is_its_cpu_twin_with_per_pixel_counts() {
     assert!(max < 1e-3, "GPU and CPU twin differ by up to {max}");
 }
 
-/// Root mean square of a - truth over the pixels where both have a value.
-fn rmse(a: &[f32], truth: &[f32], hit: &[bool]) -> f64 {
-    let (mut sum, mut n) = (0.0, 0usize);
-    for i in 0..a.len() {
-        if hit[i] && a[i].is_finite() {
-            sum += ((a[i] - truth[i]) as f64).powi(2);
-            n += 1;
-        }
-    }
-    assert!(n > 100, "only {n} pixels");
-    (sum / n as f64).sqrt()
-}
-
 #[test]
 fn after_a_small_move_the_kept_history_is_closer_to_the_converged_occlusion() {
     let Some(gpu) = common::gpu() else { return };
-    let (volume, view, s) = scene(64, 48);
+    let (volume, view, s) = common::ambient_sphere_scene(64, 48);
     let gv = gpu.upload(&volume).unwrap();
     let moved = orbit(&view, 2.0);
     let mut converged = s;
@@ -247,10 +220,8 @@ fn after_a_small_move_the_kept_history_is_closer_to_the_converged_occlusion() {
     let truth = gpu.render_accumulated(&gv, &moved, &converged, None, 128).unwrap().frame;
     let (_, with, _) = move_once(&gpu, &gv, &view, &moved, &s, 8, true);
     let (_, without, _) = move_once(&gpu, &gv, &view, &moved, &s, 8, false);
-    let (e_with, e_without) = (
-        rmse(&occlusion(&with), &truth.occlusion, &truth.hit),
-        rmse(&occlusion(&without), &truth.occlusion, &truth.hit),
-    );
+    let error = |a: &[f32]| common::rmse(a, &truth.occlusion, |i| truth.hit[i] && a[i].is_finite());
+    let (e_with, e_without) = (error(&occlusion(&with)), error(&occlusion(&without)));
     eprintln!("occlusion RMSE after a 2 degree orbit: reprojected {e_with:.4}, restarted {e_without:.4}");
     assert!(e_with < 0.7 * e_without, "reprojected {e_with} vs restarted {e_without}");
 }
@@ -258,7 +229,7 @@ fn after_a_small_move_the_kept_history_is_closer_to_the_converged_occlusion() {
 #[test]
 fn newly_seen_points_restart_and_a_move_out_of_the_tile_rejects_all() {
     let Some(gpu) = common::gpu() else { return };
-    let (volume, framing, s) = scene(96, 72);
+    let (volume, framing, s) = common::ambient_sphere_scene(96, 72);
     let gv = gpu.upload(&volume).unwrap();
     // Looking down on the sphere (radius 5.85, centre (19.5, 19.5, 19.1)) over the plane z = 9.75
     // from near above it; a sideways step moves the sphere across the plane behind it (parallax)
@@ -340,7 +311,7 @@ fn newly_seen_points_restart_and_a_move_out_of_the_tile_rejects_all() {
 #[test]
 fn a_change_of_iso_or_ao_radius_resets_even_with_temporal_on() {
     let Some(gpu) = common::gpu() else { return };
-    let (volume, view, s) = scene(64, 48);
+    let (volume, view, s) = common::ambient_sphere_scene(64, 48);
     let gv = gpu.upload(&volume).unwrap();
     let moved = orbit(&view, 2.0);
     let mut iso = s;
@@ -396,7 +367,7 @@ fn tile_after(
 fn a_2x2_wall_after_a_move_is_the_whole_reprojected_denoised_image() {
     let Some(gpu) = common::gpu() else { return };
     // Larger than twice the filter's reach, as gpu_denoise's wall test.
-    let (volume, view, mut s) = scene(256, 192);
+    let (volume, view, mut s) = common::ambient_sphere_scene(256, 192);
     s.denoise = Denoise::On;
     let gv = gpu.upload(&volume).unwrap();
     let guard = isowall_render::denoise::reach();

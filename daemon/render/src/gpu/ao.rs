@@ -1,7 +1,9 @@
 //! `Kernel::Ao` (shaders/ao.wgsl): ambient occlusion (ours, or the 2008 `seed` baseline), bent
 //! normal and the IBL term of one frame at every hit, added into accumulators.
 
-use super::{frame_entries, storage_entry, FrameParams, GpuContext, GpuError, GpuVolume, PerfOptions};
+use super::{
+    buffer_entries, frame_entries, storage_entry, FrameParams, GpuContext, GpuError, GpuVolume, PerfOptions,
+};
 use crate::shaders::Kernel;
 use isowall_model::{AoMethod, RenderSettings};
 
@@ -152,11 +154,7 @@ impl AoKernel {
         io: [&wgpu::Buffer; 5],
     ) -> wgpu::BindGroup {
         let buffers = [params, &volume.voxels, &volume.block_minmax, io[0], io[1], env, io[2], io[3], io[4]];
-        let mut entries: Vec<wgpu::BindGroupEntry> = buffers
-            .iter()
-            .enumerate()
-            .map(|(i, b)| wgpu::BindGroupEntry { binding: i as u32, resource: b.as_entire_binding() })
-            .collect();
+        let mut entries = buffer_entries(&buffers);
         entries.push(wgpu::BindGroupEntry {
             binding: 9,
             resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {

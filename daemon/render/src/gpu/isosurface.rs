@@ -1,7 +1,7 @@
 //! `Kernel::Isosurface` (shaders/isosurface.wgsl): primary rays, first hit, normal, direct light.
 //! Outputs per pixel: direct light + hit flag, N + depth, trilinear fetches.
 
-use super::{frame_entries, storage_entry, GpuContext, GpuError, GpuVolume, PerfOptions};
+use super::{buffer_entries, frame_entries, storage_entry, GpuContext, GpuError, GpuVolume, PerfOptions};
 use crate::shaders::Kernel;
 
 /// The compiled kernel.
@@ -62,11 +62,7 @@ impl IsosurfaceKernel {
         outputs: [&wgpu::Buffer; 3],
     ) -> wgpu::BindGroup {
         let io = [params, &volume.voxels, &volume.block_minmax, outputs[0], outputs[1], outputs[2]];
-        let mut entries: Vec<wgpu::BindGroupEntry> = io
-            .iter()
-            .enumerate()
-            .map(|(i, b)| wgpu::BindGroupEntry { binding: i as u32, resource: b.as_entire_binding() })
-            .collect();
+        let mut entries = buffer_entries(&io);
         entries.push(wgpu::BindGroupEntry {
             binding: 6,
             resource: wgpu::BindingResource::TextureView(&volume.march.view),

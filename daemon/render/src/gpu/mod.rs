@@ -342,6 +342,15 @@ pub(crate) fn frame_entries() -> [wgpu::BindGroupLayoutEntry; 3] {
     ]
 }
 
+/// Bind group entries binding `buffers` whole at bindings 0, 1, 2, ... in order.
+pub(crate) fn buffer_entries<'a>(buffers: &[&'a wgpu::Buffer]) -> Vec<wgpu::BindGroupEntry<'a>> {
+    buffers
+        .iter()
+        .enumerate()
+        .map(|(i, b)| wgpu::BindGroupEntry { binding: i as u32, resource: b.as_entire_binding() })
+        .collect()
+}
+
 pub(crate) fn storage_entry(binding: u32, read_only: bool) -> wgpu::BindGroupLayoutEntry {
     wgpu::BindGroupLayoutEntry {
         binding,

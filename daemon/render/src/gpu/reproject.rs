@@ -2,7 +2,7 @@
 //! frame into a frame whose camera alone moved (temporal reprojection). The rule and its CPU twin
 //! are [`crate::reproject`]; [`ReprojectParams`] is the twin of the WGSL struct.
 
-use super::{storage_entry, FrameParams, GpuContext, GpuError};
+use super::{buffer_entries, storage_entry, FrameParams, GpuContext, GpuError};
 use crate::reproject::Rule;
 use crate::shaders::Kernel;
 use bytemuck::{Pod, Zeroable};
@@ -93,11 +93,7 @@ impl ReprojectKernel {
         sums: [&wgpu::Buffer; 2],
     ) -> wgpu::BindGroup {
         let all = [params, next[0], next[1], prev[0], prev[1], prev[2], prev[3], sums[0], sums[1]];
-        let entries: Vec<_> = all
-            .iter()
-            .enumerate()
-            .map(|(i, b)| wgpu::BindGroupEntry { binding: i as u32, resource: b.as_entire_binding() })
-            .collect();
+        let entries = buffer_entries(&all);
         ctx.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("reproject"),
             layout: &self.layout,

@@ -195,3 +195,29 @@ pub fn smooth_environment() -> Environment {
     }
     Environment::new("smooth", w, h, texels).unwrap()
 }
+
+/// Root mean square of `a - truth` over the pixels `counted` picks (more than 100 of them).
+pub fn rmse(a: &[f32], truth: &[f32], counted: impl Fn(usize) -> bool) -> f64 {
+    let (mut sum, mut n) = (0.0, 0usize);
+    for i in (0..a.len()).filter(|&i| counted(i)) {
+        sum += ((a[i] - truth[i]) as f64).powi(2);
+        n += 1;
+    }
+    assert!(n > 100, "only {n} pixels");
+    (sum / n as f64).sqrt()
+}
+
+/// The sphere over a plane (40^3) framed at `w` x `h`, with 4 AO samples and ambient light only
+/// (the colour is albedo * ambient * (1 - A): the occlusion made visible): the scene of the
+/// filter's and the reprojection's tests.
+pub fn ambient_sphere_scene(w: u32, h: u32) -> (Volume, View, RenderSettings) {
+    use isowall_volume::procedural::Procedural;
+    let src = isowall_volume::VolumeSource::Procedural { kind: Procedural::SphereOverPlane, size: Some(40) };
+    let volume = src.load(None).unwrap();
+    let view = View::whole(isowall_model::Camera::framing(volume.box_min(), volume.box_max(), w, h), w, h);
+    let mut s = RenderSettings::new(Procedural::SphereOverPlane.natural_iso());
+    s.light.color = [0.0; 3];
+    s.light.ambient = [1.0; 3];
+    s.ao.samples = 4;
+    (volume, view, s)
+}
