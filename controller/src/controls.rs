@@ -114,10 +114,7 @@ impl SessionState {
 
     /// Turns the eye about the world up (+z) through the target.
     pub fn orbit_yaw(&mut self, degrees: f64) {
-        let rot = DQuat::from_rotation_z(degrees.to_radians());
-        let c = &mut self.camera;
-        c.eye = c.target + rot * (c.eye - c.target);
-        c.up = rot * c.up;
+        self.camera = self.camera.yawed(degrees);
     }
 
     /// Tilts the eye about the view's right axis, stopping short of the poles.

@@ -4,7 +4,6 @@ use crate::local::LocalDaemons;
 use crate::wall::{compose, quantile, report, Wall};
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
-use glam::DQuat;
 use isowall_model::config::WallConfig;
 use isowall_model::{Camera, Governor, Motion, RenderSettings};
 use isowall_net::CaMode;
@@ -184,8 +183,7 @@ pub(crate) fn time_steps(config: &WallConfig) -> Result<u32> {
 /// The camera of frame `k` of an orbit: the eye turned about the world up axis (+z) through the
 /// target.
 pub fn orbit_camera(base: &Camera, k: u64, degrees_per_frame: f64) -> Camera {
-    let rot = DQuat::from_rotation_z((k as f64 * degrees_per_frame).to_radians());
-    Camera { eye: base.target + rot * (base.eye - base.target), up: rot * base.up, ..*base }
+    base.yawed(k as f64 * degrees_per_frame)
 }
 
 /// The governor of a drive, if a target is set (the flag before the config): it starts at the

@@ -44,6 +44,13 @@ pub struct Basis {
 }
 
 impl Camera {
+    /// The camera turned by `degrees` about the world up axis (+z) through its target: the eye and
+    /// the up vector turn, the target stays (an orbit's step; + is counter-clockwise from above).
+    pub fn yawed(&self, degrees: f64) -> Camera {
+        let rot = glam::DQuat::from_rotation_z(degrees.to_radians());
+        Camera { eye: self.target + rot * (self.eye - self.target), up: rot * self.up, ..*self }
+    }
+
     /// Checks that the camera defines a frame: finite, eye != target, up not parallel, 0 < fov < 180.
     pub fn validate(&self) -> Result<(), CameraError> {
         for (name, v) in [("eye", self.eye), ("target", self.target), ("up", self.up)] {

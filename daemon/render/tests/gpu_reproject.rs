@@ -6,7 +6,7 @@
 
 mod common;
 
-use glam::{DQuat, DVec3};
+use glam::DVec3;
 use isowall_model::{AoRadius, Camera, Denoise, Rect, RenderSettings, View};
 use isowall_render::denoise::{self, Input};
 use isowall_render::gpu::{
@@ -17,9 +17,7 @@ use isowall_render::reproject::{self, Geometry, RULE};
 
 /// `view` with its camera turned by `deg` degrees about the world's z axis through its target.
 fn orbit(view: &View, deg: f64) -> View {
-    let c = view.camera;
-    let q = DQuat::from_rotation_z(deg.to_radians());
-    View { camera: Camera { eye: c.target + q * (c.eye - c.target), ..c }, ..*view }
+    View { camera: view.camera.yawed(deg), ..*view }
 }
 
 /// `view` with its camera (eye and target) moved by `by`.

@@ -16,7 +16,6 @@ use crate::args;
 use crate::render::load_volume;
 use anyhow::{bail, Result};
 use clap::Args;
-use glam::DQuat;
 use isowall_model::{Camera, Denoise, RenderSettings, View};
 use isowall_render::gpu::{FrameRead, GpuRenderer, GpuVolume, ReadbackRing, TileFrame, TileSums, TileTarget};
 use isowall_render::Frame;
@@ -62,9 +61,7 @@ const VARIANTS: [(&str, bool, bool); 4] = [
 
 /// `view` with its camera turned by `deg` degrees about the world's z axis through its target.
 fn orbit(view: &View, deg: f64) -> View {
-    let c = view.camera;
-    let q = DQuat::from_rotation_z(deg.to_radians());
-    View { camera: Camera { eye: c.target + q * (c.eye - c.target), ..c }, ..*view }
+    View { camera: view.camera.yawed(deg), ..*view }
 }
 
 /// One frame's hits as the flicker needs them: per pixel, hit and distance along the ray.
