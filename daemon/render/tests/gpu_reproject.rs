@@ -1,6 +1,7 @@
 //! Temporal reprojection of a tile's history (`Kernel::Reproject`): the GPU against its CPU twin
 //! (`isowall_render::reproject`); a still camera unchanged bit for bit; what it is for (after a
-//! small camera move the occlusion is closer to the converged one than a restart's); what it must
+//! small camera move the occlusion is closer to the converged one than a restart's, and moving
+//! frames draw new samples, so the carried estimate keeps converging); what it must
 //! not do (carry a history onto points the previous frame did not see, or across a change of
 //! iso or AO settings); wall consistency of denoised tiles with a guard band after a move.
 
@@ -399,4 +400,44 @@ fn a_2x2_wall_after_a_move_is_the_whole_reprojected_denoised_image() {
     // band pixels whose history came from beyond its work rectangle restart where the whole
     // image carried them; a small move keeps those beyond the filter's reach of its own pixels.
     assert!(max <= 1 && mean < 0.01, "max {max}, mean {mean}");
+}
+
+/// Moving frames draw new samples: a wall sends every moving frame with the same `ao.frame` (the
+/// node machine's accumulate_frame is 0), so a tile drawing its samples by that index alone would
+/// carry the same samples frame after frame and keep one frame's noise. Over 12 frames of a slow
+/// orbit the carried estimate's error falls far below a single frame's.
+#[test]
+fn moving_frames_draw_new_samples() {
+    let Some(gpu) = common::gpu() else { return };
+    let (volume, view, s) = common::ambient_sphere_scene(64, 48);
+    let gv = gpu.upload(&volume).unwrap();
+    let mut ring = ReadbackRing::new(2);
+    let mut tile = TileTarget::new(&gpu, "t", &view, 1).unwrap();
+    let mut last = view;
+    for k in 0..12u64 {
+        last = orbit(&view, 0.25 * k as f64);
+        let tf = TileFrame {
+            frame_id: k + 1,
+            volume: &gv,
+            view: &last,
+            settings: &s,
+            env: None,
+            accumulate: false,
+            temporal: true,
+            share: false,
+        };
+        gpu.render_tile(&mut tile, &tf, &mut ring).unwrap();
+        ring.wait_oldest(&gpu.ctx).unwrap();
+        ring.take_ready();
+    }
+    assert!(tile.reprojected(), "the orbit's frames were not reprojected");
+    let moving = occlusion(&gpu.read_tile_sums(&tile).unwrap());
+    let mut converged = s;
+    converged.ao.frame = 1000;
+    let truth = gpu.render_accumulated(&gv, &last, &converged, None, 128).unwrap().frame;
+    let one = gpu.render(&gv, &last, &s, None).unwrap().frame;
+    let error = |a: &[f32]| common::rmse(a, &truth.occlusion, |i| truth.hit[i] && a[i].is_finite());
+    let (e_moving, e_one) = (error(&moving), error(&one.occlusion));
+    eprintln!("occlusion RMSE after 12 moving frames {e_moving:.4}, one frame {e_one:.4}");
+    assert!(e_moving < 0.5 * e_one, "moving frames kept one frame's noise: {e_moving} against {e_one}");
 }
