@@ -14,9 +14,9 @@
 //   ((origin + (x, y)) / scale - low_origin). Scale 1 is the identity.
 // - Depth per full pixel (distance along the ray, +inf without a hit: the bits of f32 infinity),
 //   what object space composites by.
-// - Per-frame counters of the tile's own low rectangle (each low pixel counted once; not the guard band): trilinear fetches as a
-//   64-bit sum (low word, high word), hits and pixels, summed per row of the low rectangle, then
-//   once per row into `counters`.
+// - Per-frame counters of the tile's own low rectangle (each low pixel counted once; not the guard
+//   band): trilinear fetches as a 64-bit sum (low word, high word), hits and pixels, summed per row
+//   of that rectangle, then once per row into `counters`.
 
 struct ComposeParams {
     background: vec4<f32>, // rgb: linear background; w: exposure
@@ -72,8 +72,8 @@ fn encode(x: f32) -> f32 {
 
 @compute @workgroup_size(8, 8, 1)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
-    // The counters: the first invocation of each row of the tile's own low rectangle sums that row and adds it
-    // once (no workgroup barrier: llvmpipe runs a workgroup that has one as coroutines).
+    // The counters: the first invocation of each row of the tile's own low rectangle sums that row
+    // and adds it once (no workgroup barrier: llvmpipe runs a workgroup that has one as coroutines).
     if gid.x == 0u && gid.y < params.counted_size.y {
         var lo = 0u;
         var hi = 0u;
