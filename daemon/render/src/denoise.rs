@@ -69,10 +69,7 @@ pub const fn reach() -> u32 {
 /// The share of the filtered value in the output, for `samples` visibility samples per pixel in
 /// all (AO samples per frame times frames); 0 without samples (nothing to filter).
 pub fn strength(samples: u64) -> f32 {
-    if samples == 0 {
-        return 0.0;
-    }
-    (FULL_STRENGTH_SAMPLES as f32 / samples as f32).sqrt().min(1.0)
+    pixel_strength(samples as f32)
 }
 
 /// [`strength`] of a pixel's own sample count (a reprojected history's, not a whole number).

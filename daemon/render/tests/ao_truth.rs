@@ -29,7 +29,7 @@ use isowall_volume::procedural::{sphere_over_plane_geometry, Procedural};
 use isowall_volume::{Volume, VolumeSource};
 use std::path::PathBuf;
 use std::sync::OnceLock;
-use truth::{errors, parallel_map, Errors, Field, Truth};
+use truth::{errors, parallel_map, Errors, Field, KnownAnswers, Truth};
 
 /// Directions per pixel of the estimate: M x M strata.
 const M: u32 = 32;
@@ -71,44 +71,33 @@ fn estimate_all(volume: &Volume, iso: f64, view: &View, pixels: &[(u32, u32)]) -
     out
 }
 
-fn v3(v: &serde_json::Value) -> DVec3 {
-    DVec3::new(v[0].as_f64().unwrap(), v[1].as_f64().unwrap(), v[2].as_f64().unwrap())
-}
-
 /// A real scan with its outside answers (None, after a message, where `../shared` is absent).
 fn scan(index: usize) -> Option<&'static Scene> {
     static SCANS: [OnceLock<Option<Scene>>; 2] = [OnceLock::new(), OnceLock::new()];
     SCANS[index]
         .get_or_init(|| {
             let path = shared().join("conventions/ao-known-answers.json");
-            let Ok(text) = std::fs::read_to_string(&path) else {
+            if !path.exists() {
                 eprintln!("skipping: {} is absent (the real scans live beside the checkout)", path.display());
                 return None;
-            };
-            let json: serde_json::Value = serde_json::from_str(&text).expect("known answers parse");
-            let case = &json["cases"][index];
-            let file = case["volume"].as_str().unwrap().trim_start_matches("../shared/");
+            }
+            let answers = KnownAnswers::read(&path).expect("known answers parse");
+            let case = &answers.cases[index];
+            let file = case.volume.trim_start_matches("../shared/");
             let source: VolumeSource = shared().join(file).to_str().unwrap().parse().unwrap();
             let volume = source.load(None).expect("the scan loads");
-            let iso = case["iso"].as_f64().unwrap();
-            let cam = &case["camera"];
+            let iso = case.iso;
+            let cam = &case.camera;
             let camera = Camera {
-                eye: v3(&cam["eye"]),
-                target: v3(&cam["target"]),
-                up: v3(&cam["up"]),
-                fov_y_deg: cam["fov_y_deg"].as_f64().unwrap(),
+                eye: DVec3::from_array(cam.eye),
+                target: DVec3::from_array(cam.target),
+                up: DVec3::from_array(cam.up),
+                fov_y_deg: cam.fov_y_deg,
             };
-            let (w, h) = (cam["width"].as_u64().unwrap() as u32, cam["height"].as_u64().unwrap() as u32);
-            let view = View::whole(camera, w, h);
-            let px = case["pixels"].as_array().unwrap();
-            let pixels: Vec<(u32, u32)> = px
-                .iter()
-                .map(|p| (p["px"].as_u64().unwrap() as u32, p["py"].as_u64().unwrap() as u32))
-                .collect();
-            let known: Vec<(f64, f64)> = px
-                .iter()
-                .map(|p| (p["A_r8"].as_f64().unwrap(), p["A_unbounded"].as_f64().unwrap()))
-                .collect();
+            let view = View::whole(camera, cam.width, cam.height);
+            let px = &case.pixels;
+            let pixels: Vec<(u32, u32)> = px.iter().map(|p| (p.px, p.py)).collect();
+            let known: Vec<(f64, f64)> = px.iter().map(|p| (p.a_r8, p.a_unbounded)).collect();
             let name = if index == 0 { "CT" } else { "MRI" };
             let truth = estimate_all(&volume, iso, &view, &pixels);
             // The estimator's own geometry agrees with the outside renderer's (to 0.01 world
@@ -118,12 +107,12 @@ fn scan(index: usize) -> Option<&'static Scene> {
             let mut known: Vec<Option<(f64, f64)>> = known.into_iter().map(Some).collect();
             let mut differ = 0;
             for ((t, p), k) in truth.iter().zip(px).zip(known.iter_mut()) {
-                let t = t.as_ref().unwrap_or_else(|| panic!("{name}: the estimate misses a known hit {p}"));
-                let dp = (t.position - v3(&p["pos"])).length();
+                let t = t.as_ref().unwrap_or_else(|| panic!("{name}: the estimate misses a known hit {p:?}"));
+                let dp = (t.position - DVec3::from_array(p.pos)).length();
                 if dp >= 0.01 {
                     eprintln!(
-                        "{name} ({}, {}): hit {:?} vs known {}: left out",
-                        t.px, t.py, t.position, p["pos"]
+                        "{name} ({}, {}): hit {:?} vs known {:?}: left out",
+                        t.px, t.py, t.position, p.pos
                     );
                     *k = None;
                     differ += 1;

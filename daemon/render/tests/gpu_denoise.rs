@@ -172,11 +172,7 @@ fn tile_image(
         temporal: false,
         share: true,
     };
-    gpu.render_tile(&mut tile, &f, &mut ring).unwrap();
-    ring.wait_oldest(&gpu.ctx).unwrap();
-    let mut reads = ring.take_ready();
-    let out = FrameRead::decode(reads.remove(0), gpu.ctx.queue.get_timestamp_period()).unwrap().1;
-    out.rgb8.unwrap()
+    common::render_tile_and_read(gpu, &mut tile, &mut ring, &f).rgb8.unwrap()
 }
 
 /// The 2x2 wall's tiles with `guard`, against the whole image: (largest difference in levels, mean

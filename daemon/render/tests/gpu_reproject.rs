@@ -45,11 +45,7 @@ fn frame(
     f.ao.frame = s.ao.frame.wrapping_add(frame_id as u32);
     let tf =
         TileFrame { frame_id, volume: gv, view, settings: &f, env: None, accumulate, temporal, share: true };
-    gpu.render_tile(tile, &tf, ring).unwrap();
-    ring.wait_oldest(&gpu.ctx).unwrap();
-    let mut reads = ring.take_ready();
-    assert_eq!(reads.len(), 1);
-    FrameRead::decode(reads.remove(0), gpu.ctx.queue.get_timestamp_period()).unwrap().1
+    common::render_tile_and_read(gpu, tile, ring, &tf)
 }
 
 /// The tile's per-pixel (hit, depth, normal) from its read-back sums.

@@ -46,11 +46,7 @@ fn frame(
         temporal: false,
         share: true,
     };
-    gpu.render_tile(tile, &f, ring).unwrap();
-    ring.wait_oldest(&gpu.ctx).unwrap();
-    let mut reads = ring.take_ready();
-    assert_eq!(reads.len(), 1);
-    FrameRead::decode(reads.remove(0), gpu.ctx.queue.get_timestamp_period()).unwrap().1
+    common::render_tile_and_read(gpu, tile, ring, &f)
 }
 
 /// (channel values that differ, the largest difference in levels).

@@ -23,7 +23,7 @@ use glam::DVec3;
 use isowall_model::{Camera, Denoise, RenderSettings, View};
 use isowall_render::gpu::GpuRenderer;
 use isowall_render::sampling::hash;
-use isowall_truth::{parallel_map, Field, Truth};
+use isowall_truth::{parallel_map, Field, KnownAnswers, KnownCamera, KnownCase, Truth};
 use isowall_volume::Volume;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -102,47 +102,10 @@ impl Row {
     }
 }
 
-/// A scan of the known answers: its volume's file name, camera, size and pixels with their hit
-/// position and A at radius 8.
-struct KnownCase {
-    file: String,
-    camera: Camera,
-    size: (u32, u32),
-    pixels: Vec<((u32, u32), DVec3, f64)>,
-}
-
-fn v3(v: &serde_json::Value) -> Option<DVec3> {
-    Some(DVec3::new(v.get(0)?.as_f64()?, v.get(1)?.as_f64()?, v.get(2)?.as_f64()?))
-}
-
-fn known_cases(path: &Path) -> Result<Vec<KnownCase>> {
-    let text = std::fs::read_to_string(path)?;
-    let json: serde_json::Value =
-        serde_json::from_str(&text).with_context(|| format!("{} is not JSON", path.display()))?;
-    let bad = |what: &str| anyhow::anyhow!("{}: {what}", path.display());
-    let mut out = Vec::new();
-    for case in json["cases"].as_array().ok_or_else(|| bad("no cases"))? {
-        let file = case["volume"].as_str().ok_or_else(|| bad("a case without a volume"))?;
-        let cam = &case["camera"];
-        let camera = Camera {
-            eye: v3(&cam["eye"]).ok_or_else(|| bad("camera eye"))?,
-            target: v3(&cam["target"]).ok_or_else(|| bad("camera target"))?,
-            up: v3(&cam["up"]).ok_or_else(|| bad("camera up"))?,
-            fov_y_deg: cam["fov_y_deg"].as_f64().ok_or_else(|| bad("camera fov_y_deg"))?,
-        };
-        let dim = |k: &str| cam[k].as_u64().map(|v| v as u32).ok_or_else(|| bad("camera size"));
-        let mut pixels = Vec::new();
-        for p in case["pixels"].as_array().ok_or_else(|| bad("no pixels"))? {
-            let px = p["px"].as_u64().ok_or_else(|| bad("px"))? as u32;
-            let py = p["py"].as_u64().ok_or_else(|| bad("py"))? as u32;
-            let pos = v3(&p["pos"]).ok_or_else(|| bad("pos"))?;
-            let a = p["A_r8"].as_f64().ok_or_else(|| bad("A_r8"))?;
-            pixels.push(((px, py), pos, a));
-        }
-        let file = Path::new(file).file_name().map(|f| f.to_string_lossy().into_owned()).unwrap_or_default();
-        out.push(KnownCase { file, camera, size: (dim("width")?, dim("height")?), pixels });
-    }
-    Ok(out)
+/// The camera of a known-answers case.
+fn known_camera(c: &KnownCamera) -> Camera {
+    let v = DVec3::from_array;
+    Camera { eye: v(c.eye), target: v(c.target), up: v(c.up), fov_y_deg: c.fov_y_deg }
 }
 
 /// The estimate at `pixels` of `camera` at `size`, marched up to `t_max`, printing progress.
@@ -207,10 +170,10 @@ pub fn run(a: &DenoiseArgs) -> Result<()> {
     if a.pixels == 0 || a.truth_directions == 0 {
         bail!("--pixels and --truth-directions must be at least 1");
     }
-    let known = match known_cases(&a.known) {
-        Ok(k) => k,
+    let known = match KnownAnswers::read(&a.known) {
+        Ok(k) => k.cases,
         Err(e) => {
-            println!("# no known answers ({e:#}): every scene is framed as bench suite frames it");
+            println!("# no known answers ({e}): every scene is framed as bench suite frames it");
             Vec::new()
         }
     };
@@ -232,9 +195,9 @@ pub fn run(a: &DenoiseArgs) -> Result<()> {
         let (spec, iso) = scene_spec(scene)?;
         let (volume, iso) = load_volume(Some(spec), None, iso)?;
         let file = Path::new(spec).file_name().map(|f| f.to_string_lossy().into_owned()).unwrap_or_default();
-        let case = known.iter().find(|c| c.file == file);
+        let case = known.iter().find(|c| c.file_name() == file);
         let camera = match case {
-            Some(c) => c.camera,
+            Some(c) => known_camera(&c.camera),
             None => Camera::framing(volume.box_min(), volume.box_max(), w, h),
         };
         let view = View::whole(camera, w, h);
@@ -358,21 +321,23 @@ fn goal_line(name: &str, d4: &Row, r32: &Row) -> String {
 /// The estimate against the known answers at their own camera and pixels, radius 8 (where the
 /// estimate's hit is the known one, within 0.01).
 fn known_sanity(field: &Field, c: &KnownCase, m: u32, name: &str) {
-    let pixels: Vec<(u32, u32)> = c.pixels.iter().map(|p| p.0).collect();
-    let truth = estimate(field, &c.camera, c.size, &pixels, m, 8.0, &format!("{name} known answers"));
+    let size = (c.camera.width, c.camera.height);
+    let pixels: Vec<(u32, u32)> = c.pixels.iter().map(|p| (p.px, p.py)).collect();
+    let truth =
+        estimate(field, &known_camera(&c.camera), size, &pixels, m, 8.0, &format!("{name} known answers"));
     let d: Vec<f64> = truth
         .iter()
         .zip(&c.pixels)
-        .filter_map(|(t, (_, pos, a))| {
+        .filter_map(|(t, p)| {
             let t = t.as_ref()?;
-            ((t.position - *pos).length() < 0.01).then(|| t.occlusion(Some(8.0)) - a)
+            ((t.position - DVec3::from_array(p.pos)).length() < 0.01).then(|| t.occlusion(Some(8.0)) - p.a_r8)
         })
         .collect();
     let (rmse, _, bias) = error_of(&d);
     println!(
         "# {name}: sanity, the estimate ({m}x{m} directions) vs the known answers at radius 8 ({}x{}, {} of {} pixels with the same hit): RMSE {rmse:.4}, bias {bias:+.4}",
-        c.size.0,
-        c.size.1,
+        size.0,
+        size.1,
         d.len(),
         c.pixels.len()
     );

@@ -20,8 +20,12 @@
 //!   own orthonormal basis. One march serves every radius: the first occluding distance is kept.
 //! - the camera: its own pixel-centre ray ([`pixel_ray`]), from DESIGN.md "Camera".
 
+pub mod known;
+
 use glam::DVec3;
 use std::f64::consts::PI;
+
+pub use known::{KnownAnswers, KnownCamera, KnownCase, KnownPixel};
 
 /// The march step, in voxels of the smallest spacing, for primary and AO rays alike.
 pub const STEP_VOXELS: f64 = 0.02;

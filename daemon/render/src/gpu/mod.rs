@@ -931,21 +931,15 @@ impl GpuRenderer {
 
         let sizes = [n * 16, n * 16, n * 4, n * 16, n * 16];
         let (buffers, staging) = self.ctx.validated("frame buffers", || {
-            let make = |label: &str, size: u64, usage| {
-                self.ctx.create_buffer(&wgpu::BufferDescriptor {
-                    label: Some(label),
-                    size,
-                    usage,
-                    mapped_at_creation: false,
-                })
-            };
             let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC;
             let read = wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST;
             let labels = ["direct", "geometry", "fetches", "acc ao", "acc ibl"];
-            let buffers: Vec<_> = labels.iter().zip(sizes).map(|(l, s)| make(l, s, storage)).collect();
-            let mut staging: Vec<_> = labels.iter().zip(sizes).map(|(l, s)| make(l, s, read)).collect();
+            let buffers: Vec<_> =
+                labels.iter().zip(sizes).map(|(l, s)| self.ctx.buffer(l, s, storage)).collect();
+            let mut staging: Vec<_> =
+                labels.iter().zip(sizes).map(|(l, s)| self.ctx.buffer(l, s, read)).collect();
             if denoised {
-                staging.push(make("denoised", n * 16, read));
+                staging.push(self.ctx.buffer("denoised", n * 16, read));
             }
             (buffers, staging)
         })?;

@@ -128,12 +128,11 @@ impl<T> ReadbackRing<T> {
         };
         let slot = &mut self.slots[index];
         if slot.buffer.as_ref().is_none_or(|b| b.size() < size) {
-            slot.buffer = Some(ctx.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("readback"),
+            slot.buffer = Some(ctx.buffer(
+                "readback",
                 size,
-                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            }));
+                wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            ));
         }
         let staging = slot.buffer.as_ref().expect("made above");
         for (s, p) in sources.iter().zip(&parts) {

@@ -629,12 +629,11 @@ impl GpuRenderer {
             picked
                 .iter()
                 .map(|b| {
-                    ctx.create_buffer(&wgpu::BufferDescriptor {
-                        label: Some("tile sums"),
-                        size: b.size(),
-                        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-                        mapped_at_creation: false,
-                    })
+                    ctx.buffer(
+                        "tile sums",
+                        b.size(),
+                        wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                    )
                 })
                 .collect::<Vec<_>>()
         })?;

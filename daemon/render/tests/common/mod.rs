@@ -221,3 +221,18 @@ pub fn ambient_sphere_scene(w: u32, h: u32) -> (Volume, View, RenderSettings) {
     s.ao.samples = 4;
     (volume, view, s)
 }
+
+/// Renders `frame` of `tile` and waits for its read (the ring must have no read in flight):
+/// its counters, and its image and depth where `frame.share`.
+pub fn render_tile_and_read(
+    gpu: &GpuRenderer,
+    tile: &mut isowall_render::gpu::TileTarget,
+    ring: &mut isowall_render::gpu::ReadbackRing<isowall_render::gpu::FrameRead>,
+    frame: &isowall_render::gpu::TileFrame,
+) -> isowall_render::gpu::TileOutput {
+    gpu.render_tile(tile, frame, ring).unwrap();
+    ring.wait_oldest(&gpu.ctx).unwrap();
+    let mut reads = ring.take_ready();
+    assert_eq!(reads.len(), 1);
+    isowall_render::gpu::FrameRead::decode(reads.remove(0), gpu.ctx.queue.get_timestamp_period()).unwrap().1
+}
