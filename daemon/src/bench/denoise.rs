@@ -21,6 +21,7 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use glam::DVec3;
 use isowall_model::{Camera, Denoise, RenderSettings, View};
+use isowall_render::denoise::{filter_with, Input, Stops};
 use isowall_render::gpu::GpuRenderer;
 use isowall_render::sampling::hash;
 use isowall_truth::{parallel_map, Field, KnownAnswers, KnownCamera, KnownCase, Truth};
@@ -67,6 +68,44 @@ pub struct DenoiseArgs {
     /// Write denoise.csv and chart.svg (RMSE and p99 against frame ms, raw and denoised) here
     #[arg(long, value_name = "DIR")]
     pub out: Option<PathBuf>,
+    /// Also filter every raw frame on the CPU (the filter's twin) with these edge stops, each
+    /// SIGMA_PLANE:SIGMA_OCCLUSION:NORMAL_SQUARINGS, comma-separated (the renderer's are
+    /// 1:2:5): a row each (denoise `cpu SP:SO:NS`, no time), the same frames' error under other
+    /// stops, for tuning them against the estimate
+    #[arg(long, value_name = "LIST", value_parser = stops_list)]
+    pub stops: Option<StopsList>,
+}
+
+/// `--stops`: edge stops to try on the CPU.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StopsList(pub Vec<Stops>);
+
+/// `SP:SO:NS,...` as edge stops.
+fn stops_list(s: &str) -> Result<StopsList, String> {
+    s.split(',')
+        .map(str::trim)
+        .filter(|t| !t.is_empty())
+        .map(|t| {
+            let parts: Vec<&str> = t.split(':').collect();
+            let bad = || format!("`{t}`: want SIGMA_PLANE:SIGMA_OCCLUSION:NORMAL_SQUARINGS, e.g. 1:2:5");
+            let [sp, so, ns] = parts[..] else { return Err(bad()) };
+            let sigma_plane: f32 = sp.parse().map_err(|_| bad())?;
+            let sigma_occlusion: f32 = so.parse().map_err(|_| bad())?;
+            let normal_squarings: u32 = ns.parse().map_err(|_| bad())?;
+            if !(sigma_plane > 0.0
+                && sigma_occlusion > 0.0
+                && sigma_plane.is_finite()
+                && sigma_occlusion.is_finite())
+                || normal_squarings > 16
+            {
+                return Err(format!(
+                    "`{t}`: the sigmas must be positive and finite, the squarings at most 16"
+                ));
+            }
+            Ok(Stops { sigma_plane, sigma_occlusion, normal_squarings })
+        })
+        .collect::<Result<Vec<_>, _>>()
+        .and_then(|v| if v.is_empty() { Err("no stops given".to_string()) } else { Ok(StopsList(v)) })
 }
 
 /// One measured configuration of one scene.
@@ -75,6 +114,9 @@ struct Row {
     scene: String,
     spp: u32,
     denoise: bool,
+    /// The CPU twin's stops that filtered the raw frames (`--stops`); `None`: the GPU's frame,
+    /// raw or denoised as `denoise` says.
+    stops: Option<Stops>,
     ms: f64,
     /// Median process CPU per frame (`stats::process_cpu_ms`): on a CPU driver the frame's cost
     /// whatever else the machine runs; NaN where it cannot be read.
@@ -91,7 +133,12 @@ impl Row {
             "{},{},{},{:.2},{:.5},{:.5},{:+.5},{},{:.0}",
             self.scene,
             self.spp,
-            if self.denoise { "on" } else { "off" },
+            match (self.stops, self.denoise) {
+                (Some(st), _) =>
+                    format!("cpu {}:{}:{}", st.sigma_plane, st.sigma_occlusion, st.normal_squarings),
+                (None, true) => "on".into(),
+                (None, false) => "off".into(),
+            },
             self.ms,
             self.rmse,
             self.p99,
@@ -248,6 +295,7 @@ pub fn run(a: &DenoiseArgs) -> Result<()> {
                 s.denoise = if den { Denoise::On } else { Denoise::Off };
                 gpu.render(&gv, &view, &s, None)?; // warm-up
                 let (mut times, mut cpu, mut d) = (Vec::new(), Vec::new(), Vec::new());
+                let mut raw_frames = Vec::new();
                 for r in 0..a.repeats.max(1) {
                     s.ao.frame = r as u32;
                     let cpu0 = process_cpu_ms();
@@ -258,12 +306,16 @@ pub fn run(a: &DenoiseArgs) -> Result<()> {
                     });
                     times.push(out.gpu_time.as_secs_f64() * 1e3);
                     d.extend(kept.iter().map(|&(i, want)| out.frame.occlusion[i] as f64 - want));
+                    if !den && a.stops.is_some() {
+                        raw_frames.push(out.frame);
+                    }
                 }
                 let (rmse, p99, bias) = error_of(&d);
                 let row = Row {
                     scene: name.clone(),
                     spp: n,
                     denoise: den,
+                    stops: None,
                     ms: median(times),
                     cpu_ms: median(cpu),
                     rmse,
@@ -273,12 +325,48 @@ pub fn run(a: &DenoiseArgs) -> Result<()> {
                 };
                 println!("{}", row.csv());
                 rows.push(row);
+                for stops in a.stops.iter().flat_map(|l| &l.0).filter(|_| !den) {
+                    let mut d = Vec::new();
+                    for f in &raw_frames {
+                        let input = Input {
+                            view: &view,
+                            hit: &f.hit,
+                            depth: &f.depth,
+                            normal: &f.normal,
+                            occlusion: &f.occlusion,
+                            ibl: &f.ibl,
+                            samples: u64::from(n),
+                            pixel_samples: None,
+                        };
+                        let (occlusion, _) = filter_with(&input, stops);
+                        d.extend(kept.iter().map(|&(i, want)| occlusion[i] as f64 - want));
+                    }
+                    let (rmse, p99, bias) = error_of(&d);
+                    let row = Row {
+                        scene: name.clone(),
+                        spp: n,
+                        denoise: true,
+                        stops: Some(*stops),
+                        ms: f64::NAN,
+                        cpu_ms: f64::NAN,
+                        rmse,
+                        p99,
+                        bias,
+                        pixels: kept.len(),
+                    };
+                    println!("{}", row.csv());
+                    rows.push(row);
+                }
             }
         }
-        let find =
-            |spp: u32, den: bool| rows.iter().find(|r| r.scene == name && r.spp == spp && r.denoise == den);
+        let find = |spp: u32, den: bool| {
+            rows.iter().find(|r| r.scene == name && r.spp == spp && r.denoise == den && r.stops.is_none())
+        };
         if let (Some(d4), Some(r32)) = (find(4, true), find(32, false)) {
             goals.push(goal_line(&name, d4, r32));
+            for c in rows.iter().filter(|r| r.scene == name && r.spp == 4 && r.stops.is_some()) {
+                goals.push(goal_line(&name, c, r32));
+            }
         }
     }
     if !goals.is_empty() {
@@ -307,8 +395,15 @@ fn goal_line(name: &str, d4: &Row, r32: &Row) -> String {
     let p99 = d4.p99 / r32.p99;
     let cpu = d4.cpu_ms / r32.cpu_ms;
     let met = d4.rmse <= r32.rmse && time <= 1.0 / 3.0 && p99 <= 1.5;
+    let what = match d4.stops {
+        Some(st) => format!(
+            "4 spp filtered on the CPU with stops {}:{}:{} (no time)",
+            st.sigma_plane, st.sigma_occlusion, st.normal_squarings
+        ),
+        None => "denoised 4 spp".into(),
+    };
     format!(
-        "{name}: denoised 4 spp RMSE {:.4} vs raw 32 spp {:.4} (ratio {:.2}), time ratio {time:.3} (process CPU {cpu:.3}), p99 {:.4} vs {:.4} (ratio {p99:.2}): {}",
+        "{name}: {what} RMSE {:.4} vs raw 32 spp {:.4} (ratio {:.2}), time ratio {time:.3} (process CPU {cpu:.3}), p99 {:.4} vs {:.4} (ratio {p99:.2}): {}",
         d4.rmse,
         r32.rmse,
         d4.rmse / r32.rmse,
@@ -361,7 +456,10 @@ fn chart(rows: &[Row], header: &str) -> Chart {
             ]
             .into_iter()
             .map(|(den, label, color, marker)| {
-                let mine: Vec<&Row> = rows.iter().filter(|r| r.scene == *scene && r.denoise == den).collect();
+                let mine: Vec<&Row> = rows
+                    .iter()
+                    .filter(|r| r.scene == *scene && r.denoise == den && r.stops.is_none())
+                    .collect();
                 Series {
                     label: label.into(),
                     notes: mine.iter().map(|r| r.spp.to_string()).collect(),
@@ -402,6 +500,22 @@ mod tests {
         assert_eq!(choose_pixels(&hit, 64, 100, 7), p);
         assert_ne!(choose_pixels(&hit, 64, 100, 8), p);
         assert_eq!(choose_pixels(&hit, 64, 100_000, 7).len(), hit.iter().filter(|&&h| h).count());
+    }
+
+    #[test]
+    fn stops_lists_parse_and_bad_ones_are_named() {
+        let s = stops_list("1:2:5, 0.5:4:3").unwrap().0;
+        assert_eq!(
+            s,
+            vec![
+                Stops { sigma_plane: 1.0, sigma_occlusion: 2.0, normal_squarings: 5 },
+                Stops { sigma_plane: 0.5, sigma_occlusion: 4.0, normal_squarings: 3 },
+            ]
+        );
+        for bad in ["1:2", "1:x:5", "0:2:5", "1:2:40", ""] {
+            let e = stops_list(bad).unwrap_err();
+            assert!(e.contains(bad) || e == "no stops given", "{bad}: {e}");
+        }
     }
 
     #[test]
