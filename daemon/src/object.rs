@@ -520,7 +520,14 @@ impl ObjectNode {
 /// A composited tile as the render thread's result (shown and kept for snapshots).
 impl From<TileCanvas> for TileResult {
     fn from(t: TileCanvas) -> TileResult {
-        TileResult { name: t.name, width: t.width, height: t.height, rgb8: t.rgb8, depth: t.depth }
+        TileResult {
+            name: t.name,
+            width: t.width,
+            height: t.height,
+            rgb8: t.rgb8,
+            depth: t.depth,
+            shading: Vec::new(),
+        }
     }
 }
 

@@ -11,11 +11,12 @@
 //! its own step ([`TimeSteps`]): the whole volume, or in object space the node's brick of it.
 
 use anyhow::{Context, Result};
+use isowall_model::composite::PixelForm;
 use isowall_model::{RenderSettings, View};
 use isowall_render::environment::Environment;
 use isowall_render::gpu::present::{Presented, TileSurface};
 use isowall_render::gpu::ObjectSpace;
-use isowall_render::gpu::{FrameRead, GpuRenderer, ReadbackRing, TileFrame, TileTarget};
+use isowall_render::gpu::{CanvasFrame, FrameRead, GpuRenderer, ReadbackRing, TileFrame, TileTarget};
 use isowall_volume::region::StepRegion;
 use isowall_volume::steps::{StepCache, StepState};
 use isowall_volume::{BlockMinMax, Volume, VolumeInfo};
@@ -36,9 +37,9 @@ pub struct TileJob {
     /// The internal resolution divisor (1 ..= 4, `isowall_model::lowres`): each tile renders its
     /// view of the image divided by it and is upsampled (nearest) to its full size on the GPU.
     pub scale: u32,
-    /// Read each view's colour and depth back (object space: its pixels travel to the tile's
-    /// owner); otherwise the frame stays on the GPU and the results carry no pixels.
-    pub read_pixels: bool,
+    /// Read each view's pixels back in this form (object space: they travel to the tile's
+    /// owner); `None`: the frame stays on the GPU and the results carry no pixels.
+    pub share: Option<PixelForm>,
     /// The frame's time step (a time-varying volume; taken modulo its step count).
     pub time_step: u32,
 }
@@ -54,6 +55,20 @@ pub struct TileResult {
     pub rgb8: Vec<u8>,
     /// Distance along the ray per pixel, `+inf` where nothing is hit (object space composites by it).
     pub depth: Vec<f32>,
+    /// object space, shading form: per pixel the AOVs the tile's owner filters and composes
+    /// (`isowall_render::gpu::TileOutput::shading`); empty otherwise.
+    pub shading: Vec<[[f32; 4]; 4]>,
+}
+
+/// object space, where the wall filters the composited tile: the canvases of a frame's tiles
+/// (each tile's rectangle grown by `guard`), filtered and composed on the GPU.
+pub struct CanvasJob {
+    pub frame_id: u64,
+    /// Per tile: its name, its view (its own rectangle) and its canvas (shading, rows top to
+    /// bottom, of the rectangle grown by `guard`).
+    pub tiles: Vec<(String, View, Vec<[[f32; 4]; 4]>)>,
+    pub settings: RenderSettings,
+    pub guard: u32,
 }
 
 /// What the render thread uploads: the whole volume (screen space) or a brick and its halo
@@ -161,6 +176,8 @@ enum Job {
     Load(Box<BrickData>, tokio::sync::oneshot::Sender<Result<(), String>>),
     /// object space: drop a brick's volume (no longer this node's).
     Unload(usize),
+    /// object space: filter and compose composited canvases; replies with the tiles' images.
+    Canvas(Box<CanvasJob>, tokio::sync::oneshot::Sender<Result<Vec<TileResult>, String>>),
 }
 
 /// The presentation jobs.
@@ -184,7 +201,7 @@ struct InFlight {
     hits: u64,
 }
 
-/// A snapshot whose images have not all arrived.
+/// A snapshot (or a frame's canvases) whose images have not all arrived.
 struct SnapshotWait {
     frame_id: u64,
     reply: tokio::sync::oneshot::Sender<Result<Vec<TileResult>, String>>,
@@ -201,10 +218,13 @@ struct RenderLoop {
     volumes: Vec<(usize, isowall_render::gpu::GpuVolume)>,
     env: Option<isowall_render::gpu::GpuEnvironment>,
     targets: Vec<TileTarget>,
+    /// object space: the composited tiles' resources, where the wall filters them.
+    canvases: Vec<TileTarget>,
     surfaces: Vec<TileSurface>,
     ring: ReadbackRing<FrameRead>,
     frames: VecDeque<InFlight>,
     snapshots: Vec<SnapshotWait>,
+    canvas_waits: Vec<SnapshotWait>,
     results: tokio::sync::mpsc::UnboundedSender<Result<JobResult, String>>,
     steps: Option<StepsOnGpu>,
 }
@@ -273,10 +293,12 @@ impl TileRenderer {
                     volumes: vec![(index, first)],
                     env: genv,
                     targets: Vec::new(),
+                    canvases: Vec::new(),
                     surfaces: Vec::new(),
                     ring: ReadbackRing::new(READ_SLOTS),
                     frames: VecDeque::new(),
                     snapshots: Vec::new(),
+                    canvas_waits: Vec::new(),
                     results,
                     steps: steps.map(|steps| StepsOnGpu { steps, shown: 0 }),
                 };
@@ -321,6 +343,7 @@ impl TileRenderer {
                                 r.volumes.retain(|v| v.0 != index);
                             }
                         }
+                        Job::Canvas(job, reply) => r.canvas(*job, reply),
                     }
                 }
             })
@@ -378,6 +401,14 @@ impl RenderHandle {
         let (tx, rx) = mpsc::channel();
         self.send(Job::Window(WindowJob::Attach(windows, tx)))?;
         rx.recv().map_err(|_| anyhow::anyhow!("the render thread has stopped"))?.map_err(anyhow::Error::msg)
+    }
+
+    /// object space: filters and composes a frame's composited canvases (after the jobs already
+    /// sent); resolves to the tiles' images and depth.
+    pub async fn compose_canvases(&self, job: CanvasJob) -> Result<Vec<TileResult>> {
+        let (tx, rx) = tokio::sync::oneshot::channel();
+        self.send(Job::Canvas(Box::new(job), tx))?;
+        rx.await.map_err(|_| anyhow::anyhow!("the render thread has stopped"))?.map_err(anyhow::Error::msg)
     }
 
     /// The images of `frame_id`'s tiles (8-bit sRGB), read back from the GPU; an error where the
@@ -600,13 +631,63 @@ impl RenderLoop {
                 // A moving camera carries each pixel's history over; object space does not (a
                 // brick's pixels are not the tile's until composited).
                 temporal: !object_space,
-                share: job.read_pixels,
+                share: job.share,
             };
             self.gpu
                 .render_tile(&mut self.targets[k], &frame, &mut self.ring)
                 .map_err(|e| format!("tile {name}: {e}"))?;
         }
         Ok(())
+    }
+
+    /// Filters and composes a frame's canvases; the reply goes once their images arrive.
+    fn canvas(
+        &mut self,
+        job: CanvasJob,
+        reply: tokio::sync::oneshot::Sender<Result<Vec<TileResult>, String>>,
+    ) {
+        let result = (|| -> Result<usize, String> {
+            let mut canvases = std::mem::take(&mut self.canvases);
+            let mut kept = Vec::with_capacity(job.tiles.len());
+            for (name, view, _) in &job.tiles {
+                let reuse =
+                    canvases.iter().position(|t| t.name == *name && t.fits_with_guard(view, 1, job.guard));
+                kept.push(match reuse {
+                    Some(i) => canvases.swap_remove(i),
+                    None => TileTarget::with_guard(&self.gpu, name, view, 1, job.guard)
+                        .map_err(|e| format!("tile {name}: {e}"))?,
+                });
+            }
+            self.canvases = kept;
+            for (k, (name, view, shading)) in job.tiles.iter().enumerate() {
+                while !self.ring.has_free_slot() {
+                    self.ring.wait_oldest(&self.gpu.ctx).map_err(|e| e.to_string())?;
+                    self.take_reads();
+                }
+                let frame = CanvasFrame {
+                    frame_id: job.frame_id,
+                    volume: &self.volumes[0].1,
+                    view,
+                    settings: &job.settings,
+                    env: self.env.as_ref(),
+                };
+                self.gpu
+                    .compose_canvas(&mut self.canvases[k], &frame, shading, &mut self.ring)
+                    .map_err(|e| format!("tile {name}: {e}"))?;
+            }
+            Ok(job.tiles.len())
+        })();
+        match result {
+            Ok(0) => {
+                let _ = reply.send(Ok(Vec::new()));
+            }
+            Ok(n) => {
+                self.canvas_waits.push(SnapshotWait { frame_id: job.frame_id, reply, tiles: vec![None; n] })
+            }
+            Err(e) => {
+                let _ = reply.send(Err(e));
+            }
+        }
     }
 
     /// Asks for the images of `frame_id`'s tiles; the reply goes once they arrive.
@@ -654,8 +735,11 @@ impl RenderLoop {
                 height: tag.height,
                 rgb8: out.rgb8.unwrap_or_default(),
                 depth: out.depth.unwrap_or_default(),
+                shading: out.shading.unwrap_or_default(),
             };
-            let tiles = if tag.image_only {
+            let tiles = if tag.canvas {
+                self.canvas_waits.iter_mut().find(|s| s.frame_id == tag.frame_id).map(|s| &mut s.tiles)
+            } else if tag.image_only {
                 self.snapshots.iter_mut().find(|s| s.frame_id == tag.frame_id).map(|s| &mut s.tiles)
             } else {
                 self.frames.iter_mut().find(|f| f.frame_id == tag.frame_id).map(|f| {
@@ -669,13 +753,15 @@ impl RenderLoop {
                 *slot = Some(result);
             }
         }
-        let mut i = 0;
-        while i < self.snapshots.len() {
-            if self.snapshots[i].tiles.iter().all(Option::is_some) {
-                let s = self.snapshots.swap_remove(i);
-                let _ = s.reply.send(Ok(s.tiles.into_iter().flatten().collect()));
-            } else {
-                i += 1;
+        for waits in [&mut self.snapshots, &mut self.canvas_waits] {
+            let mut i = 0;
+            while i < waits.len() {
+                if waits[i].tiles.iter().all(Option::is_some) {
+                    let s = waits.remove(i);
+                    let _ = s.reply.send(Ok(s.tiles.into_iter().flatten().collect()));
+                } else {
+                    i += 1;
+                }
             }
         }
     }
@@ -771,7 +857,7 @@ mod tests {
             accumulate_frame: 0,
             bricks: Vec::new(),
             scale,
-            read_pixels,
+            share: read_pixels.then_some(PixelForm::Colour),
             time_step: 0,
         };
         r.handle().submit(job).unwrap();

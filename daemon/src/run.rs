@@ -720,7 +720,7 @@ async fn execute(
                     bricks,
                     scale,
                     // object space: the shares travel to the tiles' owners.
-                    read_pixels: node.object.is_some(),
+                    share: node.object.as_ref().map(|_| isowall_model::composite::PixelForm::Colour),
                     time_step: spec.time_step,
                 }) {
                     tracing::error!("{e}");

@@ -7,6 +7,7 @@
 
 mod common;
 
+use isowall_model::composite::PixelForm;
 use isowall_model::{Denoise, Rect, RenderSettings, View};
 use isowall_render::denoise::{self, Input};
 use isowall_render::gpu::{FrameRead, GpuRenderer, GpuVolume, ReadbackRing, TileFrame, TileTarget};
@@ -170,7 +171,7 @@ fn tile_image(
         env: None,
         accumulate: false,
         temporal: false,
-        share: true,
+        share: Some(PixelForm::Colour),
     };
     common::render_tile_and_read(gpu, &mut tile, &mut ring, &f).rgb8.unwrap()
 }
@@ -258,7 +259,7 @@ fn a_steady_denoised_tile_allocates_nothing() {
             accumulate: true,
             // A still camera never reprojects: temporal on changes nothing.
             temporal: true,
-            share: false,
+            share: None,
         };
         if !ring.has_free_slot() {
             ring.wait_oldest(&gpu.ctx).unwrap();

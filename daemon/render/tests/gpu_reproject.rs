@@ -8,6 +8,7 @@
 mod common;
 
 use glam::DVec3;
+use isowall_model::composite::PixelForm;
 use isowall_model::{AoRadius, Camera, Denoise, Rect, RenderSettings, View};
 use isowall_render::denoise::{self, Input};
 use isowall_render::gpu::{
@@ -43,8 +44,16 @@ fn frame(
 ) -> TileOutput {
     let mut f = *s;
     f.ao.frame = s.ao.frame.wrapping_add(frame_id as u32);
-    let tf =
-        TileFrame { frame_id, volume: gv, view, settings: &f, env: None, accumulate, temporal, share: true };
+    let tf = TileFrame {
+        frame_id,
+        volume: gv,
+        view,
+        settings: &f,
+        env: None,
+        accumulate,
+        temporal,
+        share: Some(PixelForm::Colour),
+    };
     common::render_tile_and_read(gpu, tile, ring, &tf)
 }
 
@@ -420,7 +429,7 @@ fn moving_frames_draw_new_samples() {
             env: None,
             accumulate: false,
             temporal: true,
-            share: false,
+            share: None,
         };
         gpu.render_tile(&mut tile, &tf, &mut ring).unwrap();
         ring.wait_oldest(&gpu.ctx).unwrap();

@@ -6,6 +6,7 @@
 
 mod common;
 
+use isowall_model::composite::PixelForm;
 use isowall_model::{Camera, RenderSettings, View};
 use isowall_render::gpu::{
     FrameRead, GpuRenderer, GpuVolume, ReadbackRing, TileFrame, TileOutput, TileTarget,
@@ -44,7 +45,7 @@ fn frame(
         env: None,
         accumulate,
         temporal: false,
-        share: true,
+        share: Some(PixelForm::Colour),
     };
     common::render_tile_and_read(gpu, tile, ring, &f)
 }
@@ -171,7 +172,7 @@ fn a_steady_tile_allocates_nothing_and_reads_back_only_what_leaves_the_node() {
                 accumulate: true,
                 // A still camera never reprojects: temporal on changes nothing.
                 temporal: true,
-                share,
+                share: share.then_some(PixelForm::Colour),
             };
             gpu.render_tile(tile, &tf, ring).unwrap();
         };

@@ -288,3 +288,148 @@ fn a_bricks_next_time_step_written_in_place_renders_as_a_fresh_upload() {
     let e = gv.rewrite_brick(&gpu.ctx, &other.region, &other.blocks).unwrap_err().to_string();
     assert!(e.contains("does not fit the buffers"), "{e}");
 }
+
+/// The right half (`x0 .. x0 + w`) of a `full`-pixel image as a tile's view.
+fn tile_view(camera: Camera, full: (u32, u32), x0: u32, w: u32) -> View {
+    View {
+        rect: isowall_model::Rect { x: x0, y: 0, width: w, height: full.1 },
+        ..View::whole(camera, full.0, full.1)
+    }
+}
+
+/// Object space with the filter on the composited tile: every brick renders the tile's canvas
+/// (its rectangle grown by the guard band) and reads back its shading share, the nearest hit of
+/// the bricks is kept per pixel, and the owner filters and composes the canvas
+/// (`GpuRenderer::compose_canvas`). Returns the owner's tile image (sRGB8).
+fn composited_canvas(
+    gpu: &isowall_render::gpu::GpuRenderer,
+    source: &str,
+    n: usize,
+    settings: &RenderSettings,
+    view: &View,
+    guard: u32,
+) -> Vec<u8> {
+    use isowall_model::composite::PixelForm;
+    use isowall_render::gpu::tile::work_view;
+    use isowall_render::gpu::{CanvasFrame, ReadbackRing, TileFrame, TileTarget};
+    let src: VolumeSource = source.parse().unwrap();
+    let stream = src.stream(None).unwrap();
+    let info = stream.info().clone();
+    let blocks = stream.block_minmax(BlockMinMax::DEFAULT_BLOCK).unwrap();
+    let occ = Occupancy::from_minmax(blocks.block, blocks.counts, &blocks.minmax, settings.iso);
+    let split = bricks::split(&occ, info.dims, info.spacing, n).unwrap();
+    let halo = bricks::halo_voxels(settings, info.spacing).unwrap();
+    let canvas_view = work_view(view, 1, guard);
+    let pixels = canvas_view.rect.width as usize * canvas_view.rect.height as usize;
+    let mut canvas = vec![[[0f32; 4]; 4]; pixels];
+    let mut nearest = vec![f32::INFINITY; pixels];
+    let mut ring = ReadbackRing::new(2);
+    let mut raw = *settings;
+    raw.denoise = isowall_model::Denoise::Off;
+    let mut volumes = Vec::new();
+    for b in &split {
+        let (lo, hi) = b.data_range(halo, info.dims);
+        let region = stream.read_region(&VoxelRange { lo, hi }).unwrap();
+        let (owned_min, owned_max) = b.owned_planes(info.dims, info.origin, info.spacing);
+        let gb = gpu
+            .upload_brick(&region, &info, &blocks, ObjectSpace { data_offset: lo, owned_min, owned_max })
+            .unwrap();
+        let mut share = TileTarget::new(gpu, "brick", &canvas_view, 1).unwrap();
+        let frame = TileFrame {
+            frame_id: 1,
+            volume: &gb,
+            view: &canvas_view,
+            settings: &raw,
+            env: None,
+            accumulate: false,
+            temporal: false,
+            share: Some(PixelForm::Shading),
+        };
+        let out = common::render_tile_and_read(gpu, &mut share, &mut ring, &frame);
+        let (depth, shading) = (out.depth.unwrap(), out.shading.unwrap());
+        assert_eq!((depth.len(), shading.len()), (pixels, pixels));
+        for i in 0..pixels {
+            if depth[i] < nearest[i] {
+                nearest[i] = depth[i];
+                canvas[i] = shading[i];
+            }
+        }
+        volumes.push(gb);
+    }
+    let mut owner = TileTarget::with_guard(gpu, "tile", view, 1, guard).unwrap();
+    let frame = CanvasFrame { frame_id: 1, volume: &volumes[0], view, settings, env: None };
+    gpu.compose_canvas(&mut owner, &frame, &canvas, &mut ring).unwrap();
+    ring.wait_oldest(&gpu.ctx).unwrap();
+    let mut reads = ring.take_ready();
+    let out = isowall_render::gpu::FrameRead::decode(reads.remove(0), 1.0).unwrap().1;
+    out.rgb8.unwrap()
+}
+
+#[test]
+fn bricks_filtered_on_the_composited_canvas_give_the_single_denoised_render() {
+    use isowall_model::composite::PixelForm;
+    use isowall_render::denoise::reach;
+    use isowall_render::gpu::{ReadbackRing, TileFrame, TileTarget};
+    let Some(gpu) = common::gpu() else { return };
+    let source = "procedural:sphere-over-plane:48";
+    // Ambient light only: the colour is albedo * ambient * (1 - A), the occlusion made visible.
+    let mut s = settings_with_ao(0.0, 12.0);
+    s.ao.samples = 4;
+    s.light.color = [0.0; 3];
+    s.light.ambient = [1.0; 3];
+    s.denoise = isowall_model::Denoise::On;
+    let cam = Camera {
+        eye: DVec3::new(-30.0, -60.0, 70.0),
+        target: DVec3::new(24.0, 24.0, 16.0),
+        up: DVec3::Z,
+        fov_y_deg: 40.0,
+    };
+    let full = (192, 144);
+    // The right half of the image: its left edge is inside the image, so its guard band matters.
+    let view = tile_view(cam, full, 96, 96);
+    let whole = gpu.upload(&src_load(source)).unwrap();
+    let mut ring = ReadbackRing::new(2);
+    let mut single_image = |settings: &RenderSettings| {
+        let mut t = TileTarget::with_guard(&gpu, "single", &view, 1, reach()).unwrap();
+        let frame = TileFrame {
+            frame_id: 1,
+            volume: &whole,
+            view: &view,
+            settings,
+            env: None,
+            accumulate: false,
+            temporal: false,
+            share: Some(PixelForm::Colour),
+        };
+        common::render_tile_and_read(&gpu, &mut t, &mut ring, &frame).rgb8.unwrap()
+    };
+    let single = single_image(&s);
+    let mut raw_settings = s;
+    raw_settings.denoise = isowall_model::Denoise::Off;
+    let raw = single_image(&raw_settings);
+    let max_diff = |a: &[u8], b: &[u8]| a.iter().zip(b).map(|(x, y)| x.abs_diff(*y)).max().unwrap_or(0);
+    let filtered_by = max_diff(&single, &raw);
+    assert!(filtered_by >= 8, "the filter hardly changed the image ({filtered_by} levels)");
+
+    for n in [2, 4] {
+        let composited = composited_canvas(&gpu, source, n, &s, &view, reach());
+        let d = max_diff(&composited, &single);
+        let differ = composited.iter().zip(&single).filter(|(a, b)| a != b).count();
+        eprintln!("{n} bricks, guard {}: max {d} levels, {differ} values differ; the filter moved the image by up to {filtered_by} levels", reach());
+        // The stated tolerance: within one level (in practice the same f32 arithmetic).
+        assert!(
+            d <= 1,
+            "{n} bricks: the composited canvas is {d} levels off the single render ({differ} values differ)"
+        );
+    }
+    // Control: a guard band of 4 pixels filters the tile's edge without most of its neighbours.
+    let narrow = composited_canvas(&gpu, source, 2, &s, &view, 4);
+    let d = max_diff(&narrow, &single);
+    let differ = narrow.iter().zip(&single).filter(|(a, b)| a != b).count();
+    eprintln!("2 bricks, guard 4: max {d} levels, {differ} values differ");
+    assert!(d > 1, "with a too-narrow guard band the canvas still matches (max {d} levels)");
+}
+
+fn src_load(source: &str) -> isowall_volume::Volume {
+    source.parse::<VolumeSource>().unwrap().load(None).unwrap()
+}

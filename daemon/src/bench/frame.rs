@@ -15,6 +15,7 @@ use crate::args;
 use crate::render::load_volume;
 use anyhow::{bail, Context, Result};
 use clap::Args;
+use isowall_model::composite::PixelForm;
 use isowall_model::{Camera, RenderSettings, View};
 use isowall_render::gpu::{
     FrameRead, GpuRenderer, GpuVolume, ReadbackRing, TileFrame, TileTarget, TrafficCount,
@@ -176,7 +177,7 @@ impl Current {
             env: None,
             accumulate: k > 0,
             temporal: false,
-            share,
+            share: share.then_some(PixelForm::Colour),
         };
         gpu.render_tile(&mut self.tile, &tf, &mut self.ring)?;
         let mut waited = Duration::ZERO;

@@ -173,7 +173,7 @@ fn run_variant(
             env: None,
             accumulate: false,
             temporal,
-            share: false,
+            share: None,
         };
         let start = Instant::now();
         gpu.render_tile(&mut tile, &tf, &mut ring)?;

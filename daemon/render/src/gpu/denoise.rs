@@ -197,13 +197,11 @@ impl DenoiseKernel {
     ) {
         let size = (frame.rect_size[0], frame.rect_size[1]);
         debug_assert_eq!(size.0 as u64 * size.1 as u64, buffers.pixels);
-        let mut bytes = vec![0u8; (self.stride * PASSES as u64) as usize];
+        // One write per pass at its offset: no host buffer per frame.
         for pass in 0..PASSES {
             let p = DenoiseParams::new(frame, frames, pass, per_pixel);
-            let at = (pass as u64 * self.stride) as usize;
-            bytes[at..at + std::mem::size_of::<DenoiseParams>()].copy_from_slice(bytemuck::bytes_of(&p));
+            ctx.write_buffer(&buffers.params, pass as u64 * self.stride, bytemuck::bytes_of(&p));
         }
-        ctx.write_buffer(&buffers.params, 0, &bytes);
         for pass in 0..PASSES {
             let mut cpass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("denoise"),

@@ -25,6 +25,7 @@ use super::readback::{Read, ReadbackRing, Source};
 use super::reproject::ReprojectParams;
 use super::{FrameParams, GpuEnvironment, GpuError, GpuRenderer, GpuVolume};
 use crate::reproject::RULE;
+use isowall_model::composite::PixelForm;
 use isowall_model::{lowres, IblMethod, RenderSettings, View};
 
 /// A presentable image of a tile: 8-bit sRGB values in an RGBA8 texture the size of the tile's
@@ -113,6 +114,9 @@ pub struct TileTarget {
     state: Option<(FrameParams, u64, u64)>,
     /// The image the last frame was rendered into.
     latest: usize,
+    /// Host bytes a composited canvas is staged in per AOV ([`GpuRenderer::compose_canvas`]):
+    /// made on the first canvas and kept.
+    staging: Vec<u8>,
 }
 
 /// What a tile's frame reads back (the tag of its slot in the ring).
@@ -124,10 +128,12 @@ pub struct FrameRead {
     pub height: u32,
     /// The passes the frame ran (isosurface, AO, compose) where they were timed.
     pub timed: Option<[bool; 3]>,
-    /// Colour and depth were read (object space shares).
-    pub share: bool,
+    /// The share read (object space): colour and depth, or depth and the shading AOVs.
+    pub share: Option<PixelForm>,
     /// Only the image (a snapshot of a frame already rendered).
     pub image_only: bool,
+    /// A composited canvas's colour and depth ([`GpuRenderer::compose_canvas`]).
+    pub canvas: bool,
 }
 
 /// The frame's counters over the tile's low rectangle.
@@ -149,6 +155,9 @@ pub struct TileOutput {
     pub rgb8: Option<Vec<u8>>,
     /// Distance along the ray per pixel, +inf without a hit (shares).
     pub depth: Option<Vec<f32>>,
+    /// Shading shares: per pixel of the rectangle, the AOVs compose and the filter read (direct +
+    /// hit, N + depth, summed bent + A, summed E + weight), rows top to bottom.
+    pub shading: Option<Vec<[[f32; 4]; 4]>>,
 }
 
 /// The rectangle the kernels of a tile showing `view` at `scale` run over: the low-resolution
@@ -273,6 +282,7 @@ impl TileTarget {
                 filtered: false,
                 state: None,
                 latest: 0,
+                staging: Vec::new(),
             }
         })
     }
@@ -325,6 +335,14 @@ impl TileTarget {
     pub fn images(&self) -> &[TileImage; IMAGES] {
         &self.images
     }
+
+    /// The image a new frame is rendered into: the one holding the oldest frame (or none).
+    fn back(&self) -> usize {
+        (0..IMAGES)
+            .filter(|&i| i != self.latest)
+            .min_by_key(|&i| self.images[i].frame_id.map_or(0, |f| f + 1))
+            .expect("more than one image")
+    }
 }
 
 impl FrameRead {
@@ -358,12 +376,19 @@ impl FrameRead {
                 }
             }
         }
-        if tag.share || tag.image_only {
+        if tag.image_only || tag.share == Some(PixelForm::Colour) {
             let rgba = next("image")?;
             out.rgb8 = Some(rgba.chunks_exact(4).flat_map(|p| [p[0], p[1], p[2]]).collect());
         }
-        if tag.share {
+        if tag.share.is_some() {
             out.depth = Some(bytemuck::pod_collect_to_vec(next("depth")?.as_slice()));
+        }
+        if tag.share == Some(PixelForm::Shading) {
+            let planes: Vec<Vec<[f32; 4]>> = ["direct", "geometry", "ao sums", "ibl sums"]
+                .into_iter()
+                .map(|what| next(what).map(|b| bytemuck::pod_collect_to_vec(b.as_slice())))
+                .collect::<Result<_, _>>()?;
+            out.shading = Some((0..planes[0].len()).map(|i| [0, 1, 2, 3].map(|k| planes[k][i])).collect());
         }
         Ok((tag, out))
     }
@@ -417,8 +442,22 @@ pub struct TileFrame<'a> {
     /// whose sums hold a reprojected history draws its samples with index `settings.ao.frame +
     /// frame_id` (new samples every frame, the same on every node).
     pub temporal: bool,
-    /// Read colour and depth back (object space shares).
-    pub share: bool,
+    /// What of the frame leaves the node (object space shares): colour and depth, or depth and
+    /// the shading AOVs the tile's owner filters and composes ([`GpuRenderer::compose_canvas`];
+    /// only at scale 1 without a guard band, where the AOVs' rectangle is the tile's).
+    pub share: Option<PixelForm>,
+}
+
+/// A composited canvas's frame ([`GpuRenderer::compose_canvas`]).
+pub struct CanvasFrame<'a> {
+    pub frame_id: u64,
+    /// Any volume of the node's (the frame's parameters take its box; the canvas's pixels do
+    /// not depend on it).
+    pub volume: &'a GpuVolume,
+    /// The tile's view (its own rectangle; the canvas is that grown by the tile's guard band).
+    pub view: &'a View,
+    pub settings: &'a RenderSettings,
+    pub env: Option<&'a GpuEnvironment>,
 }
 
 impl GpuRenderer {
@@ -437,6 +476,12 @@ impl GpuRenderer {
             return Err(GpuError::View(format!(
                 "tile {}: its resources are {}x{} at scale {scale}, the view's rectangle is {}x{}",
                 tile.name, tile.size.0, tile.size.1, frame.view.rect.width, frame.view.rect.height
+            )));
+        }
+        if frame.share == Some(PixelForm::Shading) && (scale != 1 || tile.guard != 0) {
+            return Err(GpuError::View(format!(
+                "tile {}: a shading share needs scale 1 and no guard band (scale {scale}, guard {})",
+                tile.name, tile.guard
             )));
         }
         let low = work_view(frame.view, scale, tile.guard);
@@ -509,25 +554,8 @@ impl GpuRenderer {
             });
         }
         let denoised = with_ao && s.denoise.is_on() && super::denoise::applies(&params);
-        if denoised && tile.denoise.is_none() {
-            let a = &tile.aov;
-            let n = low.rect.width as u64 * low.rect.height as u64;
-            let made = ctx.validated("tile denoise resources", || {
-                let buffers = self.denoise.buffers(ctx, n, [&a[0], &a[1], &a[3], &a[4]]);
-                let inputs = [&a[0], &a[1], &buffers.out, &a[2]];
-                let compose = [0, 1, 2].map(|i| {
-                    self.compose.bind(
-                        ctx,
-                        &tile.compose_params,
-                        inputs,
-                        &tile.images[i].storage,
-                        &tile.depth,
-                        &tile.counters,
-                    )
-                });
-                TileDenoise { buffers, compose }
-            })?;
-            tile.denoise = Some(made);
+        if denoised {
+            self.make_denoise(tile)?;
         }
         let bound = tile.bound.as_ref().expect("bound above");
         if restart || reproject {
@@ -535,11 +563,7 @@ impl GpuRenderer {
         }
         let frames = if with_ao { tile.frames + 1 } else { 0 };
         let per_pixel = tile.per_pixel;
-        // The image holding the oldest frame (or none).
-        let back = (0..IMAGES)
-            .filter(|&i| i != tile.latest)
-            .min_by_key(|&i| tile.images[i].frame_id.map_or(0, |f| f + 1))
-            .expect("more than one image");
+        let back = tile.back();
         let mut compose = ComposeParams::new(frame.view, &low, scale, s, frames);
         // The filter's output is in running-sum form over `frames` whatever the pixel's weight.
         compose.per_pixel = u32::from(per_pixel && !denoised);
@@ -579,21 +603,8 @@ impl GpuRenderer {
             if with_ao {
                 self.ao.pass(&mut enc, &bound.ao, low_size, dispatches, ts(1));
             }
-            let mut compose_group = &tile.compose[back];
             if let (true, Some(d)) = (denoised, &tile.denoise) {
                 self.denoise.encode(ctx, &mut enc, &d.buffers, &params, frames, per_pixel);
-                compose_group = &d.compose[back];
-            }
-            enc.clear_buffer(&tile.counters, 0, None);
-            self.compose.pass(&mut enc, compose_group, tile.size, ts(2));
-            let mut sources = vec![Source::Buffer(&tile.counters, COUNTER_BYTES)];
-            if let Some(t) = &tile.timestamps {
-                enc.resolve_query_set(&t.set, 0..QUERIES, &t.resolved, 0);
-                sources.push(Source::Buffer(&t.resolved, 8 * QUERIES as u64));
-            }
-            if share {
-                sources.push(Source::Texture(&tile.images[back].texture));
-                sources.push(Source::Buffer(&tile.depth, tile.size.0 as u64 * tile.size.1 as u64 * 4));
             }
             let tag = FrameRead {
                 frame_id: frame.frame_id,
@@ -603,14 +614,175 @@ impl GpuRenderer {
                 timed,
                 share,
                 image_only: false,
+                canvas: false,
             };
-            let slot = ring.record(ctx, &mut enc, tag, &sources)?;
+            let slot = self.compose_and_read(tile, &mut enc, back, denoised, ts(2), tag, ring)?;
             Ok((slot, enc.finish()))
         })??;
         let (slot, commands) = slot;
         let submission = ctx.queue.submit([commands]);
         ring.submitted(slot, submission);
         tile.frames = frames;
+        tile.filtered = denoised;
+        tile.latest = back;
+        tile.images[back].frame_id = Some(frame.frame_id);
+        Ok(())
+    }
+
+    /// The filter's resources of `tile`, made on its first denoised frame and kept.
+    fn make_denoise(&self, tile: &mut TileTarget) -> Result<(), GpuError> {
+        if tile.denoise.is_some() {
+            return Ok(());
+        }
+        let ctx = &self.ctx;
+        let a = &tile.aov;
+        let n = tile.low_size.0 as u64 * tile.low_size.1 as u64;
+        let made = ctx.validated("tile denoise resources", || {
+            let buffers = self.denoise.buffers(ctx, n, [&a[0], &a[1], &a[3], &a[4]]);
+            let inputs = [&a[0], &a[1], &buffers.out, &a[2]];
+            let compose = [0, 1, 2].map(|i| {
+                self.compose.bind(
+                    ctx,
+                    &tile.compose_params,
+                    inputs,
+                    &tile.images[i].storage,
+                    &tile.depth,
+                    &tile.counters,
+                )
+            });
+            TileDenoise { buffers, compose }
+        })?;
+        tile.denoise = Some(made);
+        Ok(())
+    }
+
+    /// Records compose into image `back` (reading the filter's output where `filtered`) and the
+    /// frame's read into `ring` as `tag` says (counters, timestamps where `tag.timed`, the share);
+    /// returns the ring's slot.
+    fn compose_and_read(
+        &self,
+        tile: &TileTarget,
+        enc: &mut wgpu::CommandEncoder,
+        back: usize,
+        filtered: bool,
+        timestamp: Option<wgpu::ComputePassTimestampWrites>,
+        tag: FrameRead,
+        ring: &mut ReadbackRing<FrameRead>,
+    ) -> Result<usize, GpuError> {
+        let compose_group = match (filtered, &tile.denoise) {
+            (true, Some(d)) => &d.compose[back],
+            _ => &tile.compose[back],
+        };
+        enc.clear_buffer(&tile.counters, 0, None);
+        self.compose.pass(enc, compose_group, tile.size, timestamp);
+        let mut sources = vec![Source::Buffer(&tile.counters, COUNTER_BYTES)];
+        if let (Some(t), Some(_)) = (&tile.timestamps, tag.timed) {
+            enc.resolve_query_set(&t.set, 0..QUERIES, &t.resolved, 0);
+            sources.push(Source::Buffer(&t.resolved, 8 * QUERIES as u64));
+        }
+        let depth = Source::Buffer(&tile.depth, tile.size.0 as u64 * tile.size.1 as u64 * 4);
+        let aov_bytes = tile.low_size.0 as u64 * tile.low_size.1 as u64 * 16;
+        match tag.share {
+            Some(PixelForm::Colour) => sources.extend([Source::Texture(&tile.images[back].texture), depth]),
+            Some(PixelForm::Shading) => {
+                sources.push(depth);
+                sources.extend([0, 1, 3, 4].map(|k| Source::Buffer(&tile.aov[k], aov_bytes)));
+            }
+            None => {}
+        }
+        ring.record(&self.ctx, enc, tag, &sources)
+    }
+
+    /// Filters and composes a composited canvas into `tile`'s next image (object space, on the
+    /// tile's owner): `shading` holds, per pixel of the tile's rectangle grown by its guard band
+    /// ([`work_view`] at scale 1), the AOVs of the nearest brick's hit as their shading shares
+    /// carried them (running sums: each pixel is divided by its own weight, the IBL sum's w).
+    /// With `settings.denoise` on the filter runs over the whole canvas, so with a guard band of
+    /// [`crate::denoise::reach`] the tile's pixels are the single render's. Records the read of
+    /// its colour and depth into `ring` (which must have a free slot) and submits; the tile's
+    /// accumulation restarts at its next [`GpuRenderer::render_tile`].
+    pub fn compose_canvas(
+        &self,
+        tile: &mut TileTarget,
+        frame: &CanvasFrame,
+        shading: &[[[f32; 4]; 4]],
+        ring: &mut ReadbackRing<FrameRead>,
+    ) -> Result<(), GpuError> {
+        let ctx = &self.ctx;
+        if tile.scale != 1 || !tile.fits_with_guard(frame.view, 1, tile.guard) {
+            return Err(GpuError::View(format!(
+                "tile {}: its resources are {}x{} at scale {}, the canvas's view is {}x{} at scale 1",
+                tile.name,
+                tile.size.0,
+                tile.size.1,
+                tile.scale,
+                frame.view.rect.width,
+                frame.view.rect.height
+            )));
+        }
+        let low = work_view(frame.view, 1, tile.guard);
+        let n = low.rect.width as usize * low.rect.height as usize;
+        if shading.len() != n {
+            return Err(GpuError::View(format!(
+                "tile {}: the canvas has {} pixels, its rectangle grown by the guard band {}x{}",
+                tile.name,
+                shading.len(),
+                low.rect.width,
+                low.rect.height
+            )));
+        }
+        let s = frame.settings;
+        let env = self.check_frame(frame.volume, &low, s, frame.env, 1)?;
+        let with_ao = s.ao.samples > 0 || s.ao.ibl != IblMethod::None;
+        let params = FrameParams::new(frame.volume, &low, s, env);
+        let denoised = with_ao && s.denoise.is_on() && super::denoise::applies(&params);
+        if denoised {
+            self.make_denoise(tile)?;
+        }
+        // The canvas is not this tile's own accumulation: its next frame restarts.
+        tile.state = None;
+        tile.per_pixel = false;
+        tile.frames = 0;
+        // Each pixel's sums are divided by its own weight (the filter's output is in running-sum
+        // form over one frame).
+        let frames = u32::from(with_ao);
+        let back = tile.back();
+        let mut compose = ComposeParams::new(frame.view, &low, 1, s, frames);
+        compose.per_pixel = u32::from(!denoised);
+        let slot =
+            ctx.validated("canvas frame", || -> Result<(usize, wgpu::CommandBuffer), GpuError> {
+                tile.staging.resize(n * 16, 0);
+                for (k, plane) in [0usize, 1, 3, 4].into_iter().enumerate() {
+                    for (dst, px) in tile.staging.chunks_exact_mut(16).zip(shading) {
+                        dst.copy_from_slice(bytemuck::bytes_of(&px[k]));
+                    }
+                    ctx.write_buffer(&tile.aov[plane], 0, &tile.staging);
+                }
+                ctx.write_buffer(&tile.compose_params, 0, bytemuck::bytes_of(&compose));
+                let mut enc = ctx
+                    .device
+                    .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("canvas") });
+                // The fetches were counted where the bricks were rendered.
+                enc.clear_buffer(&tile.aov[2], 0, None);
+                if let (true, Some(d)) = (denoised, &tile.denoise) {
+                    self.denoise.encode(ctx, &mut enc, &d.buffers, &params, frames, true);
+                }
+                let tag = FrameRead {
+                    frame_id: frame.frame_id,
+                    tile: tile.name.clone(),
+                    width: tile.size.0,
+                    height: tile.size.1,
+                    timed: None,
+                    share: Some(PixelForm::Colour),
+                    image_only: false,
+                    canvas: true,
+                };
+                let slot = self.compose_and_read(tile, &mut enc, back, denoised, None, tag, ring)?;
+                Ok((slot, enc.finish()))
+            })??;
+        let (slot, commands) = slot;
+        let submission = ctx.queue.submit([commands]);
+        ring.submitted(slot, submission);
         tile.filtered = denoised;
         tile.latest = back;
         tile.images[back].frame_id = Some(frame.frame_id);
@@ -669,8 +841,9 @@ impl GpuRenderer {
             width: tile.size.0,
             height: tile.size.1,
             timed: None,
-            share: false,
+            share: None,
             image_only: true,
+            canvas: false,
         };
         let slot = ring.record(ctx, &mut enc, tag, &[Source::Texture(&image.texture)])?;
         let submission = ctx.queue.submit([enc.finish()]);
