@@ -40,7 +40,7 @@ use crate::render_thread::{BrickData, JobResult, StepsOf, TileResult};
 use anyhow::{anyhow, Context, Result};
 use isowall_model::adoption::AdoptionError;
 use isowall_model::bricks::{self, Brick, Occupancy};
-use isowall_model::composite::{Composited, TileCanvas};
+use isowall_model::composite::{Composited, PixelForm, TileCanvas};
 use isowall_model::config::WallConfig;
 use isowall_model::messages::Message;
 use isowall_model::object_machine::{BrickGeometry, FrameViews, ObjectMachine, ObjectOutput};
@@ -280,7 +280,7 @@ impl ObjectNode {
             spacing: plan.info.spacing,
             halo: setup.halo,
         };
-        let mut machine = ObjectMachine::new(config, name, geometry);
+        let mut machine = ObjectMachine::new(config, name, geometry, None);
         let steps = plan.source.time_steps().map_err(|e| anyhow!("volume {}: {e}", plan.source))?;
         if steps > 1 {
             machine.refuse_adoptions(format!(
@@ -534,7 +534,15 @@ impl From<TileCanvas> for TileResult {
 /// A rendered rectangle as the model composites it.
 impl From<TileResult> for TileCanvas {
     fn from(r: TileResult) -> TileCanvas {
-        TileCanvas { name: r.name, width: r.width, height: r.height, depth: r.depth, rgb8: r.rgb8 }
+        TileCanvas {
+            name: r.name,
+            width: r.width,
+            height: r.height,
+            form: PixelForm::Colour,
+            depth: r.depth,
+            rgb8: r.rgb8,
+            shading: Vec::new(),
+        }
     }
 }
 

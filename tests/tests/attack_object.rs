@@ -13,7 +13,7 @@
 
 use isowall_e2e::{free_udp_ports, in_ci, run_in, start_nodes_with, Daemon};
 use isowall_model::codec;
-use isowall_model::composite::{Layer, PeerPixels};
+use isowall_model::composite::{Layer, PeerPixels, PixelForm};
 use isowall_model::messages::Message;
 use isowall_model::node_machine::{NodeMachine, NodeOutput};
 use isowall_net::transport::{self, Channel};
@@ -283,7 +283,7 @@ fn an_lz4_bomb_of_200_rectangles_is_refused_before_it_is_decompressed() {
     let (tw, th) = TILE;
     // The whole tile, no hits: 1.2 MB decoded (480x360 pixels of 7 bytes, depth f32 and sRGB8)
     // from a few KB.
-    let rect = Layer::empty(0, 0, tw, th).encode("t0", true);
+    let rect = Layer::empty(0, 0, tw, th, PixelForm::Colour).encode("t0", true);
     eprintln!("one bomb rectangle: {} B on the wire, {} B decoded", rect.payload.len(), tw * th * 7);
     let rects: Vec<_> = (0..200).map(|_| rect.clone()).collect();
     // Each round, the eight frame ids around the wall's (the orbit's clock, from the attack's

@@ -119,6 +119,20 @@ pub struct Rect {
     pub height: u32,
 }
 
+impl Rect {
+    /// The rectangle grown by `by` pixels on every side, clipped to a full image of `full` =
+    /// (W, H) pixels: the guard band a tile renders (and, in object space, composites) beyond its
+    /// edges so that the edge-aware filter, whose reach is `by`, sees there what the whole image
+    /// has. The one rule for it: screen space's tile work area and object space's tile canvas are
+    /// both this.
+    pub fn grown(&self, by: u32, full: (u32, u32)) -> Rect {
+        let (x0, y0) = (self.x.saturating_sub(by), self.y.saturating_sub(by));
+        let x1 = self.x.saturating_add(self.width).saturating_add(by).min(full.0);
+        let y1 = self.y.saturating_add(self.height).saturating_add(by).min(full.1);
+        Rect { x: x0, y: y0, width: x1.saturating_sub(x0), height: y1.saturating_sub(y0) }
+    }
+}
+
 /// A camera looking at a full image of `full` = (W, H) pixels, of which `rect` is rendered.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct View {
@@ -155,6 +169,24 @@ impl View {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_grown_rect_is_clipped_at_every_edge_of_the_image_and_the_same_at_zero() {
+        let full = (100, 80);
+        let r = |x, y, width, height| Rect { x, y, width, height };
+        // Inside: grown on all four sides.
+        assert_eq!(r(20, 30, 10, 5).grown(7, full), r(13, 23, 24, 19));
+        // At the left and top edges: clipped at 0.
+        assert_eq!(r(3, 2, 10, 5).grown(7, full), r(0, 0, 20, 14));
+        // At the right and bottom edges: clipped at the image's size.
+        assert_eq!(r(85, 70, 10, 5).grown(7, full), r(78, 63, 22, 17));
+        // The whole image grows into nothing; a band wider than the image is the image.
+        assert_eq!(r(0, 0, 100, 80).grown(62, full), r(0, 0, 100, 80));
+        assert_eq!(r(40, 40, 1, 1).grown(u32::MAX, full), r(0, 0, 100, 80));
+        for rect in [r(0, 0, 100, 80), r(3, 2, 10, 5), r(85, 70, 15, 10), r(99, 79, 1, 1)] {
+            assert_eq!(rect.grown(0, full), rect, "the identity at 0");
+        }
+    }
 
     #[test]
     fn pixel_rays_match_the_convention_vectors() {

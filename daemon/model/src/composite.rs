@@ -11,15 +11,29 @@
 //! pixels no brick hits show the background. When its own render and every other node's pixels for
 //! a frame are in, the frame's tiles are done (then Ready and the swap as in screen space).
 //!
+//! That is the *colour form* ([`PixelForm::Colour`]). A wall whose tiles are filtered
+//! (`WallConfig::filters_composited`) sends the *shading form* ([`PixelForm::Shading`]) instead:
+//! the edge-aware filter must run on the composited tile, so per pixel the depth and the four AOV
+//! vectors the GPU's compose and filter read ([`ShadingPixel`]) travel, the depth plane first as
+//! above, then the 16 f32 (little-endian) of each pixel, pixel by pixel. The owner keeps all 16
+//! values of the nearest layer; pixels no brick hits keep depth `+inf` and zeros (the GPU's
+//! compose gives them the background). Such a wall composites each tile over its *canvas*, the
+//! tile grown by the filter's guard band ([`crate::Rect::grown`], within the wall's image), so that
+//! the filter sees beyond the tile's edges what the whole image has; tile sizes and rectangle
+//! positions here are then the canvas's. The whole wall uses one form for a session: the receiver
+//! checks every rectangle against its own form, and a shading value that is not finite is refused
+//! (it would spread through the owner's filter).
+//!
 //! Everything a peer sends is checked before use, and before anything is decompressed: the sender
 //! must be the node its certificate names, the frame no more than [`FRAMES_AHEAD`] frames past
 //! the latest this node was told of ([`Compositor::announce`]), one message per frame per peer.
 //! Every rectangle must be of a tile the receiver shows and lie inside it, and the size it claims
 //! (a raw payload's length, the 4-byte size an LZ4 payload starts with) must be exactly the
-//! rectangle's; then, against the sender's *footprint* for the frame (the screen rectangles its
-//! bricks may cover in the receiver's tiles, [`Footprints`]), the rectangles may number at most
-//! one per brick and tile, each must lie inside its brick's rectangle of that tile, and their
-//! decoded bytes may sum to no more than the footprint's. Only then is a payload decompressed,
+//! rectangle's in the receiver's form; then, against the sender's *footprint* for the frame (the
+//! screen rectangles its bricks may cover in the receiver's tiles, [`Footprints`]), the
+//! rectangles may number at most one per brick and tile, each must lie inside its brick's
+//! rectangle of that tile, and their decoded bytes (in the form's bytes per pixel) may sum to no
+//! more than the footprint's. Only then is a payload decompressed,
 //! into a buffer of exactly the rectangle's size. Pixels that arrive before the frame's footprint
 //! is known wait compressed (the same checks, against the whole tiles, at arrival; the rest when
 //! the footprint comes). A violation is a [`CompositeError`] naming the peer: the caller closes
@@ -35,8 +49,8 @@ use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::Duration;
 
-/// Bytes per pixel before compression: depth (f32) and sRGB (3 x u8).
-pub const BYTES_PER_PIXEL: usize = 7;
+/// Bytes per pixel of the colour form before compression: depth (f32) and sRGB (3 x u8).
+pub const BYTES_PER_PIXEL: usize = PixelForm::Colour.bytes_per_pixel();
 /// Frames a compositor holds at once (pixels of later frames can arrive before this node's
 /// render of an earlier one); past it the oldest pending frame is dropped (it can no longer be
 /// shown in time).
@@ -45,6 +59,35 @@ pub const MAX_PENDING_FRAMES: usize = 16;
 pub const FRAMES_AHEAD: u64 = 8;
 /// Bytes of the decoded size an LZ4 payload starts with (u32 little-endian).
 pub const LZ4_SIZE_BYTES: usize = 4;
+
+/// What a pixel carries between nodes (module notes); one form for the whole wall and session.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PixelForm {
+    /// Depth and the finished 8-bit sRGB colour: the tile owner shows the composite as it is.
+    Colour,
+    /// Depth and the AOVs the GPU composes and filters ([`ShadingPixel`]): the tile owner filters
+    /// and composes the composite.
+    Shading,
+}
+
+impl PixelForm {
+    /// Bytes per pixel before compression: depth (f32) and sRGB (3 x u8), or depth (f32) and
+    /// the 16 f32 of a [`ShadingPixel`].
+    pub const fn bytes_per_pixel(self) -> usize {
+        match self {
+            PixelForm::Colour => 4 + 3,
+            PixelForm::Shading => 4 + SHADING_VALUES * 4,
+        }
+    }
+}
+
+/// One pixel's AOVs in the shading form, in the order the GPU's compose and filter read them:
+/// direct colour (rgb) and hit flag; normal (xyz) and depth; the AO running sum (bent normal,
+/// A); the IBL running sum (E rgb, weight).
+pub type ShadingPixel = [[f32; 4]; 4];
+
+/// The f32 values of a [`ShadingPixel`].
+pub const SHADING_VALUES: usize = 16;
 
 #[derive(Serialize, Deserialize, Debug, Clone, Copy, PartialEq, Eq)]
 pub enum PixelEncoding {
@@ -74,16 +117,20 @@ pub struct PeerPixels {
     pub rects: Vec<PixelRect>,
 }
 
-/// A rectangle of a brick's render of one tile, decoded: position in the tile, the depth of each
-/// pixel (`+inf`: no hit) and its 8-bit sRGB colour, rows top to bottom.
+/// A rectangle of a brick's render of one tile, decoded: position in the tile (its canvas, in
+/// the shading form), the depth of each pixel (`+inf`: no hit) and, by its `form`, its 8-bit sRGB
+/// colour (3 bytes a pixel; `shading` empty) or its AOVs (`rgb8` empty), rows top to bottom.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Layer {
     pub x: u32,
     pub y: u32,
     pub width: u32,
     pub height: u32,
+    /// Which of `rgb8` and `shading` the layer carries (stated, not guessed from their lengths).
+    pub form: PixelForm,
     pub depth: Vec<f32>,
     pub rgb8: Vec<u8>,
+    pub shading: Vec<ShadingPixel>,
 }
 
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -92,8 +139,15 @@ pub enum CompositeError {
     NotMyTile { peer: String, node: String, tile: String },
     #[error("node `{peer}` sent a {w}x{h} rectangle at ({x}, {y}) outside tile `{tile}` ({tw}x{th})")]
     OutsideTile { peer: String, tile: String, x: u32, y: u32, w: u32, h: u32, tw: u32, th: u32 },
-    #[error("node `{peer}` sent a rectangle of tile `{tile}` whose {encoding:?} payload is not its {want} bytes: {why}")]
-    BadPayload { peer: String, tile: String, encoding: PixelEncoding, want: usize, why: String },
+    #[error("node `{peer}` sent a rectangle of tile `{tile}` whose {encoding:?} payload is not its {want} bytes of {form:?} pixels: {why}")]
+    BadPayload {
+        peer: String,
+        tile: String,
+        encoding: PixelEncoding,
+        form: PixelForm,
+        want: usize,
+        why: String,
+    },
     #[error("the connection of node `{cert}` carried pixels signed as node `{claimed}`")]
     WrongSender { cert: String, claimed: String },
     #[error("node `{peer}` is not a node of this wall, or is this node")]
@@ -138,10 +192,15 @@ impl TileRect {
 pub type Footprints = BTreeMap<String, Vec<(String, TileRect)>>;
 
 impl Layer {
-    /// A layer of `width x height` pixels at (x, y) of a tile: no hits, colour 0.
-    pub fn empty(x: u32, y: u32, width: u32, height: u32) -> Layer {
+    /// A layer of `width x height` pixels at (x, y) of a tile in `form`: no hits, colour or
+    /// AOVs 0.
+    pub fn empty(x: u32, y: u32, width: u32, height: u32, form: PixelForm) -> Layer {
         let n = width as usize * height as usize;
-        Layer { x, y, width, height, depth: vec![f32::INFINITY; n], rgb8: vec![0; n * 3] }
+        let (rgb8, shading) = match form {
+            PixelForm::Colour => (vec![0; n * 3], Vec::new()),
+            PixelForm::Shading => (Vec::new(), vec![[[0.0; 4]; 4]; n]),
+        };
+        Layer { x, y, width, height, form, depth: vec![f32::INFINITY; n], rgb8, shading }
     }
 
     pub fn pixel_count(&self) -> usize {
@@ -156,11 +215,18 @@ impl Layer {
     /// The rectangle as it travels, LZ4-compressed when `compress` (and it pays: where the
     /// compressed form is not smaller the rectangle goes raw).
     pub fn encode(&self, tile: &str, compress: bool) -> PixelRect {
-        let mut raw = Vec::with_capacity(self.pixel_count() * BYTES_PER_PIXEL);
+        let mut raw = Vec::with_capacity(self.pixel_count() * self.form.bytes_per_pixel());
         for d in &self.depth {
             raw.extend_from_slice(&d.to_le_bytes());
         }
-        raw.extend_from_slice(&self.rgb8);
+        match self.form {
+            PixelForm::Colour => raw.extend_from_slice(&self.rgb8),
+            PixelForm::Shading => {
+                for v in self.shading.iter().flatten().flatten() {
+                    raw.extend_from_slice(&v.to_le_bytes());
+                }
+            }
+        }
         let (encoding, payload) = if compress {
             let c = lz4_flex::block::compress_prepend_size(&raw);
             if c.len() < raw.len() {
@@ -197,9 +263,9 @@ impl PixelRect {
         }
     }
 
-    /// Checks what can be checked without decompressing: the rectangle lies inside a tile of
-    /// `tile_size`, and the payload claims exactly its bytes.
-    pub fn check(&self, peer: &str, tile_size: (u32, u32)) -> Result<(), CompositeError> {
+    /// Checks what can be checked without decompressing: the rectangle lies inside a tile (its
+    /// canvas) of `tile_size`, and the payload claims exactly its bytes in `form`.
+    pub fn check(&self, peer: &str, tile_size: (u32, u32), form: PixelForm) -> Result<(), CompositeError> {
         let (tw, th) = tile_size;
         let fits = self.width > 0
             && self.height > 0
@@ -217,11 +283,12 @@ impl PixelRect {
                 th,
             });
         }
-        let want = self.rect().pixel_count() as usize * BYTES_PER_PIXEL;
+        let want = self.rect().pixel_count() as usize * form.bytes_per_pixel();
         match self.claimed_len() {
             Some(n) if n == want => Ok(()),
             claimed => Err(self.bad_payload(
                 peer,
+                form,
                 want,
                 match (self.encoding, claimed) {
                     (PixelEncoding::Raw, Some(n)) => format!("it has {n} bytes"),
@@ -232,68 +299,110 @@ impl PixelRect {
         }
     }
 
-    fn bad_payload(&self, peer: &str, want: usize, why: String) -> CompositeError {
+    fn bad_payload(&self, peer: &str, form: PixelForm, want: usize, why: String) -> CompositeError {
         CompositeError::BadPayload {
             peer: peer.to_string(),
             tile: self.tile.clone(),
             encoding: self.encoding,
+            form,
             want,
             why,
         }
     }
 
-    /// Decodes the rectangle of a tile of `tile_size`, checking everything (module notes).
-    pub fn decode(&self, peer: &str, tile_size: (u32, u32)) -> Result<Layer, CompositeError> {
-        self.check(peer, tile_size)?;
+    /// Pixel `i` of the rectangle, named by its position in the tile too.
+    fn pixel_name(&self, i: usize) -> String {
+        let w = self.width.max(1) as usize;
+        format!("pixel {i} (at ({}, {}) of the tile)", self.x as usize + i % w, self.y as usize + i / w)
+    }
+
+    /// Decodes the rectangle of a tile (its canvas) of `tile_size` in `form`, checking
+    /// everything (module notes).
+    pub fn decode(
+        &self,
+        peer: &str,
+        tile_size: (u32, u32),
+        form: PixelForm,
+    ) -> Result<Layer, CompositeError> {
+        self.check(peer, tile_size, form)?;
         let n = self.width as usize * self.height as usize;
-        let want = n * BYTES_PER_PIXEL;
+        let want = n * form.bytes_per_pixel();
+        let bad = |why: String| self.bad_payload(peer, form, want, why);
         let raw = match self.encoding {
             PixelEncoding::Raw => std::borrow::Cow::Borrowed(&self.payload[..]),
             PixelEncoding::Lz4 => {
                 // The claimed size is the rectangle's (checked): the buffer is exactly that.
                 let mut out = vec![0u8; want];
                 let got = lz4_flex::block::decompress_into(&self.payload[LZ4_SIZE_BYTES..], &mut out)
-                    .map_err(|e| self.bad_payload(peer, want, format!("it does not decompress: {e}")))?;
+                    .map_err(|e| bad(format!("it does not decompress: {e}")))?;
                 if got != want {
-                    return Err(self.bad_payload(peer, want, format!("it decompresses to {got} bytes")));
+                    return Err(bad(format!("it decompresses to {got} bytes")));
                 }
                 std::borrow::Cow::Owned(out)
             }
         };
+        let f32s = |b: &[u8]| -> Vec<f32> {
+            b.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect()
+        };
         let (d, c) = raw.split_at(n * 4);
-        let depth: Vec<f32> =
-            d.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+        let depth = f32s(d);
         if let Some(i) = depth.iter().position(|v| v.is_nan() || *v < 0.0) {
-            return Err(self.bad_payload(peer, want, format!("pixel {i} has depth {}", depth[i])));
+            return Err(bad(format!("{} has depth {}", self.pixel_name(i), depth[i])));
         }
-        Ok(Layer { x: self.x, y: self.y, width: self.width, height: self.height, depth, rgb8: c.to_vec() })
+        let (rgb8, shading) = match form {
+            PixelForm::Colour => (c.to_vec(), Vec::new()),
+            PixelForm::Shading => {
+                let values = f32s(c);
+                // A NaN or an infinity would spread through the owner's filter to its neighbours.
+                if let Some(k) = values.iter().position(|v| !v.is_finite()) {
+                    let (i, vector, component) = (k / SHADING_VALUES, k % SHADING_VALUES / 4, k % 4);
+                    return Err(bad(format!(
+                        "{} has shading value {} (vector {vector}, component {component})",
+                        self.pixel_name(i),
+                        values[k]
+                    )));
+                }
+                let shading = values
+                    .chunks_exact(SHADING_VALUES)
+                    .map(|p| std::array::from_fn(|v| std::array::from_fn(|c| p[4 * v + c])))
+                    .collect();
+                (Vec::new(), shading)
+            }
+        };
+        Ok(Layer { x: self.x, y: self.y, width: self.width, height: self.height, form, depth, rgb8, shading })
     }
 }
 
-/// A tile being composited: the nearest depth so far and its colour.
+/// A tile being composited (in the shading form its canvas, the tile grown by the guard band):
+/// the nearest depth so far and, by its `form`, that pixel's colour (`shading` empty) or AOVs
+/// (`rgb8` empty), rows top to bottom. Also what a node's render of one view is handed back as
+/// ([`crate::object_machine::ObjectMachine::local_done`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct TileCanvas {
     pub name: String,
     pub width: u32,
     pub height: u32,
+    pub form: PixelForm,
     pub depth: Vec<f32>,
     pub rgb8: Vec<u8>,
+    pub shading: Vec<ShadingPixel>,
 }
 
 impl TileCanvas {
-    pub fn new(name: &str, width: u32, height: u32) -> TileCanvas {
-        let n = width as usize * height as usize;
-        TileCanvas {
-            name: name.to_string(),
-            width,
-            height,
-            depth: vec![f32::INFINITY; n],
-            rgb8: vec![0; n * 3],
-        }
+    /// A canvas with no hits: depth `+inf`, colour or AOVs 0.
+    pub fn new(name: &str, width: u32, height: u32, form: PixelForm) -> TileCanvas {
+        let Layer { depth, rgb8, shading, .. } = Layer::empty(0, 0, width, height, form);
+        TileCanvas { name: name.to_string(), width, height, form, depth, rgb8, shading }
     }
 
-    /// Keeps, per pixel, the nearer of the canvas and the layer (a layer inside the tile).
+    /// Keeps, per pixel, the nearer of the canvas and the layer (a layer inside the tile), with
+    /// all its data: the colour, or all 16 AOV values. A layer of the other form is a caller's
+    /// error and is left out.
     pub fn merge(&mut self, l: &Layer) {
+        debug_assert_eq!(l.form, self.form, "a {:?} layer merged into a {:?} canvas", l.form, self.form);
+        if l.form != self.form {
+            return;
+        }
         let w = l.width as usize;
         for row in 0..l.height as usize {
             let dst = (l.y as usize + row) * self.width as usize + l.x as usize;
@@ -301,14 +410,22 @@ impl TileCanvas {
                 let s = row * w + i;
                 if l.depth[s] < self.depth[dst + i] {
                     self.depth[dst + i] = l.depth[s];
-                    self.rgb8[3 * (dst + i)..3 * (dst + i) + 3].copy_from_slice(&l.rgb8[3 * s..3 * s + 3]);
+                    match self.form {
+                        PixelForm::Colour => self.rgb8[3 * (dst + i)..3 * (dst + i) + 3]
+                            .copy_from_slice(&l.rgb8[3 * s..3 * s + 3]),
+                        PixelForm::Shading => self.shading[dst + i] = l.shading[s],
+                    }
                 }
             }
         }
     }
 
-    /// Gives every pixel no brick hit the background.
+    /// Gives every pixel no brick hit the background, in the colour form. In the shading form
+    /// such pixels keep depth `+inf` and zeros: the GPU's compose gives them the background.
     pub fn fill_background(&mut self, background: [u8; 3]) {
+        if self.form != PixelForm::Colour {
+            return;
+        }
         for (d, c) in self.depth.iter().zip(self.rgb8.chunks_exact_mut(3)) {
             if !d.is_finite() {
                 c.copy_from_slice(&background);
@@ -355,6 +472,8 @@ pub struct Refused {
 #[derive(Debug, Clone, PartialEq)]
 pub struct Composited {
     pub frame_id: u64,
+    /// This node's tiles in the compositor's order: each the size it was given (in the shading
+    /// form the tile's canvas, `ObjectMachine::canvas_rect`).
     pub tiles: Vec<TileCanvas>,
     /// The nodes whose pixels the frame needed and did not have by its deadline (or that were not
     /// waited for: they had missed an earlier deadline and sent nothing since), in name order.
@@ -367,8 +486,10 @@ pub struct Compositor {
     node: String,
     /// The nodes that send to this one: every other node of the wall.
     peers: BTreeSet<String>,
-    /// This node's tiles: name and size.
+    /// This node's tiles: name and size (of the canvas, in the shading form).
     tiles: Vec<(String, u32, u32)>,
+    /// What every pixel carries on this wall.
+    form: PixelForm,
     pending: BTreeMap<u64, Pending>,
     /// The last frame done: pixels for it or older frames are stale.
     last_done: Option<u64>,
@@ -386,6 +507,7 @@ pub struct Compositor {
 /// Checks a peer's rectangles against its footprint (module notes) and decodes them.
 fn decode_within(
     tiles: &[(String, u32, u32)],
+    form: PixelForm,
     cert: &str,
     msg: &PeerPixels,
     footprint: &[(String, TileRect)],
@@ -399,7 +521,7 @@ fn decode_within(
             max: footprint.len(),
         });
     }
-    let bytes = |n: u64| n * BYTES_PER_PIXEL as u64;
+    let bytes = |n: u64| n * form.bytes_per_pixel() as u64;
     let max = bytes(footprint.iter().map(|(_, r)| r.pixel_count()).sum());
     let got = bytes(msg.rects.iter().map(|r| r.rect().pixel_count()).sum());
     if got > max {
@@ -422,7 +544,7 @@ fn decode_within(
         .iter()
         .map(|r| {
             let (_, w, h) = tiles.iter().find(|t| t.0 == r.tile).expect("checked at arrival");
-            Ok((r.tile.clone(), r.decode(cert, (*w, *h))?))
+            Ok((r.tile.clone(), r.decode(cert, (*w, *h), form)?))
         })
         .collect()
 }
@@ -438,19 +560,22 @@ impl Pending {
 }
 
 impl Compositor {
-    /// The compositor of `node` showing `tiles` (name, width, height), with pixels from `peers`
-    /// (the wall's other nodes), each frame waiting `deadline` for them after it starts.
+    /// The compositor of `node` showing `tiles` (name, and the size of what it composites: the
+    /// tile, or in the shading form its canvas), with pixels in `form` from `peers` (the wall's
+    /// other nodes), each frame waiting `deadline` for them after it starts.
     pub fn new(
         node: &str,
         peers: impl IntoIterator<Item = String>,
         tiles: Vec<(String, u32, u32)>,
         deadline: Duration,
+        form: PixelForm,
     ) -> Compositor {
         let peers = peers.into_iter().filter(|p| p != node).collect();
         Compositor {
             node: node.to_string(),
             peers,
             tiles,
+            form,
             pending: BTreeMap::new(),
             last_done: None,
             deadline,
@@ -459,6 +584,11 @@ impl Compositor {
             dropped: 0,
             refused: Vec::new(),
         }
+    }
+
+    /// What every pixel carries on this wall.
+    pub fn form(&self) -> PixelForm {
+        self.form
     }
 
     /// The nodes this one waits for each frame.
@@ -481,9 +611,9 @@ impl Compositor {
             self.pending.pop_first();
             self.dropped += 1;
         }
-        let tiles = &self.tiles;
+        let (tiles, form) = (&self.tiles, self.form);
         self.pending.entry(frame_id).or_insert_with(|| Pending {
-            canvases: tiles.iter().map(|(n, w, h)| TileCanvas::new(n, *w, *h)).collect(),
+            canvases: tiles.iter().map(|(n, w, h)| TileCanvas::new(n, *w, *h, form)).collect(),
             from: BTreeSet::new(),
             local: None,
             footprints: None,
@@ -558,12 +688,12 @@ impl Compositor {
             return Vec::new();
         }
         let footprints: Footprints = footprints.into_iter().filter(|(n, _)| self.peers.contains(n)).collect();
-        let tiles = self.tiles.clone();
+        let (tiles, form) = (self.tiles.clone(), self.form);
         let p = self.frame(frame_id);
         let mut errors = Vec::new();
         for (cert, link, msg) in std::mem::take(&mut p.early) {
             let fp = footprints.get(&cert).map_or(&[][..], |f| &f[..]);
-            match decode_within(&tiles, &cert, &msg, fp) {
+            match decode_within(&tiles, form, &cert, &msg, fp) {
                 Ok(layers) => p.merge(&layers),
                 Err(error) => {
                     p.from.remove(&cert);
@@ -641,7 +771,7 @@ impl Compositor {
                     tile: r.tile.clone(),
                 });
             };
-            r.check(cert, (w, h))?;
+            r.check(cert, (w, h), self.form)?;
         }
         if self.pending.get(&id).is_some_and(|p| p.from.contains(cert)) {
             return Err(CompositeError::Twice { peer: cert.to_string(), frame_id: id });
@@ -650,7 +780,9 @@ impl Compositor {
         let footprint =
             self.pending.get(&id).and_then(|p| p.footprints.as_ref()).map(|f| f.get(cert).cloned());
         let layers = match &footprint {
-            Some(fp) => Some(decode_within(&self.tiles, cert, &msg, fp.as_deref().unwrap_or(&[]))?),
+            Some(fp) => {
+                Some(decode_within(&self.tiles, self.form, cert, &msg, fp.as_deref().unwrap_or(&[]))?)
+            }
             None => None,
         };
         self.late.remove(cert);
@@ -744,7 +876,7 @@ mod tests {
     }
 
     fn layer(x: u32, y: u32, w: u32, h: u32, f: impl Fn(u32, u32) -> (f32, u8)) -> Layer {
-        let mut l = Layer::empty(x, y, w, h);
+        let mut l = Layer::empty(x, y, w, h, PixelForm::Colour);
         for j in 0..h {
             for i in 0..w {
                 let (d, c) = f(i, j);
@@ -769,11 +901,176 @@ mod tests {
         for compress in [false, true] {
             let r = l.encode("t", compress);
             assert_eq!(r.encoding, if compress { PixelEncoding::Lz4 } else { PixelEncoding::Raw });
-            assert_eq!(r.decode("p", (50, 40)).unwrap(), l);
+            assert_eq!(r.decode("p", (50, 40), PixelForm::Colour).unwrap(), l);
         }
         let (raw, lz) = (l.encode("t", false).payload.len(), l.encode("t", true).payload.len());
         assert_eq!(raw, 40 * 30 * BYTES_PER_PIXEL);
         assert!(lz * 3 < raw, "lz4 {lz} raw {raw}");
+    }
+
+    /// A shading layer whose pixel (i, j) is `f(i, j)`: its depth and a base value from which
+    /// all 16 AOV values differ (value k is base + k).
+    fn shading_layer(x: u32, y: u32, w: u32, h: u32, f: impl Fn(u32, u32) -> (f32, f32)) -> Layer {
+        let mut l = Layer::empty(x, y, w, h, PixelForm::Shading);
+        for j in 0..h {
+            for i in 0..w {
+                let (d, base) = f(i, j);
+                let k = (j * w + i) as usize;
+                l.depth[k] = d;
+                l.shading[k] = std::array::from_fn(|v| std::array::from_fn(|c| base + (4 * v + c) as f32));
+            }
+        }
+        l
+    }
+
+    #[test]
+    fn shading_rects_round_trip_raw_and_lz4_depth_plane_first_then_each_pixels_16_values() {
+        let l = shading_layer(3, 2, 40, 30, |i, j| {
+            if (i + j) % 7 == 0 {
+                (5.0 + i as f32, 0.25 * (i + 40 * j) as f32)
+            } else {
+                (f32::INFINITY, 0.0)
+            }
+        });
+        for compress in [false, true] {
+            let r = l.encode("t", compress);
+            assert_eq!(r.encoding, if compress { PixelEncoding::Lz4 } else { PixelEncoding::Raw });
+            assert_eq!(r.decode("p", (50, 40), PixelForm::Shading).unwrap(), l);
+        }
+        let raw = l.encode("t", false).payload;
+        let n = 40 * 30;
+        assert_eq!(raw.len(), n * PixelForm::Shading.bytes_per_pixel());
+        assert_eq!(PixelForm::Shading.bytes_per_pixel(), 68);
+        assert_eq!(PixelForm::Colour.bytes_per_pixel(), BYTES_PER_PIXEL);
+        // Pixel 7 (a hit): its depth in the plane, then its 16 values after the plane, in order.
+        assert_eq!(raw[7 * 4..8 * 4], l.depth[7].to_le_bytes());
+        let at = n * 4 + 7 * 64;
+        let values: Vec<f32> =
+            raw[at..at + 64].chunks(4).map(|b| f32::from_le_bytes(b.try_into().unwrap())).collect();
+        assert_eq!(values, l.shading[7].iter().flatten().copied().collect::<Vec<_>>());
+        assert_eq!(values[5], l.shading[7][1][1]);
+        let lz = l.encode("t", true).payload.len();
+        assert!(lz * 3 < raw.len(), "lz4 {lz} raw {}", raw.len());
+        // A layer without a single hit is still a shading layer: it encodes as one.
+        let none = Layer::empty(0, 0, 2, 2, PixelForm::Shading);
+        assert_eq!(none.encode("t", false).payload.len(), 4 * 68);
+        assert_eq!(none.encode("t", true).decode("p", (4, 4), PixelForm::Shading).unwrap(), none);
+    }
+
+    #[test]
+    fn a_shading_value_that_is_not_finite_is_refused_naming_the_pixel() {
+        for bad in [f32::NAN, f32::INFINITY, f32::NEG_INFINITY] {
+            for compress in [false, true] {
+                let mut l = shading_layer(2, 1, 5, 4, |_, _| (1.0, 0.5));
+                // Pixel 13 is (3, 2) of the layer, (5, 3) of the tile; vector 2, component 3.
+                l.shading[13][2][3] = bad;
+                let e = l.encode("t", compress).decode("p", (8, 8), PixelForm::Shading).unwrap_err();
+                assert!(matches!(e, CompositeError::BadPayload { form: PixelForm::Shading, .. }), "{e}");
+                let msg = e.to_string();
+                assert!(msg.contains("node `p`") && msg.contains("tile `t`"), "{msg}");
+                assert!(msg.contains("pixel 13 (at (5, 3) of the tile)"), "{msg}");
+                assert!(msg.contains(&format!("shading value {bad} (vector 2, component 3)")), "{msg}");
+            }
+        }
+        // A pixel without a hit may have depth +inf; its depth may not be NaN, as in colour.
+        let mut l = shading_layer(0, 0, 2, 2, |_, _| (f32::INFINITY, 0.0));
+        assert!(l.encode("t", true).decode("p", (2, 2), PixelForm::Shading).is_ok());
+        l.depth[3] = f32::NAN;
+        let e = l.encode("t", false).decode("p", (2, 2), PixelForm::Shading).unwrap_err();
+        assert!(e.to_string().contains("pixel 3 (at (1, 1) of the tile) has depth NaN"), "{e}");
+    }
+
+    #[test]
+    fn sizes_are_checked_in_the_receivers_form_before_anything_is_decompressed() {
+        let colour = layer(0, 0, 8, 8, |_, _| (1.0, 1));
+        let shading = shading_layer(0, 0, 8, 8, |_, _| (1.0, 1.0));
+        // Each form's rectangle is refused by the other's check, raw or LZ4, naming the sizes.
+        let r = colour.encode("t", false);
+        let e = r.check("p", (8, 8), PixelForm::Shading).unwrap_err();
+        assert!(e.to_string().contains("not its 4352 bytes of Shading pixels: it has 448 bytes"), "{e}");
+        assert!(shading.encode("t", false).check("p", (8, 8), PixelForm::Colour).is_err());
+        assert!(shading.encode("t", true).check("p", (8, 8), PixelForm::Colour).is_err());
+        // A colour-sized LZ4 claim whose body is not LZ4 at all: refused on its claim for a
+        // shading receiver (nothing decompressed), and only at decompression for a colour one.
+        let mut r = colour.encode("t", true);
+        assert_eq!(r.encoding, PixelEncoding::Lz4);
+        r.payload.truncate(LZ4_SIZE_BYTES);
+        r.payload.extend_from_slice(&[0xff; 16]);
+        let e = r.decode("p", (8, 8), PixelForm::Shading).unwrap_err();
+        assert!(e.to_string().contains("claims to decompress to 448 bytes"), "{e}");
+        let e = r.decode("p", (8, 8), PixelForm::Colour).unwrap_err();
+        assert!(e.to_string().contains("does not decompress"), "{e}");
+        // The same through a shading compositor: refused at arrival, naming the peer.
+        let mut c = Compositor::new(
+            "a",
+            ["a", "b"].map(String::from),
+            vec![("t".into(), 8, 8)],
+            SECOND,
+            PixelForm::Shading,
+        );
+        assert_eq!(c.form(), PixelForm::Shading);
+        let msg = PeerPixels { frame_id: 1, node: "b".into(), rects: vec![r] };
+        let e = c.peer(T, "b", 1, msg).unwrap_err();
+        assert!(matches!(e, CompositeError::BadPayload { want: 4352, .. }), "{e}");
+        assert!(e.to_string().contains("node `b`"), "{e}");
+        // The footprint's byte cap is in the form's bytes too: 2x2 pixels of 68 bytes.
+        let corner = TileRect { x: 0, y: 0, width: 2, height: 2 };
+        c.expect(T, 2, [("b".to_string(), vec![("t".to_string(), corner)])].into());
+        let whole = shading_layer(0, 0, 4, 2, |_, _| (1.0, 1.0)).encode("t", true);
+        let e =
+            c.peer(T, "b", 1, PeerPixels { frame_id: 2, node: "b".into(), rects: vec![whole] }).unwrap_err();
+        assert!(matches!(e, CompositeError::TooManyBytes { got: 544, max: 272, .. }), "{e}");
+    }
+
+    #[test]
+    fn the_owner_keeps_all_16_values_of_the_nearer_layer_and_no_background_in_shading() {
+        let mut c = Compositor::new(
+            "a",
+            ["a", "b"].map(String::from),
+            vec![("t".into(), 4, 2)],
+            SECOND,
+            PixelForm::Shading,
+        );
+        // b's layer is nearer on the left half, a's own nearer on the right; (3, 1) is hit by none.
+        let from_b = shading_layer(0, 0, 4, 2, |i, _| (if i < 2 { 1.0 } else { 3.0 }, 100.0 + i as f32));
+        let own = shading_layer(0, 0, 4, 2, |i, j| {
+            if (i, j) == (3, 1) {
+                (f32::INFINITY, 0.0)
+            } else {
+                (2.0, 200.0 + i as f32)
+            }
+        });
+        let mut from_b_missing = from_b.clone();
+        from_b_missing.depth[7] = f32::INFINITY;
+        from_b_missing.shading[7] = [[0.0; 4]; 4];
+        assert_eq!(c.local(T, 1, &[("t".into(), own.clone())], [9, 9, 9]), None);
+        let msg = PeerPixels { frame_id: 1, node: "b".into(), rects: vec![from_b_missing.encode("t", true)] };
+        let done = c.peer(T, "b", 1, msg).unwrap().expect("all in");
+        let t = &done.tiles[0];
+        assert_eq!((t.form, t.width, t.height), (PixelForm::Shading, 4, 2));
+        assert!(t.rgb8.is_empty(), "the shading form carries no colour");
+        for k in 0..8 {
+            let (i, want) = (
+                k % 4,
+                if k == 7 {
+                    None
+                } else if k % 4 < 2 {
+                    Some(&from_b)
+                } else {
+                    Some(&own)
+                },
+            );
+            match want {
+                Some(l) => {
+                    assert_eq!(t.depth[k], l.depth[k], "pixel {k}");
+                    assert_eq!(t.shading[k], l.shading[k], "pixel {k} (x {i}): all 16 values of the nearer");
+                }
+                None => {
+                    assert_eq!(t.depth[k], f32::INFINITY);
+                    assert_eq!(t.shading[k], [[0.0; 4]; 4], "no hit: zeros, not the background");
+                }
+            }
+        }
     }
 
     #[test]
@@ -782,29 +1079,41 @@ mod tests {
         let good = l.encode("t", true);
         let mut r = good.clone();
         r.x = 60;
-        assert!(matches!(r.decode("p", (64, 64)), Err(CompositeError::OutsideTile { .. })));
+        assert!(matches!(
+            r.decode("p", (64, 64), PixelForm::Colour),
+            Err(CompositeError::OutsideTile { .. })
+        ));
         let mut r = good.clone();
         r.width = u32::MAX;
-        assert!(matches!(r.decode("p", (64, 64)), Err(CompositeError::OutsideTile { .. })));
+        assert!(matches!(
+            r.decode("p", (64, 64), PixelForm::Colour),
+            Err(CompositeError::OutsideTile { .. })
+        ));
         let mut r = good.clone();
         r.payload.truncate(r.payload.len() / 2);
-        assert!(matches!(r.decode("p", (64, 64)), Err(CompositeError::BadPayload { .. })));
+        assert!(matches!(r.decode("p", (64, 64), PixelForm::Colour), Err(CompositeError::BadPayload { .. })));
         let mut r = l.encode("t", false);
         r.payload.push(0);
-        assert!(r.decode("p", (64, 64)).unwrap_err().to_string().contains("449 bytes"));
+        assert!(r.decode("p", (64, 64), PixelForm::Colour).unwrap_err().to_string().contains("449 bytes"));
         // A small payload that claims to decompress to far more than the rectangle.
         let bomb = l.encode("t", false);
         let mut r = layer(0, 0, 8, 8, |_, _| (1.0, 1)).encode("t", true);
         r.payload = lz4_flex::block::compress(&vec![0u8; 1 << 20]);
-        assert!(matches!(r.decode("p", (64, 64)), Err(CompositeError::BadPayload { .. })));
+        assert!(matches!(r.decode("p", (64, 64), PixelForm::Colour), Err(CompositeError::BadPayload { .. })));
         let mut r = bomb;
         r.payload[0..4].copy_from_slice(&f32::NAN.to_le_bytes());
-        assert!(r.decode("p", (64, 64)).unwrap_err().to_string().contains("depth NaN"));
+        assert!(r.decode("p", (64, 64), PixelForm::Colour).unwrap_err().to_string().contains("depth NaN"));
     }
 
     #[test]
     fn the_owner_keeps_the_nearest_hit_and_waits_for_every_peer() {
-        let mut c = Compositor::new("a", ["a", "b", "c"].map(String::from), vec![("t".into(), 4, 2)], SECOND);
+        let mut c = Compositor::new(
+            "a",
+            ["a", "b", "c"].map(String::from),
+            vec![("t".into(), 4, 2)],
+            SECOND,
+            PixelForm::Colour,
+        );
         let near = layer(0, 0, 2, 2, |_, _| (1.0, 10));
         let far = layer(1, 0, 3, 2, |_, _| (2.0, 20));
         let miss = layer(0, 0, 4, 1, |_, _| (f32::INFINITY, 99));
@@ -857,7 +1166,13 @@ mod tests {
 
     #[test]
     fn frames_before_any_announce_are_bounded_and_dropped_when_far_ahead() {
-        let mut c = Compositor::new("a", ["a", "b"].map(String::from), vec![("t".into(), 4, 2)], SECOND);
+        let mut c = Compositor::new(
+            "a",
+            ["a", "b"].map(String::from),
+            vec![("t".into(), 4, 2)],
+            SECOND,
+            PixelForm::Colour,
+        );
         for id in [u64::MAX, u64::MAX - 1, 1 << 40].into_iter().chain(0..100) {
             c.peer(T, "b", 1, empty(id, "b")).unwrap();
         }
@@ -871,7 +1186,13 @@ mod tests {
 
     #[test]
     fn rectangles_are_capped_by_the_senders_footprint_before_anything_is_decompressed() {
-        let mut c = Compositor::new("a", ["a", "b", "c"].map(String::from), vec![("t".into(), 4, 2)], SECOND);
+        let mut c = Compositor::new(
+            "a",
+            ["a", "b", "c"].map(String::from),
+            vec![("t".into(), 4, 2)],
+            SECOND,
+            PixelForm::Colour,
+        );
         let corner = TileRect { x: 0, y: 0, width: 2, height: 2 };
         let fp: Footprints =
             [("b".to_string(), vec![("t".to_string(), corner)]), ("c".to_string(), vec![])].into();
@@ -938,7 +1259,13 @@ mod tests {
 
     #[test]
     fn a_frame_composites_what_arrived_by_its_deadline_names_the_missing_and_goes_on() {
-        let mut c = Compositor::new("a", ["a", "b", "c"].map(String::from), vec![("t".into(), 4, 2)], SECOND);
+        let mut c = Compositor::new(
+            "a",
+            ["a", "b", "c"].map(String::from),
+            vec![("t".into(), 4, 2)],
+            SECOND,
+            PixelForm::Colour,
+        );
         let near = layer(0, 0, 2, 2, |_, _| (1.0, 10));
         let t0 = ms(5000);
         c.announce(1);
@@ -980,7 +1307,13 @@ mod tests {
 
     #[test]
     fn a_frame_waits_only_for_the_nodes_its_map_names_and_stops_waiting_for_the_dead() {
-        let mut c = Compositor::new("a", ["a", "b", "c"].map(String::from), vec![("t".into(), 4, 2)], SECOND);
+        let mut c = Compositor::new(
+            "a",
+            ["a", "b", "c"].map(String::from),
+            vec![("t".into(), 4, 2)],
+            SECOND,
+            PixelForm::Colour,
+        );
         let near = layer(0, 0, 2, 2, |_, _| (1.0, 10));
         let far = layer(0, 0, 4, 2, |_, _| (2.0, 20));
         // Frame 1 by the home map: a waits for b and c; c dies: b's pixels do not complete it.

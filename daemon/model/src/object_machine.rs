@@ -6,10 +6,11 @@
 //! - tells it of every frame state as it arrives ([`ObjectMachine::announce`]: peers' pixels may
 //!   come for frames up to [`crate::composite::FRAMES_AHEAD`] past it);
 //! - asks, when the frame machine says render, for the views to render
-//!   ([`ObjectMachine::views`]: the covered rectangle of every wall tile for each brick the frame's
-//!   brick map gives this node, and the adopted bricks to drop first); the frame starts waiting
-//!   for its peers then, each within its *footprint* (the rectangles its bricks may cover in this
-//!   node's tiles, by the same map and camera) and until the compositing deadline;
+//!   ([`ObjectMachine::views`]: the covered rectangle of every wall tile (its canvas) for each
+//!   brick the frame's brick map gives this node, and the adopted bricks to drop first); the
+//!   frame starts waiting for its peers then, each within its *footprint* (the rectangles its
+//!   bricks may cover in this node's tiles, by the same map and camera) and until the
+//!   compositing deadline;
 //! - hands it the rendered rectangles ([`ObjectMachine::local_done`]): it encodes each tile's
 //!   rectangles for the node that shows the tile ([`ObjectOutput::SendPixels`], one message per
 //!   peer per frame, empty where its bricks cover none of the peer's tiles) and composites its
@@ -23,6 +24,14 @@
 //!   [`ObjectOutput::Send`], [`ObjectOutput::Load`] (read a brick adopted from a dead node, then
 //!   [`ObjectMachine::load_done`]).
 //!
+//! A wall whose composited tiles are filtered (built with a guard band, `filter_guard`) sends
+//! its pixels in the shading form ([`PixelForm::Shading`], `crate::composite`) and handles every
+//! tile as its *canvas*: the tile's rectangle grown by the guard band within the wall's image
+//! ([`Rect::grown`], [`ObjectMachine::canvas_rect`]). The views a brick renders cover its part of
+//! the canvas (the guard band included), rectangles and footprints are placed in the canvas, and
+//! a tile is composited over its whole canvas; the caller filters and composes it there and
+//! crops the tile out of it. Without a guard, the colour form over the tiles themselves.
+//!
 //! The controller's brick maps ([`ObjectMachine::set_map`], `crate::adoption`) say which node
 //! renders each brick from which frame on; frames are rendered, sent and composited by the map
 //! for their frame id, so every node agrees. An adopted brick is dropped at the first frame whose
@@ -32,10 +41,10 @@ use crate::adoption::{brick_index, AdoptionError, BrickMap, MapHistory};
 use crate::bricks;
 use crate::codec;
 use crate::composite::{
-    composite_deadline, CompositeError, Composited, Compositor, Footprints, Layer, Link, PeerPixels, Refused,
-    TileCanvas, TileRect,
+    composite_deadline, CompositeError, Composited, Compositor, Footprints, Layer, Link, PeerPixels,
+    PixelForm, Refused, TileCanvas, TileRect,
 };
-use crate::config::WallConfig;
+use crate::config::{TileConfig, WallConfig};
 use crate::messages::Message;
 use crate::{AoMethod, AoRadius, Camera, Rect, RenderSettings, View};
 use glam::DVec3;
@@ -124,13 +133,30 @@ pub struct ObjectMachine {
     compress: bool,
     background: [u8; 3],
     warned: Option<String>,
+    /// The guard band every tile's canvas grows by (`None`: the tile itself, the colour form).
+    guard: Option<u32>,
 }
 
 impl ObjectMachine {
     /// Node `name` of `config` (an object-space wall), with the brick split of start-up.
-    pub fn new(config: &WallConfig, name: &str, geometry: BrickGeometry) -> ObjectMachine {
-        let tiles: Vec<(String, u32, u32)> =
-            config.tiles_of(name).iter().map(|t| (t.name.clone(), t.width, t.height)).collect();
+    /// `filter_guard`: `None` for a wall that shows its composite as it is (the colour form, the
+    /// tiles themselves); `Some(g)` for one that filters its composited tiles (the shading form,
+    /// every tile's canvas grown by `g` pixels: module notes). The whole wall must agree on it.
+    pub fn new(
+        config: &WallConfig,
+        name: &str,
+        geometry: BrickGeometry,
+        filter_guard: Option<u32>,
+    ) -> ObjectMachine {
+        let tiles: Vec<(String, u32, u32)> = config
+            .tiles_of(name)
+            .iter()
+            .map(|t| {
+                let c = canvas_of(config, filter_guard, t);
+                (t.name.clone(), c.width, c.height)
+            })
+            .collect();
+        let form = if filter_guard.is_some() { PixelForm::Shading } else { PixelForm::Colour };
         let nodes: Vec<String> = config.nodes.iter().map(|n| n.name.clone()).collect();
         let receivers =
             nodes.iter().filter(|n| n.as_str() != name && !config.tiles_of(n).is_empty()).cloned().collect();
@@ -143,7 +169,7 @@ impl ObjectMachine {
             maps: MapHistory::new(nodes.clone()),
             loading: BTreeSet::new(),
             adoptions_refused: None,
-            compositor: Compositor::new(name, nodes, tiles, deadline),
+            compositor: Compositor::new(name, nodes, tiles, deadline, form),
             receivers,
             submitted: BTreeMap::new(),
             local: BTreeMap::new(),
@@ -151,7 +177,27 @@ impl ObjectMachine {
             compress: config.wall.compress,
             background: [0; 3],
             warned: None,
+            guard: filter_guard,
         }
+    }
+
+    /// What this wall's pixels carry between nodes: the shading form where it filters its
+    /// composited tiles (a guard band), else the colour form.
+    pub fn form(&self) -> PixelForm {
+        self.compositor.form()
+    }
+
+    /// The rectangle (in the wall image's pixels) that `tile` is rendered and composited over:
+    /// the tile grown by the guard band within the wall's image, or the tile's own rectangle
+    /// without one. Composited canvases are this size, rows top to bottom from its top-left.
+    pub fn canvas_rect(&self, tile: &str) -> Option<Rect> {
+        Some(canvas_of(&self.config, self.guard, self.config.tile(tile)?))
+    }
+
+    /// The view of `tile`'s canvas ([`ObjectMachine::canvas_rect`]) by `camera`.
+    fn canvas_view(&self, camera: Camera, tile: &str) -> Option<View> {
+        let view = self.config.tile_view(camera, tile)?;
+        Some(View { rect: self.canvas_rect(tile)?, ..view })
     }
 
     pub fn name(&self) -> &str {
@@ -179,14 +225,18 @@ impl ObjectMachine {
     }
 
     /// The most bytes one peer's pixels for one frame may take on the wire: raw rectangles (LZ4
-    /// is used only where smaller) of every tile of this node, once per brick of the wall, and
-    /// their framing. A stream longer than this is refused unread.
+    /// is used only where smaller, in this wall's form) of every tile's canvas of this node, once
+    /// per brick of the wall, and their framing. A stream longer than this is refused unread.
     pub fn max_pixels_bytes(&self) -> usize {
         let tiles = self.config.tiles_of(&self.name);
-        let pixels: usize = tiles.iter().map(|t| t.width as usize * t.height as usize).sum();
+        let pixels: usize = tiles
+            .iter()
+            .filter_map(|t| self.canvas_rect(&t.name))
+            .map(|c| c.width as usize * c.height as usize)
+            .sum();
         let bricks = self.geometry.owned.len().max(1);
         let per_rect = 64 + tiles.iter().map(|t| t.name.len()).max().unwrap_or(0);
-        bricks * (pixels * crate::composite::BYTES_PER_PIXEL + tiles.len() * per_rect) + 256
+        bricks * (pixels * self.form().bytes_per_pixel() + tiles.len() * per_rect) + 256
     }
 
     /// A new controller session: its frame ids start afresh.
@@ -231,13 +281,15 @@ impl ObjectMachine {
         (s, new)
     }
 
-    /// The rectangles `brick` may cover in each of this node's tiles, seen by `camera`.
+    /// The rectangles `brick` may cover in each of this node's tiles (their canvases, placed
+    /// from the canvas's top-left), seen by `camera`.
     fn footprint_of(&self, camera: Camera, brick: usize, out: &mut Vec<(String, TileRect)>) {
         let Some(&(lo, hi)) = self.geometry.owned.get(brick) else { return };
         for t in self.config.tiles_of(&self.name) {
-            let Some(view) = self.config.tile_view(camera, &t.name) else { continue };
+            let Some(view) = self.canvas_view(camera, &t.name) else { continue };
             if let Some(w) = bricks::covered_rect(&view, lo, hi) {
-                let rect = TileRect { x: w.x - t.x, y: w.y - t.y, width: w.width, height: w.height };
+                let c = view.rect;
+                let rect = TileRect { x: w.x - c.x, y: w.y - c.y, width: w.width, height: w.height };
                 out.push((t.name.clone(), rect));
             }
         }
@@ -285,7 +337,7 @@ impl ObjectMachine {
         for b in mine {
             let (lo, hi) = self.geometry.owned[b];
             for t in &self.config.tiles {
-                let Some(tile_view) = self.config.tile_view(camera, &t.name) else { continue };
+                let Some(tile_view) = self.canvas_view(camera, &t.name) else { continue };
                 if let Some(w) = bricks::covered_rect(&tile_view, lo, hi) {
                     views.push((t.name.clone(), View { rect: w, ..tile_view }));
                     bricks.push(b);
@@ -362,9 +414,11 @@ impl ObjectMachine {
     }
 
     /// This node's render of `frame_id` is done at `now`, after `render`: `rendered` holds each
-    /// view of [`ObjectMachine::views`], in order (named by its tile, the rectangle's size, depth
-    /// and sRGB8 colour). Returns each peer's pixels to send, and the frame when nothing else is
-    /// awaited.
+    /// view of [`ObjectMachine::views`], in order (named by its tile, the view rectangle's size,
+    /// rows top to bottom, in this wall's form: depth and sRGB8 colour, or depth and AOVs).
+    /// Returns each peer's pixels to send, and the frame when nothing else is awaited. A
+    /// rendered rectangle of the other form, or whose data is not its size, is a caller's error
+    /// and is left out.
     pub fn local_done(
         &mut self,
         now: Duration,
@@ -375,18 +429,30 @@ impl ObjectMachine {
         let rects = self.submitted.remove(&frame_id).unwrap_or_default();
         // Layers by tile owner; rectangles without a hit carry nothing the owner needs.
         let mut by_owner: BTreeMap<String, Vec<(String, Layer)>> = BTreeMap::new();
+        let form = self.form();
         for (r, (tile, w)) in rendered.into_iter().zip(&rects) {
             debug_assert_eq!(&r.name, tile);
-            let (Some(t), Some(owner)) = (self.config.tile(tile), self.config.node_of_tile(tile)) else {
+            let (Some(c), Some(owner)) = (self.canvas_rect(tile), self.config.node_of_tile(tile)) else {
                 continue;
             };
+            let n = r.width as usize * r.height as usize;
+            let fits = match form {
+                PixelForm::Colour => r.rgb8.len() == 3 * n,
+                PixelForm::Shading => r.shading.len() == n,
+            };
+            debug_assert!(r.form == form && fits && r.depth.len() == n, "tile `{tile}`: a bad render");
+            if r.form != form || !fits || r.depth.len() != n {
+                continue;
+            }
             let layer = Layer {
-                x: w.x - t.x,
-                y: w.y - t.y,
+                x: w.x - c.x,
+                y: w.y - c.y,
                 width: r.width,
                 height: r.height,
+                form,
                 depth: r.depth,
                 rgb8: r.rgb8,
+                shading: r.shading,
             };
             if layer.any_hit() {
                 by_owner.entry(owner.name.clone()).or_default().push((tile.clone(), layer));
@@ -464,6 +530,15 @@ impl ObjectMachine {
             resident_bytes: self.resident_bytes(),
             missing: done.missing.clone(),
         }
+    }
+}
+
+/// The rectangle of the wall's image `tile` is composited over with a guard band of `guard`
+/// ([`ObjectMachine::canvas_rect`]).
+fn canvas_of(config: &WallConfig, guard: Option<u32>, tile: &TileConfig) -> Rect {
+    match guard {
+        Some(g) => tile.rect().grown(g, config.wall_size()),
+        None => tile.rect(),
     }
 }
 

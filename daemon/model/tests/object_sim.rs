@@ -21,7 +21,7 @@ use glam::DVec3;
 use isowall_model::adoption::{AdoptionOutput, BrickAssigner};
 use isowall_model::bricks;
 use isowall_model::codec;
-use isowall_model::composite::{Composited, Layer, PeerPixels, TileCanvas};
+use isowall_model::composite::{Composited, Layer, PeerPixels, PixelForm, TileCanvas};
 use isowall_model::config::WallConfig;
 use isowall_model::messages::{Message, Role};
 use isowall_model::node_machine::{NodeMachine, NodeOutput};
@@ -202,7 +202,7 @@ impl Sim {
                 Node {
                     name: name.clone(),
                     frame,
-                    object: ObjectMachine::new(&config, name, geometry),
+                    object: ObjectMachine::new(&config, name, geometry, None),
                     alive: true,
                     render: ms(10),
                     silent: false,
@@ -351,8 +351,10 @@ impl Sim {
                             name: tile.clone(),
                             width: v.rect.width,
                             height: v.rect.height,
+                            form: PixelForm::Colour,
                             depth: vec![b as f32 + 1.0; px],
                             rgb8: vec![b as u8 * 40; px * 3],
+                            shading: Vec::new(),
                         }
                     })
                     .collect();
@@ -639,10 +641,13 @@ fn a_duplicate_is_dropped_and_an_early_refusal_closes_the_link_that_carried_it()
     let config = config();
     let geometry =
         BrickGeometry { owned: owned(), own: 0, own_bytes: 1000, spacing: DVec3::ONE, halo: [3; 3] };
-    let mut m = ObjectMachine::new(&config, "node0", geometry);
+    let mut m = ObjectMachine::new(&config, "node0", geometry, None);
     let camera = config.camera_for(DVec3::ZERO, DVec3::splat(47.0));
     let rect = |x| {
-        Layer { x, y: 0, width: 2, height: 2, depth: vec![1.0; 4], rgb8: vec![9; 12] }.encode("t0", false)
+        let mut l = Layer::empty(x, 0, 2, 2, PixelForm::Colour);
+        l.depth.fill(1.0);
+        l.rgb8.fill(9);
+        l.encode("t0", false)
     };
     let pixels = |frame_id, rects| PeerPixels { frame_id, node: "node1".into(), rects };
     let closes = |out: &[ObjectOutput]| out.iter().any(|o| matches!(o, ObjectOutput::ClosePeer { .. }));
@@ -674,12 +679,12 @@ fn a_node_that_refuses_adoptions_answers_brick_failed_and_loads_nothing() {
     let config = config();
     let geometry =
         || BrickGeometry { owned: owned(), own: 0, own_bytes: 1000, spacing: DVec3::ONE, halo: [3; 3] };
-    let mut m = ObjectMachine::new(&config, "node0", geometry());
+    let mut m = ObjectMachine::new(&config, "node0", geometry(), None);
     assert!(
         matches!(&m.load(1)[..], [ObjectOutput::Load { brick: 1, index: 1 }]),
         "without the refusal the brick is loaded"
     );
-    let mut m = ObjectMachine::new(&config, "node0", geometry());
+    let mut m = ObjectMachine::new(&config, "node0", geometry(), None);
     m.refuse_adoptions("steps: not adopted".into());
     let out = m.load(1);
     assert!(
@@ -688,4 +693,158 @@ fn a_node_that_refuses_adoptions_answers_brick_failed_and_loads_nothing() {
     );
     let own = m.load(0);
     assert!(matches!(&own[..], [ObjectOutput::Send(Message::BrickLoaded { brick: 0, .. })]), "{own:?}");
+}
+
+/// A wall that filters its composited tiles: with a guard band of 8 pixels node3 handles its tile
+/// t3 (32x24 at (32, 24) of the 64x48 image) as the canvas 40x32 at (24, 16), clipped by the
+/// image's right and bottom edges. The views its brick renders cover the guard band; footprints,
+/// the rectangles it sends and its own layers are placed in the canvas; the composited tile is the
+/// canvas, in the shading form; the stream limit is the canvases' in that form.
+#[test]
+fn a_guard_band_grows_views_footprints_and_canvases_and_the_shading_form_travels() {
+    const GUARD: u32 = 8;
+    let config = config();
+    // From further away and looking past the volume, so that it lies in t3's quarter of the
+    // image and bricks' rectangles start inside t3's canvas rather than at its edges.
+    let mut camera = config.camera_for(DVec3::ZERO, DVec3::splat(47.0));
+    camera.eye = camera.target + 2.5 * (camera.eye - camera.target);
+    let (b, d) = (camera.basis(), (camera.target - camera.eye).length());
+    let shift = d * (-0.24 * b.right + 0.18 * b.up);
+    (camera.eye, camera.target) = (camera.eye + shift, camera.target + shift);
+    let geometry =
+        |own| BrickGeometry { owned: owned(), own, own_bytes: 1000, spacing: DVec3::ONE, halo: [3; 3] };
+    let rect = |x, y, width, height| isowall_model::Rect { x, y, width, height };
+    let mut plain = ObjectMachine::new(&config, "node3", geometry(3), None);
+    let mut m = ObjectMachine::new(&config, "node3", geometry(3), Some(GUARD));
+    assert_eq!((plain.form(), m.form()), (PixelForm::Colour, PixelForm::Shading));
+    assert_eq!(plain.canvas_rect("t3"), Some(rect(32, 24, 32, 24)));
+    assert_eq!(m.canvas_rect("t3"), Some(rect(24, 16, 40, 32)));
+    assert_eq!(m.canvas_rect("t0"), Some(rect(0, 0, 40, 32)));
+    assert_eq!(m.canvas_rect("nope"), None);
+    // The stream limit: 4 bricks x (the canvas's pixels in the form + one rectangle's framing).
+    assert_eq!(plain.max_pixels_bytes(), 4 * (32 * 24 * 7 + 64 + 2) + 256);
+    assert_eq!(m.max_pixels_bytes(), 4 * (40 * 32 * 68 + 64 + 2) + 256);
+
+    // Views: brick 3's covered rectangle of every tile's canvas, each containing the plain one.
+    let (views, out) = m.views(ms(0), 1, camera, [0; 3]);
+    assert!(out.is_empty(), "{out:?}");
+    let (plain_views, _) = plain.views(ms(0), 1, camera, [0; 3]);
+    let (lo, hi) = owned()[3];
+    let mut beyond = 0;
+    for (tile, v) in &views.views {
+        let canvas = m.canvas_rect(tile).unwrap();
+        let canvas_view = isowall_model::View { rect: canvas, ..config.tile_view(camera, tile).unwrap() };
+        assert_eq!(Some(v.rect), bricks::covered_rect(&canvas_view, lo, hi), "tile {tile}");
+        let t = config.tile(tile).unwrap().rect();
+        let inside = |r: isowall_model::Rect, o: isowall_model::Rect| {
+            r.x >= o.x && r.y >= o.y && r.x + r.width <= o.x + o.width && r.y + r.height <= o.y + o.height
+        };
+        assert!(inside(v.rect, canvas), "tile {tile}: {:?} outside the canvas {canvas:?}", v.rect);
+        if !inside(v.rect, t) {
+            beyond += 1;
+        }
+        if let Some((_, p)) = plain_views.views.iter().find(|(n, _)| n == tile) {
+            assert!(inside(p.rect, v.rect), "tile {tile}: the guarded view {:?} lacks {:?}", v.rect, p.rect);
+        }
+    }
+    assert!(beyond > 0, "no view reaches into a guard band: {:?}", views.views);
+
+    // Footprints are placed in the canvas: a peer's brick's covered rectangle of t3's canvas,
+    // less the canvas's origin (24, 16), is accepted; the same placed from the tile's origin
+    // (32, 24) is not.
+    let t3_view =
+        isowall_model::View { rect: rect(24, 16, 40, 32), ..config.tile_view(camera, "t3").unwrap() };
+    let footprint = |b: usize| {
+        let (lo, hi) = owned()[b];
+        bricks::covered_rect(&t3_view, lo, hi).map(|w| (w.x - 24, w.y - 16, w.width, w.height))
+    };
+    let layer = |(x, y, w, h): (u32, u32, u32, u32), depth: f32, value: f32| {
+        let mut l = Layer::empty(x, y, w, h, PixelForm::Shading);
+        l.depth.fill(depth);
+        l.shading.fill([[value; 4]; 4]);
+        l
+    };
+    let (mut peers_fp, mut refused) = (Vec::new(), 0);
+    for b in 0..3 {
+        let peer = format!("node{b}");
+        let rects: Vec<_> = footprint(b).map(|f| layer(f, 1.0 + b as f32, b as f32)).into_iter().collect();
+        if let Some((x, y, w, h)) = footprint(b).filter(|f| f.0 >= GUARD && f.1 >= GUARD) {
+            refused += 1;
+            let from_tile = layer((x - GUARD, y - GUARD, w, h), 1.0, 0.0).encode("t3", true);
+            let msg = PeerPixels { frame_id: 1, node: peer.clone(), rects: vec![from_tile] };
+            let out = m.peer(ms(1), &peer, 1, msg);
+            assert!(
+                matches!(&out[..], [ObjectOutput::ClosePeer { reason, .. }] if reason.contains("outside the footprint")),
+                "{peer}: {out:?}"
+            );
+        }
+        let msg = PeerPixels {
+            frame_id: 1,
+            node: peer.clone(),
+            rects: rects.iter().map(|l| l.encode("t3", true)).collect(),
+        };
+        let out = m.peer(ms(1), &peer, 1, msg);
+        assert!(out.is_empty(), "{peer}: {out:?}");
+        peers_fp.extend(rects);
+    }
+    assert!(!peers_fp.is_empty() && refused > 0, "no peer's brick starts inside t3's canvas");
+
+    // This node's render, in the shading form and nearest of all (depth 0.5), and what it sends.
+    let rendered: Vec<TileCanvas> = views
+        .views
+        .iter()
+        .map(|(tile, v)| {
+            let mut c = TileCanvas::new(tile, v.rect.width, v.rect.height, PixelForm::Shading);
+            c.depth.fill(0.5);
+            c.shading.fill([[7.0; 4]; 4]);
+            c
+        })
+        .collect();
+    let out = m.local_done(ms(2), 1, ms(1), rendered);
+    let mut composited = None;
+    let mut sent = 0;
+    for o in out {
+        match o {
+            ObjectOutput::SendPixels { peer, bytes, .. } => {
+                let pixels = codec::decode_pixels(&bytes).unwrap();
+                for r in &pixels.rects {
+                    // Each rectangle is its view less the canvas's origin, in the shading form.
+                    let canvas = m.canvas_rect(&r.tile).unwrap();
+                    let (_, v) = views.views.iter().find(|(n, _)| *n == r.tile).unwrap();
+                    assert_eq!((r.x, r.y), (v.rect.x - canvas.x, v.rect.y - canvas.y), "{peer} {}", r.tile);
+                    let l = r.decode("node3", (canvas.width, canvas.height), PixelForm::Shading).unwrap();
+                    assert!(l.shading.iter().all(|p| *p == [[7.0; 4]; 4]));
+                    sent += 1;
+                }
+            }
+            ObjectOutput::Composited(c) => composited = Some(c),
+            o => panic!("{o:?}"),
+        }
+    }
+    assert_eq!(sent, views.views.iter().filter(|(t, _)| t != "t3").count());
+    let done = composited.expect("every peer's pixels are in");
+    assert!(done.missing.is_empty(), "{:?}", done.missing);
+    let [t] = &done.tiles[..] else { panic!("{:?}", done.tiles.len()) };
+    assert_eq!((t.name.as_str(), t.width, t.height, t.form), ("t3", 40, 32, PixelForm::Shading));
+    // Pixel by pixel: this node's view of t3 (placed from the canvas's origin) is nearest; the
+    // peers' footprints elsewhere; no hit (+inf, zeros) where nothing covers.
+    let own = views.views.iter().find(|(n, _)| n == "t3").map(|(_, v)| v.rect);
+    let covers =
+        |r: (u32, u32, u32, u32), x: u32, y: u32| x >= r.0 && y >= r.1 && x < r.0 + r.2 && y < r.1 + r.3;
+    for y in 0..32 {
+        for x in 0..40 {
+            let k = (y * 40 + x) as usize;
+            let nearest_peer = peers_fp
+                .iter()
+                .filter(|l| covers((l.x, l.y, l.width, l.height), x, y))
+                .map(|l| (l.depth[0], l.shading[0]))
+                .min_by(|a, b| a.0.total_cmp(&b.0));
+            let want = match own.filter(|o| covers((o.x - 24, o.y - 16, o.width, o.height), x, y)) {
+                Some(_) => Some((0.5, [[7.0; 4]; 4])),
+                None => nearest_peer,
+            };
+            let (depth, shading) = want.unwrap_or((f32::INFINITY, [[0.0; 4]; 4]));
+            assert_eq!((t.depth[k], t.shading[k]), (depth, shading), "canvas pixel ({x}, {y})");
+        }
+    }
 }

@@ -41,7 +41,8 @@
 //! denoise = "auto"                # off | on | auto: the spatial filter of occlusion and IBL;
 //!                                 # auto (the default): on where target_frame_ms is set and
 //!                                 # ao_samples > 0, so that a governed wall's moving frames (at
-//!                                 # few samples) are filtered; screen space only
+//!                                 # few samples) are filtered; in object space only "on"
+//!                                 # filters (the composited tile: its pixels travel as AOVs)
 //! target_frame_ms = 100.0         # quality governor: AO samples chosen per frame for this
 //!                                 # frame time while the camera moves (omitted: off)
 //!
@@ -509,15 +510,9 @@ impl WallConfig {
         if let Some(r) = &render {
             validate_render(&mut doc, r);
         }
-        // object space: the halo bounds the AO reach; bricks are not filtered.
+        // object space: the halo bounds the AO reach. `denoise = "on"` is accepted there: the
+        // filter runs on the composited tile, whose guard band travels too.
         if let (Some(w), Some(r)) = (&wall, &render) {
-            if w.mode == WallMode::Object && r.denoise == DenoiseSetting::On {
-                doc.at(
-                    &[Seg::K("render"), Seg::K("denoise")],
-                    "render: `denoise` \"on\": an object-space wall does not filter (its bricks' pixels \
-                     are the image's only once composited); use \"off\" or \"auto\"",
-                );
-            }
             if w.mode == WallMode::Object {
                 let mut s = RenderSettings::new(0.0);
                 s.ao.radius = r.ao_radius;
@@ -633,13 +628,24 @@ impl WallConfig {
     }
 
     /// The filter this wall renders with when its governor aims at `target_frame_ms` (`None`: no
-    /// governor): `[render] denoise` resolved ([`DenoiseSetting::resolve`]); off in object space,
-    /// whose bricks are not filtered (the filter would have to run on the composited tile).
+    /// governor): `[render] denoise` resolved ([`DenoiseSetting::resolve`]). In object space only
+    /// `"on"` filters ([`WallConfig::filters_composited`]): `auto` stays off there, since the
+    /// filter runs on the composited tile and the pixels that travels in (the shading form, with
+    /// the guard band) cost about ten times the bytes of the colour form.
     pub fn denoise(&self, target_frame_ms: Option<f64>) -> Denoise {
         match self.wall.mode {
+            WallMode::Object if self.filters_composited() => Denoise::On,
             WallMode::Object => Denoise::Off,
             WallMode::Screen => self.render.denoise.resolve(target_frame_ms, self.render.ao_samples),
         }
+    }
+
+    /// Whether this wall filters its *composited* tiles: an object-space wall with `[render]
+    /// denoise = "on"`. Its nodes send their pixels in the shading form and composite each tile
+    /// over the tile grown by the filter's guard band (`crate::composite`,
+    /// `crate::object_machine`); the whole wall decides it from this one config.
+    pub fn filters_composited(&self) -> bool {
+        self.wall.mode == WallMode::Object && self.render.denoise == DenoiseSetting::On
     }
 
     /// A path relative to the config file's folder (absolute paths are kept).

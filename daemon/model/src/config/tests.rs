@@ -85,13 +85,25 @@ fn object_mode_parses_and_refuses_an_unbounded_radius_or_the_seed_method() {
     expect(&unbounded, Some(35), "object space needs a bounded AO radius");
     let seed = format!("{}\n[render]\nao_method = \"seed\"\n", with("name = \"test\"", obj));
     expect(&seed, Some(35), "cannot use the `seed` AO method");
+    // "on" is accepted: the filter runs on the composited tile (its guard band travels too).
     let filtered = format!("{}\n[render]\nao_samples = 4\ndenoise = \"on\"\n", with("name = \"test\"", obj));
-    expect(&filtered, Some(36), "an object-space wall does not filter");
+    let c = WallConfig::parse(&filtered, Path::new("w.toml")).unwrap();
+    assert_eq!(c.render_settings(1.0).denoise, Denoise::On);
+    assert!(c.filters_composited());
+    // Still "on" without AO samples is refused, as in screen space.
+    let nothing = format!("{}\n[render]\nao_samples = 0\ndenoise = \"on\"\n", with("name = \"test\"", obj));
+    expect(&nothing, Some(36), "it needs `ao_samples` > 0");
     let governed =
         format!("{}\n[render]\nao_samples = 4\ntarget_frame_ms = 50\n", with("name = \"test\"", obj));
     let c = WallConfig::parse(&governed, Path::new("w.toml")).unwrap();
     assert_eq!(c.render.denoise, DenoiseSetting::Auto);
-    assert_eq!(c.render_settings(1.0).denoise, Denoise::Off, "auto does not filter bricks");
+    assert_eq!(c.render_settings(1.0).denoise, Denoise::Off, "auto stays off in object space");
+    assert!(!c.filters_composited());
+    // A screen-space wall filters its tiles itself, never a composite.
+    let screen = format!("[render]\nao_samples = 4\ndenoise = \"on\"\n\n{GOOD}");
+    let c = WallConfig::parse(&screen, Path::new("w.toml")).unwrap();
+    assert_eq!(c.render_settings(1.0).denoise, Denoise::On);
+    assert!(!c.filters_composited());
     expect(&with("name = \"test\"", "name = \"test\"\nmode = \"sideways\""), Some(3), "sideways");
 }
 

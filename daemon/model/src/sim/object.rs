@@ -26,7 +26,7 @@ use super::lan::{Events, Lan, LanCounts, LanModel};
 use super::SimError;
 use crate::bricks::{self, Occupancy};
 use crate::codec;
-use crate::composite::{TileCanvas, BYTES_PER_PIXEL};
+use crate::composite::{PixelForm, TileCanvas, BYTES_PER_PIXEL};
 use crate::config::WallConfig;
 use crate::messages::Message;
 use crate::object_machine::{BrickGeometry, FrameViews, ObjectMachine, ObjectOutput};
@@ -224,7 +224,7 @@ impl Sim {
                     spacing: DVec3::ONE,
                     halo: [10; 3],
                 };
-                ObjectMachine::new(&wall.config, &names[i], geometry)
+                ObjectMachine::new(&wall.config, &names[i], geometry, None)
             })
             .collect();
         Ok(Sim {
@@ -303,8 +303,10 @@ impl Sim {
                             name: tile.clone(),
                             width: v.rect.width,
                             height: v.rect.height,
+                            form: PixelForm::Colour,
                             depth: vec![b as f32 + 1.0; px],
                             rgb8: vec![(b % 251) as u8; px * 3],
+                            shading: Vec::new(),
                         }
                     })
                     .collect();

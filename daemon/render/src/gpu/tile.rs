@@ -161,14 +161,11 @@ pub struct TileOutput {
 }
 
 /// The rectangle the kernels of a tile showing `view` at `scale` run over: the low-resolution
-/// rectangle grown by `guard` pixels on each side, within the (low) full image.
+/// rectangle grown by `guard` pixels on each side, within the (low) full image
+/// ([`isowall_model::Rect::grown`], the rule object space's tile canvases follow too).
 pub fn work_view(view: &View, scale: u32, guard: u32) -> View {
     let mut low = lowres::scaled_view(view, scale.max(1));
-    let r = low.rect;
-    let (x0, y0) = (r.x.saturating_sub(guard), r.y.saturating_sub(guard));
-    let x1 = (r.x + r.width).saturating_add(guard).min(low.full.0);
-    let y1 = (r.y + r.height).saturating_add(guard).min(low.full.1);
-    low.rect = isowall_model::Rect { x: x0, y: y0, width: x1 - x0, height: y1 - y0 };
+    low.rect = low.rect.grown(guard, low.full);
     low
 }
 
