@@ -36,7 +36,7 @@
 //!   with the composited frame. A dead node's brick is not adopted: the survivors answer
 //!   `BrickFailed` with the reason and the wall composites without it until its node is back.
 
-use crate::render_thread::{BrickData, JobResult, StepsOf, TileResult};
+use crate::render_thread::{BrickData, CanvasJob, JobResult, StepsOf, TileResult};
 use anyhow::{anyhow, Context, Result};
 use isowall_model::adoption::AdoptionError;
 use isowall_model::bricks::{self, Brick, Occupancy};
@@ -238,6 +238,9 @@ pub fn spawn_load(
 pub struct Done {
     pub job: JobResult,
     pub report: Message,
+    /// Where the wall filters the composited tile: the canvases the render thread filters and
+    /// composes into the tiles' images (`job.tiles` is empty until then).
+    pub canvas: Option<CanvasJob>,
 }
 
 /// The node's object-space side: the model's [`ObjectMachine`] and what it asks for (the pixel
@@ -261,6 +264,12 @@ pub struct ObjectNode {
     /// A time-varying volume: the frames whose step was late here (the render thread's
     /// report), until they are composited.
     step_late: HashMap<u64, (u32, Duration)>,
+    /// Where the wall filters the composited tile (`[render] denoise = "on"`): the guard band
+    /// every tile's canvas has (the filter's reach), and each frame's camera and settings until
+    /// it is composited.
+    filter_guard: Option<u32>,
+    cameras: HashMap<u64, (Camera, RenderSettings)>,
+    config: WallConfig,
 }
 
 impl ObjectNode {
@@ -280,7 +289,11 @@ impl ObjectNode {
             spacing: plan.info.spacing,
             halo: setup.halo,
         };
-        let mut machine = ObjectMachine::new(config, name, geometry, None);
+        // Shares travel in shading form and tiles are composited over their canvases; the filter
+        // then runs on the GPU of the tile's owner (frames whose settings turn it off are composed
+        // unfiltered from the same shares).
+        let filter_guard = config.filters_composited().then(isowall_render::denoise::reach);
+        let mut machine = ObjectMachine::new(config, name, geometry, filter_guard);
         let steps = plan.source.time_steps().map_err(|e| anyhow!("volume {}: {e}", plan.source))?;
         if steps > 1 {
             machine.refuse_adoptions(format!(
@@ -306,7 +319,15 @@ impl ObjectNode {
             deadline: Duration::from_millis(config.wall.deadline_ms),
             missing: Vec::new(),
             step_late: HashMap::new(),
+            filter_guard,
+            cameras: HashMap::new(),
+            config: config.clone(),
         })
+    }
+
+    /// The form this node's pixels travel in (every node of the wall the same).
+    pub fn form(&self) -> PixelForm {
+        self.machine.form()
     }
 
     fn now(&self) -> Duration {
@@ -352,6 +373,9 @@ impl ObjectNode {
     /// The views this node renders for a frame (the model's [`ObjectMachine::views`]).
     pub fn views(&mut self, frame_id: u64, camera: Camera, settings: &RenderSettings) -> FrameViews {
         let now = self.now();
+        if self.filter_guard.is_some() {
+            self.cameras.insert(frame_id, (camera, *settings));
+        }
         let (views, out) = self.machine.views(now, frame_id, camera, srgb8_of(settings.background));
         for b in &views.unload {
             tracing::info!(frame_id, brick = b, "object space: dropping adopted brick (its home is back)");
@@ -404,7 +428,8 @@ impl ObjectNode {
                         }
                         self.missing = c.missing.clone();
                     }
-                    done.push(Done { job: self.finish(c), report });
+                    let (job, canvas) = self.finish(c);
+                    done.push(Done { job, report, canvas });
                 }
                 // Only `load` gives these, and handles them there.
                 ObjectOutput::Send(_) | ObjectOutput::Load { .. } => {
@@ -415,13 +440,35 @@ impl ObjectNode {
         done
     }
 
-    fn finish(&mut self, c: Composited) -> JobResult {
-        let render_time = self.machine.render_time(c.frame_id);
-        let tiles = c.tiles.into_iter().map(TileResult::from).collect();
+    /// The frame's result, and in shading form the canvases to filter and compose first.
+    fn finish(&mut self, c: Composited) -> (JobResult, Option<CanvasJob>) {
+        let id = c.frame_id;
+        let render_time = self.machine.render_time(id);
         // This node's step was late for this frame (older frames are no longer composited).
-        let step_late = self.step_late.remove(&c.frame_id);
-        self.step_late.retain(|&id, _| id > c.frame_id);
-        JobResult { frame_id: c.frame_id, tiles, render_time, step_late }
+        let step_late = self.step_late.remove(&id);
+        self.step_late.retain(|&f, _| f > id);
+        let frame = self.cameras.remove(&id);
+        self.cameras.retain(|&f, _| f > id);
+        let (tiles, canvas) = match (self.filter_guard, frame) {
+            (Some(guard), Some((camera, settings))) => {
+                let tiles = c
+                    .tiles
+                    .into_iter()
+                    .filter_map(|t| {
+                        let view = self.config.tile_view(camera, &t.name)?;
+                        Some((t.name, view, t.shading))
+                    })
+                    .collect();
+                (Vec::new(), Some(CanvasJob { frame_id: id, tiles, settings, guard }))
+            }
+            // A frame this node did not start (none composites without the node's own render).
+            (Some(_), None) => {
+                tracing::error!(frame_id = id, "object space: a composited frame without its camera");
+                (Vec::new(), None)
+            }
+            (None, _) => (c.tiles.into_iter().map(TileResult::from).collect(), None),
+        };
+        (JobResult { frame_id: id, tiles, render_time, step_late }, canvas)
     }
 
     /// A brick map from the controller (`Message::Bricks`): the frames it completes, or the
@@ -526,7 +573,7 @@ impl From<TileCanvas> for TileResult {
             height: t.height,
             rgb8: t.rgb8,
             depth: t.depth,
-            shading: Vec::new(),
+            shading: t.shading,
         }
     }
 }
@@ -534,14 +581,16 @@ impl From<TileCanvas> for TileResult {
 /// A rendered rectangle as the model composites it.
 impl From<TileResult> for TileCanvas {
     fn from(r: TileResult) -> TileCanvas {
+        // What the render thread read back says the form: the shading AOVs, or the colour.
+        let form = if r.shading.is_empty() { PixelForm::Colour } else { PixelForm::Shading };
         TileCanvas {
             name: r.name,
             width: r.width,
             height: r.height,
-            form: PixelForm::Colour,
+            form,
             depth: r.depth,
             rgb8: r.rgb8,
-            shading: Vec::new(),
+            shading: r.shading,
         }
     }
 }

@@ -585,8 +585,8 @@ impl RenderLoop {
         // The tiles' resources, kept where they fit, made where they do not (start, resize, scale,
         // the filter turned on or off: a denoised tile renders a guard band of the filter's reach
         // beyond its edges, so that the wall's tiles filter their edge pixels as one image).
-        // Object space (a brick per tile) does not filter: a brick's pixels are not the image's
-        // until composited, and the filter must run on the composited tile.
+        // A brick's view (object space) is not filtered: its pixels are not the image's until
+        // composited; the tile's owner filters the composited canvas (`RenderLoop::canvas`).
         let object_space = !job.bricks.is_empty();
         let denoise = job.settings.denoise.is_on() && !object_space;
         let guard = if denoise { isowall_render::denoise::reach() } else { 0 };

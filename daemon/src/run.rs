@@ -621,7 +621,33 @@ async fn composited(
     done: Vec<Done>,
 ) -> Vec<NodeOutput> {
     let mut out = Vec::new();
-    for d in done {
+    for mut d in done {
+        // The wall filters the composited tile: the render thread filters and composes it.
+        if let Some(canvas) = d.canvas.take() {
+            let sizes: Vec<(String, u32, u32)> =
+                canvas.tiles.iter().map(|(n, v, _)| (n.clone(), v.rect.width, v.rect.height)).collect();
+            match node.renderer.compose_canvases(canvas).await {
+                Ok(tiles) => d.job.tiles = tiles,
+                Err(e) => {
+                    tracing::error!(frame_id = d.job.frame_id, node = %node.name, "composing the tiles failed: {e:#}");
+                    // Black tiles of the right size: the frame still swaps with the wall.
+                    d.job.tiles = sizes
+                        .into_iter()
+                        .map(|(name, width, height)| {
+                            let n = width as usize * height as usize;
+                            TileResult {
+                                name,
+                                width,
+                                height,
+                                rgb8: vec![0; 3 * n],
+                                depth: vec![f32::INFINITY; n],
+                                shading: Vec::new(),
+                            }
+                        })
+                        .collect();
+                }
+            }
+        }
         out.extend(frame_done(node, machine, sender, d.job, Some(d.report)).await);
     }
     out
@@ -720,7 +746,7 @@ async fn execute(
                     bricks,
                     scale,
                     // object space: the shares travel to the tiles' owners.
-                    share: node.object.as_ref().map(|_| isowall_model::composite::PixelForm::Colour),
+                    share: node.object.as_ref().map(|o| o.form()),
                     time_step: spec.time_step,
                 }) {
                     tracing::error!("{e}");

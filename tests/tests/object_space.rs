@@ -1,7 +1,10 @@
 //! Object space over real processes on loopback: 2 and 4 nodes each render
 //! their brick of the volume (with an AO halo) and send each tile's pixels to the node that shows
 //! it; the wall snapshot must equal a single render of the whole wall camera, pixels along the
-//! cuts included, and each node must hold no more volume than its brick and halo.
+//! cuts included, and each node must hold no more volume than its brick and halo. With
+//! `denoise = "on"` the pixels travel in shading form over each tile's canvas (the tile and the
+//! filter's guard band) and the owner filters the composited canvas: the snapshot must equal the
+//! single denoised render.
 
 use glam::DVec3;
 use isowall_e2e::{free_udp_ports, gpu_ok, render_whole, run_in, wall_config};
@@ -14,7 +17,7 @@ use isowall_volume::{BlockMinMax, VolumeSource};
 const VOLUME: &str = "procedural:torus:48";
 const AO_RADIUS: f64 = 10.0;
 
-fn object_wall(nodes: usize, compress: bool) {
+fn object_wall(nodes: usize, compress: bool, denoise: bool) {
     let dir = tempfile::tempdir().unwrap();
     let (w, h, bezel) = (64u32, 48u32, 3u32);
     let config = wall_config(dir.path(), "obj", &free_udp_ports(nodes), w, h, bezel, 120_000, "keys");
@@ -22,7 +25,8 @@ fn object_wall(nodes: usize, compress: bool) {
     let text = std::fs::read_to_string(&config).unwrap();
     let text = text
         .replacen("[wall]\n", &format!("[wall]\nmode = \"object\"\ncompress = {compress}\n"), 1)
-        .replacen("[render]\n", &format!("[render]\nao_radius = {AO_RADIUS}\n"), 1);
+        .replacen("[render]\n", &format!("[render]\nao_radius = {AO_RADIUS}\n"), 1)
+        .replacen("[render]\n", if denoise { "[render]\ndenoise = \"on\"\n" } else { "[render]\n" }, 1);
     std::fs::write(&config, text).unwrap();
     let cfg = config.to_str().unwrap();
     let out = run_in(dir.path(), "isowall", &["keygen", "--config", cfg]);
@@ -96,13 +100,16 @@ fn object_wall(nodes: usize, compress: bool) {
     // The single render of the whole wall image, with its depth.
     let wall_cfg = isowall_model::WallConfig::load(&config).unwrap();
     let (fw, fh) = wall_cfg.wall_size();
-    let render = |aov: &str, out: &str| {
+    let render = |aov: &str, out: &str, denoise: bool| {
         let radius = AO_RADIUS.to_string();
-        let extra = ["--ao-radius", &radius, "--aov", aov, "--out", out];
+        let mut extra = vec!["--ao-radius", &radius, "--aov", aov, "--out", out];
+        if denoise {
+            extra.extend(["--denoise", "on"]);
+        }
         assert!(gpu_ok("isowalld render", &render_whole(dir.path(), VOLUME, (fw, fh), 4, &extra)));
     };
-    render("color", "whole.png");
-    render("depth", "depth.pfm");
+    render("color", "whole.png", denoise);
+    render("depth", "depth.pfm", false);
     let wall = image::open(dir.path().join("wall.png")).unwrap().to_rgb8();
     let whole = image::open(dir.path().join("whole.png")).unwrap().to_rgb8();
     assert_eq!(wall.dimensions(), (fw, fh));
@@ -164,14 +171,35 @@ fn object_wall(nodes: usize, compress: bool) {
     // bricks reproduce the single render's steps and samples exactly (0 differences).
     assert!(max_diff <= 1 && mean < 0.01, "max {max_diff}, mean {mean}");
     assert!(near_cut_max <= 1, "pixels near the cuts differ by up to {near_cut_max}");
+    if denoise {
+        // The filter ran: the wall is off the unfiltered single render.
+        render("color", "raw.png", false);
+        let raw = image::open(dir.path().join("raw.png")).unwrap().to_rgb8();
+        let moved = wall
+            .pixels()
+            .zip(raw.pixels())
+            .map(|(a, b)| (0..3).map(|c| a.0[c].abs_diff(b.0[c])).max().unwrap())
+            .max()
+            .unwrap();
+        eprintln!("{nodes} nodes, denoised: the filter moved the image by up to {moved} levels");
+        assert!(
+            moved >= 4,
+            "the wall is within {moved} levels of the unfiltered render: did the filter run?"
+        );
+    }
 }
 
 #[test]
 fn two_nodes_in_object_space_equal_the_single_render() {
-    object_wall(2, true);
+    object_wall(2, true, false);
 }
 
 #[test]
 fn four_nodes_in_object_space_equal_the_single_render_uncompressed() {
-    object_wall(4, false);
+    object_wall(4, false, false);
+}
+
+#[test]
+fn four_nodes_filtering_the_composited_tiles_equal_the_single_denoised_render() {
+    object_wall(4, true, true);
 }

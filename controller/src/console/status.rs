@@ -74,7 +74,8 @@ pub struct RenderInfo {
     pub ibl: isowall_model::IblMethod,
     pub exposure: f64,
     pub shading: isowall_model::Shading,
-    /// The spatial filter of occlusion and IBL (`off`, `on`; object space does not filter yet).
+    /// The spatial filter of occlusion and IBL (`off`, `on`; object space filters the composited
+    /// tile where its config says `denoise = "on"`, and ignores it otherwise).
     pub denoise: isowall_model::Denoise,
     /// The quality governor's target (`None`: off, `ao_samples` every frame).
     pub target_frame_ms: Option<f64>,
