@@ -173,6 +173,15 @@ pub fn run(a: &RunArgs) -> Result<()> {
         let (tx, rx) = tokio::sync::mpsc::channel(64);
         let nodes = config.nodes.iter().map(|n| n.name.clone()).collect();
         // A peer's stream may be no longer than what its bricks can send this node's tiles.
+        if object.max_pixels_bytes() > limit {
+            tracing::warn!(
+                "object space: a peer's pixels for one frame may take up to {} bytes ({:?} form, raw), more than \
+                 `[wall] message_limit_bytes` {limit}: a frame with that much in view composites without them; \
+                 raise the limit where the tiles are large",
+                object.max_pixels_bytes(),
+                object.form()
+            );
+        }
         let inbox =
             PixelInbox::new(tx, nodes, &node.name, limit.min(object.max_pixels_bytes()), object.deadline());
         (RenderVolume::Brick(Box::new(setup.data)), Some(object), Some(rx), Some(inbox), Some(load_rx))

@@ -389,6 +389,13 @@ pub struct TileCanvas {
 }
 
 impl TileCanvas {
+    /// Makes the canvas's pixels (no hits) where it has none yet.
+    fn allocate(&mut self) {
+        if self.depth.len() != self.width as usize * self.height as usize {
+            *self = TileCanvas::new(&self.name, self.width, self.height, self.form);
+        }
+    }
+
     /// A canvas with no hits: depth `+inf`, colour or AOVs 0.
     pub fn new(name: &str, width: u32, height: u32, form: PixelForm) -> TileCanvas {
         let Layer { depth, rgb8, shading, .. } = Layer::empty(0, 0, width, height, form);
@@ -553,6 +560,7 @@ impl Pending {
     fn merge(&mut self, layers: &[(String, Layer)]) {
         for (tile, l) in layers {
             if let Some(c) = self.canvases.iter_mut().find(|c| &c.name == tile) {
+                c.allocate();
                 c.merge(l);
             }
         }
@@ -613,7 +621,20 @@ impl Compositor {
         }
         let (tiles, form) = (&self.tiles, self.form);
         self.pending.entry(frame_id).or_insert_with(|| Pending {
-            canvases: tiles.iter().map(|(n, w, h)| TileCanvas::new(n, *w, *h, form)).collect(),
+            // Allocated at their first merge: pixels that come early (before the frame starts)
+            // wait compressed, so a peer's messages for frames ahead cost no canvas memory.
+            canvases: tiles
+                .iter()
+                .map(|(n, w, h)| TileCanvas {
+                    name: n.clone(),
+                    width: *w,
+                    height: *h,
+                    form,
+                    depth: Vec::new(),
+                    rgb8: Vec::new(),
+                    shading: Vec::new(),
+                })
+                .collect(),
             from: BTreeSet::new(),
             local: None,
             footprints: None,
@@ -813,6 +834,7 @@ impl Compositor {
         self.late.extend(missing.iter().cloned());
         let mut p = self.pending.remove(&frame_id).expect("present");
         for c in &mut p.canvases {
+            c.allocate();
             c.fill_background(background);
         }
         self.pending.retain(|&id, _| id > frame_id);
@@ -851,6 +873,11 @@ impl Compositor {
     /// Frames waiting.
     pub fn pending(&self) -> usize {
         self.pending.len()
+    }
+
+    /// Pixels the pending frames' canvases hold (allocated once a frame's first pixels merge).
+    pub fn canvas_pixels(&self) -> usize {
+        self.pending.values().flat_map(|p| &p.canvases).map(|c| c.depth.len()).sum()
     }
 }
 
@@ -1162,6 +1189,37 @@ mod tests {
         assert!(e.to_string().contains("node `b`"), "{e}");
         assert!(matches!(c.peer(T, "b", 1, empty(u64::MAX, "b")), Err(CompositeError::FarAhead { .. })));
         assert_eq!(c.pending(), FRAMES_AHEAD as usize);
+    }
+
+    #[test]
+    fn pixels_for_frames_ahead_cost_no_canvas_until_the_frame_starts() {
+        // A peer's messages for every frame it may send ahead (empty ones, a few bytes each) make
+        // no canvas: in the shading form a 1080p tile's canvas is ~170 MB, and 8 frames of them
+        // would be a memory bomb for 8 tiny messages.
+        let mut c = Compositor::new(
+            "a",
+            ["a", "b"].map(String::from),
+            vec![("t".into(), 4, 2)],
+            SECOND,
+            PixelForm::Shading,
+        );
+        c.announce(0);
+        for id in 1..=FRAMES_AHEAD {
+            c.peer(T, "b", 1, empty(id, "b")).unwrap();
+        }
+        assert_eq!(c.pending(), FRAMES_AHEAD as usize);
+        assert_eq!(c.canvas_pixels(), 0, "canvases made for frames not started");
+        // The frame starts and this node's render is in: its canvas is made and completes.
+        c.expect(T, 1, whole(&[("b", 1)]));
+        let l = Layer::empty(0, 0, 4, 2, PixelForm::Shading);
+        let done = c.local(T, 1, &[("t".into(), l)], [0; 3]).expect("frame 1");
+        assert_eq!((done.tiles[0].depth.len(), done.tiles[0].shading.len()), (8, 8));
+        // A frame that completes without a single layer (b's message for it was empty) still
+        // gives a whole canvas, of no hits.
+        let done = c.local(T, 2, &[], [0; 3]).expect("frame 2: b's pixels came early");
+        assert_eq!(done.tiles[0].depth, vec![f32::INFINITY; 8]);
+        assert_eq!(done.tiles[0].shading.len(), 8);
+        assert_eq!(c.canvas_pixels(), 0, "the frames still pending (3..=8) have no canvas");
     }
 
     #[test]
