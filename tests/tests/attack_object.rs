@@ -5,7 +5,10 @@
 //!     from 5 KB), for the frames around the wall's;
 //! (b) sends `node0` pixels for far-future frames (2^40, u64::MAX ...);
 //! (c) plays `node1` itself: it answers the controller (Ready at once, every frame) and takes the
-//!     peers' connections, but never sends pixels and never reads them (a silent peer).
+//!     peers' connections, but never sends pixels and never reads them (a silent peer);
+//! (d) on a wall that filters its composited tiles (`denoise = "on"`: pixels in the shading form),
+//!     sends `node0` a shading pixel holding NaN, which would spread through the filter to its
+//!     neighbours.
 //! Each must leave `node0` serving: its peak resident memory (VmHWM) stays within
 //! [`HWM_GROWTH_LIMIT_KIB`] of what it was before the attack, the wall keeps swapping with
 //! `node0` ready in at least half the frames, and the refusal (the close reason the attacker reads, or the logs)
@@ -37,12 +40,13 @@ const ATTACK_AFTER: Duration = Duration::from_secs(3);
 /// is 200 x 1.2 MB = 242 MB).
 const HWM_GROWTH_LIMIT_KIB: u64 = 100 * 1024;
 
-fn wall_config(dir: &Path, ports: &[u16]) -> PathBuf {
+fn wall_config(dir: &Path, ports: &[u16], filtered: bool) -> PathBuf {
     let (w, h) = TILE;
+    let render = if filtered { "ao_samples = 1\ndenoise = \"on\"" } else { "ao_samples = 0" };
     let mut s = format!(
         "[wall]\nname = \"attack-object\"\nmode = \"object\"\ndeadline_ms = {DEADLINE_MS}\n\n\
          [camera]\neye = [60.0, -70.0, 45.0]\ntarget = [23.5, 23.5, 23.5]\nup = [0, 0, 1]\nfov_y = 40.0\n\n\
-         [volume]\nsource = \"procedural:torus:48\"\n\n[render]\nao_samples = 0\n\n\
+         [volume]\nsource = \"procedural:torus:48\"\n\n[render]\n{render}\n\n\
          [certificates]\ndir = \"keys\"\n"
     );
     for (i, port) in ports.iter().enumerate() {
@@ -73,9 +77,14 @@ struct Wall {
 }
 
 fn wall() -> Option<Wall> {
+    wall_with(false)
+}
+
+/// The wall; `filtered`: it filters its composited tiles (shading form).
+fn wall_with(filtered: bool) -> Option<Wall> {
     let dir = tempfile::tempdir().unwrap();
     let ports = free_udp_ports(2);
-    let config = wall_config(dir.path(), &ports);
+    let config = wall_config(dir.path(), &ports, filtered);
     let out = run_in(dir.path(), "isowall", &["keygen", "--config", config.to_str().unwrap()]);
     assert!(out.status.success(), "keygen: {}", String::from_utf8_lossy(&out.stderr));
     let addr = |p: u16| SocketAddr::from(([127, 0, 0, 1], p));
@@ -307,6 +316,36 @@ fn an_lz4_bomb_of_200_rectangles_is_refused_before_it_is_decompressed() {
     let log = daemons[0].log_text();
     assert_named("LZ4 bomb", &reasons, &["rectangles"], &log);
     assert!(run.stderr.lines().all(|l| !l.contains("node node1 is down")), "{}", run.stderr);
+}
+
+#[test]
+fn a_shading_pixel_of_nan_is_refused_before_it_reaches_the_filter() {
+    let Some(w) = wall_with(true) else { return };
+    let Some(mut daemons) = start_both(&w) else { return };
+    // One pixel near the image's centre (t0's right edge), where both bricks' footprints lie
+    // whatever the orbit's angle (the cut runs through the torus's middle), with a hit and NaN in
+    // its AO sum: decoded, it would pass the footprint checks.
+    let mut l = Layer::empty(470, 180, 1, 1, PixelForm::Shading);
+    l.depth[0] = 50.0;
+    l.shading[0] =
+        [[0.5, 0.5, 0.5, 1.0], [0.0, 0.0, 1.0, 50.0], [0.0, 0.0, 1.0, f32::NAN], [0.5, 0.5, 0.5, 1.0]];
+    let rect = l.encode("t0", false);
+    let (_run, reasons) = under_attack("NaN shading", &w, &mut daemons[0], |stop| {
+        let w = &w;
+        let start = Instant::now();
+        async move {
+            attack(w, Duration::from_millis(500), stop, move |_| {
+                let shown = (start.elapsed() + ATTACK_AFTER).as_secs_f64() * f64::from(FPS);
+                let wall_frame = 1 + shown as u64;
+                (wall_frame.saturating_sub(2)..wall_frame + 4)
+                    .map(|id| PeerPixels { frame_id: id, node: "node1".into(), rects: vec![rect.clone()] })
+                    .collect()
+            })
+            .await
+        }
+    });
+    let log = daemons[0].log_text();
+    assert_named("NaN shading", &reasons, &["NaN"], &log);
 }
 
 #[test]

@@ -139,7 +139,7 @@ pub enum CompositeError {
     NotMyTile { peer: String, node: String, tile: String },
     #[error("node `{peer}` sent a {w}x{h} rectangle at ({x}, {y}) outside tile `{tile}` ({tw}x{th})")]
     OutsideTile { peer: String, tile: String, x: u32, y: u32, w: u32, h: u32, tw: u32, th: u32 },
-    #[error("node `{peer}` sent a rectangle of tile `{tile}` whose {encoding:?} payload is not its {want} bytes of {form:?} pixels: {why}")]
+    #[error("node `{peer}` sent a rectangle of tile `{tile}` whose {encoding:?} payload is not {want} bytes of valid {form:?} pixels: {why}")]
     BadPayload {
         peer: String,
         tile: String,
@@ -1014,7 +1014,7 @@ mod tests {
         // Each form's rectangle is refused by the other's check, raw or LZ4, naming the sizes.
         let r = colour.encode("t", false);
         let e = r.check("p", (8, 8), PixelForm::Shading).unwrap_err();
-        assert!(e.to_string().contains("not its 4352 bytes of Shading pixels: it has 448 bytes"), "{e}");
+        assert!(e.to_string().contains("not 4352 bytes of valid Shading pixels: it has 448 bytes"), "{e}");
         assert!(shading.encode("t", false).check("p", (8, 8), PixelForm::Colour).is_err());
         assert!(shading.encode("t", true).check("p", (8, 8), PixelForm::Colour).is_err());
         // A colour-sized LZ4 claim whose body is not LZ4 at all: refused on its claim for a
