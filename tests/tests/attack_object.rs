@@ -16,7 +16,7 @@
 
 use isowall_e2e::{free_udp_ports, in_ci, run_in, start_nodes_with, Daemon};
 use isowall_model::codec;
-use isowall_model::composite::{Layer, PeerPixels, PixelForm};
+use isowall_model::composite::{Layer, PeerPixels, PixelForm, PixelRect};
 use isowall_model::messages::Message;
 use isowall_model::node_machine::{NodeMachine, NodeOutput};
 use isowall_net::transport::{self, Channel};
@@ -211,6 +211,22 @@ async fn attack(
     (reasons, sent)
 }
 
+/// Sends `rects` as `node1`'s pixels, every half second, for each of the eight frame ids around
+/// the wall's (the orbit's clock, from the attack's start, [`ATTACK_AFTER`] into the orbit): live
+/// frames, the ones a peer's pixels are for. Pixels for frames already shown are dropped unread,
+/// and those far ahead refused as such.
+async fn around_the_wall(w: &Wall, stop: Arc<AtomicBool>, rects: Vec<PixelRect>) -> (Vec<String>, u64) {
+    let start = Instant::now();
+    attack(w, Duration::from_millis(500), stop, move |_| {
+        let shown = (start.elapsed() + ATTACK_AFTER).as_secs_f64() * f64::from(FPS);
+        let wall_frame = 1 + shown as u64;
+        (wall_frame.saturating_sub(4)..wall_frame + 4)
+            .map(|id| PeerPixels { frame_id: id, node: "node1".into(), rects: rects.clone() })
+            .collect()
+    })
+    .await
+}
+
 /// Starts both real nodes; `None` (skip) without a Vulkan adapter outside CI.
 fn start_both(w: &Wall) -> Option<Vec<Daemon>> {
     start_nodes_with(w.dir.path(), &w.config, 2, |_| Vec::new(), None)
@@ -295,24 +311,8 @@ fn an_lz4_bomb_of_200_rectangles_is_refused_before_it_is_decompressed() {
     let rect = Layer::empty(0, 0, tw, th, PixelForm::Colour).encode("t0", true);
     eprintln!("one bomb rectangle: {} B on the wire, {} B decoded", rect.payload.len(), tw * th * 7);
     let rects: Vec<_> = (0..200).map(|_| rect.clone()).collect();
-    // Each round, the eight frame ids around the wall's (the orbit's clock, from the attack's
-    // start, ATTACK_AFTER into the orbit): live frames, the ones a peer's pixels are for. Pixels
-    // for frames already shown are dropped unread, and those far ahead refused as such.
-    let (run, reasons) = under_attack("LZ4 bomb", &w, &mut daemons[0], |stop| {
-        let rects = rects.clone();
-        let w = &w;
-        let start = Instant::now();
-        async move {
-            attack(w, Duration::from_millis(500), stop, move |_| {
-                let shown = (start.elapsed() + ATTACK_AFTER).as_secs_f64() * f64::from(FPS);
-                let wall_frame = 1 + shown as u64;
-                (wall_frame.saturating_sub(4)..wall_frame + 4)
-                    .map(|id| PeerPixels { frame_id: id, node: "node1".into(), rects: rects.clone() })
-                    .collect()
-            })
-            .await
-        }
-    });
+    let (run, reasons) =
+        under_attack("LZ4 bomb", &w, &mut daemons[0], |stop| around_the_wall(&w, stop, rects.clone()));
     let log = daemons[0].log_text();
     assert_named("LZ4 bomb", &reasons, &["rectangles"], &log);
     assert!(run.stderr.lines().all(|l| !l.contains("node node1 is down")), "{}", run.stderr);
@@ -329,21 +329,9 @@ fn a_shading_pixel_of_nan_is_refused_before_it_reaches_the_filter() {
     l.depth[0] = 50.0;
     l.shading[0] =
         [[0.5, 0.5, 0.5, 1.0], [0.0, 0.0, 1.0, 50.0], [0.0, 0.0, 1.0, f32::NAN], [0.5, 0.5, 0.5, 1.0]];
-    let rect = l.encode("t0", false);
-    let (_run, reasons) = under_attack("NaN shading", &w, &mut daemons[0], |stop| {
-        let w = &w;
-        let start = Instant::now();
-        async move {
-            attack(w, Duration::from_millis(500), stop, move |_| {
-                let shown = (start.elapsed() + ATTACK_AFTER).as_secs_f64() * f64::from(FPS);
-                let wall_frame = 1 + shown as u64;
-                (wall_frame.saturating_sub(2)..wall_frame + 4)
-                    .map(|id| PeerPixels { frame_id: id, node: "node1".into(), rects: vec![rect.clone()] })
-                    .collect()
-            })
-            .await
-        }
-    });
+    let rects = vec![l.encode("t0", false)];
+    let (_run, reasons) =
+        under_attack("NaN shading", &w, &mut daemons[0], |stop| around_the_wall(&w, stop, rects.clone()));
     let log = daemons[0].log_text();
     assert_named("NaN shading", &reasons, &["NaN"], &log);
 }

@@ -1196,13 +1196,7 @@ mod tests {
         // A peer's messages for every frame it may send ahead (empty ones, a few bytes each) make
         // no canvas: in the shading form a 1080p tile's canvas is ~170 MB, and 8 frames of them
         // would be a memory bomb for 8 tiny messages.
-        let mut c = Compositor::new(
-            "a",
-            ["a", "b"].map(String::from),
-            vec![("t".into(), 4, 2)],
-            SECOND,
-            PixelForm::Shading,
-        );
+        let mut c = two_nodes(PixelForm::Shading);
         c.announce(0);
         for id in 1..=FRAMES_AHEAD {
             c.peer(T, "b", 1, empty(id, "b")).unwrap();
@@ -1222,15 +1216,14 @@ mod tests {
         assert_eq!(c.canvas_pixels(), 0, "the frames still pending (3..=8) have no canvas");
     }
 
+    /// Node `a`'s compositor of its one 4x2 tile `t`, with the pixels of `b`, in `form`.
+    fn two_nodes(form: PixelForm) -> Compositor {
+        Compositor::new("a", ["a", "b"].map(String::from), vec![("t".into(), 4, 2)], SECOND, form)
+    }
+
     #[test]
     fn frames_before_any_announce_are_bounded_and_dropped_when_far_ahead() {
-        let mut c = Compositor::new(
-            "a",
-            ["a", "b"].map(String::from),
-            vec![("t".into(), 4, 2)],
-            SECOND,
-            PixelForm::Colour,
-        );
+        let mut c = two_nodes(PixelForm::Colour);
         for id in [u64::MAX, u64::MAX - 1, 1 << 40].into_iter().chain(0..100) {
             c.peer(T, "b", 1, empty(id, "b")).unwrap();
         }

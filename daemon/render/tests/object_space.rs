@@ -14,6 +14,28 @@ use isowall_volume::{BlockMinMax, VolumeSource, VoxelRange};
 /// The single render, the composite of the bricks, each brick's frame, and the bricks.
 type Renders = (Frame, Frame, Vec<(Frame, ObjectSpace)>, Vec<bricks::Brick>);
 
+/// A volume's stream and its split into bricks, as every node computes it.
+struct Split {
+    src: VolumeSource,
+    stream: isowall_volume::region::VolumeStream,
+    info: isowall_volume::VolumeInfo,
+    blocks: BlockMinMax,
+    split: Vec<bricks::Brick>,
+    halo: [usize; 3],
+}
+
+/// `source` split into `n` bricks at `settings`' iso, with the halo of its AO radius.
+fn split_of(source: &str, n: usize, settings: &RenderSettings) -> Split {
+    let src: VolumeSource = source.parse().unwrap();
+    let stream = src.stream(None).unwrap();
+    let info = stream.info().clone();
+    let blocks = stream.block_minmax(BlockMinMax::DEFAULT_BLOCK).unwrap();
+    let occ = Occupancy::from_minmax(blocks.block, blocks.counts, &blocks.minmax, settings.iso);
+    let split = bricks::split(&occ, info.dims, info.spacing, n).unwrap();
+    let halo = bricks::halo_voxels(settings, info.spacing).unwrap();
+    Split { src, stream, info, blocks, split, halo }
+}
+
 /// Renders `source` whole and as `n` bricks.
 fn whole_and_bricks(
     source: &str,
@@ -23,13 +45,7 @@ fn whole_and_bricks(
     size: (u32, u32),
 ) -> Option<Renders> {
     let gpu = common::gpu()?;
-    let src: VolumeSource = source.parse().unwrap();
-    let stream = src.stream(None).unwrap();
-    let info = stream.info().clone();
-    let blocks = stream.block_minmax(BlockMinMax::DEFAULT_BLOCK).unwrap();
-    let occ = Occupancy::from_minmax(blocks.block, blocks.counts, &blocks.minmax, settings.iso);
-    let split = bricks::split(&occ, info.dims, info.spacing, n).unwrap();
-    let halo = bricks::halo_voxels(settings, info.spacing).unwrap();
+    let Split { src, stream, info, blocks, split, halo } = split_of(source, n, settings);
     let view = View::whole(camera, size.0, size.1);
 
     let whole = src.load(None).unwrap();
@@ -312,13 +328,7 @@ fn composited_canvas(
     use isowall_model::composite::PixelForm;
     use isowall_render::gpu::tile::work_view;
     use isowall_render::gpu::{CanvasFrame, ReadbackRing, TileFrame, TileTarget};
-    let src: VolumeSource = source.parse().unwrap();
-    let stream = src.stream(None).unwrap();
-    let info = stream.info().clone();
-    let blocks = stream.block_minmax(BlockMinMax::DEFAULT_BLOCK).unwrap();
-    let occ = Occupancy::from_minmax(blocks.block, blocks.counts, &blocks.minmax, settings.iso);
-    let split = bricks::split(&occ, info.dims, info.spacing, n).unwrap();
-    let halo = bricks::halo_voxels(settings, info.spacing).unwrap();
+    let Split { stream, info, blocks, split, halo, .. } = split_of(source, n, settings);
     let canvas_view = work_view(view, 1, guard);
     let pixels = canvas_view.rect.width as usize * canvas_view.rect.height as usize;
     let mut canvas = vec![[[0f32; 4]; 4]; pixels];
