@@ -35,7 +35,10 @@ struct ComposeParams {
 }
 
 // A read-only storage buffer, not a uniform: see frame.wgsl (lavapipe's uniform inlining).
-@group(0) @binding(0) var<storage, read> params: ComposeParams;
+@group(0) @binding(0) var<storage, read> compose_params: ComposeParams;
+// The parameters as the functions read them: a private copy the entry point fills first (a
+// storage read on lavapipe is a loop over the SIMD lanes; see denoise.wgsl).
+var<private> params: ComposeParams;
 // From the isosurface kernel (low rectangle): direct light, w = 1 on a hit.
 @group(0) @binding(1) var<storage, read> in_color: array<vec4<f32>>;
 // From the isosurface kernel (low rectangle): N and depth (w).
@@ -72,6 +75,7 @@ fn encode(x: f32) -> f32 {
 
 @compute @workgroup_size(8, 8, 1)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
+    params = compose_params;
     // The counters: the first invocation of each row of the tile's own low rectangle sums that row
     // and adds it once (no workgroup barrier: llvmpipe runs a workgroup that has one as coroutines).
     if gid.x == 0u && gid.y < params.counted_size.y {

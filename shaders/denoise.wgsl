@@ -37,7 +37,11 @@ struct DenoiseParams {
 }
 
 // One entry per pass, at a dynamic offset (a read-only storage buffer: see frame.wgsl).
-@group(0) @binding(0) var<storage, read> params: DenoiseParams;
+@group(0) @binding(0) var<storage, read> pass_params: DenoiseParams;
+// The pass's parameters as the functions read them: a private copy the entry point fills first,
+// so that the 25 taps read registers (on lavapipe a storage read is a loop over the SIMD lanes,
+// with a bounds check per lane and component, wherever it stands).
+var<private> params: DenoiseParams;
 // From the isosurface kernel: w = 1 on a hit.
 @group(0) @binding(1) var<storage, read> in_color: array<vec4<f32>>;
 // From the isosurface kernel: N (outward) and depth (w).
@@ -141,6 +145,7 @@ fn normal_stop(x: f32) -> f32 {
 
 @compute @workgroup_size(8, 8, 1)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
+    params = pass_params;
     if gid.x >= params.rect_size.x || gid.y >= params.rect_size.y {
         return;
     }

@@ -36,7 +36,10 @@ struct ReprojectParams {
 }
 
 // A read-only storage buffer, not a uniform: see frame.wgsl (lavapipe's uniform inlining).
-@group(0) @binding(0) var<storage, read> params: ReprojectParams;
+@group(0) @binding(0) var<storage, read> reproject_params: ReprojectParams;
+// The parameters as the functions read them: a private copy the entry point fills first (a
+// storage read on lavapipe is a loop over the SIMD lanes; see denoise.wgsl).
+var<private> params: ReprojectParams;
 // This frame's isosurface kernel: w = 1 on a hit; N (outward) and depth (w).
 @group(0) @binding(1) var<storage, read> in_color: array<vec4<f32>>;
 @group(0) @binding(2) var<storage, read> in_geometry: array<vec4<f32>>;
@@ -93,6 +96,7 @@ fn consistent(q: vec2<i32>, p: vec3<f32>, n: vec3<f32>, dir: vec3<f32>) -> bool 
 
 @compute @workgroup_size(8, 8, 1)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
+    params = reproject_params;
     if gid.x >= params.rect_size.x || gid.y >= params.rect_size.y {
         return;
     }
