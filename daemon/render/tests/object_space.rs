@@ -432,6 +432,10 @@ fn bricks_filtered_on_the_composited_canvas_give_the_single_denoised_render() {
             "{n} bricks: the composited canvas is {d} levels off the single render ({differ} values differ)"
         );
     }
+    // A frame whose `denoise` is off, from the same shares, is the unfiltered single render.
+    let unfiltered = composited_canvas(&gpu, source, 2, &raw_settings, &view, reach());
+    let d = max_diff(&unfiltered, &raw);
+    assert!(d <= 1, "the unfiltered canvas is {d} levels off the single raw render");
     // Control: a guard band of 4 pixels filters the tile's edge without most of its neighbours.
     let narrow = composited_canvas(&gpu, source, 2, &s, &view, 4);
     let d = max_diff(&narrow, &single);
