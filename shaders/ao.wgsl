@@ -348,6 +348,7 @@ fn seed_occluded(p: vec3<f32>, w: vec3<f32>, f_p: f32) -> bool {
 
 @compute @workgroup_size(8, 8, 1)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
+    params = frame_params;
     if gid.x >= params.rect_size.x || gid.y >= params.rect_size.y {
         return;
     }
