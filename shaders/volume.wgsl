@@ -28,7 +28,11 @@ fn half_to_f32(h: u32) -> f32 {
 
 fn voxel(i: i32, j: i32, k: i32) -> f32 {
     let n = vec3<i32>(params.dims.xyz);
-    let idx = u32(i + n.x * (j + n.y * k));
+    return voxel_at(u32(i + n.x * (j + n.y * k)));
+}
+
+// The voxel at linear index idx (x fastest) of the `volume` buffer.
+fn voxel_at(idx: u32) -> f32 {
     if VOXEL_FORMAT == 1u {
         return half_to_f32((volume[idx >> 1u] >> (16u * (idx & 1u))) & 0xffffu);
     }
