@@ -491,20 +491,35 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
                 voxel(i1.x, i1.y, i1.z),
             );
         }
-        for (var i = first; i < last; i += 1u) {
-            let w = cosine_direction(axis, axis_basis, ao_point(params.ao_sequence, i, key));
-            var hit: bool;
-            if params.ao_exact == 1u {
-                hit = exact_occluded(o, w, start, start_corners);
-            } else {
-                hit = ours_occluded(o, w);
+        // The default (exact, no environment rays) in a loop of its own: a SIMD CPU driver runs
+        // every branch of a loop's body on every pass, masked, so the marched test and the
+        // environment lookup (storage loads each) would cost every sample without a lane taking
+        // them; outside the loop they cost once per pixel.
+        if params.ao_exact == 1u && !want_rays {
+            for (var i = first; i < last; i += 1u) {
+                let w = cosine_direction(axis, axis_basis, ao_point(params.ao_sequence, i, key));
+                if exact_occluded(o, w, start, start_corners) {
+                    occluded += 1u;
+                } else {
+                    bent += w;
+                }
             }
-            if hit {
-                occluded += 1u;
-            } else {
-                bent += w;
-                if want_rays {
-                    rays += env_lookup(w);
+        } else {
+            for (var i = first; i < last; i += 1u) {
+                let w = cosine_direction(axis, axis_basis, ao_point(params.ao_sequence, i, key));
+                var hit: bool;
+                if params.ao_exact == 1u {
+                    hit = exact_occluded(o, w, start, start_corners);
+                } else {
+                    hit = ours_occluded(o, w);
+                }
+                if hit {
+                    occluded += 1u;
+                } else {
+                    bent += w;
+                    if want_rays {
+                        rays += env_lookup(w);
+                    }
                 }
             }
         }
