@@ -87,12 +87,13 @@ fn ours_occluded(o: vec3<f32>, w: vec3<f32>) -> bool {
     let iso = params.iso;
     let ess = skipping();
     let level = ao_level();
+    let coarse = coarse_level();
     for (var steps = 0u; steps < params.max_steps; steps += 1u) {
         if ess {
             let c = vec3<i32>(floor(to_global_voxel(o + (t + 1e-3 * h) * w)));
             let b = level_block(level, c);
             if level_range(level, b).y < iso {
-                t = max(empty_exit(level, b, c, o, inv, iso), t + 1e-3 * h);
+                t = max(empty_exit(level, coarse, b, c, o, inv, iso), t + 1e-3 * h);
                 if t >= t_end {
                     return false;
                 }
@@ -202,6 +203,7 @@ fn exact_occluded(o: vec3<f32>, w: vec3<f32>, start: vec3<i32>, start_corners: a
     let top = max(n - 2, vec3<i32>(0));
     let d1 = select(vec3<i32>(0), vec3<i32>(1), multi);
     let level = ao_level();
+    let coarse = coarse_level();
     // Voxels per unit t; an axis that (practically) does not move is never stepped: its cell
     // still comes from each segment's midpoint.
     let du = w / params.spacing.xyz;
@@ -246,7 +248,7 @@ fn exact_occluded(o: vec3<f32>, w: vec3<f32>, start: vec3<i32>, start_corners: a
                 // and run out of iterations (found on the CT's anisotropic voxels). The field at
                 // the face is below iso (the face samples are the empty block's), so a sliver of
                 // nudge voxels cannot step over a crossing.
-                let tb = max(max(empty_exit(level, b, gcell, o, inv, iso), t1), t + nudge);
+                let tb = max(max(empty_exit(level, coarse, b, gcell, o, inv, iso), t1), t + nudge);
                 if tb >= t_end {
                     return false;
                 }
