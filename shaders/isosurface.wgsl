@@ -114,6 +114,13 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         let ess = skipping();
         var steps = 0u;
         var was_owned = false;
+        // The step [lo, hi] where f crosses up to iso, refined after the march: a SIMD CPU driver
+        // runs a loop's whole body on every pass, so a refinement inside it would cost its loads
+        // on every step of every ray.
+        var crossed = false;
+        var lo = 0.0;
+        var hi = 0.0;
+        var f_hi = 0.0;
         while !hit && t < t_exit && steps < params.max_steps {
             steps += 1u;
             if ess {
@@ -148,30 +155,33 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
                 f_next = field(eye + t_next * dir);
             }
             if below && f_next >= iso {
-                // Refine in [lo, hi] with f(lo) < iso <= f(hi).
-                var lo = t;
-                var hi = t_next;
-                var f_lo = field(eye + lo * dir);
-                var f_hi = f_next;
-                for (var i = 0u; i < params.refine_steps; i += 1u) {
-                    let mid = 0.5 * (lo + hi);
-                    let fm = field(eye + mid * dir);
-                    if fm >= iso {
-                        hi = mid;
-                        f_hi = fm;
-                    } else {
-                        lo = mid;
-                        f_lo = fm;
-                    }
-                }
-                let denom = f_hi - f_lo;
-                t_hit = select(hi, lo + (iso - f_lo) / denom * (hi - lo), denom > 0.0);
-                t_hit = clamp(t_hit, lo, hi);
-                hit = true;
+                crossed = true;
+                lo = t;
+                hi = t_next;
+                f_hi = f_next;
                 break;
             }
             below = f_next < iso;
             t = t_next;
+        }
+        if crossed {
+            // Refine in [lo, hi] with f(lo) < iso <= f(hi).
+            var f_lo = field(eye + lo * dir);
+            for (var i = 0u; i < params.refine_steps; i += 1u) {
+                let mid = 0.5 * (lo + hi);
+                let fm = field(eye + mid * dir);
+                if fm >= iso {
+                    hi = mid;
+                    f_hi = fm;
+                } else {
+                    lo = mid;
+                    f_lo = fm;
+                }
+            }
+            let denom = f_hi - f_lo;
+            t_hit = select(hi, lo + (iso - f_lo) / denom * (hi - lo), denom > 0.0);
+            t_hit = clamp(t_hit, lo, hi);
+            hit = true;
         }
     }
 
