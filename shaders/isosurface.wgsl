@@ -144,11 +144,17 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
                 continue;
             }
             was_owned = true;
+            // One field evaluation per pass (on a SIMD CPU driver every load site of the loop
+            // costs on every pass): where `below` is not known at t (object space: the ray enters
+            // this brick), this pass finds it and the next one makes the step, not counted twice.
+            let f = march_field(eye + select(t_next, t, !known) * dir);
             if !known {
-                below = march_field(eye + t * dir) < iso;
+                below = f < iso;
                 known = true;
+                steps -= 1u;
+                continue;
             }
-            var f_next = march_field(eye + t_next * dir);
+            var f_next = f;
             if TEXTURE_MARCH && below && f_next >= iso {
                 // The filter's bracket, checked on the exact field: where the exact field is
                 // still below iso at t_next, the march goes on from there.
