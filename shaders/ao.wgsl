@@ -87,12 +87,13 @@ fn ours_occluded(o: vec3<f32>, w: vec3<f32>) -> bool {
     let iso = params.iso;
     let ess = skipping();
     let level = ao_level();
+    let coarse = coarse_level();
     for (var steps = 0u; steps < params.max_steps; steps += 1u) {
         if ess {
             let c = vec3<i32>(floor(to_global_voxel(o + (t + 1e-3 * h) * w)));
             let b = level_block(level, c);
             if level_range(level, b).y < iso {
-                t = max(empty_exit(level, b, c, o, inv, iso), t + 1e-3 * h);
+                t = max(empty_exit(level, coarse, b, c, o, inv, iso), t + 1e-3 * h);
                 if t >= t_end {
                     return false;
                 }
@@ -187,7 +188,7 @@ const T_NEVER: f32 = 1e30;
 // tested exactly by `cell_reaches`. A cell is identified by its segment's midpoint, so rounding at
 // the cell planes never picks a wrong cell. With empty-space skipping a block whose max < iso is
 // left at its exit without loading a cell, and the DDA restarts there.
-fn exact_occluded(o: vec3<f32>, w: vec3<f32>) -> bool {
+fn exact_occluded(o: vec3<f32>, w: vec3<f32>, start: vec3<i32>, start_corners: array<f32, 8>) -> bool {
     let inv = safe_inv(w);
     let range = ao_ray_range(o, inv);
     var t = range.x;
@@ -202,6 +203,7 @@ fn exact_occluded(o: vec3<f32>, w: vec3<f32>) -> bool {
     let top = max(n - 2, vec3<i32>(0));
     let d1 = select(vec3<i32>(0), vec3<i32>(1), multi);
     let level = ao_level();
+    let coarse = coarse_level();
     // Voxels per unit t; an axis that (practically) does not move is never stepped: its cell
     // still comes from each segment's midpoint.
     let du = w / params.spacing.xyz;
@@ -218,6 +220,18 @@ fn exact_occluded(o: vec3<f32>, w: vec3<f32>) -> bool {
     // are crossed a rounding error apart).
     // The host's cap (`exact_walk_cap`: the whole box's, or the radius' where tighter).
     let max_iter = params.ao_pass.y;
+    // The last loaded cell and its corners (index dx + 2 dy + 4 dz): at first the caller's cell of
+    // the rays' origin, in which or next to which the walk starts.
+    let stride = vec3<u32>(d1) * vec3<u32>(1u, u32(n.x), u32(n.x * n.y));
+    var prev = start;
+    var k0 = start_corners[0];
+    var k1 = start_corners[1];
+    var k2 = start_corners[2];
+    var k3 = start_corners[3];
+    var k4 = start_corners[4];
+    var k5 = start_corners[5];
+    var k6 = start_corners[6];
+    var k7 = start_corners[7];
     for (var it = 0u; it < max_iter; it += 1u) {
         let t1 = max(min(min(next.x, next.y), min(next.z, t_end)), t);
         let um = u_init + (0.5 * (t + t1) - t_init) * du;
@@ -234,7 +248,7 @@ fn exact_occluded(o: vec3<f32>, w: vec3<f32>) -> bool {
                 // and run out of iterations (found on the CT's anisotropic voxels). The field at
                 // the face is below iso (the face samples are the empty block's), so a sliver of
                 // nudge voxels cannot step over a crossing.
-                let tb = max(max(empty_exit(level, b, gcell, o, inv, iso), t1), t + nudge);
+                let tb = max(max(empty_exit(level, coarse, b, gcell, o, inv, iso), t1), t + nudge);
                 if tb >= t_end {
                     return false;
                 }
@@ -251,18 +265,73 @@ fn exact_occluded(o: vec3<f32>, w: vec3<f32>) -> bool {
                 return true;
             }
         }
+        // The cell's 8 corners, loaded 4 at a time (one face: a storage load costs per lane on a
+        // SIMD CPU driver, masked lanes included, so the fewer load sites the pass has, the
+        // better). Where the cell is the last loaded one (a ray's first cell, mostly), none is
+        // loaded; where it is that cell's neighbour across one face (a step of the walk), 4
+        // corners are that cell's and the far face is loaded. Elsewhere (a restart after an empty
+        // block, two planes crossed at once) the pass loads the cell's low x face, labels it the
+        // far face of a cell below in x and leaves the segment to the next pass, which is then
+        // a step. (The walk's cap allows for it: each such extra pass follows a block exit or a
+        // crossing of two planes, and the cap counts two passes for each.)
+        let dc = cell - prev;
+        let same = all(dc == vec3<i32>(0));
+        let ad = abs(dc);
+        let one = ad.x + ad.y + ad.z == 1;
+        // The axis of the step (x where there is none) and whether it goes up (not where none).
+        let ax = !one || ad.x == 1;
+        let ay = one && ad.y == 1;
+        let up = one && dc.x + dc.y + dc.z > 0;
+        // Strides of the step's axis (sa) and of the face's two axes (sp, sq: x before y before z).
+        let sa = select(select(stride.z, stride.y, ay), stride.x, ax);
+        let sp = select(stride.x, stride.y, ax);
+        let sq = select(stride.y, stride.z, ax || ay);
+        let base = u32(cell.x + n.x * (cell.y + n.y * cell.z));
+        let far = base + select(0u, sa, up);
+        var f0 = 0.0;
+        var f1 = 0.0;
+        var f2 = 0.0;
+        var f3 = 0.0;
+        if !same {
+            f0 = voxel_at(far);
+            f1 = voxel_at(far + sp);
+            f2 = voxel_at(far + sq);
+            f3 = voxel_at(far + sp + sq);
+        }
+        if !one && !same {
+            prev = cell - vec3<i32>(1, 0, 0);
+            k1 = f0;
+            k3 = f1;
+            k5 = f2;
+            k7 = f3;
+            continue;
+        }
         fetches += 1u;
-        let i1 = cell + d1;
-        let c = array<f32, 8>(
-            voxel(cell.x, cell.y, cell.z),
-            voxel(i1.x, cell.y, cell.z),
-            voxel(cell.x, i1.y, cell.z),
-            voxel(i1.x, i1.y, cell.z),
-            voxel(cell.x, cell.y, i1.z),
-            voxel(i1.x, cell.y, i1.z),
-            voxel(cell.x, i1.y, i1.z),
-            voxel(i1.x, i1.y, i1.z),
-        );
+        // The near face: the last cell's far face.
+        let n0 = select(select(k0, k4, up), select(select(k0, k2, up), select(k0, k1, up), ax), ax || ay);
+        let n1 = select(select(k1, k5, up), select(select(k1, k3, up), select(k2, k3, up), ax), ax || ay);
+        let n2 = select(select(k2, k6, up), select(select(k4, k6, up), select(k4, k5, up), ax), ax || ay);
+        let n3 = select(select(k3, k7, up), select(select(k5, k7, up), select(k6, k7, up), ax), ax || ay);
+        // Low (l) and high (h) face along the step's axis, each indexed by its other two axes.
+        let l0 = select(f0, n0, up);
+        let l1 = select(f1, n1, up);
+        let l2 = select(f2, n2, up);
+        let l3 = select(f3, n3, up);
+        let h0 = select(n0, f0, up);
+        let h1 = select(n1, f1, up);
+        let h2 = select(n2, f2, up);
+        let h3 = select(n3, f3, up);
+        // Back to corner order dx + 2 dy + 4 dz (the same cell's as they are).
+        k0 = select(l0, k0, same);
+        k1 = select(select(select(l1, l1, ay), h0, ax), k1, same);
+        k2 = select(select(select(l2, h0, ay), l1, ax), k2, same);
+        k3 = select(select(select(l3, h1, ay), h1, ax), k3, same);
+        k4 = select(select(select(h0, l2, ay), l2, ax), k4, same);
+        k5 = select(select(select(h1, l3, ay), h2, ax), k5, same);
+        k6 = select(select(select(h2, h2, ay), l3, ax), k6, same);
+        k7 = select(h3, k7, same);
+        prev = cell;
+        let c = array<f32, 8>(k0, k1, k2, k3, k4, k5, k6, k7);
         if cell_max(c) >= iso {
             let x0 = select(vec3<f32>(0.0), u_init + (t - t_init) * du - vec3<f32>(cell), multi);
             let d = select(vec3<f32>(0.0), (t1 - t) * du, multi);
@@ -348,6 +417,7 @@ fn seed_occluded(p: vec3<f32>, w: vec3<f32>, f_p: f32) -> bool {
 
 @compute @workgroup_size(8, 8, 1)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
+    params = frame_params;
     if gid.x >= params.rect_size.x || gid.y >= params.rect_size.y {
         return;
     }
@@ -404,20 +474,54 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         let axis_basis = onb(axis);
         let key = pixel_key(px.x, px.y, params.frame, params.seed);
         let o = p + params.ao_offset * ng;
-        for (var i = first; i < last; i += 1u) {
-            let w = cosine_direction(axis, axis_basis, ao_point(params.ao_sequence, i, key));
-            var hit: bool;
-            if params.ao_exact == 1u {
-                hit = exact_occluded(o, w);
-            } else {
-                hit = ours_occluded(o, w);
+        // The cell of o and its corners, loaded once for all the pixel's rays: each exact walk
+        // starts in it or next to it.
+        var start = vec3<i32>(0);
+        var start_corners = array<f32, 8>();
+        if params.ao_exact == 1u {
+            let n = vec3<i32>(params.dims.xyz);
+            start = clamp(vec3<i32>(floor(to_voxel(o).xyz)), vec3<i32>(0), max(n - 2, vec3<i32>(0)));
+            let i1 = start + select(vec3<i32>(0), vec3<i32>(1), n > vec3<i32>(1));
+            start_corners = array<f32, 8>(
+                voxel(start.x, start.y, start.z),
+                voxel(i1.x, start.y, start.z),
+                voxel(start.x, i1.y, start.z),
+                voxel(i1.x, i1.y, start.z),
+                voxel(start.x, start.y, i1.z),
+                voxel(i1.x, start.y, i1.z),
+                voxel(start.x, i1.y, i1.z),
+                voxel(i1.x, i1.y, i1.z),
+            );
+        }
+        // The default (exact, no environment rays) in a loop of its own: a SIMD CPU driver runs
+        // every branch of a loop's body on every pass, masked, so the marched test and the
+        // environment lookup (storage loads each) would cost every sample without a lane taking
+        // them; outside the loop they cost once per pixel.
+        if params.ao_exact == 1u && !want_rays {
+            for (var i = first; i < last; i += 1u) {
+                let w = cosine_direction(axis, axis_basis, ao_point(params.ao_sequence, i, key));
+                if exact_occluded(o, w, start, start_corners) {
+                    occluded += 1u;
+                } else {
+                    bent += w;
+                }
             }
-            if hit {
-                occluded += 1u;
-            } else {
-                bent += w;
-                if want_rays {
-                    rays += env_lookup(w);
+        } else {
+            for (var i = first; i < last; i += 1u) {
+                let w = cosine_direction(axis, axis_basis, ao_point(params.ao_sequence, i, key));
+                var hit: bool;
+                if params.ao_exact == 1u {
+                    hit = exact_occluded(o, w, start, start_corners);
+                } else {
+                    hit = ours_occluded(o, w);
+                }
+                if hit {
+                    occluded += 1u;
+                } else {
+                    bent += w;
+                    if want_rays {
+                        rays += env_lookup(w);
+                    }
                 }
             }
         }

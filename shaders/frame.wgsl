@@ -59,7 +59,13 @@ const PERF_BLOCK_MIN_EXIT: u32 = 1u;
 // A read-only storage buffer, not a uniform: Mesa's lavapipe (22.x) inlines uniform values into a
 // new compiled shader variant per uniform buffer it sees and keeps every variant, so a uniform
 // that changes each frame grew a daemon by ~1.5 MB a frame (found by the soak test).
-@group(0) @binding(0) var<storage, read> params: FrameParams;
+@group(0) @binding(0) var<storage, read> frame_params: FrameParams;
+// The frame's parameters as every function reads them: a private copy that each kernel's entry
+// point fills first (`params = frame_params;`), so that the loops read registers. On lavapipe a
+// storage read is a loop over the SIMD lanes (a bounds check per lane and component) wherever it
+// stands, and the AO walk read the parameters on every pass of every ray
+// (docs/bench/kernel-time-lavapipe.md, "Fourth session").
+var<private> params: FrameParams;
 // The voxels packed as `VOXEL_FORMAT` (volume.wgsl) stores them: one f32's bits, two halves or two
 // unorm16, or four unorm8 per word, the first voxel in the lowest bits.
 @group(0) @binding(1) var<storage, read> volume: array<u32>;

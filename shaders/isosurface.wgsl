@@ -58,6 +58,7 @@ fn march_field(p: vec3<f32>) -> f32 {
 
 @compute @workgroup_size(8, 8, 1)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
+    params = frame_params;
     if gid.x >= params.rect_size.x || gid.y >= params.rect_size.y {
         return;
     }
@@ -113,6 +114,13 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         let ess = skipping();
         var steps = 0u;
         var was_owned = false;
+        // The step [lo, hi] where f crosses up to iso, refined after the march: a SIMD CPU driver
+        // runs a loop's whole body on every pass, so a refinement inside it would cost its loads
+        // on every step of every ray.
+        var crossed = false;
+        var lo = 0.0;
+        var hi = 0.0;
+        var f_hi = 0.0;
         while !hit && t < t_exit && steps < params.max_steps {
             steps += 1u;
             if ess {
@@ -136,41 +144,50 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
                 continue;
             }
             was_owned = true;
+            // One field evaluation per pass (on a SIMD CPU driver every load site of the loop
+            // costs on every pass): where `below` is not known at t (object space: the ray enters
+            // this brick), this pass finds it and the next one makes the step, not counted twice.
+            let f = march_field(eye + select(t_next, t, !known) * dir);
             if !known {
-                below = march_field(eye + t * dir) < iso;
+                below = f < iso;
                 known = true;
+                steps -= 1u;
+                continue;
             }
-            var f_next = march_field(eye + t_next * dir);
+            var f_next = f;
             if TEXTURE_MARCH && below && f_next >= iso {
                 // The filter's bracket, checked on the exact field: where the exact field is
                 // still below iso at t_next, the march goes on from there.
                 f_next = field(eye + t_next * dir);
             }
             if below && f_next >= iso {
-                // Refine in [lo, hi] with f(lo) < iso <= f(hi).
-                var lo = t;
-                var hi = t_next;
-                var f_lo = field(eye + lo * dir);
-                var f_hi = f_next;
-                for (var i = 0u; i < params.refine_steps; i += 1u) {
-                    let mid = 0.5 * (lo + hi);
-                    let fm = field(eye + mid * dir);
-                    if fm >= iso {
-                        hi = mid;
-                        f_hi = fm;
-                    } else {
-                        lo = mid;
-                        f_lo = fm;
-                    }
-                }
-                let denom = f_hi - f_lo;
-                t_hit = select(hi, lo + (iso - f_lo) / denom * (hi - lo), denom > 0.0);
-                t_hit = clamp(t_hit, lo, hi);
-                hit = true;
+                crossed = true;
+                lo = t;
+                hi = t_next;
+                f_hi = f_next;
                 break;
             }
             below = f_next < iso;
             t = t_next;
+        }
+        if crossed {
+            // Refine in [lo, hi] with f(lo) < iso <= f(hi).
+            var f_lo = field(eye + lo * dir);
+            for (var i = 0u; i < params.refine_steps; i += 1u) {
+                let mid = 0.5 * (lo + hi);
+                let fm = field(eye + mid * dir);
+                if fm >= iso {
+                    hi = mid;
+                    f_hi = fm;
+                } else {
+                    lo = mid;
+                    f_lo = fm;
+                }
+            }
+            let denom = f_hi - f_lo;
+            t_hit = select(hi, lo + (iso - f_lo) / denom * (hi - lo), denom > 0.0);
+            t_hit = clamp(t_hit, lo, hi);
+            hit = true;
         }
     }
 

@@ -28,7 +28,11 @@ fn half_to_f32(h: u32) -> f32 {
 
 fn voxel(i: i32, j: i32, k: i32) -> f32 {
     let n = vec3<i32>(params.dims.xyz);
-    let idx = u32(i + n.x * (j + n.y * k));
+    return voxel_at(u32(i + n.x * (j + n.y * k)));
+}
+
+// The voxel at linear index idx (x fastest) of the `volume` buffer.
+fn voxel_at(idx: u32) -> f32 {
     if VOXEL_FORMAT == 1u {
         return half_to_f32((volume[idx >> 1u] >> (16u * (idx & 1u))) & 0xffffu);
     }
@@ -139,23 +143,30 @@ fn block_max(b: vec3<u32>) -> f32 {
 
 // The extra block levels of AO rays (performance), indexed by cell: a level is (counts xyz, cells
 // per edge w) with its min/max at `offset` in `block_minmax`, after the primary rays' level.
+// `shift`: log2 of cells where they are a power of two (`POW2_LEVELS`), computed once with the
+// level rather than at every block lookup of a walk.
 struct Level {
     counts: vec3<u32>,
     cells: u32,
     offset: u32,
+    shift: u32,
+}
+
+fn make_level(counts: vec3<u32>, cells: u32, offset: u32) -> Level {
+    return Level(counts, cells, offset, countTrailingZeros(cells));
 }
 
 // The AO rays' fine level (the primary rays' level where none was uploaded).
 fn ao_level() -> Level {
     if params.ao_blocks.w == 0u {
-        return Level(params.block_counts.xyz, params.dims.w, 0u);
+        return make_level(params.block_counts.xyz, params.dims.w, 0u);
     }
-    return Level(params.ao_blocks.xyz, params.ao_blocks.w, params.perf.y);
+    return make_level(params.ao_blocks.xyz, params.ao_blocks.w, params.perf.y);
 }
 
 // The coarse level over it; cells 0 when there is none.
 fn coarse_level() -> Level {
-    return Level(params.coarse.xyz, params.coarse.w, params.perf.z);
+    return make_level(params.coarse.xyz, params.coarse.w, params.perf.z);
 }
 
 // Whether every block level's cells per edge is a power of two (`PerfOptions::pow2_levels`): then
@@ -168,7 +179,7 @@ fn level_block(level: Level, c: vec3<i32>) -> vec3<u32> {
     let u = vec3<u32>(max(c, vec3<i32>(0)));
     var b: vec3<u32>;
     if POW2_LEVELS {
-        b = u >> vec3<u32>(countTrailingZeros(level.cells));
+        b = u >> vec3<u32>(level.shift);
     } else {
         b = u / level.cells;
     }
@@ -181,22 +192,21 @@ fn level_range(level: Level, b: vec3<u32>) -> vec2<f32> {
     return block_minmax[level.offset + b.x + n.x * (b.y + n.y * b.z)];
 }
 
-// Ray parameter where the ray o + t dir leaves block b of `level`.
-fn level_block_exit(level: Level, b: vec3<u32>, o: vec3<f32>, inv_dir: vec3<f32>) -> f32 {
-    return level_exit(b, f32(level.cells), o, inv_dir);
-}
-
-// Ray parameter where the ray o + t dir leaves block b (primary level) beyond t, or, where the
-// coarse level exists and cell c's coarse block is empty too, that coarse block (hierarchical).
-fn empty_exit(level: Level, b: vec3<u32>, c: vec3<i32>, o: vec3<f32>, inv_dir: vec3<f32>, iso: f32) -> f32 {
-    let coarse = coarse_level();
+// Ray parameter where the ray o + t dir leaves block b of `level` (cell c's) beyond t, or, where
+// the coarse level exists and cell c's coarse block is empty too, that coarse block
+// (hierarchical). One exit computed, of the block chosen: a SIMD CPU driver runs both sides of a
+// branch.
+fn empty_exit(level: Level, coarse: Level, b: vec3<u32>, c: vec3<i32>, o: vec3<f32>, inv_dir: vec3<f32>, iso: f32) -> f32 {
+    var block = b;
+    var cells = level.cells;
     if coarse.cells > 0u {
         let cb = level_block(coarse, c);
         if level_range(coarse, cb).y < iso {
-            return level_block_exit(coarse, cb, o, inv_dir);
+            block = cb;
+            cells = coarse.cells;
         }
     }
-    return level_block_exit(level, b, o, inv_dir);
+    return level_exit(block, f32(cells), o, inv_dir);
 }
 
 // Ray parameter where the ray o + t dir leaves block b (its box clamped to the volume box).
