@@ -347,6 +347,8 @@ impl ObjectNode {
     /// A new controller session: its frame ids start afresh.
     pub fn reset(&mut self) {
         self.machine.reset();
+        self.cameras.clear();
+        self.step_late.clear();
     }
 
     /// Opens the endpoint this node connects to its peers from (inside the async runtime).

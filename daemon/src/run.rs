@@ -172,7 +172,6 @@ pub fn run(a: &RunArgs) -> Result<()> {
         object.adopt_delay = std::time::Duration::from_millis(a.adopt_delay_ms);
         let (tx, rx) = tokio::sync::mpsc::channel(64);
         let nodes = config.nodes.iter().map(|n| n.name.clone()).collect();
-        // A peer's stream may be no longer than what its bricks can send this node's tiles.
         if object.max_pixels_bytes() > limit {
             tracing::warn!(
                 "object space: a peer's pixels for one frame may take up to {} bytes ({:?} form, raw), more than \
@@ -182,6 +181,7 @@ pub fn run(a: &RunArgs) -> Result<()> {
                 object.form()
             );
         }
+        // A peer's stream may be no longer than what its bricks can send this node's tiles.
         let inbox =
             PixelInbox::new(tx, nodes, &node.name, limit.min(object.max_pixels_bytes()), object.deadline());
         (RenderVolume::Brick(Box::new(setup.data)), Some(object), Some(rx), Some(inbox), Some(load_rx))
