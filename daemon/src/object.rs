@@ -269,7 +269,6 @@ pub struct ObjectNode {
     /// it is composited.
     filter_guard: Option<u32>,
     cameras: HashMap<u64, (Camera, RenderSettings)>,
-    config: WallConfig,
 }
 
 impl ObjectNode {
@@ -321,7 +320,6 @@ impl ObjectNode {
             step_late: HashMap::new(),
             filter_guard,
             cameras: HashMap::new(),
-            config: config.clone(),
         })
     }
 
@@ -457,7 +455,7 @@ impl ObjectNode {
                     .tiles
                     .into_iter()
                     .filter_map(|t| {
-                        let view = self.config.tile_view(camera, &t.name)?;
+                        let view = self.machine.config().tile_view(camera, &t.name)?;
                         Some((t.name, view, t.shading))
                     })
                     .collect();

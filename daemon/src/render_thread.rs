@@ -15,6 +15,7 @@ use isowall_model::composite::PixelForm;
 use isowall_model::{RenderSettings, View};
 use isowall_render::environment::Environment;
 use isowall_render::gpu::present::{Presented, TileSurface};
+use isowall_render::gpu::tile::ReadKind;
 use isowall_render::gpu::ObjectSpace;
 use isowall_render::gpu::{CanvasFrame, FrameRead, GpuRenderer, ReadbackRing, TileFrame, TileTarget};
 use isowall_volume::region::StepRegion;
@@ -737,16 +738,18 @@ impl RenderLoop {
                 depth: out.depth.unwrap_or_default(),
                 shading: out.shading.unwrap_or_default(),
             };
-            let tiles = if tag.canvas {
-                self.canvas_waits.iter_mut().find(|s| s.frame_id == tag.frame_id).map(|s| &mut s.tiles)
-            } else if tag.image_only {
-                self.snapshots.iter_mut().find(|s| s.frame_id == tag.frame_id).map(|s| &mut s.tiles)
-            } else {
-                self.frames.iter_mut().find(|f| f.frame_id == tag.frame_id).map(|f| {
+            let tiles = match tag.kind {
+                ReadKind::Canvas => {
+                    self.canvas_waits.iter_mut().find(|s| s.frame_id == tag.frame_id).map(|s| &mut s.tiles)
+                }
+                ReadKind::Snapshot => {
+                    self.snapshots.iter_mut().find(|s| s.frame_id == tag.frame_id).map(|s| &mut s.tiles)
+                }
+                ReadKind::Frame => self.frames.iter_mut().find(|f| f.frame_id == tag.frame_id).map(|f| {
                     f.fetches += out.counters.fetches;
                     f.hits += out.counters.hits;
                     &mut f.tiles
-                })
+                }),
             };
             // Reads arrive in the order they were recorded: the tiles' order.
             if let Some(slot) = tiles.and_then(|t| t.iter_mut().find(|t| t.is_none())) {

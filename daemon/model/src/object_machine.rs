@@ -200,6 +200,11 @@ impl ObjectMachine {
         Some(View { rect: self.canvas_rect(tile)?, ..view })
     }
 
+    /// The wall's config the machine was made with.
+    pub fn config(&self) -> &WallConfig {
+        &self.config
+    }
+
     pub fn name(&self) -> &str {
         &self.name
     }

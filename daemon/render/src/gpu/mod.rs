@@ -45,7 +45,9 @@ pub use isosurface::IsosurfaceKernel;
 pub use perf::PerfOptions;
 pub use readback::ReadbackRing;
 pub use reproject::{ReprojectKernel, ReprojectParams};
-pub use tile::{CanvasFrame, FrameCounters, FrameRead, TileFrame, TileOutput, TileSums, TileTarget};
+pub use tile::{
+    CanvasFrame, FrameCounters, FrameRead, ReadKind, TileFrame, TileOutput, TileSums, TileTarget,
+};
 
 #[derive(Debug, thiserror::Error)]
 pub enum GpuError {

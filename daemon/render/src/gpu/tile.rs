@@ -130,10 +130,19 @@ pub struct FrameRead {
     pub timed: Option<[bool; 3]>,
     /// The share read (object space): colour and depth, or depth and the shading AOVs.
     pub share: Option<PixelForm>,
-    /// Only the image (a snapshot of a frame already rendered).
-    pub image_only: bool,
-    /// A composited canvas's colour and depth ([`GpuRenderer::compose_canvas`]).
-    pub canvas: bool,
+    /// What the read is for.
+    pub kind: ReadKind,
+}
+
+/// What a tile's read is for (where the render thread delivers it).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ReadKind {
+    /// A rendered frame: its counters (timestamps), and its share in object space.
+    Frame,
+    /// Only the image of a frame already rendered (a snapshot).
+    Snapshot,
+    /// A composited canvas's counters, colour and depth ([`GpuRenderer::compose_canvas`]).
+    Canvas,
 }
 
 /// The frame's counters over the tile's low rectangle.
@@ -356,7 +365,7 @@ impl FrameRead {
                 .next()
                 .ok_or_else(|| GpuError::Readback(format!("tile {}: the read lacks its {what}", tag.tile)))
         };
-        if !tag.image_only {
+        if tag.kind != ReadKind::Snapshot {
             let c: Vec<u32> = bytemuck::pod_collect_to_vec(next("counters")?.as_slice());
             out.counters = FrameCounters {
                 fetches: c[0] as u64 | (c[1] as u64) << 32,
@@ -373,7 +382,7 @@ impl FrameRead {
                 }
             }
         }
-        if tag.image_only || tag.share == Some(PixelForm::Colour) {
+        if tag.kind == ReadKind::Snapshot || tag.share == Some(PixelForm::Colour) {
             let rgba = next("image")?;
             out.rgb8 = Some(rgba.chunks_exact(4).flat_map(|p| [p[0], p[1], p[2]]).collect());
         }
@@ -610,8 +619,7 @@ impl GpuRenderer {
                 height: tile.size.1,
                 timed,
                 share,
-                image_only: false,
-                canvas: false,
+                kind: ReadKind::Frame,
             };
             let slot = self.compose_and_read(tile, &mut enc, back, denoised, ts(2), tag, ring)?;
             Ok((slot, enc.finish()))
@@ -771,8 +779,7 @@ impl GpuRenderer {
                     height: tile.size.1,
                     timed: None,
                     share: Some(PixelForm::Colour),
-                    image_only: false,
-                    canvas: true,
+                    kind: ReadKind::Canvas,
                 };
                 let slot = self.compose_and_read(tile, &mut enc, back, denoised, None, tag, ring)?;
                 Ok((slot, enc.finish()))
@@ -839,8 +846,7 @@ impl GpuRenderer {
             height: tile.size.1,
             timed: None,
             share: None,
-            image_only: true,
-            canvas: false,
+            kind: ReadKind::Snapshot,
         };
         let slot = ring.record(ctx, &mut enc, tag, &[Source::Texture(&image.texture)])?;
         let submission = ctx.queue.submit([enc.finish()]);
