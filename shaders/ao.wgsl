@@ -56,6 +56,14 @@
 // daemon/render/src/gpu/ao.rs: lavapipe ends an invocation's loops past 65535 iterations in all).
 @group(0) @binding(9) var<storage, read> ao_dispatch: vec4<u32>;
 
+// The pipeline's path (`AoPath` in daemon/render/src/gpu/ao.rs): AO_PATH_ANY holds every method
+// and test, the frame's parameters choosing; AO_PATH_EXACT only ours with the exact test and no
+// environment rays (the defaults). A SIMD CPU driver runs every branch for each group of pixels,
+// masked, whether a lane takes it or not: the default's pipeline holds none of the others' loads.
+override AO_PATH: u32 = 0u;
+const AO_PATH_ANY: u32 = 0u;
+const AO_PATH_EXACT: u32 = 1u;
+
 const AO_OURS: u32 = 0u;
 const AO_SEED: u32 = 1u;
 const IBL_NONE: u32 = 0u;
@@ -438,14 +446,16 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     if n_samples > 0u && first >= last {
         return;
     }
-    let want_rays = params.ibl == IBL_RAYS;
+    let any_path = AO_PATH == AO_PATH_ANY;
+    let want_rays = any_path && params.ibl == IBL_RAYS;
+    let exact = !any_path || params.ao_exact == 1u;
     // The bent normal where no ray is open: the hemisphere's axis (N_s for the seed and AO off).
     var axis = ns;
 
     var occluded = 0u;
     var bent = vec3<f32>(0.0);
     var rays = vec3<f32>(0.0);
-    if params.ao_method == AO_SEED {
+    if any_path && params.ao_method == AO_SEED {
         let f_p = field(p);
         for (var i = first; i < last; i += 1u) {
             let u = -1.0 + 2.0 * f32(i) / f32(n_samples);
@@ -478,7 +488,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         // starts in it or next to it.
         var start = vec3<i32>(0);
         var start_corners = array<f32, 8>();
-        if params.ao_exact == 1u {
+        if exact {
             let n = vec3<i32>(params.dims.xyz);
             start = clamp(vec3<i32>(floor(to_voxel(o).xyz)), vec3<i32>(0), max(n - 2, vec3<i32>(0)));
             let i1 = start + select(vec3<i32>(0), vec3<i32>(1), n > vec3<i32>(1));
@@ -497,7 +507,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         // every branch of a loop's body on every pass, masked, so the marched test and the
         // environment lookup (storage loads each) would cost every sample without a lane taking
         // them; outside the loop they cost once per pixel.
-        if params.ao_exact == 1u && !want_rays {
+        if exact && !want_rays {
             for (var i = first; i < last; i += 1u) {
                 let w = cosine_direction(axis, axis_basis, ao_point(params.ao_sequence, i, key));
                 if exact_occluded(o, w, start, start_corners) {
@@ -506,11 +516,11 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
                     bent += w;
                 }
             }
-        } else {
+        } else if any_path {
             for (var i = first; i < last; i += 1u) {
                 let w = cosine_direction(axis, axis_basis, ao_point(params.ao_sequence, i, key));
                 var hit: bool;
-                if params.ao_exact == 1u {
+                if exact {
                     hit = exact_occluded(o, w, start, start_corners);
                 } else {
                     hit = ours_occluded(o, w);

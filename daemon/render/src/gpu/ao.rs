@@ -54,6 +54,41 @@ pub struct AoDispatches {
     pub samples: u32,
     /// Dispatches per frame.
     pub count: u32,
+    /// The kernel's pipeline that runs them.
+    pub path: AoPath,
+}
+
+/// Which of the kernel's two pipelines runs a frame (`AO_PATH` in shaders/ao.wgsl). A SIMD CPU
+/// driver (lavapipe) runs every branch of a kernel for each group of pixels, masked, whether a lane
+/// takes it or not, so the default's own pipeline holds none of the other paths' load sites
+/// (docs/bench/kernel-time-lavapipe.md, "Fifth session").
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum AoPath {
+    /// Every method and test, the frame's parameters choosing.
+    Any,
+    /// Only ours with the exact test and no environment rays (the defaults).
+    Exact,
+}
+
+impl AoPath {
+    /// The path a frame of `params` takes.
+    pub fn of(params: &FrameParams) -> AoPath {
+        use super::frame_params::{ao_method_code, ibl_code};
+        let ours = params.ao_method == ao_method_code(AoMethod::Ours);
+        if ours && params.ao_exact == 1 && params.ibl != ibl_code(isowall_model::IblMethod::Rays) {
+            AoPath::Exact
+        } else {
+            AoPath::Any
+        }
+    }
+
+    /// The kernel's code (shaders/ao.wgsl: `AO_PATH_*`).
+    pub fn code(self) -> u32 {
+        match self {
+            AoPath::Any => 0,
+            AoPath::Exact => 1,
+        }
+    }
 }
 
 impl AoDispatches {
@@ -78,7 +113,7 @@ impl AoDispatches {
         // At most MAX_AO_DISPATCHES (past it the budget may run out on the worst rays).
         let samples = samples.max(total.div_ceil(MAX_AO_DISPATCHES)).min(total);
         params.ao_pass[0] = samples;
-        AoDispatches { samples, count: total.div_ceil(samples) }
+        AoDispatches { samples, count: total.div_ceil(samples), path: AoPath::of(params) }
     }
 }
 
@@ -87,7 +122,10 @@ const SEED_STEPS: u32 = 91;
 
 /// The compiled kernel.
 pub struct AoKernel {
+    /// `AoPath::Any`'s pipeline.
     pipeline: wgpu::ComputePipeline,
+    /// `AoPath::Exact`'s.
+    exact: wgpu::ComputePipeline,
     layout: wgpu::BindGroupLayout,
     workgroup: (u32, u32),
     /// The dispatch indices 0..MAX_AO_DISPATCHES, one per `dispatch_stride` bytes, bound at 9
@@ -128,7 +166,13 @@ impl AoKernel {
     pub fn new(ctx: &GpuContext, perf: &PerfOptions) -> Result<AoKernel, GpuError> {
         let entries = Self::entries();
         let workgroup = perf.workgroup;
-        let (pipeline, layout) = ctx.pipeline(Kernel::Ao, &entries, workgroup, &perf.volume_constants())?;
+        let with_path = |path: AoPath| {
+            let mut constants = perf.volume_constants().to_vec();
+            constants.push(("AO_PATH", f64::from(path.code())));
+            constants
+        };
+        let (pipeline, layout) = ctx.pipeline(Kernel::Ao, &entries, workgroup, &with_path(AoPath::Any))?;
+        let exact = ctx.pipeline_for_layout(Kernel::Ao, &layout, workgroup, &with_path(AoPath::Exact))?;
         let dispatch_stride = ctx.device.limits().min_storage_buffer_offset_alignment.max(16);
         let mut indices = vec![0u8; (dispatch_stride * MAX_AO_DISPATCHES) as usize];
         for k in 0..MAX_AO_DISPATCHES {
@@ -140,7 +184,7 @@ impl AoKernel {
             contents: &indices,
             usage: wgpu::BufferUsages::STORAGE,
         });
-        Ok(AoKernel { pipeline, layout, workgroup, dispatch_index, dispatch_stride })
+        Ok(AoKernel { pipeline, exact, layout, workgroup, dispatch_index, dispatch_stride })
     }
 
     /// The bind group of the kernel's inputs and `io` (as [`AoKernel::encode`] takes them), made
@@ -190,7 +234,10 @@ impl AoKernel {
             });
             let mut pass =
                 enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("ao"), timestamp_writes });
-            pass.set_pipeline(&self.pipeline);
+            pass.set_pipeline(match dispatches.path {
+                AoPath::Any => &self.pipeline,
+                AoPath::Exact => &self.exact,
+            });
             pass.set_bind_group(0, bind_group, &[k * self.dispatch_stride]);
             pass.dispatch_workgroups(size.0.div_ceil(self.workgroup.0), size.1.div_ceil(self.workgroup.1), 1);
         }
@@ -230,14 +277,34 @@ mod tests {
     }
 
     #[test]
+    fn only_ours_exact_without_environment_rays_takes_the_exact_pipeline() {
+        use super::super::frame_params::ibl_code;
+        use isowall_model::IblMethod;
+        for ibl in IblMethod::ALL {
+            for (method, exact) in [(AoMethod::Ours, true), (AoMethod::Ours, false), (AoMethod::Seed, true)] {
+                let mut p = params(32, method, exact, 172);
+                p.ibl = ibl_code(ibl);
+                let want = if method == AoMethod::Ours && exact && ibl != IblMethod::Rays {
+                    AoPath::Exact
+                } else {
+                    AoPath::Any
+                };
+                assert_eq!(AoPath::of(&p), want, "{method:?} exact {exact} {ibl:?}");
+                assert_eq!(AoDispatches::split(&mut p, Some(65535)).path, want);
+            }
+        }
+    }
+
+    #[test]
     fn dispatches_fit_the_loop_budget_and_cover_every_sample() {
         // No budget: one dispatch of every sample, whatever the walk.
         let mut p = params(1024, AoMethod::Ours, true, 2496);
-        assert_eq!(AoDispatches::split(&mut p, None), AoDispatches { samples: 1024, count: 1 });
+        let exact = AoPath::Exact;
+        assert_eq!(AoDispatches::split(&mut p, None), AoDispatches { samples: 1024, count: 1, path: exact });
         assert_eq!(p.ao_pass[0], 1024);
         // lavapipe's budget, the CT's whole-box cap: (65535 - 1024) / (2496 + 40) = 25 per dispatch.
         let d = AoDispatches::split(&mut p, Some(65535));
-        assert_eq!(d, AoDispatches { samples: 25, count: 41 });
+        assert_eq!(d, AoDispatches { samples: 25, count: 41, path: exact });
         assert_eq!(p.ao_pass[0], 25);
         for (samples, method, exact, cap) in [
             (32, AoMethod::Ours, true, 172),

@@ -233,6 +233,8 @@ mod tests {
         let mut expected = vec![
             ("AO_OURS", ao_method_code(AoMethod::Ours)),
             ("AO_SEED", ao_method_code(AoMethod::Seed)),
+            ("AO_PATH_ANY", super::super::ao::AoPath::Any.code()),
+            ("AO_PATH_EXACT", super::super::ao::AoPath::Exact.code()),
             ("IBL_NONE", ibl_code(IblMethod::None)),
             ("IBL_SEED", ibl_code(IblMethod::Seed)),
             ("IBL_BENT", ibl_code(IblMethod::Bent)),

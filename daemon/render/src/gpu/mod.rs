@@ -296,30 +296,44 @@ impl GpuContext {
         workgroup: (u32, u32),
         constants: &[(&str, f64)],
     ) -> Result<(wgpu::ComputePipeline, wgpu::BindGroupLayout), GpuError> {
+        let layout = self.validated("pipeline", || {
+            self.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+                label: Some(kernel.file_name()),
+                entries,
+            })
+        })?;
+        let pipeline = self.pipeline_for_layout(kernel, &layout, workgroup, constants)?;
+        Ok((pipeline, layout))
+    }
+
+    /// Another compute pipeline of `kernel` (other `constants`) for the bind group `layout` of a
+    /// first one, so that the same bind groups serve both.
+    pub(crate) fn pipeline_for_layout(
+        &self,
+        kernel: Kernel,
+        layout: &wgpu::BindGroupLayout,
+        workgroup: (u32, u32),
+        constants: &[(&str, f64)],
+    ) -> Result<wgpu::ComputePipeline, GpuError> {
         self.validated("pipeline", || {
             let device = &self.device;
             let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
                 label: Some(kernel.file_name()),
                 source: wgpu::ShaderSource::Wgsl(shaders::source_with_workgroup(kernel, workgroup).into()),
             });
-            let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-                label: Some(kernel.file_name()),
-                entries,
-            });
             let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
                 label: Some(kernel.file_name()),
-                bind_group_layouts: &[Some(&layout)],
+                bind_group_layouts: &[Some(layout)],
                 immediate_size: 0,
             });
-            let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                 label: Some(kernel.file_name()),
                 layout: Some(&pipeline_layout),
                 module: &module,
                 entry_point: Some("main"),
                 compilation_options: wgpu::PipelineCompilationOptions { constants, ..Default::default() },
                 cache: None,
-            });
-            (pipeline, layout)
+            })
         })
     }
 }
