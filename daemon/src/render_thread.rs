@@ -9,13 +9,16 @@
 //! without stalling the next frame: per-frame counters, colour and depth of object-space shares,
 //! and the images of a snapshot ([`RenderHandle::snapshot`]). A time-varying volume's frame shows
 //! its own step ([`TimeSteps`]): the whole volume, or in object space the node's brick of it.
+//! In object space the windows show the composited tiles, never a brick's view: a canvas the
+//! render thread filtered and composed, or the image the node composited on the CPU, uploaded
+//! ([`RenderHandle::show`]).
 
 use anyhow::{Context, Result};
 use isowall_model::composite::PixelForm;
 use isowall_model::{RenderSettings, View};
 use isowall_render::environment::Environment;
 use isowall_render::gpu::present::{Presented, TileSurface};
-use isowall_render::gpu::tile::ReadKind;
+use isowall_render::gpu::tile::{Presentable, ReadKind, ShownImages};
 use isowall_render::gpu::ObjectSpace;
 use isowall_render::gpu::{CanvasFrame, FrameRead, GpuRenderer, ReadbackRing, TileFrame, TileTarget};
 use isowall_volume::region::StepRegion;
@@ -179,6 +182,8 @@ enum Job {
     Unload(usize),
     /// object space: filter and compose composited canvases; replies with the tiles' images.
     Canvas(Box<CanvasJob>, tokio::sync::oneshot::Sender<Result<Vec<TileResult>, String>>),
+    /// object space: a frame's tiles composited on the CPU, for the windows.
+    Show(u64, Vec<TileResult>),
 }
 
 /// The presentation jobs.
@@ -221,6 +226,10 @@ struct RenderLoop {
     targets: Vec<TileTarget>,
     /// object space: the composited tiles' resources, where the wall filters them.
     canvases: Vec<TileTarget>,
+    /// object space: the images of tiles composited on the CPU, uploaded for the windows.
+    shown: Vec<ShownImages>,
+    /// The node renders bricks: its targets hold brick views, which no window shows.
+    object_space: bool,
     surfaces: Vec<TileSurface>,
     ring: ReadbackRing<FrameRead>,
     frames: VecDeque<InFlight>,
@@ -284,9 +293,9 @@ impl TileRenderer {
                         return;
                     }
                 };
-                let index = match &volume {
-                    RenderVolume::Whole(_) => 0,
-                    RenderVolume::Brick(b) => b.index,
+                let (index, object_space) = match &volume {
+                    RenderVolume::Whole(_) => (0, false),
+                    RenderVolume::Brick(b) => (b.index, true),
                 };
                 drop(volume);
                 let mut r = RenderLoop {
@@ -295,6 +304,8 @@ impl TileRenderer {
                     env: genv,
                     targets: Vec::new(),
                     canvases: Vec::new(),
+                    shown: Vec::new(),
+                    object_space,
                     surfaces: Vec::new(),
                     ring: ReadbackRing::new(READ_SLOTS),
                     frames: VecDeque::new(),
@@ -328,7 +339,15 @@ impl TileRenderer {
                                 break;
                             }
                         }
-                        Job::Window(w) => window_job(&r.gpu, &mut r.surfaces, &r.targets, w),
+                        Job::Window(w) => {
+                            let on_show = OnShow {
+                                object_space: r.object_space,
+                                targets: &r.targets,
+                                canvases: &r.canvases,
+                                shown: &r.shown,
+                            };
+                            window_job(&r.gpu, &mut r.surfaces, on_show, w)
+                        }
                         Job::Snapshot(frame_id, reply) => r.snapshot(frame_id, reply),
                         Job::Load(b, reply) => {
                             let gv = r.gpu.upload_brick(&b.region, &b.info, &b.blocks, b.object.clone());
@@ -345,6 +364,7 @@ impl TileRenderer {
                             }
                         }
                         Job::Canvas(job, reply) => r.canvas(*job, reply),
+                        Job::Show(frame_id, tiles) => r.show(frame_id, tiles),
                     }
                 }
             })
@@ -412,6 +432,12 @@ impl RenderHandle {
         rx.await.map_err(|_| anyhow::anyhow!("the render thread has stopped"))?.map_err(anyhow::Error::msg)
     }
 
+    /// object space: the images of `frame_id`'s tiles as the node composited them on the CPU (8-bit
+    /// sRGB; depth and shading are not needed), uploaded for the windows to show at the swap.
+    pub fn show(&self, frame_id: u64, tiles: Vec<TileResult>) -> Result<()> {
+        self.send(Job::Show(frame_id, tiles))
+    }
+
     /// The images of `frame_id`'s tiles (8-bit sRGB), read back from the GPU; an error where the
     /// tiles no longer hold that frame.
     pub async fn snapshot(&self, frame_id: u64) -> Result<Vec<TileResult>> {
@@ -438,9 +464,38 @@ impl RenderHandle {
     }
 }
 
+/// What the windows may show: in screen space the tiles' own targets; in object space the
+/// composited tiles (a filtered canvas, or an image composited on the CPU), never a brick's view
+/// (which the targets hold there, under its tile's name).
+struct OnShow<'a> {
+    object_space: bool,
+    targets: &'a [TileTarget],
+    canvases: &'a [TileTarget],
+    shown: &'a [ShownImages],
+}
+
+impl<'a> OnShow<'a> {
+    /// Tile `name`'s images; in object space, of a canvas and uploaded images (the session's
+    /// form changed), those holding the later frame.
+    fn tile(&self, name: &str) -> Option<&'a dyn Presentable> {
+        if !self.object_space {
+            return self.targets.iter().find(|t| t.name == name).map(|t| t as &dyn Presentable);
+        }
+        let canvas = self.canvases.iter().find(|t| t.name == name).map(|t| t as &dyn Presentable);
+        let shown = self.shown.iter().find(|t| t.name == name).map(|t| t as &dyn Presentable);
+        let latest =
+            |p: &Option<&dyn Presentable>| p.and_then(|p| p.images().iter().filter_map(|i| i.frame_id).max());
+        if latest(&shown) > latest(&canvas) {
+            shown
+        } else {
+            canvas.or(shown)
+        }
+    }
+}
+
 /// The presentation jobs of the render thread.
-fn window_job(gpu: &GpuRenderer, surfaces: &mut Vec<TileSurface>, targets: &[TileTarget], job: WindowJob) {
-    let target = |name: &str| targets.iter().find(|t| t.name == name);
+fn window_job(gpu: &GpuRenderer, surfaces: &mut Vec<TileSurface>, on_show: OnShow, job: WindowJob) {
+    let target = |name: &str| on_show.tile(name);
     match job {
         WindowJob::Attach(windows, reply) => {
             surfaces.clear();
@@ -639,6 +694,32 @@ impl RenderLoop {
                 .map_err(|e| format!("tile {name}: {e}"))?;
         }
         Ok(())
+    }
+
+    /// Uploads a frame's tiles composited on the CPU for the windows (only where the node has
+    /// windows: its session sends them then); a tile's images are made at its first frame and
+    /// remade when its size changes. A failure is the windows' alone: logged, the frame goes on.
+    fn show(&mut self, frame_id: u64, tiles: Vec<TileResult>) {
+        for t in tiles {
+            let size = (t.width, t.height);
+            let at = match self.shown.iter().position(|s| s.name == t.name && s.size() == size) {
+                Some(i) => i,
+                None => match ShownImages::new(&self.gpu, &t.name, size) {
+                    Ok(images) => {
+                        self.shown.retain(|s| s.name != t.name);
+                        self.shown.push(images);
+                        self.shown.len() - 1
+                    }
+                    Err(e) => {
+                        tracing::warn!(frame_id, tile = %t.name, "cannot show the composited tile: {e}");
+                        continue;
+                    }
+                },
+            };
+            if let Err(e) = self.gpu.show_image(&mut self.shown[at], frame_id, &t.rgb8) {
+                tracing::warn!(frame_id, tile = %t.name, "cannot show the composited tile: {e}");
+            }
+        }
     }
 
     /// Filters and composes a frame's canvases; the reply goes once their images arrive.

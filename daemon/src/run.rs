@@ -656,6 +656,25 @@ async fn composited(
                         .collect();
                 }
             }
+        } else if node.on_screen {
+            // Composited here on the CPU: the windows show it from images the render thread
+            // uploads (its own targets hold this node's brick views).
+            let images = d
+                .job
+                .tiles
+                .iter()
+                .map(|t| TileResult {
+                    name: t.name.clone(),
+                    width: t.width,
+                    height: t.height,
+                    rgb8: t.rgb8.clone(),
+                    depth: Vec::new(),
+                    shading: Vec::new(),
+                })
+                .collect();
+            if let Err(e) = node.renderer.show(d.job.frame_id, images) {
+                tracing::error!(frame_id = d.job.frame_id, node = %node.name, "{e:#}");
+            }
         }
         out.extend(frame_done(node, machine, sender, d.job, Some(d.report)).await);
     }

@@ -3,24 +3,60 @@
 //! (`--display window --windowed`). After a 2-frame `isowall demo`, a screenshot of the whole X screen
 //! (`xwd -root`) must show, in both tiles' places, the last frame: each part equal to the same
 //! part of a single render of that frame's camera, and not to the frame before it (another camera), so both screens show the same frame.
+//! The same in object space, where each node renders a brick and a window must show its tile
+//! composited from both nodes' bricks (not its own brick's part), with the filter off and on.
 //!
 //! Outside CI the test skips, with a message, where Xvfb or xwd is missing; under CI=true it must
 //! run (`scripts/setup.sh` installs xvfb and x11-apps).
 
 use isowall_e2e::x11::Xvfb;
-use isowall_e2e::{free_udp_ports, run_in, start_nodes_with, wall_config_2x1};
+use isowall_e2e::{free_udp_ports, run_in, set_object_mode, start_nodes_with, wall_config_2x1};
 use std::time::{Duration, Instant};
 
 /// A 2-frame demo at 1 fps: frame 0 shows the first key, frame 1 the second (the eye lower:
 /// the torus is symmetric about +z, so an orbit would hardly change the image).
 const EYES: [[f64; 3]; 2] = [[45.0, -55.0, 35.0], [50.0, -50.0, 5.0]];
 
+/// How the wall of a run renders.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Space {
+    Screen,
+    /// Object space, the composited tiles filtered (`denoise`) or not.
+    Object {
+        denoise: bool,
+    },
+}
+
 #[test]
 fn both_tiles_of_a_2x1_wall_show_the_same_frame_on_screen() {
+    show_the_last_frame(Space::Screen);
+}
+
+#[test]
+fn both_tiles_of_a_2x1_object_space_wall_show_the_composited_frame_on_screen() {
+    show_the_last_frame(Space::Object { denoise: false });
+}
+
+#[test]
+fn both_tiles_of_a_2x1_object_space_wall_show_the_filtered_composited_frame_on_screen() {
+    show_the_last_frame(Space::Object { denoise: true });
+}
+
+fn show_the_last_frame(space: Space) {
     let Some(xvfb) = Xvfb::start_with_xwd(320, 240) else { return };
     let dir = tempfile::tempdir().unwrap();
     let (w, h, bezel) = (48u32, 40u32, 2u32);
-    let config = wall_config_2x1(dir.path(), "screen2x1", &free_udp_ports(2), w, h, bezel, 0);
+    let denoise = space == Space::Object { denoise: true };
+    // The filter has something to do where there is occlusion.
+    let samples = if denoise { 4 } else { 0 };
+    let config = wall_config_2x1(dir.path(), "wall2x1", &free_udp_ports(2), w, h, bezel, samples);
+    if let Space::Object { denoise } = space {
+        set_object_mode(&config);
+        if denoise {
+            let text = std::fs::read_to_string(&config).unwrap();
+            std::fs::write(&config, text.replacen("[render]\n", "[render]\ndenoise = \"on\"\n", 1)).unwrap();
+        }
+    }
     let cfg = config.to_str().unwrap();
     let out = run_in(dir.path(), "isowall", &["keygen", "--config", cfg]);
     assert!(out.status.success(), "keygen: {}", String::from_utf8_lossy(&out.stderr));
@@ -58,7 +94,9 @@ fn both_tiles_of_a_2x1_wall_show_the_same_frame_on_screen() {
                 "--fov-y",
                 "40",
                 "--ao-samples",
-                "0",
+                &samples.to_string(),
+                "--denoise",
+                if denoise { "on" } else { "off" },
                 "--ibl",
                 "bent",
                 "--env",
@@ -113,7 +151,7 @@ fn both_tiles_of_a_2x1_wall_show_the_same_frame_on_screen() {
             let img = image::RgbImage::from_fn(screen.width, screen.height, |x, y| {
                 image::Rgb(screen.pixels[(y * screen.width + x) as usize])
             });
-            let keep = std::env::temp_dir().join("isowall-present-wall.png");
+            let keep = std::env::temp_dir().join(format!("isowall-present-wall-{space:?}.png"));
             let _ = img.save(&keep);
             panic!(
                 "the screen does not show the last frame in both tiles: {results:?} (pixels off, max) against \

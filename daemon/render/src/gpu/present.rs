@@ -1,15 +1,17 @@
 //! `Kernel::Present` (shaders/present.wgsl): showing tiles in windows. A [`TileSurface`] is one
 //! tile's window surface, created from the render thread's own instance (so the device that
 //! renders the tiles also presents them). It draws from the tile's own presentable images (a
-//! [`TileTarget`] holds a few: the one on show, the next, the one being rendered), which the compose kernel
-//! wrote on the GPU: nothing is copied or uploaded. Presenting at the swap is a draw of a
-//! full-window triangle from the image holding the frame, and the present itself.
+//! [`Presentable`]: a [`TileTarget`](super::tile::TileTarget) holds a few: the one on show, the
+//! next, the one being rendered), which the compose kernel wrote on the GPU: nothing is copied or
+//! uploaded. (In object space a tile composited on the CPU has its images uploaded:
+//! [`ShownImages`](super::tile::ShownImages).) Presenting at the swap is a draw of a full-window
+//! triangle from the image holding the frame, and the present itself.
 //!
 //! One path for every surface: a render pass samples the image (nearest) into the surface, so any
 //! surface format works (BGRA or RGBA, sRGB or not: see present.wgsl) and a window of another size
 //! than the tile (a monitor that does not match the config) is filled by stretching.
 
-use super::tile::TileTarget;
+use super::tile::Presentable;
 use super::{GpuContext, GpuError};
 use crate::shaders::{self, Kernel};
 
@@ -213,7 +215,7 @@ impl TileSurface {
     }
 
     /// Bind groups for `target`'s images, made when the target is new to this surface.
-    fn bind(&mut self, ctx: &GpuContext, target: &TileTarget) -> Result<(), GpuError> {
+    fn bind(&mut self, ctx: &GpuContext, target: &dyn Presentable) -> Result<(), GpuError> {
         if self.bound.as_ref().is_some_and(|b| b.target == target.id()) {
             return Ok(());
         }
@@ -246,7 +248,7 @@ impl TileSurface {
     pub fn present(
         &mut self,
         ctx: &GpuContext,
-        target: Option<&TileTarget>,
+        target: Option<&dyn Presentable>,
         frame_id: u64,
     ) -> Result<Presented, GpuError> {
         let mut fresh = false;
@@ -265,13 +267,13 @@ impl TileSurface {
     }
 
     /// Draws the image on show again (the window was exposed or resized).
-    pub fn redraw(&mut self, ctx: &GpuContext, target: Option<&TileTarget>) -> Result<bool, GpuError> {
+    pub fn redraw(&mut self, ctx: &GpuContext, target: Option<&dyn Presentable>) -> Result<bool, GpuError> {
         self.draw(ctx, target)
     }
 
     /// Acquires the surface's next texture, draws the image on show into it and presents it;
     /// `false` where the surface gave no texture (occluded, timed out).
-    fn draw(&mut self, ctx: &GpuContext, target: Option<&TileTarget>) -> Result<bool, GpuError> {
+    fn draw(&mut self, ctx: &GpuContext, target: Option<&dyn Presentable>) -> Result<bool, GpuError> {
         // The image on show, if the target still holds its frame (else black).
         let shown = match (&self.bound, self.shown, target) {
             (Some(b), Some((i, id)), Some(t)) if b.target == t.id() && t.images()[i].frame_id == Some(id) => {

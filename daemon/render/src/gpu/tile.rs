@@ -75,6 +75,103 @@ const QUERIES: u32 = 6;
 /// one being rendered.
 pub const IMAGES: usize = 3;
 
+impl TileImage {
+    fn new(gpu: &GpuRenderer, name: &str, size: (u32, u32)) -> TileImage {
+        let texture = gpu.ctx.create_texture(&wgpu::TextureDescriptor {
+            label: Some(name),
+            size: wgpu::Extent3d { width: size.0, height: size.1, depth_or_array_layers: 1 },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: wgpu::TextureFormat::Rgba8Unorm,
+            // COPY_DST: an object-space tile composited on the CPU is uploaded ([`ShownImages`]).
+            usage: wgpu::TextureUsages::STORAGE_BINDING
+                | wgpu::TextureUsages::TEXTURE_BINDING
+                | wgpu::TextureUsages::COPY_SRC
+                | wgpu::TextureUsages::COPY_DST,
+            view_formats: &[],
+        });
+        let storage = texture.create_view(&wgpu::TextureViewDescriptor::default());
+        TileImage { texture, frame_id: None, storage }
+    }
+}
+
+/// What a window shows of a tile (`present.rs`): its presentable images, and an identity under
+/// which presentation binds them once.
+pub trait Presentable {
+    fn id(&self) -> u64;
+    fn images(&self) -> &[TileImage; IMAGES];
+}
+
+impl Presentable for TileTarget {
+    fn id(&self) -> u64 {
+        self.id
+    }
+
+    fn images(&self) -> &[TileImage; IMAGES] {
+        &self.images
+    }
+}
+
+/// The presentable images of a tile whose frames come whole from the CPU (object space, the
+/// colour form: the tile's owner composites its peers' pixels on the CPU), with nothing that
+/// renders: each frame's image is uploaded ([`GpuRenderer::show_image`]) for its windows.
+pub struct ShownImages {
+    pub name: String,
+    id: u64,
+    size: (u32, u32),
+    images: [TileImage; IMAGES],
+    latest: usize,
+    /// The upload's RGBA8 bytes, kept between frames.
+    staging: Vec<u8>,
+}
+
+impl ShownImages {
+    pub fn new(gpu: &GpuRenderer, name: &str, size: (u32, u32)) -> Result<ShownImages, GpuError> {
+        let max = gpu.ctx.device.limits().max_texture_dimension_2d;
+        if size.0 == 0 || size.1 == 0 || size.0.max(size.1) > max {
+            return Err(GpuError::View(format!(
+                "tile {name}: an image of {}x{} (each side 1 to {max})",
+                size.0, size.1
+            )));
+        }
+        let images =
+            gpu.ctx.validated("tile images", || [0; IMAGES].map(|_| TileImage::new(gpu, name, size)))?;
+        Ok(ShownImages {
+            name: name.to_string(),
+            id: super::next_resource_id(),
+            size,
+            images,
+            latest: 0,
+            staging: Vec::new(),
+        })
+    }
+
+    /// The images' size in pixels.
+    pub fn size(&self) -> (u32, u32) {
+        self.size
+    }
+}
+
+impl Presentable for ShownImages {
+    fn id(&self) -> u64 {
+        self.id
+    }
+
+    fn images(&self) -> &[TileImage; IMAGES] {
+        &self.images
+    }
+}
+
+/// Of `images`, the one a new frame goes into: not the `latest`, and of the others the one
+/// holding the oldest frame (or none).
+fn oldest_other(images: &[TileImage; IMAGES], latest: usize) -> usize {
+    (0..IMAGES)
+        .filter(|&i| i != latest)
+        .min_by_key(|&i| images[i].frame_id.map_or(0, |f| f + 1))
+        .expect("more than one image")
+}
+
 /// Bytes of the counters buffer: fetches (low, high word), hits, pixels.
 const COUNTER_BYTES: u64 = 16;
 
@@ -231,23 +328,7 @@ impl TileTarget {
                 ctx.buffer("compose params", std::mem::size_of::<ComposeParams>() as u64, params_usage);
             let depth = ctx.buffer("depth", size.0 as u64 * size.1 as u64 * 4, storage);
             let counters = ctx.buffer("counters", COUNTER_BYTES, storage);
-            let image = || {
-                let texture = ctx.create_texture(&wgpu::TextureDescriptor {
-                    label: Some(name),
-                    size: wgpu::Extent3d { width: size.0, height: size.1, depth_or_array_layers: 1 },
-                    mip_level_count: 1,
-                    sample_count: 1,
-                    dimension: wgpu::TextureDimension::D2,
-                    format: wgpu::TextureFormat::Rgba8Unorm,
-                    usage: wgpu::TextureUsages::STORAGE_BINDING
-                        | wgpu::TextureUsages::TEXTURE_BINDING
-                        | wgpu::TextureUsages::COPY_SRC,
-                    view_formats: &[],
-                });
-                let storage = texture.create_view(&wgpu::TextureViewDescriptor::default());
-                TileImage { texture, frame_id: None, storage }
-            };
-            let images = [image(), image(), image()];
+            let images = [0; IMAGES].map(|_| TileImage::new(gpu, name, size));
             let inputs = [&aov[0], &aov[1], &aov[4], &aov[2]];
             let compose = [0, 1, 2].map(|i| {
                 gpu.compose.bind(ctx, &compose_params, inputs, &images[i].storage, &depth, &counters)
@@ -313,10 +394,6 @@ impl TileTarget {
         self.guard
     }
 
-    pub fn id(&self) -> u64 {
-        self.id
-    }
-
     /// The rectangle's size in pixels.
     pub fn size(&self) -> (u32, u32) {
         self.size
@@ -337,17 +414,9 @@ impl TileTarget {
         self.images.iter().find(|i| i.frame_id == Some(frame_id))
     }
 
-    /// The images (presentation makes its bind groups for them once).
-    pub fn images(&self) -> &[TileImage; IMAGES] {
-        &self.images
-    }
-
     /// The image a new frame is rendered into: the one holding the oldest frame (or none).
     fn back(&self) -> usize {
-        (0..IMAGES)
-            .filter(|&i| i != self.latest)
-            .min_by_key(|&i| self.images[i].frame_id.map_or(0, |f| f + 1))
-            .expect("more than one image")
+        oldest_other(&self.images, self.latest)
     }
 }
 
@@ -790,6 +859,44 @@ impl GpuRenderer {
         tile.filtered = denoised;
         tile.latest = back;
         tile.images[back].frame_id = Some(frame.frame_id);
+        Ok(())
+    }
+
+    /// Uploads frame `frame_id`'s image of a tile composited on the CPU (`rgb8`: 8-bit sRGB,
+    /// rows top to bottom, the images' size) into `shown`'s next image, for its windows.
+    pub fn show_image(&self, shown: &mut ShownImages, frame_id: u64, rgb8: &[u8]) -> Result<(), GpuError> {
+        let (w, h) = shown.size;
+        let n = w as usize * h as usize;
+        if rgb8.len() != 3 * n {
+            return Err(GpuError::View(format!(
+                "tile {}: an image of {} bytes for {w}x{h} pixels (3 a pixel)",
+                shown.name,
+                rgb8.len()
+            )));
+        }
+        shown.staging.clear();
+        shown.staging.extend(rgb8.chunks_exact(3).flat_map(|p| [p[0], p[1], p[2], 255]));
+        let back = oldest_other(&shown.images, shown.latest);
+        let ctx = &self.ctx;
+        ctx.validated("tile image upload", || {
+            ctx.write_texture(
+                wgpu::TexelCopyTextureInfo {
+                    texture: &shown.images[back].texture,
+                    mip_level: 0,
+                    origin: wgpu::Origin3d::ZERO,
+                    aspect: wgpu::TextureAspect::All,
+                },
+                &shown.staging,
+                wgpu::TexelCopyBufferLayout {
+                    offset: 0,
+                    bytes_per_row: Some(4 * w),
+                    rows_per_image: Some(h),
+                },
+                wgpu::Extent3d { width: w, height: h, depth_or_array_layers: 1 },
+            )
+        })?;
+        shown.images[back].frame_id = Some(frame_id);
+        shown.latest = back;
         Ok(())
     }
 
