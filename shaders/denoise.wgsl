@@ -5,11 +5,14 @@
 // stops; the variance carried as sum w^2 var / (sum w)^2; no-hit pixels and pixels outside the
 // rectangle are no one's neighbour.
 //
-// Pass 0 reads the running sums (divided by the frame count, or by each pixel's own weight where
-// the history was reprojected) and the binomial variance; later
-// passes read the previous pass's signal (A, E.rgb) and variance. The last pass writes
-// `raw + strength (filtered - raw)` in running-sum form (E * frames in rgb, A * frames in w) into
-// `out_denoised`, which compose reads in place of the running sum of E.
+// A prepare dispatch first writes, per pixel, what the passes' taps read: the raw signal (A, E.rgb:
+// the running sums divided by the frame count, or by each pixel's own weight where the history
+// was reprojected) and the guide (the hit's view-space position, xyz, and the binomial variance,
+// w; w = -1 where there is no hit). Each pass then reads the previous one's signal and guide
+// and the normal (three loads a tap: on a SIMD CPU driver a load is a loop over the lanes) and
+// writes its own. The last pass writes `raw + strength (filtered - raw)` in running-sum form
+// (E * frames in rgb, A * frames in w) into `out_denoised`, which compose reads in place of the
+// running sum of E.
 //
 //#include camera.wgsl
 
@@ -21,7 +24,7 @@ struct DenoiseParams {
     rect_origin: vec2<u32>, // the rectangle filtered, in the full image
     rect_size: vec2<u32>,
     step: u32,              // this pass's step, pixels
-    first: u32,             // 1: read the running sums
+    prepare: u32,           // 1: the prepare dispatch (no filtering)
     last: u32,              // 1: write `out_denoised`
     frames: u32,            // frames in the running sums
     samples: f32,           // visibility samples per pixel in all (AO samples x frames)
@@ -49,12 +52,12 @@ var<private> params: DenoiseParams;
 // Running sums of the AO kernel: bent normal + A (w); E (rgb).
 @group(0) @binding(3) var<storage, read> acc_ao: array<vec4<f32>>;
 @group(0) @binding(4) var<storage, read> acc_ibl: array<vec4<f32>>;
-// The previous pass's (A, E.rgb) and variance (pass 0 reads none).
+// The previous pass's (A, E.rgb), and guide: position (xyz) and variance (w; -1: no hit).
 @group(0) @binding(5) var<storage, read> src_signal: array<vec4<f32>>;
-@group(0) @binding(6) var<storage, read> src_variance: array<f32>;
-// This pass's (A, E.rgb) and variance.
+@group(0) @binding(6) var<storage, read> src_guide: array<vec4<f32>>;
+// This pass's (A, E.rgb) and guide.
 @group(0) @binding(7) var<storage, read_write> dst_signal: array<vec4<f32>>;
-@group(0) @binding(8) var<storage, read_write> dst_variance: array<f32>;
+@group(0) @binding(8) var<storage, read_write> dst_guide: array<vec4<f32>>;
 // The last pass's output, in running-sum form: E * frames (rgb), A * frames (w).
 @group(0) @binding(9) var<storage, read_write> out_denoised: array<vec4<f32>>;
 
@@ -119,20 +122,6 @@ fn variance_of(a: f32, n: f32) -> f32 {
     return p * (1.0 - p) / n;
 }
 
-fn signal_at(i: u32) -> vec4<f32> {
-    if params.first == 1u {
-        return raw(i);
-    }
-    return src_signal[i];
-}
-
-fn variance_at(i: u32) -> f32 {
-    if params.first == 1u {
-        return variance_of(raw(i).x, samples_of(i));
-    }
-    return src_variance[i];
-}
-
 // x^(2^normal_squarings) by squarings (a few loop iterations per neighbour, well within
 // lavapipe's budget of an invocation's loop iterations).
 fn normal_stop(x: f32) -> f32 {
@@ -143,6 +132,9 @@ fn normal_stop(x: f32) -> f32 {
     return y;
 }
 
+// The guide's w where there is no hit.
+const NO_HIT: f32 = -1.0;
+
 @compute @workgroup_size(8, 8, 1)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     params = pass_params;
@@ -151,7 +143,19 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let w = params.rect_size.x;
     let i = gid.x + gid.y * w;
-    if in_color[i].w < 0.5 {
+    if params.prepare == 1u {
+        if in_color[i].w < 0.5 {
+            dst_guide[i] = vec4<f32>(0.0, 0.0, 0.0, NO_HIT);
+            return;
+        }
+        let r = raw(i);
+        dst_signal[i] = r;
+        dst_guide[i] = vec4<f32>(position(gid.xy, in_geometry[i].w), variance_of(r.x, samples_of(i)));
+        return;
+    }
+    let gp = src_guide[i];
+    if gp.w == NO_HIT {
+        dst_guide[i] = gp;
         if params.last == 1u {
             out_denoised[i] = acc_ibl[i];
         }
@@ -159,11 +163,11 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let g = in_geometry[i];
     let np = g.xyz;
-    let pp = position(gid.xy, g.w);
-    let sp = signal_at(i);
+    let pp = gp.xyz;
+    let sp = src_signal[i];
     let pixel_size = 2.0 * params.forward.w / f32(params.full_size.y);
     let footprint = params.sigma_plane * g.w * pixel_size;
-    let var_p = variance_at(i);
+    let var_p = gp.w;
     let step = i32(params.step);
     var sum = vec4<f32>(0.0);
     var wsum = 0.0;
@@ -176,18 +180,17 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
                 continue;
             }
             let q = u32(qx) + u32(qy) * w;
-            if in_color[q].w < 0.5 {
+            let gq = src_guide[q];
+            if gq.w == NO_HIT {
                 continue;
             }
             let k = b3(dx) * b3(dy);
             let offset = sqrt(f32((dx * dx + dy * dy) * step * step));
-            let gq = in_geometry[q];
-            let pq = position(vec2<u32>(u32(qx), u32(qy)), gq.w);
-            let plane = abs(dot(np, pq - pp));
+            let plane = abs(dot(np, gq.xyz - pp));
             let w_plane = exp(-plane / max(footprint * offset, 1e-20));
-            let w_normal = normal_stop(max(dot(np, gq.xyz), 0.0));
-            let s = signal_at(q);
-            let var_q = variance_at(q);
+            let w_normal = normal_stop(max(dot(np, in_geometry[q].xyz), 0.0));
+            let s = src_signal[q];
+            let var_q = gq.w;
             // Symmetric: the larger of the two estimates' variances (denoise.rs).
             let sigma_a = params.sigma_occlusion * sqrt(max(max(var_p, var_q), 0.0)) + 1e-6;
             let w_occ = exp(-abs(sp.x - s.x) / sigma_a);
@@ -204,7 +207,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         variance = vsum / (wsum * wsum);
     }
     dst_signal[i] = filtered;
-    dst_variance[i] = variance;
+    dst_guide[i] = vec4<f32>(pp, variance);
     if params.last == 1u {
         let r = raw(i);
         let v = r + strength_of(i) * (filtered - r);

@@ -1,6 +1,7 @@
 //! `Kernel::Denoise` (shaders/denoise.wgsl): the edge-aware spatial filter of the occlusion and
 //! IBL terms on the GPU, [`crate::denoise::PASSES`] a-trous passes over the rectangle the AO kernel
-//! ran on, between the AO kernel and compose. Its definition and CPU twin are
+//! ran on, between the AO kernel and compose, after a prepare dispatch that writes what the
+//! passes' taps read (the raw signal and the guide: position and variance). Its definition and CPU twin are
 //! [`crate::denoise`]; [`DenoiseParams`] is the twin of the WGSL struct, one per pass at a dynamic
 //! offset. [`DenoiseBuffers`] are a rectangle's resources (made once per tile).
 
@@ -21,7 +22,8 @@ pub struct DenoiseParams {
     pub rect_origin: [u32; 2],
     pub rect_size: [u32; 2],
     pub step: u32,
-    pub first: u32,
+    /// 1: the prepare dispatch.
+    pub prepare: u32,
     pub last: u32,
     pub frames: u32,
     pub samples: f32,
@@ -55,7 +57,7 @@ impl DenoiseParams {
             rect_origin: frame.rect_origin,
             rect_size: frame.rect_size,
             step: 1 << pass,
-            first: u32::from(pass == 0),
+            prepare: 0,
             last: u32::from(pass + 1 == PASSES),
             frames,
             samples: samples as f32,
@@ -70,7 +72,15 @@ impl DenoiseParams {
             _pad2: 0,
         }
     }
+
+    /// The prepare dispatch before the passes.
+    pub fn prepare(frame: &FrameParams, frames: u32, per_pixel: bool) -> DenoiseParams {
+        DenoiseParams { step: 0, prepare: 1, last: 0, ..DenoiseParams::new(frame, frames, 0, per_pixel) }
+    }
 }
+
+/// Dispatches of a frame's filter: the prepare one, then the passes.
+const DISPATCHES: u32 = PASSES + 1;
 
 /// Whether a frame of `settings` has anything to filter: AO samples (the filter is guided by the
 /// occlusion estimate's variance; without samples the terms carry no noise).
@@ -87,7 +97,7 @@ pub struct DenoiseKernel {
     stride: u64,
 }
 
-/// A rectangle's filter resources: two signal and variance buffers the passes alternate between,
+/// A rectangle's filter resources: two signal and guide buffers the dispatches alternate between,
 /// the output (running-sum form, what compose reads), the passes' parameters and the two bind
 /// groups. Made once (per tile, or per `render_accumulated`).
 pub struct DenoiseBuffers {
@@ -96,20 +106,20 @@ pub struct DenoiseBuffers {
     params: wgpu::Buffer,
     bind: [wgpu::BindGroup; 2],
     _signal: [wgpu::Buffer; 2],
-    _variance: [wgpu::Buffer; 2],
+    _guide: [wgpu::Buffer; 2],
     pixels: u64,
 }
 
 impl DenoiseBuffers {
     /// Bytes the buffers of an `n`-pixel rectangle take.
     pub fn bytes(n: u64) -> u64 {
-        n * (16 + 16 + 4 + 4 + 16)
+        n * (16 + 16 + 16 + 16 + 16)
     }
 }
 
 impl DenoiseKernel {
     /// The bind group layout: the passes' parameters (dynamic offset), the isosurface and AO
-    /// kernels' outputs, the previous and this pass's signal and variance, the output (a test holds
+    /// kernels' outputs, the previous and this pass's signal and guide, the output (a test holds
     /// it to naga's reflection of the WGSL).
     pub(crate) fn entries() -> Vec<wgpu::BindGroupLayoutEntry> {
         let mut entries = vec![wgpu::BindGroupLayoutEntry {
@@ -144,17 +154,18 @@ impl DenoiseKernel {
             ctx.buffer("denoise signal 0", n * 16, storage),
             ctx.buffer("denoise signal 1", n * 16, storage),
         ];
-        let variance = [
-            ctx.buffer("denoise variance 0", n * 4, storage),
-            ctx.buffer("denoise variance 1", n * 4, storage),
-        ];
+        let guide =
+            [ctx.buffer("denoise guide 0", n * 16, storage), ctx.buffer("denoise guide 1", n * 16, storage)];
         let out = ctx.buffer("denoised", n * 16, storage | wgpu::BufferUsages::COPY_SRC);
-        let params =
-            ctx.buffer("denoise params", self.stride * PASSES as u64, storage | wgpu::BufferUsages::COPY_DST);
+        let params = ctx.buffer(
+            "denoise params",
+            self.stride * DISPATCHES as u64,
+            storage | wgpu::BufferUsages::COPY_DST,
+        );
         fn b(binding: u32, buf: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
             wgpu::BindGroupEntry { binding, resource: buf.as_entire_binding() }
         }
-        // Bind group j reads signal/variance 1 - j and writes j.
+        // Bind group j reads signal/guide 1 - j and writes j.
         let bind = [0usize, 1].map(|j| {
             ctx.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some("denoise"),
@@ -173,19 +184,19 @@ impl DenoiseKernel {
                     b(3, inputs[2]),
                     b(4, inputs[3]),
                     b(5, &signal[1 - j]),
-                    b(6, &variance[1 - j]),
+                    b(6, &guide[1 - j]),
                     b(7, &signal[j]),
-                    b(8, &variance[j]),
+                    b(8, &guide[j]),
                     b(9, &out),
                 ],
             })
         });
-        DenoiseBuffers { out, params, bind, _signal: signal, _variance: variance, pixels: n }
+        DenoiseBuffers { out, params, bind, _signal: signal, _guide: guide, pixels: n }
     }
 
     /// Writes the passes' parameters for a frame of `frame` (the AO kernel's parameters) with
     /// `frames` frames in the running sums (`per_pixel`: each pixel's own weight), and records the
-    /// passes over its rectangle.
+    /// prepare dispatch and the passes over its rectangle.
     pub(crate) fn encode(
         &self,
         ctx: &GpuContext,
@@ -197,22 +208,21 @@ impl DenoiseKernel {
     ) {
         let size = (frame.rect_size[0], frame.rect_size[1]);
         debug_assert_eq!(size.0 as u64 * size.1 as u64, buffers.pixels);
-        // One write per pass at its offset: no host buffer per frame.
-        for pass in 0..PASSES {
-            let p = DenoiseParams::new(frame, frames, pass, per_pixel);
-            ctx.write_buffer(&buffers.params, pass as u64 * self.stride, bytemuck::bytes_of(&p));
+        // One write per dispatch at its offset: no host buffer per frame.
+        for k in 0..DISPATCHES {
+            let p = match k {
+                0 => DenoiseParams::prepare(frame, frames, per_pixel),
+                _ => DenoiseParams::new(frame, frames, k - 1, per_pixel),
+            };
+            ctx.write_buffer(&buffers.params, k as u64 * self.stride, bytemuck::bytes_of(&p));
         }
-        for pass in 0..PASSES {
+        for k in 0..DISPATCHES {
             let mut cpass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("denoise"),
                 timestamp_writes: None,
             });
             cpass.set_pipeline(&self.pipeline);
-            cpass.set_bind_group(
-                0,
-                &buffers.bind[(pass % 2) as usize],
-                &[(pass as u64 * self.stride) as u32],
-            );
+            cpass.set_bind_group(0, &buffers.bind[(k % 2) as usize], &[(k as u64 * self.stride) as u32]);
             cpass.dispatch_workgroups(
                 size.0.div_ceil(self.workgroup.0),
                 size.1.div_ceil(self.workgroup.1),
@@ -241,7 +251,7 @@ mod tests {
                 ("rect_origin", offset_of!(DenoiseParams, rect_origin)),
                 ("rect_size", offset_of!(DenoiseParams, rect_size)),
                 ("step", offset_of!(DenoiseParams, step)),
-                ("first", offset_of!(DenoiseParams, first)),
+                ("prepare", offset_of!(DenoiseParams, prepare)),
                 ("last", offset_of!(DenoiseParams, last)),
                 ("frames", offset_of!(DenoiseParams, frames)),
                 ("samples", offset_of!(DenoiseParams, samples)),
@@ -259,13 +269,14 @@ mod tests {
     }
 
     #[test]
-    fn passes_double_their_step_and_only_the_first_reads_the_sums() {
+    fn passes_double_their_step_after_the_prepare_dispatch() {
         let mut f: FrameParams = Zeroable::zeroed();
         f.ao_samples = 4;
         let p: Vec<DenoiseParams> = (0..PASSES).map(|k| DenoiseParams::new(&f, 4, k, false)).collect();
         assert_eq!(p.iter().map(|p| p.step).collect::<Vec<_>>(), vec![1, 2, 4, 8, 16]);
-        assert_eq!(p.iter().map(|p| p.first).sum::<u32>(), 1);
-        assert_eq!(p[0].first, 1);
+        assert_eq!(p.iter().map(|p| p.prepare).sum::<u32>(), 0);
+        let prep = DenoiseParams::prepare(&f, 4, false);
+        assert_eq!((prep.prepare, prep.last, prep.samples, prep.per_pixel), (1, 0, 16.0, 0));
         assert_eq!(p.iter().map(|p| p.last).sum::<u32>(), 1);
         assert_eq!(p[PASSES as usize - 1].last, 1);
         assert_eq!(p[0].samples, 16.0);
