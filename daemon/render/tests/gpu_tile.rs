@@ -208,3 +208,31 @@ fn a_steady_tile_allocates_nothing_and_reads_back_only_what_leaves_the_node() {
     let small = View::whole(view.camera, W / 2, H / 2);
     assert!(!tile.fits(&small, 2) && !tile.fits(&view, 1) && tile.fits(&view, 2));
 }
+
+/// Object space's images of a tile composited on the CPU (`ShownImages`, what its windows show):
+/// made once, then each frame is one upload into the image holding the oldest frame, with no
+/// allocation; an image of the wrong size is refused, and what is on show stays.
+#[test]
+fn a_tile_composited_on_the_cpu_is_uploaded_into_its_images_without_allocating() {
+    use isowall_render::gpu::tile::{Presentable, ShownImages, IMAGES};
+    let Some(gpu) = common::gpu() else { return };
+    let mut shown = ShownImages::new(&gpu, "t", (W, H)).unwrap();
+    assert!(ShownImages::new(&gpu, "t", (0, H)).is_err());
+    let rgb8 = vec![7u8; (3 * W * H) as usize];
+    gpu.show_image(&mut shown, 0, &rgb8).unwrap();
+    let before = gpu.ctx.traffic.now();
+    for frame_id in 1..=5u64 {
+        gpu.show_image(&mut shown, frame_id, &rgb8).unwrap();
+        // The last IMAGES frames are held, each in its own image.
+        let mut held: Vec<u64> = shown.images().iter().filter_map(|i| i.frame_id).collect();
+        held.sort_unstable();
+        let first = (frame_id + 1).saturating_sub(IMAGES as u64);
+        assert_eq!(held, (first..=frame_id).collect::<Vec<_>>(), "after frame {frame_id}");
+    }
+    let t = gpu.ctx.traffic.now() - before;
+    assert_eq!(t.allocations, 0, "{t:?}");
+    assert_eq!(t.uploaded, 5 * 4 * (W * H) as u64, "{t:?}");
+    let e = gpu.show_image(&mut shown, 6, &rgb8[3..]).unwrap_err().to_string();
+    assert!(e.contains("tile t") && e.contains(&format!("{W}x{H}")), "{e}");
+    assert!(shown.images().iter().all(|i| i.frame_id != Some(6)));
+}
