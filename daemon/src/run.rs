@@ -656,9 +656,10 @@ async fn composited(
                         .collect();
                 }
             }
-        } else if node.on_screen {
+        } else if node.on_screen && machine.rendering() == Some(d.job.frame_id) {
             // Composited here on the CPU: the windows show it from images the render thread
-            // uploads (its own targets hold this node's brick views).
+            // uploads (its own targets hold this node's brick views). Not a frame the frame
+            // machine no longer waits for (`frame_done` drops it).
             let images = d
                 .job
                 .tiles
