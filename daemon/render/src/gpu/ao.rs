@@ -122,9 +122,8 @@ const SEED_STEPS: u32 = 91;
 
 /// The compiled kernel.
 pub struct AoKernel {
-    /// `AoPath::Any`'s pipeline.
-    pipeline: wgpu::ComputePipeline,
-    /// `AoPath::Exact`'s.
+    /// The pipelines of `AoPath::Any` and `AoPath::Exact`.
+    any: wgpu::ComputePipeline,
     exact: wgpu::ComputePipeline,
     layout: wgpu::BindGroupLayout,
     workgroup: (u32, u32),
@@ -171,7 +170,7 @@ impl AoKernel {
             constants.push(("AO_PATH", f64::from(path.code())));
             constants
         };
-        let (pipeline, layout) = ctx.pipeline(Kernel::Ao, &entries, workgroup, &with_path(AoPath::Any))?;
+        let (any, layout) = ctx.pipeline(Kernel::Ao, &entries, workgroup, &with_path(AoPath::Any))?;
         let exact = ctx.pipeline_for_layout(Kernel::Ao, &layout, workgroup, &with_path(AoPath::Exact))?;
         let dispatch_stride = ctx.device.limits().min_storage_buffer_offset_alignment.max(16);
         let mut indices = vec![0u8; (dispatch_stride * MAX_AO_DISPATCHES) as usize];
@@ -184,7 +183,7 @@ impl AoKernel {
             contents: &indices,
             usage: wgpu::BufferUsages::STORAGE,
         });
-        Ok(AoKernel { pipeline, exact, layout, workgroup, dispatch_index, dispatch_stride })
+        Ok(AoKernel { any, exact, layout, workgroup, dispatch_index, dispatch_stride })
     }
 
     /// The bind group of the kernel's inputs and `io` (as [`AoKernel::encode`] takes them), made
@@ -235,7 +234,7 @@ impl AoKernel {
             let mut pass =
                 enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("ao"), timestamp_writes });
             pass.set_pipeline(match dispatches.path {
-                AoPath::Any => &self.pipeline,
+                AoPath::Any => &self.any,
                 AoPath::Exact => &self.exact,
             });
             pass.set_bind_group(0, bind_group, &[k * self.dispatch_stride]);
