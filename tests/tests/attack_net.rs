@@ -136,6 +136,11 @@ async fn hello_as_controller(
     node: &str,
 ) -> Result<Channel, String> {
     let conn = transport::connect(endpoint, at, node).await.map_err(|e| e.to_string())?;
+    hello_on(conn, node).await
+}
+
+/// On `conn`, as the controller would: opens the channel to `node` and says Hello.
+async fn hello_on(conn: quinn::Connection, node: &str) -> Result<Channel, String> {
     let mut ch = Channel::open(conn, node, 64 << 20).await.map_err(|e| e.to_string())?;
     ch.sender
         .send(&codec::hello(isowall_net::tls::CONTROLLER, Role::Controller))
@@ -182,10 +187,18 @@ fn names_equal_without_regard_to_case_are_refused_and_no_node_certificate_is_the
     let reason = rt.block_on(async {
         let endpoint = transport::client(&Identity::load(&forged, "controller").unwrap()).unwrap();
         // The node may refuse it before the Hello is sent (its identity is checked first): then
-        // the refusal is the error of the handshake.
-        let ch = match hello_as_controller(&endpoint, addr(ports[0]), "node0").await {
+        // the refusal is the error of the handshake, or, where the node's close overtakes the
+        // channel's opening or the Hello, the connection's close reason.
+        let conn = match transport::connect(&endpoint, addr(ports[0]), "node0").await {
+            Ok(conn) => conn,
+            Err(refused) => return refused.to_string(),
+        };
+        let ch = match hello_on(conn.clone(), "node0").await {
             Ok(ch) => ch,
-            Err(refused) => return refused,
+            Err(lost) => {
+                let reason = closed(&conn, Duration::from_secs(5)).await;
+                return if reason.starts_with('(') { format!("{lost} {reason}") } else { reason };
+            }
         };
         let first = tokio::time::timeout(Duration::from_secs(5), async {
             let mut r = ch.receiver;
