@@ -136,17 +136,23 @@ async fn hello_as_controller(
     node: &str,
 ) -> Result<Channel, String> {
     let conn = transport::connect(endpoint, at, node).await.map_err(|e| e.to_string())?;
-    hello_on(conn, node).await
-}
-
-/// On `conn`, as the controller would: opens the channel to `node` and says Hello.
-async fn hello_on(conn: quinn::Connection, node: &str) -> Result<Channel, String> {
-    let mut ch = Channel::open(conn, node, 64 << 20).await.map_err(|e| e.to_string())?;
-    ch.sender
-        .send(&codec::hello(isowall_net::tls::CONTROLLER, Role::Controller))
-        .await
-        .map_err(|e| e.to_string())?;
-    Ok(ch)
+    let opened = async {
+        let mut ch = Channel::open(conn.clone(), node, 64 << 20).await.map_err(|e| e.to_string())?;
+        ch.sender
+            .send(&codec::hello(isowall_net::tls::CONTROLLER, Role::Controller))
+            .await
+            .map_err(|e| e.to_string())?;
+        Ok(ch)
+    };
+    match opened.await {
+        Ok(ch) => Ok(ch),
+        // Where the node's close overtakes the channel's opening or the Hello, the send sees
+        // only the connection lost: the node's close reason, where it gave one, says why.
+        Err(lost) => {
+            let reason = closed(&conn, Duration::from_secs(1)).await;
+            Err(if reason.starts_with('(') { lost } else { reason })
+        }
+    }
 }
 
 // ---- 1: identities ------------------------------------------------------------------------------
@@ -187,18 +193,10 @@ fn names_equal_without_regard_to_case_are_refused_and_no_node_certificate_is_the
     let reason = rt.block_on(async {
         let endpoint = transport::client(&Identity::load(&forged, "controller").unwrap()).unwrap();
         // The node may refuse it before the Hello is sent (its identity is checked first): then
-        // the refusal is the error of the handshake, or, where the node's close overtakes the
-        // channel's opening or the Hello, the connection's close reason.
-        let conn = match transport::connect(&endpoint, addr(ports[0]), "node0").await {
-            Ok(conn) => conn,
-            Err(refused) => return refused.to_string(),
-        };
-        let ch = match hello_on(conn.clone(), "node0").await {
+        // the refusal is the error of the handshake, or the close reason.
+        let ch = match hello_as_controller(&endpoint, addr(ports[0]), "node0").await {
             Ok(ch) => ch,
-            Err(lost) => {
-                let reason = closed(&conn, Duration::from_secs(5)).await;
-                return if reason.starts_with('(') { format!("{lost} {reason}") } else { reason };
-            }
+            Err(refused) => return refused,
         };
         let first = tokio::time::timeout(Duration::from_secs(5), async {
             let mut r = ch.receiver;
