@@ -1,0 +1,60 @@
+#!/usr/bin/env bash
+# The measurements a GPU machine is wanted for, in one run (docs/bench/gpu-*.md holds what it gave):
+# a wall tile's frame at 1920x1080 and 512x512 (`bench frame`: the frame on the GPU against the
+# earlier round-trip path), speed with error against a converged reference (`bench suite`: the
+# default march and the hardware-filtered texture march), an occlusion AOV to compare with the
+# same render on lavapipe, the local 2x2 wall's fps, and the 1080p object-space wall's daemon RSS
+# over 200 frames.
+#
+#   scripts/measure-gpu.sh BIN_DIR CT_NRRD OUT_DIR
+#
+# BIN_DIR holds release builds of `isowalld` and `isowall`; CT_NRRD is the head CT of ../shared/data.
+# Every step has its own time limit, so that one that hangs costs only its own rows.
+set -uo pipefail
+bin=$(cd "$1" && pwd)
+ct=$2
+out=$3
+mkdir -p "$out"
+d="$bin/isowalld"
+scenes="procedural:engine,$ct@300"
+step() {
+    local limit=$1
+    shift
+    echo "== $(date +%T) $*"
+    local t0=$SECONDS
+    timeout "$limit" "$@"
+    echo "== rc $? after $((SECONDS - t0)) s"
+}
+
+nvidia-smi --query-gpu=name,driver_version,clocks.max.sm,memory.total --format=csv 2>&1 || true
+
+step 150 "$d" bench frame --scenes "$scenes" --size 1920x1080 --samples 32,64,256 --repeats 10 \
+    --variants default,before --save "$out/frame-1080p.csv"
+step 150 "$d" bench suite --scenes "$scenes" --sizes 1920x1080,512x512 --samples 32,64,256 --repeats 10 \
+    --reference-frames 4 --variants default,texture --save "$out/suite.csv"
+step 30 "$d" render --volume procedural:engine --size 512x512 --ao-samples 32 --frames 1 --aov occlusion \
+    --out "$out/engine-occlusion-512.pfm"
+step 30 "$d" render --volume "$ct" --iso 300 --size 512x512 --ao-samples 32 --frames 1 --aov occlusion \
+    --out "$out/ct-occlusion-512.pfm"
+
+# The local 2x2 wall (scripts/run.sh's), its frame statistics.
+cfg=wall-configs/local-2x2.toml
+[ -f wall-configs/keys/ca.pem ] || "$bin/isowall" keygen --config "$cfg"
+step 60 "$bin/isowall" up "$cfg" --frames 240
+
+# The 1080p object-space wall over 200 frames; both daemons' VmRSS every second.
+cfg=docs/bench/object-1080p-wall.toml
+[ -f docs/bench/keys/ca.pem ] || "$bin/isowall" keygen --config "$cfg"
+(
+    while sleep 1; do
+        for p in $(pgrep -x isowalld); do
+            echo "$SECONDS $p $(grep -E 'VmRSS|VmHWM' /proc/"$p"/status 2>/dev/null | tr -s ' \n' ' ')"
+        done
+    done
+) >"$out/object-wall-rss.txt" &
+sampler=$!
+step 120 "$bin/isowall" up "$cfg" --frames 200
+kill "$sampler" 2>/dev/null
+step 60 "$d" bench frame --scenes "$scenes" --size 512x512 --samples 32,256 --repeats 10 \
+    --variants default,before --save "$out/frame-512.csv"
+exit 0
