@@ -60,10 +60,21 @@ fn quick_accuracy_bench_writes_csv_chart_and_budget_table() {
             .unwrap()
     };
     assert!(ours("64") < 0.7 * ours("4"), "{csv}");
+    // The primary march on the filtered texture finds the same surface: at every sample count its
+    // occlusion error is ours' (the same AO pattern over the same hits), its time on the chart.
+    let texture: Vec<&Vec<&str>> = rows.iter().filter(|r| r[1] == "ours-texture").collect();
+    assert_eq!(texture.len(), 3, "{csv}");
+    for t in texture {
+        let o = ours(t[2]);
+        let e = t[8].parse::<f64>().unwrap();
+        assert!((e - o).abs() <= 0.02 * o + 1e-4, "texture {e} against ours {o} at {} samples:\n{csv}", t[2]);
+    }
+    assert!(stdout.contains("| sphere-over-plane | ") && stdout.contains("(`ours-texture`)"), "{stdout}");
 
     let png = image::open(out_dir.join("chart.png")).expect("chart.png written").to_rgb8();
     assert!(png.width() >= 400 && png.height() >= 300);
     let svg = std::fs::read_to_string(out_dir.join("chart.svg")).expect("chart.svg written");
     assert!(svg.starts_with("<svg") && svg.contains("sphere over plane"));
+    assert!(svg.contains("primary march on the filtered texture"), "the texture march's curve");
     assert!(out_dir.join("summary.txt").exists());
 }

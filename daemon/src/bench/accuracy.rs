@@ -9,7 +9,7 @@ use anyhow::{Context, Result};
 use clap::Args;
 use isowall_model::{AoMethod, Camera, IblMethod, RenderSettings, View};
 use isowall_render::environment::Environment;
-use isowall_render::gpu::GpuRenderer;
+use isowall_render::gpu::{GpuRenderer, PerfOptions};
 use std::time::Instant;
 
 /// The scenes of the speed/accuracy chart (DESIGN.md "Accuracy and speed").
@@ -56,6 +56,9 @@ struct Variant {
     samples: u32,
     frames: u32,
     ibl: IblMethod,
+    /// The primary rays march on the hardware-filtered `texture_3d` copy of the volume
+    /// (`PerfOptions::texture`; the refinement still exact from the storage volume).
+    texture: bool,
 }
 
 /// How a curve of the chart is drawn.
@@ -67,14 +70,28 @@ struct Curve {
 
 impl Variant {
     fn ours(samples: u32) -> Variant {
-        Variant { method: AoMethod::Ours, exact: true, step: 0.5, samples, frames: 1, ibl: IblMethod::None }
+        Variant {
+            method: AoMethod::Ours,
+            exact: true,
+            step: 0.5,
+            samples,
+            frames: 1,
+            ibl: IblMethod::None,
+            texture: false,
+        }
+    }
+
+    /// Ours, exact, with the primary march on the hardware-filtered texture.
+    fn texture(samples: u32) -> Variant {
+        Variant { texture: true, ..Variant::ours(samples) }
     }
 
     fn method_name(&self) -> &'static str {
-        match (self.method, self.exact) {
-            (AoMethod::Seed, _) => "seed",
-            (AoMethod::Ours, true) => "ours",
-            (AoMethod::Ours, false) => "ours-stepped",
+        match (self.method, self.exact, self.texture) {
+            (AoMethod::Seed, _, _) => "seed",
+            (AoMethod::Ours, true, false) => "ours",
+            (AoMethod::Ours, true, true) => "ours-texture",
+            (AoMethod::Ours, false, _) => "ours-stepped",
         }
     }
 
@@ -103,6 +120,9 @@ impl Variant {
         }
         let (label, color, marker) = match (self.method, self.exact, self.frames) {
             (AoMethod::Seed, _, _) => ("seed (2008)".to_string(), (214, 39, 40), Marker::Triangle),
+            (AoMethod::Ours, true, 1) if self.texture => {
+                ("ours (exact), primary march on the filtered texture".into(), (64, 64, 64), Marker::Circle)
+            }
             (AoMethod::Ours, true, 1) => ("ours (exact)".into(), (31, 119, 180), Marker::Circle),
             (AoMethod::Ours, true, k) => {
                 let color = match k {
@@ -127,7 +147,9 @@ impl Variant {
 }
 
 /// The sweep: methods x samples at the default (exact) test, accumulated frames, march steps x a
-/// couple of sample counts, IBL methods x a couple of sample counts. Not the cartesian product.
+/// couple of sample counts, IBL methods x a couple of sample counts, and ours with the primary
+/// march on the filtered texture x samples (last: the kernels are compiled for it once a pass).
+/// Not the cartesian product.
 fn accuracy_sweep(quick: bool) -> Vec<Variant> {
     // Ours also at 1 and 2 samples, so that the time at which ours reaches the seed's error can be
     // interpolated rather than bounded (the seed needs 4: below that its disk rejects every sample).
@@ -156,6 +178,7 @@ fn accuracy_sweep(quick: bool) -> Vec<Variant> {
             v.push(Variant { ibl, ..Variant::ours(n) });
         }
     }
+    v.extend(samples.iter().map(|&n| Variant::texture(n)));
     v
 }
 
@@ -411,6 +434,7 @@ fn accuracy_summary(rows: &[AccuracyRow], scenes: &[(String, String, f64)], budg
     if let Some(r) = vs_256.range() {
         let _ = writeln!(o, "- All scenes: ours reaches the error of the seed at its most samples {r}.");
     }
+    texture_march_summary(&mut o, rows, scenes);
     let _ = writeln!(o, "\nIBL: colour RMSE (linear, hit pixels) against the converged `rays` reference:\n");
     let ibl_rows: Vec<&AccuracyRow> = rows.iter().filter(|r| r.variant.ibl != IblMethod::None).collect();
     let mut counts: Vec<u32> = ibl_rows.iter().map(|r| r.variant.samples).collect();
@@ -437,6 +461,51 @@ fn accuracy_summary(rows: &[AccuracyRow], scenes: &[(String, String, f64)], budg
     o
 }
 
+/// The primary march on the filtered texture against the storage march, ours exact at the same
+/// samples: each scene's frame-time ratios and occlusion RMSE of both (nothing where no texture
+/// point was measured).
+fn texture_march_summary(o: &mut String, rows: &[AccuracyRow], scenes: &[(String, String, f64)]) {
+    use std::fmt::Write;
+    let pairs = |key: &str| -> Vec<(&AccuracyRow, &AccuracyRow)> {
+        rows.iter()
+            .filter(|t| t.scene == key && t.variant == Variant::texture(t.variant.samples))
+            .filter_map(|t| {
+                rows.iter()
+                    .find(|r| r.scene == key && r.variant == Variant::ours(t.variant.samples))
+                    .map(|r| (r, t))
+            })
+            .collect()
+    };
+    if scenes.iter().all(|(key, _, _)| pairs(key).is_empty()) {
+        return;
+    }
+    let _ = writeln!(
+        o,
+        "\nThe primary march on the hardware-filtered texture (`ours-texture`) against the storage march\n\
+         (`ours`), both exact AO at the same samples: frame time ratio texture / storage (smallest, median,\n\
+         largest over the sample counts) and occlusion RMSE of each, at the fewest and the most samples:\n"
+    );
+    let _ = writeln!(o, "| scene | ms ratio | RMSE, fewest samples | RMSE, most samples |");
+    let _ = writeln!(o, "|---|---|---|---|");
+    for (key, _, _) in scenes {
+        let p = pairs(key);
+        let (Some(first), Some(last)) = (p.first(), p.last()) else { continue };
+        let ratios: Vec<f64> = p.iter().map(|(r, t)| t.ms / r.ms).collect();
+        let lo = ratios.iter().copied().fold(f64::INFINITY, f64::min);
+        let hi = ratios.iter().copied().fold(0.0, f64::max);
+        let rmse = |(r, t): &(&AccuracyRow, &AccuracyRow)| {
+            format!("{:.4} / {:.4} ({} spp)", r.occlusion_rmse, t.occlusion_rmse, r.variant.samples)
+        };
+        let _ = writeln!(
+            o,
+            "| {key} | {lo:.2} / {:.2} / {hi:.2} | {} | {} |",
+            median(ratios),
+            rmse(first),
+            rmse(last)
+        );
+    }
+}
+
 pub fn run(a: &AccuracyArgs) -> Result<()> {
     let started = Instant::now();
     let budgets: Vec<f64> = a
@@ -453,7 +522,7 @@ pub fn run(a: &AccuracyArgs) -> Result<()> {
         let run = AccuracyRun::from_csv(&text).with_context(|| format!("{}", csv.display()))?;
         return accuracy_report(&run, &a.out, &budgets, None);
     }
-    let gpu = GpuRenderer::new()?;
+    let mut gpu = GpuRenderer::new()?;
     let (w, h) = a.size;
     let repeats = a.repeats.unwrap_or(if a.quick { 1 } else { 3 }).max(1);
     let ref_frames = a.reference_frames.unwrap_or(if a.quick { 4 } else { 16 });
@@ -487,6 +556,13 @@ pub fn run(a: &AccuracyArgs) -> Result<()> {
         let (volume, iso) = load_volume(Some(spec), None, iso)?;
         let key = scene_key(spec);
         let gv = gpu.upload(&volume)?;
+        // The volume again with its filtered texture copy, for the texture march's points; the
+        // kernels are compiled for it while those points run, the default ones otherwise.
+        let march_on = |texture: bool| PerfOptions { texture, ..PerfOptions::default() };
+        gpu.set_perf(march_on(true))?;
+        let gv_texture = gpu.upload(&volume)?;
+        gpu.set_perf(march_on(false))?;
+        let mut texture_on = false;
         let view = View::whole(Camera::framing(volume.box_min(), volume.box_max(), w, h), w, h);
         let settings_for = |v: &Variant| {
             let mut s = RenderSettings::new(iso);
@@ -522,6 +598,12 @@ pub fn run(a: &AccuracyArgs) -> Result<()> {
         let mut primary_times = Vec::new();
         for pass in 0..=repeats {
             let timed = pass > 0;
+            if texture_on {
+                // The first frame of freshly compiled kernels is not timed.
+                gpu.set_perf(march_on(false))?;
+                texture_on = false;
+                gpu.render(&gv, &view, &plain, None)?;
+            }
             let r = gpu.render(&gv, &view, &plain, None)?;
             if timed {
                 primary_times.push(r.gpu_time.as_secs_f64() * 1e3);
@@ -530,7 +612,13 @@ pub fn run(a: &AccuracyArgs) -> Result<()> {
                 let mut s = settings_for(v);
                 // The warm-up has a pattern of its own; each timed pass a fresh one.
                 s.ao.frame = if timed { (pass as u32 - 1) * v.frames } else { 500_000 };
-                let out = gpu.render_accumulated(&gv, &view, &s, env_for(v), v.frames)?;
+                let volume = if v.texture { &gv_texture } else { &gv };
+                if v.texture != texture_on {
+                    gpu.set_perf(march_on(v.texture))?;
+                    texture_on = v.texture;
+                    gpu.render_accumulated(volume, &view, &s, env_for(v), v.frames)?;
+                }
+                let out = gpu.render_accumulated(volume, &view, &s, env_for(v), v.frames)?;
                 if !timed {
                     continue;
                 }
@@ -621,6 +709,8 @@ impl AccuracyRun {
              # ms: median of {} frame(s) of GPU submit-to-done wall time (Rendered::gpu_time), readback excluded, no GPU \
              timestamp queries; one frame per pass over the sweep, after a warm-up pass\n\
              # frames: frames accumulated in one render (ms is for all of them); samples: AO rays per pixel per frame\n\
+             # method: seed (2008), ours (exact per-cell test), ours-stepped (a march of `step` voxels), ours-texture (ours, \
+             with the primary rays' march on the hardware-filtered texture_3d copy of the volume, refined exactly from the storage volume)\n\
              # step: 'exact' (ours: exact per-cell test), march step in voxels (ours-stepped), empty (seed: its fixed 0.01 of the texture)\n\
              # reference: GPU, ours exact, {} frames x {} samples accumulated (disjoint pattern); \
              IBL points' color_rmse against the same with --ibl rays and the built-in sky (exposure 0.6)\n\
@@ -704,10 +794,11 @@ impl AccuracyRun {
                 let num = |i: usize| {
                     f[i].parse::<f64>().map_err(|_| bad(n, &format!("'{}' is not a number", f[i])))
                 };
-                let (method, exact) = match f[1] {
-                    "seed" => (AoMethod::Seed, true),
-                    "ours" => (AoMethod::Ours, true),
-                    "ours-stepped" => (AoMethod::Ours, false),
+                let (method, exact, texture) = match f[1] {
+                    "seed" => (AoMethod::Seed, true, false),
+                    "ours" => (AoMethod::Ours, true, false),
+                    "ours-texture" => (AoMethod::Ours, true, true),
+                    "ours-stepped" => (AoMethod::Ours, false, false),
                     m => return Err(bad(n, &format!("unknown method '{m}'"))),
                 };
                 let ibl = match f[5] {
@@ -724,6 +815,7 @@ impl AccuracyRun {
                     samples: num(2)? as u32,
                     frames: num(3)? as u32,
                     ibl,
+                    texture,
                 };
                 run.rows.push(AccuracyRow {
                     scene: f[0].to_string(),
@@ -883,6 +975,9 @@ mod tests {
                 row(Variant::ours(64), 40.0, 0.025),
                 row(Variant { exact: false, step: 0.25, ..Variant::ours(16) }, 30.0, 0.04),
                 row(Variant { ibl: IblMethod::Bent, ..Variant::ours(16) }, 22.0, 0.05),
+                row(Variant::texture(4), 9.0, 0.1),
+                row(Variant::texture(16), 20.0, 0.05),
+                row(Variant::texture(64), 44.0, 0.026),
             ],
         };
         let back = AccuracyRun::from_csv(&run.to_csv()).unwrap();
@@ -907,6 +1002,15 @@ mod tests {
         assert!((at(is_seed, 50.0).unwrap() - 0.19).abs() < 1e-12);
         let summary = accuracy_summary(&run.rows, &run.scenes, &[10.0, 30.0]);
         assert!(summary.contains("| engine | ours | 0.1000 |"), "{summary}");
+        // The texture march's points are neither ours' nor on ours' curve; the summary pairs them
+        // with ours at the same samples (ratios 0.9, 1.0 and 1.1).
+        assert_eq!(back.rows.iter().filter(|r| r.variant.texture).count(), 3);
+        assert!(
+            summary.contains(
+                "| engine | 0.90 / 1.00 / 1.10 | 0.1000 / 0.1000 (4 spp) | 0.0250 / 0.0260 (64 spp) |"
+            ),
+            "{summary}"
+        );
         assert!(AccuracyRun::from_csv("scene,method\n").is_err());
     }
 
@@ -918,6 +1022,10 @@ mod tests {
         assert!(full.iter().all(|v| v.samples * v.frames <= 512));
         assert_eq!(full.iter().filter(|v| !v.exact).count(), 8);
         assert_eq!(full.iter().filter(|v| v.ibl != IblMethod::None).count(), 6);
+        assert_eq!(full.iter().filter(|v| v.texture).count(), 7);
+        assert!(full.iter().skip_while(|v| !v.texture).all(|v| v.texture), "texture points last");
+        assert_eq!(Variant::texture(16).method_name(), "ours-texture");
+        assert!(!is_ours(&Variant::texture(16)));
         assert!(accuracy_sweep(true).len() < full.len() / 2);
         let stepped = Variant { exact: false, step: 0.25, ..Variant::ours(16) };
         assert_eq!((stepped.method_name(), stepped.step_name().as_str()), ("ours-stepped", "0.25"));
