@@ -75,6 +75,6 @@ fn quick_accuracy_bench_writes_csv_chart_and_budget_table() {
     assert!(png.width() >= 400 && png.height() >= 300);
     let svg = std::fs::read_to_string(out_dir.join("chart.svg")).expect("chart.svg written");
     assert!(svg.starts_with("<svg") && svg.contains("sphere over plane"));
-    assert!(svg.contains("primary march on the filtered texture"), "the texture march's curve");
+    assert!(svg.contains("ours, texture march"), "the texture march's curve");
     assert!(out_dir.join("summary.txt").exists());
 }

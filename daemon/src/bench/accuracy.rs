@@ -121,7 +121,7 @@ impl Variant {
         let (label, color, marker) = match (self.method, self.exact, self.frames) {
             (AoMethod::Seed, _, _) => ("seed (2008)".to_string(), (214, 39, 40), Marker::Triangle),
             (AoMethod::Ours, true, 1) if self.texture => {
-                ("ours (exact), primary march on the filtered texture".into(), (64, 64, 64), Marker::Circle)
+                ("ours, texture march".into(), (64, 64, 64), Marker::Circle)
             }
             (AoMethod::Ours, true, 1) => ("ours (exact)".into(), (31, 119, 180), Marker::Circle),
             (AoMethod::Ours, true, k) => {
