@@ -9,7 +9,8 @@
 #   scripts/measure-gpu.sh BIN_DIR CT_NRRD OUT_DIR
 #
 # BIN_DIR holds release builds of `isowalld` and `isowall`; CT_NRRD is the head CT of ../shared/data.
-# Every step has its own time limit, so that one that hangs costs only its own rows.
+# Every step has its own time limit, so that one that hangs costs only its own rows. SMOKE=1 runs
+# every step at toy sizes (a check of the script on any machine, lavapipe included).
 set -uo pipefail
 bin=$(cd "$1" && pwd)
 ct=$2
@@ -17,6 +18,10 @@ out=$3
 mkdir -p "$out"
 d="$bin/isowalld"
 scenes="procedural:engine,$ct@300"
+tile=1920x1080 small=512x512 spp=32,64,256 frames=200
+if [ "${SMOKE:-0}" = 1 ]; then
+    tile=96x54 small=64x64 spp=4,8 frames=8
+fi
 step() {
     local limit=$1
     shift
@@ -28,23 +33,25 @@ step() {
 
 nvidia-smi --query-gpu=name,driver_version,clocks.max.sm,memory.total --format=csv 2>&1 || true
 
-step 150 "$d" bench frame --scenes "$scenes" --size 1920x1080 --samples 32,64,256 --repeats 10 \
+step 150 "$d" bench frame --scenes "$scenes" --size $tile --samples $spp --repeats 10 \
     --variants default,before --save "$out/frame-1080p.csv"
-step 150 "$d" bench suite --scenes "$scenes" --sizes 1920x1080,512x512 --samples 32,64,256 --repeats 10 \
+step 150 "$d" bench suite --scenes "$scenes" --sizes $tile,$small --samples $spp --repeats 10 \
     --reference-frames 4 --variants default,texture --save "$out/suite.csv"
-step 30 "$d" render --volume procedural:engine --size 512x512 --ao-samples 32 --frames 1 --aov occlusion \
+step 30 "$d" render --volume procedural:engine --size $small --ao-samples 32 --frames 1 --aov occlusion \
     --out "$out/engine-occlusion-512.pfm"
-step 30 "$d" render --volume "$ct" --iso 300 --size 512x512 --ao-samples 32 --frames 1 --aov occlusion \
+step 30 "$d" render --volume "$ct" --iso 300 --size $small --ao-samples 32 --frames 1 --aov occlusion \
     --out "$out/ct-occlusion-512.pfm"
 
 # The local 2x2 wall (scripts/run.sh's), its frame statistics.
 cfg=wall-configs/local-2x2.toml
 [ -f wall-configs/keys/ca.pem ] || "$bin/isowall" keygen --config "$cfg"
-step 60 "$bin/isowall" up "$cfg" --frames 240
+step 60 "$bin/isowall" up "$cfg" --frames $((frames + 40))
 
 # The 1080p object-space wall over 200 frames; both daemons' VmRSS every second.
-cfg=docs/bench/object-1080p-wall.toml
-[ -f docs/bench/keys/ca.pem ] || "$bin/isowall" keygen --config "$cfg"
+# (A copy of its config, so that its certificates are made outside the checkout.)
+cfg=$(mktemp -d)/object-1080p-wall.toml
+cp docs/bench/object-1080p-wall.toml "$cfg"
+"$bin/isowall" keygen --config "$cfg" >/dev/null
 (
     while sleep 1; do
         for p in $(pgrep -x isowalld); do
@@ -53,8 +60,8 @@ cfg=docs/bench/object-1080p-wall.toml
     done
 ) >"$out/object-wall-rss.txt" &
 sampler=$!
-step 120 "$bin/isowall" up "$cfg" --frames 200
+step 120 "$bin/isowall" up "$cfg" --frames $frames
 kill "$sampler" 2>/dev/null
-step 60 "$d" bench frame --scenes "$scenes" --size 512x512 --samples 32,256 --repeats 10 \
+step 60 "$d" bench frame --scenes "$scenes" --size $small --samples $spp --repeats 10 \
     --variants default,before --save "$out/frame-512.csv"
 exit 0
