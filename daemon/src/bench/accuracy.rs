@@ -558,10 +558,10 @@ pub fn run(a: &AccuracyArgs) -> Result<()> {
         let gv = gpu.upload(&volume)?;
         // The volume again with its filtered texture copy, for the texture march's points; the
         // kernels are compiled for it while those points run, the default ones otherwise.
-        let march_on = |texture: bool| PerfOptions { texture, ..PerfOptions::default() };
-        gpu.set_perf(march_on(true))?;
+        let perf_for = |texture: bool| PerfOptions { texture, ..PerfOptions::default() };
+        gpu.set_perf(perf_for(true))?;
         let gv_texture = gpu.upload(&volume)?;
-        gpu.set_perf(march_on(false))?;
+        gpu.set_perf(perf_for(false))?;
         let mut texture_on = false;
         let view = View::whole(Camera::framing(volume.box_min(), volume.box_max(), w, h), w, h);
         let settings_for = |v: &Variant| {
@@ -600,7 +600,7 @@ pub fn run(a: &AccuracyArgs) -> Result<()> {
             let timed = pass > 0;
             if texture_on {
                 // The first frame of freshly compiled kernels is not timed.
-                gpu.set_perf(march_on(false))?;
+                gpu.set_perf(perf_for(false))?;
                 texture_on = false;
                 gpu.render(&gv, &view, &plain, None)?;
             }
@@ -614,7 +614,7 @@ pub fn run(a: &AccuracyArgs) -> Result<()> {
                 s.ao.frame = if timed { (pass as u32 - 1) * v.frames } else { 500_000 };
                 let volume = if v.texture { &gv_texture } else { &gv };
                 if v.texture != texture_on {
-                    gpu.set_perf(march_on(v.texture))?;
+                    gpu.set_perf(perf_for(v.texture))?;
                     texture_on = v.texture;
                     gpu.render_accumulated(volume, &view, &s, env_for(v), v.frames)?;
                 }
