@@ -33,7 +33,7 @@ step() {
 
 nvidia-smi --query-gpu=name,driver_version,clocks.max.sm,memory.total --format=csv 2>&1 || true
 
-step 150 "$d" bench frame --scenes "$scenes" --size $tile --samples $spp --repeats 10 \
+step 150 "$d" bench frame --scenes "$scenes" --size $tile --samples $spp --repeats 10 --paths screen,object,moving \
     --variants default,before --save "$out/frame-1080p.csv"
 step 150 "$d" bench suite --scenes "$scenes" --sizes $tile,$small --samples $spp --repeats 10 \
     --reference-frames 4 --variants default,texture --save "$out/suite.csv"

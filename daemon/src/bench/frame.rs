@@ -1,7 +1,8 @@
 //! `isowalld bench frame`: what one frame of a wall tile costs, by the node's own frame path. For
 //! a tile (default 1920x1080) in screen space (presented offscreen: the frame stays on the GPU;
-//! then a snapshot) and in object space (the tile's share, colour and depth, read back each
-//! frame), per frame: GPU allocations, bytes read back, bytes uploaded, CPU ms outside GPU waits,
+//! then a snapshot), in object space (the tile's share, colour and depth, read back each frame)
+//! and, with `--paths moving`, in screen space with every frame a restart (a camera that moves:
+//! the isosurface kernel runs every frame, no accumulation), per frame: GPU allocations, bytes read back, bytes uploaded, CPU ms outside GPU waits,
 //! ms per frame, and GPU ms per kernel (timestamp queries where the adapter has them; otherwise
 //! submit to done for the whole frame). `--variants plain` (or `before`) runs the path of the
 //! build before the frame stayed on the GPU (every AOV made and read back each frame, composed,
@@ -41,8 +42,9 @@ pub struct FrameArgs {
     /// Timed frames per row (medians reported), after one untimed frame that makes the resources
     #[arg(long, default_value_t = 3)]
     pub repeats: usize,
-    /// Paths measured, comma-separated: `screen` (presented offscreen, then a snapshot), `object`
-    /// (the share read back every frame)
+    /// Paths measured, comma-separated: `screen` (presented offscreen, accumulating, then a
+    /// snapshot), `object` (the share read back every frame), `moving` (presented offscreen, every
+    /// frame a restart as when the camera moves: the isosurface kernel runs every frame)
     #[arg(long, default_value = "screen,object")]
     pub paths: String,
     /// `default` (the frame on the GPU) and/or `plain` (or `before`: every AOV read back, the CPU
@@ -148,6 +150,28 @@ fn traffic_delta(gpu: &GpuRenderer, before: TrafficCount) -> TrafficCount {
     gpu.ctx.traffic.now() - before
 }
 
+/// A path `bench frame` measures (`--paths`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Path {
+    /// Screen space, presented offscreen, accumulating while the frame state holds.
+    Screen,
+    /// Object space: the tile's share read back every frame.
+    Object,
+    /// Screen space with every frame a restart, as while the camera moves.
+    Moving,
+}
+
+impl Path {
+    fn parse(name: &str) -> Result<Path> {
+        match name {
+            "screen" => Ok(Path::Screen),
+            "object" => Ok(Path::Object),
+            "moving" => Ok(Path::Moving),
+            _ => bail!("--paths: unknown path '{name}' (screen, object, moving)"),
+        }
+    }
+}
+
 /// The frame path of this build: the tile's resources made once, one frame at a time (submit,
 /// then wait for its read so that the times are the frame's).
 struct Current {
@@ -163,19 +187,20 @@ impl Current {
         view: &View,
         s: &RenderSettings,
         k: u32,
-        share: bool,
+        path: Path,
     ) -> Result<Sample> {
         let before = gpu.ctx.traffic.now();
         let start = Instant::now();
         let mut f = *s;
         f.ao.frame = s.ao.frame.wrapping_add(k);
+        let share = path == Path::Object;
         let tf = TileFrame {
             frame_id: k as u64,
             volume: gv,
             view,
             settings: &f,
             env: None,
-            accumulate: k > 0,
+            accumulate: k > 0 && path != Path::Moving,
             temporal: false,
             share: share.then_some(PixelForm::Colour),
         };
@@ -354,11 +379,7 @@ pub fn run(a: &FrameArgs) -> Result<()> {
     };
     let paths = list(&a.paths);
     let variants = list(&a.variants);
-    for p in &paths {
-        if p != "screen" && p != "object" {
-            bail!("--paths: unknown path '{p}' (screen, object)");
-        }
-    }
+    let kinds = paths.iter().map(|p| Path::parse(p)).collect::<Result<Vec<Path>>>()?;
     for v in &variants {
         if v != "default" && !is_plain(v) {
             bail!("--variants: unknown variant '{v}' (default, plain)");
@@ -385,8 +406,7 @@ pub fn run(a: &FrameArgs) -> Result<()> {
         for &n in &samples {
             let mut s = RenderSettings::new(iso);
             s.ao.samples = n;
-            for path in &paths {
-                let share = path == "object";
+            for (path, &kind) in paths.iter().zip(&kinds) {
                 for variant in &variants {
                     let mut timed = Vec::new();
                     let repeats = a.repeats.max(1) as u32;
@@ -397,18 +417,21 @@ pub fn run(a: &FrameArgs) -> Result<()> {
                             ring: ReadbackRing::new(3),
                         };
                         for k in 0..=repeats {
-                            let sample = c.frame(&gpu, &gv, &view, &s, k, share)?;
+                            let sample = c.frame(&gpu, &gv, &view, &s, k, kind)?;
                             if k > 0 {
                                 timed.push(sample);
                             }
                         }
-                        if !share {
+                        if kind == Path::Screen {
                             snapshot = Some(c.snapshot(&gpu, repeats as u64)?);
                         }
                     } else {
+                        // The earlier path rendered the primary hits every frame, so its moving frame
+                        // is its screen frame without the running colour sum carried over.
                         let mut b = Before { sum: Vec::new(), frames: 0, texture: None };
                         for k in 0..=repeats {
-                            let sample = b.frame(&gpu, &gv, &view, &s, k, !share)?;
+                            let restart = if kind == Path::Moving { 0 } else { k };
+                            let sample = b.frame(&gpu, &gv, &view, &s, restart, kind != Path::Object)?;
                             if k > 0 {
                                 timed.push(sample);
                             }
