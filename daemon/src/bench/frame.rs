@@ -2,8 +2,8 @@
 //! a tile (default 1920x1080) in screen space (presented offscreen: the frame stays on the GPU;
 //! then a snapshot), in object space (the tile's share, colour and depth, read back each frame)
 //! and, with `--paths moving`, in screen space with every frame a restart (a camera that moves:
-//! the isosurface kernel runs every frame, no accumulation), per frame: GPU allocations, bytes read back, bytes uploaded, CPU ms outside GPU waits,
-//! ms per frame, and GPU ms per kernel (timestamp queries where the adapter has them; otherwise
+//! the isosurface kernel runs every frame, no accumulation), per frame: GPU allocations, bytes
+//! read back, bytes uploaded, CPU ms outside GPU waits, ms per frame, and GPU ms per kernel (timestamp queries where the adapter has them; otherwise
 //! submit to done for the whole frame). `--variants plain` (or `before`) runs the path of the
 //! build before the frame stayed on the GPU (every AOV made and read back each frame, composed,
 //! accumulated and encoded on the CPU, uploaded again to present) in the same run, for ratios.
