@@ -1,11 +1,10 @@
 #!/usr/bin/env bash
-# The measurements a GPU machine is wanted for, in one run (what it gives goes to docs/bench/, named
-# and marked with the GPU):
-# a wall tile's frame at 1920x1080 and 512x512 (`bench frame`: the frame on the GPU against the
-# earlier round-trip path; at 1080p also a moving camera's), speed with error against a converged reference (`bench suite`: the
-# default march and the hardware-filtered texture march), an occlusion AOV to compare with the
-# same render on lavapipe, the local 2x2 wall's fps, and the 1080p object-space wall's daemon RSS
-# over 200 frames.
+# The measurements a GPU machine is wanted for, in one run (what it gives goes to docs/bench/,
+# named and marked with the GPU): a wall tile's frame at 1920x1080 and 512x512 (`bench frame`:
+# the frame on the GPU against the earlier round-trip path; at 1080p also a moving camera's),
+# speed with error against a converged reference (`bench suite`: the default march and the
+# hardware-filtered texture march), an occlusion AOV to compare with the same render on lavapipe,
+# the local 2x2 wall's fps, and the 1080p object-space wall's daemon RSS over 200 frames.
 #
 #   scripts/measure-gpu.sh BIN_DIR CT_NRRD OUT_DIR
 #

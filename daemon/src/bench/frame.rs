@@ -3,10 +3,11 @@
 //! then a snapshot), in object space (the tile's share, colour and depth, read back each frame)
 //! and, with `--paths moving`, in screen space with every frame a restart (a camera that moves:
 //! the isosurface kernel runs every frame, no accumulation), per frame: GPU allocations, bytes
-//! read back, bytes uploaded, CPU ms outside GPU waits, ms per frame, and GPU ms per kernel (timestamp queries where the adapter has them; otherwise
-//! submit to done for the whole frame). `--variants plain` (or `before`) runs the path of the
-//! build before the frame stayed on the GPU (every AOV made and read back each frame, composed,
-//! accumulated and encoded on the CPU, uploaded again to present) in the same run, for ratios.
+//! read back, bytes uploaded, CPU ms outside GPU waits, ms per frame, and GPU ms per kernel
+//! (timestamp queries where the adapter has them; otherwise submit to done for the whole frame).
+//! `--variants plain` (or `before`) runs the path of the build before the frame stayed on the GPU
+//! (every AOV made and read back each frame, composed, accumulated and encoded on the CPU,
+//! uploaded again to present) in the same run, for ratios.
 
 use super::stats::{
     baseline_row, csv_records, is_plain, median, print_baseline_heading, sample_list, save_csv, scene_spec,
