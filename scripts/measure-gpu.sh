@@ -38,9 +38,9 @@ step 150 "$d" bench frame --scenes "$scenes" --size $tile --samples $spp --repea
 step 150 "$d" bench suite --scenes "$scenes" --sizes $tile,$small --samples $spp --repeats 10 \
     --reference-frames 4 --variants default,texture --save "$out/suite.csv"
 step 30 "$d" render --volume procedural:engine --size $small --ao-samples 32 --frames 1 --aov occlusion \
-    --out "$out/engine-occlusion-512.pfm"
+    --out "$out/engine-occlusion.pfm"
 step 30 "$d" render --volume "$ct" --iso 300 --size $small --ao-samples 32 --frames 1 --aov occlusion \
-    --out "$out/ct-occlusion-512.pfm"
+    --out "$out/ct-occlusion.pfm"
 
 # The local 2x2 wall (scripts/run.sh's), its frame statistics.
 cfg=wall-configs/local-2x2.toml

@@ -491,8 +491,7 @@ fn texture_march_summary(o: &mut String, rows: &[AccuracyRow], scenes: &[(String
         let p = pairs(key);
         let (Some(first), Some(last)) = (p.first(), p.last()) else { continue };
         let ratios: Vec<f64> = p.iter().map(|(r, t)| t.ms / r.ms).collect();
-        let lo = ratios.iter().copied().fold(f64::INFINITY, f64::min);
-        let hi = ratios.iter().copied().fold(0.0, f64::max);
+        let Some((lo, hi, _)) = ratio_stats(&ratios) else { continue };
         let rmse = |(r, t): &(&AccuracyRow, &AccuracyRow)| {
             format!("{:.4} / {:.4} ({} spp)", r.occlusion_rmse, t.occlusion_rmse, r.variant.samples)
         };
