@@ -9,7 +9,9 @@
 // the surface, o = p + eps Ng (`ao_offset` = eps), Ng the trilinear field's own gradient in p's
 // cell turned towards the arriving ray (a cap's face normal); a ray up to R (`ao_radius`, or to the
 // box exit when unbounded) from where it enters the box; occluded as soon as f >= iso anywhere on
-// it (t = 0 included), so a direction under the surface finds the object within a few eps. Blocks whose max < iso are crossed without
+// it (t = 0 included). A direction under p's tangent plane (w . Ng <= 0) is occluded without
+// marching (`under_tangent_plane`): from p itself it enters the object at once, and marched from
+// o it would escape over a curved surface. Blocks whose max < iso are crossed without
 // looking at them (performance: AO rays have their own, finer level, `ao_level`, and a coarse one,
 // `coarse_level`, crossed whole where its max < iso; a ray in a block whose min >= iso is occluded
 // without a fetch, `PERF_BLOCK_MIN_EXIT`). Two tests of the ray:
@@ -402,6 +404,12 @@ fn geometric_normal(p: vec3<f32>, dir: vec3<f32>) -> vec3<f32> {
     return select(ng, -ng, dot(ng, dir) > 0.0);
 }
 
+// DESIGN.md "AO": a direction under p's tangent plane (w . Ng <= 0) is occluded, without marching
+// (the twin of the reference's `under_tangent_plane`).
+fn under_tangent_plane(w: vec3<f32>, ng: vec3<f32>) -> bool {
+    return dot(w, ng) <= 0.0;
+}
+
 // The 2008 march (baseline): texture-space steps of 0.01 from the hit point p itself.
 fn seed_occluded(p: vec3<f32>, w: vec3<f32>, f_p: f32) -> bool {
     let size = params.box_max.xyz - params.box_min.xyz;
@@ -510,7 +518,9 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         if exact && !want_rays {
             for (var i = first; i < last; i += 1u) {
                 let w = cosine_direction(axis, axis_basis, ao_point(params.ao_sequence, i, key));
-                if exact_occluded(o, w, start, start_corners) {
+                if under_tangent_plane(w, ng) {
+                    occluded += 1u;
+                } else if exact_occluded(o, w, start, start_corners) {
                     occluded += 1u;
                 } else {
                     bent += w;
@@ -520,7 +530,9 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             for (var i = first; i < last; i += 1u) {
                 let w = cosine_direction(axis, axis_basis, ao_point(params.ao_sequence, i, key));
                 var hit: bool;
-                if exact {
+                if under_tangent_plane(w, ng) {
+                    hit = true;
+                } else if exact {
                     hit = exact_occluded(o, w, start, start_corners);
                 } else {
                     hit = ours_occluded(o, w);

@@ -44,7 +44,9 @@
 //! some `t` in `[0, R]`, `R` the AO radius
 //! ([`AoSettings::radius_world`](isowall_model::AoSettings::radius_world)) or the box exit when
 //! unbounded; `t = 0` is included, so an origin inside the object is occluded. A direction under
-//! the surface meets the object within a few eps by the same test; no other rule. Outside the box
+//! p's tangent plane (`w . Ng <= 0`, [`under_tangent_plane`]) is occluded without marching: from
+//! p itself it enters the object at once (the integral's value at eps -> 0), where marched from o
+//! it could escape over a curved surface. Outside the box
 //! the field is empty, so a ray that leaves the box is open (and one whose origin lies outside the
 //! box is tested from where it enters it, if it does). Exact: the ray walks the cells like a
 //! primary ray and each segment's cubic is tested for `max >= iso` (its ends and the roots of its
@@ -355,6 +357,13 @@ pub fn ao_origin(volume: &Volume, settings: &RenderSettings, p: DVec3, ng: DVec3
     p + settings.ao.offset_voxels * volume.spacing().min_element() * ng
 }
 
+/// DESIGN.md "AO": a direction `w` under the tangent plane of a surface point with geometric
+/// normal `ng` (`w . ng <= 0`) is occluded, without marching (inside p's cell the trilinear field
+/// rises along it). The GPU's twin is `under_tangent_plane` in shaders/ao.wgsl.
+pub fn under_tangent_plane(w: DVec3, ng: DVec3) -> bool {
+    w.dot(ng) <= 0.0
+}
+
 /// AO, bent normal and E at the surface point `surface`, seen through pixel `(px, py)` of the full
 /// image (module documentation; `settings.ao.method` picks ours or the seed baseline).
 pub fn ambient_at(
@@ -377,7 +386,11 @@ pub fn ambient_at(
     for i in 0..n {
         let (u, v) = ao_point(ao.sequence, i, key);
         let w = cosine_direction(axis, u, v);
-        let (hit, f) = ao_ray_counted(volume, o, w, settings.iso, radius);
+        let (hit, f) = if under_tangent_plane(w, surface.geometric) {
+            (true, 0)
+        } else {
+            ao_ray_counted(volume, o, w, settings.iso, radius)
+        };
         fetches += f;
         tally.add(hit, w, lighting);
     }
@@ -907,7 +920,7 @@ fn quadratic_roots(a: f64, b: f64, c: f64) -> [f64; 2] {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use isowall_model::{Camera, Rect};
+    use isowall_model::{AoRadius, Camera, Rect};
 
     /// A volume sampling `f` at the world positions of its samples.
     fn field(dims: [usize; 3], spacing: DVec3, origin: DVec3, f: impl Fn(DVec3) -> f64) -> Volume {
@@ -1222,6 +1235,45 @@ mod tests {
         // A zero-length segment looks at s = 0 alone; NaN never reaches.
         assert!(!reaches(&[-1.0, 5.0, 0.0, 0.0], 0.0) && reaches(&[0.0; 4], 0.0));
         assert!(!reaches(&[f64::NAN; 4], 1.0));
+    }
+
+    /// DESIGN.md "AO": every direction under p's tangent plane is occluded, none else on a convex
+    /// ball (unbounded radius). Marched from o = p + eps Ng, the grazing ones among those
+    /// directions escape over the ball's curved surface: without the rule, A would be lower.
+    #[test]
+    fn directions_under_the_tangent_plane_are_occluded_without_marching() {
+        let c = DVec3::splat(15.5);
+        let v = field([32, 32, 32], DVec3::ONE, DVec3::ZERO, |p| 10.0 - (p - c).length());
+        let dir = DVec3::new(0.1, 0.2, -1.0).normalize();
+        let hit = trace(&v, c - 40.0 * dir, dir, 0.0).expect("the ball is hit");
+        let mut surface = AoSurface::of_hit(&v, &hit, dir);
+        let ng = surface.geometric;
+        // An axis tilted 25 degrees from Ng, so that a share of the hemisphere lies under the plane.
+        let tangent = ng.any_orthonormal_vector();
+        surface.normal = (ng * 25f64.to_radians().cos() + tangent * 25f64.to_radians().sin()).normalize();
+        let mut settings = RenderSettings::new(0.0);
+        settings.ao.samples = 1024;
+        settings.ao.radius = AoRadius::Unbounded;
+        let lighting = IblLighting::new(&settings, None);
+        let (px, py) = (7, 9);
+        let got = ambient_at(&v, &settings, &lighting, &surface, (px, py));
+        let key = pixel_key(px, py, settings.ao.frame, settings.ao.seed);
+        let o = ao_origin(&v, &settings, surface.position, ng);
+        let (mut under, mut escaping_under) = (0, 0);
+        for i in 0..settings.ao.samples {
+            let (u, w) = ao_point(settings.ao.sequence, i, key);
+            let w = cosine_direction(surface.normal, u, w);
+            if w.dot(ng) <= 0.0 {
+                under += 1;
+                escaping_under += usize::from(!ao_ray_occluded(&v, o, w, 0.0, None));
+            }
+        }
+        let n = settings.ao.samples as f64;
+        assert!(under >= 10, "{under} of {n} directions under the plane");
+        assert!(escaping_under >= 1, "marched, {escaping_under} of {under} escape");
+        assert_eq!(got.occlusion, under as f64 / n, "A counts exactly the directions under the plane");
+        // Such a direction is never open: the bent normal leans away from under the plane.
+        assert!(got.bent_normal.dot(ng) > 0.0);
     }
 
     #[test]

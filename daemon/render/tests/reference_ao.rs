@@ -16,7 +16,7 @@ mod common;
 use glam::DVec3;
 use isowall_model::{AoMethod, AoRadius, Camera, IblMethod, Rect, RenderSettings, View};
 use isowall_render::environment::Environment;
-use isowall_render::reference::{self, ao_origin, ao_ray_occluded, trace, Hit};
+use isowall_render::reference::{self, ao_origin, ao_ray_occluded, trace, AoSurface, Hit};
 use isowall_render::Frame;
 use isowall_volume::procedural::{sphere_over_plane_geometry, Procedural};
 use isowall_volume::Volume;
@@ -236,15 +236,16 @@ fn a_constant_environment_gives_l_times_the_visibility() {
 
 /// E(p) = (1/pi) ∫ L V cos by brute force, independently of `sampling`: a stratified polar grid
 /// (r^2 uniform in (0, 1), phi uniform) on the disk, lifted by Malley's method in a frame built
-/// by Gram-Schmidt; every direction weighs the same.
+/// by Gram-Schmidt about N; every direction weighs the same; a direction under the tangent plane
+/// (w . Ng <= 0) is occluded, as DESIGN.md "AO" says.
 fn brute_force_irradiance(
     volume: &Volume,
     s: &RenderSettings,
     env: &Environment,
-    p: DVec3,
-    n: DVec3,
+    surface: &AoSurface,
 ) -> [f64; 3] {
-    let o = ao_origin(volume, s, p, n);
+    let (n, ng) = (surface.normal, surface.geometric);
+    let o = ao_origin(volume, s, surface.position, ng);
     let radius = s.ao.radius_world(volume.spacing());
     let helper = if n.x.abs() < 0.6 { DVec3::X } else { DVec3::Y };
     let t = (helper - n * helper.dot(n)).normalize();
@@ -257,7 +258,7 @@ fn brute_force_irradiance(
             let phi = 2.0 * std::f64::consts::PI * (j as f64 + 0.5 + 0.5 * (i % 2) as f64) / sectors as f64;
             let (x, y) = (r2.sqrt() * phi.cos(), r2.sqrt() * phi.sin());
             let w = x * t + y * b + (1.0 - r2).sqrt() * n;
-            if !ao_ray_occluded(volume, o, w, s.iso, radius) {
+            if w.dot(ng) > 0.0 && !ao_ray_occluded(volume, o, w, s.iso, radius) {
                 let l = env.lookup(w);
                 (0..3).for_each(|c| e[c] += l[c] as f64);
             }
@@ -267,13 +268,14 @@ fn brute_force_irradiance(
 }
 
 /// Sample points of `sphere-over-plane` (size 32) seen through a grid of pixels: the sphere from
-/// several sides and the plane around and below it.
-fn ibl_points(volume: &Volume, view: &View) -> Vec<(u32, u32, DVec3, DVec3)> {
+/// several sides and the plane around and below it, as the AO rays see them.
+fn ibl_points(volume: &Volume, view: &View) -> Vec<(u32, u32, AoSurface)> {
     let mut points = Vec::new();
     for py in (2..view.full.1).step_by(6) {
         for px in (1..view.full.0).step_by(6) {
-            if let Some((hit, n)) = hit_at(volume, view, 0.0, px, py) {
-                points.push((px, py, hit.position, n));
+            let dir = view.ray_dir_full(&view.camera.basis(), px, py);
+            if let Some(hit) = trace(volume, view.camera.eye, dir, 0.0) {
+                points.push((px, py, AoSurface::of_hit(volume, &hit, dir)));
             }
         }
     }
@@ -295,8 +297,8 @@ fn rays_are_an_unbiased_estimate_of_the_visibility_weighted_irradiance() {
     let points = ibl_points(&volume, &view);
     assert!(points.len() >= 12, "{}", points.len());
     let mut max_rel: f64 = 0.0;
-    for &(px, py, p, n) in &points {
-        let want = brute_force_irradiance(&volume, &s, &env, p, n);
+    for &(px, py, surface) in &points {
+        let want = brute_force_irradiance(&volume, &s, &env, &surface);
         let got = pixel(&volume, &view, &s, Some(&env), px, py).ibl[0].map(f64::from);
         for c in 0..3 {
             max_rel = max_rel.max((got[c] - want[c]).abs() / want[c]);
@@ -326,8 +328,8 @@ fn under_the_sky_rays_converge_and_bent_and_seed_are_biased() {
         (AoMethod::Seed, IblMethod::Seed, 0.0, 0.0),
     ];
     let mut sum_ref = 0.0;
-    for &(px, py, p, n) in &points {
-        let want = luminance(brute_force_irradiance(&volume, &s, &env, p, n));
+    for &(px, py, surface) in &points {
+        let want = luminance(brute_force_irradiance(&volume, &s, &env, &surface));
         sum_ref += want * want;
         for (method, ibl, se, max) in errors.iter_mut() {
             s.ao.method = *method;

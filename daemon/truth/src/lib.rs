@@ -13,7 +13,9 @@
 //! - N: its own central differences (h = one spacing per axis, stencil clamped to the box), as it
 //!   is; Ng: its own analytic gradient of the trilinear cell holding p, turned towards the eye
 //!   (a cap: the face's outward normal); N = Ng where the central difference vanishes;
-//! - AO: rays from o = p + 0.01 * (smallest spacing) * Ng, marched uniformly at `STEP_VOXELS` (no
+//! - AO: a direction with w . Ng <= 0 (under p's tangent plane) is occluded at distance 0, unmarched
+//!   (DESIGN.md: from p itself it enters the object at once); every other one is a ray from
+//!   o = p + 0.01 * (smallest spacing) * Ng, marched uniformly at `STEP_VOXELS` (no
 //!   block skipping, no cell bounds), occluded where the field reaches iso within R; directions
 //!   from its own set: jittered-stratified points of the unit square (a splitmix64 stream seeded
 //!   per pixel, fixed) mapped by the polar (not the concentric) map, cosine-weighted about N in its
@@ -52,7 +54,7 @@ pub struct Truth {
     /// N as it is (the hemisphere's axis).
     pub normal: DVec3,
     /// The first distance at which each direction's ray reaches the object (`INFINITY`: never
-    /// within the box), in direction order.
+    /// within the box; 0 for a direction under p's tangent plane), in direction order.
     pub first_hits: Vec<f64>,
     /// The directions, unit, cosine-distributed about N.
     pub directions: Vec<DVec3>,
@@ -266,7 +268,10 @@ impl Field {
         let (depth, p, n, ng) = self.primary(eye, d)?;
         let o = p + EPS_VOXELS * self.spacing.min_element() * ng;
         let directions = cosine_set(n, m, 0x9e37_79b9_7f4a_7c15 ^ ((px as u64) << 32 | py as u64));
-        let first_hits = directions.iter().map(|&w| self.first_occluder(o, w, t_max)).collect();
+        let first_hits = directions
+            .iter()
+            .map(|&w| if w.dot(ng) <= 0.0 { 0.0 } else { self.first_occluder(o, w, t_max) })
+            .collect();
         Some(Truth { px, py, depth, position: p, normal: n, first_hits, directions })
     }
 }
