@@ -10,7 +10,7 @@ pub fn check_address(address: &str) -> Result<(), String> {
 /// than `localhost` are not resolved): an IP address (an IPv4-mapped IPv6 address as the IPv4
 /// one), the loopback name (`localhost` and `*.localhost`, RFC 6761: 127.0.0.1 and ::1), or a
 /// host name without regard to case or a final dot; and the port.
-#[derive(Clone, Debug, PartialEq, Eq)]
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
 pub enum AddressHost {
     Ip(std::net::IpAddr),
     Localhost,
@@ -104,11 +104,21 @@ pub(crate) fn parse_port(address: &str, port: &str) -> Result<u16, String> {
     }
 }
 
-/// Whether two node addresses lead to the same socket ([`NodeAddress::same_place`]); an address
-/// that does not parse is reported on its own.
-pub(crate) fn same_address(a: &str, b: &str) -> bool {
-    match (parse_address(a), parse_address(b)) {
-        (Ok(a), Ok(b)) => a.same_place(&b),
-        _ => false,
+/// The keys under which an address's place can be found among others' `(host, port)`: its own,
+/// and for the loopback the other spellings that [`NodeAddress::same_place`] takes as the same
+/// (`localhost` for 127.0.0.1 and ::1, and both of those for `localhost`).
+pub(crate) fn same_place_keys(a: &NodeAddress) -> Vec<(AddressHost, u16)> {
+    use std::net::{IpAddr, Ipv4Addr, Ipv6Addr};
+    let mut keys = vec![(a.host.clone(), a.port)];
+    match &a.host {
+        AddressHost::Localhost => {
+            keys.push((AddressHost::Ip(IpAddr::V4(Ipv4Addr::LOCALHOST)), a.port));
+            keys.push((AddressHost::Ip(IpAddr::V6(Ipv6Addr::LOCALHOST)), a.port));
+        }
+        AddressHost::Ip(ip) if *ip == Ipv4Addr::LOCALHOST || *ip == Ipv6Addr::LOCALHOST => {
+            keys.push((AddressHost::Localhost, a.port));
+        }
+        _ => {}
     }
+    keys
 }

@@ -1,6 +1,7 @@
 //! The rules a config must keep, table by table, each problem placed at its field.
 
-use super::address::same_address;
+use super::address::{parse_address, same_place_keys, AddressHost};
+use std::collections::{HashMap, HashSet};
 use super::diagnostics::*;
 use super::*;
 
@@ -40,12 +41,9 @@ pub(crate) fn validate_snapshot_size(
     if !(MIN_MESSAGE_LIMIT_BYTES..=MAX_MESSAGE_LIMIT_BYTES).contains(&w.message_limit_bytes) {
         return; // reported on its own
     }
+    let by_name: HashMap<&str, &TileConfig> = tiles.items.iter().map(|(_, t)| (t.name.as_str(), t)).collect();
     for (i, n) in &nodes.items {
-        let own: Vec<&TileConfig> = n
-            .tiles
-            .iter()
-            .filter_map(|name| tiles.items.iter().map(|(_, t)| t).find(|t| t.name == *name))
-            .collect();
+        let own: Vec<&TileConfig> = n.tiles.iter().filter_map(|name| by_name.get(name.as_str()).copied()).collect();
         let need = crate::messages::TileImage::snapshot_len_bound(
             own.iter().map(|t| (t.name.as_str(), t.width, t.height)),
         );
@@ -300,34 +298,50 @@ pub(crate) fn validate_tiles(doc: &mut Doc<'_>, tiles: &Parsed<TileConfig>) {
             );
         }
     }
-    // Unique names.
-    for (a, (i, t)) in tiles.items.iter().enumerate() {
-        if let Some((j, _)) = tiles.items[..a].iter().find(|(_, u)| u.name == t.name) {
+    // Unique names (the first of each name kept).
+    let mut first: HashMap<&str, usize> = HashMap::new();
+    for (i, t) in &tiles.items {
+        if let Some(&j) = first.get(t.name.as_str()) {
             let first =
-                doc.line_of(&at(*j, "name")).map(|l| format!(" (first at line {l})")).unwrap_or_default();
+                doc.line_of(&at(j, "name")).map(|l| format!(" (first at line {l})")).unwrap_or_default();
             doc.at(&at(*i, "name"), format!("duplicate tile name '{}'{first}", t.name));
+        } else {
+            first.insert(&t.name, *i);
         }
     }
-    // No overlaps, bezels included.
-    for (a, (i, t)) in tiles.items.iter().enumerate() {
-        let (ax0, ax1, ay0, ay1) = t.outer();
-        for (j, u) in &tiles.items[..a] {
-            let (bx0, bx1, by0, by1) = u.outer();
-            if ax0 < bx1 && bx0 < ax1 && ay0 < by1 && by0 < ay1 {
-                let other = doc
-                    .line_of(&[Seg::K("tiles"), Seg::I(*j)])
-                    .map(|l| format!(" (line {l})"))
-                    .unwrap_or_default();
-                doc.at(
-                    &[Seg::K("tiles"), Seg::I(*i)],
-                    format!(
-                        "tile '{}' overlaps tile '{}'{other}, bezels included: x {ax0}..{ax1}, y {ay0}..{ay1} \
-                         against x {bx0}..{bx1}, y {by0}..{by1}",
-                        t.name, u.name
-                    ),
-                );
+    // No overlaps, bezels included: a sweep along x (tiles in order of their left edge, each
+    // against the earlier ones still open at it), so a wall of many tiles side by side costs
+    // about n log n, not n^2. Each overlapping pair is reported at the later tile in the file.
+    let mut order: Vec<usize> = (0..tiles.items.len()).collect();
+    order.sort_by_key(|&a| tiles.items[a].1.outer().0);
+    let mut open: Vec<usize> = Vec::new();
+    let mut pairs: Vec<(usize, usize)> = Vec::new();
+    for &a in &order {
+        let (ax0, _, ay0, ay1) = tiles.items[a].1.outer();
+        open.retain(|&b| tiles.items[b].1.outer().1 > ax0);
+        for &b in &open {
+            let (_, _, by0, by1) = tiles.items[b].1.outer();
+            if ay0 < by1 && by0 < ay1 {
+                pairs.push((a.max(b), a.min(b)));
             }
         }
+        open.push(a);
+    }
+    pairs.sort_unstable();
+    for (a, b) in pairs {
+        let ((i, t), (j, u)) = (&tiles.items[a], &tiles.items[b]);
+        let (ax0, ax1, ay0, ay1) = t.outer();
+        let (bx0, bx1, by0, by1) = u.outer();
+        let other =
+            doc.line_of(&[Seg::K("tiles"), Seg::I(*j)]).map(|l| format!(" (line {l})")).unwrap_or_default();
+        doc.at(
+            &[Seg::K("tiles"), Seg::I(*i)],
+            format!(
+                "tile '{}' overlaps tile '{}'{other}, bezels included: x {ax0}..{ax1}, y {ay0}..{ay1} \
+                 against x {bx0}..{bx1}, y {by0}..{by1}",
+                t.name, u.name
+            ),
+        );
     }
 }
 
@@ -351,9 +365,13 @@ pub(crate) fn validate_nodes(doc: &mut Doc<'_>, nodes: &Parsed<NodeConfig>, tile
             doc.at(&at(i, "address"), format!("node '{}': address {e}", n.name));
         }
     }
+    // TLS compares names without regard to case: `NODE0` beside `node0` could pose as it. Names and
+    // addresses are looked up in maps of the earlier nodes' (a wall of many nodes costs n, not n^2).
+    let mut names: HashMap<String, usize> = HashMap::new();
+    let mut places: HashMap<(AddressHost, u16), usize> = HashMap::new();
     for (a, (i, n)) in nodes.items.iter().enumerate() {
-        // TLS compares names without regard to case: `NODE0` beside `node0` could pose as it.
-        if let Some((j, m)) = nodes.items[..a].iter().find(|(_, m)| m.name.eq_ignore_ascii_case(&n.name)) {
+        if let Some(&b) = names.get(&n.name.to_ascii_lowercase()) {
+            let (j, m) = &nodes.items[b];
             let first =
                 doc.line_of(&at(*j, "name")).map(|l| format!(" (first at line {l})")).unwrap_or_default();
             let same = if m.name == n.name {
@@ -362,8 +380,13 @@ pub(crate) fn validate_nodes(doc: &mut Doc<'_>, nodes: &Parsed<NodeConfig>, tile
                 format!(" (the same as '{}' without regard to case)", m.name)
             };
             doc.at(&at(*i, "name"), format!("duplicate node name '{}'{same}{first}", n.name));
+        } else {
+            names.insert(n.name.to_ascii_lowercase(), a);
         }
-        if let Some((j, m)) = nodes.items[..a].iter().find(|(_, m)| same_address(&m.address, &n.address)) {
+        let Ok(place) = parse_address(&n.address) else { continue }; // reported above
+        let earlier = same_place_keys(&place).into_iter().filter_map(|k| places.get(&k).copied()).min();
+        if let Some(b) = earlier {
+            let (j, m) = &nodes.items[b];
             let first = doc.line_of(&at(*j, "address")).map(|l| format!(" (line {l})")).unwrap_or_default();
             let message = if m.address == n.address {
                 format!("node '{}' has the same address {} as node '{}'{first}", n.name, n.address, m.name)
@@ -376,20 +399,26 @@ pub(crate) fn validate_nodes(doc: &mut Doc<'_>, nodes: &Parsed<NodeConfig>, tile
             };
             doc.at(&at(*i, "address"), message);
         }
+        places.entry((place.host, place.port)).or_insert(a);
     }
     // Tile references: every listed tile exists; every tile is driven by exactly one node.
-    let known = |name: &str| {
-        tiles.items.iter().any(|(_, t)| t.name == name) || tiles.failed_names.iter().any(|t| t == name)
-    };
-    let mut driver: Vec<(String, String, usize)> = Vec::new(); // (tile, node, line)
+    let known: HashSet<&str> = tiles
+        .items
+        .iter()
+        .map(|(_, t)| t.name.as_str())
+        .chain(tiles.failed_names.iter().map(String::as_str))
+        .collect();
+    // Each tile's node: (node index in the file, the reference's index in its list).
+    let mut driver: HashMap<&str, (usize, usize)> = HashMap::new();
     for (i, n) in &nodes.items {
+        let mut listed: HashSet<&str> = HashSet::new();
         for (k, tile) in n.tiles.iter().enumerate() {
             let path = [Seg::K("nodes"), Seg::I(*i), Seg::K("tiles"), Seg::I(k)];
-            if n.tiles[..k].contains(tile) {
+            if !listed.insert(tile.as_str()) {
                 doc.at(&path, format!("node '{}' lists tile '{tile}' twice", n.name));
                 continue;
             }
-            if !known(tile) {
+            if !known.contains(tile.as_str()) {
                 let names: Vec<&str> = tiles.items.iter().map(|(_, t)| t.name.as_str()).collect();
                 doc.at(
                     &path,
@@ -397,7 +426,9 @@ pub(crate) fn validate_nodes(doc: &mut Doc<'_>, nodes: &Parsed<NodeConfig>, tile
                 );
                 continue;
             }
-            if let Some((_, other, line)) = driver.iter().find(|(t, _, _)| t == tile) {
+            if let Some(&(j, kj)) = driver.get(tile.as_str()) {
+                let other = &nodes.items.iter().find(|(x, _)| *x == j).expect("a listed node").1.name;
+                let line = doc.line_of(&[Seg::K("nodes"), Seg::I(j), Seg::K("tiles"), Seg::I(kj)]).unwrap_or(0);
                 doc.at(
                     &path,
                     format!(
@@ -407,13 +438,12 @@ pub(crate) fn validate_nodes(doc: &mut Doc<'_>, nodes: &Parsed<NodeConfig>, tile
                 );
                 continue;
             }
-            let line = doc.line_of(&path).unwrap_or(0);
-            driver.push((tile.clone(), n.name.clone(), line));
+            driver.insert(tile, (*i, k));
         }
     }
     if !nodes.any_failed {
         for (i, t) in &tiles.items {
-            if !driver.iter().any(|(name, _, _)| *name == t.name) {
+            if !driver.contains_key(t.name.as_str()) {
                 doc.at(
                     &[Seg::K("tiles"), Seg::I(*i), Seg::K("name")],
                     format!("tile '{}' is driven by no node (list it in one node's `tiles`)", t.name),
