@@ -8,7 +8,7 @@
 //! - [`VolumeStream::read_region`]: the samples of a [`VoxelRange`] only.
 //!
 //! Time-varying volumes ([`VolumeSource::stream_step`]): each step is opened alone (a glob's
-//! file; a 4-D NRRD's own slices of the file; a 4-D NIfTI read whole and the step cut out), and
+//! file; a 4-D NRRD's own slices of the file; a 4-D NIfTI's step read alone, whole), and
 //! [`VolumeSource::read_step_region`] gives a step's region and the step's whole block grid in one
 //! pass over the step ([`VolumeStream::read_region_and_blocks`]): every node marches the whole box
 //! with the step's own empty-space skipping, so each node reads every step whole (a slice at a
@@ -111,7 +111,7 @@ impl VolumeSource {
     /// Opens time step `step` for partial reads: reads a file's header only (MetaImage, NIfTI and
     /// mirrored NRRD are read whole here; see the module's notes). A glob's step is its file
     /// `step`; a 4-D NRRD's step is read from its own slices of the file (a raw one by seeking);
-    /// a 4-D NIfTI is read whole and the step cut out (as [`VolumeSource::load_step`] does).
+    /// a 4-D NIfTI's step is read whole, alone (as [`VolumeSource::load_step`] does).
     pub fn stream_step(&self, raw: Option<&RawSpec>, step: usize) -> Result<VolumeStream, VolumeError> {
         match self {
             VolumeSource::Procedural { kind, size } => {
@@ -206,7 +206,10 @@ pub struct StepRegion {
 
 impl crate::steps::Resident for StepRegion {
     fn resident_bytes(&self) -> usize {
-        self.region.resident_bytes() + self.blocks.minmax.len() * std::mem::size_of::<[f32; 2]>()
+        self.region.resident_bytes()
+            + self.region.name.capacity()
+            + self.blocks.minmax.capacity() * std::mem::size_of::<[f32; 2]>()
+            + std::mem::size_of::<StepRegion>()
     }
 }
 
@@ -631,7 +634,8 @@ mod tests {
                 check_same(&got.region, &whole, &r);
                 blocks_equal(&got.blocks, &BlockMinMax::new(&whole, 4));
                 use crate::steps::Resident;
-                assert_eq!(got.resident_bytes(), r.count() * 4 + got.blocks.minmax.len() * 8);
+                let own = got.region.name.len() + std::mem::size_of::<StepRegion>();
+                assert_eq!(got.resident_bytes(), r.count() * 4 + got.blocks.minmax.len() * 8 + own);
             }
             let e = src.stream_step(None, 3).err().unwrap().to_string();
             assert!(e.contains("has no time step 3"), "{src}: {e}");
