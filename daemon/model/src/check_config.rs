@@ -4,7 +4,8 @@
 //! to stderr as `FILE:LINE:COL: message` and the exit status is 1; a valid config prints a short
 //! summary (the wall, its image size and the tiles of every node) to stdout. A DICOM volume's
 //! headers are read too (no pixels): the series chosen, its grid, or why it cannot be read
-//! (including a series over `[volume] max_bytes`). The wall's certificates, where keygen wrote
+//! (including a series over `[volume] max_bytes`, and a JPEG frame whose own header says another
+//! size than the slice's). The wall's certificates, where keygen wrote
 //! them, are checked by the caller's `certificates` (the network crate reads them): one that
 //! expires within 30 days is a `warning:` line on stderr (the check still passes), one expired
 //! fails the check.
@@ -72,6 +73,8 @@ fn check_dicom(config: &WallConfig) -> Result<Option<String>, String> {
         _ => return Ok(None),
     };
     let s = Series::open(&path, series.as_deref()).map_err(|e| e.to_string())?;
+    // What a read refuses before decoding: a compressed frame whose own header says another size.
+    s.check_frames().map_err(|e| e.to_string())?;
     if let Some(bytes) = config.volume.max_bytes {
         let limit = isowall_volume::io::VolumeLimit::new(bytes, "[volume] max_bytes");
         s.check_within(&limit).map_err(|e| e.to_string())?;
