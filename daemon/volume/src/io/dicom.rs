@@ -679,6 +679,8 @@ fn check_frame(path: &Path, obj: &Header, nx: usize, ny: usize) -> Result<(), Vo
     if !jpeg {
         return Ok(());
     }
+    let ts_uid = obj.meta().transfer_syntax().trim_end_matches('\0').to_string();
+    let ts_name = TransferSyntaxRegistry.get(&ts_uid).map(|t| t.name()).unwrap_or("JPEG");
     let err = |what: String| tag_err(path, tags::PIXEL_DATA, "PixelData", what);
     let reader = Fragments { rest: fragments, at: 0 };
     let info = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
@@ -688,7 +690,7 @@ fn check_frame(path: &Path, obj: &Header, nx: usize, ny: usize) -> Result<(), Vo
     let info = match info {
         Ok(Ok(Some(info))) => info,
         Ok(Ok(None)) => return Err(err("the JPEG data has no frame header".into())),
-        Ok(Err(e)) => return Err(err(format!("cannot read the JPEG frame header: {e}"))),
+        Ok(Err(e)) => return Err(err(format!("cannot read the {ts_name} frame header: {e}"))),
         Err(_) => return Err(err("the JPEG frame header cannot be read".into())),
     };
     let (w, h) = (usize::from(info.width), usize::from(info.height));
