@@ -503,4 +503,34 @@ mod tests {
         let e = file.read(steps).unwrap_err().to_string();
         assert!(e.contains("tiny.nii.gz") && e.contains("has no time step 32767"), "{e}");
     }
+
+    #[test]
+    fn a_bricks_steps_of_a_gzip_4d_file_inflate_it_once_a_pass() {
+        use crate::region::StepRegion;
+        use crate::VoxelRange;
+        let dir = tempfile::tempdir().unwrap();
+        let (n, steps) = (8, 40);
+        let source = VolumeSource::File(gzip_4d_nrrd(dir.path(), n, steps));
+        let first = source.stream(None).unwrap().info().clone();
+        let range = VoxelRange { lo: [1, 2, 3], hi: [6, 5, 7] };
+        let mut regions = source.step_regions(None, range, 4, first.clone()).unwrap();
+        for k in 0..steps {
+            let r = regions.read(k).unwrap();
+            let want = source.read_step_region(None, k, &range, 4, &first).unwrap();
+            assert_eq!(
+                (r.step, r.region.dims(), r.region.origin()),
+                (k, want.region.dims(), want.region.origin())
+            );
+            assert_eq!(r.region.data(), want.region.data(), "step {k}");
+            assert_eq!(r.blocks.minmax, want.blocks.minmax, "step {k}");
+        }
+        assert_eq!(regions.inflations(), 1, "one pass in order");
+        regions.read(0).unwrap();
+        assert_eq!(regions.inflations(), 2, "back to step 0: opened again");
+        // Through the cache, as an object-space node plays it.
+        let c: StepCache<StepRegion> =
+            StepCache::with_loader(steps, 1 << 20, source.to_string(), Box::new(move |k| regions.read(k)))
+                .unwrap();
+        assert_eq!(ready(&c, 39).step, 39);
+    }
 }

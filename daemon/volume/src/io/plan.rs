@@ -176,20 +176,12 @@ impl StepFile {
 
     /// Reads time step `step`: its voxels alone, in a buffer of exactly their size.
     pub(crate) fn read(&mut self, step: usize) -> Result<crate::Volume, VolumeError> {
-        let (steps, header) = (self.steps, self.plan.header.clone());
-        if step >= steps {
-            return Err(crate::io::format_err(
-                &header,
-                format!("has no time step {step}: it holds {steps} (0 to {})", steps - 1),
-            ));
-        }
-        let result = self.read_voxels(step);
-        if result.is_err() {
-            self.open = None;
-        }
-        let mut data = result?;
-        data.shrink_to_fit();
+        let header = self.plan.header.clone();
         let layout = self.step_layout();
+        let mut data =
+            Vec::with_capacity(layout.voxel_count().map_err(|e| crate::io::format_err(&header, e))?);
+        self.read_slices(step, &mut |_, slice| data.extend_from_slice(slice))?;
+        data.shrink_to_fit();
         let origin = match &self.mirror {
             Some(m) => m.apply(self.origin, layout.dims, &mut data),
             None => self.origin,
@@ -197,8 +189,34 @@ impl StepFile {
         crate::io::make_volume(&header, layout.dims, self.spacing, origin, data)
     }
 
-    fn read_voxels(&mut self, step: usize) -> Result<Vec<f32>, VolumeError> {
-        use crate::io::{read_voxels, skip_bytes, Encoding};
+    /// The step's grid: (dims, spacing, origin), its axes as stored (a mirrored axis not undone).
+    pub(crate) fn step_grid(&self) -> ([usize; 3], glam::DVec3, glam::DVec3) {
+        (self.step_layout().dims, self.spacing, self.origin)
+    }
+
+    /// Calls `f(k, slice)` for every z-slice of step `step` in order (`nx * ny` values, rescaled,
+    /// as stored: a mirrored axis is not undone), one slice resident at a time.
+    pub(crate) fn read_slices(
+        &mut self,
+        step: usize,
+        f: &mut dyn FnMut(usize, &[f32]),
+    ) -> Result<(), VolumeError> {
+        let (steps, header) = (self.steps, self.plan.header.clone());
+        if step >= steps {
+            return Err(crate::io::format_err(
+                &header,
+                format!("has no time step {step}: it holds {steps} (0 to {})", steps - 1),
+            ));
+        }
+        let result = self.read_step(step, f);
+        if result.is_err() {
+            self.open = None;
+        }
+        result
+    }
+
+    fn read_step(&mut self, step: usize, f: &mut dyn FnMut(usize, &[f32])) -> Result<(), VolumeError> {
+        use crate::io::{skip_bytes, Encoding};
         use std::io::Read;
         let layout = self.step_layout();
         let step_bytes = layout.byte_len();
@@ -210,7 +228,7 @@ impl StepFile {
                 let (mut file, _) = crate::io::open(&data)?;
                 file.seek(SeekFrom::Start(self.plan.start + step as u64 * step_bytes))
                     .map_err(|e| files.io(e))?;
-                read_voxels(files, &mut file.take(step_bytes), Encoding::Raw, 0, &layout, self.scale)
+                step_slices(files, &mut file.take(step_bytes), Encoding::Raw, &layout, self.scale, f)
             }
             enc => {
                 if self.open.as_ref().is_none_or(|o| o.next > step) {
@@ -224,8 +242,7 @@ impl StepFile {
                 }
                 let Some(open) = self.open.as_mut() else { unreachable!("opened above") };
                 skip_bytes(files, &mut *open.dec, enc, (step - open.next) as u64 * step_bytes)?;
-                let out =
-                    read_voxels(files, &mut (&mut *open.dec).take(step_bytes), enc, 0, &layout, self.scale)?;
+                step_slices(files, &mut (&mut *open.dec).take(step_bytes), enc, &layout, self.scale, f)?;
                 open.next = step + 1;
                 if open.next == self.steps {
                     // The last step: the stream must end with it.
@@ -242,8 +259,28 @@ impl StepFile {
                         )));
                     }
                 }
-                Ok(out)
+                Ok(())
             }
         }
     }
+}
+
+/// Reads the z-slices of `layout` from `r` (decoded from `enc`), one at a time, each checked
+/// whole (a short one is "truncated"), and calls `f(k, slice)` for each.
+fn step_slices(
+    files: crate::io::Files,
+    r: &mut dyn std::io::Read,
+    enc: crate::io::Encoding,
+    layout: &crate::io::Layout,
+    scale: Option<crate::io::Scale>,
+    f: &mut dyn FnMut(usize, &[f32]),
+) -> Result<(), VolumeError> {
+    use std::io::Read;
+    let [nx, ny, nz] = layout.dims;
+    let slice = crate::io::Layout { dims: [nx, ny, 1], ..*layout };
+    for k in 0..nz {
+        let values = crate::io::read_voxels(files, &mut r.take(slice.byte_len()), enc, 0, &slice, scale)?;
+        f(k, &values);
+    }
+    Ok(())
 }
