@@ -249,7 +249,14 @@ fn load_ahead<T: Resident>(shared: &Shared<T>, name: &str, mut load: StepLoader<
         }
         let ahead = shared.ahead(&s);
         if swept != Some((s.current, ahead)) {
-            let behind: Vec<usize> = s.loaded.keys().copied().filter(|&k| !shared.is_ahead(&s, k)).collect();
+            // The steps kept are the ring [current, current + ahead): only the keys outside it
+            // are looked at.
+            let (lo, hi, n) = (s.current, s.current + ahead, shared.steps);
+            let behind: Vec<usize> = if hi <= n {
+                s.loaded.range(..lo).chain(s.loaded.range(hi..)).map(|(&k, _)| k).collect()
+            } else {
+                s.loaded.range(hi - n..lo).map(|(&k, _)| k).collect()
+            };
             for k in behind {
                 if let Some(v) = s.loaded.remove(&k) {
                     s.resident_bytes -= held(&*v);
