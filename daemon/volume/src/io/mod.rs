@@ -161,6 +161,14 @@ pub fn load_step_within(
     time_step(path, volume, steps, step)
 }
 
+/// What a node's reader refuses of a volume file from its header alone, without reading a voxel
+/// (for `check-config`): a NRRD's or NIfTI's sizes (all its time steps) over `limit`, or
+/// uncompressed data that does not fill its file. Other formats pass here (a DICOM series has
+/// [`dicom::Series`]'s checks; the rest are checked when read).
+pub fn check_header(path: &Path, limit: &VolumeLimit) -> Result<(), VolumeError> {
+    step_file(path, limit).map(|_| ())
+}
+
 /// The number of time steps of a volume file, from its header: `dim[4]` of a 4-D NIfTI, the 4th
 /// size of a 4-D NRRD, 1 for every other file.
 pub fn time_steps(path: &Path) -> Result<usize, VolumeError> {
