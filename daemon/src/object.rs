@@ -168,7 +168,7 @@ pub fn load_brick(
 
 /// A time-varying volume (module notes): this node's brick and halo of every step, read ahead
 /// by a [`StepCache`] within `cache_bytes`, each step a region read of the step with the step's
-/// block grid ([`VolumeSource::read_step_region`]). The region is the same for every step, so
+/// block grid ([`VolumeSource::step_regions`]). The region is the same for every step, so
 /// the volume limit [`read_brick`] checked at start-up holds for all. `None` for a volume
 /// without time steps.
 pub fn brick_steps(setup: &BrickSetup, cache_bytes: usize) -> Result<Option<StepsOf>> {
@@ -184,10 +184,11 @@ pub fn brick_steps(setup: &BrickSetup, cache_bytes: usize) -> Result<Option<Step
     let range = VoxelRange { lo, hi };
     tracing::info!(volume = %source, steps, cache_bytes, brick = index, "time-varying volume: bricks per step");
     let name = source.to_string();
-    let load = {
-        let plan = plan.clone();
-        move |k| plan.source.read_step_region(plan.raw.as_ref(), k, &range, plan.blocks.block, &plan.info)
-    };
+    // A 4-D file's steps from one stream kept open: a pass inflates it once, not once per step.
+    let mut regions = source
+        .step_regions(plan.raw.as_ref(), range, plan.blocks.block, plan.info.clone())
+        .with_context(|| format!("volume {source}"))?;
+    let load = move |k| regions.read(k);
     let cache = StepCache::with_loader(steps, cache_bytes, name, Box::new(load))?;
     Ok(Some(StepsOf::Brick {
         index,

@@ -4,7 +4,9 @@
 //! to stderr as `FILE:LINE:COL: message` and the exit status is 1; a valid config prints a short
 //! summary (the wall, its image size and the tiles of every node) to stdout. A DICOM volume's
 //! headers are read too (no pixels): the series chosen, its grid, or why it cannot be read
-//! (including a series over `[volume] max_bytes`). The wall's certificates, where keygen wrote
+//! (including a series over `[volume] max_bytes`, and a JPEG frame whose own header says another
+//! size than the slice's); a NRRD's or NIfTI's header (every step file's of a glob), where the
+//! file is on this machine, as the node's reader checks it (sizes within `[volume] max_bytes`). The wall's certificates, where keygen wrote
 //! them, are checked by the caller's `certificates` (the network crate reads them): one that
 //! expires within 30 days is a `warning:` line on stderr (the check still passes), one expired
 //! fails the check.
@@ -35,6 +37,10 @@ pub fn run(a: &CheckConfigArgs, certificates: CertificateCheck) -> Result<(), Ch
                 println!("{report}");
                 return Ok(());
             };
+            if let Err(problem) = check_volume_files(&config) {
+                println!("{report}");
+                return Err(CheckFailed(format!("{}: [volume] source: {problem}", a.file.display())));
+            }
             match check_dicom(&config) {
                 Err(problem) => {
                     println!("{report}");
@@ -62,6 +68,27 @@ pub fn run(a: &CheckConfigArgs, certificates: CertificateCheck) -> Result<(), Ch
     Err(CheckFailed(last))
 }
 
+/// The headers of a volume file, or of every file of a time-step glob, that are on this
+/// machine (a controller may have none): what a node's reader refuses from them
+/// ([`isowall_volume::io::check_header`]), within `[volume] max_bytes` or the readers' default.
+fn check_volume_files(config: &WallConfig) -> Result<(), String> {
+    use isowall_volume::io::{check_header, dicom::is_dicom, VolumeLimit};
+    use isowall_volume::VolumeSource;
+    let limit = config
+        .volume
+        .max_bytes
+        .map_or_else(VolumeLimit::default, |b| VolumeLimit::new(b, "[volume] max_bytes"));
+    let files = match config.volume_source().parse::<VolumeSource>() {
+        Ok(VolumeSource::File(path)) if !is_dicom(&path) => vec![path],
+        Ok(source @ VolumeSource::Steps(_)) => source.step_files().unwrap_or_default(),
+        _ => Vec::new(),
+    };
+    for path in files.iter().filter(|p| p.is_file()) {
+        check_header(path, &limit).map_err(|e| e.to_string())?;
+    }
+    Ok(())
+}
+
 /// A DICOM volume's series, from its headers: `Ok(None)` when the volume is not DICOM.
 fn check_dicom(config: &WallConfig) -> Result<Option<String>, String> {
     use isowall_volume::io::dicom::{is_dicom, Series};
@@ -72,6 +99,8 @@ fn check_dicom(config: &WallConfig) -> Result<Option<String>, String> {
         _ => return Ok(None),
     };
     let s = Series::open(&path, series.as_deref()).map_err(|e| e.to_string())?;
+    // What a read refuses before decoding: a compressed frame whose own header says another size.
+    s.check_frames().map_err(|e| e.to_string())?;
     if let Some(bytes) = config.volume.max_bytes {
         let limit = isowall_volume::io::VolumeLimit::new(bytes, "[volume] max_bytes");
         s.check_within(&limit).map_err(|e| e.to_string())?;
@@ -81,4 +110,42 @@ fn check_dicom(config: &WallConfig) -> Result<Option<String>, String> {
         "volume: DICOM series {} of {nx}x{ny}x{nz} slices, spacing {} {} {}",
         s.uid, s.spacing.x, s.spacing.y, s.spacing.z
     )))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_volume_header_the_node_would_refuse_fails_the_check_naming_file_and_field() {
+        let dir = std::env::temp_dir().join(format!("isowall-check-volume-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let wall = |source: &str, extra: &str| {
+            format!(
+                "[wall]\nname = \"w\"\n[volume]\nsource = \"{source}\"\n{extra}\n[[tiles]]\nname = \"t\"\nx = 0\ny = 0\n\
+                 width = 160\nheight = 120\n[[nodes]]\nname = \"n0\"\naddress = \"127.0.0.1:7401\"\ntiles = [\"t\"]\n"
+            )
+        };
+        let config = dir.join("w.toml");
+        let check = |text: String| {
+            std::fs::write(&config, text).unwrap();
+            run(&CheckConfigArgs { file: config.clone() }, &|_| Ok(Vec::new()))
+        };
+        // A gzip NRRD whose header claims 1024x1024x256 x 2 steps (2 GiB as float32): no data.
+        let head = "NRRD0004\ntype: uchar\ndimension: 4\nsizes: 1024 1024 256 2\nencoding: gzip\n\n";
+        std::fs::write(dir.join("bomb.nrrd"), head).unwrap();
+        let e = check(wall("bomb.nrrd", "max_bytes = 1073741824")).unwrap_err().to_string();
+        assert!(
+            e.contains("w.toml: [volume] source:")
+                && e.contains("bomb.nrrd: line 4: sizes:")
+                && e.contains("over the limit of 1073741824 bytes ([volume] max_bytes)"),
+            "{e}"
+        );
+        // A volume file not on this machine is left to the node; a good one passes.
+        check(wall("elsewhere.nrrd", "")).unwrap();
+        let ok = "NRRD0004\ntype: uchar\ndimension: 4\nsizes: 2 1 1 2\nencoding: raw\n\n";
+        std::fs::write(dir.join("ok.nrrd"), [ok.as_bytes(), &[1, 2, 3, 4]].concat()).unwrap();
+        check(wall("ok.nrrd", "")).unwrap();
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }

@@ -82,6 +82,8 @@ pub enum EnvironmentError {
     Io { path: PathBuf, source: std::io::Error },
     #[error("{}: cannot decode image: {source}", .path.display())]
     Decode { path: PathBuf, source: image::ImageError },
+    #[error("{}: {what}", .path.display())]
+    TooLarge { path: PathBuf, what: String },
     #[error("{}: image is empty ({width}x{height})", .path.display())]
     Empty { path: PathBuf, width: u32, height: u32 },
     #[error("{}: not a directory (a cube map is a directory holding px nx py ny pz nz)", .path.display())]
@@ -256,7 +258,7 @@ impl Environment {
     /// Reads an equirectangular Radiance `.hdr` file (any size; 2:1 is expected, and anything
     /// else is stretched to it with a warning). The file's first scanline is the zenith row.
     pub fn load_hdr(path: &Path) -> Result<Environment, EnvironmentError> {
-        let (width, height, texels) = read_hdr(path)?;
+        let (width, height, texels) = read_hdr(path, ImageRole::Equirect)?;
         if width != 2 * height {
             tracing::warn!(
                 "{}: an equirectangular environment should be 2:1, this one is {width}x{height}",
@@ -284,7 +286,8 @@ impl Environment {
                 (false, true) => (hdr, true),
                 (false, false) => return Err(EnvironmentError::MissingFace { dir: dir.to_owned(), face }),
             };
-            let (w, h, texels) = if is_hdr { read_hdr(&path)? } else { read_png_linear(&path)? };
+            let (w, h, texels) =
+                if is_hdr { read_hdr(&path, ImageRole::Face)? } else { read_png_linear(&path)? };
             if w != h {
                 return Err(EnvironmentError::NotSquare { path, width: w, height: h });
             }
@@ -551,25 +554,82 @@ fn sample_face(face: &[[f32; 3]], f: u32, s: f64, t: f64) -> [f32; 3] {
     })
 }
 
-/// Opens and decodes an image file of a known format, naming the file in every error.
-fn decode(path: &Path, format: image::ImageFormat) -> Result<image::DynamicImage, EnvironmentError> {
+/// The most texels an environment holds: 8192 x 4096 (32 Mi texels, 512 MiB as the GPU's
+/// `f32x4`). An equirectangular `.hdr` may have at most this many pixels; a cube face at most
+/// [`MAX_FACE`] on a side, as its `4 F x 2 F` resampling must fit too.
+pub const MAX_ENVIRONMENT_TEXELS: u64 = 1 << 25;
+
+/// The largest cube face side: `4 F x 2 F` texels within [`MAX_ENVIRONMENT_TEXELS`].
+pub const MAX_FACE: u32 = 2048;
+
+/// What an image may be: a cube face (square, at most [`MAX_FACE`] on a side) or an
+/// equirectangular image (at most [`MAX_ENVIRONMENT_TEXELS`] pixels).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum ImageRole {
+    Face,
+    Equirect,
+}
+
+impl ImageRole {
+    /// Why an image of `w`x`h` (as its header says) is refused, if it is.
+    fn refuse(self, format: &str, w: u32, h: u32) -> Option<String> {
+        match self {
+            ImageRole::Face if w > MAX_FACE || h > MAX_FACE => Some(format!(
+                "the {format} header says {w}x{h}, over the largest cube face of {MAX_FACE}x{MAX_FACE} (the faces \
+                 are resampled to 4 F x 2 F texels, at most {MAX_ENVIRONMENT_TEXELS}): refused before decoding"
+            )),
+            ImageRole::Equirect if u64::from(w) * u64::from(h) > MAX_ENVIRONMENT_TEXELS => Some(format!(
+                "the {format} header says {w}x{h} ({} pixels), over the limit of {MAX_ENVIRONMENT_TEXELS} pixels \
+                 (8192x4096) for an environment: refused before decoding",
+                u64::from(w) * u64::from(h)
+            )),
+            _ => None,
+        }
+    }
+
+    /// The most bytes a decoder may allocate for an image this role allows: its pixels at 16
+    /// bytes each (RGBA of 32-bit floats, the widest any decoder here produces).
+    fn max_alloc(self) -> u64 {
+        let pixels = match self {
+            ImageRole::Face => u64::from(MAX_FACE) * u64::from(MAX_FACE),
+            ImageRole::Equirect => MAX_ENVIRONMENT_TEXELS,
+        };
+        pixels * 16
+    }
+}
+
+/// Opens and decodes an image file of a known format, naming the file in every error. The size
+/// is read from the image's own header and checked for `role` before anything is decoded, and
+/// the decoder's allocations are limited to what that size allows.
+fn decode(
+    path: &Path,
+    format: image::ImageFormat,
+    role: ImageRole,
+) -> Result<image::DynamicImage, EnvironmentError> {
+    use image::ImageDecoder;
+    let decode_err = |source| EnvironmentError::Decode { path: path.to_owned(), source };
     let mut reader = image::ImageReader::open(path)
         .map_err(|source| EnvironmentError::Io { path: path.to_owned(), source })?;
     reader.set_format(format);
-    let img = reader.decode().map_err(|source| EnvironmentError::Decode { path: path.to_owned(), source })?;
-    if img.width() == 0 || img.height() == 0 {
-        return Err(EnvironmentError::Empty {
-            path: path.to_owned(),
-            width: img.width(),
-            height: img.height(),
-        });
+    let mut limits = image::Limits::default();
+    limits.max_alloc = Some(role.max_alloc());
+    reader.limits(limits);
+    // The decoder reads the header only; the pixels are decoded by `from_decoder`.
+    let decoder = reader.into_decoder().map_err(decode_err)?;
+    let (width, height) = decoder.dimensions();
+    let name = format.extensions_str().first().copied().unwrap_or("image").to_uppercase();
+    if let Some(what) = role.refuse(&name, width, height) {
+        return Err(EnvironmentError::TooLarge { path: path.to_owned(), what });
     }
-    Ok(img)
+    if width == 0 || height == 0 {
+        return Err(EnvironmentError::Empty { path: path.to_owned(), width, height });
+    }
+    image::DynamicImage::from_decoder(decoder).map_err(decode_err)
 }
 
 /// A Radiance .hdr file as linear RGB, rows top to bottom.
-fn read_hdr(path: &Path) -> Result<(u32, u32, Vec<[f32; 3]>), EnvironmentError> {
-    let img = decode(path, image::ImageFormat::Hdr)?.into_rgb32f();
+fn read_hdr(path: &Path, role: ImageRole) -> Result<(u32, u32, Vec<[f32; 3]>), EnvironmentError> {
+    let img = decode(path, image::ImageFormat::Hdr, role)?.into_rgb32f();
     let (w, h) = img.dimensions();
     let texels = img.pixels().map(|p| p.0.map(|x| if x.is_finite() { x.max(0.0) } else { 0.0 })).collect();
     Ok((w, h, texels))
@@ -577,7 +637,7 @@ fn read_hdr(path: &Path) -> Result<(u32, u32, Vec<[f32; 3]>), EnvironmentError> 
 
 /// A PNG (8 or 16 bit, any colour type; alpha ignored) decoded from sRGB to linear RGB.
 fn read_png_linear(path: &Path) -> Result<(u32, u32, Vec<[f32; 3]>), EnvironmentError> {
-    let img = decode(path, image::ImageFormat::Png)?.into_rgb32f();
+    let img = decode(path, image::ImageFormat::Png, ImageRole::Face)?.into_rgb32f();
     let (w, h) = img.dimensions();
     let texels = img.pixels().map(|p| p.0.map(|x| srgb_to_linear(x as f64) as f32)).collect();
     Ok((w, h, texels))
@@ -590,5 +650,74 @@ fn srgb_to_linear(x: f64) -> f64 {
         x / 12.92
     } else {
         ((x + 0.055) / 1.055).powf(2.4)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn crc32(bytes: &[u8]) -> u32 {
+        let mut c = !0u32;
+        for &b in bytes {
+            c ^= u32::from(b);
+            for _ in 0..8 {
+                c = if c & 1 != 0 { 0xEDB8_8320 ^ (c >> 1) } else { c >> 1 };
+            }
+        }
+        !c
+    }
+
+    /// A valid 4x4 PNG whose header is rewritten to say `size`x`size`: a few dozen bytes of data
+    /// behind a header that claims megapixels.
+    fn lying_png(path: &Path, size: u32) {
+        let mut bytes = Vec::new();
+        image::RgbImage::from_pixel(4, 4, image::Rgb([200, 100, 50]))
+            .write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)
+            .unwrap();
+        assert_eq!(&bytes[12..16], b"IHDR");
+        bytes[16..20].copy_from_slice(&size.to_be_bytes());
+        bytes[20..24].copy_from_slice(&size.to_be_bytes());
+        let crc = crc32(&bytes[12..29]);
+        bytes[29..33].copy_from_slice(&crc.to_be_bytes());
+        std::fs::write(path, bytes).unwrap();
+    }
+
+    #[test]
+    fn environment_images_whose_header_says_a_huge_size_are_refused_before_decoding() {
+        // The attack: six small PNG faces whose headers say 8192x8192 (each 192 MiB as RGB8, under
+        // the image crate's default allocation limit; as float texels and resampled, gigabytes).
+        let dir = tempfile::tempdir().unwrap();
+        for face in FACES {
+            lying_png(&dir.path().join(format!("{face}.png")), 8192);
+        }
+        let start = std::time::Instant::now();
+        let e = Environment::load_cube_dir(dir.path()).unwrap_err();
+        let took = start.elapsed();
+        let msg = e.to_string();
+        eprintln!("refused in {took:?}: {msg}");
+        assert!(matches!(e, EnvironmentError::TooLarge { .. }), "{msg}");
+        assert!(
+            msg.contains("px.png: the PNG header says 8192x8192, over the largest cube face of 2048x2048")
+                && msg.contains("refused before decoding"),
+            "{msg}"
+        );
+        // At the limit a face passes the size check: its data, too short, is a decode error.
+        for face in FACES {
+            lying_png(&dir.path().join(format!("{face}.png")), MAX_FACE);
+        }
+        let e = Environment::load_cube_dir(dir.path()).unwrap_err();
+        assert!(matches!(e, EnvironmentError::Decode { .. }), "{e}");
+        // An equirectangular .hdr whose header says 16384x8192 (2^27 pixels).
+        let hdr = dir.path().join("big.hdr");
+        std::fs::write(&hdr, b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 8192 +X 16384\n\x02\x02\x40\x00")
+            .unwrap();
+        let e = Environment::load_hdr(&hdr).unwrap_err().to_string();
+        assert!(
+            e.contains(
+                "big.hdr: the HDR header says 16384x8192 (134217728 pixels), over the limit of 33554432"
+            ) && e.contains("refused before decoding"),
+            "{e}"
+        );
     }
 }

@@ -110,9 +110,9 @@ impl Volume {
     pub fn data(&self) -> &[f32] {
         &self.data
     }
-    /// Bytes the voxels occupy in memory.
+    /// Bytes the voxel buffer holds in memory: as allocated (capacity, not length).
     pub fn resident_bytes(&self) -> usize {
-        self.data.len() * std::mem::size_of::<f32>()
+        self.data.capacity() * std::mem::size_of::<f32>()
     }
 
     /// The voxel at (i, j, k); panics when out of range (callers clamp).

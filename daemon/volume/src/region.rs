@@ -8,7 +8,7 @@
 //! - [`VolumeStream::read_region`]: the samples of a [`VoxelRange`] only.
 //!
 //! Time-varying volumes ([`VolumeSource::stream_step`]): each step is opened alone (a glob's
-//! file; a 4-D NRRD's own slices of the file; a 4-D NIfTI read whole and the step cut out), and
+//! file; a 4-D NRRD's own slices of the file; a 4-D NIfTI's step read alone, whole), and
 //! [`VolumeSource::read_step_region`] gives a step's region and the step's whole block grid in one
 //! pass over the step ([`VolumeStream::read_region_and_blocks`]): every node marches the whole box
 //! with the step's own empty-space skipping, so each node reads every step whole (a slice at a
@@ -111,7 +111,7 @@ impl VolumeSource {
     /// Opens time step `step` for partial reads: reads a file's header only (MetaImage, NIfTI and
     /// mirrored NRRD are read whole here; see the module's notes). A glob's step is its file
     /// `step`; a 4-D NRRD's step is read from its own slices of the file (a raw one by seeking);
-    /// a 4-D NIfTI is read whole and the step cut out (as [`VolumeSource::load_step`] does).
+    /// a 4-D NIfTI's step is read whole, alone (as [`VolumeSource::load_step`] does).
     pub fn stream_step(&self, raw: Option<&RawSpec>, step: usize) -> Result<VolumeStream, VolumeError> {
         match self {
             VolumeSource::Procedural { kind, size } => {
@@ -194,6 +194,92 @@ impl VolumeSource {
     }
 }
 
+/// Object space, a time-varying source read step after step ([`VolumeSource::step_regions`]):
+/// each step's region and block grid, as [`VolumeSource::read_step_region`] gives them, but a
+/// 4-D NRRD's or NIfTI's steps come from one stream kept open (the crate's `StepFile`), so a
+/// pass over the steps in order inflates a compressed file once, not once per step.
+pub struct StepRegions {
+    source: VolumeSource,
+    raw: Option<RawSpec>,
+    range: VoxelRange,
+    block: usize,
+    first: VolumeInfo,
+    file: Option<crate::io::StepFile>,
+}
+
+impl VolumeSource {
+    /// The reader of `range` and the block grid (blocks of `block` cells) of every step, each
+    /// step's grid checked against `first` ([`StepRegions::read`]).
+    pub fn step_regions(
+        &self,
+        raw: Option<&RawSpec>,
+        range: VoxelRange,
+        block: usize,
+        first: VolumeInfo,
+    ) -> Result<StepRegions, VolumeError> {
+        let file = match self {
+            // The brick's limit was checked when the bricks were split; mirrored files are
+            // read a step at a time through `read_step_region`.
+            VolumeSource::File(path) => {
+                let none = crate::io::VolumeLimit::new(u64::MAX, "none for a brick's steps");
+                crate::io::step_file(path, &none)?.filter(|f| f.steps > 1 && f.mirror.is_none())
+            }
+            _ => None,
+        };
+        Ok(StepRegions { source: self.clone(), raw: raw.cloned(), range, block, first, file })
+    }
+}
+
+impl StepRegions {
+    /// Step `step`'s region and whole block grid, in one pass over the step (one z-slice
+    /// resident at a time besides the region).
+    pub fn read(&mut self, step: usize) -> Result<StepRegion, VolumeError> {
+        let Some(file) = self.file.as_mut() else {
+            let (range, block) = (&self.range, self.block);
+            return self.source.read_step_region(self.raw.as_ref(), step, range, block, &self.first);
+        };
+        let (dims, spacing, origin) = file.step_grid();
+        let first = &self.first;
+        if dims != first.dims || spacing != first.spacing || origin != first.origin {
+            return Err(VolumeError::Source(format!(
+                "{}: time step {step} has dims {dims:?}, spacing {spacing:?}, origin {origin:?}, but the first \
+                 step has {:?}, {:?}, {:?}: object space splits every step as the first",
+                self.source, first.dims, first.spacing, first.origin
+            )));
+        }
+        let range = &self.range;
+        if !range.fits(dims) {
+            return Err(VolumeError::Invalid(format!(
+                "{}: region {range:?} does not fit dims {dims:?}",
+                first.name
+            )));
+        }
+        let mut acc = BlockScan::new(dims, self.block);
+        let [rx, ry, _] = range.dims();
+        let nx = dims[0];
+        let mut data = Vec::with_capacity(range.count());
+        file.read_slices(step, &mut |k, slice| {
+            acc.add_slice(k, slice);
+            if (range.lo[2]..=range.hi[2]).contains(&k) {
+                for j in range.lo[1]..range.lo[1] + ry {
+                    let row = &slice[nx * j..nx * (j + 1)];
+                    data.extend_from_slice(&row[range.lo[0]..range.lo[0] + rx]);
+                }
+            }
+        })?;
+        let blocks = acc.finish(&first.name)?;
+        let at = first.origin
+            + first.spacing * DVec3::new(range.lo[0] as f64, range.lo[1] as f64, range.lo[2] as f64);
+        let region = Volume::new(first.name.clone(), range.dims(), first.spacing, at, data)?;
+        Ok(StepRegion { step, region, blocks })
+    }
+
+    /// How many times a compressed 4-D file's stream was opened (inflated from its start).
+    pub fn inflations(&self) -> usize {
+        self.file.as_ref().map_or(0, |f| f.inflations)
+    }
+}
+
 /// Object space, a time-varying volume: one step's brick and halo, and the step's block grid
 /// over the whole volume (empty-space skipping marches the whole box, so each node needs every
 /// block's min/max of the step to march as the single render does).
@@ -206,7 +292,10 @@ pub struct StepRegion {
 
 impl crate::steps::Resident for StepRegion {
     fn resident_bytes(&self) -> usize {
-        self.region.resident_bytes() + self.blocks.minmax.len() * std::mem::size_of::<[f32; 2]>()
+        self.region.resident_bytes()
+            + self.region.name.capacity()
+            + self.blocks.minmax.capacity() * std::mem::size_of::<[f32; 2]>()
+            + std::mem::size_of::<StepRegion>()
     }
 }
 
@@ -631,7 +720,8 @@ mod tests {
                 check_same(&got.region, &whole, &r);
                 blocks_equal(&got.blocks, &BlockMinMax::new(&whole, 4));
                 use crate::steps::Resident;
-                assert_eq!(got.resident_bytes(), r.count() * 4 + got.blocks.minmax.len() * 8);
+                let own = got.region.name.len() + std::mem::size_of::<StepRegion>();
+                assert_eq!(got.resident_bytes(), r.count() * 4 + got.blocks.minmax.len() * 8 + own);
             }
             let e = src.stream_step(None, 3).err().unwrap().to_string();
             assert!(e.contains("has no time step 3"), "{src}: {e}");

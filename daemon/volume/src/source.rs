@@ -258,7 +258,7 @@ mod tests {
             "{e}"
         );
         assert_eq!(s.load_step_within(None, 1, &VolumeLimit::new(8, "test")).unwrap().data(), [2.0, 2.0]);
-        // A 4-D file is limited as a whole (it is read whole, then the step cut out).
+        // A 4-D file is limited as a whole (from its header), though a step reads its voxels only.
         let four = dir.path().join("four.nrrd");
         let text = "NRRD0004\ntype: uchar\ndimension: 4\nsizes: 2 1 1 3\nencoding: raw\n\n";
         std::fs::write(&four, [text.as_bytes(), &[1, 1, 2, 2, 3, 3]].concat()).unwrap();

@@ -8,6 +8,14 @@
 //! What a step is comes from the loader function: [`StepCache::new`] loads whole volumes (screen
 //! space), [`StepCache::with_loader`] anything that says its size ([`Resident`]): object space
 //! loads each step's brick and halo ([`crate::region::StepRegion`]).
+//!
+//! The budget counts what the steps really hold: [`Resident::resident_bytes`] is a step's
+//! allocation (capacity, not length, and its bookkeeping), a step of a 4-D file holds a buffer of
+//! its own voxels only (never the whole file's), and the steps kept ahead are as many as fit at
+//! the largest step seen so far (the steps of a glob may differ in size). While a step loads, the
+//! ones kept stay resident: the peak is the budget plus one step. A 4-D file's steps are read
+//! from one stream kept open ([`crate::io`]'s `StepFile`): a pass over the steps in order
+//! inflates a compressed file once, not once per step.
 
 use crate::io::{RawSpec, VolumeLimit};
 use crate::{Volume, VolumeError, VolumeSource};
@@ -33,14 +41,16 @@ impl<T> Clone for StepState<T> {
     }
 }
 
-/// What a loaded step holds in memory, in bytes (the cache's budget counts it).
+/// What a loaded step holds in memory, in bytes (the cache's budget counts it): its allocations
+/// as made (capacity, not length).
 pub trait Resident {
     fn resident_bytes(&self) -> usize;
 }
 
 impl Resident for Volume {
+    /// The voxel buffer as allocated, the name and the struct.
     fn resident_bytes(&self) -> usize {
-        Volume::resident_bytes(self)
+        Volume::resident_bytes(self) + self.name.capacity() + std::mem::size_of::<Volume>()
     }
 }
 
@@ -51,10 +61,13 @@ struct State<T> {
     current: usize,
     loaded: BTreeMap<usize, Arc<T>>,
     failed: BTreeMap<usize, String>,
-    /// Bytes of one step, known once the first is loaded (steps are taken to be alike).
+    /// Bytes of the largest step loaded so far, with its place in the cache.
     step_bytes: Option<usize>,
     /// The most steps resident at once (for tests and reports).
     peak_resident: usize,
+    /// Bytes the loaded steps hold now, and the most they held at once.
+    resident_bytes: usize,
+    peak_resident_bytes: usize,
     loads: usize,
     stop: bool,
 }
@@ -67,6 +80,8 @@ impl<T> Default for State<T> {
             failed: BTreeMap::new(),
             step_bytes: None,
             peak_resident: 0,
+            resident_bytes: 0,
+            peak_resident_bytes: 0,
             loads: 0,
             stop: false,
         }
@@ -113,7 +128,15 @@ impl StepCache<Volume> {
     ) -> Result<StepCache<Volume>, VolumeError> {
         let steps = source.time_steps()?;
         let name = source.to_string();
-        let load = move |k| source.load_step_within(raw.as_ref(), k, &limit);
+        // A 4-D file: its steps from one stream kept open (see the module's notes).
+        let mut file = match &source {
+            VolumeSource::File(path) => crate::io::step_file(path, &limit)?.filter(|f| f.steps > 1),
+            _ => None,
+        };
+        let load = move |k| match &mut file {
+            Some(file) => file.read(k),
+            None => source.load_step_within(raw.as_ref(), k, &limit),
+        };
         StepCache::with_loader(steps, cache_bytes, name, Box::new(load))
     }
 }
@@ -192,6 +215,13 @@ impl<T> StepCache<T> {
         let s = self.shared.lock();
         (s.peak_resident, s.loads)
     }
+
+    /// The bytes the loaded steps hold now ([`Resident::resident_bytes`] with the cache's own
+    /// bookkeeping), and the most they held at once.
+    pub fn resident_bytes(&self) -> (usize, usize) {
+        let s = self.shared.lock();
+        (s.resident_bytes, s.peak_resident_bytes)
+    }
 }
 
 impl<T> Drop for StepCache<T> {
@@ -208,16 +238,42 @@ impl<T> Drop for StepCache<T> {
 /// others.
 fn load_ahead<T: Resident>(shared: &Shared<T>, name: &str, mut load: StepLoader<T>) {
     let mut s = shared.lock();
+    // The current step and the steps ahead at the last sweep of the steps behind, and how many
+    // steps from the current one on are known loaded or failed since: each load costs a look at
+    // one more step, not at all of them (a file may hold tens of thousands of steps).
+    let mut swept = None;
+    let mut scanned = 0;
     loop {
         if s.stop {
             return;
         }
-        let keep: Vec<usize> = s.loaded.keys().copied().filter(|&k| shared.is_ahead(&s, k)).collect();
-        s.loaded.retain(|k, _| keep.contains(k));
         let ahead = shared.ahead(&s);
-        let next = (0..ahead)
-            .map(|d| (s.current + d) % shared.steps)
-            .find(|k| !s.loaded.contains_key(k) && !s.failed.contains_key(k));
+        if swept != Some((s.current, ahead)) {
+            // The steps kept are the ring [current, current + ahead): only the keys outside it
+            // are looked at.
+            let (lo, hi, n) = (s.current, s.current + ahead, shared.steps);
+            let behind: Vec<usize> = if hi <= n {
+                s.loaded.range(..lo).chain(s.loaded.range(hi..)).map(|(&k, _)| k).collect()
+            } else {
+                s.loaded.range(hi - n..lo).map(|(&k, _)| k).collect()
+            };
+            for k in behind {
+                if let Some(v) = s.loaded.remove(&k) {
+                    s.resident_bytes -= held(&*v);
+                }
+            }
+            swept = Some((s.current, ahead));
+            scanned = 0;
+        }
+        let mut next = None;
+        while scanned < ahead {
+            let k = (s.current + scanned) % shared.steps;
+            if !s.loaded.contains_key(&k) && !s.failed.contains_key(&k) {
+                next = Some(k);
+                break;
+            }
+            scanned += 1;
+        }
         let Some(step) = next else {
             s = shared.changed.wait(s).unwrap_or_else(|p| p.into_inner());
             continue;
@@ -228,10 +284,13 @@ fn load_ahead<T: Resident>(shared: &Shared<T>, name: &str, mut load: StepLoader<
         s.loads += 1;
         match result {
             Ok(v) => {
-                s.step_bytes.get_or_insert(v.resident_bytes());
+                let bytes = held(&v);
+                s.step_bytes = Some(s.step_bytes.unwrap_or(0).max(bytes));
                 if shared.is_ahead(&s, step) {
                     s.loaded.insert(step, Arc::new(v));
+                    s.resident_bytes += bytes;
                     s.peak_resident = s.peak_resident.max(s.loaded.len());
+                    s.peak_resident_bytes = s.peak_resident_bytes.max(s.resident_bytes);
                 }
             }
             Err(e) => {
@@ -241,6 +300,11 @@ fn load_ahead<T: Resident>(shared: &Shared<T>, name: &str, mut load: StepLoader<
         }
         shared.changed.notify_all();
     }
+}
+
+/// What a loaded step costs the cache: its own bytes, its `Arc`'s counts and its map entry.
+fn held<T: Resident>(v: &T) -> usize {
+    v.resident_bytes() + 2 * std::mem::size_of::<usize>() + std::mem::size_of::<(usize, Arc<T>)>()
 }
 
 #[cfg(test)]
@@ -267,8 +331,11 @@ mod tests {
     #[test]
     fn steps_ahead_are_prefetched_within_the_budget() {
         let dir = tempfile::tempdir().unwrap();
-        // Each step is 64 f32 = 256 bytes: a budget of 3 steps.
-        let c = StepCache::new(steps(dir.path(), 6), None, 3 * 256 + 10, VolumeLimit::default()).unwrap();
+        // Each step is 64 f32 = 256 bytes and its bookkeeping: a budget of 3 steps.
+        let source = steps(dir.path(), 6);
+        let one = held(&source.load_step(None, 0).unwrap());
+        assert!((256..1024).contains(&one), "{one}");
+        let c = StepCache::new(source, None, 3 * one + 10, VolumeLimit::default()).unwrap();
         assert_eq!(c.steps(), 6);
         assert_eq!(ready(&c, 0).data()[0], 0.0);
         // Steps 1 and 2 arrive without being asked for beyond the current one.
@@ -314,9 +381,12 @@ mod tests {
             let (source, first) = (source.clone(), first.clone());
             move |k| source.read_step_region(None, k, &range, 2, &first)
         };
-        // A region is 3x4x2 f32 (96 bytes) plus the 2x2x2 block grid (64 bytes): 2 steps fit.
+        // A region is 3x4x2 f32 (96 bytes) plus the 2x2x2 block grid (64 bytes) and their
+        // bookkeeping: 2 steps fit.
+        let one = held(&source.read_step_region(None, 0, &range, 2, &first).unwrap());
+        assert!((160..1024).contains(&one), "{one}");
         let c: StepCache<StepRegion> =
-            StepCache::with_loader(5, 2 * 160 + 10, source.to_string(), Box::new(loader)).unwrap();
+            StepCache::with_loader(5, 2 * one + 10, source.to_string(), Box::new(loader)).unwrap();
         assert_eq!(c.steps(), 5);
         for k in [0, 1, 2, 4, 0] {
             let r = ready(&c, k);
@@ -336,5 +406,138 @@ mod tests {
             other => panic!("{other:?}"),
         }
         assert_eq!(ready(&c, 4).step, 4);
+    }
+
+    /// A gzip NRRD of `steps` time steps of `n`^3 uchar voxels, step k all `k % 251`.
+    fn gzip_4d_nrrd(dir: &std::path::Path, n: usize, steps: usize) -> std::path::PathBuf {
+        let voxels: Vec<u8> =
+            (0..steps).flat_map(|k| std::iter::repeat_n((k % 251) as u8, n * n * n)).collect();
+        let head =
+            format!("NRRD0004\ntype: uchar\ndimension: 4\nsizes: {n} {n} {n} {steps}\nencoding: gzip\n\n");
+        let p = dir.join("four.nrrd");
+        std::fs::write(&p, [head.into_bytes(), crate::io::testutil::gzip(&voxels)].concat()).unwrap();
+        p
+    }
+
+    #[test]
+    fn a_4d_files_steps_hold_their_own_voxels_and_the_budget_counts_them() {
+        // The attack, scaled down: a gzip NRRD of 16^3 x 64 steps (a few KB on disk, 1 MiB of
+        // voxels as float32) under a budget of 4 steps. Each cached step used to keep the whole
+        // file's buffer (64 steps' voxels) while the budget counted one step's.
+        let dir = tempfile::tempdir().unwrap();
+        let (n, steps) = (16, 64);
+        let step_bytes = n * n * n * 4;
+        let budget = 4 * step_bytes + 4096;
+        let path = gzip_4d_nrrd(dir.path(), n, steps);
+        let c = StepCache::new(VolumeSource::File(path), None, budget, VolumeLimit::default()).unwrap();
+        for k in [0, 1, 2, 3, 4, 40, 63, 0, 5] {
+            let v = ready(&c, k);
+            assert_eq!(v.dims(), [n, n, n]);
+            assert!(v.data().iter().all(|&x| x == k as f32), "step {k}");
+            assert_eq!(
+                v.data.capacity(),
+                n * n * n,
+                "step {k} holds a buffer of {} voxels",
+                v.data.capacity()
+            );
+            assert!(Resident::resident_bytes(&*v) < step_bytes + 1024, "{}", Resident::resident_bytes(&*v));
+        }
+        let (now, peak) = c.resident_bytes();
+        assert!(peak <= budget, "the cache held {peak} bytes at once, over its budget of {budget}");
+        assert!(now <= peak);
+        let (peak_steps, _) = c.counts();
+        assert!(peak_steps <= 4, "{peak_steps} steps were resident at once");
+    }
+
+    #[test]
+    fn tiny_steps_of_a_gzip_nifti_cost_their_own_bytes_and_one_inflation_a_pass() {
+        // The attack: a few hundred bytes of `.nii.gz` holding 32,767 one-voxel steps. Each step
+        // used to inflate the whole file into a buffer of all 32,767 voxels and keep it (0.9 GB
+        // and climbing); now a step holds one voxel and a pass inflates the file once.
+        let dir = tempfile::tempdir().unwrap();
+        let steps = 32767usize;
+        let mut h = vec![0u8; 352];
+        h[0..4].copy_from_slice(&348i32.to_le_bytes());
+        for (i, d) in [4i16, 1, 1, 1, steps as i16, 1, 1, 1].iter().enumerate() {
+            h[40 + 2 * i..42 + 2 * i].copy_from_slice(&d.to_le_bytes());
+        }
+        h[70..72].copy_from_slice(&2i16.to_le_bytes()); // datatype: uint8
+        h[72..74].copy_from_slice(&8i16.to_le_bytes()); // bitpix
+        for i in 0..8 {
+            h[76 + 4 * i..80 + 4 * i].copy_from_slice(&1f32.to_le_bytes()); // pixdim
+        }
+        h[108..112].copy_from_slice(&352f32.to_le_bytes()); // vox_offset
+        h[344..348].copy_from_slice(b"n+1\0");
+        h.extend(vec![7u8; steps]);
+        let gz = crate::io::testutil::gzip(&h);
+        let path = dir.path().join("tiny.nii.gz");
+        std::fs::write(&path, &gz).unwrap();
+        assert!(gz.len() < 1000, "{} bytes", gz.len());
+
+        let budget = 16 << 20;
+        let start = Instant::now();
+        let c =
+            StepCache::new(VolumeSource::File(path.clone()), None, budget, VolumeLimit::default()).unwrap();
+        assert_eq!(c.steps(), steps);
+        ready(&c, 0);
+        // The whole pass: every step fits the budget, so every step is loaded.
+        let deadline = Instant::now() + Duration::from_secs(60);
+        while c.counts().1 < steps && Instant::now() < deadline {
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        let elapsed = start.elapsed();
+        assert_eq!(c.counts().1, steps, "loaded in {elapsed:?}");
+        let last = ready(&c, steps - 1);
+        assert_eq!(last.data(), [7.0]);
+        assert_eq!(last.data.capacity(), 1);
+        let (now, peak) = c.resident_bytes();
+        let (_, loads) = c.counts();
+        eprintln!("{loads} steps loaded in {elapsed:?}, {now} bytes resident (peak {peak})");
+        assert!(peak <= budget, "the cache held {peak} bytes, over its budget of {budget}");
+        // Every step is counted with its bookkeeping: a few hundred bytes, not 4.
+        assert!(now >= loads * (4 + std::mem::size_of::<Volume>()), "{now} bytes for {loads} steps");
+        drop(c);
+
+        // One pass in order inflates the file once; going back opens it again.
+        let mut file = crate::io::step_file(&path, &VolumeLimit::default()).unwrap().unwrap();
+        for k in 0..steps {
+            assert_eq!(file.read(k).unwrap().data(), [7.0]);
+        }
+        assert_eq!(file.inflations, 1);
+        file.read(3).unwrap();
+        file.read(4).unwrap();
+        assert_eq!(file.inflations, 2);
+        let e = file.read(steps).unwrap_err().to_string();
+        assert!(e.contains("tiny.nii.gz") && e.contains("has no time step 32767"), "{e}");
+    }
+
+    #[test]
+    fn a_bricks_steps_of_a_gzip_4d_file_inflate_it_once_a_pass() {
+        use crate::region::StepRegion;
+        use crate::VoxelRange;
+        let dir = tempfile::tempdir().unwrap();
+        let (n, steps) = (8, 40);
+        let source = VolumeSource::File(gzip_4d_nrrd(dir.path(), n, steps));
+        let first = source.stream(None).unwrap().info().clone();
+        let range = VoxelRange { lo: [1, 2, 3], hi: [6, 5, 7] };
+        let mut regions = source.step_regions(None, range, 4, first.clone()).unwrap();
+        for k in 0..steps {
+            let r = regions.read(k).unwrap();
+            let want = source.read_step_region(None, k, &range, 4, &first).unwrap();
+            assert_eq!(
+                (r.step, r.region.dims(), r.region.origin()),
+                (k, want.region.dims(), want.region.origin())
+            );
+            assert_eq!(r.region.data(), want.region.data(), "step {k}");
+            assert_eq!(r.blocks.minmax, want.blocks.minmax, "step {k}");
+        }
+        assert_eq!(regions.inflations(), 1, "one pass in order");
+        regions.read(0).unwrap();
+        assert_eq!(regions.inflations(), 2, "back to step 0: opened again");
+        // Through the cache, as an object-space node plays it.
+        let c: StepCache<StepRegion> =
+            StepCache::with_loader(steps, 1 << 20, source.to_string(), Box::new(move |k| regions.read(k)))
+                .unwrap();
+        assert_eq!(ready(&c, 39).step, 39);
     }
 }

@@ -190,3 +190,46 @@ fn an_8_bit_greyscale_jpeg_baseline_slice_reads_within_its_loss() {
     assert!(a.data() != b.data(), "baseline is lossy: identical pixels mean it was not decoded as JPEG");
     assert!(worst <= 24.0 && mean < 3.0, "baseline differs by up to {worst} levels (mean {mean})");
 }
+
+#[test]
+fn a_jpeg_frame_larger_than_the_dicom_header_says_is_refused_before_decoding() {
+    // The attack: Rows/Columns say MR_small's 64x64, the JPEG frame header (SOF0) says 4096x4096
+    // (45000x45000 took a node to 2.86 GB and 21 s before the size check after decoding).
+    let (values, w, h) = mr_small();
+    let bytes: Vec<u8> = values.iter().map(|&v| (v >> 4) as u8).collect();
+    let mut jpeg = Vec::new();
+    jpeg_encoder::Encoder::new(&mut jpeg, 90)
+        .encode(&bytes, w as u16, h as u16, jpeg_encoder::ColorType::Luma)
+        .unwrap();
+    let sof = jpeg.windows(2).position(|m| m == [0xFF, 0xC0]).expect("a baseline frame header");
+    // FF C0, length (2), precision (1), then height and width (2 each, big-endian).
+    jpeg[sof + 5..sof + 7].copy_from_slice(&4096u16.to_be_bytes());
+    jpeg[sof + 7..sof + 9].copy_from_slice(&4096u16.to_be_bytes());
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("liar.dcm");
+    rewrite(&path, JPEG_BASELINE, 8, jpeg);
+    let start = std::time::Instant::now();
+    let e = dicom::read(&path, None, &VolumeLimit::default()).unwrap_err().to_string();
+    let took = start.elapsed();
+    eprintln!("refused in {took:?}: {e}");
+    assert!(
+        e.contains("liar.dcm")
+            && e.contains("(7FE0,0010)")
+            && e.contains("the JPEG frame header says 4096x4096 (columns x rows) where Rows/Columns")
+            && e.contains(&format!("say {w}x{h}: refused before decoding")),
+        "{e}"
+    );
+    // The same refusal from the headers alone, as check-config reads them.
+    let series = dicom::Series::open(&path, None).unwrap();
+    let e = series.check_frames().unwrap_err().to_string();
+    assert!(e.contains("liar.dcm") && e.contains("says 4096x4096"), "{e}");
+    // An honest frame passes the same check.
+    let honest = dir.path().join("honest");
+    std::fs::create_dir(&honest).unwrap();
+    let mut jpeg = Vec::new();
+    jpeg_encoder::Encoder::new(&mut jpeg, 90)
+        .encode(&bytes, w as u16, h as u16, jpeg_encoder::ColorType::Luma)
+        .unwrap();
+    rewrite(&honest.join("ok.dcm"), JPEG_BASELINE, 8, jpeg);
+    dicom::Series::open(&honest, None).unwrap().check_frames().unwrap();
+}

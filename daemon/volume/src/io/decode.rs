@@ -170,7 +170,7 @@ pub(crate) enum Encoding {
 }
 
 impl Encoding {
-    fn name(self) -> &'static str {
+    pub(crate) fn name(self) -> &'static str {
         match self {
             Encoding::Raw => "raw",
             Encoding::Gzip => "gzip",
@@ -179,7 +179,7 @@ impl Encoding {
     }
 
     /// `r` wrapped in this encoding's decoder.
-    pub fn decoder<'a, R: BufRead + 'a>(self, mut r: R) -> io::Result<Box<dyn Read + 'a>> {
+    pub fn decoder<'a, R: BufRead + Send + 'a>(self, mut r: R) -> io::Result<Box<dyn Read + Send + 'a>> {
         Ok(match self {
             Encoding::Raw => Box::new(r),
             Encoding::Gzip => Box::new(MultiGzDecoder::new(r)),
@@ -215,7 +215,7 @@ pub(crate) struct DataSpec {
 /// Reads the voxels of `layout` from `r`, which is at byte `pos` of the data file of `file_len`
 /// bytes, as `spec` says. Raw data must fill the file exactly; compressed data must decode to
 /// exactly the voxels' bytes.
-pub(crate) fn read_data<R: BufRead>(
+pub(crate) fn read_data<R: BufRead + Send>(
     files: Files,
     mut r: R,
     pos: u64,

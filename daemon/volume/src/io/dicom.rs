@@ -493,6 +493,18 @@ impl Series {
         Ok(())
     }
 
+    /// Reads every slice's compressed frame header (no pixel is decoded) and checks it says the
+    /// series' slice size: what a read refuses before decoding, for `check-config`.
+    pub fn check_frames(&self) -> Result<(), VolumeError> {
+        let [nx, ny, _] = self.dims;
+        for s in &self.slices {
+            let obj = dicom_object::open_file(&s.path)
+                .map_err(|e| format_err(&s.path, format!("cannot read the DICOM file: {}", report(&e))))?;
+            check_frame(&s.path, &obj, nx, ny)?;
+        }
+        Ok(())
+    }
+
     /// Reads the whole series if it fits `limit` (checked from the headers, before any pixel is
     /// decoded).
     pub fn read(&self, limit: &VolumeLimit) -> Result<Volume, VolumeError> {
@@ -614,6 +626,7 @@ fn decode_slice(path: &Path, nx: usize, ny: usize) -> Result<Vec<f64>, VolumeErr
             ));
         }
     }
+    check_frame(path, &obj, nx, ny)?;
     // A decoder panic on hostile data must not take the daemon down: it is this file's error.
     let decoded = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
         let px = obj.decode_pixel_data()?;
@@ -650,6 +663,77 @@ fn decode_slice(path: &Path, nx: usize, ny: usize) -> Result<Vec<f64>, VolumeErr
         ));
     }
     Ok(values)
+}
+
+/// Checks that a JPEG frame's own header says the slice's size (`nx` columns by `ny` rows, one
+/// component) before anything is decoded: the decoder allocates what the frame header says, not
+/// what the DICOM header says, so a frame claiming 45000x45000 in a file whose Rows/Columns say
+/// 8x8 would cost gigabytes before the size check after decoding. Only the markers up to the
+/// frame header are read (jpeg-decoder's `read_info`); other pixel data passes unchanged (native
+/// and RLE data are decoded to the DICOM header's size).
+fn check_frame(path: &Path, obj: &Header, nx: usize, ny: usize) -> Result<(), VolumeError> {
+    let Some(fragments) = obj.get(tags::PIXEL_DATA).and_then(|p| p.value().fragments()) else {
+        return Ok(());
+    };
+    let jpeg = fragments.iter().find(|f| !f.is_empty()).is_some_and(|f| f.starts_with(&[0xFF, 0xD8]));
+    if !jpeg {
+        return Ok(());
+    }
+    let ts_uid = obj.meta().transfer_syntax().trim_end_matches('\0').to_string();
+    let ts_name = TransferSyntaxRegistry.get(&ts_uid).map(|t| t.name()).unwrap_or("JPEG");
+    let err = |what: String| tag_err(path, tags::PIXEL_DATA, "PixelData", what);
+    let reader = Fragments { rest: fragments, at: 0 };
+    let info = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        let mut d = jpeg_decoder::Decoder::new(reader);
+        d.read_info().map(|()| d.info())
+    }));
+    let info = match info {
+        Ok(Ok(Some(info))) => info,
+        Ok(Ok(None)) => return Err(err("the JPEG data has no frame header".into())),
+        Ok(Err(e)) => return Err(err(format!("cannot read the {ts_name} frame header: {e}"))),
+        Err(_) => return Err(err("the JPEG frame header cannot be read".into())),
+    };
+    let (w, h) = (usize::from(info.width), usize::from(info.height));
+    if (w, h) != (nx, ny) {
+        return Err(err(format!(
+            "the JPEG frame header says {w}x{h} (columns x rows) where Rows/Columns (0028,0010)/(0028,0011) say {nx}x{ny}: refused before decoding"
+        )));
+    }
+    let components = match info.pixel_format {
+        jpeg_decoder::PixelFormat::L8 | jpeg_decoder::PixelFormat::L16 => 1,
+        jpeg_decoder::PixelFormat::RGB24 => 3,
+        jpeg_decoder::PixelFormat::CMYK32 => 4,
+    };
+    if components != 1 {
+        return Err(err(format!(
+            "the JPEG frame has {components} components where a greyscale slice has 1: refused before decoding"
+        )));
+    }
+    Ok(())
+}
+
+/// The fragments of encapsulated pixel data read as one stream (a frame may span several).
+struct Fragments<'a, P> {
+    rest: &'a [P],
+    at: usize,
+}
+
+impl<P: AsRef<[u8]>> Read for Fragments<'_, P> {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        while let Some(first) = self.rest.first() {
+            let left = &first.as_ref()[self.at..];
+            if left.is_empty() {
+                self.rest = &self.rest[1..];
+                self.at = 0;
+                continue;
+            }
+            let n = left.len().min(buf.len());
+            buf[..n].copy_from_slice(&left[..n]);
+            self.at += n;
+            return Ok(n);
+        }
+        Ok(0)
+    }
 }
 
 /// Reads the series `path` names (see [`Series::open`]) within `limit`.

@@ -50,7 +50,7 @@ pub(crate) use decode::{
 };
 pub(crate) use header::{dims3, numbers, spacing3, vec3, AxisSteps, HeaderLines};
 pub use limit::{VolumeLimit, DEFAULT_MAX_BYTES, MAX_VOXELS};
-pub(crate) use plan::FilePlan;
+pub(crate) use plan::{FilePlan, StepFile};
 
 use crate::{Volume, VolumeError};
 use glam::DVec3;
@@ -124,8 +124,8 @@ pub fn load_step(path: &Path, raw: Option<&RawSpec>, step: usize) -> Result<Volu
 }
 
 /// Reads time step `step` of a volume file within `limit`: a 4-D NIfTI or NRRD holds `dim[4]`
-/// steps (read whole, then the step cut out, so the limit applies to the whole file), every
-/// other file one (step 0).
+/// steps (the limit applies to the whole file, checked from its header; only the step's voxels
+/// are read and held, [`StepFile`]), every other file one (step 0).
 pub fn load_step_within(
     path: &Path,
     raw: Option<&RawSpec>,
@@ -138,6 +138,9 @@ pub fn load_step_within(
             "{}: is a {format:?} file, which describes itself; ignoring the raw volume options (--dims, --type, --spacing)",
             path.display()
         );
+    }
+    if let Some(mut steps) = step_file(path, limit)?.filter(|f| f.steps > 1) {
+        return steps.read(step);
     }
     let (volume, steps) = match format {
         FileFormat::Nrrd => nrrd::read(path, limit)?,
@@ -158,6 +161,14 @@ pub fn load_step_within(
     time_step(path, volume, steps, step)
 }
 
+/// What a node's reader refuses of a volume file from its header alone, without reading a voxel
+/// (for `check-config`): a NRRD's or NIfTI's sizes (all its time steps) over `limit`, or
+/// uncompressed data that does not fill its file. Other formats pass here (a DICOM series has
+/// [`dicom::Series`]'s checks; the rest are checked when read).
+pub fn check_header(path: &Path, limit: &VolumeLimit) -> Result<(), VolumeError> {
+    step_file(path, limit).map(|_| ())
+}
+
 /// The number of time steps of a volume file, from its header: `dim[4]` of a 4-D NIfTI, the 4th
 /// size of a 4-D NRRD, 1 for every other file.
 pub fn time_steps(path: &Path) -> Result<usize, VolumeError> {
@@ -165,6 +176,16 @@ pub fn time_steps(path: &Path) -> Result<usize, VolumeError> {
         FileFormat::Nrrd => nrrd::time_steps(path),
         FileFormat::Nifti => nifti::time_steps(path),
         _ => Ok(1),
+    }
+}
+
+/// A NRRD or NIfTI file as time steps read one at a time, within `limit` (its whole voxels,
+/// from the header); `None` for the other formats (one step each).
+pub(crate) fn step_file(path: &Path, limit: &VolumeLimit) -> Result<Option<StepFile>, VolumeError> {
+    match FileFormat::of(path) {
+        FileFormat::Nrrd => nrrd::step_file(path, limit).map(Some),
+        FileFormat::Nifti => nifti::step_file(path, limit).map(Some),
+        _ => Ok(None),
     }
 }
 
@@ -181,9 +202,8 @@ fn time_step(path: &Path, v: Volume, steps: usize, step: usize) -> Result<Volume
     }
     let [nx, ny, nzt] = v.dims;
     let nz = nzt / steps;
-    let mut data = v.data;
-    data.truncate(nx * ny * nz * (step + 1));
-    data.drain(..nx * ny * nz * step);
+    // Copied out, so the step holds its own voxels only, not the whole file's buffer.
+    let data = v.data[nx * ny * nz * step..nx * ny * nz * (step + 1)].to_vec();
     Volume::new(v.name, [nx, ny, nz], v.spacing, v.origin, data)
 }
 

@@ -10,7 +10,7 @@
 //! - `datatype` 2 uint8, 4 int16, 8 int32, 16 float32, 64 float64, 256 int8, 512 uint16,
 //!   768 uint32;
 //! - `dim[0]` = 3, or 4 to 7 when the dimensions past the 4th are 1: `dim[4]` time steps, stacked
-//!   along z when read ([`super::load_step`] cuts one out);
+//!   along z in the file ([`super::load_step`] reads one step's voxels alone);
 //! - spacing `|pixdim[1..=3]|`; voxels from `vox_offset`, so header extensions are skipped;
 //! - `scl_slope`/`scl_inter`, applied when the slope is finite and not 0 and the pair is not
 //!   (1, 0) (a non-finite intercept counts as 0, as nibabel does);
@@ -24,8 +24,8 @@
 //! `vox_offset` inside the header.
 
 use super::{
-    format_err, io_err, make_volume, open, read_data, read_full, read_voxels, DataSpec, Encoding, Files,
-    Layout, Scale, VolumeLimit, VoxelType, MAX_VOXELS,
+    check_raw_size, format_err, io_err, make_volume, open, read_data, read_full, read_voxels, DataSpec,
+    Encoding, Files, Layout, Scale, VolumeLimit, VoxelType, MAX_VOXELS,
 };
 use crate::{Volume, VolumeError};
 use glam::DVec3;
@@ -87,6 +87,57 @@ pub(crate) fn read(path: &Path, limit: &VolumeLimit) -> Result<(Volume, usize), 
             )),
         };
     header.volume(path, data)
+}
+
+/// The NIfTI file at `path` as time steps read one at a time ([`super::plan::StepFile`]; a 3-D
+/// file is one step), its whole voxels within `limit`.
+pub(crate) fn step_file(path: &Path, limit: &VolumeLimit) -> Result<super::plan::StepFile, VolumeError> {
+    let (mut r, file_len) = open(path)?;
+    let gzipped = r.fill_buf().map_err(|e| io_err(path, e))?.starts_with(&[0x1f, 0x8b]);
+    let is_hdr = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("hdr"));
+    let plan =
+        |header: &Header, data: PathBuf, start: u64, encoding: Encoding, decoded_skip: u64| super::FilePlan {
+            header: path.to_path_buf(),
+            data,
+            layout: header.layout,
+            start,
+            encoding,
+            decoded_skip,
+            trailing: false,
+        };
+    let (header, plan) = if gzipped {
+        // The header is inside the compressed stream: the voxels start `vox_offset` bytes into it.
+        let header = Header::read(path, &mut flate2::bufread::MultiGzDecoder::new(r), Encoding::Gzip, limit)?;
+        if !header.single_file {
+            return Err(format_err(
+                path,
+                "magic 'ni1'/'ni2' (a .hdr/.img pair) in a gzip-compressed file is not supported",
+            ));
+        }
+        let plan = plan(&header, path.to_path_buf(), 0, Encoding::Gzip, header.vox_offset);
+        (header, plan)
+    } else {
+        let header = Header::read(path, &mut r, Encoding::Raw, limit)?;
+        let (data, len) = match (header.single_file, is_hdr) {
+            (true, false) => (path.to_path_buf(), file_len),
+            (false, true) => {
+                let img = image_path(path);
+                let len = open(&img)?.1;
+                (img, len)
+            }
+            (true, true) => {
+                return Err(format_err(path, "the magic says a single .nii file, but the name ends in .hdr"))
+            }
+            (false, false) => return Err(format_err(
+                path,
+                "the magic ('ni1'/'ni2') says the voxels are in a separate .img file: open the matching .hdr",
+            )),
+        };
+        check_raw_size(Files { header: path, data: &data }, len, header.vox_offset, &header.layout)?;
+        let plan = plan(&header, data, header.vox_offset, Encoding::Raw, 0);
+        (header, plan)
+    };
+    Ok(super::plan::StepFile::new(plan, header.time_steps, header.spacing, header.origin, header.scale, None))
 }
 
 /// The number of time steps of the NIfTI file at `path` (its header only; the reader's limit is

@@ -18,7 +18,7 @@
 //!   ignored, unknown fields warned about and ignored;
 //! - `dimension: 4`: a series of 3-D time steps along the 4th (slowest) axis; the per-axis fields
 //!   have a 4th entry, which is ignored (`spacings ... nan`, `space directions ... none`); the
-//!   steps are stacked along z when read ([`super::load_step`] cuts one out); a negative z
+//!   steps are stacked along z in the file ([`super::load_step`] reads one step's voxels alone); a negative z
 //!   direction is refused there.
 //!
 //! Refused with an error: `dimension` other than 3 or 4, 64-bit integers and `block`, the `ascii`,
@@ -97,14 +97,25 @@ pub(crate) fn time_steps(path: &Path) -> Result<usize, VolumeError> {
 /// Where the voxels of the NRRD file at `path` are, for partial reads; `None` where a `space
 /// directions` mirrors an axis (such files are read whole).
 pub(crate) fn plan(path: &Path) -> Result<Option<(super::FilePlan, DVec3, DVec3)>, VolumeError> {
+    let limit = VolumeLimit::new(u64::MAX, "none while planning a partial read");
+    let steps = step_file(path, &limit)?;
+    if steps.mirror.is_some() {
+        return Ok(None);
+    }
+    Ok(Some((steps.plan, steps.spacing, steps.origin)))
+}
+
+/// The NRRD file at `path` as time steps read one at a time ([`super::plan::StepFile`]; a 3-D
+/// file is one step), its whole voxels within `limit`.
+pub(crate) fn step_file(path: &Path, limit: &VolumeLimit) -> Result<super::plan::StepFile, VolumeError> {
     let (r, file_len) = open(path)?;
     let mut lines = HeaderLines::new(r, path, "NRRD");
     let header = Header::read(path, &mut lines)?;
     let layout = Layout { dims: header.dims, voxel: header.voxel, big_endian: header.big_endian };
-    layout.voxel_count().map_err(|e| format_err(path, format!("line {}: sizes: {e}", header.sizes_line)))?;
-    if header.steps.as_ref().is_some_and(|s| s.mirrors()) {
-        return Ok(None);
-    }
+    layout
+        .check_within(limit)
+        .map_err(|e| format_err(path, format!("line {}: sizes: {e}", header.sizes_line)))?;
+    let mirror = header.steps.filter(|s| s.mirrors());
     let origin = header.origin.unwrap_or(DVec3::ZERO);
     let spacing = match &header.steps {
         Some(steps) => steps.spacing(),
@@ -152,7 +163,7 @@ pub(crate) fn plan(path: &Path) -> Result<Option<(super::FilePlan, DVec3, DVec3)
         decoded_skip,
         trailing: false,
     };
-    Ok(Some((plan, spacing, origin)))
+    Ok(super::plan::StepFile::new(plan, header.time_steps, spacing, origin, None, mirror))
 }
 
 /// What Isowall takes from a NRRD header.

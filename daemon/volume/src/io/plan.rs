@@ -125,3 +125,162 @@ impl FilePlan {
         }
     }
 }
+
+/// A 4-D file's time steps, read one at a time into buffers of exactly one step's voxels.
+///
+/// Raw data is read by seeking to the step. A compressed stream cannot seek, so reading step k
+/// alone would inflate everything before it: a player asking for every step in turn would
+/// inflate the file once per step (a 466-byte `.nii.gz` of 32,767 one-voxel steps kept a core
+/// busy for minutes). Instead the inflating stream is kept open between reads and moves forward
+/// only: step k+1 after step k continues where k ended, and the stream is opened again only when
+/// an earlier step is asked for (playback wrapping to step 0, a jump back). One pass over the
+/// steps in order inflates the file once, whatever the number of steps; resident besides the
+/// step is the inflater's state (tens of KiB) and the open file.
+pub(crate) struct StepFile {
+    /// The whole file: the layout's z holds every step.
+    pub plan: FilePlan,
+    pub steps: usize,
+    pub spacing: glam::DVec3,
+    pub origin: glam::DVec3,
+    pub scale: Option<crate::io::Scale>,
+    /// Axes a NRRD's `space directions` mirror (x or y only: z is refused for 4-D files).
+    pub mirror: Option<crate::io::AxisSteps>,
+    open: Option<OpenStream>,
+    /// How many times the compressed stream was opened (inflated from its start).
+    pub inflations: usize,
+}
+
+struct OpenStream {
+    dec: Box<dyn std::io::Read + Send>,
+    /// The step the stream is at.
+    next: usize,
+}
+
+impl StepFile {
+    pub(crate) fn new(
+        plan: FilePlan,
+        steps: usize,
+        spacing: glam::DVec3,
+        origin: glam::DVec3,
+        scale: Option<crate::io::Scale>,
+        mirror: Option<crate::io::AxisSteps>,
+    ) -> StepFile {
+        StepFile { plan, steps: steps.max(1), spacing, origin, scale, mirror, open: None, inflations: 0 }
+    }
+
+    fn step_layout(&self) -> crate::io::Layout {
+        let mut layout = self.plan.layout;
+        layout.dims[2] /= self.steps;
+        layout
+    }
+
+    /// Reads time step `step`: its voxels alone, in a buffer of exactly their size.
+    pub(crate) fn read(&mut self, step: usize) -> Result<crate::Volume, VolumeError> {
+        let header = self.plan.header.clone();
+        let layout = self.step_layout();
+        let mut data =
+            Vec::with_capacity(layout.voxel_count().map_err(|e| crate::io::format_err(&header, e))?);
+        self.read_slices(step, &mut |_, slice| data.extend_from_slice(slice))?;
+        data.shrink_to_fit();
+        let origin = match &self.mirror {
+            Some(m) => m.apply(self.origin, layout.dims, &mut data),
+            None => self.origin,
+        };
+        crate::io::make_volume(&header, layout.dims, self.spacing, origin, data)
+    }
+
+    /// The step's grid: (dims, spacing, origin), its axes as stored (a mirrored axis not undone).
+    pub(crate) fn step_grid(&self) -> ([usize; 3], glam::DVec3, glam::DVec3) {
+        (self.step_layout().dims, self.spacing, self.origin)
+    }
+
+    /// Calls `f(k, slice)` for every z-slice of step `step` in order (`nx * ny` values, rescaled,
+    /// as stored: a mirrored axis is not undone), one slice resident at a time.
+    pub(crate) fn read_slices(
+        &mut self,
+        step: usize,
+        f: &mut dyn FnMut(usize, &[f32]),
+    ) -> Result<(), VolumeError> {
+        let (steps, header) = (self.steps, self.plan.header.clone());
+        if step >= steps {
+            return Err(crate::io::format_err(
+                &header,
+                format!("has no time step {step}: it holds {steps} (0 to {})", steps - 1),
+            ));
+        }
+        let result = self.read_step(step, f);
+        if result.is_err() {
+            self.open = None;
+        }
+        result
+    }
+
+    fn read_step(&mut self, step: usize, f: &mut dyn FnMut(usize, &[f32])) -> Result<(), VolumeError> {
+        use crate::io::{skip_bytes, Encoding};
+        use std::io::Read;
+        let layout = self.step_layout();
+        let step_bytes = layout.byte_len();
+        let (data, header) = (self.plan.data.clone(), self.plan.header.clone());
+        let files = crate::io::Files { header: &header, data: &data };
+        match self.plan.encoding {
+            Encoding::Raw => {
+                // The file's size was checked against all the steps when the plan was made.
+                let (mut file, _) = crate::io::open(&data)?;
+                file.seek(SeekFrom::Start(self.plan.start + step as u64 * step_bytes))
+                    .map_err(|e| files.io(e))?;
+                step_slices(files, &mut file.take(step_bytes), Encoding::Raw, &layout, self.scale, f)
+            }
+            enc => {
+                if self.open.as_ref().is_none_or(|o| o.next > step) {
+                    self.open = None;
+                    let (mut file, _) = crate::io::open(&data)?;
+                    skip_bytes(files, &mut file, Encoding::Raw, self.plan.start)?;
+                    let mut dec = enc.decoder(file).map_err(|e| files.io(e))?;
+                    skip_bytes(files, &mut *dec, enc, self.plan.decoded_skip)?;
+                    self.inflations += 1;
+                    self.open = Some(OpenStream { dec, next: 0 });
+                }
+                let Some(open) = self.open.as_mut() else { unreachable!("opened above") };
+                skip_bytes(files, &mut *open.dec, enc, (step - open.next) as u64 * step_bytes)?;
+                step_slices(files, &mut (&mut *open.dec).take(step_bytes), enc, &layout, self.scale, f)?;
+                open.next = step + 1;
+                if open.next == self.steps {
+                    // The last step: the stream must end with it.
+                    let mut probe = [0u8; 1];
+                    let more = crate::io::read_full(&mut *open.dec, &mut probe)
+                        .map_err(|e| files.read_error(enc, e))?;
+                    self.open = None;
+                    if more > 0 {
+                        return Err(files.format(format!(
+                            "extra data: the {} data decompresses to more than the {} bytes {} needs",
+                            enc.name(),
+                            self.plan.layout.byte_len(),
+                            self.plan.layout.describe()
+                        )));
+                    }
+                }
+                Ok(())
+            }
+        }
+    }
+}
+
+/// Reads the z-slices of `layout` from `r` (decoded from `enc`), one at a time, each checked
+/// whole (a short one is "truncated"), and calls `f(k, slice)` for each.
+fn step_slices(
+    files: crate::io::Files,
+    r: &mut dyn std::io::Read,
+    enc: crate::io::Encoding,
+    layout: &crate::io::Layout,
+    scale: Option<crate::io::Scale>,
+    f: &mut dyn FnMut(usize, &[f32]),
+) -> Result<(), VolumeError> {
+    use std::io::Read;
+    let [nx, ny, nz] = layout.dims;
+    let slice = crate::io::Layout { dims: [nx, ny, 1], ..*layout };
+    for k in 0..nz {
+        let values = crate::io::read_voxels(files, &mut r.take(slice.byte_len()), enc, 0, &slice, scale)?;
+        f(k, &values);
+    }
+    Ok(())
+}
