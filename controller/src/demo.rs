@@ -21,8 +21,8 @@ pub struct DemoArgs {
     /// The camera path: [[key]] tables with time, eye, target, up, fov, iso, ao_samples, step
     #[arg(long, value_name = "FILE")]
     pub path: PathBuf,
-    /// The frame clock: frame i shows the path at i / FPS seconds
-    #[arg(long, default_value_t = 30.0)]
+    /// The frame clock: frame i shows the path at i / FPS seconds (one frame a day to 1000)
+    #[arg(long, default_value_t = 30.0, value_parser = crate::drive::parse_fps)]
     pub fps: f64,
     /// Start again at the end, until stopped (or --frames)
     #[arg(long = "loop")]

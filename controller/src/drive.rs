@@ -40,8 +40,8 @@ pub struct OrbitOptions {
     /// Orbit step per frame, degrees about the world's up axis through the target
     #[arg(long, default_value_t = 4.0)]
     pub degrees_per_frame: f64,
-    /// Frames per second at most (0: as fast as the wall swaps)
-    #[arg(long, default_value_t = 0.0)]
+    /// Frames per second at most (0: as fast as the wall swaps; else one frame a day to 1000)
+    #[arg(long, default_value_t = 0.0, value_parser = parse_fps)]
     pub fps: f64,
     /// Quality governor: choose the AO samples per frame (at 1 sample, a lower internal
     /// resolution, 1/2 to 1/4) for this frame time (ms) while the camera moves, then hold them
@@ -392,6 +392,21 @@ fn governor_report(target: Option<&Governor>, log: &GovernorLog) -> String {
 
 /// Once a node is up, how long the others have before the wall starts without them (`up` and
 /// `start --local` first wait until their local daemons listen or have exited).
+/// The fewest frames per second `--fps` takes above 0 (one frame a day) and the most.
+pub const MIN_FPS: f64 = 1.0 / 86_400.0;
+pub const MAX_FPS: f64 = 1000.0;
+
+/// `--fps`: 0, or a frame rate in [`MIN_FPS`]..=[`MAX_FPS`], so that its frame period is a
+/// duration (1e-310 frames a second would be a period of 1e310 s).
+pub fn parse_fps(s: &str) -> Result<f64, String> {
+    let fps: f64 = s.trim().parse().map_err(|_| format!("'{s}' is not a number of frames per second"))?;
+    if fps == 0.0 || (MIN_FPS..=MAX_FPS).contains(&fps) {
+        Ok(fps)
+    } else {
+        Err(format!("{fps} frames per second is outside 0 or {MIN_FPS:.6} (one a day) to {MAX_FPS}"))
+    }
+}
+
 pub const START_GRACE: Duration = Duration::from_secs(3);
 
 pub(crate) fn runtime() -> Result<tokio::runtime::Runtime> {
@@ -563,6 +578,28 @@ pub fn snapshot(a: &SnapshotArgs) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_frame_rate_is_0_or_a_period_that_is_a_duration() {
+        for ok in ["0", "30", "0.5", "1000"] {
+            let fps = parse_fps(ok).unwrap();
+            if fps > 0.0 {
+                Duration::from_secs_f64(1.0 / fps); // panics on a period past Duration's range
+            }
+        }
+        for bad in ["1e-310", "-1", "1001", "inf", "NaN", "fast"] {
+            assert!(parse_fps(bad).is_err(), "{bad}");
+        }
+        // Where clap meets it: `demo --fps 1e-310` is a usage error, not a panic.
+        use clap::Parser;
+        #[derive(Parser)]
+        struct Cli {
+            #[command(flatten)]
+            orbit: OrbitOptions,
+        }
+        let e = Cli::try_parse_from(["x", "--fps", "1e-310"]).err().expect("refused");
+        assert!(e.to_string().contains("frames per second is outside"), "{e}");
+    }
 
     #[test]
     fn the_governor_log_stays_bounded_on_long_runs() {

@@ -12,6 +12,22 @@
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
+/// The least eye distance a framing gives a box: relative to the box's size, so that a volume of
+/// 1e-9 world units a voxel frames as one of 1 does (an absolute floor put its camera so far off
+/// that it covered a pixel or two).
+pub(crate) fn framing_floor(box_min: DVec3, box_max: DVec3) -> f64 {
+    1e-6 * (box_max - box_min).length().max(f64::MIN_POSITIVE)
+}
+
+/// Whether a camera vector `field` is within +-[`MAX_CAMERA_COORD`] (one rule for the CLI, the
+/// config and the console, which all check through [`Camera::validate`] or this).
+pub fn check_range(field: &'static str, v: DVec3) -> Result<(), CameraError> {
+    if v.abs().max_element() > MAX_CAMERA_COORD {
+        return Err(CameraError::OutOfRange { field, value: v.to_array() });
+    }
+    Ok(())
+}
+
 /// A pinhole camera: eye, target, up and the *vertical* field of view in degrees.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Camera {
@@ -31,7 +47,16 @@ pub enum CameraError {
     BadFov(f64),
     #[error("{0} is not finite")]
     NotFinite(&'static str),
+    #[error(
+        "{field} {value:?} has a coordinate beyond +-{MAX_CAMERA_COORD:e}: the GPU computes in f32, whose step \
+         there is a world unit, so nothing would render"
+    )]
+    OutOfRange { field: &'static str, value: [f64; 3] },
 }
+
+/// The largest magnitude of a camera coordinate (eye, target, up) that renders: the GPU computes
+/// rays in f32, whose spacing at 1e7 is one world unit (at 1e39 a coordinate is infinite in f32).
+pub const MAX_CAMERA_COORD: f64 = 1e7;
 
 /// The orthonormal frame of a camera: forward, right, up (DESIGN.md's f, r, u).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -51,12 +76,14 @@ impl Camera {
         Camera { eye: self.target + rot * (self.eye - self.target), up: rot * self.up, ..*self }
     }
 
-    /// Checks that the camera defines a frame: finite, eye != target, up not parallel, 0 < fov < 180.
+    /// Checks that the camera defines a frame that renders: finite, within +-[`MAX_CAMERA_COORD`],
+    /// eye != target, up not parallel, 0 < fov < 180.
     pub fn validate(&self) -> Result<(), CameraError> {
         for (name, v) in [("eye", self.eye), ("target", self.target), ("up", self.up)] {
             if !v.is_finite() {
                 return Err(CameraError::NotFinite(name));
             }
+            check_range(name, v)?;
         }
         if !(self.fov_y_deg > 0.0 && self.fov_y_deg < 180.0) {
             return Err(CameraError::BadFov(self.fov_y_deg));
@@ -93,7 +120,8 @@ impl Camera {
         let tan_x = tan_y * width as f64 / height.max(1) as f64;
         // Corner c at lateral offsets (x, y) and depth z from the centre fits when
         // |x| / (dist + z) <= tan_x and |y| / (dist + z) <= tan_y.
-        let mut dist: f64 = 1e-6;
+        let floor = framing_floor(box_min, box_max);
+        let mut dist: f64 = floor;
         for i in 0..8 {
             let c = DVec3::new(
                 if i & 1 == 0 { box_min.x } else { box_max.x },
@@ -104,7 +132,7 @@ impl Camera {
             dist = dist.max(c.dot(b.right).abs() / tan_x - z).max(c.dot(b.up).abs() / tan_y - z);
         }
         // Keep the eye outside the box's bounding sphere, so the whole box is in front of it.
-        dist = dist.max(1.01 * (0.5 * (box_max - box_min).length()).max(1e-6));
+        dist = dist.max(1.01 * (0.5 * (box_max - box_min).length()).max(floor));
         cam.eye = centre - dist * b.forward;
         cam
     }
@@ -241,6 +269,28 @@ mod tests {
         assert!(matches!(Camera { up: DVec3::Y, ..ok }.validate(), Err(CameraError::UpParallel { .. })));
         assert!(matches!(Camera { fov_y_deg: 180.0, ..ok }.validate(), Err(CameraError::BadFov(_))));
         assert!(matches!(Camera { eye: DVec3::NAN, ..ok }.validate(), Err(CameraError::NotFinite("eye"))));
+        // Finite in f64, infinite (1e39) or a world unit a step (past 1e7) in the GPU's f32.
+        for far in [1e39, 2.0 * MAX_CAMERA_COORD] {
+            let e = Camera { eye: DVec3::new(far, 0.0, 0.0), ..ok }.validate().unwrap_err();
+            assert!(matches!(e, CameraError::OutOfRange { field: "eye", .. }), "{e}");
+            assert!(e.to_string().contains("f32"), "{e}");
+            let e = Camera { target: DVec3::new(0.0, 0.0, -far), ..ok }.validate().unwrap_err();
+            assert!(matches!(e, CameraError::OutOfRange { field: "target", .. }), "{e}");
+        }
+        assert!(Camera { eye: DVec3::new(MAX_CAMERA_COORD, 0.0, 0.0), ..ok }.validate().is_ok());
+    }
+
+    /// A box of any scale is framed alike: the eye's distance scales with it (at 1e-9 world units
+    /// a voxel an absolute floor of 1e-6 left the volume a pixel or two of the image).
+    #[test]
+    fn framing_scales_with_the_box() {
+        let hi = DVec3::new(31.0, 31.0, 31.0);
+        let unit = Camera::framing(DVec3::ZERO, hi, 64, 48);
+        for k in [1e-12, 1e-9, 1e6] {
+            let cam = Camera::framing(DVec3::ZERO, k * hi, 64, 48);
+            let ratio = (cam.eye - cam.target).length() / ((unit.eye - unit.target).length() * k);
+            assert!((ratio - 1.0).abs() < 1e-6, "scale {k}: distance ratio {ratio}");
+        }
     }
 
     #[test]

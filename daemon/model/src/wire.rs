@@ -274,6 +274,9 @@ impl TryFrom<WireCamera> for Camera {
                 CameraError::UpParallel { .. } => "camera.up",
                 CameraError::BadFov(_) => "camera.fov_y_deg",
                 CameraError::NotFinite(_) => "camera",
+                CameraError::OutOfRange { field: "eye", .. } => "camera.eye",
+                CameraError::OutOfRange { field: "target", .. } => "camera.target",
+                CameraError::OutOfRange { .. } => "camera.up",
             };
             WireError::Camera { field, reason: error.to_string() }
         })?;

@@ -773,7 +773,8 @@ fn framing_with(
     let b = cam.basis();
     let tan_y = 0.95 * b.tan_half_fov;
     let tan_x = tan_y * width as f64 / height as f64;
-    let mut dist: f64 = 1e-6;
+    let floor = crate::camera::framing_floor(box_min, box_max);
+    let mut dist: f64 = floor;
     for i in 0..8 {
         let c = DVec3::new(
             if i & 1 == 0 { box_min.x } else { box_max.x },
@@ -785,7 +786,7 @@ fn framing_with(
     }
     let centre = 0.5 * (box_min + box_max);
     let reach = 0.5 * (box_max - box_min).length() + (target - centre).length();
-    dist = dist.max(1.01 * reach.max(1e-6));
+    dist = dist.max(1.01 * reach.max(floor));
     cam.eye = target - dist * b.forward;
     cam
 }

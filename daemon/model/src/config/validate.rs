@@ -1,9 +1,9 @@
 //! The rules a config must keep, table by table, each problem placed at its field.
 
 use super::address::{parse_address, same_place_keys, AddressHost};
-use std::collections::{HashMap, HashSet};
 use super::diagnostics::*;
 use super::*;
+use std::collections::{HashMap, HashSet};
 
 pub(crate) fn validate_wall(doc: &mut Doc<'_>, w: &WallSection) {
     let at = |f| [Seg::K("wall"), Seg::K(f)];
@@ -43,7 +43,8 @@ pub(crate) fn validate_snapshot_size(
     }
     let by_name: HashMap<&str, &TileConfig> = tiles.items.iter().map(|(_, t)| (t.name.as_str(), t)).collect();
     for (i, n) in &nodes.items {
-        let own: Vec<&TileConfig> = n.tiles.iter().filter_map(|name| by_name.get(name.as_str()).copied()).collect();
+        let own: Vec<&TileConfig> =
+            n.tiles.iter().filter_map(|name| by_name.get(name.as_str()).copied()).collect();
         let need = crate::messages::TileImage::snapshot_len_bound(
             own.iter().map(|t| (t.name.as_str(), t.width, t.height)),
         );
@@ -76,6 +77,9 @@ pub(crate) fn validate_camera(doc: &mut Doc<'_>, c: &CameraConfig) {
         if let Some(v) = v {
             if !v.iter().all(|x| x.is_finite()) {
                 doc.at(&at(name), format!("camera: `{name}` {v:?} is not finite"));
+                finite = false;
+            } else if let Err(e) = crate::camera::check_range(name, DVec3::from_array(v)) {
+                doc.at(&at(name), format!("camera: {e}"));
                 finite = false;
             }
         }
@@ -428,7 +432,8 @@ pub(crate) fn validate_nodes(doc: &mut Doc<'_>, nodes: &Parsed<NodeConfig>, tile
             }
             if let Some(&(j, kj)) = driver.get(tile.as_str()) {
                 let other = &nodes.items.iter().find(|(x, _)| *x == j).expect("a listed node").1.name;
-                let line = doc.line_of(&[Seg::K("nodes"), Seg::I(j), Seg::K("tiles"), Seg::I(kj)]).unwrap_or(0);
+                let line =
+                    doc.line_of(&[Seg::K("nodes"), Seg::I(j), Seg::K("tiles"), Seg::I(kj)]).unwrap_or(0);
                 doc.at(
                     &path,
                     format!(
