@@ -423,7 +423,16 @@ pub(crate) async fn write_snapshot(wall: &mut Wall, out: &std::path::Path) -> Re
     image::save_buffer(out, &rgb, w, h, image::ExtendedColorType::Rgb8)
         .with_context(|| format!("cannot write {}", out.display()))?;
     let got: usize = tiles.values().map(Vec::len).sum();
-    println!("wrote {} ({w}x{h}, {got} of {} tiles)", out.display(), wall.config.tiles.len());
+    let d = crate::wall::bounded_divisor(&wall.config, 1);
+    let scale = if d > 1 {
+        format!(
+            " at 1/{d} scale: the whole wall's image is over the {} bytes a snapshot takes",
+            crate::wall::MAX_WALL_IMAGE_BYTES
+        )
+    } else {
+        String::new()
+    };
+    println!("wrote {} ({w}x{h}{scale}, {got} of {} tiles)", out.display(), wall.config.tiles.len());
     Ok(())
 }
 

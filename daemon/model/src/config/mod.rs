@@ -114,6 +114,19 @@ pub const MAX_CACHE_BYTES: u64 = 1 << 40;
 pub const MAX_TILE_SIZE: u32 = 16384;
 /// Largest extent of the whole wall image along either axis, in pixels.
 pub const MAX_WALL_EXTENT: u64 = 1 << 20;
+/// A wall image (the box around every tile, bezels included) may be larger than this only where
+/// its tiles and bezels cover at least 1 / [`MAX_WALL_SPARSENESS`] of it: snapshots and
+/// thumbnails are of the whole image, so two small tiles a million pixels apart would make each
+/// one terabytes.
+pub const SPARSE_WALL_PIXELS: u64 = 1 << 24;
+pub const MAX_WALL_SPARSENESS: u64 = 64;
+/// The GPU bytes a node's tile takes per pixel, at most: five AOV buffers (68 bytes a pixel of
+/// its work rectangle, the denoiser's guard band included), the depth buffer (4) and six RGBA8
+/// images (24) (`TileTarget` and `ShownImages` in daemon/render/src/gpu/tile.rs), rounded up.
+pub const GPU_BYTES_PER_TILE_PIXEL: u64 = 100;
+/// The most GPU memory a node's tiles may take together ([`GPU_BYTES_PER_TILE_PIXEL`] times their
+/// pixels): 8 GiB, about 86 million pixels (ten 3840x2160 tiles).
+pub const MAX_NODE_GPU_BYTES: u64 = 8 << 30;
 /// Default vertical field of view of the wall camera, degrees (that of [`Camera::framing`]).
 pub const DEFAULT_FOV_Y_DEG: f64 = 35.0;
 /// Names a node may not have: its certificate files would clash with the CA's and the controller's.
@@ -530,6 +543,8 @@ impl WallConfig {
         }
         validate_tiles(&mut doc, &tiles);
         validate_nodes(&mut doc, &nodes, &tiles);
+        validate_wall_image(&mut doc, &tiles);
+        validate_node_resources(&mut doc, &nodes, &tiles);
         if let Some(w) = &wall {
             validate_snapshot_size(&mut doc, w, &tiles, &nodes);
         }

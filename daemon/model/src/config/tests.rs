@@ -471,7 +471,12 @@ fn the_message_limit_holds_every_nodes_snapshot() {
     let big = with("width = 100\nheight = 80\n\n[[nodes]]", "width = 16384\nheight = 16384\n\n[[nodes]]");
     let ps =
         expect(&big, Some(30), "`message_limit_bytes` 67108864 is too small for the snapshot of node 'n1'");
-    assert_eq!(ps.len(), 1, "{ps:#?}");
+    // And its GPU buffers (26.8 GB) are more than a node may take.
+    assert_eq!(ps.len(), 2, "{ps:#?}");
+    assert!(
+        ps.iter().any(|p| p.message.contains("node 'n1': its 1 tile(s) hold 268435456 pixels")),
+        "{ps:#?}"
+    );
 }
 
 #[test]
@@ -489,6 +494,53 @@ fn the_camera_is_checked() {
     // Finite in f64 but infinite in the GPU's f32: refused, as the CLI and the console refuse it.
     expect(&cam("eye = [1e39, 0, 0]"), Some(2), "camera: eye [1e39, 0.0, 0.0] has a coordinate beyond +-1e7");
     expect(&cam("target = [0, 0, -2e7]"), Some(2), "camera: target");
+}
+
+/// Two small tiles a million pixels apart make a wall image of 10^12 pixels, 3 TB a snapshot:
+/// refused at the far tile; a wide but full wall, and a small sparse one, pass.
+#[test]
+fn a_sparse_wall_image_is_refused() {
+    let far = with("x = 110\ny = 0", "x = 1000000\ny = 1000000");
+    let ps = expect(&far, Some(17), "the wall's image is 1000100x1000080 pixels (to tile 'b's far corner)");
+    assert!(ps[0].message.contains("under 1/64"), "{}", ps[0].message);
+    // Within the sparse limit's small images: a gap of 500 pixels is fine.
+    WallConfig::parse(&with("x = 110", "x = 610"), Path::new("w.toml")).unwrap();
+    // A wall of 16 x 8 full-HD tiles side by side is large and full.
+    let mut wide = String::from("[wall]\nname = \"wide\"\n\n[volume]\nsource = \"procedural:sphere\"\n");
+    for i in 0..128 {
+        let (x, y) = (1920 * (i % 16), 1080 * (i / 16));
+        wide += &format!("\n[[tiles]]\nname = \"t{i}\"\nx = {x}\ny = {y}\nwidth = 1920\nheight = 1080\n");
+        wide += &format!(
+            "\n[[nodes]]\nname = \"n{i}\"\naddress = \"10.0.0.{}:7400\"\ntiles = [\"t{i}\"]\n",
+            i + 1
+        );
+    }
+    WallConfig::parse(&wide, Path::new("w.toml")).unwrap();
+}
+
+/// A node whose tiles' GPU buffers exceed what a node may take is refused before its first frame.
+#[test]
+fn a_node_given_more_tiles_than_its_gpu_holds_is_refused() {
+    let wall = |count: usize| {
+        let mut text = String::from(
+            "[wall]\nname = \"heavy\"\nmessage_limit_bytes = 1073741824\n\n[volume]\nsource = \"procedural:sphere\"\n",
+        );
+        for i in 0..count {
+            let (x, y) = (2048 * (i % 8), 2048 * (i / 8));
+            text += &format!("\n[[tiles]]\nname = \"t{i}\"\nx = {x}\ny = {y}\nwidth = 2048\nheight = 2048\n");
+        }
+        let names: Vec<String> = (0..count).map(|i| format!("\"t{i}\"")).collect();
+        text + &format!(
+            "\n[[nodes]]\nname = \"n0\"\naddress = \"127.0.0.1:7400\"\ntiles = [{}]\n",
+            names.join(", ")
+        )
+    };
+    let ps = problems(&wall(40));
+    assert_eq!(ps.len(), 1, "{ps:#?}");
+    assert!(ps[0].message.contains("node 'n0': its 40 tile(s) hold 167772160 pixels"), "{ps:#?}");
+    // Twenty of them (8.4 GB) do not fit either; ten do.
+    assert!(problems(&wall(21)).iter().any(|p| p.message.contains("GPU buffers")));
+    WallConfig::parse(&wall(10), Path::new("w.toml")).unwrap();
 }
 
 /// Walls of many tiles and nodes are checked in about n log n: 4,000 tiles in a row and 4,000

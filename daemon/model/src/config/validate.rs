@@ -349,6 +349,60 @@ pub(crate) fn validate_tiles(doc: &mut Doc<'_>, tiles: &Parsed<TileConfig>) {
     }
 }
 
+/// The wall image is bounded by its tiles: past [`SPARSE_WALL_PIXELS`], its tiles and bezels must
+/// cover at least 1 / [`MAX_WALL_SPARSENESS`] of it (reported at the tile that reaches farthest).
+pub(crate) fn validate_wall_image(doc: &mut Doc<'_>, tiles: &Parsed<TileConfig>) {
+    let outer: Vec<(usize, (i64, i64, i64, i64))> =
+        tiles.items.iter().map(|(i, t)| (*i, t.outer())).collect();
+    let (Some(w), Some(h)) = (outer.iter().map(|o| o.1 .1).max(), outer.iter().map(|o| o.1 .3).max()) else {
+        return;
+    };
+    let image = w.max(0) as u64 * h.max(0) as u64;
+    let covered: u64 = outer.iter().map(|(_, (x0, x1, y0, y1))| ((x1 - x0) * (y1 - y0)).max(0) as u64).sum();
+    if image <= SPARSE_WALL_PIXELS || covered.saturating_mul(MAX_WALL_SPARSENESS) >= image {
+        return;
+    }
+    let far = outer.iter().max_by_key(|(_, (_, x1, _, y1))| x1 * y1).map_or(0, |o| o.0);
+    let name = &tiles.items.iter().find(|(i, _)| *i == far).expect("a tile").1.name;
+    doc.at(
+        &[Seg::K("tiles"), Seg::I(far), Seg::K("x")],
+        format!(
+            "the wall's image is {w}x{h} pixels (to tile '{name}'s far corner) but its tiles and bezels cover \
+             {:.4}% of it, under 1/{MAX_WALL_SPARSENESS}: every snapshot and thumbnail is of the whole image \
+             ({} bytes as RGB); place the tiles side by side (a gap between screens is a bezel)",
+            100.0 * covered as f64 / image as f64,
+            image.saturating_mul(3)
+        ),
+    );
+}
+
+/// What a node's GPU holds for its tiles ([`GPU_BYTES_PER_TILE_PIXEL`] a pixel) must fit
+/// [`MAX_NODE_GPU_BYTES`]: a node given more fails at its first frame.
+pub(crate) fn validate_node_resources(
+    doc: &mut Doc<'_>,
+    nodes: &Parsed<NodeConfig>,
+    tiles: &Parsed<TileConfig>,
+) {
+    let by_name: HashMap<&str, &TileConfig> = tiles.items.iter().map(|(_, t)| (t.name.as_str(), t)).collect();
+    for (i, n) in &nodes.items {
+        let own: Vec<&TileConfig> = n.tiles.iter().filter_map(|t| by_name.get(t.as_str()).copied()).collect();
+        let pixels: u64 = own.iter().map(|t| t.width as u64 * t.height as u64).sum();
+        let bytes = pixels.saturating_mul(GPU_BYTES_PER_TILE_PIXEL);
+        if bytes > MAX_NODE_GPU_BYTES {
+            doc.at(
+                &[Seg::K("nodes"), Seg::I(*i), Seg::K("tiles")],
+                format!(
+                    "node '{}': its {} tile(s) hold {pixels} pixels, about {bytes} bytes of GPU buffers \
+                     ({GPU_BYTES_PER_TILE_PIXEL} a pixel), over the {MAX_NODE_GPU_BYTES} a node may take: give \
+                     some of its tiles to another node",
+                    n.name,
+                    own.len()
+                ),
+            );
+        }
+    }
+}
+
 pub(crate) fn validate_nodes(doc: &mut Doc<'_>, nodes: &Parsed<NodeConfig>, tiles: &Parsed<TileConfig>) {
     if !nodes.present || (nodes.items.is_empty() && !nodes.any_failed) {
         doc.at_missing(&[Seg::K("nodes")], "no nodes: a wall needs at least one [[nodes]] table");
