@@ -96,7 +96,8 @@ pub struct CameraPath {
 impl CameraPath {
     /// Reads and checks a path file.
     pub fn load(path: &Path, defaults: Defaults, max_ao_samples: u32) -> Result<CameraPath, PathError> {
-        let text = std::fs::read_to_string(path).map_err(|e| PathError {
+        let limit = isowall_model::config::MAX_CONFIG_BYTES;
+        let text = isowall_volume::io::regular::read_regular_text(path, limit).map_err(|e| PathError {
             path: path.to_path_buf(),
             line: 1,
             column: 1,

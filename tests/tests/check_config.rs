@@ -101,3 +101,40 @@ fn every_example_config_checks_out_with_a_summary() {
     assert!(stdout.contains("wall 'local-2x2': 328x248 px, 4 tiles on 4 nodes"), "{stdout}");
     assert!(stdout.contains("node3 (127.0.0.1:7404): t11 160x120+168+128"), "{stdout}");
 }
+
+/// A config path that is a FIFO nobody writes, or `/dev/zero`, is refused at once by both
+/// binaries (before: a FIFO held `check-config` forever, `/dev/zero` was read until memory ran
+/// out), naming what the path is.
+#[test]
+fn a_config_that_is_a_fifo_or_a_device_is_refused_at_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let fifo = dir.path().join("wall.toml");
+    assert!(std::process::Command::new("mkfifo").arg(&fifo).status().unwrap().success());
+    for (path, what) in [(fifo.to_str().unwrap(), "a FIFO (named pipe)"), ("/dev/zero", "a device")] {
+        for bin in ["isowall", "isowalld"] {
+            let mut child = std::process::Command::new(isowall_e2e::bin(bin))
+                .args(["check-config", path])
+                .stderr(std::process::Stdio::piped())
+                .spawn()
+                .unwrap();
+            let start = std::time::Instant::now();
+            while child.try_wait().unwrap().is_none() && start.elapsed() < std::time::Duration::from_secs(20)
+            {
+                std::thread::sleep(std::time::Duration::from_millis(20));
+            }
+            if child.try_wait().unwrap().is_none() {
+                child.kill().unwrap();
+                panic!("{bin} check-config {path} still running after 20 s");
+            }
+            let out = child.wait_with_output().unwrap();
+            let err = String::from_utf8_lossy(&out.stderr);
+            assert_eq!(out.status.code(), Some(1), "{bin} {path}: {err}");
+            assert!(
+                err.contains(&format!(
+                    "{path}: cannot read the wall config: it is {what}, not a regular file"
+                )),
+                "{bin}: {err}"
+            );
+        }
+    }
+}

@@ -112,6 +112,8 @@ pub const DEFAULT_CACHE_BYTES: u64 = 1 << 30;
 pub const MAX_CACHE_BYTES: u64 = 1 << 40;
 /// Largest tile width or height, and largest bezel, in pixels.
 pub const MAX_TILE_SIZE: u32 = 16384;
+/// The largest config file read (a wall of thousands of tiles is a few MiB).
+pub const MAX_CONFIG_BYTES: u64 = 16 << 20;
 /// Largest extent of the whole wall image along either axis, in pixels.
 pub const MAX_WALL_EXTENT: u64 = 1 << 20;
 /// A wall image (the box around every tile, bezels included) may be larger than this only where
@@ -569,9 +571,11 @@ impl WallConfig {
         }
     }
 
-    /// Reads the file and parses it ([`WallConfig::parse`]); a read error is a problem too.
+    /// Reads the file and parses it ([`WallConfig::parse`]); a read error is a problem too. Only
+    /// a regular file of at most [`MAX_CONFIG_BYTES`] is read (a FIFO or `/dev/zero` is refused
+    /// at once, never read).
     pub fn load(path: &Path) -> Result<WallConfig, ConfigErrors> {
-        let text = std::fs::read_to_string(path)
+        let text = isowall_volume::io::regular::read_regular_text(path, MAX_CONFIG_BYTES)
             .map_err(|e| ConfigErrors::single(path, format!("cannot read the wall config: {e}")))?;
         WallConfig::parse(&text, path)
     }

@@ -40,6 +40,7 @@ pub mod nifti;
 pub mod nrrd;
 mod plan;
 pub mod raw;
+pub mod regular;
 #[cfg(test)]
 pub(crate) mod testutil;
 
@@ -265,36 +266,14 @@ pub(crate) fn io_err(path: &Path, source: io::Error) -> VolumeError {
 /// FIFO, a device, a socket, a directory) is refused before it is opened; the file is opened
 /// without blocking (a FIFO swapped in meanwhile cannot hold the reader) and checked again.
 pub(crate) fn open(path: &Path) -> Result<(BufReader<File>, u64), VolumeError> {
-    use std::os::unix::fs::OpenOptionsExt;
-    let not_regular = |t: std::fs::FileType| {
-        use std::os::unix::fs::FileTypeExt;
-        let kind = if t.is_fifo() {
-            "a FIFO (named pipe)"
-        } else if t.is_dir() {
-            "a directory"
-        } else if t.is_char_device() || t.is_block_device() {
-            "a device"
-        } else if t.is_socket() {
-            "a socket"
-        } else {
-            "not a regular file"
-        };
-        format_err(path, format!("is {kind}, not a regular file: volumes are read from regular files only"))
-    };
-    let kind = std::fs::metadata(path).map_err(|e| io_err(path, e))?.file_type();
-    if !kind.is_file() {
-        return Err(not_regular(kind));
-    }
-    let file = std::fs::OpenOptions::new()
-        .read(true)
-        .custom_flags(libc::O_NONBLOCK)
-        .open(path)
-        .map_err(|e| io_err(path, e))?;
-    let meta = file.metadata().map_err(|e| io_err(path, e))?;
-    if !meta.file_type().is_file() {
-        return Err(not_regular(meta.file_type()));
-    }
-    Ok((BufReader::new(file), meta.len()))
+    let (file, len) = regular::open_regular(path).map_err(|e| match e.kind() {
+        io::ErrorKind::InvalidInput => format_err(
+            path,
+            format!("{e}: volumes are read from regular files only").replacen("it is", "is", 1),
+        ),
+        _ => io_err(path, e),
+    })?;
+    Ok((BufReader::new(file), len))
 }
 
 /// The data file a header names: relative to the header's folder, and inside it. An absolute
@@ -364,17 +343,11 @@ mod tests {
         assert_eq!((v.dims(), v.spacing(), v.data()), ([2, 1, 1], DVec3::ONE, [7.0, 9.0].as_slice()));
     }
 
-    /// A FIFO at `path` (by the `mkfifo` command: no unsafe code here).
-    fn mkfifo(path: &Path) {
-        let ok = std::process::Command::new("mkfifo").arg(path).status().unwrap().success();
-        assert!(ok, "mkfifo {}", path.display());
-    }
-
     #[test]
     fn only_regular_files_are_read_and_none_blocks() {
         let dir = tempfile::tempdir().unwrap();
         let fifo = dir.path().join("pipe.nrrd");
-        mkfifo(&fifo);
+        testutil::mkfifo(&fifo);
         let header = "NRRD0004\ntype: uchar\ndimension: 3\nsizes: 2 1 1\nencoding: raw\n";
         let nhdr = dir.path().join("v.nhdr");
         std::fs::write(&nhdr, format!("{header}data file: pipe.nrrd\n")).unwrap();

@@ -94,3 +94,9 @@ pub fn shared_file(path: &str) -> Option<PathBuf> {
     eprintln!("skipped: {} is absent", p.display());
     None
 }
+
+/// A FIFO at `path` (by the `mkfifo` command: no unsafe code here).
+pub(crate) fn mkfifo(path: &std::path::Path) {
+    let ok = std::process::Command::new("mkfifo").arg(path).status().unwrap().success();
+    assert!(ok, "mkfifo {}", path.display());
+}

@@ -1,0 +1,89 @@
+//! Files read whole or streamed only where they are regular files: a FIFO, a device (`/dev/zero`),
+//! a socket or a directory is refused by its type before it is opened, the file is opened without
+//! blocking (a FIFO swapped in meanwhile cannot hold the reader) and checked again, and a file
+//! read whole is read up to a limit, so a config path can neither hang a reader nor fill its
+//! memory.
+
+use std::fs::File;
+use std::io::{self, Read};
+use std::path::Path;
+
+/// What a file that is not regular is, for the error ("a FIFO (named pipe)", "a device", ...).
+pub fn kind_of(t: std::fs::FileType) -> &'static str {
+    use std::os::unix::fs::FileTypeExt;
+    if t.is_fifo() {
+        "a FIFO (named pipe)"
+    } else if t.is_dir() {
+        "a directory"
+    } else if t.is_char_device() || t.is_block_device() {
+        "a device"
+    } else if t.is_socket() {
+        "a socket"
+    } else {
+        "not a regular file"
+    }
+}
+
+/// Opens `path` if it is a regular file; else an [`io::ErrorKind::InvalidInput`] error saying
+/// what it is. Returns the file and its length.
+pub fn open_regular(path: &Path) -> io::Result<(File, u64)> {
+    use std::os::unix::fs::OpenOptionsExt;
+    let refuse = |t: std::fs::FileType| {
+        io::Error::new(io::ErrorKind::InvalidInput, format!("it is {}, not a regular file", kind_of(t)))
+    };
+    let kind = std::fs::metadata(path)?.file_type();
+    if !kind.is_file() {
+        return Err(refuse(kind));
+    }
+    let file = std::fs::OpenOptions::new().read(true).custom_flags(libc::O_NONBLOCK).open(path)?;
+    let meta = file.metadata()?;
+    if !meta.file_type().is_file() {
+        return Err(refuse(meta.file_type()));
+    }
+    Ok((file, meta.len()))
+}
+
+/// Reads the regular file `path` whole as UTF-8 text, refusing one over `limit` bytes (by its
+/// length, and by what it gives: a file that grows while read stops at the limit).
+pub fn read_regular_text(path: &Path, limit: u64) -> io::Result<String> {
+    let (file, len) = open_regular(path)?;
+    let too_big = |n: u64| {
+        io::Error::new(
+            io::ErrorKind::InvalidData,
+            format!("it is {n} bytes or more, over the limit of {limit}"),
+        )
+    };
+    if len > limit {
+        return Err(too_big(len));
+    }
+    let mut text = String::new();
+    file.take(limit + 1).read_to_string(&mut text)?;
+    if text.len() as u64 > limit {
+        return Err(too_big(text.len() as u64));
+    }
+    Ok(text)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn only_regular_files_of_bounded_size_are_read() {
+        let dir = tempfile::tempdir().unwrap();
+        let ok = dir.path().join("ok.toml");
+        std::fs::write(&ok, "a = 1\n").unwrap();
+        assert_eq!(read_regular_text(&ok, 6).unwrap(), "a = 1\n");
+        let e = read_regular_text(&ok, 5).unwrap_err();
+        assert!(e.to_string().contains("over the limit of 5"), "{e}");
+        // A device that never ends and a FIFO nobody writes: refused at once, never read.
+        let e = read_regular_text(Path::new("/dev/zero"), 1 << 20).unwrap_err();
+        assert!(e.to_string().contains("a device, not a regular file"), "{e}");
+        let fifo = dir.path().join("fifo");
+        crate::io::testutil::mkfifo(&fifo);
+        let e = read_regular_text(&fifo, 1 << 20).unwrap_err();
+        assert!(e.to_string().contains("a FIFO (named pipe), not a regular file"), "{e}");
+        let e = read_regular_text(dir.path(), 1 << 20).unwrap_err();
+        assert!(e.to_string().contains("a directory"), "{e}");
+    }
+}
