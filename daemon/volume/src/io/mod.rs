@@ -292,7 +292,26 @@ pub(crate) fn data_file_path(header: &Path, field: &str, name: &str) -> Result<P
             ),
         ));
     }
-    Ok(header.parent().unwrap_or(Path::new("")).join(p))
+    let folder = header.parent().unwrap_or(Path::new(""));
+    let data = folder.join(p);
+    // Links resolved first: a data file (or a folder on its way) that is a link must still lead
+    // into the header's folder. One that does not exist yet is reported when it is opened.
+    let real_folder =
+        std::fs::canonicalize(if folder.as_os_str().is_empty() { Path::new(".") } else { folder });
+    if let (Ok(real_folder), Ok(real)) = (real_folder, std::fs::canonicalize(&data)) {
+        if !real.starts_with(&real_folder) {
+            return Err(format_err(
+                header,
+                format!(
+                    "{field}: '{name}' is a link to {}, outside the header's folder {}: a data file must lie \
+                     in the header's folder, links resolved",
+                    real.display(),
+                    real_folder.display()
+                ),
+            ));
+        }
+    }
+    Ok(data)
 }
 
 /// Makes the volume, named by the path as given.

@@ -652,6 +652,23 @@ mod tests {
             assert!(m.contains("is not a file in the header's folder"), "{m}");
             assert!(!m.contains("bytes"), "{m}");
         }
+        // A data file named inside the folder that is a link out of it (or a link to a folder
+        // out of it) is refused too, links resolved first; a link that stays inside is read.
+        let outside = tempfile::tempdir().unwrap();
+        let secret = outside.path().join("secret.bin");
+        fs::write(&secret, &raw).unwrap();
+        std::os::unix::fs::symlink(&secret, dir.path().join("link.bin")).unwrap();
+        std::os::unix::fs::symlink(outside.path(), dir.path().join("away")).unwrap();
+        for name in ["link.bin", "away/secret.bin"] {
+            write(&h, &header("short", false, "raw", &format!("data file: {name}\n")), &[]);
+            let m = load(&h, None).unwrap_err().to_string();
+            assert!(m.contains(&format!("data file: '{name}' is a link to")), "{m}");
+            assert!(m.contains("outside the header's folder"), "{m}");
+        }
+        std::os::unix::fs::symlink(&d, dir.path().join("inside.bin")).unwrap();
+        let fields = "line skip: 2\nbyte skip: 2\ndata file: inside.bin\n";
+        write(&h, &header("short", false, "raw", fields), &[]);
+        check(&load(&h, None).unwrap(), DIMS, spacing, DVec3::ZERO, &vals);
         // CRLF line endings.
         let crlf = header("short", false, "raw", "\n").replace('\n', "\r\n");
         write(&p, &crlf, &raw);
