@@ -152,38 +152,50 @@ fn sphere_plane() -> &'static Scene {
     })
 }
 
+/// A synthetic scene at iso 0: `dims` samples at spacing `sp`, sample (i, j, k) = `sample(i, j,
+/// k)`, seen at 96x96 from `eye` towards `target` (fov 40), at a stride-6 grid of pixels.
+fn sampled_scene(
+    name: &'static str,
+    (dims, sp): ([usize; 3], DVec3),
+    sample: impl Fn(usize, usize, usize) -> f32,
+    eye: DVec3,
+    target: DVec3,
+) -> Scene {
+    let mut data = Vec::with_capacity(dims[0] * dims[1] * dims[2]);
+    for k in 0..dims[2] {
+        for j in 0..dims[1] {
+            for i in 0..dims[0] {
+                data.push(sample(i, j, k));
+            }
+        }
+    }
+    let volume = Volume::new(name, dims, sp, DVec3::ZERO, data).unwrap();
+    let view = View::whole(Camera { eye, target, up: DVec3::Z, fov_y_deg: 40.0 }, 96, 96);
+    let pixels = grid(96);
+    let truth = estimate_all(&volume, 0.0, &view, &pixels);
+    Scene { name, volume, iso: 0.0, view, pixels, known: None, truth }
+}
+
 /// A smooth shape (two overlapping balls and a slab, with creases where they meet) sampled at
 /// spacing 1x1x3: the trilinear field is piecewise linear in z over 3 units, so the surface has
 /// terraces, the case thick slices give real scans.
 fn terraced() -> &'static Scene {
     static S: OnceLock<Scene> = OnceLock::new();
     S.get_or_init(|| {
-        let (dims, sp) = ([48usize, 48, 16], DVec3::new(1.0, 1.0, 3.0));
+        let sp = DVec3::new(1.0, 1.0, 3.0);
         let f = |p: DVec3| {
             let a = 13.0 - (p - DVec3::new(18.0, 20.0, 24.0)).length();
             let b = 10.0 - (p - DVec3::new(31.0, 27.0, 28.0)).length();
             let slab = 9.0 - p.z;
             a.max(b).max(slab)
         };
-        let mut data = Vec::new();
-        for k in 0..dims[2] {
-            for j in 0..dims[1] {
-                for i in 0..dims[0] {
-                    data.push(f(sp * DVec3::new(i as f64, j as f64, k as f64)) as f32);
-                }
-            }
-        }
-        let volume = Volume::new("terraced", dims, sp, DVec3::ZERO, data).unwrap();
-        let camera = Camera {
-            eye: DVec3::new(70.0, -40.0, 75.0),
-            target: DVec3::new(24.0, 24.0, 18.0),
-            up: DVec3::Z,
-            fov_y_deg: 40.0,
-        };
-        let view = View::whole(camera, 96, 96);
-        let pixels = grid(96);
-        let truth = estimate_all(&volume, 0.0, &view, &pixels);
-        Scene { name: "terraced 1x1x3", volume, iso: 0.0, view, pixels, known: None, truth }
+        sampled_scene(
+            "terraced 1x1x3",
+            ([48, 48, 16], sp),
+            |i, j, k| f(sp * DVec3::new(i as f64, j as f64, k as f64)) as f32,
+            DVec3::new(70.0, -40.0, 75.0),
+            DVec3::new(24.0, 24.0, 18.0),
+        )
     })
 }
 
@@ -194,7 +206,6 @@ fn terraced() -> &'static Scene {
 fn thin_plates() -> &'static Scene {
     static S: OnceLock<Scene> = OnceLock::new();
     S.get_or_init(|| {
-        let (dims, sp) = ([48usize, 48, 16], DVec3::new(1.0, 1.0, 3.0));
         let inside = |i: usize, j: usize, k: usize| {
             let plate = (0..4).any(|p| {
                 let (x0, thick) = (4 + 9 * p + k, 1 + p % 2);
@@ -202,25 +213,13 @@ fn thin_plates() -> &'static Scene {
             });
             k == 0 || plate
         };
-        let mut data = Vec::new();
-        for k in 0..dims[2] {
-            for j in 0..dims[1] {
-                for i in 0..dims[0] {
-                    data.push(if inside(i, j, k) { 2.0 } else { -1.0 });
-                }
-            }
-        }
-        let volume = Volume::new("thin plates", dims, sp, DVec3::ZERO, data).unwrap();
-        let camera = Camera {
-            eye: DVec3::new(75.0, -35.0, 70.0),
-            target: DVec3::new(26.0, 24.0, 12.0),
-            up: DVec3::Z,
-            fov_y_deg: 40.0,
-        };
-        let view = View::whole(camera, 96, 96);
-        let pixels = grid(96);
-        let truth = estimate_all(&volume, 0.0, &view, &pixels);
-        Scene { name: "thin plates 1x1x3", volume, iso: 0.0, view, pixels, known: None, truth }
+        sampled_scene(
+            "thin plates 1x1x3",
+            ([48, 48, 16], DVec3::new(1.0, 1.0, 3.0)),
+            |i, j, k| if inside(i, j, k) { 2.0 } else { -1.0 },
+            DVec3::new(75.0, -35.0, 70.0),
+            DVec3::new(26.0, 24.0, 12.0),
+        )
     })
 }
 

@@ -255,17 +255,11 @@ impl StepRegions {
             )));
         }
         let mut acc = BlockScan::new(dims, self.block);
-        let [rx, ry, _] = range.dims();
         let nx = dims[0];
         let mut data = Vec::with_capacity(range.count());
         file.read_slices(step, &mut |k, slice| {
             acc.add_slice(k, slice);
-            if (range.lo[2]..=range.hi[2]).contains(&k) {
-                for j in range.lo[1]..range.lo[1] + ry {
-                    let row = &slice[nx * j..nx * (j + 1)];
-                    data.extend_from_slice(&row[range.lo[0]..range.lo[0] + rx]);
-                }
-            }
+            keep_region(range, nx, k, slice, &mut data);
         })?;
         let blocks = acc.finish(&first.name)?;
         let at = first.origin
@@ -352,17 +346,11 @@ impl VolumeStream {
     ) -> Result<(Volume, BlockMinMax), VolumeError> {
         self.check_range(range)?;
         let mut acc = BlockScan::new(self.info.dims, block);
-        let [rx, ry, _] = range.dims();
         let nx = self.info.dims[0];
         let mut data = Vec::with_capacity(range.count());
         self.for_each_slice(Pass::Scan, &VoxelRange::whole(self.info.dims), &mut |k, slice| {
             acc.add_slice(k, slice);
-            if (range.lo[2]..=range.hi[2]).contains(&k) {
-                for j in range.lo[1]..range.lo[1] + ry {
-                    let row = &slice[nx * j..nx * (j + 1)];
-                    data.extend_from_slice(&row[range.lo[0]..range.lo[0] + rx]);
-                }
-            }
+            keep_region(range, nx, k, slice, &mut data);
         })?;
         let blocks = acc.finish(&self.info.name)?;
         Ok((self.region_volume(range, data)?, blocks))
@@ -528,6 +516,17 @@ impl BlockScan {
             return Err(VolumeError::NonFinite { path: PathBuf::from(name), count, i, j, k });
         }
         Ok(BlockMinMax { block: self.block, counts: self.counts, minmax: self.minmax })
+    }
+}
+
+/// Appends the part of z-slice `k` (rows of `nx` values) that lies in `range` to `data`.
+fn keep_region(range: &VoxelRange, nx: usize, k: usize, slice: &[f32], data: &mut Vec<f32>) {
+    if (range.lo[2]..=range.hi[2]).contains(&k) {
+        let [rx, ry, _] = range.dims();
+        for j in range.lo[1]..range.lo[1] + ry {
+            let row = &slice[nx * j..nx * (j + 1)];
+            data.extend_from_slice(&row[range.lo[0]..range.lo[0] + rx]);
+        }
     }
 }
 
