@@ -277,12 +277,15 @@ fn a_fifo_or_a_device_as_volume_data_is_refused_without_blocking() {
     .unwrap();
     std::os::unix::fs::symlink("/dev/zero", d.join("zero.raw")).unwrap();
     std::fs::write(d.join("zero.nhdr"), format!("{nrrd}data file: zero.raw\n")).unwrap();
+    std::os::unix::fs::symlink("/dev/zero", d.join("zero.nrrd")).unwrap();
     // No one ever writes to the FIFOs: a reader that opened one to read would wait forever.
     for (volume, why) in [
         ("fifo.nhdr", "pipe.raw: is a FIFO (named pipe)"),
         ("fifo.mhd", "pipe.raw: is a FIFO (named pipe)"),
         ("pipe.nrrd", "pipe.nrrd: is a FIFO (named pipe)"),
-        ("zero.nhdr", "zero.raw: is a device"),
+        // A data file that is a link out of the header's folder is refused before its type is.
+        ("zero.nhdr", "data file: 'zero.raw' is a link to /dev/zero, outside the header's folder"),
+        ("zero.nrrd", "zero.nrrd: is a device"),
     ] {
         let args = ["render", "--renderer", "reference", "--size", "8x8", "--volume", volume];
         let r = run_bounded(d, "isowalld", &args, CAP_MIB, Duration::from_secs(20));

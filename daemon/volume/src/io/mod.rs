@@ -266,12 +266,13 @@ pub(crate) fn io_err(path: &Path, source: io::Error) -> VolumeError {
 /// FIFO, a device, a socket, a directory) is refused before it is opened; the file is opened
 /// without blocking (a FIFO swapped in meanwhile cannot hold the reader) and checked again.
 pub(crate) fn open(path: &Path) -> Result<(BufReader<File>, u64), VolumeError> {
-    let (file, len) = regular::open_regular(path).map_err(|e| match e.kind() {
-        io::ErrorKind::InvalidInput => format_err(
+    let (file, len) = regular::open_regular(path).map_err(|e| match e {
+        regular::RegularError::NotRegular(kind) => format_err(
             path,
-            format!("{e}: volumes are read from regular files only").replacen("it is", "is", 1),
+            format!("is {kind}, not a regular file: volumes are read from regular files only"),
         ),
-        _ => io_err(path, e),
+        regular::RegularError::Io(e) => io_err(path, e),
+        e => format_err(path, e.to_string()),
     })?;
     Ok((BufReader::new(file), len))
 }

@@ -24,42 +24,44 @@ pub fn kind_of(t: std::fs::FileType) -> &'static str {
     }
 }
 
-/// Opens `path` if it is a regular file; else an [`io::ErrorKind::InvalidInput`] error saying
-/// what it is. Returns the file and its length.
-pub fn open_regular(path: &Path) -> io::Result<(File, u64)> {
+/// Why a file was not read.
+#[derive(Debug, thiserror::Error)]
+pub enum RegularError {
+    #[error("it is {0}, not a regular file")]
+    NotRegular(&'static str),
+    #[error("it is {size} bytes or more, over the limit of {limit}")]
+    TooLarge { size: u64, limit: u64 },
+    #[error(transparent)]
+    Io(#[from] io::Error),
+}
+
+/// Opens `path` if it is a regular file ([`RegularError::NotRegular`] says what it is instead).
+/// Returns the file and its length.
+pub fn open_regular(path: &Path) -> Result<(File, u64), RegularError> {
     use std::os::unix::fs::OpenOptionsExt;
-    let refuse = |t: std::fs::FileType| {
-        io::Error::new(io::ErrorKind::InvalidInput, format!("it is {}, not a regular file", kind_of(t)))
-    };
     let kind = std::fs::metadata(path)?.file_type();
     if !kind.is_file() {
-        return Err(refuse(kind));
+        return Err(RegularError::NotRegular(kind_of(kind)));
     }
     let file = std::fs::OpenOptions::new().read(true).custom_flags(libc::O_NONBLOCK).open(path)?;
     let meta = file.metadata()?;
     if !meta.file_type().is_file() {
-        return Err(refuse(meta.file_type()));
+        return Err(RegularError::NotRegular(kind_of(meta.file_type())));
     }
     Ok((file, meta.len()))
 }
 
 /// Reads the regular file `path` whole as UTF-8 text, refusing one over `limit` bytes (by its
 /// length, and by what it gives: a file that grows while read stops at the limit).
-pub fn read_regular_text(path: &Path, limit: u64) -> io::Result<String> {
+pub fn read_regular_text(path: &Path, limit: u64) -> Result<String, RegularError> {
     let (file, len) = open_regular(path)?;
-    let too_big = |n: u64| {
-        io::Error::new(
-            io::ErrorKind::InvalidData,
-            format!("it is {n} bytes or more, over the limit of {limit}"),
-        )
-    };
     if len > limit {
-        return Err(too_big(len));
+        return Err(RegularError::TooLarge { size: len, limit });
     }
     let mut text = String::new();
     file.take(limit + 1).read_to_string(&mut text)?;
     if text.len() as u64 > limit {
-        return Err(too_big(text.len() as u64));
+        return Err(RegularError::TooLarge { size: text.len() as u64, limit });
     }
     Ok(text)
 }
