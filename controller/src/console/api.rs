@@ -269,7 +269,7 @@ async fn same_origin_only(req: Request, next: Next) -> Response {
 
 /// Decodes the hex of a token subprotocol.
 fn unhex(h: &str) -> Option<String> {
-    if h.len() % 2 != 0 {
+    if !h.len().is_multiple_of(2) {
         return None;
     }
     let bytes: Option<Vec<u8>> =

@@ -40,8 +40,11 @@ pub enum Command {
     Time(TimePatch, oneshot::Sender<Result<(), ApiError>>),
     /// The nodes' last presented tiles downscaled by a divisor (1: full size). Requests for the
     /// same divisor while one is pending share its answer.
-    Images(u32, oneshot::Sender<Result<Arc<Captured>, ApiError>>),
+    Images(u32, ImagesReply),
 }
+
+/// Where the frame loop answers an image request.
+pub type ImagesReply = oneshot::Sender<Result<Arc<Captured>, ApiError>>;
 
 /// Tiles the nodes sent for one image request, composed into a picture off the frame loop.
 pub struct Captured {
@@ -95,7 +98,7 @@ struct Loop {
     intervals: VecDeque<(u64, Duration)>,
     last_swap: Option<Instant>,
     /// Image requests waiting, by divisor.
-    waiting: Vec<(u32, oneshot::Sender<Result<Arc<Captured>, ApiError>>)>,
+    waiting: Vec<(u32, ImagesReply)>,
     /// The divisor of the request the nodes are answering.
     asked_divisor: Option<u32>,
     config: Arc<WallConfig>,
