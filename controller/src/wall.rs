@@ -98,8 +98,9 @@ pub struct Wall {
     /// Swaps released since the wall came up (all of them, unlike `releases`).
     pub released: u64,
     snapshots: BTreeMap<String, Vec<TileImage>>,
-    /// A thumbnail asked for and not yet complete: the nodes asked, and when to give up on them.
-    thumbnail: Option<(Vec<String>, Instant)>,
+    /// Images (a snapshot or a thumbnail) asked for and not yet complete: the nodes asked, and
+    /// when to give up on them.
+    images: Option<(Vec<String>, Instant)>,
     /// Bytes of tile images the nodes sent in snapshots and thumbnails, since the wall came up.
     pub snapshot_bytes: u64,
     /// Nodes with a reconnection attempt under way.
@@ -156,7 +157,7 @@ impl Wall {
             releases: Vec::new(),
             released: 0,
             snapshots: BTreeMap::new(),
-            thumbnail: None,
+            images: None,
             snapshot_bytes: 0,
             reconnecting: Default::default(),
             last_try: HashMap::new(),
@@ -616,56 +617,65 @@ impl Wall {
         self.senders.contains_key(node)
     }
 
-    /// Asks every up node for its last presented tiles downscaled by `divisor`, without waiting:
-    /// the answers arrive while frames go on, and [`Wall::take_thumbnail`] hands them over once
-    /// every node asked has answered or is down (or after `give_up`). Nothing is asked while a
-    /// thumbnail is still pending.
-    pub async fn request_thumbnail(&mut self, divisor: u32, give_up: Duration) {
-        if self.thumbnail.is_some() {
-            return;
+    /// Asks every up node for its last presented tiles downscaled by `divisor` (1: at full
+    /// resolution, a snapshot), without waiting: the answers arrive while frames go on, and
+    /// [`Wall::take_images`] hands them over once every node asked has answered or is down, or
+    /// after `give_up` (a node that never answers holds nothing up longer). Nothing is asked
+    /// while another request is pending: `false` then.
+    pub async fn request_images(&mut self, divisor: u32, give_up: Duration) -> bool {
+        if self.images.is_some() {
+            return false;
         }
         self.snapshots.clear();
         let now = self.now();
-        let out = self.machine.request_thumbnail(now, divisor);
+        let out = if divisor <= 1 {
+            self.machine.request_snapshot(now)
+        } else {
+            self.machine.request_thumbnail(now, divisor)
+        };
         let asked: Vec<String> = self.senders.keys().cloned().collect();
-        self.thumbnail = Some((asked, Instant::now() + give_up));
+        self.images = Some((asked, Instant::now() + give_up));
         self.execute(out).await;
+        true
     }
 
-    /// Whether a thumbnail is asked for and not yet taken.
-    pub fn thumbnail_pending(&self) -> bool {
-        self.thumbnail.is_some()
+    /// Whether images are asked for and not yet taken.
+    pub fn images_pending(&self) -> bool {
+        self.images.is_some()
     }
 
-    /// The tiles of the pending thumbnail, once complete (see [`Wall::request_thumbnail`]).
-    pub fn take_thumbnail(&mut self) -> Option<BTreeMap<String, Vec<TileImage>>> {
-        let (asked, give_up) = self.thumbnail.as_ref()?;
+    /// Forgets the pending request (its asker is gone); answers still on their way are dropped
+    /// when the next request is made.
+    pub fn cancel_images(&mut self) {
+        self.images = None;
+        self.snapshots.clear();
+    }
+
+    /// The tiles of the pending request, once complete (see [`Wall::request_images`]).
+    pub fn take_images(&mut self) -> Option<BTreeMap<String, Vec<TileImage>>> {
+        let (asked, give_up) = self.images.as_ref()?;
         let waiting = asked.iter().any(|n| !self.snapshots.contains_key(n) && self.senders.contains_key(n));
         if waiting && Instant::now() < *give_up {
             return None;
         }
-        self.thumbnail = None;
+        self.images = None;
         Some(std::mem::take(&mut self.snapshots))
     }
 
-    /// Gathers every node's last presented tiles (a pending thumbnail is finished first).
+    /// Gathers every node's last presented tiles at full resolution (a pending request is
+    /// finished first), waiting at most 10 s for nodes that do not answer.
     pub async fn snapshot(&mut self) -> BTreeMap<String, Vec<TileImage>> {
-        while self.thumbnail.is_some() && self.take_thumbnail().is_none() {
+        while self.images.is_some() && self.take_images().is_none() {
             self.step().await;
         }
-        self.snapshots.clear();
-        let now = self.now();
-        let out = self.machine.request_snapshot(now);
-        let asked: Vec<String> = self.senders.keys().cloned().collect();
-        self.execute(out).await;
-        let give_up = Instant::now() + Duration::from_secs(10);
-        // Until every node asked has answered or is down.
-        while asked.iter().any(|n| !self.snapshots.contains_key(n) && self.senders.contains_key(n))
-            && Instant::now() < give_up
-        {
+        self.request_images(1, Duration::from_secs(10)).await;
+        loop {
+            if let Some(tiles) = self.take_images() {
+                return tiles;
+            }
+            // A step returns at the next event or timer, within 200 ms.
             self.step().await;
         }
-        std::mem::take(&mut self.snapshots)
     }
 
     /// Says goodbye to every node.

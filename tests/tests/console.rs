@@ -5,7 +5,10 @@
 //! node's card turns down and comes back up when the node is restarted. On a wall of time steps
 //! (a glob of NRRD files), `POST /api/time` sets the step (the status and the next snapshot show
 //! it), plays and pauses, and refuses an out-of-range step or rate naming the field; the page shows
-//! its time controls there (hidden for one step) and its play button plays the wall.
+//! its time controls there (hidden for one step) and its play button plays the wall. A page of
+//! another site cannot load a snapshot as an `<img>` nor read the live status over a WebSocket;
+//! the console's own page opened with `#token=T` reads both (the token in a header and a
+//! WebSocket subprotocol, never in a URL).
 //!
 //! The browser test also prints what the page costs (run it with `--nocapture`): the thumbnail's
 //! latency (swap released -> painted in the page), fps without and with the page open, and the
@@ -210,7 +213,10 @@ fn the_api_refuses_missing_tokens_and_bad_input_and_changes_nothing() {
     assert_eq!(r.header("www-authenticate"), Some("Bearer"));
     assert_eq!(con.get_with("/api/status", Some("sesame-0123456789abcdeX")).status, 401);
     assert_eq!(con.get_with("/api/snapshot.png?width=8", Some("wrong")).status, 401);
-    assert_eq!(con.get_with(&format!("/api/status?token={token}"), None).status, 200);
+    // Never in a URL (it would end up in logs): refused, even when right.
+    let r = con.get_with(&format!("/api/status?token={token}"), None);
+    assert_eq!(r.status, 400);
+    assert!(r.json()["error"].as_str().unwrap().contains("token in the URL"), "{}", r.json());
     // The node tells its own resident memory with its Pongs (twice a second), local or not.
     let give_up = Instant::now() + Duration::from_secs(20);
     let rss_kib = loop {
@@ -797,5 +803,90 @@ async fn the_page_shows_time_controls_for_time_steps_and_plays_them() {
     tokio::task::spawn_blocking(move || wait_time(&con2, "paused by the page", |t| t["playing"] == false))
         .await
         .unwrap();
+    page.close().await.unwrap();
+}
+
+/// Serves `html` to every request on a port of its own: a page of another site (another origin
+/// on this machine, as a page a browser opened from anywhere would be).
+fn foreign_site(html: String) -> String {
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let url = format!("http://{}/", listener.local_addr().unwrap());
+    std::thread::spawn(move || {
+        for mut s in listener.incoming().map_while(Result::ok) {
+            let mut buf = [0u8; 4096];
+            let _ = s.read(&mut buf);
+            let head = format!(
+                "HTTP/1.1 200 OK\r\nContent-Type: text/html\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
+                html.len()
+            );
+            let _ = s.write_all(head.as_bytes()).and_then(|()| s.write_all(html.as_bytes()));
+        }
+    });
+    url
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_page_of_another_site_cannot_read_the_console_and_a_token_page_can() {
+    let Some((driver, chromium)) = driver() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let config = wall(dir.path(), 1, (32, 24), 20000);
+    let (d, c) = (dir.path().to_path_buf(), config.clone());
+    let Some(con) =
+        tokio::task::spawn_blocking(move || Console::start(&d, &c, &["--local"], None)).await.unwrap()
+    else {
+        return;
+    };
+    // Another site's page tries what any page could: an <img> of a snapshot (no token needed on
+    // loopback), a no-cors fetch, and the live status over a WebSocket.
+    let host = con.base.trim_start_matches("http://");
+    let evil = foreign_site(format!(
+        r#"<html><body><script>
+window.result = {{ img: "pending", ws: "pending" }};
+const i = new Image();
+i.onload = () => (result.img = "loaded");
+i.onerror = () => (result.img = "refused");
+i.src = "http://{host}/api/snapshot.png?width=16";
+const ws = new WebSocket("ws://{host}/api/live");
+ws.onmessage = (e) => (result.ws = "read " + e.data.length + " bytes");
+ws.onerror = () => {{ if (result.ws === "pending") result.ws = "refused"; }};
+</script></body></html>"#
+    ));
+    let before = con.status()["console"]["thumbnails"].as_u64().unwrap();
+    let page = browser(&driver, &chromium, &dir.path().join("chromium-profile")).await;
+    page.goto(&evil).await.unwrap();
+    until(
+        &page,
+        "window.result.img !== 'pending' && window.result.ws !== 'pending'",
+        Duration::from_secs(30),
+    )
+    .await;
+    let result = js(&page, "window.result").await;
+    eprintln!("a page of another site: {result}");
+    assert_eq!(result["img"], "refused", "{result}");
+    assert_eq!(result["ws"], "refused", "{result}");
+    assert_eq!(con.status()["console"]["thumbnails"].as_u64().unwrap(), before, "the nodes were asked");
+    page.close().await.unwrap();
+    drop(con);
+
+    // With a token: the console's own page opened as #token=T reads the live status (its
+    // WebSocket sends the token as a subprotocol) and shows thumbnails (the token in a header).
+    let token = "sesame-0123456789abcdef";
+    let (d, c) = (dir.path().to_path_buf(), config.clone());
+    let Some(con) = tokio::task::spawn_blocking(move || {
+        Console::start(&d, &c, &["--local", "--token", token], Some(token))
+    })
+    .await
+    .unwrap() else {
+        return;
+    };
+    let page = browser(&driver, &chromium, &dir.path().join("chromium-profile-2")).await;
+    page.goto(&format!("{}/#token={token}", con.base)).await.unwrap();
+    until(
+        &page,
+        "window.isowall.statusMessages > 0 && window.isowall.thumbnails > 0 && !location.href.includes('token')",
+        Duration::from_secs(60),
+    )
+    .await;
+    assert_eq!(js(&page, "document.getElementById('link').textContent").await, "live");
     page.close().await.unwrap();
 }

@@ -10,30 +10,39 @@
 //! - `GET /api/live`: a WebSocket pushing the status, `?hz=` times a second (1..=10, default 4).
 //!
 //! Refusals are JSON `{"error": REASON, "field": FIELD}` with a 4xx status, and change nothing.
-//! With a token, every `/api` request carries `Authorization: Bearer T` (or `?token=T`, for the
-//! page's WebSocket and downloads), compared in constant time. Without one (loopback), requests
-//! must name a loopback host (no DNS rebinding from a web page), and POSTs must be JSON (so a
-//! cross-site form cannot send one).
+//! Every `/api` request from a browser must come from this console's own page: one whose
+//! `Origin` is another site's, or that the browser marks as sent by another site
+//! (`Sec-Fetch-Site: cross-site` or `same-site`: an `<img>`, a form, a script of another page),
+//! is refused (403, with the reason) before anything else; a request without either (curl, a
+//! script) is a client of its own. With a token, every `/api` request carries `Authorization:
+//! Bearer T` (the page's WebSocket, which cannot set a header: the subprotocol
+//! `isowall-token.HEX`, T's UTF-8 bytes in hex, beside `isowall`), compared in constant time; a
+//! token is never taken from a URL (it would end up in logs and history): `?token=` is refused.
+//! Without a token (loopback), requests must name a loopback host (no DNS rebinding from a web
+//! page), and POSTs must be JSON (so a cross-site form cannot send one).
 
-use super::frame_loop::Command;
+use super::frame_loop::{divisor_for, Command};
 use super::patch::{CameraPatch, Refusal, RenderPatch, TimePatch};
+use super::pictures::Pictures;
+use super::server::Limits;
 use super::status::Status;
 use super::Access;
 use axum::body::Body;
 use axum::extract::rejection::{JsonRejection, QueryRejection};
 use axum::extract::ws::rejection::WebSocketUpgradeRejection;
 use axum::extract::ws::{Message, WebSocket, WebSocketUpgrade};
-use axum::extract::{Query, Request, State};
-use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
+use axum::extract::{ConnectInfo, FromRequestParts, Query, Request, State};
+use axum::http::{header, request::Parts, HeaderMap, HeaderValue, Method, StatusCode};
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
 use futures_util::{Sink, SinkExt, Stream, StreamExt};
 use serde::Deserialize;
+use std::net::{IpAddr, SocketAddr};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 use tokio::sync::{mpsc, oneshot, watch};
 
 const INDEX_HTML: &str = include_str!("assets/index.html");
@@ -50,6 +59,14 @@ const LIVE_DEFAULT_HZ: f64 = 4.0;
 const LIVE_SEND_DEADLINE: Duration = Duration::from_secs(10);
 /// How long a request waits for the frame loop.
 const LOOP_TIMEOUT: Duration = Duration::from_secs(30);
+/// The largest request body read (the API's changes are a few hundred bytes of JSON).
+pub const MAX_BODY_BYTES: usize = 64 * 1024;
+/// Live WebSockets open at once, all clients together (each holds a connection).
+pub const MAX_LIVE: usize = 64;
+/// The WebSocket subprotocol the page asks for (and the server answers with).
+pub const LIVE_PROTOCOL: &str = "isowall";
+/// The prefix of the subprotocol that carries the token: `isowall-token.` and T in hex.
+pub const TOKEN_PROTOCOL_PREFIX: &str = "isowall-token.";
 
 /// What the handlers share with the frame loop.
 pub struct Shared {
@@ -59,13 +76,21 @@ pub struct Shared {
     pub commands: mpsc::Sender<Command>,
     /// Bytes of response bodies and WebSocket messages sent.
     pub served_bytes: AtomicU64,
+    /// Snapshots and thumbnails: asked of the nodes, shared and bounded.
+    pub pictures: Arc<Pictures>,
+    pub limits: Limits,
+    /// Places for live WebSockets ([`MAX_LIVE`]).
+    pub live_slots: Arc<tokio::sync::Semaphore>,
 }
 
 impl Shared {
-    pub fn new(access: Access) -> (Arc<Shared>, mpsc::Receiver<Command>) {
+    pub fn new(access: Access, limits: Limits) -> (Arc<Shared>, mpsc::Receiver<Command>) {
         let (commands, rx) = mpsc::channel(64);
         let (status, _) = watch::channel(None);
-        (Arc::new(Shared { access, status, commands, served_bytes: AtomicU64::new(0) }), rx)
+        let pictures = Arc::new(Pictures::default());
+        let served_bytes = AtomicU64::new(0);
+        let live_slots = Arc::new(tokio::sync::Semaphore::new(MAX_LIVE));
+        (Arc::new(Shared { access, status, commands, served_bytes, pictures, limits, live_slots }), rx)
     }
 }
 
@@ -77,8 +102,9 @@ pub struct Picture {
     pub height: u32,
     /// The oldest frame among its tiles (`None`: no tile answered).
     pub frame_id: Option<u64>,
-    /// Since that frame's swap was released.
+    /// Since that frame's swap was released, when it was taken.
     pub age: Option<Duration>,
+    pub taken: Instant,
 }
 
 /// A refusal or failure, as the API answers it.
@@ -122,7 +148,8 @@ pub fn router(shared: Arc<Shared>) -> Router {
         .route("/api/camera", post(camera))
         .route("/api/time", post(time))
         .route("/api/live", get(live))
-        .layer(axum::middleware::from_fn_with_state(shared.clone(), authorize));
+        .layer(axum::middleware::from_fn_with_state(shared.clone(), authorize))
+        .layer(axum::middleware::from_fn(same_origin_only));
     Router::new()
         .route("/", get(|| async { asset(INDEX_HTML, "text/html; charset=utf-8") }))
         .route("/console.js", get(|| async { asset(CONSOLE_JS, "text/javascript; charset=utf-8") }))
@@ -130,6 +157,7 @@ pub fn router(shared: Arc<Shared>) -> Router {
         .merge(api)
         .fallback(|| async { ApiError::new(StatusCode::NOT_FOUND, "no such page or endpoint") })
         .layer(axum::middleware::from_fn_with_state(shared.clone(), count_and_check_host))
+        .layer(axum::middleware::from_fn_with_state(shared.clone(), read_body_within))
         .with_state(shared)
 }
 
@@ -165,13 +193,107 @@ async fn count_and_check_host(State(shared): State<Arc<Shared>>, req: Request, n
     response
 }
 
-/// The token of a request: `Authorization: Bearer T`, else `token=T` in the query.
-fn presented_token(headers: &HeaderMap, uri: &axum::http::Uri) -> Option<String> {
+/// A request's body, read whole within the body timeout ([`Limits::body_timeout`]) and at most
+/// [`MAX_BODY_BYTES`], before any handler sees it: a client that sends half a body is answered
+/// 408 and holds nothing after that. GET and HEAD have no body to wait for.
+async fn read_body_within(State(shared): State<Arc<Shared>>, req: Request, next: Next) -> Response {
+    if matches!(*req.method(), Method::GET | Method::HEAD) {
+        return next.run(req).await;
+    }
+    let declared =
+        req.headers().get(header::CONTENT_LENGTH).and_then(|v| v.to_str().ok()?.parse::<u64>().ok());
+    if declared.is_some_and(|n| n > MAX_BODY_BYTES as u64) {
+        return ApiError::new(
+            StatusCode::PAYLOAD_TOO_LARGE,
+            format!(
+                "a request body of {} bytes is over the limit of {MAX_BODY_BYTES}",
+                declared.unwrap_or(0)
+            ),
+        )
+        .into_response();
+    }
+    let limit = shared.limits.body_timeout;
+    let (parts, body) = req.into_parts();
+    match tokio::time::timeout(limit, axum::body::to_bytes(body, MAX_BODY_BYTES)).await {
+        Ok(Ok(bytes)) => next.run(Request::from_parts(parts, Body::from(bytes))).await,
+        Ok(Err(e)) => ApiError::new(
+            StatusCode::BAD_REQUEST,
+            format!("cannot read the request body (at most {MAX_BODY_BYTES} bytes): {e}"),
+        )
+        .into_response(),
+        Err(_) => ApiError::new(
+            StatusCode::REQUEST_TIMEOUT,
+            format!("the request body did not arrive within {limit:?}"),
+        )
+        .into_response(),
+    }
+}
+
+/// Why a request comes from a page of another site, if it does: an `Origin` that is not this
+/// console's own (`http://` or `https://` and the request's Host), or the browser's own word
+/// (`Sec-Fetch-Site: cross-site` or `same-site`, which an `<img>` of another page sends with no
+/// Origin). `None` for this console's page and for clients that send neither (curl, scripts).
+pub fn foreign_origin(headers: &HeaderMap) -> Option<String> {
+    let text = |name: &str| {
+        headers.get(name).map(|v| v.to_str().unwrap_or("(not text)").chars().take(120).collect::<String>())
+    };
+    let host = text(header::HOST.as_str()).unwrap_or_default();
+    if let Some(origin) = text(header::ORIGIN.as_str()) {
+        let own = origin
+            .strip_prefix("http://")
+            .or_else(|| origin.strip_prefix("https://"))
+            .is_some_and(|h| !host.is_empty() && h.eq_ignore_ascii_case(&host));
+        if !own {
+            return Some(format!(
+                "Origin `{origin}` is not this console's (`{host}`): a page of another site may not read or drive the wall"
+            ));
+        }
+    }
+    if let Some(site) = text("sec-fetch-site") {
+        if site.eq_ignore_ascii_case("cross-site") || site.eq_ignore_ascii_case("same-site") {
+            return Some(format!(
+                "the browser says this request comes from another site (Sec-Fetch-Site: {site}): a page of another site may not read or drive the wall"
+            ));
+        }
+    }
+    None
+}
+
+/// `/api/*`: refused (403 and the reason) when a page of another site sent it, WebSockets too.
+async fn same_origin_only(req: Request, next: Next) -> Response {
+    if let Some(why) = foreign_origin(req.headers()) {
+        return ApiError::new(StatusCode::FORBIDDEN, why).into_response();
+    }
+    next.run(req).await
+}
+
+/// Decodes the hex of a token subprotocol.
+fn unhex(h: &str) -> Option<String> {
+    if !h.len().is_multiple_of(2) {
+        return None;
+    }
+    let bytes: Option<Vec<u8>> =
+        (0..h.len()).step_by(2).map(|i| u8::from_str_radix(h.get(i..i + 2)?, 16).ok()).collect();
+    String::from_utf8(bytes?).ok()
+}
+
+/// The token of a request: `Authorization: Bearer T`, else (a WebSocket) the subprotocol
+/// `isowall-token.HEX`. Never from the URL.
+fn presented_token(headers: &HeaderMap) -> Option<String> {
     if let Some(v) = headers.get(header::AUTHORIZATION).and_then(|v| v.to_str().ok()) {
         return v.strip_prefix("Bearer ").map(|t| t.trim().to_string());
     }
-    let Query(q) = Query::<std::collections::HashMap<String, String>>::try_from_uri(uri).ok()?;
-    q.get("token").cloned()
+    let protocols = headers.get(header::SEC_WEBSOCKET_PROTOCOL)?.to_str().ok()?;
+    protocols.split(',').find_map(|p| unhex(p.trim().strip_prefix(TOKEN_PROTOCOL_PREFIX)?))
+}
+
+/// Whether the query string of `uri` has a `token` parameter.
+fn token_in_url(uri: &axum::http::Uri) -> bool {
+    uri.query().is_some_and(|q| form_urlencoded_keys(q).any(|k| k.eq_ignore_ascii_case("token")))
+}
+
+fn form_urlencoded_keys(q: &str) -> impl Iterator<Item = &str> {
+    q.split('&').map(|kv| kv.split_once('=').map_or(kv, |(k, _)| k))
 }
 
 /// Constant-time comparison of a presented token with the console's.
@@ -180,22 +302,41 @@ pub fn token_matches(presented: &str, expected: &str) -> bool {
     presented.as_bytes().ct_eq(expected.as_bytes()).into()
 }
 
-/// `/api/*`: with a token, the request must carry it.
+/// `/api/*`: with a token, the request must carry it (never in its URL).
 async fn authorize(State(shared): State<Arc<Shared>>, req: Request, next: Next) -> Response {
+    if token_in_url(req.uri()) {
+        return ApiError::new(
+            StatusCode::BAD_REQUEST,
+            "a token in the URL would end up in logs and histories: send `Authorization: Bearer T` \
+             (a WebSocket: the subprotocol `isowall-token.` and T in hex)",
+        )
+        .into_response();
+    }
     if let Some(expected) = &shared.access.token {
-        match presented_token(req.headers(), req.uri()) {
+        match presented_token(req.headers()) {
             Some(t) if token_matches(&t, expected) => {}
             Some(_) => return ApiError::new(StatusCode::UNAUTHORIZED, "wrong token").into_response(),
             None => {
                 return ApiError::new(
                     StatusCode::UNAUTHORIZED,
-                    "this console needs a token: `Authorization: Bearer T` (or ?token=T)",
+                    "this console needs a token: `Authorization: Bearer T` (a WebSocket: the subprotocol `isowall-token.` and T in hex)",
                 )
                 .into_response()
             }
         }
     }
     next.run(req).await
+}
+
+/// The client's address (from the server loop; `None` where the router runs without it).
+pub struct Client(pub Option<IpAddr>);
+
+impl<S: Send + Sync> FromRequestParts<S> for Client {
+    type Rejection = std::convert::Infallible;
+
+    async fn from_request_parts(parts: &mut Parts, _: &S) -> Result<Client, Self::Rejection> {
+        Ok(Client(parts.extensions.get::<ConnectInfo<SocketAddr>>().map(|c| c.0.ip())))
+    }
 }
 
 fn latest(shared: &Shared) -> Result<Arc<Status>, ApiError> {
@@ -236,8 +377,6 @@ struct SnapshotQuery {
     width: Option<u32>,
     #[serde(default)]
     download: Option<u8>,
-    #[allow(dead_code)] // read by `authorize`
-    token: Option<String>,
 }
 
 fn bad_query(e: QueryRejection) -> ApiError {
@@ -246,6 +385,7 @@ fn bad_query(e: QueryRejection) -> ApiError {
 
 async fn snapshot(
     State(shared): State<Arc<Shared>>,
+    Client(client): Client,
     q: Result<Query<SnapshotQuery>, QueryRejection>,
 ) -> Result<Response, ApiError> {
     let Query(q) = q.map_err(bad_query)?;
@@ -258,8 +398,12 @@ async fn snapshot(
             });
         }
     }
-    let pic = ask(&shared, |tx| Command::Snapshot(q.width, tx)).await?;
-    let mut r = Response::new(Body::from(pic.png));
+    let divisor = match q.width {
+        Some(w) => divisor_for(latest(&shared)?.wall.width, w),
+        None => 1,
+    };
+    let pic = shared.pictures.get(&shared.commands, client, divisor).await?;
+    let mut r = Response::new(Body::from(pic.png.clone()));
     let h = r.headers_mut();
     h.insert(header::CONTENT_TYPE, HeaderValue::from_static("image/png"));
     h.insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
@@ -267,7 +411,7 @@ async fn snapshot(
         h.insert("x-isowall-frame", HeaderValue::from(f));
     }
     if let Some(a) = pic.age {
-        let ms = format!("{:.1}", a.as_secs_f64() * 1e3);
+        let ms = format!("{:.1}", (a + pic.taken.elapsed()).as_secs_f64() * 1e3);
         h.insert("x-isowall-frame-age-ms", HeaderValue::from_str(&ms).expect("a number"));
     }
     h.insert(
@@ -336,8 +480,6 @@ async fn time(
 #[serde(deny_unknown_fields)]
 struct LiveQuery {
     hz: Option<f64>,
-    #[allow(dead_code)] // read by `authorize`
-    token: Option<String>,
 }
 
 async fn live(
@@ -356,7 +498,16 @@ async fn live(
     }
     let ws =
         ws.map_err(|e| ApiError::new(e.status(), format!("/api/live is a WebSocket: {}", e.body_text())))?;
-    Ok(ws.max_message_size(4096).on_upgrade(move |socket| push_status(socket, shared, hz)))
+    let slot = shared.live_slots.clone().try_acquire_owned().map_err(|_| {
+        ApiError::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            format!("{MAX_LIVE} live WebSockets are open already: close one or poll /api/status"),
+        )
+    })?;
+    Ok(ws.max_message_size(4096).protocols([LIVE_PROTOCOL]).on_upgrade(move |socket| async move {
+        push_status(socket, shared, hz).await;
+        drop(slot);
+    }))
 }
 
 /// Pushes the status at most `hz` times a second, when it changed; stops when the page goes, or
@@ -492,6 +643,35 @@ mod tests {
     }
 
     #[test]
+    fn origins_of_other_sites_are_named() {
+        let headers = |pairs: &[(&'static str, &'static str)]| {
+            let mut h = HeaderMap::new();
+            for (k, v) in pairs {
+                h.insert(*k, HeaderValue::from_static(v));
+            }
+            h
+        };
+        let own = [("host", "127.0.0.1:8080"), ("origin", "http://127.0.0.1:8080")];
+        assert_eq!(foreign_origin(&headers(&own)), None);
+        assert_eq!(foreign_origin(&headers(&[("host", "127.0.0.1:8080")])), None, "curl");
+        let proxied =
+            [("host", "wall:8080"), ("origin", "https://wall:8080"), ("sec-fetch-site", "same-origin")];
+        assert_eq!(foreign_origin(&headers(&proxied)), None);
+        let e = foreign_origin(&headers(&[("host", "127.0.0.1:8080"), ("origin", "https://evil.example")]));
+        assert!(
+            e.as_deref().unwrap_or("").contains("Origin `https://evil.example` is not this console's"),
+            "{e:?}"
+        );
+        for o in ["null", "http://127.0.0.1:8081", "http://127.0.0.1:8080.evil.example"] {
+            let h = [("host", "127.0.0.1:8080"), ("origin", o)];
+            assert!(foreign_origin(&headers(&h)).is_some(), "{o}");
+        }
+        // An `<img>` of another page: no Origin, but the browser says where it comes from.
+        let img = [("host", "127.0.0.1:8080"), ("sec-fetch-site", "cross-site")];
+        assert!(foreign_origin(&headers(&img)).unwrap_or_default().contains("Sec-Fetch-Site: cross-site"));
+    }
+
+    #[test]
     fn hosts_and_tokens() {
         for h in ["127.0.0.1:8080", "localhost:8080", "[::1]:8080", "localhost", "127.0.0.1"] {
             assert!(is_loopback_host(h), "{h}");
@@ -504,11 +684,18 @@ mod tests {
         assert!(!token_matches("0123456789abcde", "0123456789abcdef"));
         let mut h = HeaderMap::new();
         let uri = |s: &str| s.parse::<axum::http::Uri>().unwrap();
-        assert_eq!(presented_token(&h, &uri("/api/live?hz=3&token=a%2Bb")), Some("a+b".into()));
-        assert_eq!(presented_token(&h, &uri("/api/live")), None);
+        assert!(token_in_url(&uri("/api/live?hz=3&token=a%2Bb")));
+        assert!(token_in_url(&uri("/api/snapshot.png?TOKEN")));
+        assert!(!token_in_url(&uri("/api/live?hz=3&tokens=1")));
+        assert_eq!(presented_token(&h), None);
+        // A WebSocket's subprotocol: `isowall-token.` and the token's bytes in hex.
+        h.insert(header::SEC_WEBSOCKET_PROTOCOL, HeaderValue::from_static("isowall, isowall-token.612b62"));
+        assert_eq!(presented_token(&h), Some("a+b".into()));
+        h.insert(header::SEC_WEBSOCKET_PROTOCOL, HeaderValue::from_static("isowall-token.6"));
+        assert_eq!(presented_token(&h), None);
         h.insert(header::AUTHORIZATION, HeaderValue::from_static("Bearer sesame"));
-        assert_eq!(presented_token(&h, &uri("/?token=other")), Some("sesame".into()));
+        assert_eq!(presented_token(&h), Some("sesame".into()));
         h.insert(header::AUTHORIZATION, HeaderValue::from_static("Basic abc"));
-        assert_eq!(presented_token(&h, &uri("/")), None);
+        assert_eq!(presented_token(&h), None);
     }
 }

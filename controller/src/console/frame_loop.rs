@@ -1,17 +1,24 @@
 //! The console's frame loop: drives the wall frame after frame (as `isowall session` does, with
 //! the session's camera logic), carries out the API's [`Command`]s between frames, asks the nodes
-//! for downscaled thumbnails only when a page wants one, and publishes the [`Status`].
+//! for images (snapshots, downscaled thumbnails) only when a request wants one, and publishes
+//! the [`Status`].
+//!
+//! Images never hold up a frame: the loop sends the nodes the request and goes on; their answers
+//! arrive between frames and go, as raw tiles, to every request waiting for that size, which
+//! composes and encodes them off the loop (`pictures.rs`). A node that does not answer is given
+//! up after [`THUMBNAIL_GIVE_UP`] ([`SNAPSHOT_GIVE_UP`] at full size); a request whose every
+//! asker has left is dropped.
 
-use super::api::{ApiError, Picture, Shared};
+use super::api::{ApiError, Shared};
 use super::patch::{CameraPatch, Controls, RenderPatch, TimePatch};
 use super::status::{self, NodeHealth, Status};
 use crate::controls::SessionState;
 use crate::local::LocalDaemons;
 use crate::path::CameraPath;
-use crate::wall::{compose, compose_scaled, quantile, Wall};
+use crate::wall::{quantile, Wall};
 use anyhow::Result;
-use isowall_model::messages::MAX_THUMBNAIL_DIVISOR;
-use isowall_model::{Camera, Governor, Motion, RenderSettings};
+use isowall_model::messages::{TileImage, MAX_THUMBNAIL_DIVISOR};
+use isowall_model::{Camera, Governor, Motion, RenderSettings, WallConfig};
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::path::PathBuf;
 use std::sync::atomic::Ordering;
@@ -19,11 +26,10 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tokio::sync::{mpsc, oneshot};
 
-/// Thumbnails asked of the nodes per second at most, however many pages ask (a page asking
-/// sooner gets the last one again).
-pub const THUMBNAIL_MAX_HZ: f64 = 4.0;
 /// How long a thumbnail waits for a node that does not answer.
-const THUMBNAIL_GIVE_UP: Duration = Duration::from_secs(2);
+pub const THUMBNAIL_GIVE_UP: Duration = Duration::from_secs(2);
+/// How long a full-size snapshot waits for a node that does not answer.
+pub const SNAPSHOT_GIVE_UP: Duration = Duration::from_secs(5);
 /// The status is published this often at most.
 const PUBLISH_EVERY: Duration = Duration::from_millis(100);
 
@@ -32,8 +38,24 @@ pub enum Command {
     Render(RenderPatch, oneshot::Sender<Result<(), ApiError>>),
     Camera(CameraPatch, oneshot::Sender<Result<(), ApiError>>),
     Time(TimePatch, oneshot::Sender<Result<(), ApiError>>),
-    /// A whole-wall PNG: `width` for a thumbnail at most that wide, `None` for full resolution.
-    Snapshot(Option<u32>, oneshot::Sender<Result<Picture, ApiError>>),
+    /// The nodes' last presented tiles downscaled by a divisor (1: full size). Requests for the
+    /// same divisor while one is pending share its answer.
+    Images(u32, ImagesReply),
+}
+
+/// Where the frame loop answers an image request.
+pub type ImagesReply = oneshot::Sender<Result<Arc<Captured>, ApiError>>;
+
+/// Tiles the nodes sent for one image request, composed into a picture off the frame loop.
+pub struct Captured {
+    pub config: Arc<WallConfig>,
+    pub divisor: u32,
+    pub tiles: BTreeMap<String, Vec<TileImage>>,
+    /// The oldest frame among the tiles (`None`: no tile answered).
+    pub frame_id: Option<u64>,
+    /// Since that frame's swap was released, when the tiles were taken.
+    pub age: Option<Duration>,
+    pub taken: Instant,
 }
 
 /// The scene the console starts with.
@@ -46,24 +68,21 @@ pub struct Scene {
     pub demo: Option<(PathBuf, CameraPath)>,
 }
 
-/// The thumbnail downscale for a page `width` pixels wide: the smallest divisor that fits.
+/// The divisors thumbnails are asked at: each about 1.5 times the one before, so that any
+/// number of widths asked for comes to a dozen requests of the nodes at most.
+const DIVISORS: [u32; 11] = [1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48];
+
+/// The thumbnail downscale for a page `width` pixels wide: the smallest of [`DIVISORS`] (or
+/// [`MAX_THUMBNAIL_DIVISOR`]) whose image fits.
 pub fn divisor_for(wall_width: u32, width: u32) -> u32 {
-    wall_width.div_ceil(width.max(1)).clamp(1, MAX_THUMBNAIL_DIVISOR)
+    let fits = wall_width.div_ceil(width.max(1)).clamp(1, MAX_THUMBNAIL_DIVISOR);
+    DIVISORS.iter().copied().find(|d| *d >= fits).unwrap_or(MAX_THUMBNAIL_DIVISOR)
 }
 
 fn unix_ms() -> u64 {
     std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map_or(0, |d| u64::try_from(d.as_millis()).unwrap_or(u64::MAX))
-}
-
-fn png(w: u32, h: u32, rgb: &[u8]) -> Result<Vec<u8>, ApiError> {
-    use image::ImageEncoder;
-    let mut out = Vec::new();
-    image::codecs::png::PngEncoder::new(&mut out)
-        .write_image(rgb, w, h, image::ExtendedColorType::Rgb8)
-        .map_err(|e| ApiError::internal(format!("cannot encode the snapshot as PNG: {e}")))?;
-    Ok(out)
 }
 
 struct Loop {
@@ -78,9 +97,12 @@ struct Loop {
     /// Time between swaps of the recent frames.
     intervals: VecDeque<(u64, Duration)>,
     last_swap: Option<Instant>,
-    waiting: Vec<(u32, oneshot::Sender<Result<Picture, ApiError>>)>,
-    asked_divisor: u32,
-    cache: Option<(u32, Instant, Picture)>,
+    /// Image requests waiting, by divisor.
+    waiting: Vec<(u32, ImagesReply)>,
+    /// The divisor of the request the nodes are answering.
+    asked_divisor: Option<u32>,
+    config: Arc<WallConfig>,
+    /// Image requests made of the nodes.
     thumbnails: u64,
     /// The process ids of the daemons the console started (`--local`), by node.
     pids: HashMap<String, u32>,
@@ -122,8 +144,8 @@ pub async fn run(
         intervals: VecDeque::new(),
         last_swap: None,
         waiting: Vec::new(),
-        asked_divisor: 1,
-        cache: None,
+        asked_divisor: None,
+        config: Arc::new(wall.config.clone()),
         thumbnails: 0,
         pids: HashMap::new(),
         frame_samples: (scene.settings.ao.samples, 1),
@@ -190,44 +212,25 @@ impl Loop {
                 let _ = reply.send(r);
                 moved
             }
-            Command::Snapshot(None, reply) => {
-                let tiles = wall.snapshot().await;
-                let frame_id = tiles.values().flatten().map(|t| t.frame_id).min();
-                let age = frame_id.and_then(|f| self.age_of(f));
-                let (w, h, rgb) = compose(&wall.config, &tiles);
-                let r = tokio::task::spawn_blocking(move || png(w, h, &rgb))
-                    .await
-                    .unwrap_or_else(|e| Err(ApiError::internal(format!("PNG encoder: {e}"))));
-                let _ = reply.send(r.map(|png| Picture { png, width: w, height: h, frame_id, age }));
-                false
-            }
-            Command::Snapshot(Some(width), reply) => {
-                let divisor = divisor_for(wall.config.wall_size().0, width);
-                let fresh = Duration::from_secs_f64(1.0 / THUMBNAIL_MAX_HZ);
-                match &self.cache {
-                    Some((d, at, pic)) if *d == divisor && at.elapsed() < fresh => {
-                        let mut pic = pic.clone();
-                        pic.age = pic.frame_id.and_then(|f| self.age_of(f));
-                        let _ = reply.send(Ok(pic));
-                    }
-                    _ => {
-                        self.waiting.push((divisor, reply));
-                        self.ask_thumbnail(wall).await;
-                    }
-                }
+            Command::Images(divisor, reply) => {
+                self.waiting.push((divisor, reply));
+                self.ask_images(wall).await;
                 false
             }
         }
     }
 
-    async fn ask_thumbnail(&mut self, wall: &mut Wall) {
-        if wall.thumbnail_pending() {
+    /// Asks the nodes for the first waiting request's images unless a request is pending.
+    async fn ask_images(&mut self, wall: &mut Wall) {
+        if wall.images_pending() {
             return;
         }
         let Some(&(divisor, _)) = self.waiting.first() else { return };
-        self.asked_divisor = divisor;
-        self.thumbnails += 1;
-        wall.request_thumbnail(divisor, THUMBNAIL_GIVE_UP).await;
+        let give_up = if divisor <= 1 { SNAPSHOT_GIVE_UP } else { THUMBNAIL_GIVE_UP };
+        if wall.request_images(divisor, give_up).await {
+            self.asked_divisor = Some(divisor);
+            self.thumbnails += 1;
+        }
     }
 
     /// How long ago frame `id`'s swap was released.
@@ -318,34 +321,36 @@ impl Loop {
             let missed = release.filter(|_| connected).map(|r| r.2.contains(name));
             h.observe(now, unix, connected, missed);
         }
-        // A thumbnail that came in: to every page waiting for one at its size.
-        if let Some(tiles) = wall.take_thumbnail() {
-            let divisor = self.asked_divisor;
-            let frame_id = tiles.values().flatten().map(|t| t.frame_id).min();
-            let (w, h, rgb) = compose_scaled(&wall.config, &tiles, divisor);
-            let age = frame_id.and_then(|f| self.age_of(f));
-            match png(w, h, &rgb) {
-                Ok(png) => {
-                    let pic = Picture { png, width: w, height: h, frame_id, age };
-                    let (now_served, later): (Vec<_>, Vec<_>) =
-                        std::mem::take(&mut self.waiting).into_iter().partition(|(d, _)| *d == divisor);
-                    for (_, reply) in now_served {
-                        let _ = reply.send(Ok(pic.clone()));
-                    }
-                    self.waiting = later;
-                    self.cache = Some((divisor, Instant::now(), pic));
-                }
-                Err(e) => {
-                    for (_, reply) in self.waiting.drain(..) {
-                        let _ = reply.send(Err(e.clone()));
-                    }
-                }
+        // Requests whose askers left are dropped, and the nodes' answer with them when nobody
+        // waits for it any more.
+        self.waiting.retain(|(_, r)| !r.is_closed());
+        if let Some(d) = self.asked_divisor {
+            if !self.waiting.iter().any(|(w, _)| *w == d) {
+                wall.cancel_images();
+                self.asked_divisor = None;
             }
         }
-        self.waiting.retain(|(_, r)| !r.is_closed());
-        if !self.waiting.is_empty() {
-            self.ask_thumbnail(wall).await;
+        // Images that came in: to every request waiting for them at their size.
+        if let Some(tiles) = wall.take_images() {
+            let divisor = self.asked_divisor.take().unwrap_or(1);
+            let frame_id = tiles.values().flatten().map(|t| t.frame_id).min();
+            let age = frame_id.and_then(|f| self.age_of(f));
+            let captured = Arc::new(Captured {
+                config: self.config.clone(),
+                divisor,
+                tiles,
+                frame_id,
+                age,
+                taken: Instant::now(),
+            });
+            let (served, later): (Vec<_>, Vec<_>) =
+                std::mem::take(&mut self.waiting).into_iter().partition(|(d, _)| *d == divisor);
+            for (_, reply) in served {
+                let _ = reply.send(Ok(captured.clone()));
+            }
+            self.waiting = later;
         }
+        self.ask_images(wall).await;
         if self.published.is_none_or(|t| t.elapsed() >= PUBLISH_EVERY) {
             self.published = Some(Instant::now());
             // The status is the pids' only reader: looked up when it is published, not every frame.
@@ -519,7 +524,12 @@ mod tests {
         assert_eq!(divisor_for(328, 164), 2);
         assert_eq!(divisor_for(328, 163), 3);
         assert_eq!(divisor_for(7680, 640), 12);
+        // Rounded up to the next of a few sizes: 328 / 70 needs 5, asked at 6.
+        assert_eq!(divisor_for(328, 70), 6);
         assert_eq!(divisor_for(1 << 20, 1), MAX_THUMBNAIL_DIVISOR);
         assert_eq!(divisor_for(328, 0), MAX_THUMBNAIL_DIVISOR);
+        // Every width from 1 to 4096 of a 7680-pixel wall: a dozen divisors at most.
+        let distinct: std::collections::BTreeSet<u32> = (1..=4096).map(|w| divisor_for(7680, w)).collect();
+        assert!(distinct.len() <= 12, "{distinct:?}");
     }
 }

@@ -7,11 +7,15 @@
 //! the latest [`Status`](status::Status) (published by the loop a few times a second) and send
 //! [`Command`]s that the loop carries out between frames, answering on a oneshot channel.
 //! Thumbnails are downscaled at the nodes (`Message::ThumbnailRequest`) and asked for only when a
-//! page wants one, at most [`frame_loop::THUMBNAIL_MAX_HZ`] times a second whatever the number of pages.
+//! request wants one, at most [`pictures::IMAGES_MAX_HZ`] times a second whatever the number of
+//! clients (`pictures.rs`: shared, bounded per client and in total, never in the frame loop's
+//! way). The HTTP server (`server.rs`) bounds connections and the time to send a request.
 
 mod api;
 mod frame_loop;
 mod patch;
+mod pictures;
+mod server;
 mod status;
 
 use crate::drive::{load, runtime, scene_and_range, time_steps};
@@ -28,8 +32,8 @@ pub struct ConsoleArgs {
     /// The HTTP address to serve the page and the API on; one that is not loopback needs --token
     #[arg(long, value_name = "ADDR", default_value = "127.0.0.1:8080")]
     pub listen: String,
-    /// A bearer token every API request must carry (`Authorization: Bearer T`, or `?token=T`
-    /// for the page's WebSocket and images); at least 16 characters
+    /// A bearer token every API request must carry (`Authorization: Bearer T`; the page's
+    /// WebSocket sends it as a subprotocol, never in a URL); at least 16 characters
     #[arg(long, value_name = "T")]
     pub token: Option<String>,
     /// Show the wall and its health only: no controls, and the API refuses every change
@@ -98,15 +102,16 @@ pub fn console(a: &ConsoleArgs) -> Result<()> {
         let local = listener.local_addr().context("listening address")?;
         let (daemons, wall) = start::open(config, &a.start).await?;
         let scene = frame_loop::Scene { camera, settings, range, steps, demo };
-        let (shared, commands) = api::Shared::new(access.clone());
+        let limits = server::Limits::default();
+        let (shared, commands) = api::Shared::new(access.clone(), limits);
         let looper = tokio::spawn(frame_loop::run(wall, daemons, scene, shared.clone(), commands));
         // Printed for scripts and tests: the page's address, once it serves.
         println!("isowall console: serving http://{local}/");
-        let server = axum::serve(listener, api::router(shared.clone())).with_graceful_shutdown(async {
+        let server = server::serve(listener, api::router(shared.clone()), limits, async {
             let _ = tokio::signal::ctrl_c().await;
         });
         tokio::select! {
-            r = server => r.context("the console's HTTP server")?,
+            () = server => {}
             r = looper => r.context("the console's frame loop")??,
         }
         Ok(())

@@ -20,7 +20,10 @@ const AO_STEPS = [0, 1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024];
 })();
 const token = sessionStorage.getItem("isowall-token");
 const authHeaders = token ? { Authorization: "Bearer " + token } : {};
-const withToken = (url) => (token ? url + (url.includes("?") ? "&" : "?") + "token=" + encodeURIComponent(token) : url);
+// Never in a URL (it would end up in logs): a header, and for the WebSocket, which cannot send
+// one, a subprotocol carrying the token's UTF-8 bytes in hex.
+const hex = (text) => Array.from(new TextEncoder().encode(text), (b) => b.toString(16).padStart(2, "0")).join("");
+const liveProtocols = token ? ["isowall", "isowall-token." + hex(token)] : ["isowall"];
 
 const $ = (id) => document.getElementById(id);
 let status = null;
@@ -30,7 +33,7 @@ window.isowall = { thumbnails: 0, thumbBytes: 0, statusMessages: 0, lastFrame: n
 // ---- live status ----
 function connect() {
   const proto = location.protocol === "https:" ? "wss:" : "ws:";
-  const ws = new WebSocket(withToken(proto + "//" + location.host + "/api/live?hz=" + LIVE_HZ));
+  const ws = new WebSocket(proto + "//" + location.host + "/api/live?hz=" + LIVE_HZ, liveProtocols);
   ws.onopen = () => { $("link").textContent = "live"; $("link").className = "good"; };
   ws.onmessage = (ev) => {
     window.isowall.statusMessages++;
@@ -168,8 +171,6 @@ function showControls(s) {
   setText($("demo"), s.demo.playing ? "stop demo path" : "start demo path");
   setProp($("demo"), "disabled", !s.demo.path);
   setProp($("demo"), "title", s.demo.path ? s.demo.path : "start the console with --demo-path FILE");
-  const download = withToken("/api/snapshot.png?download=1");
-  if ($("download").getAttribute("href") !== download) $("download").setAttribute("href", download);
 }
 
 async function post(path, body) {
@@ -285,7 +286,7 @@ async function thumbLoop() {
       const c = $("wall");
       const width = Math.max(1, Math.min(status.wall.width, Math.round(c.width)));
       try {
-        const r = await fetch(withToken("/api/snapshot.png?width=" + width), { headers: authHeaders, cache: "no-store" });
+        const r = await fetch("/api/snapshot.png?width=" + width, { headers: authHeaders, cache: "no-store" });
         if (r.ok) {
           const headersAt = performance.now();
           const age = parseFloat(r.headers.get("x-isowall-frame-age-ms"));
@@ -362,3 +363,26 @@ function chart(c, values, p50, p99, color) {
 document.addEventListener("visibilitychange", () => { if (!document.hidden && status) { charted = wallKey = null; show(status); } });
 connect();
 thumbLoop();
+
+// The full-resolution snapshot: a plain link without a token; with one, fetched with its header
+// and saved from memory (a link cannot carry a header, and the token stays out of URLs).
+$("download").addEventListener("click", async (ev) => {
+  if (!token) return;
+  ev.preventDefault();
+  try {
+    const r = await fetch("/api/snapshot.png?download=1", { headers: authHeaders, cache: "no-store" });
+    if (!r.ok) {
+      const e = await r.json().catch(() => ({ error: r.statusText }));
+      $("control-error").textContent = "snapshot: " + e.error;
+      return;
+    }
+    const url = URL.createObjectURL(await r.blob());
+    const a = document.createElement("a");
+    a.href = url;
+    a.download = "isowall-frame-" + (r.headers.get("x-isowall-frame") || "0") + ".png";
+    a.click();
+    setTimeout(() => URL.revokeObjectURL(url), 10000);
+  } catch (e) {
+    $("control-error").textContent = "snapshot: " + String(e);
+  }
+});
