@@ -305,11 +305,9 @@ impl Wall {
             match out {
                 AdoptionOutput::Load { node, brick } => {
                     eprintln!("isowall: brick {brick} goes to node {node}: it loads it");
-                    self.execute(vec![ControllerOutput::Send {
-                        node,
-                        message: Message::LoadBrick { brick: brick as u64 },
-                    }])
-                    .await;
+                    // The machine expects the answer for this brick from this node, no other.
+                    let send = self.machine.load_brick(&node, brick as u64);
+                    self.execute(vec![send]).await;
                 }
                 AdoptionOutput::Adopted { node, brick, load, since_down } => eprintln!(
                     "isowall: node {node} adopted brick {brick} (loaded in {:.0} ms, {:.0} ms after its node went down); it renders it from frame {next}",
@@ -453,6 +451,16 @@ impl Wall {
                             late.shown_step
                         );
                     }
+                }
+                ControllerOutput::PeerIgnored { node, what, held_back } => {
+                    // The machine's budget: a few of these per node per interval.
+                    let every = self.machine.peer_log_interval().as_secs();
+                    let held = if held_back > 0 {
+                        format!(" ({held_back} more from node {node} not shown, at most a few lines per {every} s)")
+                    } else {
+                        String::new()
+                    };
+                    eprintln!("isowall: node {node}: {what}{held}");
                 }
                 ControllerOutput::PixelsMissing { node, frame_id, peers } => {
                     if peers.is_empty() {
@@ -833,6 +841,15 @@ pub fn report(wall: &Wall, elapsed: Duration) -> String {
             ms(quantile(ready.clone(), 0.5)),
             ms(quantile(ready, 1.0)),
         );
+    }
+    // What the nodes said that was not asked for, or could not be true: ignored, counted here.
+    for node in wall.machine.nodes() {
+        if let Some(c) = wall.machine.counters(node).filter(|c| c.ignored + c.refused_times > 0) {
+            s += &format!(
+                "  {node}: {} unsolicited messages ignored, {} impossible times refused (kept out of the skew)\n",
+                c.ignored, c.refused_times
+            );
+        }
     }
     // object space: bytes each node sent its peers per frame, and its compositing time.
     // Per node: bytes sent, compositing times, resident bytes, compositing work.
