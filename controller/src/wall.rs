@@ -441,26 +441,22 @@ impl Wall {
                     self.snapshot_bytes += tiles.iter().map(|t| t.rgb8.len() as u64).sum::<u64>();
                     self.snapshots.insert(node, tiles);
                 }
-                ControllerOutput::StepLate { node, frame_id, wanted, late } => {
+                // Kept with the frame's statistics in any case; told within the node's budget.
+                ControllerOutput::StepLate { node, frame_id, wanted, late, told: Some(held_back) } => {
                     let waited = late.waited.as_secs_f64() * 1e3;
+                    let held = self.held_back(&node, held_back);
                     if late.shown_step == wanted {
-                        tracing::info!(%node, frame_id, "waited {waited:.0} ms for time step {wanted}");
+                        tracing::info!(%node, frame_id, "waited {waited:.0} ms for time step {wanted}{held}");
                     } else {
                         eprintln!(
-                            "isowall: node {node} showed time step {} in frame {frame_id}, not {wanted}: not loaded after {waited:.0} ms",
+                            "isowall: node {node} showed time step {} in frame {frame_id}, not {wanted}: not loaded after {waited:.0} ms{held}",
                             late.shown_step
                         );
                     }
                 }
+                ControllerOutput::StepLate { told: None, .. } => {}
                 ControllerOutput::PeerIgnored { node, what, held_back } => {
-                    // The machine's budget: a few of these per node per interval.
-                    let every = self.machine.peer_log_interval().as_secs();
-                    let held = if held_back > 0 {
-                        format!(" ({held_back} more from node {node} not shown, at most a few lines per {every} s)")
-                    } else {
-                        String::new()
-                    };
-                    eprintln!("isowall: node {node}: {what}{held}");
+                    eprintln!("isowall: node {node}: {what}{}", self.held_back(&node, held_back));
                 }
                 ControllerOutput::PixelsMissing { node, frame_id, peers } => {
                     if peers.is_empty() {
@@ -476,6 +472,15 @@ impl Wall {
                 }
             }
         }
+    }
+
+    /// What a line about `node` adds when the machine's line budget held `n` lines back before it.
+    fn held_back(&self, node: &str, n: u64) -> String {
+        if n == 0 {
+            return String::new();
+        }
+        let every = self.machine.peer_log_interval().as_secs();
+        format!(" ({n} more about node {node} not shown: at most a few lines per node per {every} s)")
     }
 
     /// Whether connection `id` is `node`'s current one.

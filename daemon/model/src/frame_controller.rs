@@ -78,7 +78,10 @@ pub enum ControllerOutput {
     PixelsMissing { node: String, frame_id: u64, peers: Vec<String> },
     /// `node` did not have frame `frame_id`'s time step `wanted` loaded when the frame came
     /// (the caller logs it; [`NodeFrameStats::step_late`] keeps it with the frame).
-    StepLate { node: String, frame_id: u64, wanted: u32, late: StepLate },
+    /// `told`: `Some(held_back)` when the node's line budget ([`PeerLog`]) lets a line about it
+    /// through (`held_back` lines held back before it), `None` when it is only counted: a node
+    /// whose loads lag, or that says so falsely, prints no more than any other peer.
+    StepLate { node: String, frame_id: u64, wanted: u32, late: StepLate, told: Option<u64> },
     /// A message of `node` was ignored, or a time of its refused (see the module docs): `what`
     /// says which and why (its text made printable). At most [`PeerLog::LINES`] of these per node
     /// per [`PeerLog::INTERVAL`]; `held_back` more were counted since the last one told.
@@ -777,7 +780,9 @@ impl FrameController {
                 if let Some((wanted, p)) = part {
                     let waited = Duration::from_micros(waited_us);
                     p.step_late = Some(StepLate { shown_step, waited });
+                    let told = self.peer_log.allow(now, node);
                     return Ok(vec![ControllerOutput::StepLate {
+                        told,
                         node: node.to_string(),
                         frame_id,
                         wanted,
@@ -1107,7 +1112,13 @@ mod tests {
         let told = StepLate { shown_step: 5, waited: ms(40) };
         assert_eq!(
             out,
-            vec![ControllerOutput::StepLate { node: "a".into(), frame_id: 1, wanted: 6, late: told }]
+            vec![ControllerOutput::StepLate {
+                node: "a".into(),
+                frame_id: 1,
+                wanted: 6,
+                late: told,
+                told: Some(0)
+            }]
         );
         // A second one for the frame is ignored (told once), so are ones after its Ready or for a
         // frame never sent: counted, never kept.
@@ -1369,6 +1380,37 @@ mod tests {
             .len(),
             1
         );
+    }
+
+    #[test]
+    fn a_step_late_every_frame_is_kept_with_each_frame_and_told_within_the_budget() {
+        let mut c = controller(&["a"]);
+        let (mut told, mut kept, mut held) = (0, 0, 0);
+        // 1,000 frames at 100 a second (10 s of virtual time), each late.
+        for id in 1..=1_000u64 {
+            let t = ms(id * 10);
+            c.begin_frame(t, state(id).at_time_step(6)).unwrap();
+            let late = Message::StepLate { frame_id: id, shown_step: 5, waited_us: 1 };
+            for o in c.handle(t, "a", late).unwrap() {
+                if let ControllerOutput::StepLate { told: t, .. } = o {
+                    kept += 1;
+                    if let Some(h) = t {
+                        told += 1;
+                        held += h;
+                    }
+                }
+            }
+            c.handle(t, "a", Message::Ready { frame_id: id, render_us: 0 }).unwrap();
+            c.handle(t, "a", Message::Presented { frame_id: id, node_time_us: 0 }).unwrap();
+        }
+        assert_eq!(kept, 1_000, "every one reaches its frame");
+        // Windows start at 10 ms and 10,010 ms: 5 lines in the first, 1 in the second (at 10 s).
+        assert_eq!(told, 5, "lines told in 10 s");
+        assert_eq!(held, 0);
+        let last = Message::StepLate { frame_id: 1_001, shown_step: 5, waited_us: 1 };
+        c.begin_frame(ms(10_010), state(1_001).at_time_step(6)).unwrap();
+        let out = c.handle(ms(10_010), "a", last).unwrap();
+        assert!(matches!(&out[..], [ControllerOutput::StepLate { told: Some(995), .. }]), "{out:?}");
     }
 
     #[test]
