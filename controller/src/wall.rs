@@ -42,12 +42,27 @@ async fn establish(endpoint: quinn::Endpoint, name: String, address: String, lim
     let conn = tokio::time::timeout(Duration::from_secs(3), transport::connect(&endpoint, addr, &name))
         .await
         .map_err(|_| anyhow!("no answer"))??;
-    let Channel { connection, mut sender, mut receiver } = Channel::open(conn, &name, limit).await?;
-    sender.send(&codec::hello(isowall_net::tls::CONTROLLER, Role::Controller)).await?;
-    let first = tokio::time::timeout(Duration::from_secs(5), receiver.recv())
-        .await
-        .map_err(|_| anyhow!("no Hello"))??
-        .ok_or_else(|| anyhow!("closed before Hello"))?;
+    let greet = async {
+        let Channel { connection, mut sender, mut receiver } =
+            Channel::open(conn.clone(), &name, limit).await?;
+        sender.send(&codec::hello(isowall_net::tls::CONTROLLER, Role::Controller)).await?;
+        let first = tokio::time::timeout(Duration::from_secs(5), receiver.recv())
+            .await
+            .map_err(|_| anyhow!("no Hello"))??
+            .ok_or_else(|| anyhow!("closed before Hello"))?;
+        Ok::<_, anyhow::Error>((connection, sender, receiver, first))
+    };
+    let (connection, sender, receiver, first) = match greet.await {
+        Ok(greeted) => greeted,
+        // The node's close reason, where it gave one, says why (e.g. another controller drives it):
+        // the stream only saw the connection lost.
+        Err(e) => match tokio::time::timeout(Duration::from_secs(1), conn.closed()).await {
+            Ok(quinn::ConnectionError::ApplicationClosed(c)) => {
+                bail!("the node closed the connection: {}", printable(&String::from_utf8_lossy(&c.reason)))
+            }
+            _ => return Err(e),
+        },
+    };
     let said =
         codec::check_hello(&first, Role::Daemon).map_err(|e| anyhow!("{}", printable(&e.to_string())))?;
     if said != name {
