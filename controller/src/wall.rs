@@ -42,12 +42,27 @@ async fn establish(endpoint: quinn::Endpoint, name: String, address: String, lim
     let conn = tokio::time::timeout(Duration::from_secs(3), transport::connect(&endpoint, addr, &name))
         .await
         .map_err(|_| anyhow!("no answer"))??;
-    let Channel { connection, mut sender, mut receiver } = Channel::open(conn, &name, limit).await?;
-    sender.send(&codec::hello(isowall_net::tls::CONTROLLER, Role::Controller)).await?;
-    let first = tokio::time::timeout(Duration::from_secs(5), receiver.recv())
-        .await
-        .map_err(|_| anyhow!("no Hello"))??
-        .ok_or_else(|| anyhow!("closed before Hello"))?;
+    let greet = async {
+        let Channel { connection, mut sender, mut receiver } =
+            Channel::open(conn.clone(), &name, limit).await?;
+        sender.send(&codec::hello(isowall_net::tls::CONTROLLER, Role::Controller)).await?;
+        let first = tokio::time::timeout(Duration::from_secs(5), receiver.recv())
+            .await
+            .map_err(|_| anyhow!("no Hello"))??
+            .ok_or_else(|| anyhow!("closed before Hello"))?;
+        Ok::<_, anyhow::Error>((connection, sender, receiver, first))
+    };
+    let (connection, sender, receiver, first) = match greet.await {
+        Ok(greeted) => greeted,
+        // The node's close reason, where it gave one, says why (e.g. another controller drives it):
+        // the stream only saw the connection lost.
+        Err(e) => match tokio::time::timeout(Duration::from_secs(1), conn.closed()).await {
+            Ok(quinn::ConnectionError::ApplicationClosed(c)) => {
+                bail!("the node closed the connection: {}", printable(&String::from_utf8_lossy(&c.reason)))
+            }
+            _ => return Err(e),
+        },
+    };
     let said =
         codec::check_hello(&first, Role::Daemon).map_err(|e| anyhow!("{}", printable(&e.to_string())))?;
     if said != name {
@@ -306,11 +321,9 @@ impl Wall {
             match out {
                 AdoptionOutput::Load { node, brick } => {
                     eprintln!("isowall: brick {brick} goes to node {node}: it loads it");
-                    self.execute(vec![ControllerOutput::Send {
-                        node,
-                        message: Message::LoadBrick { brick: brick as u64 },
-                    }])
-                    .await;
+                    // The machine expects the answer for this brick from this node, no other.
+                    let send = self.machine.load_brick(&node, brick as u64);
+                    self.execute(vec![send]).await;
                 }
                 AdoptionOutput::Adopted { node, brick, load, since_down } => eprintln!(
                     "isowall: node {node} adopted brick {brick} (loaded in {:.0} ms, {:.0} ms after its node went down); it renders it from frame {next}",
@@ -444,16 +457,22 @@ impl Wall {
                     self.snapshot_bytes += tiles.iter().map(|t| t.rgb8.len() as u64).sum::<u64>();
                     self.snapshots.insert(node, tiles);
                 }
-                ControllerOutput::StepLate { node, frame_id, wanted, late } => {
+                // Kept with the frame's statistics in any case; told within the node's budget.
+                ControllerOutput::StepLate { node, frame_id, wanted, late, told: Some(held_back) } => {
                     let waited = late.waited.as_secs_f64() * 1e3;
+                    let held = self.held_back(&node, held_back);
                     if late.shown_step == wanted {
-                        tracing::info!(%node, frame_id, "waited {waited:.0} ms for time step {wanted}");
+                        tracing::info!(%node, frame_id, "waited {waited:.0} ms for time step {wanted}{held}");
                     } else {
                         eprintln!(
-                            "isowall: node {node} showed time step {} in frame {frame_id}, not {wanted}: not loaded after {waited:.0} ms",
+                            "isowall: node {node} showed time step {} in frame {frame_id}, not {wanted}: not loaded after {waited:.0} ms{held}",
                             late.shown_step
                         );
                     }
+                }
+                ControllerOutput::StepLate { told: None, .. } => {}
+                ControllerOutput::PeerIgnored { node, what, held_back } => {
+                    eprintln!("isowall: node {node}: {what}{}", self.held_back(&node, held_back));
                 }
                 ControllerOutput::PixelsMissing { node, frame_id, peers } => {
                     if peers.is_empty() {
@@ -469,6 +488,15 @@ impl Wall {
                 }
             }
         }
+    }
+
+    /// What a line about `node` adds when the machine's line budget held `n` lines back before it.
+    fn held_back(&self, node: &str, n: u64) -> String {
+        if n == 0 {
+            return String::new();
+        }
+        let every = self.machine.peer_log_interval().as_secs();
+        format!(" ({n} more about node {node} not shown: at most a few lines per node per {every} s)")
     }
 
     /// Whether connection `id` is `node`'s current one.
@@ -869,6 +897,15 @@ pub fn report(wall: &Wall, elapsed: Duration) -> String {
             ms(quantile(ready.clone(), 0.5)),
             ms(quantile(ready, 1.0)),
         );
+    }
+    // What the nodes said that was not asked for, or could not be true: ignored, counted here.
+    for node in wall.machine.nodes() {
+        if let Some(c) = wall.machine.counters(node).filter(|c| c.ignored + c.refused_times > 0) {
+            s += &format!(
+                "  {node}: {} unsolicited messages ignored, {} impossible times refused (kept out of the skew)\n",
+                c.ignored, c.refused_times
+            );
+        }
     }
     // object space: bytes each node sent its peers per frame, and its compositing time.
     // Per node: bytes sent, compositing times, resident bytes, compositing work.

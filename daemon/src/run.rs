@@ -72,6 +72,10 @@ struct Node {
     limit: usize,
     /// The render thread is gone: the node must exit (and be restarted).
     render_dead: bool,
+    /// Which controller drives the node: one at a time (the model's rule).
+    seat: isowall_model::seat::Seat,
+    /// The number of the next controller connection served or refused.
+    next_link: u64,
     /// Fault injection: extra delay before Ready.
     slow: std::time::Duration,
     /// Rendered, waiting for the swap.
@@ -219,6 +223,8 @@ pub fn run(a: &RunArgs) -> Result<()> {
         limit,
         slow: std::time::Duration::from_millis(a.slow_ms),
         render_dead: false,
+        seat: isowall_model::seat::Seat::new(&node.name, transport::IDLE_TIMEOUT),
+        next_link: 0,
         pending: None,
         shown: None,
         object,
@@ -284,17 +290,11 @@ fn network(
             }
         });
         let serve_all = async {
-            let mut next: Option<Greeted> = None;
-            loop {
-                let conn = match next.take() {
-                    Some(c) => c,
-                    None => match conns.recv().await {
-                        Some(c) => c,
-                        None => return Ok::<(), anyhow::Error>(()),
-                    },
-                };
-                next = serve(&mut state, &mut conns, conn).await?;
+            // One controller at a time: the next is served once the one before has gone.
+            while let Some(conn) = conns.recv().await {
+                serve(&mut state, &mut conns, conn).await?;
             }
+            Ok::<(), anyhow::Error>(())
         };
         let Some(stop) = stop else { return serve_all.await };
         tokio::select! {
@@ -313,13 +313,13 @@ fn network(
 const HANDSHAKE_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(10);
 const HELLO_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(5);
 
-/// Live connections a daemon keeps per identity, at most: the controller's session and one that
-/// takes over (a restarted controller's old connection lives until its idle timeout); a peer node
-/// connects once and again after a failure.
+/// Live connections a daemon keeps per identity, at most: the controller's session and one being
+/// refused (or, once the session's connection has closed, served); a peer node connects once and
+/// again after a failure.
 const MAX_CONNECTIONS_PER_IDENTITY: usize = 2;
 
 /// A controller's connection whose certificate is the controller's and whose first message is
-/// its Hello (checked): only such a connection may take over the node's session.
+/// its Hello (checked): only such a connection may drive the node, and only while no other does.
 struct Greeted {
     channel: Channel,
     hello: Message,
@@ -480,15 +480,36 @@ async fn greet(conn: &quinn::Connection, limit: usize) -> Result<Greeted, String
     Ok(Greeted { channel, hello })
 }
 
-/// Serves one controller until its connection ends; returns a newer controller's connection if
-/// one arrived meanwhile (the newer controller, its identity and Hello checked, takes over). An
-/// error means the node cannot go on (its render thread is gone): the process exits and its
-/// supervisor restarts it.
+/// Serves one controller until its connection ends (it closes it, or it is silent for the QUIC
+/// idle timeout). Another controller that connects meanwhile is refused with the reason, and the
+/// session goes on undisturbed (the model's [`isowall_model::seat`]: the newest controller taking
+/// over made two controllers take a node from each other every second forever). An error means
+/// the node cannot go on (its render thread is gone): the process exits and its supervisor
+/// restarts it.
 async fn serve(
     node: &mut Node,
     conns: &mut tokio::sync::mpsc::Receiver<Greeted>,
     greeted: Greeted,
-) -> Result<Option<Greeted>> {
+) -> Result<()> {
+    let link = node.next_link;
+    node.next_link += 1;
+    let remote = greeted.channel.connection.remote_address();
+    if let Err(reason) = node.seat.take(node.epoch.elapsed(), link, &remote.to_string()) {
+        // Not reached while serve runs one connection at a time; the rule says it all the same.
+        transport::close(&greeted.channel.connection, &reason);
+        return Ok(());
+    }
+    let served = serve_seated(node, conns, greeted).await;
+    node.seat.leave(link);
+    served
+}
+
+/// [`serve`] once the controller holds the node's seat.
+async fn serve_seated(
+    node: &mut Node,
+    conns: &mut tokio::sync::mpsc::Receiver<Greeted>,
+    greeted: Greeted,
+) -> Result<()> {
     let Greeted { channel, hello } = greeted;
     let remote = channel.connection.remote_address();
     tracing::info!(%remote, "controller connected");
@@ -501,11 +522,11 @@ async fn serve(
     }
     if let Err(e) = sender.send(&machine.hello()).await {
         tracing::warn!("{e}");
-        return Ok(None);
+        return Ok(());
     }
     if let Err(e) = machine.handle(node.epoch.elapsed(), hello) {
         transport::close(&connection, &e.to_string());
-        return Ok(None);
+        return Ok(());
     }
     let (msg_tx, mut msg_rx) = tokio::sync::mpsc::channel::<Result<Option<Message>, NetError>>(16);
     let reader = tokio::spawn(async move {
@@ -534,18 +555,18 @@ async fn serve(
                     Err(e) => {
                         tracing::warn!("closing the controller connection: {e}");
                         transport::close(&connection, &e.to_string());
-                        break Ok(None);
+                        break Ok(());
                     }
                 },
                 Some(Ok(None)) | None => {
                     tracing::info!("the controller closed the connection");
                     transport::close(&connection, "the controller ended its stream");
-                    break Ok(None);
+                    break Ok(());
                 }
                 Some(Err(e)) => {
                     tracing::warn!("controller connection ended: {e}");
                     transport::close(&connection, &e.to_string());
-                    break Ok(None);
+                    break Ok(());
                 }
             },
             r = node.results.recv() => match r {
@@ -566,7 +587,7 @@ async fn serve(
                 Some(Err(e)) => {
                     tracing::error!("render failed: {e}");
                     transport::close(&connection, &format!("render failed: {e}"));
-                    break Ok(None);
+                    break Ok(());
                 }
                 None => break Err(anyhow!("the render thread has stopped")),
             },
@@ -587,15 +608,20 @@ async fn serve(
                 }
                 Vec::new()
             }
-            c = conns.recv() => {
-                tracing::info!("a new controller connected; it takes over");
-                transport::close(&connection, "another controller took over");
-                break Ok(c);
+            Some(other) = conns.recv() => {
+                let from = other.channel.connection.remote_address();
+                let link = node.next_link;
+                node.next_link += 1;
+                if let Err(reason) = node.seat.take(node.epoch.elapsed(), link, &from.to_string()) {
+                    tracing::warn!(%from, "refused a second controller: {reason}");
+                    transport::close(&other.channel.connection, &reason);
+                }
+                Vec::new()
             }
         };
         if let Err(e) = execute(node, &mut machine, &mut sender, outputs).await {
             tracing::warn!("controller connection ended: {e}");
-            break Ok(None);
+            break Ok(());
         }
         if node.render_dead {
             transport::close(&connection, "the node's render thread has stopped");

@@ -7,11 +7,13 @@
 //!   a CA-signed certificate named `Controller` does not drive a node, one named `NODE1` does not
 //!   pass for `node1`;
 //! - take-over: a node's certificate, retrying, never knocks the running controller off, nor
-//!   does a controller's connection that sends no Hello; a reconnect flood is refused before its
+//!   does a controller's connection that sends no Hello, nor a second controller (refused with
+//!   the reason while the first drives; the next one is served once the first has left); a reconnect flood is refused before its
 //!   TLS handshakes (per source address) and the wall keeps its frame rate;
 //! - bincode limits: messages of every size around 4, 16 and 64 KiB reach the daemon;
 //! - limits: connections per identity, streams and flow-control limits, snapshot tiles checked
-//!   against their node, a node's reason escaped before the terminal sees it;
+//!   against their node, a node's reason escaped before the terminal sees it; a node's flood of
+//!   unsolicited messages and forged times prints a few lines and stays out of the skew report;
 //! - start: a wall with one of four nodes down starts (`orbit`, `up`) and the node joins when it
 //!   comes up; in either space a killed node is down within 3 deadlines.
 
@@ -538,7 +540,16 @@ enum Act {
     ForeignTile(String, u32, u32),
     /// Says goodbye with this reason after its first presented frame.
     Bye(String),
+    /// Lies with its own certificate while it answers every frame: before each Ready this many
+    /// BrickFailed for bricks it was never asked to load (their reason full of terminal escapes)
+    /// and StepLate for its frame; its Presented times 46 days late every other frame, its
+    /// Pongs 46 days off after the first two, and from frame `unasked_from` on a Presented and a
+    /// Pong nobody asked for after each Presented.
+    Flood { per_frame: usize, unasked_from: u64 },
 }
+
+/// 46 days in microseconds: the lie of the flood.
+const DAYS_46_US: i64 = 46 * 86_400 * 1_000_000;
 
 /// A node played by the test: a QUIC server with `keys/NAME.*` on `port` that speaks the protocol
 /// through the model's [`NodeMachine`] (renders nothing, answers at once; its tiles blue).
@@ -560,6 +571,7 @@ async fn fake_node(keys: PathBuf, name: String, port: u16, tiles: Vec<(String, u
         };
         let mut m = NodeMachine::new(name.clone(), tiles.iter().map(|t| t.0.clone()).collect());
         let epoch = Instant::now();
+        let mut pongs = 0;
         if sender.send(&m.hello()).await.is_err() {
             continue;
         }
@@ -568,10 +580,61 @@ async fn fake_node(keys: PathBuf, name: String, port: u16, tiles: Vec<(String, u
             let mut queue: std::collections::VecDeque<NodeOutput> = out.into();
             while let Some(out) = queue.pop_front() {
                 match out {
-                    NodeOutput::Send(msg) => {
-                        if sender.send(&msg).await.is_err() {
-                            break 'conn;
+                    NodeOutput::Send(mut msg) => {
+                        if let Act::Flood { .. } = &act {
+                            match &mut msg {
+                                Message::Presented { frame_id, node_time_us } if *frame_id % 2 == 0 => {
+                                    *node_time_us += DAYS_46_US
+                                }
+                                Message::Pong { t1_us, .. } => {
+                                    pongs += 1;
+                                    if pongs > 2 {
+                                        *t1_us += DAYS_46_US;
+                                    }
+                                }
+                                _ => {}
+                            }
                         }
+                        let unasked = match (&act, &msg) {
+                            (Act::Flood { unasked_from, .. }, Message::Presented { frame_id, .. })
+                                if frame_id >= unasked_from =>
+                            {
+                                vec![
+                                    Message::Presented { frame_id: 1 << 40, node_time_us: 0 },
+                                    Message::Pong { id: 1 << 40, t0_us: 0, t1_us: 0, resident_bytes: 0 },
+                                ]
+                            }
+                            _ => vec![],
+                        };
+                        for msg in std::iter::once(msg).chain(unasked) {
+                            if sender.send(&msg).await.is_err() {
+                                break 'conn;
+                            }
+                        }
+                    }
+                    NodeOutput::Render { state, .. } if matches!(act, Act::Flood { .. }) => {
+                        let Act::Flood { per_frame: n, .. } = &act else { unreachable!() };
+                        let evil = "\u{1b}[2J\u{1b}[31mowned\r\nisowall: frame 9: all good";
+                        for i in 0..*n {
+                            let lies = [
+                                Message::BrickFailed { brick: i as u64, reason: evil.into() },
+                                Message::StepLate {
+                                    frame_id: state.frame_id,
+                                    shown_step: state.time_step + 1,
+                                    waited_us: 1,
+                                },
+                            ];
+                            for lie in lies {
+                                if sender.send(&lie).await.is_err() {
+                                    break 'conn;
+                                }
+                            }
+                        }
+                        queue.extend(m.render_done(
+                            epoch.elapsed(),
+                            state.frame_id,
+                            Duration::from_micros(50),
+                        ))
                     }
                     NodeOutput::Render { state, .. } => queue.extend(m.render_done(
                         epoch.elapsed(),
@@ -657,6 +720,119 @@ fn a_node_cannot_send_another_nodes_tile_nor_write_to_the_operators_terminal() {
     assert!(err.contains("node node1 is down: said goodbye: \\u{1b}[2J"), "{err}");
     assert!(!err.contains('\u{1b}') && !err.contains('\r'), "raw control characters reached the terminal");
     assert!(!err.lines().any(|l| l.starts_with("isowall: frame 9")), "a node forged a line of its own");
+}
+
+#[test]
+fn a_node_certificate_flooding_lies_prints_a_few_lines_and_leaves_the_skew_report_sane() {
+    // No GPU: both nodes are played by the test; node1 floods the controller with unsolicited
+    // messages and forged times while `isowall orbit` runs.
+    let dir = tempfile::tempdir().unwrap();
+    let ports = free_udp_ports(2);
+    let config = wall_config_2x1(dir.path(), "liar", &ports, 8, 4, 0, 0);
+    std::fs::write(&config, text(&config).replace("deadline_ms = 60000", "deadline_ms = 2000")).unwrap();
+    keygen(dir.path(), &config);
+    let keys = dir.path().join("keys");
+    let rt = runtime();
+    let t = |i: usize| vec![(format!("t{i}"), 8u32, 4u32)];
+    let per_frame = 300;
+    let frames: u64 = 100;
+    let fakes = [
+        rt.spawn(fake_node(keys.clone(), "node0".into(), ports[0], t(0), Act::Honest)),
+        rt.spawn(fake_node(
+            keys.clone(),
+            "node1".into(),
+            ports[1],
+            t(1),
+            Act::Flood { per_frame, unasked_from: frames - 10 },
+        )),
+    ];
+    let start = Instant::now();
+    let out =
+        run_in(dir.path(), "isowall", &["orbit", config.to_str().unwrap(), "--frames", &frames.to_string()]);
+    let elapsed = start.elapsed();
+    for f in fakes {
+        f.abort();
+    }
+    let err = String::from_utf8_lossy(&out.stderr);
+    let report = String::from_utf8_lossy(&out.stdout);
+    let lines = err.lines().count();
+    let shown: String = err.lines().take(30).collect::<Vec<_>>().join("\n");
+    eprintln!("{shown}\n... {lines} lines on stderr in {:.1} s\n{report}", elapsed.as_secs_f64());
+    assert!(out.status.success(), "orbit failed: {shown}");
+    // The liar's lines: at most 5 per 10 s (the model's PeerLog), whatever it sends (it sent
+    // about 2 x {per_frame} x {frames} = 60,000 messages to be printed); a few lines of the wall's own.
+    let windows = elapsed.as_secs() / 10 + 1;
+    let bound = 20 + 5 * windows as usize;
+    assert!(lines <= bound, "{lines} lines on stderr (at most {bound}): {shown}");
+    assert!(!err.contains('\u{1b}') && !err.contains('\r'), "raw control characters reached the terminal");
+    assert!(!err.lines().any(|l| l.starts_with("isowall: frame 9")), "a node forged a line of its own");
+    assert!(!err.contains("is down"), "the liar was ignored, not dropped: {shown}");
+    // The skew report: the forged times (46 days) kept out; the honest ones measured.
+    let skew_line = report.lines().find(|l| l.starts_with("swap skew")).expect("a swap skew line");
+    let max_ms: f64 = skew_line
+        .split("max ")
+        .nth(1)
+        .and_then(|r| r.split(" ms").next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("no max in `{skew_line}`"));
+    assert!(max_ms < 2000.0, "the swap skew reported is {max_ms} ms, over the deadline: {skew_line}");
+    let counted = report.lines().find(|l| l.trim_start().starts_with("node1:") && l.contains("ignored"));
+    let counted = counted.unwrap_or_else(|| panic!("node1's ignored messages are not counted: {report}"));
+    assert!(
+        !report.lines().any(|l| l.trim_start().starts_with("node0:") && l.contains("ignored")),
+        "{report}"
+    );
+    eprintln!("counted: {counted}");
+}
+
+#[test]
+fn a_second_controller_is_refused_with_the_reason_and_the_first_keeps_its_nodes() {
+    let dir = tempfile::tempdir().unwrap();
+    let ports = free_udp_ports(2);
+    let config = wall_config_2x1(dir.path(), "two", &ports, 16, 12, 0, 1);
+    keygen(dir.path(), &config);
+    let Some(daemons) = nodes(dir.path(), &config, 2) else { return };
+    let cfg = config.to_str().unwrap();
+    // The first controller: 250 frames paced at 10 a second, so it drives the nodes for 25 s or
+    // more whatever the machine's load.
+    let (mut first, first_out, first_err) =
+        spawn_isowall(dir.path(), "first", &["orbit", cfg, "--frames", "250", "--fps", "10"]);
+    assert!(wait_for(&first_err, "up (2/2)", Duration::from_secs(60)).is_some(), "{}", text(&first_err));
+    // The second, while the first drives: refused at every node, it tries again for 10 s (what
+    // lets a controller restarted after a crash in once its old connection's idle timeout, 5 s,
+    // has ended it) and exits with the reason.
+    let started = Instant::now();
+    let second = run_in(dir.path(), "isowall", &["orbit", cfg, "--frames", "5"]);
+    let second_err = String::from_utf8_lossy(&second.stderr).into_owned();
+    eprintln!("second controller, after {:.1} s:\n{second_err}", started.elapsed().as_secs_f64());
+    assert!(
+        first.0.try_wait().unwrap().is_none(),
+        "the first ended before the second gave up: the test proves nothing"
+    );
+    assert!(!second.status.success(), "the second controller drove the wall:\n{second_err}");
+    for node in ["node0", "node1"] {
+        assert!(
+            second_err.contains(&format!("{node} is driven by another controller (from 127.0.0.1:")),
+            "{node}'s refusal does not say why:\n{second_err}"
+        );
+    }
+    assert!(second_err.contains("stop it first"), "{second_err}");
+    // The first finishes its frames undisturbed: no node down, none taken from it.
+    let status = first.0.wait().unwrap();
+    let (out, err) = (text(&first_out), text(&first_err));
+    eprintln!("first controller:\n{out}{err}");
+    assert!(status.success(), "the first controller failed:\n{err}");
+    assert!(out.contains("frames: 250 "), "{out}");
+    assert!(!err.contains("is down") && !err.contains("is back"), "the first lost a node:\n{err}");
+    let logs: Vec<String> = daemons.iter().map(|d| d.log_text()).collect();
+    assert!(logs.iter().all(|l| l.contains("refused a second controller")), "{}", logs.join("\n---\n"));
+    // Once the first has left, a new controller takes the nodes at once.
+    let started = Instant::now();
+    let third = run_in(dir.path(), "isowall", &["orbit", cfg, "--frames", "5"]);
+    eprintln!("third controller: 5 frames done {:.2} s after its start", started.elapsed().as_secs_f64());
+    let third_err = String::from_utf8_lossy(&third.stderr);
+    assert!(third.status.success(), "after the first left, a new controller was refused:\n{third_err}");
+    assert!(String::from_utf8_lossy(&third.stdout).contains("frames: 5 "), "{third_err}");
 }
 
 // ---- 9: a wall starts without a dead node ------------------------------------------------------

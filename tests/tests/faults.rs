@@ -120,7 +120,9 @@ fn a_killed_controller_leaves_the_daemons_serving_a_new_one() {
     std::thread::sleep(Duration::from_secs(2));
     first.kill().unwrap();
     let _ = first.wait();
-    // A new controller at once: the daemons accept it (the newest controller takes over).
+    // A new controller at once: the daemons refuse it while the killed one's connection lives
+    // (one controller at a time) and take it once that connection's idle timeout (5 s) has ended
+    // it; `isowall` keeps trying meanwhile.
     let started = Instant::now();
     let out = run_in(dir.path(), "isowall", &["orbit", config.to_str().unwrap(), "--frames", "5"]);
     let (stdout, stderr) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));

@@ -44,7 +44,17 @@ pub struct ClockOffset {
     pub rtt_us: i64,
     /// Samples the estimate was chosen from.
     pub samples: usize,
+    /// Controller clock when the sample used came back (`t2`): the estimate ages from there.
+    pub measured_at_us: i64,
 }
+
+/// Clock drift allowed for, in parts per million of an estimate's age (crystal oscillators
+/// drift by tens of ppm; twice the usual worst case).
+pub const DRIFT_PPM: i64 = 100;
+
+/// Slack added to every bound, in microseconds: the clocks' reading and the scheduler's jitter
+/// between reading a clock and stamping a message.
+pub const SLACK_US: i64 = 2_000;
 
 impl ClockOffset {
     /// A daemon time in controller time.
@@ -55,6 +65,36 @@ impl ClockOffset {
     /// A controller time in daemon time.
     pub fn to_daemon(&self, controller_us: i64) -> i64 {
         controller_us.saturating_add(self.offset_us)
+    }
+
+    /// How far the true offset may be from this estimate at controller time `now_us`: the
+    /// sample's own bound, drift since it was measured ([`DRIFT_PPM`]) and [`SLACK_US`].
+    pub fn bound_us(&self, now_us: i64) -> i64 {
+        let age = now_us.saturating_sub(self.measured_at_us).max(0);
+        self.error_us.saturating_add(age / (1_000_000 / DRIFT_PPM)).saturating_add(SLACK_US)
+    }
+
+    /// Whether `daemon_us`, a time a daemon reports by its own clock, can be a moment between
+    /// controller times `from_us` and `to_us` (what a message's round trip allows) given this
+    /// estimate at controller time `to_us`. `Err` says by how much it cannot.
+    pub fn check_between(&self, daemon_us: i64, from_us: i64, to_us: i64) -> Result<i64, String> {
+        let at = self.to_controller(daemon_us);
+        let bound = self.bound_us(to_us);
+        if at < from_us.saturating_sub(bound) {
+            return Err(format!(
+                "{} us before the earliest it can be (offset {} us, within {bound} us)",
+                from_us.saturating_sub(at),
+                self.offset_us
+            ));
+        }
+        if at > to_us.saturating_add(bound) {
+            return Err(format!(
+                "{} us after the latest it can be (offset {} us, within {bound} us)",
+                at.saturating_sub(to_us),
+                self.offset_us
+            ));
+        }
+        Ok(at)
     }
 }
 
@@ -82,14 +122,37 @@ impl ClockEstimator {
 
     /// Adds a sample; one with a negative round trip (impossible) is refused and `false` returned.
     pub fn add(&mut self, sample: ClockSample) -> bool {
+        self.admit(sample).is_ok()
+    }
+
+    /// Adds a sample, or says why it cannot be true: a negative round trip, or a daemon time
+    /// `t1` that puts the offset, `[t1 - t2, t1 - t0]` whatever the one-way delays, outside what
+    /// the current estimate allows ([`ClockOffset::bound_us`]). A daemon's clock is monotonic
+    /// (its process's), so an honest sample always overlaps the estimate: one that does not is a
+    /// lie, refused before it can move the estimate. The first sample is taken as it comes (there
+    /// is nothing to hold it to); a node that lies from its first Pong on only moves its own
+    /// offset, and its Presented times are then held to the swap's round trip through it.
+    pub fn admit(&mut self, sample: ClockSample) -> Result<(), String> {
         if sample.t2_us < sample.t0_us {
-            return false;
+            return Err(format!("round trip from {} us to {} us is negative", sample.t0_us, sample.t2_us));
+        }
+        if let Some(est) = self.estimate() {
+            let lo = sample.t1_us.saturating_sub(sample.t2_us);
+            let hi = sample.t1_us.saturating_sub(sample.t0_us);
+            let bound = est.bound_us(sample.t2_us);
+            let (elo, ehi) = (est.offset_us.saturating_sub(bound), est.offset_us.saturating_add(bound));
+            if hi < elo || lo > ehi {
+                return Err(format!(
+                    "t1 = {} us puts its clock offset in [{lo}, {hi}] us, but it is {} us within {bound} us",
+                    sample.t1_us, est.offset_us
+                ));
+            }
         }
         if self.samples.len() == self.capacity {
             self.samples.pop_front();
         }
         self.samples.push_back(sample);
-        true
+        Ok(())
     }
 
     pub fn len(&self) -> usize {
@@ -114,6 +177,7 @@ impl ClockEstimator {
             error_us: rtt / 2 + rtt % 2 + 1,
             rtt_us: rtt,
             samples: self.samples.len(),
+            measured_at_us: best.t2_us,
         })
     }
 }
@@ -154,6 +218,51 @@ mod tests {
         assert_eq!(est.rtt_us, 3_700);
         assert_eq!(est.offset_us, offset - 1_150);
         assert!((est.offset_us - offset).abs() <= est.error_us);
+    }
+
+    #[test]
+    fn a_sample_the_estimate_rules_out_is_refused_and_an_honest_one_taken() {
+        let mut e = ClockEstimator::default();
+        let offset = 3_000_000;
+        // A 2 ms round trip at 1 s: offset known within 1 ms.
+        e.admit(ClockSample { t0_us: 1_000_000, t1_us: 1_001_000 + offset, t2_us: 1_002_000 }).unwrap();
+        // 46 days ahead: refused, the estimate unchanged.
+        let lie = 46 * 86_400 * 1_000_000i64;
+        let s = ClockSample { t0_us: 2_000_000, t1_us: 2_001_000 + offset + lie, t2_us: 2_002_000 };
+        let why = e.admit(s).unwrap_err();
+        assert!(why.contains("t1 = ") && why.contains("within"), "{why}");
+        assert_eq!(e.len(), 1);
+        // 10 ms off with a 2 ms round trip: refused too.
+        let s = ClockSample { t0_us: 3_000_000, t1_us: 3_011_000 + offset, t2_us: 3_002_000 };
+        assert!(e.admit(s).is_err());
+        // An honest sample with asymmetric delays and a long round trip overlaps: taken.
+        let s = ClockSample { t0_us: 4_000_000, t1_us: 4_290_000 + offset, t2_us: 4_300_000 };
+        e.admit(s).unwrap();
+        assert_eq!(e.estimate().unwrap().offset_us, offset);
+        // Drift: 60 s later a clock 50 ppm fast is 3 ms further; 100 ppm of slack takes it.
+        let s = ClockSample { t0_us: 64_000_000, t1_us: 64_001_000 + offset + 3_000, t2_us: 64_002_000 };
+        e.admit(s).unwrap();
+    }
+
+    #[test]
+    fn a_daemon_time_is_held_to_its_round_trip() {
+        let o = ClockOffset {
+            offset_us: 50_000,
+            error_us: 1_001,
+            rtt_us: 2_000,
+            samples: 1,
+            measured_at_us: 1_000_000,
+        };
+        // Swap sent at 1.1 s, Presented back at 1.12 s: a present at 1.11 s (controller time) is fine.
+        assert_eq!(o.check_between(1_110_000 + 50_000, 1_100_000, 1_120_000), Ok(1_110_000));
+        let bound = o.bound_us(1_120_000);
+        assert_eq!(bound, 1_001 + 12 + SLACK_US);
+        assert!(o.check_between(1_120_000 + bound + 50_000, 1_100_000, 1_120_000).is_ok());
+        let late = o.check_between(1_120_000 + bound + 1 + 50_000, 1_100_000, 1_120_000).unwrap_err();
+        assert!(late.contains("after the latest"), "{late}");
+        let early = o.check_between(1_000_000, 1_100_000, 1_120_000).unwrap_err();
+        assert!(early.contains("before the earliest"), "{early}");
+        assert!(o.check_between(i64::MAX, 0, 1).is_err() && o.check_between(i64::MIN, 0, 1).is_err());
     }
 
     #[test]

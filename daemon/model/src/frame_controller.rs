@@ -24,15 +24,30 @@
 //! finished first, with what arrived.) A straggler's late Ready, or a late Presented, is counted
 //! and otherwise ignored; it is no error. What is an error ([`ProtocolError`]: the caller closes
 //! that node's connection, then calls `node_down`): a message only the controller sends, a second
-//! Hello, Ready for a frame the node was never sent or twice, Presented for a frame it was not
-//! told to swap, a Pong for no Ping, a Snapshot nobody asked for, a message from an unknown node
-//! or one that is not up.
+//! Hello, Ready for a frame the node was never sent or twice, a Snapshot nobody asked for, a
+//! message from an unknown node or one that is not up.
+//!
+//! A node's word is held to what the controller asked and to what the round trip allows, so a
+//! lie costs the liar, never the report nor the operator's terminal:
+//! - unsolicited messages are ignored and counted ([`NodeCounters::ignored`]): a Presented for a
+//!   frame it was not told to swap, a Pong for no Ping of its connection (or with another t0), a
+//!   BrickLoaded or BrickFailed for a brick it was not asked to load
+//!   ([`FrameController::load_brick`]), a StepLate for a frame it is not rendering or a second one
+//!   for the same frame;
+//! - times that cannot be true are refused before they reach the statistics
+//!   ([`NodeCounters::refused_times`]): a Pong whose `t1` puts the node's clock offset outside the
+//!   current estimate ([`ClockEstimator::admit`]), a Presented whose time, through the offset, is
+//!   not between the Swap sent and the Presented received ([`ClockOffset::check_between`]): the
+//!   frame counts it presented, with no time;
+//! - each of these is told as [`ControllerOutput::PeerIgnored`], at most [`PeerLog::LINES`] per
+//!   node per [`PeerLog::INTERVAL`] (the rest counted, and the next line says how many).
 
 use std::collections::{BTreeMap, VecDeque};
 use std::time::Duration;
 
 use crate::clock::{ClockEstimator, ClockOffset, ClockSample};
 use crate::messages::{printable, Message, ProtocolError, Role, TileImage};
+use crate::peer_log::PeerLog;
 use crate::wire::FrameState;
 
 /// Pings and swaps remembered per node, at most (older ones are forgotten: their answers will be
@@ -63,7 +78,14 @@ pub enum ControllerOutput {
     PixelsMissing { node: String, frame_id: u64, peers: Vec<String> },
     /// `node` did not have frame `frame_id`'s time step `wanted` loaded when the frame came
     /// (the caller logs it; [`NodeFrameStats::step_late`] keeps it with the frame).
-    StepLate { node: String, frame_id: u64, wanted: u32, late: StepLate },
+    /// `told`: `Some(held_back)` when the node's line budget ([`PeerLog`]) lets a line about it
+    /// through (`held_back` lines held back before it), `None` when it is only counted: a node
+    /// whose loads lag, or that says so falsely, prints no more than any other peer.
+    StepLate { node: String, frame_id: u64, wanted: u32, late: StepLate, told: Option<u64> },
+    /// A message of `node` was ignored, or a time of its refused (see the module docs): `what`
+    /// says which and why (its text made printable). At most [`PeerLog::LINES`] of these per node
+    /// per [`PeerLog::INTERVAL`]; `held_back` more were counted since the last one told.
+    PeerIgnored { node: String, what: String, held_back: u64 },
 }
 
 /// One node's part in one frame.
@@ -136,6 +158,10 @@ pub struct NodeCounters {
     pub downs: u64,
     /// Ping/Pong round trips completed.
     pub pongs: u64,
+    /// Unsolicited messages ignored (see the module docs).
+    pub ignored: u64,
+    /// Pong and Presented times refused as impossible (see the module docs).
+    pub refused_times: u64,
 }
 
 /// Why a frame cannot begin.
@@ -171,6 +197,8 @@ struct NodeState {
     tiles: Option<Vec<(String, u32, u32)>>,
     /// Its process's resident memory, from its last Pong on this connection.
     resident_bytes: Option<u64>,
+    /// object space: the bricks it was asked to load and has not answered for.
+    loads_owed: std::collections::BTreeSet<u64>,
 }
 
 impl NodeState {
@@ -186,6 +214,7 @@ impl NodeState {
         self.missing.clear();
         self.waiting_since = None;
         self.resident_bytes = None;
+        self.loads_owed.clear();
     }
 }
 
@@ -247,6 +276,8 @@ pub struct FrameController {
     collecting: Option<Frame>,
     /// Released, not finished.
     presenting: Option<Frame>,
+    /// The lines the nodes' ignored messages may make the operator read.
+    peer_log: PeerLog,
 }
 
 impl FrameController {
@@ -268,6 +299,7 @@ impl FrameController {
             last_frame_id: None,
             collecting: None,
             presenting: None,
+            peer_log: PeerLog::default(),
         }
     }
 
@@ -661,6 +693,13 @@ impl FrameController {
         match msg {
             Message::Hello { .. } => Err(err("a second Hello: the handshake is done".into())),
             Message::BrickLoaded { brick, load_us, resident_bytes } => {
+                if !self.nodes.get_mut(node).expect("checked").loads_owed.remove(&brick) {
+                    return Ok(self.ignore(
+                        now,
+                        node,
+                        format!("BrickLoaded for brick {brick}, which it was not asked to load"),
+                    ));
+                }
                 Ok(vec![ControllerOutput::BrickLoaded {
                     node: node.to_string(),
                     brick,
@@ -668,11 +707,23 @@ impl FrameController {
                     resident_bytes,
                 }])
             }
-            Message::BrickFailed { brick, reason } => Ok(vec![ControllerOutput::BrickFailed {
-                node: node.to_string(),
-                brick,
-                reason: printable(&reason),
-            }]),
+            Message::BrickFailed { brick, reason } => {
+                if !self.nodes.get_mut(node).expect("checked").loads_owed.remove(&brick) {
+                    return Ok(self.ignore(
+                        now,
+                        node,
+                        format!(
+                            "BrickFailed for brick {brick}, which it was not asked to load ({})",
+                            printable(&reason)
+                        ),
+                    ));
+                }
+                Ok(vec![ControllerOutput::BrickFailed {
+                    node: node.to_string(),
+                    brick,
+                    reason: printable(&reason),
+                }])
+            }
             Message::Ready { frame_id, render_us } => self.handle_ready(now, node, frame_id, render_us),
             Message::Presented { frame_id, node_time_us } => {
                 self.handle_presented(now, node, frame_id, node_time_us)
@@ -715,16 +766,23 @@ impl FrameController {
                 let st = self.nodes.get(node).expect("checked");
                 let sent = matches!((st.first_sent, st.last_sent), (Some(a), Some(b)) if (a..=b).contains(&frame_id));
                 if !sent || st.last_ready.is_some_and(|r| frame_id <= r) {
-                    return Err(err(format!(
+                    let what = format!(
                         "StepLate for frame {frame_id}, which it is not rendering (sent {:?}..={:?}, ready {:?})",
                         st.first_sent, st.last_sent, st.last_ready
-                    )));
+                    );
+                    return Ok(self.ignore(now, node, what));
                 }
                 let frame = self.collecting.as_mut().filter(|f| f.id == frame_id);
-                if let Some((wanted, p)) = frame.and_then(|f| Some(f.time_step).zip(f.parts.get_mut(node))) {
+                let part = frame.and_then(|f| Some(f.time_step).zip(f.parts.get_mut(node)));
+                if part.as_ref().is_some_and(|(_, p)| p.step_late.is_some()) {
+                    return Ok(self.ignore(now, node, format!("a second StepLate for frame {frame_id}")));
+                }
+                if let Some((wanted, p)) = part {
                     let waited = Duration::from_micros(waited_us);
                     p.step_late = Some(StepLate { shown_step, waited });
+                    let told = self.peer_log.allow(now, node);
                     return Ok(vec![ControllerOutput::StepLate {
+                        told,
                         node: node.to_string(),
                         frame_id,
                         wanted,
@@ -818,12 +876,11 @@ impl FrameController {
         id: u64,
         node_time_us: i64,
     ) -> Result<Vec<ControllerOutput>, ProtocolError> {
-        let _ = now;
         let st = self.nodes.get_mut(node).expect("checked");
         let Some(pos) = st.swapped.iter().position(|&s| s == id) else {
-            return Err(ProtocolError::new(
+            return Ok(self.ignore(
+                now,
                 node,
-                "Presented",
                 format!("Presented for frame {id} before (or without) its Swap"),
             ));
         };
@@ -832,15 +889,27 @@ impl FrameController {
         st.swapped.drain(..=pos);
         let offset = st.clock.estimate();
         let mut out = Vec::new();
-        let part = self.presenting.as_mut().filter(|f| f.id == id).and_then(|f| f.parts.get_mut(node));
+        let frame = self.presenting.as_mut().filter(|f| f.id == id);
+        let swapped_at = frame.as_ref().map(|f| f.released_at.unwrap_or(f.begin));
+        let part = frame.and_then(|f| f.parts.get_mut(node));
         match part {
             Some(p) if p.released && !p.down && !p.presented => {
                 p.presented = true;
-                p.presented_node_time_us = Some(node_time_us);
-                p.presented_at = offset
-                    .map(|o| o.to_controller(node_time_us))
-                    .and_then(|us| u64::try_from(us).ok())
-                    .map(Duration::from_micros);
+                // Between the Swap sent and this Presented received, through the offset.
+                let checked = offset.map(|o| {
+                    o.check_between(node_time_us, micros(swapped_at.unwrap_or_default()), micros(now))
+                });
+                if let Some(Err(why)) = &checked {
+                    let what = format!("Presented time {node_time_us} us for frame {id} refused: {why}");
+                    self.nodes.get_mut(node).expect("checked").counters.refused_times += 1;
+                    out.extend(self.ignore_line(now, node, what));
+                } else {
+                    p.presented_node_time_us = Some(node_time_us);
+                    p.presented_at = checked
+                        .and_then(Result::ok)
+                        .and_then(|us| u64::try_from(us).ok())
+                        .map(Duration::from_micros);
+                }
                 if self.presenting.as_ref().is_some_and(Frame::all_presented) {
                     self.finish(&mut out);
                 }
@@ -860,20 +929,63 @@ impl FrameController {
         resident_bytes: u64,
     ) -> Result<Vec<ControllerOutput>, ProtocolError> {
         let st = self.nodes.get_mut(node).expect("checked");
-        let err = |problem: String| Err(ProtocolError::new(node, "Pong", problem));
         let Some(pos) = st.pings.iter().position(|&(p, _)| p == id) else {
-            return err(format!("Pong for Ping {id}, which was not sent to it (or was answered)"));
+            return Ok(self.ignore(
+                now,
+                node,
+                format!("Pong for Ping {id}, which was not sent to it (or was answered)"),
+            ));
         };
         let (_, sent) = st.pings[pos];
         if sent != t0_us {
-            return err(format!("Pong for Ping {id} echoes t0 = {t0_us} us, but it was sent at {sent} us"));
+            let what = format!("Pong for Ping {id} echoes t0 = {t0_us} us, but it was sent at {sent} us");
+            return Ok(self.ignore(now, node, what));
         }
         st.pings.remove(pos);
-        st.clock.add(ClockSample { t0_us: sent, t1_us, t2_us: micros(now) });
+        if let Err(why) = st.clock.admit(ClockSample { t0_us: sent, t1_us, t2_us: micros(now) }) {
+            st.counters.refused_times += 1;
+            return Ok(self.ignore_line(now, node, format!("Pong for Ping {id} refused: {why}")));
+        }
         st.counters.pongs += 1;
         // 0: the node's OS does not say.
         st.resident_bytes = (resident_bytes > 0).then_some(resident_bytes);
         Ok(Vec::new())
+    }
+
+    /// An unsolicited message of `node`, ignored: counted, and told within the node's line budget.
+    fn ignore(&mut self, now: Duration, node: &str, what: String) -> Vec<ControllerOutput> {
+        if let Some(st) = self.nodes.get_mut(node) {
+            st.counters.ignored += 1;
+        }
+        self.ignore_line(now, node, format!("ignored {what}"))
+    }
+
+    /// The line about something of `node`'s ignored or refused, if its budget lets it through.
+    fn ignore_line(&mut self, now: Duration, node: &str, what: String) -> Vec<ControllerOutput> {
+        match self.peer_log.allow(now, node) {
+            Some(held_back) => {
+                vec![ControllerOutput::PeerIgnored {
+                    node: node.to_string(),
+                    what: printable(&what),
+                    held_back,
+                }]
+            }
+            None => Vec::new(),
+        }
+    }
+
+    /// object space: asks `node` to load `brick` (the message to send); its BrickLoaded or
+    /// BrickFailed for that brick is expected from then on, and any other is ignored.
+    pub fn load_brick(&mut self, node: &str, brick: u64) -> ControllerOutput {
+        if let Some(st) = self.nodes.get_mut(node) {
+            st.loads_owed.insert(brick);
+        }
+        ControllerOutput::Send { node: node.to_string(), message: Message::LoadBrick { brick } }
+    }
+
+    /// The interval of each node's line budget for [`ControllerOutput::PeerIgnored`].
+    pub fn peer_log_interval(&self) -> Duration {
+        self.peer_log.interval()
     }
 }
 
@@ -992,7 +1104,7 @@ mod tests {
     }
 
     #[test]
-    fn a_late_time_step_is_told_and_kept_with_the_frame_and_a_stray_one_is_an_error() {
+    fn a_late_time_step_is_told_and_kept_with_the_frame_and_a_stray_one_is_ignored() {
         let mut c = controller(&["a", "b"]);
         c.begin_frame(ms(0), state(1).at_time_step(6)).unwrap();
         let late = Message::StepLate { frame_id: 1, shown_step: 5, waited_us: 40_000 };
@@ -1000,14 +1112,31 @@ mod tests {
         let told = StepLate { shown_step: 5, waited: ms(40) };
         assert_eq!(
             out,
-            vec![ControllerOutput::StepLate { node: "a".into(), frame_id: 1, wanted: 6, late: told }]
+            vec![ControllerOutput::StepLate {
+                node: "a".into(),
+                frame_id: 1,
+                wanted: 6,
+                late: told,
+                told: Some(0)
+            }]
+        );
+        // A second one for the frame is ignored (told once), so are ones after its Ready or for a
+        // frame never sent: counted, never kept.
+        let out = c.handle(ms(1), "a", late.clone()).unwrap();
+        assert!(
+            matches!(&out[..], [ControllerOutput::PeerIgnored { what, .. }] if what.contains("second StepLate")),
+            "{out:?}"
         );
         c.handle(ms(2), "a", Message::Ready { frame_id: 1, render_us: 0 }).unwrap();
         c.handle(ms(3), "b", Message::Ready { frame_id: 1, render_us: 0 }).unwrap();
-        // After its Ready, or for a frame never sent, it is a protocol error.
-        assert!(c.handle(ms(4), "a", late).is_err());
+        let out = c.handle(ms(4), "a", late).unwrap();
+        assert!(
+            matches!(&out[..], [ControllerOutput::PeerIgnored { what, .. }] if what.contains("not rendering")),
+            "{out:?}"
+        );
         let never = Message::StepLate { frame_id: 9, shown_step: 0, waited_us: 0 };
-        assert!(c.handle(ms(4), "b", never).is_err());
+        c.handle(ms(4), "b", never).unwrap();
+        assert_eq!((c.counters("a").unwrap().ignored, c.counters("b").unwrap().ignored), (2, 1));
         c.handle(ms(5), "a", Message::Presented { frame_id: 1, node_time_us: 0 }).unwrap();
         let out = c.handle(ms(5), "b", Message::Presented { frame_id: 1, node_time_us: 0 }).unwrap();
         let ControllerOutput::FrameDone { stats, .. } = &out[0] else { panic!("{out:?}") };
@@ -1148,7 +1277,6 @@ mod tests {
         c.begin_frame(ms(0), state(1)).unwrap();
         let cases: Vec<(&str, Message, &str)> = vec![
             ("a", Message::Ready { frame_id: 2, render_us: 0 }, "never sent"),
-            ("a", Message::Presented { frame_id: 1, node_time_us: 0 }, "before (or without) its Swap"),
             ("a", Message::Swap { frame_id: 1 }, "only the controller"),
             ("a", Message::FrameState(state(1)), "only the controller"),
             (
@@ -1156,7 +1284,6 @@ mod tests {
                 Message::Hello { version: 1, name: "a".into(), role: crate::messages::Role::Daemon },
                 "second Hello",
             ),
-            ("a", Message::Pong { id: 99, t0_us: 0, t1_us: 0, resident_bytes: 0 }, "not sent to it"),
             ("a", Message::Snapshot { tiles: vec![] }, "nobody asked"),
             ("zz", Message::Ready { frame_id: 1, render_us: 0 }, "not a node of this wall"),
         ];
@@ -1171,15 +1298,174 @@ mod tests {
         let e = c.handle(ms(3), "b", Message::Ready { frame_id: 1, render_us: 0 }).unwrap_err();
         assert!(e.problem.contains("not up"), "{e}");
         assert!(c.node_up(ms(3), "nobody").is_err());
+    }
+
+    /// The `what` of every PeerIgnored in `out`.
+    fn ignored(out: &[ControllerOutput]) -> Vec<String> {
+        out.iter()
+            .filter_map(|o| match o {
+                ControllerOutput::PeerIgnored { what, .. } => Some(what.clone()),
+                _ => None,
+            })
+            .collect()
+    }
+
+    #[test]
+    fn unsolicited_messages_are_ignored_counted_and_told_within_a_budget() {
+        let mut c = controller(&["a", "b"]);
+        c.begin_frame(ms(0), state(1)).unwrap();
+        let evil = "\u{1b}[2J\u{1b}[31mowned\r\nisowall: frame 9: all good";
+        let cases: Vec<(Message, &str)> = vec![
+            (Message::Presented { frame_id: 1, node_time_us: 0 }, "before (or without) its Swap"),
+            (Message::Pong { id: 99, t0_us: 0, t1_us: 0, resident_bytes: 0 }, "not sent to it"),
+            (Message::BrickFailed { brick: 3, reason: evil.into() }, "not asked to load"),
+            (Message::BrickLoaded { brick: 3, load_us: 1, resident_bytes: 1 }, "not asked to load"),
+        ];
+        for (msg, what) in cases {
+            let out = c.handle(ms(1), "a", msg).unwrap();
+            let lines = ignored(&out);
+            assert_eq!(lines.len(), 1, "{out:?}");
+            assert!(lines[0].contains(what), "{lines:?}");
+            assert!(!lines[0].contains('\u{1b}') && !lines[0].contains('\n'), "{lines:?}");
+        }
         // A Pong whose t0 is not the Ping's.
         let out = c.ping(ms(5));
         let Some(ControllerOutput::Send { message: Message::Ping { id, t0_us }, .. }) = out.first() else {
             panic!()
         };
-        let e = c
+        let out = c
             .handle(ms(6), "a", Message::Pong { id: *id, t0_us: t0_us + 1, t1_us: 0, resident_bytes: 0 })
-            .unwrap_err();
-        assert!(e.problem.contains("echoes"), "{e}");
+            .unwrap();
+        assert!(ignored(&out)[0].contains("echoes"), "{out:?}");
+        assert_eq!(c.counters("a").unwrap().ignored, 5);
+        assert!(c.is_up("a"), "ignored, not closed");
+        // Asked to load brick 3, its BrickFailed is told (once: a second is unsolicited).
+        let send = c.load_brick("a", 3);
+        assert_eq!(
+            send,
+            ControllerOutput::Send { node: "a".into(), message: Message::LoadBrick { brick: 3 } }
+        );
+        let failed = Message::BrickFailed { brick: 3, reason: evil.into() };
+        let out = c.handle(ms(7), "a", failed.clone()).unwrap();
+        let [ControllerOutput::BrickFailed { brick: 3, reason, .. }] = &out[..] else { panic!("{out:?}") };
+        assert!(!reason.contains('\u{1b}'), "{reason}");
+        // The budget (5 lines per 10 s) is spent: counted, not told.
+        assert_eq!(c.handle(ms(7), "a", failed).unwrap(), vec![]);
+        assert_eq!(c.counters("a").unwrap().ignored, 6);
+        // A flood: 60,000 unsolicited messages over 6 s of virtual time make at most
+        // PeerLog::LINES lines per PeerLog::INTERVAL, the next one saying how many were held back.
+        let mut lines = 0;
+        let mut held = 0;
+        for i in 0..60_000u64 {
+            let msg = Message::BrickFailed { brick: i, reason: evil.into() };
+            for o in c.handle(ms(10) + Duration::from_micros(i * 100), "a", msg).unwrap() {
+                if let ControllerOutput::PeerIgnored { held_back, .. } = o {
+                    lines += 1;
+                    held += held_back;
+                }
+            }
+        }
+        assert_eq!(lines, 0, "the first window's budget (from 1 ms, 10 s long) was spent");
+        let out =
+            c.handle(ms(10_001), "a", Message::BrickFailed { brick: 1, reason: String::new() }).unwrap();
+        let [ControllerOutput::PeerIgnored { held_back, .. }] = &out[..] else { panic!("{out:?}") };
+        assert_eq!(*held_back + held, 60_000 + 1, "every line held back is counted");
+        assert_eq!(c.counters("a").unwrap().ignored, 5 + 1 + 60_000 + 1);
+        // Node b's budget is its own.
+        assert_eq!(
+            ignored(
+                &c.handle(ms(10_002), "b", Message::Pong { id: 7, t0_us: 0, t1_us: 0, resident_bytes: 0 })
+                    .unwrap()
+            )
+            .len(),
+            1
+        );
+    }
+
+    #[test]
+    fn a_step_late_every_frame_is_kept_with_each_frame_and_told_within_the_budget() {
+        let mut c = controller(&["a"]);
+        let (mut told, mut kept, mut held) = (0, 0, 0);
+        // 1,000 frames at 100 a second (10 s of virtual time), each late.
+        for id in 1..=1_000u64 {
+            let t = ms(id * 10);
+            c.begin_frame(t, state(id).at_time_step(6)).unwrap();
+            let late = Message::StepLate { frame_id: id, shown_step: 5, waited_us: 1 };
+            for o in c.handle(t, "a", late).unwrap() {
+                if let ControllerOutput::StepLate { told: t, .. } = o {
+                    kept += 1;
+                    if let Some(h) = t {
+                        told += 1;
+                        held += h;
+                    }
+                }
+            }
+            c.handle(t, "a", Message::Ready { frame_id: id, render_us: 0 }).unwrap();
+            c.handle(t, "a", Message::Presented { frame_id: id, node_time_us: 0 }).unwrap();
+        }
+        assert_eq!(kept, 1_000, "every one reaches its frame");
+        // Windows start at 10 ms and 10,010 ms: 5 lines in the first, 1 in the second (at 10 s).
+        assert_eq!(told, 5, "lines told in 10 s");
+        assert_eq!(held, 0);
+        let last = Message::StepLate { frame_id: 1_001, shown_step: 5, waited_us: 1 };
+        c.begin_frame(ms(10_010), state(1_001).at_time_step(6)).unwrap();
+        let out = c.handle(ms(10_010), "a", last).unwrap();
+        assert!(matches!(&out[..], [ControllerOutput::StepLate { told: Some(995), .. }]), "{out:?}");
+    }
+
+    #[test]
+    fn forged_present_and_pong_times_are_refused_before_they_reach_the_skew() {
+        let mut c = controller(&["a", "b"]);
+        // The node_up pings were id 1 (a) and 2 (b) at t0 = 0; both clocks 10 ms ahead, 1 ms each way.
+        c.handle(ms(2), "a", Message::Pong { id: 1, t0_us: 0, t1_us: 1_000 + 10_000, resident_bytes: 0 })
+            .unwrap();
+        c.handle(ms(2), "b", Message::Pong { id: 2, t0_us: 0, t1_us: 1_000 + 10_000, resident_bytes: 0 })
+            .unwrap();
+        let days_46 = 46 * 86_400 * 1_000_000i64;
+        // A Pong 46 days off is refused; the offset stays.
+        let out = c.ping(ms(100));
+        let Some(ControllerOutput::Send { message: Message::Ping { id, t0_us }, .. }) =
+            out.iter().find(|o| matches!(o, ControllerOutput::Send { node, .. } if node == "a"))
+        else {
+            panic!()
+        };
+        let forged =
+            Message::Pong { id: *id, t0_us: *t0_us, t1_us: 101_000 + 10_000 + days_46, resident_bytes: 0 };
+        let lines = ignored(&c.handle(ms(102), "a", forged).unwrap());
+        assert!(lines[0].contains("Pong for Ping") && lines[0].contains("refused"), "{lines:?}");
+        assert_eq!(c.clock_offset("a").unwrap().offset_us, 10_000);
+        assert_eq!(c.counters("a").unwrap().refused_times, 1);
+        // A Presented 46 days late: refused, the frame done with b's time only; a skew of 0.4 ms stays.
+        for id in 1..=3u64 {
+            let t = 200 * id;
+            c.begin_frame(ms(t), state(id)).unwrap();
+            c.handle(ms(t + 5), "a", Message::Ready { frame_id: id, render_us: 0 }).unwrap();
+            c.handle(ms(t + 5), "b", Message::Ready { frame_id: id, render_us: 0 }).unwrap();
+            let present_us = (t as i64 + 10) * 1_000 + 10_000;
+            let a_time = if id == 2 { present_us + days_46 } else { present_us };
+            let out =
+                c.handle(ms(t + 12), "a", Message::Presented { frame_id: id, node_time_us: a_time }).unwrap();
+            assert_eq!(ignored(&out).len(), usize::from(id == 2), "{out:?}");
+            let out = c
+                .handle(ms(t + 12), "b", Message::Presented { frame_id: id, node_time_us: present_us + 400 })
+                .unwrap();
+            let Some(ControllerOutput::FrameDone { stats, .. }) = out.last() else { panic!("{out:?}") };
+            if id == 2 {
+                assert_eq!(stats.swap_skew, Some(Duration::ZERO), "b's time only");
+                assert_eq!(stats.per_node[0].presented_at, None);
+                assert_eq!(stats.per_node[0].presented_node_time_us, None);
+            } else {
+                assert_eq!(stats.swap_skew, Some(Duration::from_micros(400)));
+            }
+        }
+        // Before its Swap was sent (a present time from the past) is refused too.
+        c.begin_frame(ms(1_000), state(4)).unwrap();
+        c.handle(ms(1_005), "a", Message::Ready { frame_id: 4, render_us: 0 }).unwrap();
+        c.handle(ms(1_005), "b", Message::Ready { frame_id: 4, render_us: 0 }).unwrap();
+        let out = c.handle(ms(1_010), "a", Message::Presented { frame_id: 4, node_time_us: 10_000 }).unwrap();
+        assert!(ignored(&out)[0].contains("before the earliest"), "{out:?}");
+        assert_eq!(c.counters("a").unwrap().refused_times, 3);
+        assert_eq!(c.counters("b").unwrap().refused_times, 0);
     }
 
     #[test]

@@ -23,6 +23,8 @@
 //! - [`names`]: the one rule for node and tile names (a node's name is its certificate's name).
 //! - [`governor`]: the quality governor (frame times in, AO samples per frame out).
 //! - [`handshake_limit`]: handshakes a daemon starts per source address (a token bucket).
+//! - [`peer_log`]: the lines a peer may make the operator read (a few per peer per interval).
+//! - [`seat`]: which controller drives a node (one at a time; a second is refused with why).
 //! - [`sim`]: the wall at scale: a LAN model on a virtual clock driving the machines above.
 
 pub mod adoption;
@@ -44,7 +46,9 @@ pub mod messages;
 pub mod names;
 pub mod node_machine;
 pub mod object_machine;
+pub mod peer_log;
 pub mod render_state;
+pub mod seat;
 pub mod sim;
 pub mod wire;
 

@@ -254,6 +254,10 @@ impl Sim {
                     self.done.insert(frame_id, stats);
                 }
                 ControllerOutput::Snapshot { node, tiles } => self.snapshots.push((node, tiles)),
+                // Honest nodes: nothing of theirs may be ignored or refused.
+                ControllerOutput::PeerIgnored { node, what, .. } => {
+                    self.errors.push(ProtocolError::new(&node, "PeerIgnored", what))
+                }
                 // Object space only; these nodes never send them.
                 ControllerOutput::BrickLoaded { .. }
                 | ControllerOutput::BrickFailed { .. }
@@ -779,15 +783,23 @@ fn violations_close_only_that_peer_with_a_clear_reason() {
     let cfgs = vec![node("a", 10.0), node("b", 10.0), node("c", 10.0)];
     let mut sim = Sim::new(cfgs, ms(40.0), 10);
     sim.run_until(T0 + ms(300.0));
-    // c says Presented for a frame it was never told to swap.
+    // c says Presented for a frame it was never told to swap: ignored (and told), not closed.
     sim.send_up(2, &Message::Presented { frame_id: 999_999, node_time_us: 0 });
-    sim.run_until(T0 + ms(400.0));
+    sim.run_until(T0 + ms(350.0));
     assert_eq!(sim.errors.len(), 1);
     let e = &sim.errors[0];
-    assert_eq!((e.peer.as_str(), e.message), ("c", "Presented"));
+    assert_eq!((e.peer.as_str(), e.message), ("c", "PeerIgnored"));
+    assert!(e.problem.contains("ignored Presented for frame 999999"), "{e}");
+    assert!(sim.downs.is_empty());
+    // c says Ready for a frame it was never sent: a protocol violation, closed.
+    sim.send_up(2, &Message::Ready { frame_id: 999_999, render_us: 0 });
+    sim.run_until(T0 + ms(400.0));
+    assert_eq!(sim.errors.len(), 2);
+    let e = &sim.errors[1];
+    assert_eq!((e.peer.as_str(), e.message), ("c", "Ready"));
     assert_eq!(sim.downs.len(), 1);
     assert_eq!(sim.downs[0].1, "c");
-    assert!(sim.downs[0].2.contains("`c` (Presented): Presented for frame 999999"), "{}", sim.downs[0].2);
+    assert!(sim.downs[0].2.contains("`c` (Ready): Ready for frame 999999"), "{}", sim.downs[0].2);
     // c reconnects; then b sends garbage bytes.
     sim.connect(2);
     sim.run_until(T0 + ms(500.0));

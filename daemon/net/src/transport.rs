@@ -36,6 +36,9 @@ pub const STREAM_FLOW_LIMIT: u32 = 4 << 20;
 pub const CONNECTION_FLOW_LIMIT: u32 = 16 << 20;
 /// Connections a server endpoint lets wait for their handshake at once, at most.
 pub const MAX_INCOMING: usize = 64;
+/// A connection whose peer has sent nothing this long is closed (its process or host is gone):
+/// keep-alives every 500 ms keep a live one open.
+pub const IDLE_TIMEOUT: Duration = Duration::from_secs(5);
 
 /// A QUIC server configuration of `identity`'s TLS ([`Identity::server_tls`]) with the wall's
 /// transport settings and at most [`MAX_INCOMING`] handshakes waiting.
@@ -83,7 +86,7 @@ pub fn transport_config() -> quinn::TransportConfig {
     t.send_window(u64::from(CONNECTION_FLOW_LIMIT));
     t.datagram_receive_buffer_size(None);
     t.keep_alive_interval(Some(Duration::from_millis(500)));
-    t.max_idle_timeout(Some(Duration::from_secs(5).try_into().expect("5 s is a valid idle timeout")));
+    t.max_idle_timeout(Some(IDLE_TIMEOUT.try_into().expect("5 s is a valid idle timeout")));
     let mut acks = quinn::AckFrequencyConfig::default();
     acks.ack_eliciting_threshold(quinn::VarInt::from_u32(0)).max_ack_delay(Some(Duration::from_millis(1)));
     t.ack_frequency_config(Some(acks));

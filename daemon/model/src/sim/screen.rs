@@ -196,6 +196,10 @@ impl Sim {
                 ControllerOutput::NodeDown { node, reason } => {
                     self.errors.push(format!("{node} down: {reason}"))
                 }
+                // Honest nodes on a virtual LAN: nothing of theirs may be ignored or refused.
+                ControllerOutput::PeerIgnored { node, what, .. } => {
+                    self.errors.push(format!("{node}: {what}"))
+                }
                 ControllerOutput::Snapshot { .. }
                 | ControllerOutput::BrickLoaded { .. }
                 | ControllerOutput::BrickFailed { .. }
