@@ -373,3 +373,18 @@ pub fn wall_config_2x1(
     std::fs::write(&path, s).unwrap();
     path
 }
+
+/// The addresses a console prints on `stdout` (`isowall console: serving URL/`, without the
+/// final slash), read on a thread of its own so the console never blocks on a full pipe.
+pub fn console_urls(stdout: std::process::ChildStdout) -> std::sync::mpsc::Receiver<String> {
+    use std::io::{BufRead, BufReader};
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+            if let Some(rest) = line.strip_prefix("isowall console: serving ") {
+                let _ = tx.send(rest.trim_end_matches('/').to_string());
+            }
+        }
+    });
+    rx
+}

@@ -19,7 +19,7 @@ use isowall_model::node_machine::{NodeMachine, NodeOutput};
 use isowall_net::transport::{self, Channel};
 use isowall_net::Identity;
 use serde_json::Value;
-use std::io::{BufRead, BufReader, Read, Write};
+use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -161,14 +161,7 @@ impl Console {
             .spawn()
             .expect("start isowall console");
         let stdout = child.stdout.take().unwrap();
-        let (tx, rx) = std::sync::mpsc::channel();
-        std::thread::spawn(move || {
-            for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-                if let Some(rest) = line.strip_prefix("isowall console: serving ") {
-                    let _ = tx.send(rest.trim_end_matches('/').to_string());
-                }
-            }
-        });
+        let rx = isowall_e2e::console_urls(stdout);
         let log = || std::fs::read_to_string(dir.join("console.err")).unwrap_or_default();
         let base =
             rx.recv_timeout(Duration::from_secs(60)).unwrap_or_else(|_| panic!("no console:\n{}", log()));

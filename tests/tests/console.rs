@@ -19,7 +19,7 @@ use isowall_e2e::{
     bin, free_udp_ports, in_ci, run_in, set_ball_steps_source, wall_config, write_ball_steps, Daemon,
 };
 use serde_json::Value;
-use std::io::{BufRead, BufReader, Read, Write};
+use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
@@ -84,14 +84,7 @@ impl Console {
             .spawn()
             .expect("start isowall console");
         let stdout = child.stdout.take().unwrap();
-        let (tx, rx) = std::sync::mpsc::channel();
-        std::thread::spawn(move || {
-            for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-                if let Some(rest) = line.strip_prefix("isowall console: serving ") {
-                    let _ = tx.send(rest.trim_end_matches('/').to_string());
-                }
-            }
-        });
+        let rx = isowall_e2e::console_urls(stdout);
         let agent = ureq::Agent::new_with_config(
             ureq::config::Config::builder()
                 .http_status_as_error(false)
