@@ -140,7 +140,7 @@ async fn bad_controller(endpoint: &quinn::Endpoint, addr: SocketAddr, bad: Bad) 
         }
         Bad::OutOfOrder => {
             sender.send(&hello).await.unwrap();
-            sender.send(&Message::Swap { frame_id: 41 }).await.unwrap();
+            sender.send(&Message::Swap { frame_id: 41, present_at_us: None }).await.unwrap();
         }
     }
     // The daemon greets first, whatever comes next.

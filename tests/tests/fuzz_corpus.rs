@@ -397,8 +397,8 @@ fn message_seeds() -> Vec<(String, Vec<u8>)> {
         codec::hello("node0", Role::Daemon),
         state(1),
         Message::Ready { frame_id: 1, render_us: 16_667 },
-        Message::Swap { frame_id: 1 },
-        Message::Presented { frame_id: 1, node_time_us: -42 },
+        Message::Swap { frame_id: 1, present_at_us: None },
+        Message::Presented { frame_id: 1, node_time_us: -42, waiting_from_us: -42 },
         Message::Ping { id: 7, t0_us: 123_456 },
         Message::Pong { id: 7, t0_us: 123_456, t1_us: 654_321, resident_bytes: 250 << 20 },
         Message::SnapshotRequest,
@@ -424,10 +424,10 @@ fn message_seeds() -> Vec<(String, Vec<u8>)> {
     let session = [
         hello.clone(),
         state(1),
-        Message::Swap { frame_id: 1 },
+        Message::Swap { frame_id: 1, present_at_us: None },
         Message::Ping { id: 1, t0_us: 10 },
         state(2),
-        Message::Swap { frame_id: 2 },
+        Message::Swap { frame_id: 2, present_at_us: None },
         Message::SnapshotRequest,
         Message::Bye { reason: "done".into() },
     ];
@@ -440,7 +440,7 @@ fn message_seeds() -> Vec<(String, Vec<u8>)> {
     out.push(("valid-wrong-version.bin".into(), stream(0, &[wrong_version])));
     out.push((
         "valid-swap-out-of-order.bin".into(),
-        stream(0, &[hello.clone(), Message::Swap { frame_id: 5 }]),
+        stream(0, &[hello.clone(), Message::Swap { frame_id: 5, present_at_us: None }]),
     ));
     out.push(("valid-frame-goes-back.bin".into(), stream(0, &[hello.clone(), state(3), state(2)])));
     out.push(("valid-second-hello.bin".into(), stream(0, &[hello.clone(), hello.clone()])));
@@ -460,7 +460,7 @@ fn message_seeds() -> Vec<(String, Vec<u8>)> {
     garbage.extend([5, 0, 0, 0, 200, 1, 2, 3, 4]);
     out.push(("bad-undecodable-body.bin".into(), garbage));
     let mut trailing = vec![0u8];
-    let mut body = codec::encode(&Message::Swap { frame_id: 1 }).unwrap();
+    let mut body = codec::encode(&Message::Swap { frame_id: 1, present_at_us: None }).unwrap();
     body.extend([9, 9]);
     trailing.extend((body.len() as u32).to_le_bytes());
     trailing.extend(body);

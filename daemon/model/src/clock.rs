@@ -6,6 +6,12 @@
 //! its midpoint `t1 - (t0 + t2) / 2` is off by at most `rtt / 2`, `rtt = t2 - t0`, and by less the
 //! more symmetric the delays. Queueing only ever adds delay, so the sample with the smallest round
 //! trip of the last few is the tightest: [`ClockEstimator`] keeps the last N samples and uses it.
+//!
+//! Real oscillators run at slightly different rates (tens of parts per million: 50 us a second),
+//! so an offset ages. The estimator fits the offset's drift over the samples whose round trips
+//! are near the shortest (the least queued) by least squares, and carries the best sample's offset
+//! forward along it ([`ClockOffset::offset_at`]); [`ClockOffset::error_at`] bounds the estimate's
+//! error at a given time from the sample's round trip and what the fit leaves uncertain.
 //! All times are integer microseconds.
 
 use std::collections::VecDeque;
@@ -37,15 +43,24 @@ impl ClockSample {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ClockOffset {
     pub offset_us: i64,
-    /// Bound on |estimate - true offset|: half the round trip of the sample used (rounded up),
-    /// plus 1 us for the clocks' microsecond truncation.
+    /// Bound on |estimate - true offset| at `measured_at_us`: half the round trip of the sample
+    /// used (rounded up), plus 1 us for the clocks' microsecond truncation; for a fitted line,
+    /// the worst of its samples' and the slope's uncertainty carried to `measured_at_us`.
     pub error_us: i64,
-    /// The round trip of the sample used.
+    /// The shortest round trip of the samples kept.
     pub rtt_us: i64,
     /// Samples the estimate was chosen from.
     pub samples: usize,
-    /// Controller clock when the sample used came back (`t2`): the estimate ages from there.
+    /// Controller clock when the sample used (for a line: the latest of its samples) came back
+    /// (`t2`): the estimate ages from there.
     pub measured_at_us: i64,
+    /// The offset's drift, parts per billion (node clock fast: positive), fitted over the
+    /// samples near the shortest round trip; 0 until they span [`ClockEstimator::MIN_FIT_SPAN_US`].
+    /// `offset_us` is the offset at `measured_at_us`.
+    pub drift_ppb: i64,
+    /// How far the drift may be off, parts per billion: the fitted samples' round-trip spread
+    /// over their span, or [`DRIFT_PPM`] while there is no fit.
+    pub drift_error_ppb: i64,
 }
 
 /// Clock drift allowed for, in parts per million of an estimate's age (crystal oscillators
@@ -57,18 +72,42 @@ pub const DRIFT_PPM: i64 = 100;
 pub const SLACK_US: i64 = 2_000;
 
 impl ClockOffset {
+    /// Whether the estimate is a fitted line (drift known), not a single sample's offset.
+    pub fn is_fitted(&self) -> bool {
+        self.drift_error_ppb < DRIFT_PPM * 1_000
+    }
+
+    /// The offset at controller time `controller_us`: the sample's, moved along the drift.
+    pub fn offset_at(&self, controller_us: i64) -> i64 {
+        let age = i128::from(controller_us) - i128::from(self.measured_at_us);
+        let moved = age * i128::from(self.drift_ppb) / 1_000_000_000;
+        (i128::from(self.offset_us) + moved).clamp(i64::MIN as i128, i64::MAX as i128) as i64
+    }
+
     /// A daemon time in controller time.
     pub fn to_controller(&self, daemon_us: i64) -> i64 {
-        daemon_us.saturating_sub(self.offset_us)
+        // The drift moves the offset by parts per million: evaluating it at the daemon time less
+        // the sample's offset is within a microsecond of the exact inverse.
+        daemon_us.saturating_sub(self.offset_at(daemon_us.saturating_sub(self.offset_us)))
     }
 
     /// A controller time in daemon time.
     pub fn to_daemon(&self, controller_us: i64) -> i64 {
-        controller_us.saturating_add(self.offset_us)
+        controller_us.saturating_add(self.offset_at(controller_us))
     }
 
-    /// How far the true offset may be from this estimate at controller time `now_us`: the
-    /// sample's own bound, drift since it was measured ([`DRIFT_PPM`]) and [`SLACK_US`].
+    /// A bound on |estimate - true offset| at controller time `now_us` for an honest node: the
+    /// sample's own bound and the drift's uncertainty over the estimate's age (no slack for
+    /// scheduling: this is what the report shows as the node's clock error).
+    pub fn error_at(&self, now_us: i64) -> i64 {
+        let age = i128::from(now_us.saturating_sub(self.measured_at_us).max(0));
+        let drifted = age * i128::from(self.drift_error_ppb) / 1_000_000_000;
+        self.error_us.saturating_add(drifted.min(i128::from(i64::MAX)) as i64)
+    }
+
+    /// How far the true offset may be from this estimate at controller time `now_us`, generously
+    /// (what a node's reported times are held to): the sample's own bound, drift since it was
+    /// measured at [`DRIFT_PPM`] whatever the fit says, and [`SLACK_US`].
     pub fn bound_us(&self, now_us: i64) -> i64 {
         let age = now_us.saturating_sub(self.measured_at_us).max(0);
         self.error_us.saturating_add(age / (1_000_000 / DRIFT_PPM)).saturating_add(SLACK_US)
@@ -112,9 +151,9 @@ impl Default for ClockEstimator {
 }
 
 impl ClockEstimator {
-    /// Samples kept by default: with a ping every 500 ms, the last 8 s (clock drift of 50 ppm
-    /// moves an offset by 0.4 ms in that time).
-    pub const DEFAULT_CAPACITY: usize = 16;
+    /// Samples kept by default: with a ping every 500 ms, the last 16 s (the drift fit follows
+    /// a clock 50 ppm off, which moves an offset by 0.8 ms in that time).
+    pub const DEFAULT_CAPACITY: usize = 32;
 
     pub fn new(capacity: usize) -> Self {
         ClockEstimator { samples: VecDeque::new(), capacity: capacity.max(1) }
@@ -140,11 +179,12 @@ impl ClockEstimator {
             let lo = sample.t1_us.saturating_sub(sample.t2_us);
             let hi = sample.t1_us.saturating_sub(sample.t0_us);
             let bound = est.bound_us(sample.t2_us);
-            let (elo, ehi) = (est.offset_us.saturating_sub(bound), est.offset_us.saturating_add(bound));
+            let now_offset = est.offset_at(sample.t2_us);
+            let (elo, ehi) = (now_offset.saturating_sub(bound), now_offset.saturating_add(bound));
             if hi < elo || lo > ehi {
                 return Err(format!(
                     "t1 = {} us puts its clock offset in [{lo}, {hi}] us, but it is {} us within {bound} us",
-                    sample.t1_us, est.offset_us
+                    sample.t1_us, now_offset
                 ));
             }
         }
@@ -167,19 +207,91 @@ impl ClockEstimator {
         self.samples.clear();
     }
 
-    /// The current estimate, `None` before the first sample. Of samples with equal round trips
-    /// the latest wins.
+    /// The current estimate, `None` before the first sample. Once the least queued samples
+    /// (round trips within [`ClockEstimator::FIT_TOLERANCE_US`], or twice, the shortest)
+    /// are three or more spanning [`ClockEstimator::MIN_FIT_SPAN_US`], it is their least-squares
+    /// line of offset against time, taken at the latest of them ([`ClockOffset::is_fitted`]):
+    /// averaging many samples beats
+    /// the single best one, and the line follows the drift. Before, it is the shortest round
+    /// trip's offset (of equal ones the latest), with no drift.
     pub fn estimate(&self) -> Option<ClockOffset> {
         let best = self.samples.iter().rev().min_by_key(|s| s.rtt_us())?;
         let rtt = best.rtt_us();
+        let clamp = |x: i128| x.clamp(i64::MIN as i128, i64::MAX as i128) as i64;
+        let (offset_us, error_us, measured_at_us, drift_ppb, drift_error_ppb) = match self.fit(rtt) {
+            Some(f) => (f.offset_us, f.error_us, f.at_us, f.drift_ppb, f.drift_error_ppb),
+            None => {
+                // The sample's offset is the one at its midpoint, and it ages from its t2.
+                (best.offset_us(), rtt / 2 + rtt % 2 + 1, best.t2_us, 0, DRIFT_PPM * 1_000)
+            }
+        };
         Some(ClockOffset {
-            offset_us: best.offset_us(),
-            error_us: rtt / 2 + rtt % 2 + 1,
+            offset_us: clamp(i128::from(offset_us)),
+            error_us,
             rtt_us: rtt,
             samples: self.samples.len(),
-            measured_at_us: best.t2_us,
+            measured_at_us,
+            drift_ppb,
+            drift_error_ppb,
         })
     }
+
+    /// Samples whose round trip is within this of the shortest (or the shortest again, if
+    /// more) take part in the fit, weighted by how little they were queued beyond it.
+    pub const FIT_TOLERANCE_US: i64 = 15;
+
+    /// The offset is fitted once the samples taking part span this much of the controller's
+    /// clock, and there are at least three of them.
+    pub const MIN_FIT_SPAN_US: i64 = 1_000_000;
+
+    /// The least-squares line of offset against time over the least queued samples, taken at
+    /// the latest one's `t2`; `None` while they are too few or span too little. Its error: each
+    /// offset is within half its round trip, so the line is within the worst of those at the
+    /// samples' centre and its slope within their sum over the span (clamped to [`DRIFT_PPM`]),
+    /// which carries to the latest sample.
+    fn fit(&self, best_rtt: i64) -> Option<Fit> {
+        let tolerance = Self::FIT_TOLERANCE_US.max(best_rtt);
+        let good: Vec<&ClockSample> =
+            self.samples.iter().filter(|s| s.rtt_us() <= best_rtt.saturating_add(tolerance)).collect();
+        let mid = |s: &ClockSample| (s.t0_us as f64 + s.t2_us as f64) / 2.0;
+        let lo = good.iter().map(|s| mid(s)).fold(f64::INFINITY, f64::min);
+        let hi = good.iter().map(|s| mid(s)).fold(f64::NEG_INFINITY, f64::max);
+        let span = hi - lo;
+        if good.len() < 3 || !(span >= Self::MIN_FIT_SPAN_US as f64) {
+            return None;
+        }
+        // Weighted by how little each was queued beyond the shortest round trip.
+        let w = |s: &ClockSample| 1.0 / (1.0 + (s.rtt_us() - best_rtt) as f64 / Self::FIT_TOLERANCE_US as f64).powi(2);
+        let n: f64 = good.iter().map(|s| w(s)).sum();
+        let mx = good.iter().map(|s| w(s) * mid(s)).sum::<f64>() / n;
+        let my = good.iter().map(|s| w(s) * s.offset_us() as f64).sum::<f64>() / n;
+        let sxx: f64 = good.iter().map(|s| w(s) * (mid(s) - mx).powi(2)).sum();
+        let sxy: f64 = good.iter().map(|s| w(s) * (mid(s) - mx) * (s.offset_us() as f64 - my)).sum();
+        let limit = (DRIFT_PPM * 1_000) as f64;
+        let slope = (sxy / sxx * 1e9).clamp(-limit, limit);
+        let worst = good.iter().map(|s| s.rtt_us()).max().unwrap_or(best_rtt);
+        let slope_error = (worst as f64 / span * 1e9).min(limit);
+        let latest = good.iter().max_by_key(|s| s.t2_us)?;
+        let at = latest.t2_us as f64;
+        let offset = my + slope * 1e-9 * (at - mx);
+        let error = (worst / 2 + worst % 2 + 1) as f64 + slope_error * 1e-9 * (at - mx).abs();
+        Some(Fit {
+            offset_us: offset.round() as i64,
+            error_us: error.ceil() as i64,
+            at_us: latest.t2_us,
+            drift_ppb: slope.round() as i64,
+            drift_error_ppb: slope_error.ceil() as i64,
+        })
+    }
+}
+
+/// [`ClockEstimator::fit`]'s line.
+struct Fit {
+    offset_us: i64,
+    error_us: i64,
+    at_us: i64,
+    drift_ppb: i64,
+    drift_error_ppb: i64,
 }
 
 #[cfg(test)]
@@ -252,6 +364,8 @@ mod tests {
             rtt_us: 2_000,
             samples: 1,
             measured_at_us: 1_000_000,
+            drift_ppb: 0,
+            drift_error_ppb: DRIFT_PPM * 1_000,
         };
         // Swap sent at 1.1 s, Presented back at 1.12 s: a present at 1.11 s (controller time) is fine.
         assert_eq!(o.check_between(1_110_000 + 50_000, 1_100_000, 1_120_000), Ok(1_110_000));
@@ -263,6 +377,46 @@ mod tests {
         let early = o.check_between(1_000_000, 1_100_000, 1_120_000).unwrap_err();
         assert!(early.contains("before the earliest"), "{early}");
         assert!(o.check_between(i64::MAX, 0, 1).is_err() && o.check_between(i64::MIN, 0, 1).is_err());
+    }
+
+    #[test]
+    fn a_drifting_clock_is_followed_between_pings() {
+        // A node clock 50 ppm fast, 3 s ahead, pinged every 500 ms over links of 40 to 80 us
+        // each way (seeded): the shortest round trip of the last 16 may be seconds old, when
+        // the offset has moved by 50 us a second since.
+        let (ppm, offset) = (50i64, 3_000_000i64);
+        let node = |c: i64| c + offset + c * ppm / 1_000_000;
+        let mut e = ClockEstimator::default();
+        let mut rng = 0x9e37_79b9_7f4a_7c15u64;
+        let mut delay = || {
+            rng ^= rng << 13;
+            rng ^= rng >> 7;
+            rng ^= rng << 17;
+            40 + (rng % 40) as i64
+        };
+        let mut worst_unfitted = 0i64;
+        for i in 1..=40i64 {
+            let t0 = i * 500_000;
+            let up = delay();
+            let t2 = t0 + up + delay();
+            e.admit(ClockSample { t0_us: t0, t1_us: node(t0 + up), t2_us: t2 }).unwrap();
+            let est = e.estimate().unwrap();
+            // Half-way to the next ping: the truth against the estimate and its stated bound.
+            let at = t0 + 250_000;
+            let truth = node(at) - at;
+            let err = (est.offset_at(at) - truth).abs();
+            assert!(err <= est.error_at(at), "ping {i}: off by {err} us, bound {}", est.error_at(at));
+            // What the shortest round trip's offset alone says (no drift).
+            let best = e.samples.iter().rev().min_by_key(|s| s.rtt_us()).unwrap();
+            let unfitted = (best.offset_us() - truth).abs();
+            if i > 16 {
+                worst_unfitted = worst_unfitted.max(unfitted);
+                assert!(err <= 25, "ping {i}: off by {err} us with the drift fitted");
+                assert!((est.drift_ppb - ppm * 1_000).abs() <= 10_000, "drift {} ppb", est.drift_ppb);
+            }
+        }
+        // Without the drift the best sample's offset is up to its age x 50 ppm off.
+        assert!(worst_unfitted > 100, "the sample's offset alone was {worst_unfitted} us off at most");
     }
 
     #[test]

@@ -337,8 +337,8 @@ mod tests {
             hello("controller", Role::Controller),
             Message::FrameState(FrameState::new(u64::MAX - 1, &cam, &RenderSettings::new(300.0), 4)),
             Message::Ready { frame_id: 12, render_us: 16_667 },
-            Message::Swap { frame_id: 12 },
-            Message::Presented { frame_id: 12, node_time_us: -42 },
+            Message::Swap { frame_id: 12, present_at_us: None },
+            Message::Presented { frame_id: 12, node_time_us: -42, waiting_from_us: -42 },
             Message::Ping { id: 7, t0_us: i64::MIN },
             Message::Pong { id: 7, t0_us: 1, t1_us: i64::MAX, resident_bytes: u64::MAX },
             Message::SnapshotRequest,
@@ -530,7 +530,7 @@ mod tests {
 
     #[test]
     fn a_stream_that_ends_inside_a_frame_is_truncated() {
-        let f = frame(&Message::Swap { frame_id: 7 }).unwrap();
+        let f = frame(&Message::Swap { frame_id: 7, present_at_us: None }).unwrap();
         let mut d = Decoder::new(DAEMON_LIMIT);
         d.push(&f[..f.len() - 1]);
         assert_eq!(d.next(), Ok(None));
@@ -553,7 +553,7 @@ mod tests {
 
     #[test]
     fn trailing_garbage_inside_a_frame_is_an_error() {
-        let mut body = encode(&Message::Swap { frame_id: 5 }).unwrap();
+        let mut body = encode(&Message::Swap { frame_id: 5, present_at_us: None }).unwrap();
         body.extend([1, 2, 3]);
         assert_eq!(decode(&body), Err(CodecError::TrailingBytes { kind: "Swap", extra: 3 }));
         let mut d = Decoder::new(DAEMON_LIMIT);

@@ -13,16 +13,26 @@
 //!    participants (a node that comes up later joins at the next frame).
 //! 2. Ready replies are collected. When every participant still up is ready, or the deadline
 //!    (`begin + deadline`) passes, the swap is released: Swap goes to the ready nodes, and
-//!    [`ControllerOutput::Released`] names the ready nodes and the stragglers.
+//!    [`ControllerOutput::Released`] names the ready nodes and the stragglers. The release picks
+//!    the frame's present time ([`crate::swap_timing`]: a margin after the release, on the frame
+//!    grid when paced); each node's Swap carries it in that node's clock, through the node's
+//!    clock offset (from Ping/Pong, see [`crate::clock`]; a node whose offset is not known yet
+//!    presents on arrival).
 //! 3. Presented replies are collected, each converted to controller time by the node's clock
-//!    offset (from Ping/Pong, see [`crate::clock`]). When every released node has presented, or
-//!    the present deadline passes, [`ControllerOutput::FrameDone`] carries the frame's statistics,
-//!    the swap skew among them.
+//!    offset. Each says when the node was ready to wait for the present time: after it, the
+//!    swap was late (counted); the delays from the release teach the margin. When every released
+//!    node has presented, or the present deadline (after the present time) passes,
+//!    [`ControllerOutput::FrameDone`] carries the frame's statistics, the swap skew among them.
 //!
-//! The next frame may begin as soon as the previous one is released: its Presented replies are
-//! still collected meanwhile. (If it is released in turn before they all came, the older frame is
-//! finished first, with what arrived.) A straggler's late Ready, or a late Presented, is counted
-//! and otherwise ignored; it is no error. What is an error ([`ProtocolError`]: the caller closes
+//! The next frame may begin as soon as the previous one is released: the Presented replies of
+//! up to [`PRESENTING`] released frames are still collected meanwhile (a paced frame may wait for
+//! its slot while the next renders; beyond that the oldest is finished with what arrived). A
+//! straggler's late Ready, or a late Presented, is counted and otherwise ignored; it is no error.
+//!
+//! Pings go one node at a time, in turn, spread over the ping interval (randomly spaced, so they
+//! meet the frames' bursts at every phase): never a burst that queues behind (or ahead of) the
+//! Swaps and biases the clock offsets; [`FrameController::SETTLING_PING_SPEEDUP`] times as often
+//! while a node's clock is not fitted yet. What is an error ([`ProtocolError`]: the caller closes
 //! that node's connection, then calls `node_down`): a message only the controller sends, a second
 //! Hello, Ready for a frame the node was never sent or twice, a Snapshot nobody asked for, a
 //! message from an unknown node or one that is not up.
@@ -46,6 +56,7 @@ use std::collections::{BTreeMap, VecDeque};
 use std::time::Duration;
 
 use crate::clock::{ClockEstimator, ClockOffset, ClockSample};
+use crate::swap_timing::SwapTiming;
 use crate::messages::{printable, Message, ProtocolError, Role, TileImage};
 use crate::peer_log::PeerLog;
 use crate::wire::FrameState;
@@ -53,6 +64,9 @@ use crate::wire::FrameState;
 /// Pings and swaps remembered per node, at most (older ones are forgotten: their answers will be
 /// protocol errors, which they are after this many have gone unanswered).
 const REMEMBERED: usize = 32;
+
+/// Released frames whose Presented replies are collected at once, at most.
+pub const PRESENTING: usize = 4;
 
 /// What the caller must do, in order.
 #[allow(clippy::large_enum_variant)] // a Message with a FrameState, see `Message`
@@ -101,6 +115,8 @@ pub struct NodeFrameStats {
     pub presented_at: Option<Duration>,
     /// When it presented, by its own clock, as it reported.
     pub presented_node_time_us: Option<i64>,
+    /// Its Swap came after the frame's present time: it presented at once.
+    pub late_swap: bool,
     /// Whether it went down during the frame.
     pub went_down: bool,
     // object space
@@ -135,6 +151,15 @@ pub struct FrameStats {
     pub per_node: Vec<NodeFrameStats>,
     /// max - min of `presented_at` over the nodes that have one (`None` when none has).
     pub swap_skew: Option<Duration>,
+    /// max - min of the present times the nodes reported by their own clocks: the true skew
+    /// where every node runs on one clock (one machine), meaningless elsewhere.
+    pub node_clock_skew: Option<Duration>,
+    /// The frame's present time on the controller's clock (`None`: untimed swap).
+    pub present_at: Option<Duration>,
+    /// The margin from the release to the present time (`None`: untimed swap).
+    pub margin: Option<Duration>,
+    /// Nodes whose Swap came after the present time.
+    pub late_swaps: usize,
     /// From the frame's begin to the release of its swap.
     pub barrier: Duration,
     /// Nodes of the wall that took no part in the frame (down when it began).
@@ -162,6 +187,8 @@ pub struct NodeCounters {
     pub ignored: u64,
     /// Pong and Presented times refused as impossible (see the module docs).
     pub refused_times: u64,
+    /// Swaps that came after their present time.
+    pub late_swaps: u64,
 }
 
 /// Why a frame cannot begin.
@@ -197,6 +224,8 @@ struct NodeState {
     tiles: Option<Vec<(String, u32, u32)>>,
     /// Its process's resident memory, from its last Pong on this connection.
     resident_bytes: Option<u64>,
+    /// Its clock estimate is a fitted line (see [`ClockEstimator::estimate`]).
+    clock_fitted: bool,
     /// object space: the bricks it was asked to load and has not answered for.
     loads_owed: std::collections::BTreeSet<u64>,
 }
@@ -205,6 +234,7 @@ impl NodeState {
     /// Forgets everything of the previous connection (a restarted daemon has a new clock too).
     fn reset_connection(&mut self) {
         self.clock.clear();
+        self.clock_fitted = false;
         self.pings.clear();
         self.first_sent = None;
         self.last_sent = None;
@@ -226,6 +256,9 @@ struct Part {
     presented: bool,
     presented_at: Option<Duration>,
     presented_node_time_us: Option<i64>,
+    /// The present time its Swap carried, by its clock.
+    present_at_us: Option<i64>,
+    late_swap: bool,
     down: bool,
     // object space
     bytes_sent: Option<u64>,
@@ -242,6 +275,8 @@ struct Frame {
     begin: Duration,
     /// Set at the release.
     released_at: Option<Duration>,
+    /// The present time, on the controller's clock (timed swaps).
+    present_at: Option<Duration>,
     parts: BTreeMap<String, Part>,
     missing: Vec<String>,
 }
@@ -253,6 +288,11 @@ impl Frame {
 
     fn all_presented(&self) -> bool {
         self.parts.values().all(|p| p.down || !p.released || p.presented)
+    }
+
+    /// When its Presented replies are overdue: `deadline` after its present time (or release).
+    fn present_deadline(&self, deadline: Duration) -> Duration {
+        self.present_at.or(self.released_at).unwrap_or(self.begin) + deadline
     }
 }
 
@@ -274,8 +314,14 @@ pub struct FrameController {
     last_frame_id: Option<u64>,
     /// Begun, not released.
     collecting: Option<Frame>,
-    /// Released, not finished.
-    presenting: Option<Frame>,
+    /// Released, not finished, oldest first (at most [`PRESENTING`]).
+    presenting: VecDeque<Frame>,
+    /// The present times of released frames.
+    timing: SwapTiming,
+    /// The next node to ping, in turn (by name).
+    ping_cursor: Option<String>,
+    /// Dithers the pings' spacing (xorshift; a fixed seed: the machine stays deterministic).
+    ping_dither: u64,
     /// The lines the nodes' ignored messages may make the operator read.
     peer_log: PeerLog,
 }
@@ -283,6 +329,9 @@ pub struct FrameController {
 impl FrameController {
     /// Pings every up node this often by default (see [`FrameController::set_ping_interval`]).
     pub const DEFAULT_PING_INTERVAL: Duration = Duration::from_millis(500);
+
+    /// While a node's clock estimate is not a fitted line yet, pings go this many times as often.
+    pub const SETTLING_PING_SPEEDUP: u32 = 5;
 
     /// A controller for the wall's `nodes` (all down until [`FrameController::node_up`]); a frame's
     /// swap is released at the latest `deadline` after it began, and it is finished at the latest
@@ -298,7 +347,10 @@ impl FrameController {
             silence_limit: None,
             last_frame_id: None,
             collecting: None,
-            presenting: None,
+            presenting: VecDeque::new(),
+            timing: SwapTiming::new(Default::default(), None),
+            ping_cursor: None,
+            ping_dither: 0x2545_f491_4f6c_dd1d,
             peer_log: PeerLog::default(),
         }
     }
@@ -310,9 +362,19 @@ impl FrameController {
         self.collecting.as_ref().map(|f| f.id)
     }
 
-    /// The released frame still collecting Presented replies.
+    /// The oldest released frame still collecting Presented replies.
     pub fn presenting(&self) -> Option<u64> {
-        self.presenting.as_ref().map(|f| f.id)
+        self.presenting.front().map(|f| f.id)
+    }
+
+    /// The present times of released frames: the margin setting, the frame rate, the margin.
+    pub fn swap_timing(&self) -> &SwapTiming {
+        &self.timing
+    }
+
+    /// Times the swaps from the next release on (see [`crate::swap_timing`]).
+    pub fn set_swap_timing(&mut self, timing: SwapTiming) {
+        self.timing = timing;
     }
 
     /// The node's clock offset (node clock - controller clock), once a Pong has arrived on its
@@ -398,8 +460,11 @@ impl FrameController {
         let st = self.nodes.get_mut(node).expect("checked above");
         st.reset_connection();
         st.up = true;
-        if self.ping_interval.is_some() && self.next_ping_at.is_none() {
-            self.next_ping_at = Some(now + self.ping_interval.unwrap_or_default());
+        // The turns resume soon: a node just up is pinged at the settling pace.
+        if let Some(every) = self.ping_interval {
+            let n = u32::try_from(self.nodes.len().max(1)).unwrap_or(u32::MAX);
+            let soon = now + every / Self::SETTLING_PING_SPEEDUP / n;
+            self.next_ping_at = Some(self.next_ping_at.map_or(soon, |t| t.min(soon)));
         }
         out.push(self.ping_one(now, node));
         Ok(out)
@@ -417,14 +482,12 @@ impl FrameController {
         st.counters.downs += 1;
         st.reset_connection();
         let mut out = vec![ControllerOutput::NodeDown { node: node.to_string(), reason: reason.to_string() }];
-        if let Some(f) = &mut self.presenting {
+        for f in &mut self.presenting {
             if let Some(p) = f.parts.get_mut(node) {
                 p.down = true;
             }
-            if f.all_presented() {
-                self.finish(&mut out);
-            }
         }
+        self.finish_presented(&mut out);
         if let Some(f) = &mut self.collecting {
             if let Some(p) = f.parts.get_mut(node) {
                 p.down = true;
@@ -470,21 +533,36 @@ impl FrameController {
             parts.insert(name.clone(), Part::default());
             out.push(ControllerOutput::Send { node: name.clone(), message: Message::FrameState(state) });
         }
-        self.collecting =
-            Some(Frame { id, time_step: state.time_step, begin: now, released_at: None, parts, missing });
+        self.collecting = Some(Frame {
+            id,
+            time_step: state.time_step,
+            begin: now,
+            released_at: None,
+            present_at: None,
+            parts,
+            missing,
+        });
         if self.collecting.as_ref().is_some_and(Frame::all_ready) {
             self.release(now, &mut out);
         }
         Ok(out)
     }
 
-    /// Releases the collecting frame: finishes the presenting one if still there, sends Swap to
-    /// the ready nodes, reports; finishes the new one at once if nobody was ready.
+    /// Releases the collecting frame: picks its present time, sends Swap to the ready nodes (the
+    /// time in each one's clock), reports; finishes the oldest presenting frame first when
+    /// [`PRESENTING`] are, and the new one at once if nobody was ready.
     fn release(&mut self, now: Duration, out: &mut Vec<ControllerOutput>) {
         let Some(mut f) = self.collecting.take() else { return };
-        if self.presenting.is_some() {
-            self.finish(out);
+        if self.presenting.len() >= PRESENTING {
+            if let Some(oldest) = self.presenting.pop_front() {
+                self.finish(oldest, out);
+            }
         }
+        let present_at = if f.parts.values().any(|p| !p.down && p.ready_after.is_some()) {
+            self.timing.present_at(now)
+        } else {
+            None
+        };
         let (mut ready, mut stragglers) = (Vec::new(), Vec::new());
         for (name, p) in &mut f.parts {
             if p.down {
@@ -497,9 +575,11 @@ impl FrameController {
                 if st.swapped.len() > REMEMBERED {
                     st.swapped.pop_front();
                 }
+                // In the node's clock; a node whose offset is not known yet presents on arrival.
+                p.present_at_us = present_at.and_then(|t| Some(st.clock.estimate()?.to_daemon(micros(t))));
                 out.push(ControllerOutput::Send {
                     node: name.clone(),
-                    message: Message::Swap { frame_id: f.id },
+                    message: Message::Swap { frame_id: f.id, present_at_us: p.present_at_us },
                 });
                 ready.push(name.clone());
             } else {
@@ -509,17 +589,26 @@ impl FrameController {
         }
         let barrier = now.saturating_sub(f.begin);
         f.released_at = Some(now);
+        f.present_at = present_at;
         out.push(ControllerOutput::Released { frame_id: f.id, ready, stragglers, barrier });
-        self.presenting = Some(f);
-        if self.presenting.as_ref().is_some_and(Frame::all_presented) {
-            self.finish(out);
+        self.presenting.push_back(f);
+        self.finish_presented(out);
+    }
+
+    /// Finishes, oldest first, the presenting frames every released node has presented.
+    fn finish_presented(&mut self, out: &mut Vec<ControllerOutput>) {
+        while let Some(i) = self.presenting.iter().position(Frame::all_presented) {
+            // Frames before it are finished first, with what arrived: frames finish in order.
+            for f in self.presenting.drain(..=i).collect::<Vec<_>>() {
+                self.finish(f, out);
+            }
         }
     }
 
-    /// Finishes the presenting frame with what arrived.
-    fn finish(&mut self, out: &mut Vec<ControllerOutput>) {
-        let Some(f) = self.presenting.take() else { return };
+    /// Finishes a released frame with what arrived.
+    fn finish(&mut self, f: Frame, out: &mut Vec<ControllerOutput>) {
         let released_at = f.released_at.unwrap_or(f.begin);
+        let margin = f.present_at.map(|t| t.saturating_sub(released_at));
         let per_node: Vec<NodeFrameStats> = f
             .parts
             .into_iter()
@@ -529,6 +618,7 @@ impl FrameController {
                 ready_after: p.ready_after,
                 presented_at: p.presented_at,
                 presented_node_time_us: p.presented_node_time_us,
+                late_swap: p.late_swap,
                 went_down: p.down,
                 bytes_sent: p.bytes_sent,
                 composite: p.composite,
@@ -537,11 +627,18 @@ impl FrameController {
                 step_late: p.step_late,
             })
             .collect();
+        let spread = |v: Vec<i64>| -> Option<Duration> {
+            let (lo, hi) = (v.iter().min()?, v.iter().max()?);
+            Some(Duration::from_micros(u64::try_from(hi.saturating_sub(*lo)).unwrap_or(u64::MAX)))
+        };
         let times = per_node.iter().filter_map(|s| s.presented_at);
         let swap_skew = match (times.clone().min(), times.max()) {
             (Some(lo), Some(hi)) => Some(hi - lo),
             _ => None,
         };
+        let node_clock_skew = spread(per_node.iter().filter_map(|s| s.presented_node_time_us).collect());
+        let late_swaps = per_node.iter().filter(|s| s.late_swap).count();
+        self.timing.frame_done();
         out.push(ControllerOutput::FrameDone {
             frame_id: f.id,
             stats: FrameStats {
@@ -549,6 +646,10 @@ impl FrameController {
                 time_step: f.time_step,
                 per_node,
                 swap_skew,
+                node_clock_skew,
+                present_at: f.present_at,
+                margin,
+                late_swaps,
                 barrier: released_at.saturating_sub(f.begin),
                 missing: f.missing,
             },
@@ -561,8 +662,7 @@ impl FrameController {
     /// frame in flight, the present deadline of the presenting one, or the next ping.
     pub fn poll_timeout(&self) -> Option<Duration> {
         let collect = self.collecting.as_ref().map(|f| f.begin + self.deadline);
-        let present =
-            self.presenting.as_ref().map(|f| f.released_at.unwrap_or(f.begin) + self.present_deadline);
+        let present = self.presenting.iter().map(|f| f.present_deadline(self.present_deadline)).min();
         let silent = self.silence_limit.and_then(|limit| {
             self.nodes.values().filter(|n| n.up).filter_map(|n| n.waiting_since).min().map(|t| t + limit)
         });
@@ -590,10 +690,9 @@ impl FrameController {
                 out.extend(self.node_down(now, &node, &reason));
             }
         }
-        if let Some(f) = &self.presenting {
-            if now >= f.released_at.unwrap_or(f.begin) + self.present_deadline {
-                self.finish(&mut out);
-            }
+        while self.presenting.front().is_some_and(|f| now >= f.present_deadline(self.present_deadline)) {
+            let f = self.presenting.pop_front().expect("checked");
+            self.finish(f, &mut out);
         }
         if let Some(f) = &self.collecting {
             if now >= f.begin + self.deadline {
@@ -602,11 +701,31 @@ impl FrameController {
         }
         if let (Some(at), Some(every)) = (self.next_ping_at, self.ping_interval) {
             if now >= at {
-                out.extend(self.ping(now));
-                // The next ping at the next multiple of the interval after now.
-                let mut next = at + every;
+                // One node, the next in turn: each up node once an interval, spread over it.
+                let up = self.up_nodes();
+                let next = self
+                    .ping_cursor
+                    .as_ref()
+                    .and_then(|c| up.iter().find(|n| *n > c))
+                    .or(up.first())
+                    .cloned();
+                if let Some(node) = next {
+                    out.push(self.ping_one(now, &node));
+                    self.ping_cursor = Some(node);
+                }
+                // Spaced a random 0.5 to 1.5 slots apart: a ping interval that is a multiple of
+                // the frame period would otherwise meet every frame's bursts at the same phase.
+                self.ping_dither ^= self.ping_dither << 13;
+                self.ping_dither ^= self.ping_dither >> 7;
+                self.ping_dither ^= self.ping_dither << 17;
+                // Five times as often while a node's clock is not fitted yet (a node just up).
+                let settling = self.nodes.values().any(|n| n.up && !n.clock_fitted);
+                let every = if settling { every / Self::SETTLING_PING_SPEEDUP } else { every };
+                let slot = every / u32::try_from(up.len().max(1)).unwrap_or(u32::MAX);
+                let slot = slot.mul_f64(0.5 + (self.ping_dither >> 11) as f64 / (1u64 << 53) as f64);
+                let mut next = at + slot;
                 if next <= now {
-                    next = now + every;
+                    next = now + slot;
                 }
                 self.next_ping_at = Some(next);
             }
@@ -725,8 +844,8 @@ impl FrameController {
                 }])
             }
             Message::Ready { frame_id, render_us } => self.handle_ready(now, node, frame_id, render_us),
-            Message::Presented { frame_id, node_time_us } => {
-                self.handle_presented(now, node, frame_id, node_time_us)
+            Message::Presented { frame_id, node_time_us, waiting_from_us } => {
+                self.handle_presented(now, node, frame_id, node_time_us, waiting_from_us)
             }
             Message::Pong { id, t0_us, t1_us, resident_bytes } => {
                 self.handle_pong(now, node, id, t0_us, t1_us, resident_bytes)
@@ -875,6 +994,7 @@ impl FrameController {
         node: &str,
         id: u64,
         node_time_us: i64,
+        waiting_from_us: i64,
     ) -> Result<Vec<ControllerOutput>, ProtocolError> {
         let st = self.nodes.get_mut(node).expect("checked");
         let Some(pos) = st.swapped.iter().position(|&s| s == id) else {
@@ -889,18 +1009,26 @@ impl FrameController {
         st.swapped.drain(..=pos);
         let offset = st.clock.estimate();
         let mut out = Vec::new();
-        let frame = self.presenting.as_mut().filter(|f| f.id == id);
+        let frame = self.presenting.iter_mut().find(|f| f.id == id);
         let swapped_at = frame.as_ref().map(|f| f.released_at.unwrap_or(f.begin));
         let part = frame.and_then(|f| f.parts.get_mut(node));
         match part {
             Some(p) if p.released && !p.down && !p.presented => {
                 p.presented = true;
                 // Between the Swap sent and this Presented received, through the offset.
-                let checked = offset.map(|o| {
-                    o.check_between(node_time_us, micros(swapped_at.unwrap_or_default()), micros(now))
-                });
-                if let Some(Err(why)) = &checked {
-                    let what = format!("Presented time {node_time_us} us for frame {id} refused: {why}");
+                let between = |us: i64| {
+                    offset.map(|o| o.check_between(us, micros(swapped_at.unwrap_or_default()), micros(now)))
+                };
+                let checked = between(node_time_us);
+                let waited = between(waiting_from_us);
+                let refused = match (&checked, &waited) {
+                    (Some(Err(why)), _) => Some(format!("Presented time {node_time_us} us for frame {id} refused: {why}")),
+                    (_, Some(Err(why))) => {
+                        Some(format!("Presented waiting time {waiting_from_us} us for frame {id} refused: {why}"))
+                    }
+                    _ => None,
+                };
+                if let Some(what) = refused {
                     self.nodes.get_mut(node).expect("checked").counters.refused_times += 1;
                     out.extend(self.ignore_line(now, node, what));
                 } else {
@@ -909,10 +1037,17 @@ impl FrameController {
                         .and_then(Result::ok)
                         .and_then(|us| u64::try_from(us).ok())
                         .map(Duration::from_micros);
+                    p.late_swap = p.present_at_us.is_some_and(|t| waiting_from_us > t);
+                    // What the margin has to cover: from the release to the node ready to wait.
+                    if let (Some(Ok(ready)), Some(released)) = (waited, swapped_at) {
+                        let ready = Duration::from_micros(u64::try_from(ready).unwrap_or(0));
+                        self.timing.observe(ready.saturating_sub(released));
+                    }
+                    if p.late_swap {
+                        self.nodes.get_mut(node).expect("checked").counters.late_swaps += 1;
+                    }
                 }
-                if self.presenting.as_ref().is_some_and(Frame::all_presented) {
-                    self.finish(&mut out);
-                }
+                self.finish_presented(&mut out);
             }
             _ => st.counters.late_presented += 1,
         }
@@ -947,6 +1082,7 @@ impl FrameController {
             return Ok(self.ignore_line(now, node, format!("Pong for Ping {id} refused: {why}")));
         }
         st.counters.pongs += 1;
+        st.clock_fitted = st.clock.estimate().is_some_and(|e| e.is_fitted());
         // 0: the node's OS does not say.
         st.resident_bytes = (resident_bytes > 0).then_some(resident_bytes);
         Ok(Vec::new())
@@ -1092,8 +1228,8 @@ mod tests {
         assert_eq!(c.in_flight(), None);
         assert_eq!(c.presenting(), Some(1));
         // No clock offsets known (no Pong yet): presented_at stays None.
-        c.handle(ms(125), "a", Message::Presented { frame_id: 1, node_time_us: 5 }).unwrap();
-        let out = c.handle(ms(126), "b", Message::Presented { frame_id: 1, node_time_us: 6 }).unwrap();
+        c.handle(ms(125), "a", Message::Presented { frame_id: 1, node_time_us: 5, waiting_from_us: 5 }).unwrap();
+        let out = c.handle(ms(126), "b", Message::Presented { frame_id: 1, node_time_us: 6, waiting_from_us: 6 }).unwrap();
         let ControllerOutput::FrameDone { frame_id: 1, stats } = &out[0] else { panic!("{out:?}") };
         assert_eq!(stats.barrier, ms(20));
         assert_eq!(stats.swap_skew, None);
@@ -1137,8 +1273,8 @@ mod tests {
         let never = Message::StepLate { frame_id: 9, shown_step: 0, waited_us: 0 };
         c.handle(ms(4), "b", never).unwrap();
         assert_eq!((c.counters("a").unwrap().ignored, c.counters("b").unwrap().ignored), (2, 1));
-        c.handle(ms(5), "a", Message::Presented { frame_id: 1, node_time_us: 0 }).unwrap();
-        let out = c.handle(ms(5), "b", Message::Presented { frame_id: 1, node_time_us: 0 }).unwrap();
+        c.handle(ms(5), "a", Message::Presented { frame_id: 1, node_time_us: 0, waiting_from_us: 0 }).unwrap();
+        let out = c.handle(ms(5), "b", Message::Presented { frame_id: 1, node_time_us: 0, waiting_from_us: 0 }).unwrap();
         let ControllerOutput::FrameDone { stats, .. } = &out[0] else { panic!("{out:?}") };
         assert_eq!(stats.time_step, 6);
         assert_eq!(stats.per_node[0].step_late, Some(told));
@@ -1162,8 +1298,8 @@ mod tests {
         c.handle(ms(7), "b", Message::Ready { frame_id: 1, render_us: 0 }).unwrap();
         // After its Ready, or for a frame never sent, Composited breaks the protocol.
         assert!(c.handle(ms(8), "a", comp(1)).is_err());
-        c.handle(ms(9), "a", Message::Presented { frame_id: 1, node_time_us: 0 }).unwrap();
-        let out = c.handle(ms(9), "b", Message::Presented { frame_id: 1, node_time_us: 0 }).unwrap();
+        c.handle(ms(9), "a", Message::Presented { frame_id: 1, node_time_us: 0, waiting_from_us: 0 }).unwrap();
+        let out = c.handle(ms(9), "b", Message::Presented { frame_id: 1, node_time_us: 0, waiting_from_us: 0 }).unwrap();
         let ControllerOutput::FrameDone { stats, .. } = &out[0] else { panic!("{out:?}") };
         assert_eq!(stats.per_node[0].bytes_sent, Some(1234));
         assert_eq!(stats.per_node[0].composite, Some(Duration::from_micros(2500)));
@@ -1193,7 +1329,7 @@ mod tests {
                 c.handle(ms(id * 100 + 6), n, Message::Ready { frame_id: id, render_us: 0 }).unwrap();
             }
             for n in ["a", "b", "c"] {
-                c.handle(ms(id * 100 + 7), n, Message::Presented { frame_id: id, node_time_us: 0 }).unwrap();
+                c.handle(ms(id * 100 + 7), n, Message::Presented { frame_id: id, node_time_us: 0, waiting_from_us: 0 }).unwrap();
             }
         }
         assert_eq!(
@@ -1228,7 +1364,7 @@ mod tests {
         // The next frame may begin while frame 1 still waits for Presented.
         c.begin_frame(ms(62), state(2)).unwrap();
         assert_eq!(c.presenting(), Some(1));
-        let out = c.handle(ms(63), "a", Message::Presented { frame_id: 1, node_time_us: 0 }).unwrap();
+        let out = c.handle(ms(63), "a", Message::Presented { frame_id: 1, node_time_us: 0, waiting_from_us: 0 }).unwrap();
         assert!(matches!(&out[0], ControllerOutput::FrameDone { frame_id: 1, .. }));
     }
 
@@ -1250,10 +1386,19 @@ mod tests {
         assert_eq!(released(&out).unwrap().0, vec!["a".to_string()]);
         let out = c.begin_frame(ms(40), state(3)).unwrap();
         assert_eq!(sends(&out).len(), 2);
-        // Presented from frame 2 still finishes it; frame 1's stats were finished at frame 2's release.
-        let out = c.handle(ms(41), "a", Message::Presented { frame_id: 2, node_time_us: 0 }).unwrap();
-        let ControllerOutput::FrameDone { stats, .. } = &out[0] else { panic!() };
-        assert_eq!(stats.missing, vec!["b".to_string()]);
+        // Presented from frame 2 finishes it, and frame 1 before it (frames finish in order),
+        // with what arrived: nothing from `a` for frame 1.
+        let out = c.handle(ms(41), "a", Message::Presented { frame_id: 2, node_time_us: 0, waiting_from_us: 0 }).unwrap();
+        let done: Vec<&FrameStats> = out
+            .iter()
+            .filter_map(|o| match o {
+                ControllerOutput::FrameDone { stats, .. } => Some(stats),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(done.iter().map(|s| s.frame_id).collect::<Vec<_>>(), vec![1, 2]);
+        assert_eq!(done[0].per_node[0].presented_node_time_us, None);
+        assert_eq!(done[1].missing, vec!["b".to_string()]);
     }
 
     #[test]
@@ -1277,7 +1422,7 @@ mod tests {
         c.begin_frame(ms(0), state(1)).unwrap();
         let cases: Vec<(&str, Message, &str)> = vec![
             ("a", Message::Ready { frame_id: 2, render_us: 0 }, "never sent"),
-            ("a", Message::Swap { frame_id: 1 }, "only the controller"),
+            ("a", Message::Swap { frame_id: 1, present_at_us: None }, "only the controller"),
             ("a", Message::FrameState(state(1)), "only the controller"),
             (
                 "a",
@@ -1316,7 +1461,7 @@ mod tests {
         c.begin_frame(ms(0), state(1)).unwrap();
         let evil = "\u{1b}[2J\u{1b}[31mowned\r\nisowall: frame 9: all good";
         let cases: Vec<(Message, &str)> = vec![
-            (Message::Presented { frame_id: 1, node_time_us: 0 }, "before (or without) its Swap"),
+            (Message::Presented { frame_id: 1, node_time_us: 0, waiting_from_us: 0 }, "before (or without) its Swap"),
             (Message::Pong { id: 99, t0_us: 0, t1_us: 0, resident_bytes: 0 }, "not sent to it"),
             (Message::BrickFailed { brick: 3, reason: evil.into() }, "not asked to load"),
             (Message::BrickLoaded { brick: 3, load_us: 1, resident_bytes: 1 }, "not asked to load"),
@@ -1401,7 +1546,7 @@ mod tests {
                 }
             }
             c.handle(t, "a", Message::Ready { frame_id: id, render_us: 0 }).unwrap();
-            c.handle(t, "a", Message::Presented { frame_id: id, node_time_us: 0 }).unwrap();
+            c.handle(t, "a", Message::Presented { frame_id: id, node_time_us: 0, waiting_from_us: 0 }).unwrap();
         }
         assert_eq!(kept, 1_000, "every one reaches its frame");
         // Windows start at 10 ms and 10,010 ms: 5 lines in the first, 1 in the second (at 10 s).
@@ -1444,10 +1589,10 @@ mod tests {
             let present_us = (t as i64 + 10) * 1_000 + 10_000;
             let a_time = if id == 2 { present_us + days_46 } else { present_us };
             let out =
-                c.handle(ms(t + 12), "a", Message::Presented { frame_id: id, node_time_us: a_time }).unwrap();
+                c.handle(ms(t + 12), "a", Message::Presented { frame_id: id, node_time_us: a_time, waiting_from_us: a_time }).unwrap();
             assert_eq!(ignored(&out).len(), usize::from(id == 2), "{out:?}");
             let out = c
-                .handle(ms(t + 12), "b", Message::Presented { frame_id: id, node_time_us: present_us + 400 })
+                .handle(ms(t + 12), "b", Message::Presented { frame_id: id, node_time_us: present_us + 400, waiting_from_us: present_us + 400 })
                 .unwrap();
             let Some(ControllerOutput::FrameDone { stats, .. }) = out.last() else { panic!("{out:?}") };
             if id == 2 {
@@ -1462,7 +1607,7 @@ mod tests {
         c.begin_frame(ms(1_000), state(4)).unwrap();
         c.handle(ms(1_005), "a", Message::Ready { frame_id: 4, render_us: 0 }).unwrap();
         c.handle(ms(1_005), "b", Message::Ready { frame_id: 4, render_us: 0 }).unwrap();
-        let out = c.handle(ms(1_010), "a", Message::Presented { frame_id: 4, node_time_us: 10_000 }).unwrap();
+        let out = c.handle(ms(1_010), "a", Message::Presented { frame_id: 4, node_time_us: 10_000, waiting_from_us: 10_000 }).unwrap();
         assert!(ignored(&out)[0].contains("before the earliest"), "{out:?}");
         assert_eq!(c.counters("a").unwrap().refused_times, 3);
         assert_eq!(c.counters("b").unwrap().refused_times, 0);
@@ -1491,9 +1636,9 @@ mod tests {
         c.handle(ms(110), "a", Message::Ready { frame_id: 1, render_us: 0 }).unwrap();
         c.handle(ms(110), "b", Message::Ready { frame_id: 1, render_us: 0 }).unwrap();
         // Both present at controller time 111 ms and 111.4 ms.
-        c.handle(ms(112), "a", Message::Presented { frame_id: 1, node_time_us: 111_000 + 50_000 }).unwrap();
+        c.handle(ms(112), "a", Message::Presented { frame_id: 1, node_time_us: 111_000 + 50_000, waiting_from_us: 111_000 + 50_000 }).unwrap();
         let out = c
-            .handle(ms(112), "b", Message::Presented { frame_id: 1, node_time_us: 111_400 - 30_000 })
+            .handle(ms(112), "b", Message::Presented { frame_id: 1, node_time_us: 111_400 - 30_000, waiting_from_us: 111_400 - 30_000 })
             .unwrap();
         let ControllerOutput::FrameDone { stats, .. } = &out[0] else { panic!() };
         assert_eq!(stats.per_node[0].presented_at, Some(ms(111)));
@@ -1501,14 +1646,46 @@ mod tests {
     }
 
     #[test]
-    fn pings_are_scheduled_by_the_timer() {
+    fn pings_go_one_node_at_a_time_in_turn_faster_until_the_clocks_are_fitted() {
         let mut c = FrameController::new(vec!["a".into()], ms(50));
         assert_eq!(c.poll_timeout(), None);
+        let names = ["a", "b", "c", "d"];
+        let mut c2 = FrameController::new(names.iter().map(|n| n.to_string()).collect(), ms(50));
         c.node_up(ms(0), "a").unwrap();
-        assert_eq!(c.poll_timeout(), Some(FrameController::DEFAULT_PING_INTERVAL));
-        let out = c.handle_timeout(ms(500));
-        assert_eq!(sends(&out), vec![("a".into(), "Ping")]);
-        assert_eq!(c.poll_timeout(), Some(ms(1000)));
+        assert_eq!(c.poll_timeout(), Some(FrameController::DEFAULT_PING_INTERVAL / 5));
+        // Four nodes answering every Ping 50 us later, for 20 s.
+        let mut pings: Vec<(Duration, String)> = Vec::new();
+        let mut fitted_at = None;
+        for n in names {
+            c2.node_up(ms(0), n).unwrap();
+        }
+        let mut now = ms(0);
+        while now < ms(20_000) {
+            now = c2.poll_timeout().unwrap();
+            for o in c2.handle_timeout(now) {
+                if let ControllerOutput::Send { node, message: Message::Ping { id, t0_us } } = o {
+                    pings.push((now, node.clone()));
+                    let pong = Message::Pong { id, t0_us, t1_us: t0_us + 50, resident_bytes: 0 };
+                    c2.handle(now + Duration::from_micros(100), &node, pong).unwrap();
+                }
+            }
+            if fitted_at.is_none() && names.iter().all(|n| c2.clock_offset(n).is_some_and(|e| e.is_fitted())) {
+                fitted_at = Some(now);
+            }
+        }
+        // Never two at once; in turn: a b c d a b ...
+        assert!(pings.windows(2).all(|w| w[0].0 < w[1].0));
+        for (i, (_, n)) in pings.iter().enumerate() {
+            assert_eq!(n, names[i % 4], "ping {i}");
+        }
+        // Until every clock is fitted (three samples over a second), five times as often.
+        let fitted_at = fitted_at.expect("the clocks are fitted");
+        assert!(fitted_at <= ms(1_300), "fitted at {fitted_at:?}");
+        let early = pings.iter().filter(|(t, _)| *t < fitted_at).count() as f64;
+        let late = pings.iter().filter(|(t, _)| *t >= ms(10_000)).count() as f64;
+        let (early_rate, late_rate) = (early / fitted_at.as_secs_f64(), late / 10.0);
+        assert!((late_rate - 8.0).abs() < 1.0, "settled: {late_rate} pings a second (4 nodes every 500 ms)");
+        assert!(early_rate > 3.0 * late_rate, "settling: {early_rate} pings a second");
     }
 
     /// Plays the wall on a virtual clock: every `step` ms, timers fire; node `a` answers every

@@ -50,6 +50,7 @@ pub mod peer_log;
 pub mod render_state;
 pub mod seat;
 pub mod sim;
+pub mod swap_timing;
 pub mod wire;
 
 pub use camera::{Camera, CameraError, Rect, View};

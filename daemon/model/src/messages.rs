@@ -12,8 +12,8 @@
 //!                                                  was not loaded when the frame came)
 //!     <---------------------------------------- Ready { n, render_us }
 //!     (all up nodes ready, or the deadline)
-//!     Swap(n) ----------------------------------> presents
-//!     <---------------------------------------- Presented { n, node_time_us }
+//!     Swap { n, present_at } -------------------> presents at that time of its clock
+//!     <---------------------------------------- Presented { n, node_time_us, waiting_from_us }
 //!     Ping { id, t0 } --------------------------> (now and then: clock offsets)
 //!     <---------------------------------------- Pong { id, t0, t1, resident_bytes }
 //!     SnapshotRequest / ThumbnailRequest { divisor } ---> (whenever asked)
@@ -31,7 +31,10 @@ use serde::{Deserialize, Serialize};
 use crate::wire::FrameState;
 
 /// The protocol version of this build; a peer's [`Message::Hello`] must carry the same.
-pub const PROTOCOL_VERSION: u16 = 7;
+pub const PROTOCOL_VERSION: u16 = 8;
+
+/// The furthest ahead a Swap's present time may be: a node never waits longer for one.
+pub const MAX_SWAP_WAIT: std::time::Duration = std::time::Duration::from_secs(1);
 
 /// Which side of a connection a peer is.
 #[derive(Serialize, Deserialize, Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -143,10 +146,14 @@ pub enum Message {
     FrameState(FrameState),
     /// Daemon -> controller: rendered, waiting for the swap.
     Ready { frame_id: u64, render_us: u64 },
-    /// Controller -> daemon: present now.
-    Swap { frame_id: u64 },
-    /// Daemon -> controller: presented at `node_time_us` of the daemon's own clock.
-    Presented { frame_id: u64, node_time_us: i64 },
+    /// Controller -> daemon: present the rendered frame at `present_at_us` of the daemon's own
+    /// clock (the timed swap, [`crate::swap_timing`]); at once when `None`, or when that time
+    /// has passed (a late swap). A time more than [`MAX_SWAP_WAIT`] ahead is a protocol error.
+    Swap { frame_id: u64, present_at_us: Option<i64> },
+    /// Daemon -> controller: presented at `node_time_us` of the daemon's own clock; its
+    /// presenting thread was ready to wait for the present time at `waiting_from_us` (after the
+    /// present time: the swap was late).
+    Presented { frame_id: u64, node_time_us: i64, waiting_from_us: i64 },
     /// Controller -> daemon: clock sync; `t0_us` is the controller's clock at sending.
     Ping { id: u64, t0_us: i64 },
     /// Daemon -> controller: `t1_us` is the daemon's clock when the Ping arrived;
@@ -334,7 +341,7 @@ mod tests {
         let m = Message::Ready { frame_id: 3, render_us: 10 };
         assert_eq!(m.kind(), "Ready");
         assert_eq!(m.sender(), Some(Role::Daemon));
-        assert_eq!(Message::Swap { frame_id: 1 }.sender(), Some(Role::Controller));
+        assert_eq!(Message::Swap { frame_id: 1, present_at_us: None }.sender(), Some(Role::Controller));
         assert_eq!(Message::Bye { reason: String::new() }.sender(), None);
     }
 

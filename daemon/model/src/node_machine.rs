@@ -8,8 +8,11 @@
 //!   [`NodeMachine::render_done`], which sends Ready. `accumulate_frame` counts frames with the
 //!   same image (only the frame id changed): 0 after any change, then 1, 2, ... so progressive AO
 //!   can use `settings.ao.frame + accumulate_frame` as its decorrelation index and average in.
-//! - `Present { frame_id }`: the Swap came: present that frame now, then call
-//!   [`NodeMachine::presented`] with the time it was shown, which sends Presented.
+//! - `Present { frame_id, at }`: the Swap came: present that frame at `at` of the daemon's clock
+//!   (at once when `None` or past; asleep until shortly before it, then a precise wait, on the
+//!   thread that presents), then call [`NodeMachine::presented`] with the time it was shown and
+//!   the time that thread was ready to wait, which sends Presented (and says whether the swap was
+//!   late: `LateSwap`, for the node's log).
 //! - `Send(message)`: send it to the controller.
 //! - `SnapshotWanted`: send `Message::Snapshot` with the tiles' last presented frames.
 //! - `ThumbnailWanted { divisor }`: the same, each tile downscaled by `divisor`.
@@ -23,7 +26,7 @@ use std::collections::VecDeque;
 use std::time::Duration;
 
 use crate::codec::check_hello;
-use crate::messages::{Message, ProtocolError, Role, MAX_THUMBNAIL_DIVISOR, PROTOCOL_VERSION};
+use crate::messages::{Message, ProtocolError, Role, MAX_SWAP_WAIT, MAX_THUMBNAIL_DIVISOR, PROTOCOL_VERSION};
 use crate::wire::{FrameSpec, FrameState};
 
 /// What the daemon's caller must do, in order.
@@ -33,8 +36,12 @@ pub enum NodeOutput {
     Render { state: FrameState, accumulate_frame: u32 },
     /// Send this to the controller.
     Send(Message),
-    /// Present this rendered frame now, then call [`NodeMachine::presented`].
-    Present { frame_id: u64 },
+    /// Present this rendered frame at `at` of the daemon's clock (`None`: now), then call
+    /// [`NodeMachine::presented`].
+    Present { frame_id: u64, at: Option<Duration> },
+    /// The Swap of `frame_id` came `late_by` after its present time: it was presented at once
+    /// (counted in [`NodeMachineCounters::late_swaps`]; the caller logs it).
+    LateSwap { frame_id: u64, late_by: Duration },
     /// Answer with `Message::Snapshot` of the tiles' last presented frames.
     SnapshotWanted,
     /// Answer with `Message::Snapshot` of them downscaled by `divisor` (`TileImage::downscaled`).
@@ -58,6 +65,8 @@ pub struct NodeMachineCounters {
     pub skipped: u64,
     /// Rendered frames dropped because a newer frame came before their Swap.
     pub dropped: u64,
+    /// Swaps whose present time had passed when the presenting thread took them up.
+    pub late_swaps: u64,
 }
 
 /// The daemon's frame machine (see the module docs).
@@ -73,8 +82,8 @@ pub struct NodeMachine {
     queued: Option<FrameState>,
     /// Rendered, Ready sent, waiting for Swap.
     rendered: Option<u64>,
-    /// Present told, `presented` not yet called.
-    presenting: VecDeque<u64>,
+    /// Present told, `presented` not yet called: (frame, present time).
+    presenting: VecDeque<(u64, Option<Duration>)>,
     /// The last frame state started, for `accumulate_frame`.
     last_started: Option<FrameState>,
     accumulate: u32,
@@ -208,7 +217,7 @@ impl NodeMachine {
                 }
                 Ok(vec![self.start(state)])
             }
-            Message::Swap { frame_id } => {
+            Message::Swap { frame_id, present_at_us } => {
                 if self.rendered != Some(frame_id) {
                     let what = match (self.rendering, self.rendered) {
                         (Some(r), _) if r == frame_id => "it is still rendering".to_string(),
@@ -217,9 +226,18 @@ impl NodeMachine {
                     };
                     return err(format!("Swap for frame {frame_id}, which is not rendered: {what}"));
                 }
+                let at = present_at_us.map(|t| Duration::from_micros(u64::try_from(t).unwrap_or(0)));
+                if let Some(t) = at.filter(|&t| t > now + MAX_SWAP_WAIT) {
+                    return err(format!(
+                        "Swap for frame {frame_id} at {} us of this node's clock, {} ms ahead: more than {} ms",
+                        micros(t),
+                        t.saturating_sub(now).as_millis(),
+                        MAX_SWAP_WAIT.as_millis()
+                    ));
+                }
                 self.rendered = None;
-                self.presenting.push_back(frame_id);
-                Ok(vec![NodeOutput::Present { frame_id }])
+                self.presenting.push_back((frame_id, at));
+                Ok(vec![NodeOutput::Present { frame_id, at }])
             }
             Message::Ping { id, t0_us } => Ok(vec![NodeOutput::Send(Message::Pong {
                 id,
@@ -265,16 +283,29 @@ impl NodeMachine {
         out
     }
 
-    /// `frame_id` was shown at `now` (the daemon's clock, e.g. the vsync it went out on): sends
-    /// Presented. Ignored for a frame it was not told to present.
-    pub fn presented(&mut self, now: Duration, frame_id: u64) -> Vec<NodeOutput> {
-        let Some(pos) = self.presenting.iter().position(|&f| f == frame_id) else {
+    /// `frame_id` was shown at `now` (the daemon's clock, e.g. the vsync it went out on); the
+    /// presenting thread was ready to wait for its present time at `waiting_from`: sends
+    /// Presented, and `LateSwap` first when that was after the present time. Ignored for a frame
+    /// it was not told to present.
+    pub fn presented(&mut self, now: Duration, frame_id: u64, waiting_from: Duration) -> Vec<NodeOutput> {
+        let Some(pos) = self.presenting.iter().position(|&(f, _)| f == frame_id) else {
             return Vec::new();
         };
+        let (_, at) = self.presenting[pos];
         self.presenting.drain(..=pos);
         self.last_presented = Some(frame_id);
         self.counters.presented += 1;
-        vec![NodeOutput::Send(Message::Presented { frame_id, node_time_us: micros(now) })]
+        let mut out = Vec::new();
+        if let Some(at) = at.filter(|&at| waiting_from > at) {
+            self.counters.late_swaps += 1;
+            out.push(NodeOutput::LateSwap { frame_id, late_by: waiting_from - at });
+        }
+        out.push(NodeOutput::Send(Message::Presented {
+            frame_id,
+            node_time_us: micros(now),
+            waiting_from_us: micros(waiting_from),
+        }));
+        out
     }
 }
 
@@ -322,19 +353,57 @@ mod tests {
             let out = m.render_done(ms(id * 20 + 5), id, ms(5));
             assert_eq!(out, vec![NodeOutput::Send(Message::Ready { frame_id: id, render_us: 5000 })]);
             assert_eq!(m.waiting_for_swap(), Some(id));
-            let out = m.handle(ms(id * 20 + 6), Message::Swap { frame_id: id }).unwrap();
-            assert_eq!(out, vec![NodeOutput::Present { frame_id: id }]);
-            let out = m.presented(ms(id * 20 + 7), id);
+            let out = m.handle(ms(id * 20 + 6), Message::Swap { frame_id: id, present_at_us: None }).unwrap();
+            assert_eq!(out, vec![NodeOutput::Present { frame_id: id, at: None }]);
+            let out = m.presented(ms(id * 20 + 7), id, ms(id * 20 + 6));
             assert_eq!(
                 out,
                 vec![NodeOutput::Send(Message::Presented {
                     frame_id: id,
-                    node_time_us: (id as i64 * 20 + 7) * 1000
+                    node_time_us: (id as i64 * 20 + 7) * 1000,
+                    waiting_from_us: (id as i64 * 20 + 6) * 1000,
                 })]
             );
         }
         assert_eq!(acc, vec![0, 1, 2, 0, 1]);
         assert_eq!(m.last_presented(), Some(5));
+    }
+
+    #[test]
+    fn a_timed_swap_presents_at_its_time_and_one_come_after_it_is_late() {
+        let mut m = machine();
+        for (id, swap_at, present_at, waiting_from, late) in
+            [(1u64, 25u64, 30u64, 26u64, false), (2, 51, 50, 52, true)]
+        {
+            m.handle(ms(id * 20), Message::FrameState(state(id, -5.0))).unwrap();
+            m.render_done(ms(id * 20 + 2), id, ms(2));
+            let t = Some(present_at as i64 * 1000);
+            let out = m.handle(ms(swap_at), Message::Swap { frame_id: id, present_at_us: t }).unwrap();
+            assert_eq!(out, vec![NodeOutput::Present { frame_id: id, at: Some(ms(present_at)) }]);
+            let shown = ms(present_at.max(waiting_from));
+            let out = m.presented(shown, id, ms(waiting_from));
+            let sent = NodeOutput::Send(Message::Presented {
+                frame_id: id,
+                node_time_us: micros(shown),
+                waiting_from_us: micros(ms(waiting_from)),
+            });
+            if late {
+                let late_by = ms(waiting_from - present_at);
+                assert_eq!(out, vec![NodeOutput::LateSwap { frame_id: id, late_by }, sent]);
+            } else {
+                assert_eq!(out, vec![sent]);
+            }
+        }
+        assert_eq!(m.counters().late_swaps, 1);
+        // A present time more than a second ahead is refused: the node never waits that long.
+        m.handle(ms(100), Message::FrameState(state(3, -5.0))).unwrap();
+        m.render_done(ms(101), 3, ms(1));
+        let far = Some(micros(ms(102) + MAX_SWAP_WAIT) + 1);
+        let e = m.handle(ms(102), Message::Swap { frame_id: 3, present_at_us: far }).unwrap_err();
+        assert!(e.problem.contains("ms ahead: more than 1000 ms"), "{e}");
+        // One in the past (or before the clock's zero) is presented at once.
+        let out = m.handle(ms(102), Message::Swap { frame_id: 3, present_at_us: Some(-5) }).unwrap();
+        assert_eq!(out, vec![NodeOutput::Present { frame_id: 3, at: Some(Duration::ZERO) }]);
     }
 
     #[test]
@@ -356,7 +425,7 @@ mod tests {
         assert_eq!(m.counters().dropped, 2);
         // Completions of frames not rendering are ignored.
         assert!(m.render_done(ms(6), 3, ms(1)).is_empty());
-        assert!(m.presented(ms(6), 3).is_empty());
+        assert!(m.presented(ms(6), 3, ms(6)).is_empty());
     }
 
     #[test]
@@ -393,7 +462,7 @@ mod tests {
     fn violations_are_protocol_errors_naming_the_message() {
         // Before Hello.
         let mut m = NodeMachine::new("n1", vec![]);
-        let e = m.handle(ms(0), Message::Swap { frame_id: 1 }).unwrap_err();
+        let e = m.handle(ms(0), Message::Swap { frame_id: 1, present_at_us: None }).unwrap_err();
         assert_eq!((e.peer.as_str(), e.message), ("controller", "Swap"));
         assert!(e.problem.contains("must be Hello"), "{e}");
         let e = m
@@ -407,10 +476,10 @@ mod tests {
         assert!(e.problem.contains("expected a controller"), "{e}");
 
         let mut m = machine();
-        let e = m.handle(ms(0), Message::Swap { frame_id: 1 }).unwrap_err();
+        let e = m.handle(ms(0), Message::Swap { frame_id: 1, present_at_us: None }).unwrap_err();
         assert!(e.problem.contains("Swap for frame 1, which is not rendered: no frame is rendered"), "{e}");
         m.handle(ms(0), Message::FrameState(state(5, -5.0))).unwrap();
-        let e = m.handle(ms(0), Message::Swap { frame_id: 5 }).unwrap_err();
+        let e = m.handle(ms(0), Message::Swap { frame_id: 5, present_at_us: None }).unwrap_err();
         assert!(e.problem.contains("still rendering"), "{e}");
         let e = m.handle(ms(0), Message::FrameState(state(5, -5.0))).unwrap_err();
         assert!(e.problem.contains("does not follow frame 5"), "{e}");

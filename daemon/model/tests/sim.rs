@@ -17,6 +17,7 @@ use isowall_model::frame_controller::{ControllerOutput, FrameController, FrameSt
 use isowall_model::messages::{Message, ProtocolError, Role, TileImage};
 use isowall_model::node_machine::{NodeMachine, NodeOutput};
 use isowall_model::render_state::RenderSettings;
+use isowall_model::swap_timing::{MarginSetting, SwapTiming};
 use isowall_model::wire::FrameState;
 use isowall_model::Camera;
 
@@ -78,7 +79,7 @@ enum Ev {
     ToNode { node: usize, conn: u64, bytes: Vec<u8> },
     ToCtrl { node: usize, conn: u64, bytes: Vec<u8> },
     RenderDone { node: usize, conn: u64, frame_id: u64, took: Duration },
-    Shown { node: usize, conn: u64, frame_id: u64 },
+    Shown { node: usize, conn: u64, frame_id: u64, waiting_from: Duration },
     Connect { node: usize },
 }
 
@@ -196,7 +197,11 @@ impl Sim {
     }
 
     fn node_clock(&self, i: usize) -> Duration {
-        Duration::from_micros((us(self.now) + self.nodes[i].cfg.clock_offset_us) as u64)
+        self.clock_at(i, self.now)
+    }
+
+    fn clock_at(&self, i: usize, t: Duration) -> Duration {
+        Duration::from_micros((us(t) + self.nodes[i].cfg.clock_offset_us) as u64)
     }
 
     // ---- links ----
@@ -329,16 +334,25 @@ impl Sim {
                     );
                 }
                 NodeOutput::Send(m) => self.send_up(i, &m),
-                NodeOutput::Present { frame_id } => {
-                    let at = match self.nodes[i].cfg.present {
-                        PresentModel::After(d) => self.now + d,
+                NodeOutput::Present { frame_id, at } => {
+                    // The present time in true time (node clock - offset), if the Swap has one.
+                    let offset = self.nodes[i].cfg.clock_offset_us;
+                    let target = at.map(|t| Duration::from_micros((us(t) - offset).max(0) as u64));
+                    let (ready, shown) = match self.nodes[i].cfg.present {
+                        PresentModel::After(d) => {
+                            let ready = self.now + d;
+                            (ready, target.map_or(ready, |t| t.max(ready)))
+                        }
                         PresentModel::Vsync(p) => {
-                            let k = self.now.as_nanos() / p.as_nanos() + 1;
-                            Duration::from_nanos((k * p.as_nanos()) as u64)
+                            let from = target.map_or(self.now, |t| t.max(self.now));
+                            let k = from.as_nanos() / p.as_nanos() + 1;
+                            (self.now, Duration::from_nanos((k * p.as_nanos()) as u64))
                         }
                     };
-                    self.schedule(at, Ev::Shown { node: i, conn, frame_id });
+                    let waiting_from = self.clock_at(i, ready);
+                    self.schedule(shown, Ev::Shown { node: i, conn, frame_id, waiting_from });
                 }
+                NodeOutput::LateSwap { .. } => {}
                 NodeOutput::SnapshotWanted | NodeOutput::ThumbnailWanted { .. } => {
                     let tiles = self.nodes[i]
                         .machine
@@ -420,11 +434,11 @@ impl Sim {
                     self.node_outputs(node, outs);
                 }
             }
-            Ev::Shown { node, conn, frame_id } => {
+            Ev::Shown { node, conn, frame_id, waiting_from } => {
                 if self.nodes[node].conn == conn && self.nodes[node].alive {
                     self.shown.insert((frame_id, node), self.now);
                     let clock = self.node_clock(node);
-                    let outs = self.nodes[node].machine.presented(clock, frame_id);
+                    let outs = self.nodes[node].machine.presented(clock, frame_id, waiting_from);
                     self.node_outputs(node, outs);
                 }
             }
@@ -718,7 +732,9 @@ fn swap_skew_is_measured_in_controller_time() {
         }
         (worst_err, max_skew, n, straddled)
     };
+    let untimed = || SwapTiming::new(MarginSetting::Off, None);
     let mut sim = Sim::new(mk(PresentModel::Vsync(ms(1000.0 / 60.0)), [1.0; 4]), ms(50.0), 7);
+    sim.ctrl.set_swap_timing(untimed());
     sim.ctrl.set_ping_interval(Some(ms(100.0)));
     sim.run_for(ms(3000.0));
     let (err, skew, n, straddled) = check(&sim);
@@ -732,12 +748,43 @@ fn swap_skew_is_measured_in_controller_time() {
 
     // Swaps that arrive 4 ms apart, shown at once: the skew is measured as 4 ms.
     let mut sim = Sim::new(mk(PresentModel::After(Duration::ZERO), [1.0, 1.0, 5.0, 1.0]), ms(50.0), 8);
+    sim.ctrl.set_swap_timing(untimed());
     sim.ctrl.set_ping_interval(Some(ms(100.0)));
     sim.run_for(ms(3000.0));
     let (err, skew, n, _) = check(&sim);
     assert!(n > 50);
     assert!(skew >= ms(3.5) && skew <= ms(5.0), "{skew:?}");
     eprintln!("one slow link: {n} frames, measured skew up to {skew:?}, worst error vs true skew {err:?}");
+
+    // The same link with the timed swap (the default): every node shows the frame at one time,
+    // the margin learned from the slow link's deliveries; only the first frames, before the
+    // margin has learned it, are late.
+    let mut sim = Sim::new(mk(PresentModel::After(Duration::ZERO), [1.0, 1.0, 5.0, 1.0]), ms(50.0), 8);
+    sim.ctrl.set_ping_interval(Some(ms(100.0)));
+    sim.run_for(ms(3000.0));
+    let (err, skew, n, _) = check(&sim);
+    assert!(n > 50);
+    let late: Vec<u64> = sim.done.iter().filter(|(_, s)| s.late_swaps > 0).map(|(id, _)| *id).collect();
+    assert!(late.iter().all(|&id| id <= 3), "late swaps in frames {late:?}");
+    let settled: Vec<Duration> = sim
+        .done
+        .iter()
+        .filter(|(id, _)| **id > 3)
+        .filter_map(|(id, _)| {
+            let shown: Vec<Duration> = (0..4).filter_map(|i| sim.shown.get(&(*id, i)).copied()).collect();
+            (shown.len() == 4).then(|| *shown.iter().max().unwrap() - *shown.iter().min().unwrap())
+        })
+        .collect();
+    let worst_true = settled.iter().max().copied().unwrap_or_default();
+    // The true skew is what the clock offsets' errors leave: within their bounds.
+    let bound: i64 = (0..4).map(|i| sim.ctrl.clock_offset(&format!("n{i}")).unwrap().error_us).sum();
+    assert!(us(worst_true) <= bound, "true skew up to {worst_true:?}, clock bounds {bound} us");
+    let margin = sim.ctrl.swap_timing().margin();
+    assert!(margin >= ms(4.0) && margin <= ms(8.0), "margin {margin:?}");
+    eprintln!(
+        "one slow link, timed swap: {n} frames, true skew up to {worst_true:?} (bounds {bound} us), measured \
+         up to {skew:?}, worst error {err:?}, margin {margin:?}, late swaps in frames {late:?}"
+    );
 }
 
 #[test]
@@ -784,7 +831,7 @@ fn violations_close_only_that_peer_with_a_clear_reason() {
     let mut sim = Sim::new(cfgs, ms(40.0), 10);
     sim.run_until(T0 + ms(300.0));
     // c says Presented for a frame it was never told to swap: ignored (and told), not closed.
-    sim.send_up(2, &Message::Presented { frame_id: 999_999, node_time_us: 0 });
+    sim.send_up(2, &Message::Presented { frame_id: 999_999, node_time_us: 0, waiting_from_us: 0 });
     sim.run_until(T0 + ms(350.0));
     assert_eq!(sim.errors.len(), 1);
     let e = &sim.errors[0];
@@ -816,7 +863,7 @@ fn violations_close_only_that_peer_with_a_clear_reason() {
     assert_eq!(sim.downs[2].1, "a");
     assert!(sim.downs[2].2.contains("over the limit"), "{}", sim.downs[2].2);
     // The controller sends b a Swap for a frame it has not rendered: b closes.
-    sim.send_down(1, &Message::Swap { frame_id: 123_456_789 });
+    sim.send_down(1, &Message::Swap { frame_id: 123_456_789, present_at_us: None });
     sim.run_until(T0 + ms(900.0));
     assert_eq!(sim.downs[3].1, "b");
     assert!(

@@ -1,9 +1,12 @@
 //! Screen space at scale: one [`FrameController`] and N [`NodeMachine`]s on a [`Lan`], every
-//! message through the codec. The controller is endpoint N. Node i's clock is the true time plus
-//! a fixed offset (seeded, up to `clock_spread` either way), learned by the controller from
-//! Ping/Pong as on a real wall. A render takes `render` plus up to `render_jitter`; a node shows
-//! a frame `present_after` its Swap arrives (no genlock), so the true swap skew is how far apart
-//! the Swaps arrive.
+//! message through the codec. The controller is endpoint N. Node i's clock runs at its own rate
+//! (seeded, up to `drift_ppm` parts per million fast or slow) from its own offset (seeded, up to
+//! `clock_spread` either way), learned by the controller from Ping/Pong as on a real wall. A
+//! render takes `render` plus up to `render_jitter`. A node's presenting thread is ready
+//! `present_after` its Swap arrives (the wake-up); it shows the frame then, or at the Swap's
+//! present time if that is later (the timed swap: `timing`, `frame_rate`), within up to
+//! `present_jitter` of a precise wait. The true swap skew is how far apart the nodes showed a
+//! frame in true time; the measured one is the controller's own.
 
 use std::collections::BTreeMap;
 use std::time::Duration;
@@ -14,6 +17,7 @@ use crate::frame_controller::{ControllerOutput, FrameController};
 use crate::messages::{Message, Role};
 use crate::node_machine::{NodeMachine, NodeOutput};
 use crate::render_state::RenderSettings;
+use crate::swap_timing::{MarginSetting, SwapTiming};
 use crate::wire::FrameState;
 use crate::Camera;
 
@@ -33,6 +37,18 @@ pub struct ScreenSpec {
     pub present_after: Duration,
     /// Node clocks are off by up to this much either way.
     pub clock_spread: Duration,
+    /// Node clocks run fast or slow by up to this many parts per million.
+    pub drift_ppm: f64,
+    /// The swap margin (`MarginSetting::Off`: nodes show a frame when its Swap arrives).
+    pub timing: MarginSetting,
+    /// Paced at this many frames a second (`None`: unpaced).
+    pub frame_rate: Option<f64>,
+    /// A precise wait ends up to this late.
+    pub present_jitter: Duration,
+    /// Frames begin after this much time of pings (the clock estimates' first samples).
+    pub warm_up: Duration,
+    /// The controller pings each node this often.
+    pub ping_interval: Duration,
     pub seed: u64,
 }
 
@@ -50,6 +66,12 @@ impl ScreenSpec {
             frame_interval: Duration::from_micros(16_667),
             present_after: Duration::from_micros(100),
             clock_spread: Duration::from_millis(20),
+            drift_ppm: 0.0,
+            timing: MarginSetting::Off,
+            frame_rate: None,
+            present_jitter: Duration::ZERO,
+            warm_up: Duration::from_millis(100),
+            ping_interval: Duration::from_millis(50),
             seed,
         }
     }
@@ -67,6 +89,12 @@ pub struct ScreenFrame {
     pub swap_skew: Option<Duration>,
     /// max - min of the true times the nodes showed it.
     pub true_skew: Option<Duration>,
+    /// Nodes whose Swap came after the present time.
+    pub late_swaps: usize,
+    /// The margin from the release to the present time (`None`: untimed).
+    pub margin: Option<Duration>,
+    /// The earliest true time a node showed it.
+    pub shown_at: Option<Duration>,
 }
 
 /// A finished run.
@@ -84,13 +112,15 @@ enum Ev {
     ToNode { node: usize, bytes: Vec<u8> },
     ToCtrl { node: usize, bytes: Vec<u8> },
     RenderDone { node: usize, frame_id: u64, took: Duration },
-    Shown { node: usize, frame_id: u64 },
+    Shown { node: usize, frame_id: u64, waiting_from: Duration },
 }
 
 struct SimNode {
     machine: NodeMachine,
     name: String,
     offset_us: i64,
+    /// Its clock's rate error, parts per million.
+    drift_ppm: f64,
     up_dec: Decoder,
     down_dec: Decoder,
 }
@@ -108,20 +138,19 @@ struct Sim {
     camera: Camera,
     settings: RenderSettings,
     released: BTreeMap<u64, (Duration, usize, usize)>,
-    done: BTreeMap<u64, Option<Duration>>,
+    done: BTreeMap<u64, (Option<Duration>, usize, Option<Duration>)>,
     shown: BTreeMap<u64, Vec<Duration>>,
     errors: Vec<String>,
 }
 
-/// Frames begin after this much time for the first clock samples.
-const WARM_UP: Duration = Duration::from_millis(100);
 
 impl Sim {
     fn new(spec: ScreenSpec) -> Sim {
         let names: Vec<String> = (0..spec.nodes).map(|i| format!("node{i:04}")).collect();
         let mut ctrl = FrameController::new(names.clone(), spec.deadline);
-        ctrl.set_ping_interval(Some(Duration::from_millis(50)));
+        ctrl.set_ping_interval(Some(spec.ping_interval));
         ctrl.set_present_deadline(spec.deadline);
+        ctrl.set_swap_timing(SwapTiming::new(spec.timing, spec.frame_rate));
         let mut lan = Lan::new(spec.lan, spec.nodes + 1, spec.seed);
         let spread = spec.clock_spread.as_micros() as f64;
         let nodes = names
@@ -133,6 +162,7 @@ impl Sim {
                     machine,
                     name: name.clone(),
                     offset_us: ((lan.rng().unit() * 2.0 - 1.0) * spread) as i64,
+                    drift_ppm: (lan.rng().unit() * 2.0 - 1.0) * spec.drift_ppm,
                     up_dec: Decoder::new(codec::CONTROLLER_LIMIT),
                     down_dec: Decoder::new(codec::DAEMON_LIMIT),
                 }
@@ -163,9 +193,24 @@ impl Sim {
         self.spec.nodes
     }
 
+    /// Node `i`'s clock at true time `t`: its rate and offset (and a second, so it is never
+    /// negative).
+    fn clock_at(&self, i: usize, t: Duration) -> Duration {
+        let n = &self.nodes[i];
+        let true_us = t.as_secs_f64() * 1e6;
+        let us = true_us * (1.0 + n.drift_ppm * 1e-6) + (n.offset_us + 1_000_000) as f64;
+        Duration::from_micros(us.max(0.0).round() as u64)
+    }
+
+    /// The true time node `i`'s clock says `clock`.
+    fn true_time(&self, i: usize, clock: Duration) -> Duration {
+        let n = &self.nodes[i];
+        let us = (clock.as_secs_f64() * 1e6 - (n.offset_us + 1_000_000) as f64) / (1.0 + n.drift_ppm * 1e-6);
+        Duration::from_secs_f64(us.max(0.0) / 1e6)
+    }
+
     fn node_clock(&self, i: usize) -> Duration {
-        let t = self.now.as_micros() as i64 + self.nodes[i].offset_us + 1_000_000;
-        Duration::from_micros(t.max(0) as u64)
+        self.clock_at(i, self.now)
     }
 
     fn send_down(&mut self, i: usize, msg: &Message) {
@@ -191,7 +236,7 @@ impl Sim {
                     self.released.insert(frame_id, (barrier, ready.len(), stragglers.len()));
                 }
                 ControllerOutput::FrameDone { frame_id, stats } => {
-                    self.done.insert(frame_id, stats.swap_skew);
+                    self.done.insert(frame_id, (stats.swap_skew, stats.late_swaps, stats.margin));
                 }
                 ControllerOutput::NodeDown { node, reason } => {
                     self.errors.push(format!("{node} down: {reason}"))
@@ -218,9 +263,14 @@ impl Sim {
                         .push(self.now + took, Ev::RenderDone { node: i, frame_id: state.frame_id, took });
                 }
                 NodeOutput::Send(m) => self.send_up(i, &m),
-                NodeOutput::Present { frame_id } => {
-                    self.events.push(self.now + self.spec.present_after, Ev::Shown { node: i, frame_id });
+                NodeOutput::Present { frame_id, at } => {
+                    let ready = self.now + self.spec.present_after;
+                    let waiting_from = self.clock_at(i, ready);
+                    let target = at.map_or(ready, |at| self.true_time(i, at).max(ready));
+                    let shown = target + self.lan.rng().below(self.spec.present_jitter);
+                    self.events.push(shown, Ev::Shown { node: i, frame_id, waiting_from });
                 }
+                NodeOutput::LateSwap { .. } => {}
                 other => self.errors.push(format!("{}: unexpected {other:?}", self.nodes[i].name)),
             }
         }
@@ -253,10 +303,10 @@ impl Sim {
                 let outs = self.nodes[node].machine.render_done(clock, frame_id, took);
                 self.node_outputs(node, outs);
             }
-            Ev::Shown { node, frame_id } => {
+            Ev::Shown { node, frame_id, waiting_from } => {
                 self.shown.entry(frame_id).or_default().push(self.now);
                 let clock = self.node_clock(node);
-                let outs = self.nodes[node].machine.presented(clock, frame_id);
+                let outs = self.nodes[node].machine.presented(clock, frame_id, waiting_from);
                 self.node_outputs(node, outs);
             }
         }
@@ -267,7 +317,7 @@ impl Sim {
             return None;
         }
         Some(match self.last_begin {
-            None => WARM_UP,
+            None => self.spec.warm_up,
             Some(l) => (l + self.spec.frame_interval).max(self.now),
         })
     }
@@ -320,13 +370,17 @@ pub fn run_screen(spec: &ScreenSpec) -> ScreenReport {
         .map(|(&frame_id, &(barrier, ready, stragglers))| {
             let shown = sim.shown.get(&frame_id);
             let true_skew = shown.and_then(|s| Some(*s.iter().max()? - *s.iter().min()?));
+            let (swap_skew, late_swaps, margin) = sim.done.get(&frame_id).copied().unwrap_or((None, 0, None));
             ScreenFrame {
                 frame_id,
                 barrier,
                 ready,
                 stragglers,
-                swap_skew: sim.done.get(&frame_id).copied().flatten(),
+                swap_skew,
                 true_skew,
+                late_swaps,
+                margin,
+                shown_at: shown.and_then(|s| s.iter().min().copied()),
             }
         })
         .collect();
