@@ -46,6 +46,15 @@ pub struct BenchArgs {
     /// How long to wait for each column's nodes, seconds
     #[arg(long, default_value_t = 120)]
     pub start_timeout: u64,
+    /// Measure the swap instead: the config's nodes started here (as `up` does) orbit --frames
+    /// frames untimed (each node presents when its Swap arrives), then timed (`swap_margin_ms =
+    /// "auto"`), then timed and paced at --paced-fps; each run's fps, swap skew (measured, and
+    /// true where every node is on this machine), late swaps, margin and frame-interval jitter
+    #[arg(long, conflicts_with = "table")]
+    pub swap: bool,
+    /// With --swap: the frame rate of the paced run
+    #[arg(long, default_value_t = 30.0)]
+    pub paced_fps: f64,
 }
 
 fn parse_size(s: &str) -> Result<(u32, u32), String> {
@@ -54,6 +63,59 @@ fn parse_size(s: &str) -> Result<(u32, u32), String> {
         v.parse::<u32>().ok().filter(|&n| n > 0).ok_or_else(|| format!("`{s}` is not WIDTHxHEIGHT"))
     };
     Ok((p(w)?, p(h)?))
+}
+
+/// `bench --swap`: one wall, three runs of the same orbit: untimed, timed, timed and paced.
+fn bench_swap(a: &BenchArgs, config: WallConfig) -> Result<()> {
+    use crate::drive::{drive, OrbitOptions};
+    use isowall_model::swap_timing::{MarginSetting, SwapTiming};
+    if !(a.paced_fps > 0.0 && a.paced_fps <= isowall_model::config::MAX_FRAME_RATE) {
+        bail!("--paced-fps {} is not in (0, {}]", a.paced_fps, isowall_model::config::MAX_FRAME_RATE);
+    }
+    let (base, settings) = scene(&config)?;
+    let log_dir = config.resolve("logs");
+    let mut daemons = crate::local::LocalDaemons::start(&config, &log_dir, "offscreen", false)?;
+    daemons.wait_started(Duration::from_secs(a.start_timeout));
+    println!(
+        "isowall bench --swap: wall '{}' ({} nodes{}), {} frames of an orbit ({} degrees/frame) per run, offscreen",
+        config.wall.name,
+        config.nodes.len(),
+        if crate::wall::one_machine(&config) { ", every one on this machine" } else { "" },
+        a.frames,
+        a.degrees_per_frame
+    );
+    let runs = [
+        ("untimed", SwapTiming::new(MarginSetting::Off, None)),
+        ("timed", SwapTiming::new(MarginSetting::Auto, None)),
+        ("timed, paced", SwapTiming::new(MarginSetting::Auto, Some(a.paced_fps))),
+    ];
+    let rt = runtime()?;
+    rt.block_on(async {
+        let mut wall = Wall::connect(config, Duration::from_secs(a.start_timeout), Duration::from_secs(5)).await?;
+        for (name, timing) in runs {
+            wall.set_swap_timing(timing);
+            let o = OrbitOptions {
+                frames: a.frames,
+                degrees_per_frame: a.degrees_per_frame,
+                fps: 0.0,
+                target_frame_ms: None,
+                still_frames: 0,
+                record_frames: None,
+                step: 0,
+                play: false,
+            };
+            let (elapsed, _, _) = drive(&mut wall, &base, &settings, &o, None, &mut |_, _| {}).await?;
+            println!(
+                "\n== {name}: {} frames in {:.2} s ({:.2} fps)",
+                a.frames,
+                elapsed.as_secs_f64(),
+                a.frames as f64 / elapsed.as_secs_f64().max(1e-9)
+            );
+            print!("{}", crate::wall::swap_report(&wall));
+        }
+        wall.close("the bench is done").await;
+        Ok::<(), anyhow::Error>(())
+    })
 }
 
 /// How the wall splits the work.
@@ -221,13 +283,19 @@ fn measure_column(a: &BenchArgs, config: &WallConfig, dir: &Path) -> Result<Vec<
 }
 
 pub fn bench(a: &BenchArgs) -> Result<()> {
-    if !a.table {
-        bail!("say what to measure: `isowall bench CONFIG --table` (the report's table)");
+    if !a.table && !a.swap {
+        bail!(
+            "say what to measure: `isowall bench CONFIG --table` (the report's table) or `--swap` (the swap's \
+             skew untimed, timed and paced)"
+        );
     }
     if a.frames == 0 {
         bail!("--frames must be at least 1");
     }
     let config = load(&a.config)?;
+    if a.swap {
+        return bench_swap(a, config);
+    }
     if let Some(n) = config.nodes.iter().find(|n| !is_loopback(&n.address)) {
         bail!(
             "{}: node {} at {} is not on loopback: `bench --table` starts its own local nodes for every column",

@@ -208,7 +208,7 @@ fn governor(
 /// (the governor's settling), the samples of the first and the last [`GovernorLog::SAMPLES_SHOWN`]
 /// frames, and counts.
 #[derive(Default)]
-struct GovernorLog {
+pub(crate) struct GovernorLog {
     /// Frames seen, and moving frames after the first five.
     frames: u64,
     moving: u64,
@@ -282,7 +282,7 @@ impl GovernorLog {
 /// Drives the orbit, then `still_frames` frames at its last camera, calling `after_frame(k, wall)`
 /// after frame k's swap; returns how long its frames took, when the first swap was released, and
 /// the governor's frames (when one is set).
-async fn drive(
+pub(crate) async fn drive(
     wall: &mut Wall,
     base: &Camera,
     settings: &RenderSettings,

@@ -21,7 +21,8 @@ use tokio::sync::mpsc;
 /// Messages and closes carry the connection they came on (its link number, the model's
 /// [`Links`]): a late one from a node's previous connection is not about its current one.
 enum Event {
-    Message(String, LinkId, Message),
+    /// A node's message, and when it arrived (a Pong's time is that, not when it was handled).
+    Message(String, LinkId, Message, Instant),
     Closed(String, LinkId, String),
     /// A node that was down is reachable again (handshake done).
     Reconnected(String, Link),
@@ -154,6 +155,7 @@ impl Wall {
         // less one ping interval (at least 2.5 deadlines).
         let ping = FrameController::DEFAULT_PING_INTERVAL.min(deadline / 2);
         machine.set_ping_interval(Some(ping));
+        machine.set_swap_timing(config.wall.swap_timing());
         machine.set_silence_limit(Some(deadline * SILENT_DEADLINES - ping));
         let mut wall = Wall {
             machine,
@@ -164,7 +166,8 @@ impl Wall {
             events,
             events_tx,
             endpoint,
-            epoch: Instant::now(),
+            // The clock every process of this machine shares: see `isowall_net::clock`.
+            epoch: isowall_net::clock::epoch(),
             next_frame: 1,
             scale: 1,
             time_step: 0,
@@ -284,7 +287,7 @@ impl Wall {
                 // Waits while the queue is full: the node's stream is read no faster than handled.
                 match receiver.recv().await {
                     Ok(Some(m)) => {
-                        if tx.send(Event::Message(node.clone(), id, m)).await.is_err() {
+                        if tx.send(Event::Message(node.clone(), id, m, Instant::now())).await.is_err() {
                             break;
                         }
                     }
@@ -514,7 +517,12 @@ impl Wall {
 
     /// Waits for the next event or timeout and lets the machine handle it.
     async fn step(&mut self) {
-        let timeout = self.machine.poll_timeout();
+        self.step_until(None).await
+    }
+
+    /// [`Wall::step`], waking at `wake` (controller clock) at the latest.
+    async fn step_until(&mut self, wake: Option<Duration>) {
+        let timeout = [self.machine.poll_timeout(), wake].into_iter().flatten().min();
         let sleep = match timeout {
             Some(t) => t.saturating_sub(self.now()),
             None => Duration::from_millis(200),
@@ -545,11 +553,11 @@ impl Wall {
     /// Lets the machine handle what arrived from a node (or a reconnection attempt).
     async fn on_event(&mut self, event: Option<Event>) -> Vec<ControllerOutput> {
         match event {
-            Some(Event::Message(node, id, _) | Event::Closed(node, id, _)) if !self.is_current(&node, id) => {
+            Some(Event::Message(node, id, _, _) | Event::Closed(node, id, _)) if !self.is_current(&node, id) => {
                 Vec::new()
             }
-            Some(Event::Message(node, _, msg)) => {
-                let now = self.now();
+            Some(Event::Message(node, _, msg, arrived)) => {
+                let now = arrived.saturating_duration_since(self.epoch);
                 match self.machine.handle(now, &node, msg) {
                     Ok(out) => out,
                     Err(err) => {
@@ -598,8 +606,12 @@ impl Wall {
         }
     }
 
-    /// Runs one frame: begins it and waits until its swap is released.
+    /// Runs one frame: begins it (on a paced wall, once the previous frame's present time has
+    /// come: `FrameController::next_begin_at`) and waits until its swap is released.
     pub async fn frame(&mut self, camera: &Camera, settings: &RenderSettings) -> Result<()> {
+        while let Some(at) = self.machine.next_begin_at(self.now()) {
+            self.step_until(Some(at)).await;
+        }
         self.retry_down_nodes();
         let id = self.next_frame;
         self.next_frame += 1;
@@ -614,6 +626,15 @@ impl Wall {
             self.step().await;
         }
         Ok(())
+    }
+
+    /// Times the swaps from the next release on (the config's `[wall] swap_margin_ms` and
+    /// `frame_rate` otherwise), and forgets the frames' statistics so far: what follows is
+    /// measured on its own.
+    pub fn set_swap_timing(&mut self, timing: isowall_model::swap_timing::SwapTiming) {
+        self.machine.set_swap_timing(timing);
+        self.finished.clear();
+        self.releases.clear();
     }
 
     /// The id of the last frame begun (0 before the first).
@@ -802,6 +823,111 @@ pub fn compose_scaled(
     (w, h, img)
 }
 
+/// Whether every node of the wall is on this machine (its address a loopback one): they and the
+/// controller share one clock (`isowall_net::clock`), so their own present times give the true
+/// swap skew.
+pub fn one_machine(config: &WallConfig) -> bool {
+    config.nodes.iter().all(|n| transport::resolve(&n.address).is_ok_and(|a| a.ip().is_loopback()))
+}
+
+/// The swap's lines of the report: the skew measured (and, on one machine, the true one), the
+/// timed swap's margin and late swaps, the clocks' error bounds, and on a paced wall the
+/// frame-interval jitter.
+pub fn swap_report(wall: &Wall) -> String {
+    let ms = |d: Option<Duration>| d.map_or("-".to_string(), |d| format!("{:.3} ms", d.as_secs_f64() * 1e3));
+    let line = |what: &str, v: Vec<Duration>| {
+        format!(
+            "{what}: p50 {} p99 {} max {} over {} frames\n",
+            ms(quantile(v.clone(), 0.5)),
+            ms(quantile(v.clone(), 0.99)),
+            ms(quantile(v.clone(), 1.0)),
+            v.len()
+        )
+    };
+    let mut s = line(
+        "swap skew (measured, controller clock)",
+        wall.finished.iter().filter_map(|f| f.swap_skew).collect(),
+    );
+    if one_machine(&wall.config) {
+        s += &line(
+            "swap skew (true: every node on this machine's one clock)",
+            wall.finished.iter().filter_map(|f| f.node_clock_skew).collect(),
+        );
+    }
+    let timing = wall.machine.swap_timing();
+    let presents: usize = wall.finished.iter().map(|f| f.per_node.iter().filter(|n| n.presented_node_time_us.is_some()).count()).sum();
+    let late: usize = wall.finished.iter().map(|f| f.late_swaps).sum();
+    let margins: Vec<Duration> = wall.finished.iter().filter_map(|f| f.margin).collect();
+    if margins.is_empty() {
+        s += &format!("timed swap: {} (each node presents when its Swap arrives)\n", timing.setting());
+    } else {
+        s += &format!(
+            "timed swap: margin {} (release -> present: p50 {} p99 {}), late swaps {late} of {presents} presents\n",
+            timing.setting(),
+            ms(quantile(margins.clone(), 0.5)),
+            ms(quantile(margins, 0.99)),
+        );
+    }
+    let now = micros(wall.now());
+    let offsets: Vec<(String, i64, i64)> = wall
+        .machine
+        .nodes()
+        .filter_map(|n| {
+            let o = wall.machine.clock_offset(n)?;
+            Some((n.to_string(), o.offset_at(now), o.error_at(now)))
+        })
+        .collect();
+    if let Some((node, _, worst)) = offsets.iter().max_by_key(|b| b.2) {
+        s += &format!(
+            "clock offsets (node - controller, within the error bound): worst bound {worst} us ({node}); {}\n",
+            offsets.iter().map(|(n, o, b)| format!("{n} {o:+} us within {b}")).collect::<Vec<_>>().join(", ")
+        );
+    }
+    // How precisely each node presented at its present time, by its own clock.
+    let mut waits: BTreeMap<&str, Vec<Duration>> = BTreeMap::new();
+    for n in wall.finished.iter().flat_map(|f| &f.per_node).filter(|n| !n.late_swap) {
+        if let (Some(at), Some(shown)) = (n.present_at_us, n.presented_node_time_us) {
+            let after = u64::try_from(shown.saturating_sub(at)).unwrap_or(0);
+            waits.entry(n.node.as_str()).or_default().push(Duration::from_micros(after));
+        }
+    }
+    if !waits.is_empty() {
+        s += &format!(
+            "presented after the present time (on-time swaps, node clocks): {}\n",
+            waits
+                .into_iter()
+                .map(|(n, v)| format!("{n} p50 {} p99 {}", ms(quantile(v.clone(), 0.5)), ms(quantile(v, 0.99))))
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+    }
+    if let Some(period) = timing.period() {
+        // The wall's present moment of each frame: its nodes' mean, in controller time.
+        let moments: Vec<f64> = wall
+            .finished
+            .iter()
+            .filter_map(|f| {
+                let t: Vec<f64> = f.per_node.iter().filter_map(|n| n.presented_at).map(|d| d.as_secs_f64()).collect();
+                (!t.is_empty()).then(|| t.iter().sum::<f64>() / t.len() as f64)
+            })
+            .collect();
+        let jitter: Vec<Duration> = moments
+            .windows(2)
+            .map(|w| Duration::from_secs_f64(((w[1] - w[0]) - period.as_secs_f64()).abs()))
+            .collect();
+        s += &format!(
+            "frame pacing: {:.2} fps; {}",
+            1.0 / period.as_secs_f64(),
+            line("interval jitter |interval - period|", jitter)
+        );
+    }
+    s
+}
+
+fn micros(t: Duration) -> i64 {
+    i64::try_from(t.as_micros()).unwrap_or(i64::MAX)
+}
+
 /// p-quantile of durations (nearest rank).
 pub fn quantile(mut v: Vec<Duration>, q: f64) -> Option<Duration> {
     if v.is_empty() {
@@ -873,14 +999,7 @@ pub fn report(wall: &Wall, elapsed: Duration) -> String {
         ms(quantile(barrier.clone(), 0.99)),
         ms(quantile(barrier, 1.0))
     );
-    let skews: Vec<Duration> = wall.finished.iter().filter_map(|f| f.swap_skew).collect();
-    s += &format!(
-        "swap skew (measured, controller clock): p50 {} p99 {} max {} over {} frames\n",
-        ms(quantile(skews.clone(), 0.5)),
-        ms(quantile(skews.clone(), 0.99)),
-        ms(quantile(skews.clone(), 1.0)),
-        skews.len()
-    );
+    s += &swap_report(wall);
     let mut per_node: BTreeMap<&str, (Vec<Duration>, Vec<Duration>)> = BTreeMap::new();
     for f in &wall.finished {
         for n in &f.per_node {

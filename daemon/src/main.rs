@@ -7,6 +7,7 @@ mod display;
 mod notify;
 mod object;
 mod peer_addr;
+mod presenter;
 mod progress;
 mod render;
 mod render_thread;

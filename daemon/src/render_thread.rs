@@ -14,6 +14,7 @@
 //! ([`RenderHandle::show`]).
 
 use anyhow::{Context, Result};
+use crate::presenter::Shown;
 use isowall_model::composite::PixelForm;
 use isowall_model::{RenderSettings, View};
 use isowall_render::environment::Environment;
@@ -163,6 +164,20 @@ struct StepsOnGpu {
     shown: u32,
 }
 
+/// How much lower than the rest of the process the render thread runs (a nice value).
+pub const RENDER_NICENESS: i32 = 5;
+
+/// Lowers this thread's priority by [`RENDER_NICENESS`] (Linux keeps a nice value per thread,
+/// and the threads it starts inherit it: a software GPU's workers too). Rendering is the node's
+/// bulk work; the network loop and the presenting thread keep the swap's time, and on a machine
+/// whose cores the renders fill they must still wake when their time comes.
+fn lower_priority() {
+    let now = rustix::process::getpriority_process(None).unwrap_or(0);
+    if let Err(e) = rustix::process::setpriority_process(None, now + RENDER_NICENESS) {
+        tracing::debug!("cannot lower the render thread's priority: {e}");
+    }
+}
+
 /// A window to present a tile in, with its size in pixels.
 pub struct TileWindow {
     pub tile: String,
@@ -190,9 +205,9 @@ enum Job {
 enum WindowJob {
     /// Create a surface per window (replacing any); replies with one line per surface.
     Attach(Vec<TileWindow>, mpsc::Sender<Result<Vec<String>, String>>),
-    /// The swap: present `frame_id` on every surface; replies with the moment the last surface
-    /// was presented.
-    Present(u64, tokio::sync::oneshot::Sender<Result<Instant, String>>),
+    /// The swap: present `frame_id` on every surface at the instant given (now when `None`;
+    /// `presenter::wait_until` first); replies with the frame presented.
+    Present(u64, Option<Instant>, tokio::sync::oneshot::Sender<Shown>),
     Resize(String, u32, u32),
     Redraw(String),
 }
@@ -231,6 +246,8 @@ struct RenderLoop {
     /// The node renders bricks: its targets hold brick views, which no window shows.
     object_space: bool,
     surfaces: Vec<TileSurface>,
+    /// The windows' presents wait for the swap's time with it.
+    wait: crate::presenter::PreciseWait,
     ring: ReadbackRing<FrameRead>,
     frames: VecDeque<InFlight>,
     snapshots: Vec<SnapshotWait>,
@@ -267,6 +284,7 @@ impl TileRenderer {
         let thread = std::thread::Builder::new()
             .name("render".into())
             .spawn(move || {
+                lower_priority();
                 let setup = (|| -> Result<_, String> {
                     let gpu = GpuRenderer::new().map_err(|e| e.to_string())?;
                     let gv = match &volume {
@@ -307,6 +325,7 @@ impl TileRenderer {
                     shown: Vec::new(),
                     object_space,
                     surfaces: Vec::new(),
+                    wait: Default::default(),
                     ring: ReadbackRing::new(READ_SLOTS),
                     frames: VecDeque::new(),
                     snapshots: Vec::new(),
@@ -346,7 +365,7 @@ impl TileRenderer {
                                 canvases: &r.canvases,
                                 shown: &r.shown,
                             };
-                            window_job(&r.gpu, &mut r.surfaces, on_show, w)
+                            window_job(&r.gpu, &mut r.surfaces, &mut r.wait, on_show, w)
                         }
                         Job::Snapshot(frame_id, reply) => r.snapshot(frame_id, reply),
                         Job::Load(b, reply) => {
@@ -446,11 +465,12 @@ impl RenderHandle {
         rx.await.map_err(|_| anyhow::anyhow!("the render thread has stopped"))?.map_err(anyhow::Error::msg)
     }
 
-    /// The swap: presents `frame_id` in every window; resolves to when it was presented.
-    pub async fn present(&self, frame_id: u64) -> Result<Instant> {
+    /// The swap: presents `frame_id` in every window at `at` (now when `None`); the receiver
+    /// resolves to the frame presented, with when it was (the moment the last surface was).
+    pub fn present(&self, frame_id: u64, at: Option<Instant>) -> Result<tokio::sync::oneshot::Receiver<Shown>> {
         let (tx, rx) = tokio::sync::oneshot::channel();
-        self.send(Job::Window(WindowJob::Present(frame_id, tx)))?;
-        rx.await.map_err(|_| anyhow::anyhow!("the render thread has stopped"))?.map_err(anyhow::Error::msg)
+        self.send(Job::Window(WindowJob::Present(frame_id, at, tx)))?;
+        Ok(rx)
     }
 
     /// A tile's window changed size (pixels).
@@ -494,7 +514,13 @@ impl<'a> OnShow<'a> {
 }
 
 /// The presentation jobs of the render thread.
-fn window_job(gpu: &GpuRenderer, surfaces: &mut Vec<TileSurface>, on_show: OnShow, job: WindowJob) {
+fn window_job(
+    gpu: &GpuRenderer,
+    surfaces: &mut Vec<TileSurface>,
+    wait: &mut crate::presenter::PreciseWait,
+    on_show: OnShow,
+    job: WindowJob,
+) {
     let target = |name: &str| on_show.tile(name);
     match job {
         WindowJob::Attach(windows, reply) => {
@@ -519,7 +545,11 @@ fn window_job(gpu: &GpuRenderer, surfaces: &mut Vec<TileSurface>, on_show: OnSho
             });
             let _ = reply.send(answer);
         }
-        WindowJob::Present(frame_id, reply) => {
+        WindowJob::Present(frame_id, at, reply) => {
+            let waiting_from = Instant::now();
+            if let Some(at) = at {
+                wait.wait_until(at);
+            }
             let mut result = Ok(());
             for s in surfaces.iter_mut() {
                 match s.present(&gpu.ctx, target(&s.name), frame_id) {
@@ -528,7 +558,7 @@ fn window_job(gpu: &GpuRenderer, surfaces: &mut Vec<TileSurface>, on_show: OnSho
                     Err(e) => result = Err(e.to_string()),
                 }
             }
-            let _ = reply.send(result.map(|()| Instant::now()));
+            let _ = reply.send(Shown { frame_id, waiting_from, result: result.map(|()| Instant::now()) });
         }
         WindowJob::Resize(tile, width, height) => {
             for s in surfaces.iter_mut().filter(|s| s.name == tile) {

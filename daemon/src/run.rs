@@ -9,6 +9,7 @@
 
 use crate::display::{self, Display, DisplayMode, WindowSetup};
 use crate::object::{Done, LoadDone, ObjectNode};
+use crate::presenter::{Presenter, Shown};
 use crate::render::load_volume_within;
 use crate::render_thread::{
     JobResult, RenderHandle, RenderVolume, StepsOf, TileJob, TileRenderer, TileResult, TimeSteps,
@@ -80,6 +81,13 @@ struct Node {
     slow: std::time::Duration,
     /// Rendered, waiting for the swap.
     pending: Option<JobResult>,
+    /// Swapped, waiting for their present time: (frame, tiles), oldest first.
+    presenting: std::collections::VecDeque<(u64, Vec<TileResult>)>,
+    /// Presents at each swap's time where the node presents offscreen (`presenter.rs`).
+    presenter: Presenter,
+    /// Frames presented, from the presenter or the render thread's windows.
+    shown_tx: tokio::sync::mpsc::UnboundedSender<Shown>,
+    shown_rx: UnboundedReceiver<Shown>,
     /// The tiles on show (the last presented frame), for snapshots.
     shown: Option<(u64, Vec<TileResult>)>,
     // object space
@@ -212,6 +220,7 @@ pub fn run(a: &RunArgs) -> Result<()> {
         node: node.name.clone(),
         tiles: config.tiles_of(&node.name).into_iter().cloned().collect(),
     };
+    let (shown_tx, shown_rx) = tokio::sync::mpsc::unbounded_channel();
     let mut state = Node {
         name: node.name.clone(),
         tiles: node.tiles.clone(),
@@ -219,13 +228,18 @@ pub fn run(a: &RunArgs) -> Result<()> {
         renderer: renderer.handle(),
         on_screen: false,
         results,
-        epoch: Instant::now(),
+        // The clock every process of this machine shares: see `isowall_net::clock`.
+        epoch: isowall_net::clock::epoch(),
         limit,
         slow: std::time::Duration::from_millis(a.slow_ms),
         render_dead: false,
         seat: isowall_model::seat::Seat::new(&node.name, transport::IDLE_TIMEOUT),
         next_link: 0,
         pending: None,
+        presenting: std::collections::VecDeque::new(),
+        presenter: Presenter::start(shown_tx.clone()).context("cannot start the presenting thread")?,
+        shown_tx,
+        shown_rx,
         shown: None,
         object,
         peer_rx,
@@ -517,6 +531,7 @@ async fn serve_seated(
     let Channel { connection, mut sender, mut receiver } = channel;
     let mut machine = NodeMachine::new(node.name.clone(), node.tiles.clone());
     node.pending = None;
+    node.presenting.clear();
     if let Some(o) = node.object.as_mut() {
         o.reset();
     }
@@ -528,12 +543,14 @@ async fn serve_seated(
         transport::close(&connection, &e.to_string());
         return Ok(());
     }
-    let (msg_tx, mut msg_rx) = tokio::sync::mpsc::channel::<Result<Option<Message>, NetError>>(16);
+    // Each message with the moment it arrived: a Ping's time is that, not when the loop got to it.
+    type Arrived = (Instant, Result<Option<Message>, NetError>);
+    let (msg_tx, mut msg_rx) = tokio::sync::mpsc::channel::<Arrived>(16);
     let reader = tokio::spawn(async move {
         loop {
             let r = receiver.recv().await;
             let end = !matches!(r, Ok(Some(_)));
-            if msg_tx.send(r).await.is_err() || end {
+            if msg_tx.send((Instant::now(), r)).await.is_err() || end {
                 break;
             }
         }
@@ -541,15 +558,15 @@ async fn serve_seated(
     let outcome = loop {
         let composite_deadline = node.object.as_ref().and_then(|o| o.next_timeout());
         let outputs = tokio::select! {
-            m = msg_rx.recv() => match m {
-                Some(Ok(Some(msg))) => match {
+            m = msg_rx.recv() => match m.map(|(at, r)| (at.saturating_duration_since(node.epoch), r)) {
+                Some((arrived, Ok(Some(msg)))) => match {
                     if let (Some(o), Message::FrameState(s)) = (node.object.as_mut(), &msg) {
                         o.announce(s.frame_id);
                     }
                     if matches!(msg, Message::Ping { .. }) {
                         machine.set_resident_bytes(process_resident_bytes());
                     }
-                    machine.handle(node.epoch.elapsed(), msg)
+                    machine.handle(arrived, msg)
                 } {
                     Ok(out) => out,
                     Err(e) => {
@@ -558,12 +575,12 @@ async fn serve_seated(
                         break Ok(());
                     }
                 },
-                Some(Ok(None)) | None => {
+                Some((_, Ok(None))) | None => {
                     tracing::info!("the controller closed the connection");
                     transport::close(&connection, "the controller ended its stream");
                     break Ok(());
                 }
-                Some(Err(e)) => {
+                Some((_, Err(e))) => {
                     tracing::warn!("controller connection ended: {e}");
                     transport::close(&connection, &e.to_string());
                     break Ok(());
@@ -591,6 +608,7 @@ async fn serve_seated(
                 }
                 None => break Err(anyhow!("the render thread has stopped")),
             },
+            Some(shown) = node.shown_rx.recv() => presented(node, &mut machine, shown),
             Some(item) = recv_peer(&mut node.peer_rx) => {
                 let done = node.object.as_mut().map(|o| o.peer(item)).unwrap_or_default();
                 composited(node, &mut machine, &mut sender, done).await
@@ -630,6 +648,28 @@ async fn serve_seated(
     };
     reader.abort();
     outcome
+}
+
+/// A frame presented (by the presenter, or the windows on the render thread): its tiles are the
+/// ones on show, and the machine sends Presented with its times by the node's clock.
+fn presented(node: &mut Node, machine: &mut NodeMachine, shown: Shown) -> Vec<NodeOutput> {
+    let Shown { frame_id, waiting_from, result } = shown;
+    let at = result.unwrap_or_else(|e| {
+        tracing::warn!(frame_id, node = %node.name, "presenting failed: {e}");
+        Instant::now()
+    });
+    while let Some((id, tiles)) = node.presenting.pop_front() {
+        if id > frame_id {
+            node.presenting.push_front((id, tiles));
+            break;
+        }
+        if id == frame_id {
+            node.shown = Some((id, tiles));
+            break;
+        }
+    }
+    let since = |t: Instant| t.saturating_duration_since(node.epoch);
+    machine.presented(since(at), frame_id, since(waiting_from))
 }
 
 /// object space: the next peer's pixels (never, in screen space).
@@ -760,7 +800,13 @@ async fn execute(
     let mut queue: std::collections::VecDeque<NodeOutput> = outputs.into();
     while let Some(out) = queue.pop_front() {
         match out {
-            NodeOutput::Send(m) => sender.send(&m).await?,
+            NodeOutput::Send(mut m) => {
+                // A Pong says when it leaves: the hold since the Ping arrived is on neither wire.
+                if let Message::Pong { sent_us, .. } = &mut m {
+                    *sent_us = i64::try_from(node.epoch.elapsed().as_micros()).unwrap_or(i64::MAX);
+                }
+                sender.send(&m).await?
+            }
             NodeOutput::Render { state, accumulate_frame } => {
                 let spec = match FrameSpec::try_from(&state) {
                     Ok(s) => s,
@@ -808,22 +854,38 @@ async fn execute(
                     node.render_dead = true;
                 }
             }
-            NodeOutput::Present { frame_id } => {
+            NodeOutput::Present { frame_id, at } => {
                 if let Some(p) = node.pending.take().filter(|p| p.frame_id == frame_id) {
-                    node.shown = Some((frame_id, p.tiles));
+                    node.presenting.push_back((frame_id, p.tiles));
                 }
-                let at = if node.on_screen {
-                    match node.renderer.present(frame_id).await {
-                        Ok(t) => t.saturating_duration_since(node.epoch),
+                // The node's clock is the instants since its epoch.
+                let at = at.map(|t| node.epoch + t);
+                if node.on_screen {
+                    match node.renderer.present(frame_id, at) {
+                        Ok(rx) => {
+                            let tx = node.shown_tx.clone();
+                            tokio::spawn(async move {
+                                if let Ok(shown) = rx.await {
+                                    let _ = tx.send(shown);
+                                }
+                            });
+                        }
                         Err(e) => {
-                            tracing::warn!(frame_id, node = %node.name, "presenting failed: {e:#}");
-                            node.epoch.elapsed()
+                            let now = Instant::now();
+                            let _ = node.shown_tx.send(Shown { frame_id, waiting_from: now, result: Err(e.to_string()) });
                         }
                     }
                 } else {
-                    node.epoch.elapsed()
-                };
-                queue.extend(machine.presented(at, frame_id));
+                    node.presenter.present(frame_id, at);
+                }
+            }
+            NodeOutput::LateSwap { frame_id, late_by } => {
+                tracing::info!(
+                    frame_id,
+                    node = %node.name,
+                    late_by_us = late_by.as_micros() as u64,
+                    "late swap: the Swap came after its present time; presented at once"
+                );
             }
             NodeOutput::SnapshotWanted => {
                 sender.send(&Message::Snapshot { tiles: shown_tiles(node, 1).await }).await?;

@@ -137,8 +137,9 @@ fn drive(machine: &mut NodeMachine, t: Duration, outputs: Vec<NodeOutput>) {
                 assert!(FrameSpec::try_from(&state).is_ok(), "the machine renders only valid frames");
                 queue.extend(machine.render_done(t, state.frame_id, Duration::from_micros(10)));
             }
-            NodeOutput::Present { frame_id } => queue.extend(machine.presented(t, frame_id)),
+            NodeOutput::Present { frame_id, .. } => queue.extend(machine.presented(t, frame_id, t)),
             NodeOutput::Send(_)
+            | NodeOutput::LateSwap { .. }
             | NodeOutput::SnapshotWanted
             | NodeOutput::ThumbnailWanted { .. }
             | NodeOutput::Closed { .. }

@@ -78,8 +78,8 @@ async fn fake_node(keys: PathBuf, name: String, port: u16, tile: (String, u32, u
                         ));
                         None
                     }
-                    NodeOutput::Present { frame_id } => {
-                        queue.extend(m.presented(epoch.elapsed(), frame_id));
+                    NodeOutput::Present { frame_id, .. } => {
+                        queue.extend(m.presented(epoch.elapsed(), frame_id, epoch.elapsed()));
                         None
                     }
                     NodeOutput::SnapshotWanted | NodeOutput::ThumbnailWanted { .. } => {

@@ -583,8 +583,12 @@ async fn fake_node(keys: PathBuf, name: String, port: u16, tiles: Vec<(String, u
                     NodeOutput::Send(mut msg) => {
                         if let Act::Flood { .. } = &act {
                             match &mut msg {
-                                Message::Presented { frame_id, node_time_us } if *frame_id % 2 == 0 => {
-                                    *node_time_us += DAYS_46_US
+                                Message::Presented { frame_id, node_time_us, waiting_from_us }
+                                    if *frame_id % 2 == 0 =>
+                                {
+                                    *node_time_us += DAYS_46_US;
+                                    // The time it took the swap up too: it would teach the margin.
+                                    *waiting_from_us += DAYS_46_US;
                                 }
                                 Message::Pong { t1_us, .. } => {
                                     pongs += 1;
@@ -600,8 +604,8 @@ async fn fake_node(keys: PathBuf, name: String, port: u16, tiles: Vec<(String, u
                                 if frame_id >= unasked_from =>
                             {
                                 vec![
-                                    Message::Presented { frame_id: 1 << 40, node_time_us: 0 },
-                                    Message::Pong { id: 1 << 40, t0_us: 0, t1_us: 0, resident_bytes: 0 },
+                                    Message::Presented { frame_id: 1 << 40, node_time_us: 0, waiting_from_us: 0 },
+                                    Message::Pong { id: 1 << 40, t0_us: 0, t1_us: 0, sent_us: 0, resident_bytes: 0 },
                                 ]
                             }
                             _ => vec![],
@@ -641,8 +645,8 @@ async fn fake_node(keys: PathBuf, name: String, port: u16, tiles: Vec<(String, u
                         state.frame_id,
                         Duration::from_micros(50),
                     )),
-                    NodeOutput::Present { frame_id } => {
-                        queue.extend(m.presented(epoch.elapsed(), frame_id));
+                    NodeOutput::Present { frame_id, .. } => {
+                        queue.extend(m.presented(epoch.elapsed(), frame_id, epoch.elapsed()));
                         if let Act::Bye(reason) = &act {
                             let _ = sender.send(&Message::Bye { reason: reason.clone() }).await;
                         }

@@ -400,10 +400,12 @@ async fn silent_node(identity: Identity, addr: SocketAddr, stop: Arc<AtomicBool>
                             Ok(())
                         }
                         NodeOutput::Send(msg) => sender.send(&msg).await,
-                        NodeOutput::Present { frame_id } => {
-                            queue.extend(m.presented(epoch.elapsed(), frame_id));
+                        // Presented at once, whatever the present time.
+                        NodeOutput::Present { frame_id, .. } => {
+                            queue.extend(m.presented(epoch.elapsed(), frame_id, epoch.elapsed()));
                             Ok(())
                         }
+                        NodeOutput::LateSwap { .. } => Ok(()),
                         NodeOutput::SnapshotWanted => sender.send(&Message::Snapshot { tiles: vec![] }).await,
                         NodeOutput::ThumbnailWanted { .. } => {
                             sender.send(&Message::Snapshot { tiles: vec![] }).await

@@ -400,7 +400,7 @@ fn message_seeds() -> Vec<(String, Vec<u8>)> {
         Message::Swap { frame_id: 1, present_at_us: None },
         Message::Presented { frame_id: 1, node_time_us: -42, waiting_from_us: -42 },
         Message::Ping { id: 7, t0_us: 123_456 },
-        Message::Pong { id: 7, t0_us: 123_456, t1_us: 654_321, resident_bytes: 250 << 20 },
+        Message::Pong { id: 7, t0_us: 123_456, t1_us: 654_321, sent_us: 654_321, resident_bytes: 250 << 20 },
         Message::SnapshotRequest,
         Message::Snapshot {
             tiles: vec![TileImage {

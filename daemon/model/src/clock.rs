@@ -1,10 +1,13 @@
 //! Clock offsets between the controller and a daemon, from Ping/Pong round trips.
 //!
-//! One sample: `t0` the controller's clock when it sent a Ping, `t1` the daemon's clock when the
-//! Ping arrived, `t2` the controller's clock when the Pong arrived. Whatever the two one-way
-//! delays, the daemon's offset (daemon clock - controller clock) lies in `[t1 - t2, t1 - t0]`;
-//! its midpoint `t1 - (t0 + t2) / 2` is off by at most `rtt / 2`, `rtt = t2 - t0`, and by less the
-//! more symmetric the delays. Queueing only ever adds delay, so the sample with the smallest round
+//! One sample (NTP's four times): `t0` the controller's clock when it sent a Ping, `t1` the
+//! daemon's clock when the Ping arrived, `held` how long the daemon held it before its Pong left
+//! (by its clock), `t2` the controller's clock when the Pong arrived. Whatever the two one-way
+//! delays, the daemon's offset (daemon clock - controller clock) lies in
+//! `[t1 + held - t2, t1 - t0]`; its midpoint is off by at most `rtt / 2`,
+//! `rtt = t2 - t0 - held` (the time on the wire), and by less the more symmetric the delays. The
+//! hold (a busy daemon answering late) is on neither wire: left in, it would bias the offset by
+//! half of it. Queueing only ever adds delay, so the sample with the smallest round
 //! trip of the last few is the tightest: [`ClockEstimator`] keeps the last N samples and uses it.
 //!
 //! Real oscillators run at slightly different rates (tens of parts per million: 50 us a second),
@@ -23,19 +26,24 @@ pub struct ClockSample {
     pub t0_us: i64,
     /// Daemon clock at receiving it.
     pub t1_us: i64,
+    /// How long the daemon held it before the Pong left, by its clock.
+    pub held_us: i64,
     /// Controller clock at receiving the Pong.
     pub t2_us: i64,
 }
 
 impl ClockSample {
+    /// The time on the wire: the round trip less the daemon's hold.
     pub fn rtt_us(&self) -> i64 {
-        self.t2_us.saturating_sub(self.t0_us)
+        self.t2_us.saturating_sub(self.t0_us).saturating_sub(self.held_us)
     }
 
-    /// Daemon clock - controller clock, assuming symmetric delays.
+    /// Daemon clock - controller clock, assuming symmetric delays:
+    /// `((t1 - t0) + (t1 + held - t2)) / 2`.
     pub fn offset_us(&self) -> i64 {
-        let mid = self.t0_us as i128 + (self.t2_us as i128 - self.t0_us as i128) / 2;
-        (self.t1_us as i128 - mid).clamp(i64::MIN as i128, i64::MAX as i128) as i64
+        let (t0, t1, t2, held) =
+            (self.t0_us as i128, self.t1_us as i128, self.t2_us as i128, self.held_us as i128);
+        ((t1 - t0 + t1 + held - t2) / 2).clamp(i64::MIN as i128, i64::MAX as i128) as i64
     }
 }
 
@@ -175,8 +183,13 @@ impl ClockEstimator {
         if sample.t2_us < sample.t0_us {
             return Err(format!("round trip from {} us to {} us is negative", sample.t0_us, sample.t2_us));
         }
+        // A hold longer than the round trip (beyond what drift allows) cannot be.
+        let trip = sample.t2_us.saturating_sub(sample.t0_us);
+        if sample.held_us < 0 || sample.held_us > trip.saturating_add(trip / (1_000_000 / DRIFT_PPM) + 1) {
+            return Err(format!("held {} us in a round trip of {trip} us", sample.held_us));
+        }
         if let Some(est) = self.estimate() {
-            let lo = sample.t1_us.saturating_sub(sample.t2_us);
+            let lo = sample.t1_us.saturating_add(sample.held_us).saturating_sub(sample.t2_us);
             let hi = sample.t1_us.saturating_sub(sample.t0_us);
             let bound = est.bound_us(sample.t2_us);
             let now_offset = est.offset_at(sample.t2_us);
@@ -301,9 +314,17 @@ mod tests {
     #[test]
     fn symmetric_delays_give_the_exact_offset() {
         // Daemon 50 ms ahead, 2 ms each way.
-        let s = ClockSample { t0_us: 1_000_000, t1_us: 1_000_000 + 2_000 + 50_000, t2_us: 1_004_000 };
+        let s = ClockSample { t0_us: 1_000_000, t1_us: 1_000_000 + 2_000 + 50_000, held_us: 0, t2_us: 1_004_000 };
         assert_eq!(s.rtt_us(), 4_000);
         assert_eq!(s.offset_us(), 50_000);
+        // The daemon held the Ping 5 ms before answering: on neither wire, so no bias.
+        let s = ClockSample { t0_us: 0, t1_us: 1_000 + 50_000, held_us: 5_000, t2_us: 7_000 };
+        assert_eq!((s.rtt_us(), s.offset_us()), (2_000, 50_000));
+        // Left in, the hold would have biased the offset by half of it.
+        assert_eq!(ClockSample { held_us: 0, ..s }.offset_us(), 47_500);
+        // A hold longer than the round trip is refused.
+        let mut e = ClockEstimator::default();
+        assert!(e.admit(ClockSample { held_us: 7_002, ..s }).unwrap_err().contains("held 7002 us"));
     }
 
     #[test]
@@ -316,7 +337,7 @@ mod tests {
             [(9_000, 1_000), (1_000, 1_000), (5_000, 500), (700, 3_000)].into_iter().enumerate()
         {
             let t0 = 10_000_000 * (i as i64 + 1);
-            e.add(ClockSample { t0_us: t0, t1_us: t0 + up + offset, t2_us: t0 + up + down });
+            e.add(ClockSample { t0_us: t0, t1_us: t0 + up + offset, held_us: 0, t2_us: t0 + up + down });
         }
         let est = e.estimate().unwrap();
         assert_eq!(est.samples, 3);
@@ -324,8 +345,8 @@ mod tests {
         assert_eq!(est.offset_us, offset);
         assert_eq!(est.to_controller(est.to_daemon(123)), 123);
         // Push it out: the best left is (700, 3000), biased by (700 - 3000) / 2 = -1150, within rtt/2.
-        e.add(ClockSample { t0_us: 0, t1_us: 20_000 + offset, t2_us: 40_000 });
-        e.add(ClockSample { t0_us: 0, t1_us: 20_000 + offset, t2_us: 40_000 });
+        e.add(ClockSample { t0_us: 0, t1_us: 20_000 + offset, held_us: 0, t2_us: 40_000 });
+        e.add(ClockSample { t0_us: 0, t1_us: 20_000 + offset, held_us: 0, t2_us: 40_000 });
         let est = e.estimate().unwrap();
         assert_eq!(est.rtt_us, 3_700);
         assert_eq!(est.offset_us, offset - 1_150);
@@ -337,22 +358,22 @@ mod tests {
         let mut e = ClockEstimator::default();
         let offset = 3_000_000;
         // A 2 ms round trip at 1 s: offset known within 1 ms.
-        e.admit(ClockSample { t0_us: 1_000_000, t1_us: 1_001_000 + offset, t2_us: 1_002_000 }).unwrap();
+        e.admit(ClockSample { t0_us: 1_000_000, t1_us: 1_001_000 + offset, held_us: 0, t2_us: 1_002_000 }).unwrap();
         // 46 days ahead: refused, the estimate unchanged.
         let lie = 46 * 86_400 * 1_000_000i64;
-        let s = ClockSample { t0_us: 2_000_000, t1_us: 2_001_000 + offset + lie, t2_us: 2_002_000 };
+        let s = ClockSample { t0_us: 2_000_000, t1_us: 2_001_000 + offset + lie, held_us: 0, t2_us: 2_002_000 };
         let why = e.admit(s).unwrap_err();
         assert!(why.contains("t1 = ") && why.contains("within"), "{why}");
         assert_eq!(e.len(), 1);
         // 10 ms off with a 2 ms round trip: refused too.
-        let s = ClockSample { t0_us: 3_000_000, t1_us: 3_011_000 + offset, t2_us: 3_002_000 };
+        let s = ClockSample { t0_us: 3_000_000, t1_us: 3_011_000 + offset, held_us: 0, t2_us: 3_002_000 };
         assert!(e.admit(s).is_err());
         // An honest sample with asymmetric delays and a long round trip overlaps: taken.
-        let s = ClockSample { t0_us: 4_000_000, t1_us: 4_290_000 + offset, t2_us: 4_300_000 };
+        let s = ClockSample { t0_us: 4_000_000, t1_us: 4_290_000 + offset, held_us: 0, t2_us: 4_300_000 };
         e.admit(s).unwrap();
         assert_eq!(e.estimate().unwrap().offset_us, offset);
         // Drift: 60 s later a clock 50 ppm fast is 3 ms further; 100 ppm of slack takes it.
-        let s = ClockSample { t0_us: 64_000_000, t1_us: 64_001_000 + offset + 3_000, t2_us: 64_002_000 };
+        let s = ClockSample { t0_us: 64_000_000, t1_us: 64_001_000 + offset + 3_000, held_us: 0, t2_us: 64_002_000 };
         e.admit(s).unwrap();
     }
 
@@ -399,7 +420,7 @@ mod tests {
             let t0 = i * 500_000;
             let up = delay();
             let t2 = t0 + up + delay();
-            e.admit(ClockSample { t0_us: t0, t1_us: node(t0 + up), t2_us: t2 }).unwrap();
+            e.admit(ClockSample { t0_us: t0, t1_us: node(t0 + up), held_us: 0, t2_us: t2 }).unwrap();
             let est = e.estimate().unwrap();
             // Half-way to the next ping: the truth against the estimate and its stated bound.
             let at = t0 + 250_000;
@@ -422,9 +443,9 @@ mod tests {
     #[test]
     fn impossible_samples_are_refused() {
         let mut e = ClockEstimator::default();
-        assert!(!e.add(ClockSample { t0_us: 10, t1_us: 0, t2_us: 9 }));
+        assert!(!e.add(ClockSample { t0_us: 10, t1_us: 0, held_us: 0, t2_us: 9 }));
         assert!(e.is_empty());
-        let s = ClockSample { t0_us: i64::MIN, t1_us: i64::MAX, t2_us: i64::MIN };
+        let s = ClockSample { t0_us: i64::MIN, t1_us: i64::MAX, held_us: 0, t2_us: i64::MIN };
         assert!(e.add(s));
         assert_eq!(e.estimate().unwrap().offset_us, i64::MAX);
     }

@@ -340,7 +340,7 @@ mod tests {
             Message::Swap { frame_id: 12, present_at_us: None },
             Message::Presented { frame_id: 12, node_time_us: -42, waiting_from_us: -42 },
             Message::Ping { id: 7, t0_us: i64::MIN },
-            Message::Pong { id: 7, t0_us: 1, t1_us: i64::MAX, resident_bytes: u64::MAX },
+            Message::Pong { id: 7, t0_us: 1, t1_us: i64::MAX, sent_us: i64::MAX, resident_bytes: u64::MAX },
             Message::SnapshotRequest,
             Message::ThumbnailRequest { divisor: 8 },
             Message::Snapshot {

@@ -115,6 +115,8 @@ pub struct NodeFrameStats {
     pub presented_at: Option<Duration>,
     /// When it presented, by its own clock, as it reported.
     pub presented_node_time_us: Option<i64>,
+    /// The present time its Swap carried, by its own clock (`None`: untimed).
+    pub present_at_us: Option<i64>,
     /// Its Swap came after the frame's present time: it presented at once.
     pub late_swap: bool,
     /// Whether it went down during the frame.
@@ -372,6 +374,16 @@ impl FrameController {
         &self.timing
     }
 
+    /// When the next frame should begin, on a paced wall: a period before the last released
+    /// frame's present time, so that at most one frame waits for its slot while the next renders
+    /// (it has up to two periods to make the slot after). `None`: now (unpaced, or no frame's
+    /// present time is that far ahead).
+    pub fn next_begin_at(&self, now: Duration) -> Option<Duration> {
+        let period = self.timing.period()?;
+        let last = self.presenting.back().and_then(|f| f.present_at)?;
+        Some(last.saturating_sub(period)).filter(|&t| t > now)
+    }
+
     /// Times the swaps from the next release on (see [`crate::swap_timing`]).
     pub fn set_swap_timing(&mut self, timing: SwapTiming) {
         self.timing = timing;
@@ -618,6 +630,7 @@ impl FrameController {
                 ready_after: p.ready_after,
                 presented_at: p.presented_at,
                 presented_node_time_us: p.presented_node_time_us,
+                present_at_us: p.present_at_us,
                 late_swap: p.late_swap,
                 went_down: p.down,
                 bytes_sent: p.bytes_sent,
@@ -847,8 +860,8 @@ impl FrameController {
             Message::Presented { frame_id, node_time_us, waiting_from_us } => {
                 self.handle_presented(now, node, frame_id, node_time_us, waiting_from_us)
             }
-            Message::Pong { id, t0_us, t1_us, resident_bytes } => {
-                self.handle_pong(now, node, id, t0_us, t1_us, resident_bytes)
+            Message::Pong { id, t0_us, t1_us, sent_us, resident_bytes } => {
+                self.handle_pong(now, node, id, t0_us, (t1_us, sent_us), resident_bytes)
             }
             Message::Snapshot { tiles } => {
                 let st = self.nodes.get_mut(node).expect("checked");
@@ -1060,7 +1073,7 @@ impl FrameController {
         node: &str,
         id: u64,
         t0_us: i64,
-        t1_us: i64,
+        (t1_us, sent_us): (i64, i64),
         resident_bytes: u64,
     ) -> Result<Vec<ControllerOutput>, ProtocolError> {
         let st = self.nodes.get_mut(node).expect("checked");
@@ -1077,7 +1090,8 @@ impl FrameController {
             return Ok(self.ignore(now, node, what));
         }
         st.pings.remove(pos);
-        if let Err(why) = st.clock.admit(ClockSample { t0_us: sent, t1_us, t2_us: micros(now) }) {
+        let held_us = sent_us.saturating_sub(t1_us);
+        if let Err(why) = st.clock.admit(ClockSample { t0_us: sent, t1_us, held_us, t2_us: micros(now) }) {
             st.counters.refused_times += 1;
             return Ok(self.ignore_line(now, node, format!("Pong for Ping {id} refused: {why}")));
         }
@@ -1462,7 +1476,7 @@ mod tests {
         let evil = "\u{1b}[2J\u{1b}[31mowned\r\nisowall: frame 9: all good";
         let cases: Vec<(Message, &str)> = vec![
             (Message::Presented { frame_id: 1, node_time_us: 0, waiting_from_us: 0 }, "before (or without) its Swap"),
-            (Message::Pong { id: 99, t0_us: 0, t1_us: 0, resident_bytes: 0 }, "not sent to it"),
+            (Message::Pong { id: 99, t0_us: 0, t1_us: 0, sent_us: 0, resident_bytes: 0 }, "not sent to it"),
             (Message::BrickFailed { brick: 3, reason: evil.into() }, "not asked to load"),
             (Message::BrickLoaded { brick: 3, load_us: 1, resident_bytes: 1 }, "not asked to load"),
         ];
@@ -1479,7 +1493,7 @@ mod tests {
             panic!()
         };
         let out = c
-            .handle(ms(6), "a", Message::Pong { id: *id, t0_us: t0_us + 1, t1_us: 0, resident_bytes: 0 })
+            .handle(ms(6), "a", Message::Pong { id: *id, t0_us: t0_us + 1, t1_us: 0, sent_us: 0, resident_bytes: 0 })
             .unwrap();
         assert!(ignored(&out)[0].contains("echoes"), "{out:?}");
         assert_eq!(c.counters("a").unwrap().ignored, 5);
@@ -1519,7 +1533,7 @@ mod tests {
         // Node b's budget is its own.
         assert_eq!(
             ignored(
-                &c.handle(ms(10_002), "b", Message::Pong { id: 7, t0_us: 0, t1_us: 0, resident_bytes: 0 })
+                &c.handle(ms(10_002), "b", Message::Pong { id: 7, t0_us: 0, t1_us: 0, sent_us: 0, resident_bytes: 0 })
                     .unwrap()
             )
             .len(),
@@ -1562,9 +1576,9 @@ mod tests {
     fn forged_present_and_pong_times_are_refused_before_they_reach_the_skew() {
         let mut c = controller(&["a", "b"]);
         // The node_up pings were id 1 (a) and 2 (b) at t0 = 0; both clocks 10 ms ahead, 1 ms each way.
-        c.handle(ms(2), "a", Message::Pong { id: 1, t0_us: 0, t1_us: 1_000 + 10_000, resident_bytes: 0 })
+        c.handle(ms(2), "a", Message::Pong { id: 1, t0_us: 0, t1_us: 1_000 + 10_000, sent_us: 1_000 + 10_000, resident_bytes: 0 })
             .unwrap();
-        c.handle(ms(2), "b", Message::Pong { id: 2, t0_us: 0, t1_us: 1_000 + 10_000, resident_bytes: 0 })
+        c.handle(ms(2), "b", Message::Pong { id: 2, t0_us: 0, t1_us: 1_000 + 10_000, sent_us: 1_000 + 10_000, resident_bytes: 0 })
             .unwrap();
         let days_46 = 46 * 86_400 * 1_000_000i64;
         // A Pong 46 days off is refused; the offset stays.
@@ -1575,7 +1589,7 @@ mod tests {
             panic!()
         };
         let forged =
-            Message::Pong { id: *id, t0_us: *t0_us, t1_us: 101_000 + 10_000 + days_46, resident_bytes: 0 };
+            Message::Pong { id: *id, t0_us: *t0_us, t1_us: 101_000 + 10_000 + days_46, sent_us: 101_000 + 10_000 + days_46, resident_bytes: 0 };
         let lines = ignored(&c.handle(ms(102), "a", forged).unwrap());
         assert!(lines[0].contains("Pong for Ping") && lines[0].contains("refused"), "{lines:?}");
         assert_eq!(c.clock_offset("a").unwrap().offset_us, 10_000);
@@ -1621,10 +1635,10 @@ mod tests {
         c.handle(
             ms(2),
             "a",
-            Message::Pong { id: 1, t0_us: 0, t1_us: 1_000 + 50_000, resident_bytes: 7 << 20 },
+            Message::Pong { id: 1, t0_us: 0, t1_us: 1_000 + 50_000, sent_us: 1_000 + 50_000, resident_bytes: 7 << 20 },
         )
         .unwrap();
-        c.handle(ms(2), "b", Message::Pong { id: 2, t0_us: 0, t1_us: 1_000 - 30_000, resident_bytes: 0 })
+        c.handle(ms(2), "b", Message::Pong { id: 2, t0_us: 0, t1_us: 1_000 - 30_000, sent_us: 1_000 - 30_000, resident_bytes: 0 })
             .unwrap();
         assert_eq!(c.clock_offset("a").unwrap().offset_us, 50_000);
         assert_eq!(c.clock_offset("b").unwrap().offset_us, -30_000);
@@ -1665,7 +1679,7 @@ mod tests {
             for o in c2.handle_timeout(now) {
                 if let ControllerOutput::Send { node, message: Message::Ping { id, t0_us } } = o {
                     pings.push((now, node.clone()));
-                    let pong = Message::Pong { id, t0_us, t1_us: t0_us + 50, resident_bytes: 0 };
+                    let pong = Message::Pong { id, t0_us, t1_us: t0_us + 50, sent_us: t0_us + 50, resident_bytes: 0 };
                     c2.handle(now + Duration::from_micros(100), &node, pong).unwrap();
                 }
             }
@@ -1724,7 +1738,7 @@ mod tests {
                         ControllerOutput::Send { node, message } if node == "a" || t < dies_at => {
                             let answer = match message {
                                 Message::Ping { id, t0_us } => {
-                                    Message::Pong { id, t0_us, t1_us: t0_us, resident_bytes: 1 }
+                                    Message::Pong { id, t0_us, t1_us: t0_us, sent_us: t0_us, resident_bytes: 1 }
                                 }
                                 Message::FrameState(f) => {
                                     Message::Ready { frame_id: f.frame_id, render_us: 1 }

@@ -15,7 +15,7 @@
 //!     Swap { n, present_at } -------------------> presents at that time of its clock
 //!     <---------------------------------------- Presented { n, node_time_us, waiting_from_us }
 //!     Ping { id, t0 } --------------------------> (now and then: clock offsets)
-//!     <---------------------------------------- Pong { id, t0, t1, resident_bytes }
+//!     <---------------------------------------- Pong { id, t0, t1, sent, resident_bytes }
 //!     SnapshotRequest / ThumbnailRequest { divisor } ---> (whenever asked)
 //!     <---------------------------------------- Snapshot { tiles } (each 1/divisor the size)
 //! ```
@@ -156,9 +156,10 @@ pub enum Message {
     Presented { frame_id: u64, node_time_us: i64, waiting_from_us: i64 },
     /// Controller -> daemon: clock sync; `t0_us` is the controller's clock at sending.
     Ping { id: u64, t0_us: i64 },
-    /// Daemon -> controller: `t1_us` is the daemon's clock when the Ping arrived;
+    /// Daemon -> controller: `t1_us` is the daemon's clock when the Ping arrived, `sent_us` when
+    /// the Pong left (the hold between is on neither wire: [`crate::clock`]);
     /// `resident_bytes` the daemon process's resident memory then (0 where its OS does not say).
-    Pong { id: u64, t0_us: i64, t1_us: i64, resident_bytes: u64 },
+    Pong { id: u64, t0_us: i64, t1_us: i64, sent_us: i64, resident_bytes: u64 },
     /// Controller -> daemon: send me your tiles' last presented frames.
     SnapshotRequest,
     /// Daemon -> controller: its tiles' last presented frames.

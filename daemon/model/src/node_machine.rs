@@ -13,7 +13,9 @@
 //!   thread that presents), then call [`NodeMachine::presented`] with the time it was shown and
 //!   the time that thread was ready to wait, which sends Presented (and says whether the swap was
 //!   late: `LateSwap`, for the node's log).
-//! - `Send(message)`: send it to the controller.
+//! - `Send(message)`: send it to the controller; a Pong's `sent_us` stamped with the daemon's
+//!   clock as it leaves (the machine sets it to the Ping's arrival, `now` of its `handle`: the
+//!   caller passes the moment the Ping arrived, not when it got round to it).
 //! - `SnapshotWanted`: send `Message::Snapshot` with the tiles' last presented frames.
 //! - `ThumbnailWanted { divisor }`: the same, each tile downscaled by `divisor`.
 //! - `Closed { reason }`: the controller said goodbye; close the connection.
@@ -239,10 +241,12 @@ impl NodeMachine {
                 self.presenting.push_back((frame_id, at));
                 Ok(vec![NodeOutput::Present { frame_id, at }])
             }
+            // `sent_us` is the arrival too: the caller stamps it again as the Pong leaves.
             Message::Ping { id, t0_us } => Ok(vec![NodeOutput::Send(Message::Pong {
                 id,
                 t0_us,
                 t1_us: micros(now),
+                sent_us: micros(now),
                 resident_bytes: self.resident_bytes,
             })]),
             Message::SnapshotRequest => Ok(vec![NodeOutput::SnapshotWanted]),
@@ -434,7 +438,7 @@ mod tests {
         let out = m.handle(ms(1234), Message::Ping { id: 9, t0_us: -7 }).unwrap();
         assert_eq!(
             out,
-            vec![NodeOutput::Send(Message::Pong { id: 9, t0_us: -7, t1_us: 1_234_000, resident_bytes: 0 })]
+            vec![NodeOutput::Send(Message::Pong { id: 9, t0_us: -7, t1_us: 1_234_000, sent_us: 1_234_000, resident_bytes: 0 })]
         );
         m.set_resident_bytes(300 << 20);
         let out = m.handle(ms(2000), Message::Ping { id: 10, t0_us: 5 }).unwrap();
@@ -444,6 +448,7 @@ mod tests {
                 id: 10,
                 t0_us: 5,
                 t1_us: 2_000_000,
+                sent_us: 2_000_000,
                 resident_bytes: 300 << 20
             })]
         );

@@ -253,3 +253,46 @@ fn the_timed_swap_shows_a_256_node_wall_at_one_moment_despite_drifting_clocks() 
     // A lost Swap (one packet in 100,000) is late by QUIC's probe timeout; nothing else is.
     assert!(late <= 8, "late swaps: {late}");
 }
+
+#[test]
+fn a_paced_wall_presents_on_the_grid_and_an_unpaced_one_as_fast_as_before() {
+    // 16 nodes rendering 10 ms (+ up to 1 ms), frames begun as soon as the controller allows.
+    let spec = ScreenSpec {
+        nodes: 16,
+        frames: 120,
+        frame_interval: Duration::ZERO,
+        drift_ppm: 50.0,
+        present_jitter: Duration::from_micros(2),
+        warm_up: Duration::from_secs(2),
+        ping_interval: Duration::from_millis(500),
+        timing: MarginSetting::Auto,
+        ..ScreenSpec::new(16, 5)
+    };
+    let fps = |r: &isowall_model::sim::ScreenReport| {
+        let t: Vec<Duration> = r.frames.iter().filter_map(|f| f.shown_at).collect();
+        (t.len() - 1) as f64 / (t[t.len() - 1] - t[0]).as_secs_f64()
+    };
+    let untimed = run_screen(&ScreenSpec { timing: MarginSetting::Off, ..spec.clone() });
+    let timed = run_screen(&spec);
+    let paced = run_screen(&ScreenSpec { frame_rate: Some(60.0), ..spec.clone() });
+    for r in [&untimed, &timed, &paced] {
+        assert!(r.errors.is_empty(), "{:?}", r.errors);
+        assert_eq!(r.frames.len(), 120);
+    }
+    let (fu, ft, fp) = (fps(&untimed), fps(&timed), fps(&paced));
+    // Unpaced, the timed swap costs no frame rate: the next frame renders while one waits.
+    assert!((ft - fu).abs() / fu < 0.05, "untimed {fu:.1} fps, timed {ft:.1}");
+    // Paced at 60 (renders take 11 ms at most): every frame on the next slot of the grid.
+    let period = Duration::from_secs_f64(1.0 / 60.0);
+    let shown: Vec<Duration> = paced.frames.iter().filter_map(|f| f.shown_at).collect();
+    let jitter: Vec<Duration> = shown.windows(2).map(|w| (w[1] - w[0]).abs_diff(period)).collect();
+    let (j50, j99, jmax) = percentiles(&jitter);
+    let latency: Vec<Duration> = paced.frames.iter().filter_map(|f| f.margin).collect();
+    let (l50, l99, _) = percentiles(&latency);
+    eprintln!(
+        "16 nodes: untimed {fu:.1} fps, timed {ft:.1} fps, paced {fp:.2} fps; interval jitter p50 {j50:?} p99 \
+         {j99:?} max {jmax:?}; release -> present p50 {l50:?} p99 {l99:?}"
+    );
+    assert!((fp - 60.0).abs() < 0.1, "paced at {fp} fps");
+    assert!(j99 <= Duration::from_micros(50), "interval jitter p99 {j99:?}");
+}

@@ -2,10 +2,11 @@
 //! wall's own certificate authority ([`tls`]; the certificates made by [`keygen`]), and
 //! length-prefixed [`Message`]s on one bidirectional stream per connection ([`transport`]),
 //! encoded by the model's one codec module; in object space, nodes' pixels to each other on a
-//! stream per frame ([`pixels`]). The protocol logic lives in the model's state machines
+//! stream per frame ([`pixels`]); and the clock its processes share ([`clock`]). The protocol logic lives in the model's state machines
 //! (`isowall_model::barrier`, `isowall_model::node_machine`); the binaries drive them with what
 //! arrives here.
 
+pub mod clock;
 pub mod keygen;
 pub mod pixels;
 pub mod tls;

@@ -10,6 +10,11 @@
 //!                                 # 600000: ten minutes)
 //! message_limit_bytes = 67108864  # the largest network message (default 64 MiB; 4 KiB to 1 GiB,
 //!                                 # and room for each node's snapshot of its tiles)
+//! swap_margin_ms = "auto"         # the timed swap: from a frame's release to the moment every
+//!                                 # node presents it; "auto" (learned), milliseconds (at most
+//!                                 # 1000), or "off" (each node presents when its Swap arrives)
+//! frame_rate = "unpaced"          # or frames a second (e.g. 60, 30; at most 1000): frames
+//!                                 # present on that grid of the controller's clock
 //!
 //! [camera]      # the one wall camera, over the whole wall image (DESIGN.md "Camera")
 //! eye = [x, y, z]                 # optional: omitted -> a view that frames the volume
@@ -159,7 +164,7 @@ pub struct WallConfig {
 }
 
 /// `[wall]`: the wall's name and limits.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct WallSection {
     pub name: String,
@@ -177,6 +182,65 @@ pub struct WallSection {
     /// Object space: compress the pixels nodes send each other (lz4); `false` sends them raw.
     #[serde(default = "default_compress")]
     pub compress: bool,
+    /// The timed swap's margin from a frame's release to its present time: `"auto"` (learned,
+    /// the default), milliseconds, or `"off"` (each node presents when its Swap arrives).
+    #[serde(default)]
+    pub swap_margin_ms: WordOrNumber,
+    /// Frames a second the wall presents at, on a steady grid (e.g. 60 or 30), or `"unpaced"`
+    /// (the default: each frame as soon as it is ready).
+    #[serde(default)]
+    pub frame_rate: Option<WordOrNumber>,
+}
+
+/// A config value that is a word or a number (`swap_margin_ms = "auto"` or `= 1.5`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum WordOrNumber {
+    Word(String),
+    Number(f64),
+}
+
+impl Default for WordOrNumber {
+    fn default() -> Self {
+        WordOrNumber::Word("auto".into())
+    }
+}
+
+/// The most frames a second `[wall] frame_rate` may ask for.
+pub const MAX_FRAME_RATE: f64 = 1000.0;
+
+impl WallSection {
+    /// `swap_margin_ms` read (the config's validation reports a bad one).
+    pub fn swap_margin(&self) -> Result<crate::swap_timing::MarginSetting, String> {
+        match &self.swap_margin_ms {
+            WordOrNumber::Word(w) => w.parse(),
+            WordOrNumber::Number(ms) => crate::swap_timing::MarginSetting::from_ms(*ms),
+        }
+    }
+
+    /// `frame_rate` read: `None` unpaced (the config's validation reports a bad one).
+    pub fn frame_rate(&self) -> Result<Option<f64>, String> {
+        match &self.frame_rate {
+            None => Ok(None),
+            Some(WordOrNumber::Word(w)) if w.trim().eq_ignore_ascii_case("unpaced") => Ok(None),
+            Some(WordOrNumber::Word(w)) => {
+                Err(format!("frame rate {w:?} is not a number of frames a second or `unpaced`"))
+            }
+            Some(WordOrNumber::Number(r)) if *r > 0.0 && *r <= MAX_FRAME_RATE => Ok(Some(*r)),
+            Some(WordOrNumber::Number(r)) => {
+                Err(format!("frame rate {r} is not in (0, {MAX_FRAME_RATE}] frames a second"))
+            }
+        }
+    }
+
+    /// The wall's swap timing, as the config says (defaults where it is silent or wrong: the
+    /// config's validation has reported that).
+    pub fn swap_timing(&self) -> crate::swap_timing::SwapTiming {
+        crate::swap_timing::SwapTiming::new(
+            self.swap_margin().unwrap_or_default(),
+            self.frame_rate().unwrap_or_default(),
+        )
+    }
 }
 
 /// How a wall distributes its work (DESIGN.md "Distribution").

@@ -29,6 +29,12 @@ pub(crate) fn validate_wall(doc: &mut Doc<'_>, w: &WallSection) {
             ),
         );
     }
+    if let Err(e) = w.swap_margin() {
+        doc.at(&at("swap_margin_ms"), format!("wall: `swap_margin_ms`: {e}"));
+    }
+    if let Err(e) = w.frame_rate() {
+        doc.at(&at("frame_rate"), format!("wall: `frame_rate`: {e}"));
+    }
 }
 
 /// A node's snapshot (one message with all its tiles) must fit the wall's message limit.

@@ -316,10 +316,12 @@ impl Sim {
         if self.ctrl.in_flight().is_some() || self.next_frame > self.spec.frames {
             return None;
         }
-        Some(match self.last_begin {
+        let at = match self.last_begin {
             None => self.spec.warm_up,
             Some(l) => (l + self.spec.frame_interval).max(self.now),
-        })
+        };
+        // A paced wall begins no sooner than the frame controller says.
+        Some(self.ctrl.next_begin_at(self.now).map_or(at, |t| t.max(at)))
     }
 
     fn run(&mut self) {
