@@ -91,7 +91,8 @@ fn bench_swap(a: &BenchArgs, config: WallConfig) -> Result<()> {
     ];
     let rt = runtime()?;
     rt.block_on(async {
-        let mut wall = Wall::connect(config, Duration::from_secs(a.start_timeout), Duration::from_secs(5)).await?;
+        let mut wall =
+            Wall::connect(config, Duration::from_secs(a.start_timeout), Duration::from_secs(5)).await?;
         for (name, timing) in runs {
             wall.set_swap_timing(timing);
             let o = OrbitOptions {

@@ -251,7 +251,10 @@ pub fn session(a: &SessionArgs) -> Result<()> {
                         .filter_map(|n| n.render.map(|r| (n.node.clone(), r)))
                         .max_by_key(|x| x.1)
                         .map_or("-".into(), |(n, r)| format!("{n} {:.0} ms", r.as_secs_f64() * 1e3)),
-                    f.swap_skew.map_or("-".into(), |s| format!("{:.2} ms", s.as_secs_f64() * 1e3)),
+                    f.swap_skew.map_or("-".into(), |s| {
+                        let late = if f.late_swaps > 0 { format!(" ({} late)", f.late_swaps) } else { String::new() };
+                        format!("{:.2} ms{late}", s.as_secs_f64() * 1e3)
+                    }),
                 ),
                 None => ("-".into(), "-".into()),
             };

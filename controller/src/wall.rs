@@ -553,7 +553,9 @@ impl Wall {
     /// Lets the machine handle what arrived from a node (or a reconnection attempt).
     async fn on_event(&mut self, event: Option<Event>) -> Vec<ControllerOutput> {
         match event {
-            Some(Event::Message(node, id, _, _) | Event::Closed(node, id, _)) if !self.is_current(&node, id) => {
+            Some(Event::Message(node, id, _, _) | Event::Closed(node, id, _))
+                if !self.is_current(&node, id) =>
+            {
                 Vec::new()
             }
             Some(Event::Message(node, _, msg, arrived)) => {
@@ -626,6 +628,21 @@ impl Wall {
             self.step().await;
         }
         Ok(())
+    }
+
+    /// The present times of the wall's frames (margin, frame rate).
+    pub fn swap_timing(&self) -> &isowall_model::swap_timing::SwapTiming {
+        self.machine.swap_timing()
+    }
+
+    /// `node`'s clock offset's error bound now, microseconds (`None` before its first Pong).
+    pub fn clock_error_us(&self, node: &str) -> Option<i64> {
+        Some(self.machine.clock_offset(node)?.error_at(micros(self.now())))
+    }
+
+    /// Swaps that reached `node` after their present time.
+    pub fn late_swaps(&self, node: &str) -> u64 {
+        self.machine.counters(node).map_or(0, |c| c.late_swaps)
     }
 
     /// Times the swaps from the next release on (the config's `[wall] swap_margin_ms` and
@@ -855,7 +872,11 @@ pub fn swap_report(wall: &Wall) -> String {
         );
     }
     let timing = wall.machine.swap_timing();
-    let presents: usize = wall.finished.iter().map(|f| f.per_node.iter().filter(|n| n.presented_node_time_us.is_some()).count()).sum();
+    let presents: usize = wall
+        .finished
+        .iter()
+        .map(|f| f.per_node.iter().filter(|n| n.presented_node_time_us.is_some()).count())
+        .sum();
     let late: usize = wall.finished.iter().map(|f| f.late_swaps).sum();
     let margins: Vec<Duration> = wall.finished.iter().filter_map(|f| f.margin).collect();
     if margins.is_empty() {
@@ -896,25 +917,16 @@ pub fn swap_report(wall: &Wall) -> String {
             "presented after the present time (on-time swaps, node clocks): {}\n",
             waits
                 .into_iter()
-                .map(|(n, v)| format!("{n} p50 {} p99 {}", ms(quantile(v.clone(), 0.5)), ms(quantile(v, 0.99))))
+                .map(|(n, v)| format!(
+                    "{n} p50 {} p99 {}",
+                    ms(quantile(v.clone(), 0.5)),
+                    ms(quantile(v, 0.99))
+                ))
                 .collect::<Vec<_>>()
                 .join(", ")
         );
     }
-    if let Some(period) = timing.period() {
-        // The wall's present moment of each frame: its nodes' mean, in controller time.
-        let moments: Vec<f64> = wall
-            .finished
-            .iter()
-            .filter_map(|f| {
-                let t: Vec<f64> = f.per_node.iter().filter_map(|n| n.presented_at).map(|d| d.as_secs_f64()).collect();
-                (!t.is_empty()).then(|| t.iter().sum::<f64>() / t.len() as f64)
-            })
-            .collect();
-        let jitter: Vec<Duration> = moments
-            .windows(2)
-            .map(|w| Duration::from_secs_f64(((w[1] - w[0]) - period.as_secs_f64()).abs()))
-            .collect();
+    if let Some((period, jitter)) = interval_jitter(wall) {
         s += &format!(
             "frame pacing: {:.2} fps; {}",
             1.0 / period.as_secs_f64(),
@@ -922,6 +934,26 @@ pub fn swap_report(wall: &Wall) -> String {
         );
     }
     s
+}
+
+/// On a paced wall, its period and each interval's |interval - period| between consecutive
+/// finished frames' present moments (each the mean of its nodes', in controller time).
+pub fn interval_jitter(wall: &Wall) -> Option<(Duration, Vec<Duration>)> {
+    let period = wall.machine.swap_timing().period()?;
+    let moments: Vec<f64> = wall
+        .finished
+        .iter()
+        .filter_map(|f| {
+            let t: Vec<f64> =
+                f.per_node.iter().filter_map(|n| n.presented_at).map(|d| d.as_secs_f64()).collect();
+            (!t.is_empty()).then(|| t.iter().sum::<f64>() / t.len() as f64)
+        })
+        .collect();
+    let jitter = moments
+        .windows(2)
+        .map(|w| Duration::from_secs_f64(((w[1] - w[0]) - period.as_secs_f64()).abs()))
+        .collect();
+    Some((period, jitter))
 }
 
 fn micros(t: Duration) -> i64 {

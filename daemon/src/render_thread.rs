@@ -13,8 +13,8 @@
 //! render thread filtered and composed, or the image the node composited on the CPU, uploaded
 //! ([`RenderHandle::show`]).
 
-use anyhow::{Context, Result};
 use crate::presenter::Shown;
+use anyhow::{Context, Result};
 use isowall_model::composite::PixelForm;
 use isowall_model::{RenderSettings, View};
 use isowall_render::environment::Environment;
@@ -467,7 +467,11 @@ impl RenderHandle {
 
     /// The swap: presents `frame_id` in every window at `at` (now when `None`); the receiver
     /// resolves to the frame presented, with when it was (the moment the last surface was).
-    pub fn present(&self, frame_id: u64, at: Option<Instant>) -> Result<tokio::sync::oneshot::Receiver<Shown>> {
+    pub fn present(
+        &self,
+        frame_id: u64,
+        at: Option<Instant>,
+    ) -> Result<tokio::sync::oneshot::Receiver<Shown>> {
         let (tx, rx) = tokio::sync::oneshot::channel();
         self.send(Job::Window(WindowJob::Present(frame_id, at, tx)))?;
         Ok(rx)

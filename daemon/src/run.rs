@@ -872,7 +872,11 @@ async fn execute(
                         }
                         Err(e) => {
                             let now = Instant::now();
-                            let _ = node.shown_tx.send(Shown { frame_id, waiting_from: now, result: Err(e.to_string()) });
+                            let _ = node.shown_tx.send(Shown {
+                                frame_id,
+                                waiting_from: now,
+                                result: Err(e.to_string()),
+                            });
                         }
                     }
                 } else {

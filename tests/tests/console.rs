@@ -319,7 +319,17 @@ fn the_api_refuses_missing_tokens_and_bad_input_and_changes_nothing() {
         skew50.zip(skew99).is_some_and(|(a, b)| 0.0 <= a && a <= b),
         "skew p50 {skew50:?}, p99 {skew99:?}"
     );
+    // The timed swap (the config's default, `auto`): its margin, late swaps, the node's clock
+    // error bound, and the true skew (its nodes are on this machine).
+    let f = &s["frame"];
+    assert_eq!(f["swap_margin"], "auto");
+    let margin = f["swap_margin_ms"].as_f64();
+    assert!(margin.is_some_and(|m| m > 0.0 && m <= 25.0), "margin {margin:?} ms");
+    assert!(f["late_swaps"].as_u64().is_some() && f["frame_rate"].is_null());
+    assert!(f["true_skew_ms_p50"].as_f64().is_some_and(|t| t >= 0.0), "{f}");
     let node = &s["nodes"][0];
+    let clock = node["clock_error_us"].as_i64();
+    assert!(clock.is_some_and(|e| e > 0 && e < 1_000_000), "clock error {clock:?} us");
     let (render, ready) = (node["render_ms"].as_f64(), node["ready_ms"].as_f64());
     assert!(
         render.zip(ready).is_some_and(|(r, q)| 0.0 < r && r <= q && q < 20_000.0),

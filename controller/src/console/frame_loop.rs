@@ -109,6 +109,8 @@ struct Loop {
     frame_samples: (u32, u32),
     started: Instant,
     published: Option<Instant>,
+    /// Every node on this machine: their present times give the true swap skew.
+    one_machine: bool,
 }
 
 pub async fn run(
@@ -151,6 +153,7 @@ pub async fn run(
         frame_samples: (scene.settings.ao.samples, 1),
         started: now,
         published: None,
+        one_machine: crate::wall::one_machine(&wall.config),
     };
     let mut last = Instant::now();
     let mut frames = 0u64;
@@ -395,6 +398,7 @@ impl Loop {
         };
         let intervals: Vec<Duration> = self.intervals.iter().map(|x| x.1).collect();
         let skews: Vec<Duration> = wall.finished.iter().filter_map(|f| f.swap_skew).collect();
+        let true_skews: Vec<Duration> = wall.finished.iter().filter_map(|f| f.node_clock_skew).collect();
         let tail = |v: &[Duration]| v[v.len().saturating_sub(SERIES)..].iter().map(|d| ms(*d)).collect();
         let q = |v: &[Duration], p: f64| quantile(v.to_vec(), p).map(ms);
         let frame = FrameInfo {
@@ -407,6 +411,13 @@ impl Loop {
             frame_ms_p99: q(&intervals, 0.99),
             skew_ms_p50: q(&skews, 0.5),
             skew_ms_p99: q(&skews, 0.99),
+            true_skew_ms_p50: self.one_machine.then(|| q(&true_skews, 0.5)).flatten(),
+            true_skew_ms_p99: self.one_machine.then(|| q(&true_skews, 0.99)).flatten(),
+            swap_margin: wall.swap_timing().setting().to_string(),
+            swap_margin_ms: wall.finished.last().and_then(|f| f.margin).map(ms),
+            late_swaps: wall.finished.iter().map(|f| f.late_swaps).sum(),
+            frame_rate: wall.swap_timing().period().map(|p| 1.0 / p.as_secs_f64()),
+            interval_jitter_ms_p99: crate::wall::interval_jitter(wall).and_then(|(_, j)| q(&j, 0.99)),
         };
         let s = &self.controls.session.settings;
         let c = &self.controls.session.camera;
@@ -438,6 +449,8 @@ impl Loop {
                     resident_volume_bytes: resident.get(n.name.as_str()).copied(),
                     tiles: n.tiles.clone(),
                     bricks: wall.bricks_of(&n.name),
+                    clock_error_us: wall.clock_error_us(&n.name),
+                    late_swaps: wall.late_swaps(&n.name),
                 }
             })
             .collect();

@@ -62,6 +62,19 @@ pub struct FrameInfo {
     pub frame_ms_p99: Option<f64>,
     pub skew_ms_p50: Option<f64>,
     pub skew_ms_p99: Option<f64>,
+    /// The true swap skew where every node is on the console's machine (one clock), ms.
+    pub true_skew_ms_p50: Option<f64>,
+    pub true_skew_ms_p99: Option<f64>,
+    /// The timed swap: `auto`, `off` or a fixed margin, and the margin of the last frame, ms
+    /// (`null`: untimed).
+    pub swap_margin: String,
+    pub swap_margin_ms: Option<f64>,
+    /// Swaps that came after their present time, over the controller's history.
+    pub late_swaps: usize,
+    /// `[wall] frame_rate` (`null`: unpaced), and the frame-interval jitter |interval - period|
+    /// at the 99th percentile over the history, ms.
+    pub frame_rate: Option<f64>,
+    pub interval_jitter_ms_p99: Option<f64>,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -170,6 +183,10 @@ pub struct NodeCard {
     pub tiles: Vec<String>,
     /// Object space: the bricks it renders now.
     pub bricks: Vec<usize>,
+    /// Its clock offset's error bound, microseconds (`null` before its first Pong).
+    pub clock_error_us: Option<i64>,
+    /// Swaps that reached it after their present time, since the console started.
+    pub late_swaps: u64,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]

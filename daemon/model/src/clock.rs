@@ -274,7 +274,9 @@ impl ClockEstimator {
             return None;
         }
         // Weighted by how little each was queued beyond the shortest round trip.
-        let w = |s: &ClockSample| 1.0 / (1.0 + (s.rtt_us() - best_rtt) as f64 / Self::FIT_TOLERANCE_US as f64).powi(2);
+        let w = |s: &ClockSample| {
+            1.0 / (1.0 + (s.rtt_us() - best_rtt) as f64 / Self::FIT_TOLERANCE_US as f64).powi(2)
+        };
         let n: f64 = good.iter().map(|s| w(s)).sum();
         let mx = good.iter().map(|s| w(s) * mid(s)).sum::<f64>() / n;
         let my = good.iter().map(|s| w(s) * s.offset_us() as f64).sum::<f64>() / n;
@@ -314,7 +316,8 @@ mod tests {
     #[test]
     fn symmetric_delays_give_the_exact_offset() {
         // Daemon 50 ms ahead, 2 ms each way.
-        let s = ClockSample { t0_us: 1_000_000, t1_us: 1_000_000 + 2_000 + 50_000, held_us: 0, t2_us: 1_004_000 };
+        let s =
+            ClockSample { t0_us: 1_000_000, t1_us: 1_000_000 + 2_000 + 50_000, held_us: 0, t2_us: 1_004_000 };
         assert_eq!(s.rtt_us(), 4_000);
         assert_eq!(s.offset_us(), 50_000);
         // The daemon held the Ping 5 ms before answering: on neither wire, so no bias.
@@ -358,10 +361,12 @@ mod tests {
         let mut e = ClockEstimator::default();
         let offset = 3_000_000;
         // A 2 ms round trip at 1 s: offset known within 1 ms.
-        e.admit(ClockSample { t0_us: 1_000_000, t1_us: 1_001_000 + offset, held_us: 0, t2_us: 1_002_000 }).unwrap();
+        e.admit(ClockSample { t0_us: 1_000_000, t1_us: 1_001_000 + offset, held_us: 0, t2_us: 1_002_000 })
+            .unwrap();
         // 46 days ahead: refused, the estimate unchanged.
         let lie = 46 * 86_400 * 1_000_000i64;
-        let s = ClockSample { t0_us: 2_000_000, t1_us: 2_001_000 + offset + lie, held_us: 0, t2_us: 2_002_000 };
+        let s =
+            ClockSample { t0_us: 2_000_000, t1_us: 2_001_000 + offset + lie, held_us: 0, t2_us: 2_002_000 };
         let why = e.admit(s).unwrap_err();
         assert!(why.contains("t1 = ") && why.contains("within"), "{why}");
         assert_eq!(e.len(), 1);
@@ -373,7 +378,12 @@ mod tests {
         e.admit(s).unwrap();
         assert_eq!(e.estimate().unwrap().offset_us, offset);
         // Drift: 60 s later a clock 50 ppm fast is 3 ms further; 100 ppm of slack takes it.
-        let s = ClockSample { t0_us: 64_000_000, t1_us: 64_001_000 + offset + 3_000, held_us: 0, t2_us: 64_002_000 };
+        let s = ClockSample {
+            t0_us: 64_000_000,
+            t1_us: 64_001_000 + offset + 3_000,
+            held_us: 0,
+            t2_us: 64_002_000,
+        };
         e.admit(s).unwrap();
     }
 

@@ -56,9 +56,9 @@ use std::collections::{BTreeMap, VecDeque};
 use std::time::Duration;
 
 use crate::clock::{ClockEstimator, ClockOffset, ClockSample};
-use crate::swap_timing::SwapTiming;
 use crate::messages::{printable, Message, ProtocolError, Role, TileImage};
 use crate::peer_log::PeerLog;
+use crate::swap_timing::SwapTiming;
 use crate::wire::FrameState;
 
 /// Pings and swaps remembered per node, at most (older ones are forgotten: their answers will be
@@ -1035,10 +1035,12 @@ impl FrameController {
                 let checked = between(node_time_us);
                 let waited = between(waiting_from_us);
                 let refused = match (&checked, &waited) {
-                    (Some(Err(why)), _) => Some(format!("Presented time {node_time_us} us for frame {id} refused: {why}")),
-                    (_, Some(Err(why))) => {
-                        Some(format!("Presented waiting time {waiting_from_us} us for frame {id} refused: {why}"))
+                    (Some(Err(why)), _) => {
+                        Some(format!("Presented time {node_time_us} us for frame {id} refused: {why}"))
                     }
+                    (_, Some(Err(why))) => Some(format!(
+                        "Presented waiting time {waiting_from_us} us for frame {id} refused: {why}"
+                    )),
                     _ => None,
                 };
                 if let Some(what) = refused {
@@ -1242,8 +1244,11 @@ mod tests {
         assert_eq!(c.in_flight(), None);
         assert_eq!(c.presenting(), Some(1));
         // No clock offsets known (no Pong yet): presented_at stays None.
-        c.handle(ms(125), "a", Message::Presented { frame_id: 1, node_time_us: 5, waiting_from_us: 5 }).unwrap();
-        let out = c.handle(ms(126), "b", Message::Presented { frame_id: 1, node_time_us: 6, waiting_from_us: 6 }).unwrap();
+        c.handle(ms(125), "a", Message::Presented { frame_id: 1, node_time_us: 5, waiting_from_us: 5 })
+            .unwrap();
+        let out = c
+            .handle(ms(126), "b", Message::Presented { frame_id: 1, node_time_us: 6, waiting_from_us: 6 })
+            .unwrap();
         let ControllerOutput::FrameDone { frame_id: 1, stats } = &out[0] else { panic!("{out:?}") };
         assert_eq!(stats.barrier, ms(20));
         assert_eq!(stats.swap_skew, None);
@@ -1287,8 +1292,11 @@ mod tests {
         let never = Message::StepLate { frame_id: 9, shown_step: 0, waited_us: 0 };
         c.handle(ms(4), "b", never).unwrap();
         assert_eq!((c.counters("a").unwrap().ignored, c.counters("b").unwrap().ignored), (2, 1));
-        c.handle(ms(5), "a", Message::Presented { frame_id: 1, node_time_us: 0, waiting_from_us: 0 }).unwrap();
-        let out = c.handle(ms(5), "b", Message::Presented { frame_id: 1, node_time_us: 0, waiting_from_us: 0 }).unwrap();
+        c.handle(ms(5), "a", Message::Presented { frame_id: 1, node_time_us: 0, waiting_from_us: 0 })
+            .unwrap();
+        let out = c
+            .handle(ms(5), "b", Message::Presented { frame_id: 1, node_time_us: 0, waiting_from_us: 0 })
+            .unwrap();
         let ControllerOutput::FrameDone { stats, .. } = &out[0] else { panic!("{out:?}") };
         assert_eq!(stats.time_step, 6);
         assert_eq!(stats.per_node[0].step_late, Some(told));
@@ -1312,8 +1320,11 @@ mod tests {
         c.handle(ms(7), "b", Message::Ready { frame_id: 1, render_us: 0 }).unwrap();
         // After its Ready, or for a frame never sent, Composited breaks the protocol.
         assert!(c.handle(ms(8), "a", comp(1)).is_err());
-        c.handle(ms(9), "a", Message::Presented { frame_id: 1, node_time_us: 0, waiting_from_us: 0 }).unwrap();
-        let out = c.handle(ms(9), "b", Message::Presented { frame_id: 1, node_time_us: 0, waiting_from_us: 0 }).unwrap();
+        c.handle(ms(9), "a", Message::Presented { frame_id: 1, node_time_us: 0, waiting_from_us: 0 })
+            .unwrap();
+        let out = c
+            .handle(ms(9), "b", Message::Presented { frame_id: 1, node_time_us: 0, waiting_from_us: 0 })
+            .unwrap();
         let ControllerOutput::FrameDone { stats, .. } = &out[0] else { panic!("{out:?}") };
         assert_eq!(stats.per_node[0].bytes_sent, Some(1234));
         assert_eq!(stats.per_node[0].composite, Some(Duration::from_micros(2500)));
@@ -1343,7 +1354,12 @@ mod tests {
                 c.handle(ms(id * 100 + 6), n, Message::Ready { frame_id: id, render_us: 0 }).unwrap();
             }
             for n in ["a", "b", "c"] {
-                c.handle(ms(id * 100 + 7), n, Message::Presented { frame_id: id, node_time_us: 0, waiting_from_us: 0 }).unwrap();
+                c.handle(
+                    ms(id * 100 + 7),
+                    n,
+                    Message::Presented { frame_id: id, node_time_us: 0, waiting_from_us: 0 },
+                )
+                .unwrap();
             }
         }
         assert_eq!(
@@ -1378,7 +1394,9 @@ mod tests {
         // The next frame may begin while frame 1 still waits for Presented.
         c.begin_frame(ms(62), state(2)).unwrap();
         assert_eq!(c.presenting(), Some(1));
-        let out = c.handle(ms(63), "a", Message::Presented { frame_id: 1, node_time_us: 0, waiting_from_us: 0 }).unwrap();
+        let out = c
+            .handle(ms(63), "a", Message::Presented { frame_id: 1, node_time_us: 0, waiting_from_us: 0 })
+            .unwrap();
         assert!(matches!(&out[0], ControllerOutput::FrameDone { frame_id: 1, .. }));
     }
 
@@ -1402,7 +1420,9 @@ mod tests {
         assert_eq!(sends(&out).len(), 2);
         // Presented from frame 2 finishes it, and frame 1 before it (frames finish in order),
         // with what arrived: nothing from `a` for frame 1.
-        let out = c.handle(ms(41), "a", Message::Presented { frame_id: 2, node_time_us: 0, waiting_from_us: 0 }).unwrap();
+        let out = c
+            .handle(ms(41), "a", Message::Presented { frame_id: 2, node_time_us: 0, waiting_from_us: 0 })
+            .unwrap();
         let done: Vec<&FrameStats> = out
             .iter()
             .filter_map(|o| match o {
@@ -1475,7 +1495,10 @@ mod tests {
         c.begin_frame(ms(0), state(1)).unwrap();
         let evil = "\u{1b}[2J\u{1b}[31mowned\r\nisowall: frame 9: all good";
         let cases: Vec<(Message, &str)> = vec![
-            (Message::Presented { frame_id: 1, node_time_us: 0, waiting_from_us: 0 }, "before (or without) its Swap"),
+            (
+                Message::Presented { frame_id: 1, node_time_us: 0, waiting_from_us: 0 },
+                "before (or without) its Swap",
+            ),
             (Message::Pong { id: 99, t0_us: 0, t1_us: 0, sent_us: 0, resident_bytes: 0 }, "not sent to it"),
             (Message::BrickFailed { brick: 3, reason: evil.into() }, "not asked to load"),
             (Message::BrickLoaded { brick: 3, load_us: 1, resident_bytes: 1 }, "not asked to load"),
@@ -1493,7 +1516,11 @@ mod tests {
             panic!()
         };
         let out = c
-            .handle(ms(6), "a", Message::Pong { id: *id, t0_us: t0_us + 1, t1_us: 0, sent_us: 0, resident_bytes: 0 })
+            .handle(
+                ms(6),
+                "a",
+                Message::Pong { id: *id, t0_us: t0_us + 1, t1_us: 0, sent_us: 0, resident_bytes: 0 },
+            )
             .unwrap();
         assert!(ignored(&out)[0].contains("echoes"), "{out:?}");
         assert_eq!(c.counters("a").unwrap().ignored, 5);
@@ -1533,8 +1560,12 @@ mod tests {
         // Node b's budget is its own.
         assert_eq!(
             ignored(
-                &c.handle(ms(10_002), "b", Message::Pong { id: 7, t0_us: 0, t1_us: 0, sent_us: 0, resident_bytes: 0 })
-                    .unwrap()
+                &c.handle(
+                    ms(10_002),
+                    "b",
+                    Message::Pong { id: 7, t0_us: 0, t1_us: 0, sent_us: 0, resident_bytes: 0 }
+                )
+                .unwrap()
             )
             .len(),
             1
@@ -1560,7 +1591,8 @@ mod tests {
                 }
             }
             c.handle(t, "a", Message::Ready { frame_id: id, render_us: 0 }).unwrap();
-            c.handle(t, "a", Message::Presented { frame_id: id, node_time_us: 0, waiting_from_us: 0 }).unwrap();
+            c.handle(t, "a", Message::Presented { frame_id: id, node_time_us: 0, waiting_from_us: 0 })
+                .unwrap();
         }
         assert_eq!(kept, 1_000, "every one reaches its frame");
         // Windows start at 10 ms and 10,010 ms: 5 lines in the first, 1 in the second (at 10 s).
@@ -1576,10 +1608,30 @@ mod tests {
     fn forged_present_and_pong_times_are_refused_before_they_reach_the_skew() {
         let mut c = controller(&["a", "b"]);
         // The node_up pings were id 1 (a) and 2 (b) at t0 = 0; both clocks 10 ms ahead, 1 ms each way.
-        c.handle(ms(2), "a", Message::Pong { id: 1, t0_us: 0, t1_us: 1_000 + 10_000, sent_us: 1_000 + 10_000, resident_bytes: 0 })
-            .unwrap();
-        c.handle(ms(2), "b", Message::Pong { id: 2, t0_us: 0, t1_us: 1_000 + 10_000, sent_us: 1_000 + 10_000, resident_bytes: 0 })
-            .unwrap();
+        c.handle(
+            ms(2),
+            "a",
+            Message::Pong {
+                id: 1,
+                t0_us: 0,
+                t1_us: 1_000 + 10_000,
+                sent_us: 1_000 + 10_000,
+                resident_bytes: 0,
+            },
+        )
+        .unwrap();
+        c.handle(
+            ms(2),
+            "b",
+            Message::Pong {
+                id: 2,
+                t0_us: 0,
+                t1_us: 1_000 + 10_000,
+                sent_us: 1_000 + 10_000,
+                resident_bytes: 0,
+            },
+        )
+        .unwrap();
         let days_46 = 46 * 86_400 * 1_000_000i64;
         // A Pong 46 days off is refused; the offset stays.
         let out = c.ping(ms(100));
@@ -1588,8 +1640,13 @@ mod tests {
         else {
             panic!()
         };
-        let forged =
-            Message::Pong { id: *id, t0_us: *t0_us, t1_us: 101_000 + 10_000 + days_46, sent_us: 101_000 + 10_000 + days_46, resident_bytes: 0 };
+        let forged = Message::Pong {
+            id: *id,
+            t0_us: *t0_us,
+            t1_us: 101_000 + 10_000 + days_46,
+            sent_us: 101_000 + 10_000 + days_46,
+            resident_bytes: 0,
+        };
         let lines = ignored(&c.handle(ms(102), "a", forged).unwrap());
         assert!(lines[0].contains("Pong for Ping") && lines[0].contains("refused"), "{lines:?}");
         assert_eq!(c.clock_offset("a").unwrap().offset_us, 10_000);
@@ -1602,11 +1659,24 @@ mod tests {
             c.handle(ms(t + 5), "b", Message::Ready { frame_id: id, render_us: 0 }).unwrap();
             let present_us = (t as i64 + 10) * 1_000 + 10_000;
             let a_time = if id == 2 { present_us + days_46 } else { present_us };
-            let out =
-                c.handle(ms(t + 12), "a", Message::Presented { frame_id: id, node_time_us: a_time, waiting_from_us: a_time }).unwrap();
+            let out = c
+                .handle(
+                    ms(t + 12),
+                    "a",
+                    Message::Presented { frame_id: id, node_time_us: a_time, waiting_from_us: a_time },
+                )
+                .unwrap();
             assert_eq!(ignored(&out).len(), usize::from(id == 2), "{out:?}");
             let out = c
-                .handle(ms(t + 12), "b", Message::Presented { frame_id: id, node_time_us: present_us + 400, waiting_from_us: present_us + 400 })
+                .handle(
+                    ms(t + 12),
+                    "b",
+                    Message::Presented {
+                        frame_id: id,
+                        node_time_us: present_us + 400,
+                        waiting_from_us: present_us + 400,
+                    },
+                )
                 .unwrap();
             let Some(ControllerOutput::FrameDone { stats, .. }) = out.last() else { panic!("{out:?}") };
             if id == 2 {
@@ -1621,7 +1691,13 @@ mod tests {
         c.begin_frame(ms(1_000), state(4)).unwrap();
         c.handle(ms(1_005), "a", Message::Ready { frame_id: 4, render_us: 0 }).unwrap();
         c.handle(ms(1_005), "b", Message::Ready { frame_id: 4, render_us: 0 }).unwrap();
-        let out = c.handle(ms(1_010), "a", Message::Presented { frame_id: 4, node_time_us: 10_000, waiting_from_us: 10_000 }).unwrap();
+        let out = c
+            .handle(
+                ms(1_010),
+                "a",
+                Message::Presented { frame_id: 4, node_time_us: 10_000, waiting_from_us: 10_000 },
+            )
+            .unwrap();
         assert!(ignored(&out)[0].contains("before the earliest"), "{out:?}");
         assert_eq!(c.counters("a").unwrap().refused_times, 3);
         assert_eq!(c.counters("b").unwrap().refused_times, 0);
@@ -1635,11 +1711,27 @@ mod tests {
         c.handle(
             ms(2),
             "a",
-            Message::Pong { id: 1, t0_us: 0, t1_us: 1_000 + 50_000, sent_us: 1_000 + 50_000, resident_bytes: 7 << 20 },
+            Message::Pong {
+                id: 1,
+                t0_us: 0,
+                t1_us: 1_000 + 50_000,
+                sent_us: 1_000 + 50_000,
+                resident_bytes: 7 << 20,
+            },
         )
         .unwrap();
-        c.handle(ms(2), "b", Message::Pong { id: 2, t0_us: 0, t1_us: 1_000 - 30_000, sent_us: 1_000 - 30_000, resident_bytes: 0 })
-            .unwrap();
+        c.handle(
+            ms(2),
+            "b",
+            Message::Pong {
+                id: 2,
+                t0_us: 0,
+                t1_us: 1_000 - 30_000,
+                sent_us: 1_000 - 30_000,
+                resident_bytes: 0,
+            },
+        )
+        .unwrap();
         assert_eq!(c.clock_offset("a").unwrap().offset_us, 50_000);
         assert_eq!(c.clock_offset("b").unwrap().offset_us, -30_000);
         assert_eq!(c.clock_offset("a").unwrap().error_us, 1_001);
@@ -1650,9 +1742,26 @@ mod tests {
         c.handle(ms(110), "a", Message::Ready { frame_id: 1, render_us: 0 }).unwrap();
         c.handle(ms(110), "b", Message::Ready { frame_id: 1, render_us: 0 }).unwrap();
         // Both present at controller time 111 ms and 111.4 ms.
-        c.handle(ms(112), "a", Message::Presented { frame_id: 1, node_time_us: 111_000 + 50_000, waiting_from_us: 111_000 + 50_000 }).unwrap();
+        c.handle(
+            ms(112),
+            "a",
+            Message::Presented {
+                frame_id: 1,
+                node_time_us: 111_000 + 50_000,
+                waiting_from_us: 111_000 + 50_000,
+            },
+        )
+        .unwrap();
         let out = c
-            .handle(ms(112), "b", Message::Presented { frame_id: 1, node_time_us: 111_400 - 30_000, waiting_from_us: 111_400 - 30_000 })
+            .handle(
+                ms(112),
+                "b",
+                Message::Presented {
+                    frame_id: 1,
+                    node_time_us: 111_400 - 30_000,
+                    waiting_from_us: 111_400 - 30_000,
+                },
+            )
             .unwrap();
         let ControllerOutput::FrameDone { stats, .. } = &out[0] else { panic!() };
         assert_eq!(stats.per_node[0].presented_at, Some(ms(111)));
@@ -1679,11 +1788,18 @@ mod tests {
             for o in c2.handle_timeout(now) {
                 if let ControllerOutput::Send { node, message: Message::Ping { id, t0_us } } = o {
                     pings.push((now, node.clone()));
-                    let pong = Message::Pong { id, t0_us, t1_us: t0_us + 50, sent_us: t0_us + 50, resident_bytes: 0 };
+                    let pong = Message::Pong {
+                        id,
+                        t0_us,
+                        t1_us: t0_us + 50,
+                        sent_us: t0_us + 50,
+                        resident_bytes: 0,
+                    };
                     c2.handle(now + Duration::from_micros(100), &node, pong).unwrap();
                 }
             }
-            if fitted_at.is_none() && names.iter().all(|n| c2.clock_offset(n).is_some_and(|e| e.is_fitted())) {
+            if fitted_at.is_none() && names.iter().all(|n| c2.clock_offset(n).is_some_and(|e| e.is_fitted()))
+            {
                 fitted_at = Some(now);
             }
         }
@@ -1737,9 +1853,13 @@ mod tests {
                         }
                         ControllerOutput::Send { node, message } if node == "a" || t < dies_at => {
                             let answer = match message {
-                                Message::Ping { id, t0_us } => {
-                                    Message::Pong { id, t0_us, t1_us: t0_us, sent_us: t0_us, resident_bytes: 1 }
-                                }
+                                Message::Ping { id, t0_us } => Message::Pong {
+                                    id,
+                                    t0_us,
+                                    t1_us: t0_us,
+                                    sent_us: t0_us,
+                                    resident_bytes: 1,
+                                },
                                 Message::FrameState(f) => {
                                     Message::Ready { frame_id: f.frame_id, render_us: 1 }
                                 }

@@ -438,7 +438,13 @@ mod tests {
         let out = m.handle(ms(1234), Message::Ping { id: 9, t0_us: -7 }).unwrap();
         assert_eq!(
             out,
-            vec![NodeOutput::Send(Message::Pong { id: 9, t0_us: -7, t1_us: 1_234_000, sent_us: 1_234_000, resident_bytes: 0 })]
+            vec![NodeOutput::Send(Message::Pong {
+                id: 9,
+                t0_us: -7,
+                t1_us: 1_234_000,
+                sent_us: 1_234_000,
+                resident_bytes: 0
+            })]
         );
         m.set_resident_bytes(300 << 20);
         let out = m.handle(ms(2000), Message::Ping { id: 10, t0_us: 5 }).unwrap();

@@ -121,7 +121,9 @@ impl SwapTiming {
         };
         SwapTiming {
             setting,
-            period: frame_rate.filter(|r| r.is_finite() && *r > 0.0).map(|r| Duration::from_secs_f64(1.0 / r)),
+            period: frame_rate
+                .filter(|r| r.is_finite() && *r > 0.0)
+                .map(|r| Duration::from_secs_f64(1.0 / r)),
             margin,
             frames: VecDeque::new(),
             current: None,

@@ -75,7 +75,8 @@ fn the_swap_skew_is_the_controllers_broadcast_of_swaps() {
         let lan = quiet();
         let r = run_screen(&quiet_spec(n, lan));
         assert!(r.errors.is_empty(), "{:?}", r.errors);
-        let want = lan.link_time(framed(&Message::Swap { frame_id: 10, present_at_us: None })) * (n as u32 - 1);
+        let want =
+            lan.link_time(framed(&Message::Swap { frame_id: 10, present_at_us: None })) * (n as u32 - 1);
         for f in &r.frames {
             let t = f.true_skew.expect("every node showed it");
             assert!(

@@ -78,13 +78,30 @@ function show(s) {
     charted = s.frame.id;
     chart($("chart-frame"), s.frame.frame_ms, s.frame.frame_ms_p50, s.frame.frame_ms_p99, "#58a6ff");
     chart($("chart-skew"), s.frame.skew_ms, s.frame.skew_ms_p50, s.frame.skew_ms_p99, "#d29922");
+    setText($("swap"), swapLine(s.frame));
   }
   const key = JSON.stringify([s.wall.width, s.wall.height, s.wall.tiles, s.nodes.map((n) => n.state)]);
   if (key !== wallKey) { wallKey = key; drawWall(); }
 }
 
+// The timed swap under the skew chart: the true skew (one machine), the margin, late swaps, and
+// on a paced wall the frame-interval jitter.
+function swapLine(f) {
+  const parts = [];
+  if (f.true_skew_ms_p50 !== null) {
+    parts.push("true skew p50 " + fmt(f.true_skew_ms_p50, 3) + " p99 " + fmt(f.true_skew_ms_p99, 3) + " ms");
+  }
+  parts.push(f.swap_margin_ms === null ? "swap untimed (" + f.swap_margin + ")"
+    : "margin " + fmt(f.swap_margin_ms, 2) + " ms (" + f.swap_margin + ")");
+  parts.push(f.late_swaps + " late swaps");
+  if (f.frame_rate !== null) {
+    parts.push("paced " + fmt(f.frame_rate, 1) + " fps, jitter p99 " + fmt(f.interval_jitter_ms_p99, 3) + " ms");
+  }
+  return parts.join(" · ");
+}
+
 // A node's card: made once, then only its fields' text changes.
-const FIELDS = ["since", "render", "ready", "memory", "shows", "address"];
+const FIELDS = ["since", "render", "ready", "memory", "clock", "shows", "address"];
 function card(box, name) {
   let c = box.querySelector('.node-card[data-node="' + CSS.escape(name) + '"]');
   if (c) return c;
@@ -122,6 +139,8 @@ function showNodes(s) {
       ready: fmt(n.ready_ms, 1) + " ms",
       memory: (n.rss_kib === null ? "–" : (n.rss_kib / 1024).toFixed(0) + " MiB") +
         (n.resident_volume_bytes === null ? "" : ", volume " + (n.resident_volume_bytes / 1048576).toFixed(1) + " MiB"),
+      clock: (n.clock_error_us === null ? "–" : "±" + n.clock_error_us + " µs") +
+        (n.late_swaps ? ", " + n.late_swaps + " late swaps" : ""),
       shows: what,
       address: n.address,
     };

@@ -466,7 +466,10 @@ fn swap_margin_and_frame_rate_are_read_and_checked() {
     let parse = |extra: &str| WallConfig::parse(&w(extra), Path::new("w.toml")).unwrap().wall;
     let d = parse("");
     assert_eq!((d.swap_margin(), d.frame_rate()), (Ok(MarginSetting::Auto), Ok(None)));
-    assert_eq!(parse("swap_margin_ms = 1.5").swap_margin(), Ok(MarginSetting::Fixed(Duration::from_micros(1_500))));
+    assert_eq!(
+        parse("swap_margin_ms = 1.5").swap_margin(),
+        Ok(MarginSetting::Fixed(Duration::from_micros(1_500)))
+    );
     assert_eq!(parse("swap_margin_ms = 2").swap_margin(), Ok(MarginSetting::Fixed(Duration::from_millis(2))));
     assert_eq!(parse("swap_margin_ms = \"off\"").swap_margin(), Ok(MarginSetting::Off));
     assert_eq!(parse("frame_rate = 30").frame_rate(), Ok(Some(30.0)));
@@ -474,7 +477,11 @@ fn swap_margin_and_frame_rate_are_read_and_checked() {
     let t = parse("frame_rate = 60\nswap_margin_ms = 1").swap_timing();
     assert_eq!(t.period(), Some(Duration::from_secs_f64(1.0 / 60.0)));
     assert_eq!(t.margin(), Duration::from_millis(1));
-    expect(&w("swap_margin_ms = 0"), Some(3), "wall: `swap_margin_ms`: swap margin 0 ms is not in (0, 1000] ms");
+    expect(
+        &w("swap_margin_ms = 0"),
+        Some(3),
+        "wall: `swap_margin_ms`: swap margin 0 ms is not in (0, 1000] ms",
+    );
     expect(&w("swap_margin_ms = \"soon\""), Some(3), "is not `auto`, `off` or a number of milliseconds");
     expect(&w("frame_rate = 0"), Some(3), "wall: `frame_rate`: frame rate 0 is not in (0, 1000]");
     expect(&w("frame_rate = \"fast\""), Some(3), "frame rate \"fast\" is not a number");

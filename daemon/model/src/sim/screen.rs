@@ -143,7 +143,6 @@ struct Sim {
     errors: Vec<String>,
 }
 
-
 impl Sim {
     fn new(spec: ScreenSpec) -> Sim {
         let names: Vec<String> = (0..spec.nodes).map(|i| format!("node{i:04}")).collect();
