@@ -381,7 +381,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     }
     let env: Option<Environment> = if settings.ibl_needs_environment() {
         let src: EnvSource = a.env.as_deref().unwrap_or("sky").parse().context("--env")?;
-        Some(src.load().context("cannot load the environment")?)
+        Some(Environment::from_source(&src).context("cannot load the environment")?)
     } else {
         if a.env.is_some() {
             tracing::warn!("--env is ignored with --ibl none");

@@ -208,7 +208,7 @@ pub fn run(a: &RunArgs) -> Result<()> {
         (RenderVolume::Whole(volume), None, None, None, None)
     };
     let env_src: EnvSource = config.env_source().parse().context("[render] env")?;
-    let env: Environment = env_src.load().context("cannot load the environment")?;
+    let env = Environment::from_source(&env_src).context("cannot load the environment")?;
     let (tx, results) = tokio::sync::mpsc::unbounded_channel();
     crate::notify::status("opening the GPU device");
     let renderer = TileRenderer::start(volume, Some(env), tx, steps)?;

@@ -2,14 +2,21 @@
 //! binaries (the `cli` feature, which both enable): reads and validates a wall config
 //! ([`WallConfig::check_report`]). Every problem is printed
 //! to stderr as `FILE:LINE:COL: message` and the exit status is 1; a valid config prints a short
-//! summary (the wall, its image size and the tiles of every node) to stdout. A DICOM volume's
-//! headers are read too (no pixels): the series chosen, its grid, or why it cannot be read
-//! (including a series over `[volume] max_bytes`, and a JPEG frame whose own header says another
-//! size than the slice's); a NRRD's or NIfTI's header (every step file's of a glob), where the
-//! file is on this machine, as the node's reader checks it (sizes within `[volume] max_bytes`). The wall's certificates, where keygen wrote
-//! them, are checked by the caller's `certificates` (the network crate reads them): one that
-//! expires within 30 days is a `warning:` line on stderr (the check still passes), one expired
-//! fails the check.
+//! summary (the wall, its image size and the tiles of every node) to stdout. Headers are read
+//! too, never pixels or voxels, and each is checked as the node's own reader checks it:
+//! - a DICOM volume's: the series chosen, its grid, or why it cannot be read (including a series
+//!   over `[volume] max_bytes`, and a JPEG frame whose own header says another size than the
+//!   slice's);
+//! - a NRRD's or NIfTI's (every step file's of a glob), where the file is on this machine (sizes
+//!   within `[volume] max_bytes`);
+//! - the environment's images (`[render] env`: a `.hdr`, or a cube map's six faces), where they
+//!   are on this machine, by the rule of `isowall_volume::env_files` the node's loader applies
+//!   (a size over the limits, a missing, doubled, non-square or odd-sized face, a file that is
+//!   not regular), naming the file and why.
+//!
+//! The wall's certificates, where keygen wrote them, are checked by the caller's `certificates`
+//! (the network crate reads them): one that expires within 30 days is a `warning:` line on
+//! stderr (the check still passes), one expired fails the check.
 
 use crate::WallConfig;
 use std::path::PathBuf;
@@ -37,17 +44,16 @@ pub fn run(a: &CheckConfigArgs, certificates: CertificateCheck) -> Result<(), Ch
                 println!("{report}");
                 return Ok(());
             };
-            if let Err(problem) = check_volume_files(&config) {
-                println!("{report}");
-                return Err(CheckFailed(format!("{}: [volume] source: {problem}", a.file.display())));
-            }
-            match check_dicom(&config) {
+            match check_volume_files(&config).and_then(|()| check_dicom(&config)) {
                 Err(problem) => {
                     println!("{report}");
                     return Err(CheckFailed(format!("{}: [volume] source: {problem}", a.file.display())));
                 }
                 Ok(Some(series)) => println!("{report}\n  {series}"),
                 Ok(None) => println!("{report}"),
+            }
+            if let Err(problem) = check_environment(&config) {
+                return Err(CheckFailed(format!("{}: [render] env: {problem}", a.file.display())));
             }
             return match certificates(&config) {
                 Ok(warnings) => {
@@ -87,6 +93,25 @@ fn check_volume_files(config: &WallConfig) -> Result<(), String> {
         check_header(path, &limit).map_err(|e| e.to_string())?;
     }
     Ok(())
+}
+
+/// The files of `[render] env` where they are on this machine (a controller may have none): what
+/// the node's loader refuses from their headers ([`EnvSource::check_headers`]: a `.hdr` or cube
+/// face whose header says a size over the limits, a missing, doubled, non-square or odd-sized
+/// face, a path that is not a regular file), no pixel decoded. A FILE.hdr or DIR not here is left
+/// to the node; a path here that is neither is refused as the node refuses it.
+///
+/// [`EnvSource::check_headers`]: isowall_volume::env_files::EnvSource::check_headers
+fn check_environment(config: &WallConfig) -> Result<(), String> {
+    use isowall_volume::env_files::EnvSource;
+    let value = config.env_source();
+    let here = || std::path::Path::new(&value).exists();
+    match value.parse::<EnvSource>() {
+        Ok(EnvSource::Hdr(_)) if !here() => Ok(()),
+        Ok(source) => source.check_headers().map_err(|e| e.to_string()),
+        Err(e) if here() => Err(e.to_string()),
+        Err(_) => Ok(()),
+    }
 }
 
 /// A DICOM volume's series, from its headers: `Ok(None)` when the volume is not DICOM.
@@ -146,6 +171,62 @@ mod tests {
         let ok = "NRRD0004\ntype: uchar\ndimension: 4\nsizes: 2 1 1 2\nencoding: raw\n\n";
         std::fs::write(dir.join("ok.nrrd"), [ok.as_bytes(), &[1, 2, 3, 4]].concat()).unwrap();
         check(wall("ok.nrrd", "")).unwrap();
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn environment_files_the_node_would_refuse_fail_the_check_naming_file_and_why() {
+        let dir = std::env::temp_dir().join(format!("isowall-check-env-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(dir.join("faces")).unwrap();
+        let config = dir.join("w.toml");
+        let check = |env: &str| {
+            let text = format!(
+                "[wall]\nname = \"w\"\n[volume]\nsource = \"procedural:sphere:16\"\n[render]\nenv = \"{env}\"\n\
+                 [[tiles]]\nname = \"t\"\nx = 0\ny = 0\nwidth = 160\nheight = 120\n[[nodes]]\nname = \"n0\"\n\
+                 address = \"127.0.0.1:7401\"\ntiles = [\"t\"]\n"
+            );
+            std::fs::write(&config, text).unwrap();
+            run(&CheckConfigArgs { file: config.clone() }, &|_| Ok(Vec::new())).map_err(|e| e.to_string())
+        };
+        // An equirectangular .hdr whose header says 16384x8192 (2^27 pixels): no pixel data.
+        let hdr = |w: u32, h: u32| format!("#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y {h} +X {w}\n");
+        std::fs::write(dir.join("big.hdr"), hdr(16384, 8192)).unwrap();
+        let e = check("big.hdr").unwrap_err();
+        assert!(
+            e.contains("w.toml: [render] env: ")
+                && e.contains("big.hdr: the HDR header says 16384x8192 (134217728 pixels), over the limit")
+                && e.contains("refused before decoding"),
+            "{e}"
+        );
+        // Within the limit, the header passes: its pixels are not read.
+        std::fs::write(dir.join("ok.hdr"), hdr(8192, 4096)).unwrap();
+        check("ok.hdr").unwrap();
+        // A cube map here whose faces the loader would refuse: a missing face, a face too big.
+        let e = check("faces").unwrap_err();
+        assert!(e.contains("faces: missing face px (.png or .hdr)"), "{e}");
+        for face in ["px", "nx", "py", "ny", "pz", "nz"] {
+            std::fs::write(dir.join(format!("faces/{face}.hdr")), hdr(8, 8)).unwrap();
+        }
+        check("faces").unwrap();
+        std::fs::write(dir.join("faces/pz.hdr"), hdr(4096, 4096)).unwrap();
+        let e = check("faces").unwrap_err();
+        assert!(
+            e.contains("pz.hdr: the HDR header says 4096x4096, over the largest cube face of 2048x2048"),
+            "{e}"
+        );
+        // A .hdr that is a FIFO is refused at once, not read; a path here that is no environment
+        // is refused as the node refuses it.
+        assert!(std::process::Command::new("mkfifo").arg(dir.join("fifo.hdr")).status().unwrap().success());
+        let e = check("fifo.hdr").unwrap_err();
+        assert!(e.contains("fifo.hdr: it is a FIFO (named pipe), not a regular file"), "{e}");
+        std::fs::write(dir.join("sky.png"), b"").unwrap();
+        let e = check("sky.png").unwrap_err();
+        assert!(e.contains("sky.png\" is not an environment"), "{e}");
+        // Files that are not on this machine are left to the nodes; the sky has none.
+        for elsewhere in ["elsewhere.hdr", "elsewhere-faces", "sky"] {
+            check(elsewhere).unwrap();
+        }
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

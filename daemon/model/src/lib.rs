@@ -2,8 +2,8 @@
 //! It opens no sockets, uses no GPU and reads no clock (time is passed in). It reads files in two
 //! places only: [`WallConfig::load`] (and [`WallConfig::check_report`], through it) reads the
 //! config file it is given, and the `cli` feature's `check_config` (the `check-config` command)
-//! also reads a DICOM volume's headers, no pixels, through `isowall-volume`. Everything else takes
-//! its input as values.
+//! also reads headers, never pixels or voxels, through `isowall-volume`: a volume file's and the
+//! environment images'. Everything else takes its input as values.
 //!
 //! - [`camera`]: the pinhole camera of DESIGN.md and the pixel-centre ray convention, for a whole
 //!   image or a rectangle of it (a tile is a rectangle of the wall image).

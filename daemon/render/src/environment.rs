@@ -7,8 +7,11 @@
 //! [`EnvSource`] parses what a user types (`--env`): `sky` (the built-in procedural HDR sky,
 //! [`Environment::sky`]), a path ending in `.hdr` (an equirectangular Radiance file,
 //! [`Environment::load_hdr`]) or an existing directory of six cube faces
-//! ([`Environment::load_cube_dir`]). Everything is converted to the one equirectangular layout
-//! below, so the renderers only ever do one kind of lookup.
+//! ([`Environment::load_cube_dir`]); [`Environment::from_source`] reads what it names. Everything
+//! is converted to the one equirectangular layout below, so the renderers only ever do one kind
+//! of lookup. `EnvSource`, the size limits ([`MAX_FACE`], [`MAX_ENVIRONMENT_TEXELS`]) and the
+//! checks made from the image files' headers before anything is decoded live in
+//! `isowall_volume::env_files`, the one rule `check-config` applies too.
 //!
 //! # Layout and lookup (the WGSL twin must do exactly this)
 //! [`Environment::texels`] holds `width * height` linear-RGB radiances, row-major, rows from the
@@ -71,92 +74,14 @@
 use glam::DVec3;
 use std::f64::consts::PI;
 use std::fmt;
-use std::path::{Path, PathBuf};
-use std::str::FromStr;
+use std::path::Path;
 
-/// Why an environment could not be made. Every variant names the file (or directory) and what is
-/// wrong with it.
-#[derive(Debug, thiserror::Error)]
-pub enum EnvironmentError {
-    #[error("{}: {source}", .path.display())]
-    Io { path: PathBuf, source: std::io::Error },
-    #[error("{}: cannot decode image: {source}", .path.display())]
-    Decode { path: PathBuf, source: image::ImageError },
-    #[error("{}: {what}", .path.display())]
-    TooLarge { path: PathBuf, what: String },
-    #[error("{}: image is empty ({width}x{height})", .path.display())]
-    Empty { path: PathBuf, width: u32, height: u32 },
-    #[error("{}: not a directory (a cube map is a directory holding px nx py ny pz nz)", .path.display())]
-    NotADirectory { path: PathBuf },
-    #[error("{}: missing face {face} (.png or .hdr)", .dir.display())]
-    MissingFace { dir: PathBuf, face: &'static str },
-    #[error("{}: both {face}.png and {face}.hdr exist; keep only one", .dir.display())]
-    AmbiguousFace { dir: PathBuf, face: &'static str },
-    #[error("{}: face is {width}x{height}, but cube faces must be square", .path.display())]
-    NotSquare { path: PathBuf, width: u32, height: u32 },
-    #[error("{}: face is {size}x{size} but {other} is {other_size}x{other_size}", .path.display())]
-    FaceSizeMismatch { path: PathBuf, size: u32, other: String, other_size: u32 },
-    #[error("environment {name:?}: {width}x{height} needs {expected} texels, got {got}")]
-    BadTexels { name: String, width: u32, height: u32, expected: usize, got: usize },
-    #[error(
-        "{value:?} is not an environment: give `sky` (the built-in procedural sky), a path to an \
-         equirectangular Radiance .hdr file, or an existing directory holding six cube faces \
-         px nx py ny pz nz (each .png or .hdr)"
-    )]
-    BadSource { value: String },
-}
-
-/// Where an environment comes from, as given on the command line or in a config.
-#[derive(Clone, Debug, PartialEq, Eq)]
-pub enum EnvSource {
-    /// The built-in procedural sky ([`Environment::sky`]).
-    Sky,
-    /// An equirectangular Radiance `.hdr` file.
-    Hdr(PathBuf),
-    /// A directory of six cube faces `px nx py ny pz nz` (`.png` or `.hdr`).
-    CubeDir(PathBuf),
-}
-
-impl FromStr for EnvSource {
-    type Err = EnvironmentError;
-
-    /// `sky` (any case) is the built-in sky (write `./sky` for a directory of that name); an
-    /// existing directory is a cube map; a path ending in `.hdr` (any case) is an equirectangular
-    /// HDR file (whether it exists is checked by [`EnvSource::load`]); anything else is an error
-    /// explaining these three forms.
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        let path = Path::new(s);
-        if s.eq_ignore_ascii_case("sky") {
-            Ok(EnvSource::Sky)
-        } else if !s.is_empty() && path.is_dir() {
-            Ok(EnvSource::CubeDir(path.to_owned()))
-        } else if path.extension().is_some_and(|e| e.eq_ignore_ascii_case("hdr")) {
-            Ok(EnvSource::Hdr(path.to_owned()))
-        } else {
-            Err(EnvironmentError::BadSource { value: s.to_owned() })
-        }
-    }
-}
-
-impl fmt::Display for EnvSource {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            EnvSource::Sky => f.write_str("sky"),
-            EnvSource::Hdr(p) | EnvSource::CubeDir(p) => write!(f, "{}", p.display()),
-        }
-    }
-}
-
-impl EnvSource {
-    /// Builds or reads the environment.
-    pub fn load(&self) -> Result<Environment, EnvironmentError> {
-        match self {
-            EnvSource::Sky => Ok(Environment::sky()),
-            EnvSource::Hdr(p) => Environment::load_hdr(p),
-            EnvSource::CubeDir(p) => Environment::load_cube_dir(p),
-        }
-    }
-}
+use isowall_volume::env_files::{CubeFaces, EnvImage};
+/// What names an environment, its errors, and the size limits and header checks of its image
+/// files: one rule, shared with `check-config` (which reads the headers only).
+pub use isowall_volume::env_files::{
+    EnvSource, EnvironmentError, ImageRole, MAX_ENVIRONMENT_TEXELS, MAX_FACE,
+};
 
 /// An environment as an equirectangular linear-RGB radiance image (layout in the module doc).
 /// Invariant: `width >= 1`, `height >= 1`, `texels.len() == width * height`.
@@ -187,9 +112,6 @@ const SUN_AZIMUTH_DEG: f64 = 45.0;
 const SUN_RADIUS_DEG: f64 = 1.0;
 const SUN_RADIANCE: [f64; 3] = [80.0, 76.0, 68.0];
 
-/// The cube faces, in file-name order; index = face number used by [`cube_face_st`].
-const FACES: [&str; 6] = ["px", "nx", "py", "ny", "pz", "nz"];
-
 impl Environment {
     /// An environment from raw texels (layout in the module doc), checking the size.
     pub fn new(
@@ -204,6 +126,15 @@ impl Environment {
             return Err(EnvironmentError::BadTexels { name, width, height, expected, got: texels.len() });
         }
         Ok(Environment { width, height, texels, name })
+    }
+
+    /// Builds or reads the environment `source` names.
+    pub fn from_source(source: &EnvSource) -> Result<Environment, EnvironmentError> {
+        match source {
+            EnvSource::Sky => Ok(Environment::sky()),
+            EnvSource::Hdr(p) => Environment::load_hdr(p),
+            EnvSource::CubeDir(p) => Environment::load_cube_dir(p),
+        }
     }
 
     /// The built-in procedural HDR sky, 256x128, deterministic. Above the horizon a blue gradient
@@ -258,7 +189,9 @@ impl Environment {
     /// Reads an equirectangular Radiance `.hdr` file (any size; 2:1 is expected, and anything
     /// else is stretched to it with a warning). The file's first scanline is the zenith row.
     pub fn load_hdr(path: &Path) -> Result<Environment, EnvironmentError> {
-        let (width, height, texels) = read_hdr(path, ImageRole::Equirect)?;
+        let image = EnvImage::open(path, image::ImageFormat::Hdr, ImageRole::Equirect)?;
+        let (width, height) = image.dimensions();
+        let texels = hdr_texels(image)?;
         if width != 2 * height {
             tracing::warn!(
                 "{}: an equirectangular environment should be 2:1, this one is {width}x{height}",
@@ -272,41 +205,17 @@ impl Environment {
     /// each `.png` (sRGB, decoded to linear) or `.hdr` (linear), and resamples it into an
     /// equirectangular image of `4 F x 2 F`. Orientation: see the module doc ("Cube maps").
     pub fn load_cube_dir(dir: &Path) -> Result<Environment, EnvironmentError> {
-        if !dir.is_dir() {
-            return Err(EnvironmentError::NotADirectory { path: dir.to_owned() });
-        }
-        let mut faces: Vec<Vec<[f32; 3]>> = Vec::with_capacity(6);
-        let mut size: Option<(u32, String)> = None;
-        for face in FACES {
-            let png = dir.join(format!("{face}.png"));
-            let hdr = dir.join(format!("{face}.hdr"));
-            let (path, is_hdr) = match (png.is_file(), hdr.is_file()) {
-                (true, true) => return Err(EnvironmentError::AmbiguousFace { dir: dir.to_owned(), face }),
-                (true, false) => (png, false),
-                (false, true) => (hdr, true),
-                (false, false) => return Err(EnvironmentError::MissingFace { dir: dir.to_owned(), face }),
+        // Every face is found, opened and sized from its header before any is decoded.
+        let CubeFaces { faces, size: f } = CubeFaces::open(dir)?;
+        let mut decoded: Vec<Vec<[f32; 3]>> = Vec::with_capacity(6);
+        for face in faces {
+            let texels = match face.format() {
+                image::ImageFormat::Hdr => hdr_texels(face)?,
+                _ => png_texels_linear(face)?,
             };
-            let (w, h, texels) =
-                if is_hdr { read_hdr(&path, ImageRole::Face)? } else { read_png_linear(&path)? };
-            if w != h {
-                return Err(EnvironmentError::NotSquare { path, width: w, height: h });
-            }
-            let file_name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-            match &size {
-                None => size = Some((w, file_name)),
-                Some((s, other)) if *s != w => {
-                    return Err(EnvironmentError::FaceSizeMismatch {
-                        path,
-                        size: w,
-                        other: other.clone(),
-                        other_size: *s,
-                    })
-                }
-                Some(_) => {}
-            }
-            faces.push(texels);
+            decoded.push(texels);
         }
-        let f = size.map(|(s, _)| s).unwrap_or(1);
+        let faces = decoded;
         let (width, height) = (4 * f, 2 * f);
         let mut texels = Vec::with_capacity(width as usize * height as usize);
         for row in 0..height {
@@ -510,7 +419,7 @@ fn sky_radiance(d: DVec3) -> DVec3 {
     base + above * (disc + glow)
 }
 
-/// Face number (index into [`FACES`]) and (s, t) in [0, 1]^2 of direction d, by OpenGL's
+/// Face number (index into [`FACES`](isowall_volume::env_files::FACES)) and (s, t) in [0, 1]^2 of direction d, by OpenGL's
 /// major-axis table with the face names as world axes (module doc). Ties go to x, then y.
 fn cube_face_st(d: DVec3) -> (usize, f64, f64) {
     let a = d.abs();
@@ -554,93 +463,16 @@ fn sample_face(face: &[[f32; 3]], f: u32, s: f64, t: f64) -> [f32; 3] {
     })
 }
 
-/// The most texels an environment holds: 8192 x 4096 (32 Mi texels, 512 MiB as the GPU's
-/// `f32x4`). An equirectangular `.hdr` may have at most this many pixels; a cube face at most
-/// [`MAX_FACE`] on a side, as its `4 F x 2 F` resampling must fit too.
-pub const MAX_ENVIRONMENT_TEXELS: u64 = 1 << 25;
-
-/// The largest cube face side: `4 F x 2 F` texels within [`MAX_ENVIRONMENT_TEXELS`].
-pub const MAX_FACE: u32 = 2048;
-
-/// What an image may be: a cube face (square, at most [`MAX_FACE`] on a side) or an
-/// equirectangular image (at most [`MAX_ENVIRONMENT_TEXELS`] pixels).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum ImageRole {
-    Face,
-    Equirect,
-}
-
-impl ImageRole {
-    /// Why an image of `w`x`h` (as its header says) is refused, if it is.
-    fn refuse(self, format: &str, w: u32, h: u32) -> Option<String> {
-        match self {
-            ImageRole::Face if w > MAX_FACE || h > MAX_FACE => Some(format!(
-                "the {format} header says {w}x{h}, over the largest cube face of {MAX_FACE}x{MAX_FACE} (the faces \
-                 are resampled to 4 F x 2 F texels, at most {MAX_ENVIRONMENT_TEXELS}): refused before decoding"
-            )),
-            ImageRole::Equirect if u64::from(w) * u64::from(h) > MAX_ENVIRONMENT_TEXELS => Some(format!(
-                "the {format} header says {w}x{h} ({} pixels), over the limit of {MAX_ENVIRONMENT_TEXELS} pixels \
-                 (8192x4096) for an environment: refused before decoding",
-                u64::from(w) * u64::from(h)
-            )),
-            _ => None,
-        }
-    }
-
-    /// The most bytes a decoder may allocate for an image this role allows: its pixels at 16
-    /// bytes each (RGBA of 32-bit floats, the widest any decoder here produces).
-    fn max_alloc(self) -> u64 {
-        let pixels = match self {
-            ImageRole::Face => u64::from(MAX_FACE) * u64::from(MAX_FACE),
-            ImageRole::Equirect => MAX_ENVIRONMENT_TEXELS,
-        };
-        pixels * 16
-    }
-}
-
-/// Opens and decodes an image file of a known format, naming the file in every error. The size
-/// is read from the image's own header and checked for `role` before anything is decoded, and
-/// the decoder's allocations are limited to what that size allows.
-fn decode(
-    path: &Path,
-    format: image::ImageFormat,
-    role: ImageRole,
-) -> Result<image::DynamicImage, EnvironmentError> {
-    use image::ImageDecoder;
-    let decode_err = |source| EnvironmentError::Decode { path: path.to_owned(), source };
-    let mut reader = image::ImageReader::open(path)
-        .map_err(|source| EnvironmentError::Io { path: path.to_owned(), source })?;
-    reader.set_format(format);
-    let mut limits = image::Limits::default();
-    limits.max_alloc = Some(role.max_alloc());
-    reader.limits(limits);
-    // The decoder reads the header only; the pixels are decoded by `from_decoder`.
-    let decoder = reader.into_decoder().map_err(decode_err)?;
-    let (width, height) = decoder.dimensions();
-    let name = format.extensions_str().first().copied().unwrap_or("image").to_uppercase();
-    if let Some(what) = role.refuse(&name, width, height) {
-        return Err(EnvironmentError::TooLarge { path: path.to_owned(), what });
-    }
-    if width == 0 || height == 0 {
-        return Err(EnvironmentError::Empty { path: path.to_owned(), width, height });
-    }
-    image::DynamicImage::from_decoder(decoder).map_err(decode_err)
-}
-
-/// A Radiance .hdr file as linear RGB, rows top to bottom.
-fn read_hdr(path: &Path, role: ImageRole) -> Result<(u32, u32, Vec<[f32; 3]>), EnvironmentError> {
-    let img = decode(path, image::ImageFormat::Hdr, role)?.into_rgb32f();
-    let (w, h) = img.dimensions();
-    let texels = img.pixels().map(|p| p.0.map(|x| if x.is_finite() { x.max(0.0) } else { 0.0 })).collect();
-    Ok((w, h, texels))
+/// A Radiance .hdr image as linear RGB, rows top to bottom (non-finite and negative values 0).
+fn hdr_texels(image: EnvImage) -> Result<Vec<[f32; 3]>, EnvironmentError> {
+    let img = image.decode()?.into_rgb32f();
+    Ok(img.pixels().map(|p| p.0.map(|x| if x.is_finite() { x.max(0.0) } else { 0.0 })).collect())
 }
 
 /// A PNG (8 or 16 bit, any colour type; alpha ignored) decoded from sRGB to linear RGB.
-fn read_png_linear(path: &Path) -> Result<(u32, u32, Vec<[f32; 3]>), EnvironmentError> {
-    let img = decode(path, image::ImageFormat::Png, ImageRole::Face)?.into_rgb32f();
-    let (w, h) = img.dimensions();
-    let texels = img.pixels().map(|p| p.0.map(|x| srgb_to_linear(x as f64) as f32)).collect();
-    Ok((w, h, texels))
+fn png_texels_linear(image: EnvImage) -> Result<Vec<[f32; 3]>, EnvironmentError> {
+    let img = image.decode()?.into_rgb32f();
+    Ok(img.pixels().map(|p| p.0.map(|x| srgb_to_linear(x as f64) as f32)).collect())
 }
 
 /// The sRGB decoding function (IEC 61966-2-1) of an encoded value in [0, 1].
@@ -656,6 +488,7 @@ fn srgb_to_linear(x: f64) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use isowall_volume::env_files::FACES;
 
     fn crc32(bytes: &[u8]) -> u32 {
         let mut c = !0u32;

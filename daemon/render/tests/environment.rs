@@ -341,7 +341,7 @@ fn environment_cube_dir_faces_are_world_axes() {
     // Through EnvSource as well.
     let src: EnvSource = dir.path().to_str().unwrap().parse().unwrap();
     assert_eq!(src, EnvSource::CubeDir(dir.path().to_owned()));
-    assert!(src.load().unwrap() == env);
+    assert!(Environment::from_source(&src).unwrap() == env);
 }
 
 /// The OpenGL major-axis table, written out here independently: the direction on face `face`
@@ -496,7 +496,7 @@ fn environment_hdr_round_trip_and_errors() {
     // Through EnvSource.
     let src: EnvSource = path.to_str().unwrap().parse().unwrap();
     assert_eq!(src, EnvSource::Hdr(path.clone()));
-    assert!(src.load().unwrap() == env);
+    assert!(Environment::from_source(&src).unwrap() == env);
 
     // Garbage, truncated and missing files: errors that name the file.
     let bad = dir.path().join("garbage.hdr");
@@ -511,7 +511,7 @@ fn environment_hdr_round_trip_and_errors() {
     assert!(msg.contains("truncated.hdr"), "{msg}");
 
     let missing = dir.path().join("missing.hdr");
-    let msg = EnvSource::Hdr(missing).load().unwrap_err().to_string();
+    let msg = Environment::from_source(&EnvSource::Hdr(missing)).unwrap_err().to_string();
     assert!(msg.contains("missing.hdr"), "{msg}");
 }
 
@@ -535,5 +535,5 @@ fn environment_source_from_str() {
         assert!(msg.contains(&format!("{bad:?}")), "{msg}");
         assert!(msg.contains("sky") && msg.contains(".hdr") && msg.contains("px nx py ny pz nz"), "{msg}");
     }
-    assert!(EnvSource::Sky.load().unwrap() == Environment::sky());
+    assert!(Environment::from_source(&EnvSource::Sky).unwrap() == Environment::sky());
 }

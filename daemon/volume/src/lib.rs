@@ -12,9 +12,11 @@
 //!
 //! Modules: [`io`] reads files (raw, NRRD, MetaImage, NIfTI-1), [`procedural`] makes the built-in
 //! volumes, [`blocks`] holds the per-block min/max used for empty-space skipping, [`source`] parses
-//! `PATH | procedural:NAME[:N]`.
+//! `PATH | procedural:NAME[:N]`. [`env_files`] names and sizes the image files of a lighting
+//! environment from their headers (for the renderer's loader and for `check-config`).
 
 pub mod blocks;
+pub mod env_files;
 pub mod format;
 pub mod io;
 pub mod procedural;
