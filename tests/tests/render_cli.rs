@@ -1,8 +1,9 @@
 //! `isowalld render` as a user runs it: a real process, real files.
 
-use isowall_e2e::{gpu_ok, run_in, shared_dir};
+use isowall_e2e::{bin, gpu_ok, run_in, shared_dir};
 use isowall_render::output::read_pfm;
 use std::path::Path;
+use std::process::Command;
 
 #[test]
 fn no_arguments_render_the_engine_to_isowall_png() {
@@ -19,6 +20,22 @@ fn no_arguments_render_the_engine_to_isowall_png() {
     assert!(frac > 0.15 && frac < 0.9, "lit fraction {frac}");
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(stdout.contains("procedural:engine:256") && stdout.contains("fetches/pixel"), "{stdout}");
+}
+
+#[test]
+fn logs_to_a_redirected_stderr_carry_no_colour_codes() {
+    let dir = tempfile::tempdir().unwrap();
+    // The log lines come before the GPU opens: they are there with or without an adapter.
+    let out = Command::new(bin("isowalld"))
+        .current_dir(dir.path())
+        .args(["render", "--volume", "procedural:sphere:16", "--size", "16x16"])
+        .env("RUST_LOG", "info")
+        .env_remove("NO_COLOR")
+        .output()
+        .expect("isowalld starts");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("INFO") && err.contains("loading volume"), "no log lines to check:\n{err}");
+    assert!(!err.contains("\x1b["), "ANSI codes in a redirected stderr:\n{err:?}");
 }
 
 #[test]
