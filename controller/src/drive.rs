@@ -164,7 +164,9 @@ pub(crate) fn scene_and_range(config: &WallConfig) -> Result<(Camera, RenderSett
     });
     bar.finish_and_clear();
     let (info, (lo, hi)) = scanned.with_context(|| format!("cannot read volume {source}"))?;
-    let iso = source.iso_or_default(config.volume.iso, (lo, hi));
+    let iso = source
+        .checked_iso(config.volume.iso, (lo, hi))
+        .map_err(|e| anyhow!("{}: [volume] iso {e} ({source})", config.path.display()))?;
     Ok((
         config.camera_for(info.box_min(), info.box_max()),
         config.render_settings(iso),

@@ -190,10 +190,11 @@ pub fn run(a: &RunArgs) -> Result<()> {
             PixelInbox::new(tx, nodes, &node.name, limit.min(object.max_pixels_bytes()), object.deadline());
         (RenderVolume::Brick(Box::new(setup.data)), Some(object), Some(rx), Some(inbox), Some(load_rx))
     } else {
+        let iso_from = format!("{}: [volume] iso", config.path.display());
         let (volume, _iso) = load_volume_within(
             Some(&config.volume_source()),
             raw.as_ref(),
-            config.volume.iso,
+            (config.volume.iso, &iso_from),
             &volume_limit,
         )?;
         steps = time_steps(&config, raw.as_ref(), volume_limit)?;

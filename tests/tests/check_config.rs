@@ -1,7 +1,7 @@
 //! `isowall check-config` and `isowalld check-config` as a user runs them: a broken wall config
 //! exits 1 naming FILE:LINE:COL for every problem; the example configs exit 0 with a summary.
 
-use isowall_e2e::{repo_root, run_in};
+use isowall_e2e::{free_udp_ports, repo_root, run_in, set_object_mode, wall_config_2x1};
 
 const BROKEN: &str = r#"[wall]
 name = "broken"
@@ -137,4 +137,38 @@ fn a_config_that_is_a_fifo_or_a_device_is_refused_at_once() {
             );
         }
     }
+}
+
+#[test]
+fn a_configs_iso_outside_the_datas_range_is_refused_by_the_node_and_the_controller() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = wall_config_2x1(dir.path(), "iso", &free_udp_ports(2), 16, 8, 0, 0);
+    let text = std::fs::read_to_string(&config).unwrap();
+    // procedural:torus:32's values lie well within [-100, 100].
+    std::fs::write(
+        &config,
+        text.replace("source = \"procedural:torus:32\"\n", "source = \"procedural:torus:32\"\niso = 1000\n"),
+    )
+    .unwrap();
+    let config = config.to_str().unwrap();
+    let out = run_in(dir.path(), "isowall", &["keygen", "--config", config]);
+    assert!(out.status.success(), "keygen: {}", String::from_utf8_lossy(&out.stderr));
+    let named = format!("{config}: [volume] iso 1000 is outside the volume's value range [");
+    let started = std::time::Instant::now();
+    let out = run_in(dir.path(), "isowall", &["orbit", config, "--frames", "1"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains(&named), "isowall orbit: missing `{named}`:\n{err}");
+    assert!(!err.contains("cannot reach"), "refused only after trying the nodes:\n{err}");
+    assert!(started.elapsed() < std::time::Duration::from_secs(5), "took {:?}", started.elapsed());
+    let out = run_in(dir.path(), "isowalld", &["run", "--config", config, "--node", "node0"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains(&named), "isowalld run: missing `{named}`:\n{err}");
+    // In object space a node reads only its brick: the range comes from the block grid.
+    set_object_mode(std::path::Path::new(config));
+    let out = run_in(dir.path(), "isowalld", &["run", "--config", config, "--node", "node1"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains(&named),
+        "isowalld run (object): missing `{named}`:\n{err}"
+    );
 }

@@ -39,6 +39,33 @@ fn logs_to_a_redirected_stderr_carry_no_colour_codes() {
 }
 
 #[test]
+fn an_iso_outside_the_datas_range_is_refused_before_rendering() {
+    let dir = tempfile::tempdir().unwrap();
+    // procedural:sphere:16's values run from about -7.7 to 4.4.
+    let mut cases = vec![
+        ("procedural:sphere:16".to_string(), "100", "every ray would miss"),
+        ("procedural:sphere:16".to_string(), "-50", "a solid box"),
+    ];
+    if let Some(shared) = shared_dir() {
+        let mri = shared.join("data/mri-brainsmall.nrrd");
+        cases.push((mri.to_str().unwrap().to_string(), "-50", "a solid box"));
+    }
+    for (volume, iso, consequence) in &cases {
+        let out = run_in(
+            dir.path(),
+            "isowalld",
+            &["render", "--volume", volume, "--iso", iso, "--size", "16x16", "--out", "x.png"],
+        );
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "--iso {iso} on {volume} was accepted:\n{err}");
+        let named = format!("--iso {iso} is outside the volume's value range [");
+        assert!(err.contains(&named) && err.contains(consequence), "{volume}: missing `{named}`:\n{err}");
+        assert!(err.contains(volume.as_str()), "the volume is not named:\n{err}");
+        assert!(!dir.path().join("x.png").exists(), "an image was written for --iso {iso}");
+    }
+}
+
+#[test]
 fn render_help_names_every_contract_flag() {
     let dir = tempfile::tempdir().unwrap();
     let out = run_in(dir.path(), "isowalld", &["render", "--help"]);
