@@ -66,10 +66,12 @@ fn main() -> std::process::ExitCode {
         .init();
     let cli = Cli::parse();
     let result = match cli.command {
-        Command::CheckConfig(args) => {
-            isowall_model::check_config::run(&args, &isowall_net::tls::check_wall_certificates)
-                .map_err(anyhow::Error::from)
-        }
+        Command::CheckConfig(args) => isowall_model::check_config::run(
+            &args,
+            isowall_model::check_config::CheckedOn::Controller,
+            &isowall_net::tls::check_wall_certificates,
+        )
+        .map_err(anyhow::Error::from),
         Command::Keygen(args) => drive::keygen(&args),
         Command::Up(args) => drive::up(&args),
         Command::Orbit(args) => drive::orbit(&args),

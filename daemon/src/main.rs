@@ -59,10 +59,12 @@ fn main() -> std::process::ExitCode {
         Some(Command::Render(args)) => render::run(&args),
         Some(Command::Run(args)) => run::run(&args),
         Some(Command::Bench(cmd)) => bench::run(&cmd),
-        Some(Command::CheckConfig(args)) => {
-            isowall_model::check_config::run(&args, &isowall_net::tls::check_wall_certificates)
-                .map_err(anyhow::Error::from)
-        }
+        Some(Command::CheckConfig(args)) => isowall_model::check_config::run(
+            &args,
+            isowall_model::check_config::CheckedOn::Node,
+            &isowall_net::tls::check_wall_certificates,
+        )
+        .map_err(anyhow::Error::from),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
