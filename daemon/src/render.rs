@@ -305,6 +305,16 @@ pub fn load_volume_step_within(
 }
 
 pub fn run(a: &RenderArgs) -> Result<()> {
+    // Where the image goes, checked before anything is loaded or rendered.
+    let aov: Aov = a.aov.map(Aov::from).unwrap_or_default();
+    let out = a.out.clone().unwrap_or_else(|| match aov {
+        Aov::Color => PathBuf::from("isowall.png"),
+        other => PathBuf::from(format!("isowall-{}.pfm", other.name())),
+    });
+    output::check_aov_path(aov, &out).context("--out")?;
+    if let Some(folder) = out.parent().filter(|p| !p.as_os_str().is_empty() && !p.is_dir()) {
+        bail!("--out {}: the folder {} does not exist", out.display(), folder.display());
+    }
     let raw = a.raw_spec()?;
     let spec = match (&a.volume, &a.series) {
         (v, None) => v.clone(),
@@ -388,11 +398,6 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         }
         None
     };
-    let aov: Aov = a.aov.map(Aov::from).unwrap_or_default();
-    let out = a.out.clone().unwrap_or_else(|| match aov {
-        Aov::Color => PathBuf::from("isowall.png"),
-        other => PathBuf::from(format!("isowall-{}.pfm", other.name())),
-    });
 
     let start = Instant::now();
     let (frame, label): (Frame, String) = match a.renderer.unwrap_or_default() {

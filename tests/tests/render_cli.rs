@@ -66,6 +66,28 @@ fn an_iso_outside_the_datas_range_is_refused_before_rendering() {
 }
 
 #[test]
+fn an_output_file_of_an_unsupported_format_is_refused_before_rendering() {
+    let dir = tempfile::tempdir().unwrap();
+    for (aov, out, wanted) in
+        [("color", "x.jpg", ".png (PNG), not `.jpg`"), ("depth", "d.png", ".pfm (PFM), not `.png`")]
+    {
+        let out_path = dir.path().join(out);
+        let o = run_in(
+            dir.path(),
+            "isowalld",
+            &["render", "--volume", "procedural:sphere:16", "--size", "16x16", "--aov", aov, "--out", out],
+        );
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success(), "--out {out} accepted:\n{err}");
+        assert!(err.contains(&format!("--out: {out}: the {aov} AOV is written as {wanted}")), "{err}");
+        assert!(err.contains("supported: .png (color), .pfm (depth, normal"), "{err}");
+        assert!(!err.contains("loading volume"), "refused only after loading the volume:\n{err}");
+        assert!(!out_path.exists(), "{out} was left behind");
+    }
+    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0, "files were left behind");
+}
+
+#[test]
 fn render_help_names_every_contract_flag() {
     let dir = tempfile::tempdir().unwrap();
     let out = run_in(dir.path(), "isowalld", &["render", "--help"]);
