@@ -156,8 +156,10 @@ pub fn run(a: &RunArgs) -> Result<()> {
             a.config.display()
         )
     })?;
-    // Before the slow set-up, so that `--display window` without a display fails at once.
+    // Before the slow set-up, so that `--display window` without a display, or a port another
+    // process holds, fails at once.
     let display = display::choose(a.display)?;
+    transport::check_bindable(transport::resolve(&node.address)?)?;
     crate::notify::status("loading the volume");
     let raw = config.raw_spec().map_err(|e| anyhow!("{e}"))?;
     let limit = usize::try_from(config.wall.message_limit_bytes).unwrap_or(usize::MAX);
