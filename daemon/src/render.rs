@@ -1,6 +1,7 @@
 //! `isowalld render`: one headless frame to a file.
 
 use crate::args;
+use crate::progress::Frames;
 use anyhow::{anyhow, bail, Context, Result};
 use clap::{Args, ValueEnum};
 use glam::DVec3;
@@ -405,14 +406,32 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             let gpu = GpuRenderer::new()?;
             let gv = gpu.upload(&volume)?;
             let genv = env.as_ref().map(|e| gpu.upload_environment(e)).transpose()?;
-            let r = gpu.render_accumulated(&gv, &view, &settings, genv.as_ref(), frames)?;
+            // Frames accumulate only with AO or image-based light: then each is reported.
+            let accumulates = settings.ao.samples > 0 || settings.ao.ibl != IblMethod::None;
+            let mut progress = (frames > 1 && accumulates).then(|| Frames::new(frames, &volume.name));
+            let mut report = progress.as_mut().map(|p| move |k: u32| p.done(k));
+            let on_frame = report.as_mut().map(|r| r as &mut dyn FnMut(u32));
+            let r =
+                gpu.render_accumulated_reporting(&gv, &view, &settings, genv.as_ref(), frames, on_frame)?;
+            drop(progress);
             (
                 r.frame,
                 format!("gpu '{}', {:.1} ms on the GPU", gpu.adapter_name(), r.gpu_time.as_secs_f64() * 1e3),
             )
         }
         RendererKind::Reference => {
-            let mut frame = reference::render_accumulated(&volume, &view, &settings, env.as_ref(), frames);
+            let mut progress = (frames > 1).then(|| Frames::new(frames, &volume.name));
+            let mut report = progress.as_mut().map(|p| move |k: u32| p.done(k));
+            let on_frame = report.as_mut().map(|r| r as &mut dyn FnMut(u32));
+            let mut frame = reference::render_accumulated_reporting(
+                &volume,
+                &view,
+                &settings,
+                env.as_ref(),
+                frames,
+                on_frame,
+            );
+            drop(progress);
             if settings.denoise.is_on() {
                 denoise_reference(&mut frame, &view, &settings, frames);
             }

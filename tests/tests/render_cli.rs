@@ -88,6 +88,43 @@ fn an_output_file_of_an_unsupported_format_is_refused_before_rendering() {
 }
 
 #[test]
+fn a_multi_frame_render_shows_its_progress_on_a_redirected_stderr() {
+    let dir = tempfile::tempdir().unwrap();
+    for renderer in ["gpu", "reference"] {
+        let out = run_in(
+            dir.path(),
+            "isowalld",
+            &[
+                "render",
+                "--renderer",
+                renderer,
+                "--volume",
+                "procedural:sphere:16",
+                "--size",
+                "16x16",
+                "--ao-samples",
+                "1",
+                "--frames",
+                "8",
+            ],
+        );
+        if !gpu_ok(&format!("isowalld render --frames 8 --renderer {renderer}"), &out) {
+            return;
+        }
+        let err = String::from_utf8_lossy(&out.stderr);
+        let lines: Vec<&str> = err.lines().filter(|l| l.starts_with("isowalld render: frame ")).collect();
+        let frames: Vec<&str> =
+            lines.iter().map(|l| l.split_whitespace().nth(3).unwrap_or_default()).collect();
+        assert_eq!(frames, ["2", "4", "6", "8"], "{renderer}: a line at every quarter:\n{err}");
+        assert!(lines[3].starts_with("isowalld render: frame 8 of 8 (100%), "), "{renderer}:\n{err}");
+        assert!(
+            !err.contains('\r') && !err.contains("\x1b["),
+            "{renderer}: a terminal's bar in a pipe:\n{err:?}"
+        );
+    }
+}
+
+#[test]
 fn render_help_names_every_contract_flag() {
     let dir = tempfile::tempdir().unwrap();
     let out = run_in(dir.path(), "isowalld", &["render", "--help"]);
