@@ -144,13 +144,10 @@ impl<'a> Doc<'a> {
             self.at_span(Some(span.clone()), message.clone());
             let DeValue::Table(table) = value.get_mut() else { return None };
             let within = |r: Range<usize>| r.contains(&span.start) || (r.is_empty() && r.start == span.start);
-            let Some(key) = table
+            let key = table
                 .iter()
                 .find(|(k, v)| within(k.span()) || within(v.span()))
-                .map(|(k, _)| k.get_ref().to_string())
-            else {
-                return None;
-            };
+                .map(|(k, _)| k.get_ref().to_string())?;
             values_left_out |= !message.starts_with("unknown field");
             table.remove(key.as_str());
             left_out.push(key);
