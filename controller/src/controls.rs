@@ -98,6 +98,9 @@ pub struct SessionState {
     pub settings: RenderSettings,
     /// One iso step (a hundredth of the volume's value range).
     pub iso_step: f64,
+    /// The volume's value range: the iso keys stop at its ends (past them nothing, or the whole
+    /// box, would be the surface).
+    pub iso_range: (f64, f64),
     pub playback: Playback,
 }
 
@@ -108,6 +111,7 @@ impl SessionState {
             camera,
             settings,
             iso_step: if span > 0.0 { span / 100.0 } else { 1e-3 },
+            iso_range: (value_range.0.min(value_range.1), value_range.0.max(value_range.1)),
             playback: Playback::new(1, DEFAULT_RATE),
         }
     }
@@ -159,7 +163,10 @@ impl SessionState {
             Action::OrbitPitch(s) => self.orbit_pitch(ORBIT_STEP_DEG * s as f64),
             Action::Pan(x, y) => self.pan(PAN_STEP * x as f64, PAN_STEP * y as f64),
             Action::Zoom(s) => self.zoom(if s > 0 { ZOOM_STEP } else { 1.0 / ZOOM_STEP }),
-            Action::Iso(s) => self.settings.iso += self.iso_step * s as f64,
+            Action::Iso(s) => {
+                let (lo, hi) = self.iso_range;
+                self.settings.iso = (self.settings.iso + self.iso_step * s as f64).clamp(lo, hi);
+            }
             Action::AoSamples(s) => {
                 let n = self.settings.ao.samples;
                 self.settings.ao.samples = if s > 0 { (n * 2).clamp(1, MAX_AO_SAMPLES) } else { n / 2 };
@@ -338,6 +345,20 @@ mod tests {
         assert!((s.camera.eye.length() - 9.0).abs() < 1e-9);
         s.apply(Action::Zoom(-1));
         assert!((s.camera.eye.length() - 10.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn iso_keys_stop_at_the_ends_of_the_value_range() {
+        let mut s = state();
+        for _ in 0..200 {
+            s.apply(Action::Iso(1));
+        }
+        assert_eq!(s.settings.iso, 2.0);
+        for _ in 0..200 {
+            s.apply(Action::Iso(-1));
+        }
+        assert_eq!(s.settings.iso, 0.0);
+        assert!(isowall_volume::check_iso(s.settings.iso, s.iso_range).is_ok());
     }
 
     #[test]

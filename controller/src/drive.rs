@@ -164,7 +164,9 @@ pub(crate) fn scene_and_range(config: &WallConfig) -> Result<(Camera, RenderSett
     });
     bar.finish_and_clear();
     let (info, (lo, hi)) = scanned.with_context(|| format!("cannot read volume {source}"))?;
-    let iso = source.iso_or_default(config.volume.iso, (lo, hi));
+    let iso = source
+        .checked_iso(config.volume.iso, (lo, hi))
+        .map_err(|e| anyhow!("{}: [volume] iso {e} ({source})", config.path.display()))?;
     Ok((
         config.camera_for(info.box_min(), info.box_max()),
         config.render_settings(iso),
@@ -448,19 +450,7 @@ pub fn up(a: &UpArgs) -> Result<()> {
     let rt = runtime()?;
     let result = rt.block_on(async {
         let mut wall =
-            Wall::connect(config, Duration::from_secs(a.start_timeout), START_GRACE).await.map_err(|e| {
-                let dead = daemons.exited();
-                if dead.is_empty() {
-                    e
-                } else {
-                    let list: Vec<String> = dead.iter().map(|(n, s)| format!("{n} ({s})")).collect();
-                    anyhow!(
-                        "{e:#}\nlocal daemons that exited: {} (see {})",
-                        list.join(", "),
-                        log_dir.display()
-                    )
-                }
-            })?;
+            crate::start::connect_local(&mut daemons, config, Duration::from_secs(a.start_timeout)).await?;
         eprintln!("isowall: wall up in {:.2} s", started.elapsed().as_secs_f64());
         let mut pids = vec![("controller".to_string(), std::process::id())];
         pids.extend(daemons.pids());

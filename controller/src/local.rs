@@ -60,19 +60,52 @@ impl LocalDaemons {
         Ok(me)
     }
 
-    /// Waits until every daemon listens (its log says `ready on`) or has exited, at most
-    /// `timeout`: then a wall started with the nodes it has waits for no daemon still loading.
+    /// Waits until every daemon listens (its log says `ready on`), or one has exited (the wall
+    /// cannot start as configured: [`LocalDaemons::exit_report`] says why), at most `timeout`:
+    /// then a wall started with the nodes it has waits for no daemon still loading.
     pub fn wait_started(&mut self, timeout: std::time::Duration) {
         let start = std::time::Instant::now();
         while start.elapsed() < timeout {
-            let starting = self.children.iter_mut().zip(&self.logs).any(|((_, c), log)| {
-                c.try_wait().ok().flatten().is_none()
-                    && !std::fs::read_to_string(log).is_ok_and(|t| t.contains("ready on"))
-            });
+            if !self.exited().is_empty() {
+                return;
+            }
+            let starting = self
+                .logs
+                .iter()
+                .any(|log| !std::fs::read_to_string(log).is_ok_and(|t| t.contains("ready on")));
             if !starting {
                 return;
             }
             std::thread::sleep(std::time::Duration::from_millis(100));
+        }
+    }
+
+    /// Why the daemons that have exited did (`None` while every one runs): for each, its node,
+    /// its exit status and the last lines of its log, where a daemon says why it stopped (e.g.
+    /// its port in use).
+    pub fn exit_report(&mut self) -> Option<String> {
+        const LINES: usize = 4;
+        let mut report = Vec::new();
+        for ((name, child), log) in self.children.iter_mut().zip(&self.logs) {
+            let Some(status) = child.try_wait().ok().flatten() else { continue };
+            let text = std::fs::read_to_string(log).unwrap_or_default();
+            let lines: Vec<&str> = text.lines().filter(|l| !l.trim().is_empty()).collect();
+            let tail = lines[lines.len().saturating_sub(LINES)..].join("\n    ");
+            report.push(format!(
+                "local node {name} exited ({status}); the end of {}:\n    {tail}",
+                log.display()
+            ));
+        }
+        (!report.is_empty()).then(|| report.join("\n"))
+    }
+
+    /// Resolves when a daemon has exited, with [`LocalDaemons::exit_report`].
+    pub async fn first_exit(&mut self) -> String {
+        loop {
+            if let Some(report) = self.exit_report() {
+                return report;
+            }
+            tokio::time::sleep(std::time::Duration::from_millis(100)).await;
         }
     }
 

@@ -61,13 +61,17 @@ fn main() -> std::process::ExitCode {
                 .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
         )
         .with_writer(std::io::stderr)
+        // Colour only on a terminal: redirected to a node's log or journald, codes would be noise.
+        .with_ansi(colour_logs())
         .init();
     let cli = Cli::parse();
     let result = match cli.command {
-        Command::CheckConfig(args) => {
-            isowall_model::check_config::run(&args, &isowall_net::tls::check_wall_certificates)
-                .map_err(anyhow::Error::from)
-        }
+        Command::CheckConfig(args) => isowall_model::check_config::run(
+            &args,
+            isowall_model::check_config::CheckedOn::Controller,
+            &isowall_net::tls::check_wall_certificates,
+        )
+        .map_err(anyhow::Error::from),
         Command::Keygen(args) => drive::keygen(&args),
         Command::Up(args) => drive::up(&args),
         Command::Orbit(args) => drive::orbit(&args),
@@ -84,4 +88,10 @@ fn main() -> std::process::ExitCode {
             std::process::ExitCode::FAILURE
         }
     }
+}
+
+/// Whether log lines carry ANSI colour: only where stderr is a terminal and `NO_COLOR` is unset.
+fn colour_logs() -> bool {
+    use std::io::IsTerminal;
+    std::io::stderr().is_terminal() && std::env::var_os("NO_COLOR").is_none_or(|v| v.is_empty())
 }

@@ -3,7 +3,7 @@
 
 use crate::local::LocalDaemons;
 use crate::wall::Wall;
-use anyhow::{anyhow, Result};
+use anyhow::{anyhow, bail, Result};
 use clap::Args;
 use isowall_model::config::WallConfig;
 use std::time::Duration;
@@ -36,21 +36,33 @@ pub async fn open(config: WallConfig, a: &StartArgs) -> Result<(Option<LocalDaem
     } else {
         None
     };
-    let log_dir = config.resolve("logs");
-    match Wall::connect(config, Duration::from_secs(a.start_timeout), crate::drive::START_GRACE).await {
-        Ok(wall) => Ok((daemons, wall)),
-        Err(e) => {
-            let dead = daemons.as_mut().map(|d| d.exited()).unwrap_or_default();
-            if dead.is_empty() {
-                Err(e)
-            } else {
-                let list: Vec<String> = dead.iter().map(|(n, s)| format!("{n} ({s})")).collect();
-                Err(anyhow!(
-                    "{e:#}\nlocal daemons that exited: {} (see {})",
-                    list.join(", "),
-                    log_dir.display()
-                ))
-            }
+    let timeout = Duration::from_secs(a.start_timeout);
+    let wall = match daemons.as_mut() {
+        Some(d) => connect_local(d, config, timeout).await?,
+        None => Wall::connect(config, timeout, crate::drive::START_GRACE).await?,
+    };
+    Ok((daemons, wall))
+}
+
+/// Connects to a wall whose loopback nodes are `daemons`, started by this controller: a daemon
+/// that has exited, or exits while the controller tries, stops it at once with that daemon's
+/// reason (the end of its log), rather than trying its address until `timeout`, where another
+/// process may answer in its place.
+pub async fn connect_local(
+    daemons: &mut LocalDaemons,
+    config: WallConfig,
+    timeout: Duration,
+) -> Result<Wall> {
+    if let Some(report) = daemons.exit_report() {
+        bail!("{report}");
+    }
+    tokio::select! {
+        wall = Wall::connect(config, timeout, crate::drive::START_GRACE) => {
+            wall.map_err(|e| match daemons.exit_report() {
+                Some(report) => anyhow!("{e:#}\n{report}"),
+                None => e,
+            })
         }
+        report = daemons.first_exit() => Err(anyhow!("{report}")),
     }
 }

@@ -51,6 +51,8 @@ fn main() -> std::process::ExitCode {
             tracing_subscriber::EnvFilter::new("info,wgpu_core=warn,wgpu_hal=warn,naga=warn,winit=error")
         }))
         .with_writer(std::io::stderr)
+        // Colour only on a terminal: redirected to a node's log or journald, codes would be noise.
+        .with_ansi(colour_logs())
         .init();
     let cli = Cli::parse();
     let result = match cli.command {
@@ -58,10 +60,12 @@ fn main() -> std::process::ExitCode {
         Some(Command::Render(args)) => render::run(&args),
         Some(Command::Run(args)) => run::run(&args),
         Some(Command::Bench(cmd)) => bench::run(&cmd),
-        Some(Command::CheckConfig(args)) => {
-            isowall_model::check_config::run(&args, &isowall_net::tls::check_wall_certificates)
-                .map_err(anyhow::Error::from)
-        }
+        Some(Command::CheckConfig(args)) => isowall_model::check_config::run(
+            &args,
+            isowall_model::check_config::CheckedOn::Node,
+            &isowall_net::tls::check_wall_certificates,
+        )
+        .map_err(anyhow::Error::from),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
@@ -70,4 +74,10 @@ fn main() -> std::process::ExitCode {
             std::process::ExitCode::FAILURE
         }
     }
+}
+
+/// Whether log lines carry ANSI colour: only where stderr is a terminal and `NO_COLOR` is unset.
+fn colour_logs() -> bool {
+    use std::io::IsTerminal;
+    std::io::stderr().is_terminal() && std::env::var_os("NO_COLOR").is_none_or(|v| v.is_empty())
 }

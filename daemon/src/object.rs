@@ -147,7 +147,9 @@ pub fn load_brick(
     let blocks = stream
         .block_minmax(BlockMinMax::DEFAULT_BLOCK)
         .with_context(|| format!("cannot read volume {source}"))?;
-    let iso = source.iso_or_default(config.volume.iso, blocks.value_range());
+    let iso = source
+        .checked_iso(config.volume.iso, blocks.value_range())
+        .map_err(|e| anyhow!("{}: [volume] iso {e} ({source})", config.path.display()))?;
     let occ = Occupancy::from_minmax(blocks.block, blocks.counts, &blocks.minmax, iso);
     let n = config.nodes.len();
     let index = config

@@ -6,11 +6,14 @@
 //! is a terminal (hidden otherwise), `STATUS=` for `systemctl status` whenever the percentage
 //! changes, and, where there is no bar, a `tracing` line at every quarter (the node's log, which
 //! `isowall up` keeps in `wall-configs/logs/` for local walls).
+//!
+//! [`Frames`]: the frames of a long `isowalld render --frames K`, a bar on a terminal, else a
+//! plain line at every quarter.
 
 use indicatif::{ProgressBar, ProgressStyle};
 use isowall_volume::{Pass, Progress};
 use std::sync::Mutex;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 /// A spinner for work of unknown length (a whole volume's load), with indicatif's default style.
 pub fn spinner(message: String) -> ProgressBar {
@@ -87,6 +90,50 @@ impl Bricking {
 }
 
 impl Drop for Bricking {
+    fn drop(&mut self) {
+        self.bar.finish_and_clear();
+    }
+}
+
+/// Progress of a render's accumulated frames: a bar on stderr where it is a terminal, else a plain
+/// line (`isowalld render: frame K of N (P%), T s`) at every quarter of them.
+pub struct Frames {
+    bar: ProgressBar,
+    total: u32,
+    quarter: u32,
+    start: Instant,
+}
+
+impl Frames {
+    pub fn new(total: u32, what: &str) -> Frames {
+        let bar = ProgressBar::new(u64::from(total)).with_message(what.to_string());
+        bar.set_style(
+            ProgressStyle::with_template("{bar:24} frame {pos}/{len} {msg} ({elapsed}, {eta} left)")
+                .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+        Frames { bar, total, quarter: 0, start: Instant::now() }
+    }
+
+    /// Frame `k` (from 1) is done.
+    pub fn done(&mut self, k: u32) {
+        self.bar.set_position(u64::from(k));
+        if !self.bar.is_hidden() {
+            return;
+        }
+        let quarter = (u64::from(k) * 4 / u64::from(self.total.max(1))) as u32;
+        if quarter > self.quarter {
+            self.quarter = quarter;
+            eprintln!(
+                "isowalld render: frame {k} of {} ({}%), {:.1} s",
+                self.total,
+                u64::from(k) * 100 / u64::from(self.total.max(1)),
+                self.start.elapsed().as_secs_f64()
+            );
+        }
+    }
+}
+
+impl Drop for Frames {
     fn drop(&mut self) {
         self.bar.finish_and_clear();
     }

@@ -1,7 +1,8 @@
 //! `isowalld render`: one headless frame to a file.
 
 use crate::args;
-use anyhow::{bail, Context, Result};
+use crate::progress::Frames;
+use anyhow::{anyhow, bail, Context, Result};
 use clap::{Args, ValueEnum};
 use glam::DVec3;
 use isowall_model::{
@@ -239,7 +240,7 @@ impl RenderArgs {
 /// Loads the volume named by `--volume` (or the default) and the iso value to use, within the
 /// default [`VolumeLimit`].
 pub fn load_volume(spec: Option<&str>, raw: Option<&RawSpec>, iso: Option<f64>) -> Result<(Volume, f64)> {
-    load_volume_within(spec, raw, iso, &VolumeLimit::default())
+    load_volume_within(spec, raw, (iso, "--iso"), &VolumeLimit::default())
 }
 
 /// The most a node's volume may take: `configured` (`--max-volume-bytes`, `[volume] max_bytes`;
@@ -258,11 +259,13 @@ pub fn volume_limit(configured: Option<(u64, &str)>, gpu: bool) -> Result<Volume
     Ok(limit)
 }
 
-/// [`load_volume`] within `limit`, checked from the file's header before any voxel is read.
+/// [`load_volume`] within `limit`, checked from the file's header before any voxel is read. `iso`
+/// is the value given, if any, and where it was given (`--iso`, `[volume] iso`), for messages: a
+/// value outside the data's range is refused ([`isowall_volume::check_iso`]).
 pub fn load_volume_within(
     spec: Option<&str>,
     raw: Option<&RawSpec>,
-    iso: Option<f64>,
+    iso: (Option<f64>, &str),
     limit: &VolumeLimit,
 ) -> Result<(Volume, f64)> {
     load_volume_step_within(spec, raw, iso, 0, limit)
@@ -272,7 +275,7 @@ pub fn load_volume_within(
 pub fn load_volume_step_within(
     spec: Option<&str>,
     raw: Option<&RawSpec>,
-    iso: Option<f64>,
+    (iso, iso_from): (Option<f64>, &str),
     step: usize,
     limit: &VolumeLimit,
 ) -> Result<(Volume, f64)> {
@@ -293,19 +296,26 @@ pub fn load_volume_step_within(
         volume = %source, dims = ?d, spacing = ?volume.spacing().to_array(), range = ?(lo, hi),
         ms = start.elapsed().as_secs_f64() * 1e3, "volume ready"
     );
-    if let Some(v) = iso.filter(|v| !v.is_finite()) {
-        bail!("--iso {v} is not a finite number");
-    }
-    let chosen = source.iso_or_default(iso, (lo, hi));
+    let chosen = source.checked_iso(iso, (lo, hi)).map_err(|e| anyhow!("{iso_from} {e} ({source})"))?;
     if iso.or(source.natural_iso()).is_none() {
         tracing::warn!(
-            "no --iso given for {source}: using {chosen}, the middle of the data range [{lo}, {hi}]"
+            "no {iso_from} given for {source}: using {chosen}, the middle of the data range [{lo}, {hi}]"
         );
     }
     Ok((volume, chosen))
 }
 
 pub fn run(a: &RenderArgs) -> Result<()> {
+    // Where the image goes, checked before anything is loaded or rendered.
+    let aov: Aov = a.aov.map(Aov::from).unwrap_or_default();
+    let out = a.out.clone().unwrap_or_else(|| match aov {
+        Aov::Color => PathBuf::from("isowall.png"),
+        other => PathBuf::from(format!("isowall-{}.pfm", other.name())),
+    });
+    output::check_aov_path(aov, &out).context("--out")?;
+    if let Some(folder) = out.parent().filter(|p| !p.as_os_str().is_empty() && !p.is_dir()) {
+        bail!("--out {}: the folder {} does not exist", out.display(), folder.display());
+    }
     let raw = a.raw_spec()?;
     let spec = match (&a.volume, &a.series) {
         (v, None) => v.clone(),
@@ -314,7 +324,8 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     };
     let gpu = a.renderer.unwrap_or_default() == RendererKind::Gpu;
     let limit = volume_limit(a.max_volume_bytes.map(|b| (b, "--max-volume-bytes")), gpu)?;
-    let (volume, iso) = load_volume_step_within(spec.as_deref(), raw.as_ref(), a.iso, a.step, &limit)?;
+    let (volume, iso) =
+        load_volume_step_within(spec.as_deref(), raw.as_ref(), (a.iso, "--iso"), a.step, &limit)?;
     let (w, h) = a.size.unwrap_or((800, 600));
     let framing = Camera::framing(volume.box_min(), volume.box_max(), w, h);
     let centre = 0.5 * (volume.box_min() + volume.box_max());
@@ -388,11 +399,6 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         }
         None
     };
-    let aov: Aov = a.aov.map(Aov::from).unwrap_or_default();
-    let out = a.out.clone().unwrap_or_else(|| match aov {
-        Aov::Color => PathBuf::from("isowall.png"),
-        other => PathBuf::from(format!("isowall-{}.pfm", other.name())),
-    });
 
     let start = Instant::now();
     let (frame, label): (Frame, String) = match a.renderer.unwrap_or_default() {
@@ -400,14 +406,32 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             let gpu = GpuRenderer::new()?;
             let gv = gpu.upload(&volume)?;
             let genv = env.as_ref().map(|e| gpu.upload_environment(e)).transpose()?;
-            let r = gpu.render_accumulated(&gv, &view, &settings, genv.as_ref(), frames)?;
+            // Frames accumulate only with AO or image-based light: then each is reported.
+            let accumulates = settings.ao.samples > 0 || settings.ao.ibl != IblMethod::None;
+            let mut progress = (frames > 1 && accumulates).then(|| Frames::new(frames, &volume.name));
+            let mut report = progress.as_mut().map(|p| move |k: u32| p.done(k));
+            let on_frame = report.as_mut().map(|r| r as &mut dyn FnMut(u32));
+            let r =
+                gpu.render_accumulated_reporting(&gv, &view, &settings, genv.as_ref(), frames, on_frame)?;
+            drop(progress);
             (
                 r.frame,
                 format!("gpu '{}', {:.1} ms on the GPU", gpu.adapter_name(), r.gpu_time.as_secs_f64() * 1e3),
             )
         }
         RendererKind::Reference => {
-            let mut frame = reference::render_accumulated(&volume, &view, &settings, env.as_ref(), frames);
+            let mut progress = (frames > 1).then(|| Frames::new(frames, &volume.name));
+            let mut report = progress.as_mut().map(|p| move |k: u32| p.done(k));
+            let on_frame = report.as_mut().map(|r| r as &mut dyn FnMut(u32));
+            let mut frame = reference::render_accumulated_reporting(
+                &volume,
+                &view,
+                &settings,
+                env.as_ref(),
+                frames,
+                on_frame,
+            );
+            drop(progress);
             if settings.denoise.is_on() {
                 denoise_reference(&mut frame, &view, &settings, frames);
             }

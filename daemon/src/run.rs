@@ -164,8 +164,10 @@ pub fn run(a: &RunArgs) -> Result<()> {
             a.config.display()
         )
     })?;
-    // Before the slow set-up, so that `--display window` without a display fails at once.
+    // Before the slow set-up, so that `--display window` without a display, or a port another
+    // process holds, fails at once.
     let display = display::choose(a.display)?;
+    transport::check_bindable(transport::resolve(&node.address)?)?;
     crate::notify::status("loading the volume");
     let raw = config.raw_spec().map_err(|e| anyhow!("{e}"))?;
     let limit = usize::try_from(config.wall.message_limit_bytes).unwrap_or(usize::MAX);
@@ -198,10 +200,11 @@ pub fn run(a: &RunArgs) -> Result<()> {
             PixelInbox::new(tx, nodes, &node.name, limit.min(object.max_pixels_bytes()), object.deadline());
         (RenderVolume::Brick(Box::new(setup.data)), Some(object), Some(rx), Some(inbox), Some(load_rx))
     } else {
+        let iso_from = format!("{}: [volume] iso", config.path.display());
         let (volume, _iso) = load_volume_within(
             Some(&config.volume_source()),
             raw.as_ref(),
-            config.volume.iso,
+            (config.volume.iso, &iso_from),
             &volume_limit,
         )?;
         steps = time_steps(&config, raw.as_ref(), volume_limit)?;

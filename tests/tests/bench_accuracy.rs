@@ -1,14 +1,21 @@
 //! `isowalld bench accuracy` as a user runs it: a real process writing the CSV and the chart.
 
-use isowall_e2e::{gpu_ok, run_in};
+use isowall_e2e::{gpu_ok, run_in, shared_dir};
 
 const COLUMNS: &str =
     "scene,method,samples,frames,step,ibl,ms,fetches_per_pixel,occlusion_rmse,occlusion_p99,color_rmse";
 
 #[test]
 fn quick_accuracy_bench_writes_csv_chart_and_budget_table() {
+    // Run outside the checkout: the default scenes' relative `../shared/data` is found all the same.
     let dir = tempfile::tempdir().unwrap();
     let out_dir = dir.path().join("acc");
+    let mri = shared_dir().map(|_| "../shared/data/mri-brainsmall.nrrd@40");
+    let scenes = ["procedural:sphere-over-plane:16", "missing-file.nrrd@3"]
+        .into_iter()
+        .chain(mri)
+        .collect::<Vec<_>>()
+        .join(",");
     let out = run_in(
         dir.path(),
         "isowalld",
@@ -17,7 +24,7 @@ fn quick_accuracy_bench_writes_csv_chart_and_budget_table() {
             "accuracy",
             "--quick",
             "--scenes",
-            "procedural:sphere-over-plane:16,missing-file.nrrd@3",
+            &scenes,
             "--size",
             "32x32",
             "--out",
@@ -28,8 +35,19 @@ fn quick_accuracy_bench_writes_csv_chart_and_budget_table() {
         return;
     }
     let stdout = String::from_utf8_lossy(&out.stdout);
-    // The missing file is skipped with a message, the budget table is printed.
-    assert!(stdout.contains("skipping missing-file.nrrd@3"), "{stdout}");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    // The missing file is said once, at the start (before the GPU opens), naming where it was
+    // looked for; the budget table is printed.
+    let skip = format!(
+        "skipping 1 of {} scenes, their files are not here: missing-file.nrrd is neither in",
+        2 + mri.iter().count()
+    );
+    assert_eq!(stderr.matches("skipping").count(), 1, "{stderr}");
+    let (Some(said), Some(gpu)) = (stderr.find(&skip), stderr.find("GPU device open")) else {
+        panic!("missing `{skip}` or the GPU's log line:\n{stderr}");
+    };
+    assert!(said < gpu, "said only after the GPU opened:\n{stderr}");
+    assert!(!stdout.contains("skipping"), "{stdout}");
     assert!(stdout.contains("| 10 ms | 30 ms | 100 ms |"), "{stdout}");
     assert!(
         stdout.contains("| sphere-over-plane | ours |") && stdout.contains("| sphere-over-plane | seed |")
@@ -43,13 +61,17 @@ fn quick_accuracy_bench_writes_csv_chart_and_budget_table() {
     assert!(rows.len() >= 10, "{csv}");
     for r in &rows {
         assert_eq!(r.len(), 11, "{r:?}");
-        assert_eq!(r[0], "sphere-over-plane");
+        assert!(r[0] == "sphere-over-plane" || r[0] == "mri-brainsmall", "{r:?}");
         let num = |i: usize| r[i].parse::<f64>().unwrap_or_else(|_| panic!("column {i} of {r:?}"));
         assert!(num(6) > 0.0 && num(7) > 0.0, "{r:?}");
         for i in 8..11 {
             assert!(num(i).is_finite() && num(i) >= 0.0, "{r:?}");
         }
     }
+    if mri.is_some() {
+        assert!(rows.iter().any(|r| r[0] == "mri-brainsmall"), "the MRI was not measured:\n{csv}");
+    }
+    let rows: Vec<Vec<&str>> = rows.into_iter().filter(|r| r[0] == "sphere-over-plane").collect();
     for (method, ibl) in [("seed", "none"), ("ours", "none"), ("ours-stepped", "none"), ("ours", "rays")] {
         assert!(rows.iter().any(|r| r[1] == method && r[5] == ibl), "no {method}/{ibl} row:\n{csv}");
     }

@@ -1,7 +1,7 @@
 //! `isowall check-config` and `isowalld check-config` as a user runs them: a broken wall config
 //! exits 1 naming FILE:LINE:COL for every problem; the example configs exit 0 with a summary.
 
-use isowall_e2e::{repo_root, run_in};
+use isowall_e2e::{free_udp_ports, repo_root, run_in, set_object_mode, shared_dir, wall_config_2x1};
 
 const BROKEN: &str = r#"[wall]
 name = "broken"
@@ -85,6 +85,10 @@ fn every_example_config_checks_out_with_a_summary() {
             continue;
         }
         let name = path.file_stem().unwrap().to_string_lossy().into_owned();
+        // sva-4 renders the shared CT, which a node must hold.
+        if name == "sva-4" && shared_dir().is_none() {
+            continue;
+        }
         for bin in ["isowall", "isowalld"] {
             let out = run_in(dir.path(), bin, &["check-config", path.to_str().unwrap()]);
             let stdout = String::from_utf8_lossy(&out.stdout);
@@ -211,13 +215,89 @@ fn an_environment_whose_headers_say_a_size_over_the_limits_fails_the_check() {
     for face in ["px", "nx", "py", "ny", "pz", "nz"] {
         good.save(d.join(format!("faces/{face}.png"))).unwrap();
     }
+    // Good faces pass both; files not on this machine pass the controller (the nodes hold them)
+    // and fail a node, which could not load them.
     for env in ["faces", "elsewhere.hdr", "elsewhere-faces"] {
         std::fs::write(d.join("w.toml"), wall(env)).unwrap();
         for bin in ["isowall", "isowalld"] {
             let out = run_in(d, bin, &["check-config", "w.toml"]);
             let err = String::from_utf8_lossy(&out.stderr);
+            if env != "faces" && bin == "isowalld" {
+                assert_eq!(out.status.code(), Some(1), "{bin} {env}: {err}");
+                assert!(
+                    err.contains(&format!("{env}: no such file or folder on this node")),
+                    "{bin} {env}: {err}"
+                );
+                continue;
+            }
             assert!(out.status.success(), "{bin} {env}: {err}");
             assert!(String::from_utf8_lossy(&out.stdout).contains("w.toml: ok"), "{bin} {env}");
         }
     }
+}
+
+#[test]
+fn a_configs_iso_outside_the_datas_range_is_refused_by_the_node_and_the_controller() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = wall_config_2x1(dir.path(), "iso", &free_udp_ports(2), 16, 8, 0, 0);
+    let text = std::fs::read_to_string(&config).unwrap();
+    // procedural:torus:32's values lie well within [-100, 100].
+    std::fs::write(
+        &config,
+        text.replace("source = \"procedural:torus:32\"\n", "source = \"procedural:torus:32\"\niso = 1000\n"),
+    )
+    .unwrap();
+    let config = config.to_str().unwrap();
+    let out = run_in(dir.path(), "isowall", &["keygen", "--config", config]);
+    assert!(out.status.success(), "keygen: {}", String::from_utf8_lossy(&out.stderr));
+    let named = format!("{config}: [volume] iso 1000 is outside the volume's value range [");
+    let started = std::time::Instant::now();
+    let out = run_in(dir.path(), "isowall", &["orbit", config, "--frames", "1"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains(&named), "isowall orbit: missing `{named}`:\n{err}");
+    assert!(!err.contains("cannot reach"), "refused only after trying the nodes:\n{err}");
+    assert!(started.elapsed() < std::time::Duration::from_secs(5), "took {:?}", started.elapsed());
+    let out = run_in(dir.path(), "isowalld", &["run", "--config", config, "--node", "node0"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains(&named), "isowalld run: missing `{named}`:\n{err}");
+    // In object space a node reads only its brick: the range comes from the block grid.
+    set_object_mode(std::path::Path::new(config));
+    let out = run_in(dir.path(), "isowalld", &["run", "--config", config, "--node", "node1"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains(&named),
+        "isowalld run (object): missing `{named}`:\n{err}"
+    );
+}
+
+#[test]
+fn a_volume_file_that_is_not_there_is_named_by_the_check() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = wall_config_2x1(dir.path(), "nofile", &free_udp_ports(2), 16, 8, 0, 0);
+    let text = std::fs::read_to_string(&config).unwrap();
+    let with_source = |source: &str| {
+        std::fs::write(&config, text.replace("procedural:torus:32", source)).unwrap();
+        let config = config.to_str().unwrap();
+        let node = run_in(dir.path(), "isowalld", &["check-config", config]);
+        let controller = run_in(dir.path(), "isowall", &["check-config", config]);
+        (node, controller)
+    };
+    // Its folder is here (a misspelt name): both binaries fail naming the file.
+    let (node, controller) = with_source("ct-cranum.nrrd");
+    let file = dir.path().join("ct-cranum.nrrd").display().to_string();
+    for (bin, out) in [("isowalld", &node), ("isowall", &controller)] {
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{bin} passed:\n{err}");
+        assert!(err.contains(&format!("[volume] source: {file}: no such file")), "{bin}:\n{err}");
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        assert!(!stdout.contains(": ok"), "{bin} said ok and failed:\n{stdout}");
+    }
+    // Nor its folder: a node fails; a controller machine passes with a warning naming it.
+    let (node, controller) = with_source("data/ct.nrrd");
+    let file = dir.path().join("data/ct.nrrd").display().to_string();
+    let err = String::from_utf8_lossy(&node.stderr);
+    assert!(!node.status.success() && err.contains(&format!("{file}: no such file on this node")), "{err}");
+    let err = String::from_utf8_lossy(&controller.stderr);
+    assert!(controller.status.success(), "{err}");
+    assert!(err.contains("warning: ") && err.contains(&format!("{file} is not on this machine")), "{err}");
 }

@@ -1,8 +1,9 @@
 //! `isowalld render` as a user runs it: a real process, real files.
 
-use isowall_e2e::{gpu_ok, run_in, shared_dir};
+use isowall_e2e::{bin, gpu_ok, run_in, shared_dir};
 use isowall_render::output::read_pfm;
 use std::path::Path;
+use std::process::Command;
 
 #[test]
 fn no_arguments_render_the_engine_to_isowall_png() {
@@ -19,6 +20,108 @@ fn no_arguments_render_the_engine_to_isowall_png() {
     assert!(frac > 0.15 && frac < 0.9, "lit fraction {frac}");
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(stdout.contains("procedural:engine:256") && stdout.contains("fetches/pixel"), "{stdout}");
+}
+
+#[test]
+fn logs_to_a_redirected_stderr_carry_no_colour_codes() {
+    let dir = tempfile::tempdir().unwrap();
+    // The log lines come before the GPU opens: they are there with or without an adapter.
+    let out = Command::new(bin("isowalld"))
+        .current_dir(dir.path())
+        .args(["render", "--volume", "procedural:sphere:16", "--size", "16x16"])
+        .env("RUST_LOG", "info")
+        .env_remove("NO_COLOR")
+        .output()
+        .expect("isowalld starts");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("INFO") && err.contains("loading volume"), "no log lines to check:\n{err}");
+    assert!(!err.contains("\x1b["), "ANSI codes in a redirected stderr:\n{err:?}");
+}
+
+#[test]
+fn an_iso_outside_the_datas_range_is_refused_before_rendering() {
+    let dir = tempfile::tempdir().unwrap();
+    // procedural:sphere:16's values run from about -7.7 to 4.4.
+    let mut cases = vec![
+        ("procedural:sphere:16".to_string(), "100", "every ray would miss"),
+        ("procedural:sphere:16".to_string(), "-50", "a solid box"),
+    ];
+    if let Some(shared) = shared_dir() {
+        let mri = shared.join("data/mri-brainsmall.nrrd");
+        cases.push((mri.to_str().unwrap().to_string(), "-50", "a solid box"));
+    }
+    for (volume, iso, consequence) in &cases {
+        let out = run_in(
+            dir.path(),
+            "isowalld",
+            &["render", "--volume", volume, "--iso", iso, "--size", "16x16", "--out", "x.png"],
+        );
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "--iso {iso} on {volume} was accepted:\n{err}");
+        let named = format!("--iso {iso} is outside the volume's value range [");
+        assert!(err.contains(&named) && err.contains(consequence), "{volume}: missing `{named}`:\n{err}");
+        assert!(err.contains(volume.as_str()), "the volume is not named:\n{err}");
+        assert!(!dir.path().join("x.png").exists(), "an image was written for --iso {iso}");
+    }
+}
+
+#[test]
+fn an_output_file_of_an_unsupported_format_is_refused_before_rendering() {
+    let dir = tempfile::tempdir().unwrap();
+    for (aov, out, wanted) in
+        [("color", "x.jpg", ".png (PNG), not `.jpg`"), ("depth", "d.png", ".pfm (PFM), not `.png`")]
+    {
+        let out_path = dir.path().join(out);
+        let o = run_in(
+            dir.path(),
+            "isowalld",
+            &["render", "--volume", "procedural:sphere:16", "--size", "16x16", "--aov", aov, "--out", out],
+        );
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success(), "--out {out} accepted:\n{err}");
+        assert!(err.contains(&format!("--out: {out}: the {aov} AOV is written as {wanted}")), "{err}");
+        assert!(err.contains("supported: .png (color), .pfm (depth, normal"), "{err}");
+        assert!(!err.contains("loading volume"), "refused only after loading the volume:\n{err}");
+        assert!(!out_path.exists(), "{out} was left behind");
+    }
+    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0, "files were left behind");
+}
+
+#[test]
+fn a_multi_frame_render_shows_its_progress_on_a_redirected_stderr() {
+    let dir = tempfile::tempdir().unwrap();
+    for renderer in ["gpu", "reference"] {
+        let out = run_in(
+            dir.path(),
+            "isowalld",
+            &[
+                "render",
+                "--renderer",
+                renderer,
+                "--volume",
+                "procedural:sphere:16",
+                "--size",
+                "16x16",
+                "--ao-samples",
+                "1",
+                "--frames",
+                "8",
+            ],
+        );
+        if !gpu_ok(&format!("isowalld render --frames 8 --renderer {renderer}"), &out) {
+            return;
+        }
+        let err = String::from_utf8_lossy(&out.stderr);
+        let lines: Vec<&str> = err.lines().filter(|l| l.starts_with("isowalld render: frame ")).collect();
+        let frames: Vec<&str> =
+            lines.iter().map(|l| l.split_whitespace().nth(3).unwrap_or_default()).collect();
+        assert_eq!(frames, ["2", "4", "6", "8"], "{renderer}: a line at every quarter:\n{err}");
+        assert!(lines[3].starts_with("isowalld render: frame 8 of 8 (100%), "), "{renderer}:\n{err}");
+        assert!(
+            !err.contains('\r') && !err.contains("\x1b["),
+            "{renderer}: a terminal's bar in a pipe:\n{err:?}"
+        );
+    }
 }
 
 #[test]

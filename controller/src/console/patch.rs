@@ -120,16 +120,8 @@ impl Controls {
         let mut s: RenderSettings = self.session.settings;
         let mut target = self.target_frame_ms;
         if let Some(iso) = p.iso {
-            let (lo, hi) = self.range;
-            if !iso.is_finite() {
-                return Err(Refusal::new("iso", format!("render: `iso` {iso} is not a finite number")));
-            }
-            if iso < lo || iso > hi {
-                return Err(Refusal::new(
-                    "iso",
-                    format!("render: `iso` {iso} is outside the volume's value range [{lo}, {hi}]"),
-                ));
-            }
+            isowall_volume::check_iso(iso, self.range)
+                .map_err(|e| Refusal::new("iso", format!("render: `iso` {e}")))?;
             s.iso = iso;
         }
         if let Some(n) = p.ao_samples {

@@ -8,7 +8,10 @@
 //!   over `[volume] max_bytes`, and a JPEG frame whose own header says another size than the
 //!   slice's);
 //! - a NRRD's or NIfTI's (every step file's of a glob), where the file is on this machine (sizes
-//!   within `[volume] max_bytes`);
+//!   within `[volume] max_bytes`). A volume file that is not there fails the check on a node
+//!   (`isowalld`), and on a controller (`isowall`) where its folder is there (a misspelt name); a
+//!   controller machine without the folder gets a `warning:` line (its drive commands read the
+//!   volume too);
 //! - the environment's images (`[render] env`: a `.hdr`, or a cube map's six faces), where they
 //!   are on this machine, by the rule of `isowall_volume::env_files` the node's loader applies
 //!   (a size over the limits, a missing, doubled, non-square or odd-sized face, a file that is
@@ -19,7 +22,7 @@
 //! stderr (the check still passes), one expired fails the check.
 
 use crate::WallConfig;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// Why a config did not pass; every problem was printed to stderr first.
 #[derive(Debug, thiserror::Error)]
@@ -36,33 +39,54 @@ pub struct CheckConfigArgs {
 /// What a certificate check says of a wall: warnings (each a line), or why it cannot work.
 pub type CertificateCheck<'a> = &'a dyn Fn(&WallConfig) -> Result<Vec<String>, String>;
 
+/// Where a config is checked: on a node (`isowalld check-config`), which loads the volume and so
+/// must hold its file, or on a controller machine (`isowall check-config`), which may not.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum CheckedOn {
+    Node,
+    Controller,
+}
+
 /// Prints the report of `a.file` to stdout (or its problems to stderr) and says whether it passed.
-pub fn run(a: &CheckConfigArgs, certificates: CertificateCheck) -> Result<(), CheckFailed> {
+pub fn run(a: &CheckConfigArgs, on: CheckedOn, certificates: CertificateCheck) -> Result<(), CheckFailed> {
     let (problems, last) = match WallConfig::check_report(&a.file) {
         Ok(report) => {
             let Ok(config) = WallConfig::load(&a.file) else {
                 println!("{report}");
                 return Ok(());
             };
-            match check_volume_files(&config).and_then(|()| check_dicom(&config)) {
-                Err(problem) => {
-                    println!("{report}");
-                    return Err(CheckFailed(format!("{}: [volume] source: {problem}", a.file.display())));
+            // The summary is printed either way; `FILE: ok` only when every check passed.
+            let problem = |p: String| CheckFailed(format!("{}: [volume] source: {p}", a.file.display()));
+            let checked = check_volume_files(&config, on).map_err(problem).and_then(|volume_warnings| {
+                let series = check_dicom(&config).map_err(problem)?;
+                check_environment(&config, on)
+                    .map_err(|p| CheckFailed(format!("{}: [render] env: {p}", a.file.display())))?;
+                Ok((volume_warnings, series))
+            });
+            let (volume_warnings, series) = match checked {
+                Ok(c) => c,
+                Err(e) => {
+                    println!("{}", config.summary());
+                    return Err(e);
                 }
-                Ok(Some(series)) => println!("{report}\n  {series}"),
-                Ok(None) => println!("{report}"),
+            };
+            for w in volume_warnings {
+                eprintln!("warning: {}: [volume] source: {w}", a.file.display());
             }
-            if let Err(problem) = check_environment(&config) {
-                return Err(CheckFailed(format!("{}: [render] env: {problem}", a.file.display())));
-            }
+            let report = match series {
+                Some(series) => format!("{report}\n  {series}"),
+                None => report,
+            };
             return match certificates(&config) {
                 Ok(warnings) => {
+                    println!("{report}");
                     for w in warnings {
                         eprintln!("warning: {w}");
                     }
                     Ok(())
                 }
                 Err(problems) => {
+                    println!("{}", config.summary());
                     eprintln!("{problems}");
                     Err(CheckFailed(problems.lines().last().unwrap_or_default().to_string()))
                 }
@@ -74,10 +98,11 @@ pub fn run(a: &CheckConfigArgs, certificates: CertificateCheck) -> Result<(), Ch
     Err(CheckFailed(last))
 }
 
-/// The headers of a volume file, or of every file of a time-step glob, that are on this
-/// machine (a controller may have none): what a node's reader refuses from them
-/// ([`isowall_volume::io::check_header`]), within `[volume] max_bytes` or the readers' default.
-fn check_volume_files(config: &WallConfig) -> Result<(), String> {
+/// The headers of a volume file, or of every file of a time-step glob: what a node's reader
+/// refuses from them ([`isowall_volume::io::check_header`]), within `[volume] max_bytes` or the
+/// readers' default. A file (or a glob's every file) not there: see [`missing_volume`]. `Ok`
+/// holds warnings.
+fn check_volume_files(config: &WallConfig, on: CheckedOn) -> Result<Vec<String>, String> {
     use isowall_volume::io::{check_header, dicom::is_dicom, VolumeLimit};
     use isowall_volume::VolumeSource;
     let limit = config
@@ -85,32 +110,69 @@ fn check_volume_files(config: &WallConfig) -> Result<(), String> {
         .max_bytes
         .map_or_else(VolumeLimit::default, |b| VolumeLimit::new(b, "[volume] max_bytes"));
     let files = match config.volume_source().parse::<VolumeSource>() {
+        Ok(VolumeSource::File(path)) if !path.exists() => return missing_volume(&path, "no such file", on),
         Ok(VolumeSource::File(path)) if !is_dicom(&path) => vec![path],
-        Ok(source @ VolumeSource::Steps(_)) => source.step_files().unwrap_or_default(),
+        Ok(source @ VolumeSource::Steps(_)) => match source.step_files() {
+            Ok(files) => files,
+            Err(_) => {
+                return missing_volume(Path::new(&source.to_string()), "no file matches the pattern", on)
+            }
+        },
         _ => Vec::new(),
     };
     for path in files.iter().filter(|p| p.is_file()) {
         check_header(path, &limit).map_err(|e| e.to_string())?;
     }
-    Ok(())
+    Ok(Vec::new())
+}
+
+/// A volume `path` that is not on this machine (`why`: no such file, no file matching a glob): a
+/// problem on a node, which would fail to load it, and on a controller where the path's folder is
+/// there (a misspelt name, most likely); else a warning, since a controller machine may not hold
+/// the nodes' files, but its drive commands read the volume too (its box and value range).
+fn missing_volume(path: &Path, why: &str, on: CheckedOn) -> Result<Vec<String>, String> {
+    let folder = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    if on == CheckedOn::Node {
+        return Err(format!("{}: {why} on this node: the node could not load the volume", path.display()));
+    }
+    if folder.is_dir() {
+        return Err(format!(
+            "{}: {why} (its folder {} is here): the nodes and `isowall up` could not load the volume",
+            path.display(),
+            folder.display()
+        ));
+    }
+    Ok(vec![format!(
+        "{} is not on this machine ({} is not here): every node must hold it, and `isowall up`, `orbit`, \
+         `session`, `demo` and `console` read it here too (the volume's box and value range)",
+        path.display(),
+        folder.display()
+    )])
 }
 
 /// The files of `[render] env` where they are on this machine (a controller may have none): what
 /// the node's loader refuses from their headers ([`EnvSource::check_headers`]: a `.hdr` or cube
 /// face whose header says a size over the limits, a missing, doubled, non-square or odd-sized
-/// face, a path that is not a regular file), no pixel decoded. A FILE.hdr or DIR not here is left
-/// to the node; a path here that is neither is refused as the node refuses it.
+/// face, a path that is not a regular file), no pixel decoded. A FILE.hdr or DIR not here fails
+/// the check on a node and is left to the nodes on a controller; a path here that is neither is
+/// refused as the node refuses it.
 ///
 /// [`EnvSource::check_headers`]: isowall_volume::env_files::EnvSource::check_headers
-fn check_environment(config: &WallConfig) -> Result<(), String> {
+fn check_environment(config: &WallConfig, on: CheckedOn) -> Result<(), String> {
     use isowall_volume::env_files::EnvSource;
     let value = config.env_source();
-    let here = || std::path::Path::new(&value).exists();
+    let here = Path::new(&value).exists();
     match value.parse::<EnvSource>() {
-        Ok(EnvSource::Hdr(_)) if !here() => Ok(()),
-        Ok(source) => source.check_headers().map_err(|e| e.to_string()),
-        Err(e) if here() => Err(e.to_string()),
-        Err(_) => Ok(()),
+        Ok(EnvSource::Sky) => Ok(()),
+        Ok(source) if here => source.check_headers().map_err(|e| e.to_string()),
+        Err(e) if here => Err(e.to_string()),
+        _ if on == CheckedOn::Node => Err(format!(
+            "{value}: no such file or folder on this node: the node could not load its environment"
+        )),
+        _ => Ok(()),
     }
 }
 
@@ -154,7 +216,7 @@ mod tests {
         let config = dir.join("w.toml");
         let check = |text: String| {
             std::fs::write(&config, text).unwrap();
-            run(&CheckConfigArgs { file: config.clone() }, &|_| Ok(Vec::new()))
+            run(&CheckConfigArgs { file: config.clone() }, CheckedOn::Controller, &|_| Ok(Vec::new()))
         };
         // A gzip NRRD whose header claims 1024x1024x256 x 2 steps (2 GiB as float32): no data.
         let head = "NRRD0004\ntype: uchar\ndimension: 4\nsizes: 1024 1024 256 2\nencoding: gzip\n\n";
@@ -166,8 +228,7 @@ mod tests {
                 && e.contains("over the limit of 1073741824 bytes ([volume] max_bytes)"),
             "{e}"
         );
-        // A volume file not on this machine is left to the node; a good one passes.
-        check(wall("elsewhere.nrrd", "")).unwrap();
+        // A good one passes.
         let ok = "NRRD0004\ntype: uchar\ndimension: 4\nsizes: 2 1 1 2\nencoding: raw\n\n";
         std::fs::write(dir.join("ok.nrrd"), [ok.as_bytes(), &[1, 2, 3, 4]].concat()).unwrap();
         check(wall("ok.nrrd", "")).unwrap();
@@ -187,7 +248,8 @@ mod tests {
                  address = \"127.0.0.1:7401\"\ntiles = [\"t\"]\n"
             );
             std::fs::write(&config, text).unwrap();
-            run(&CheckConfigArgs { file: config.clone() }, &|_| Ok(Vec::new())).map_err(|e| e.to_string())
+            run(&CheckConfigArgs { file: config.clone() }, CheckedOn::Node, &|_| Ok(Vec::new()))
+                .map_err(|e| e.to_string())
         };
         // An equirectangular .hdr whose header says 16384x8192 (2^27 pixels): no pixel data.
         let hdr = |w: u32, h: u32| format!("#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y {h} +X {w}\n");
@@ -223,10 +285,51 @@ mod tests {
         std::fs::write(dir.join("sky.png"), b"").unwrap();
         let e = check("sky.png").unwrap_err();
         assert!(e.contains("sky.png\" is not an environment"), "{e}");
-        // Files that are not on this machine are left to the nodes; the sky has none.
-        for elsewhere in ["elsewhere.hdr", "elsewhere-faces", "sky"] {
-            check(elsewhere).unwrap();
+        // Files that are not on this machine: a node could not load them; a controller leaves
+        // them to the nodes. The sky has none.
+        check("sky").unwrap();
+        for elsewhere in ["elsewhere.hdr", "elsewhere-faces"] {
+            let e = check(elsewhere).unwrap_err();
+            assert!(e.contains("no such file or folder on this node"), "{e}");
+            let on_controller =
+                run(&CheckConfigArgs { file: config.clone() }, CheckedOn::Controller, &|_| Ok(Vec::new()));
+            assert!(on_controller.is_ok(), "{elsewhere}: {on_controller:?}");
         }
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn a_volume_file_that_is_not_there_fails_on_a_node_and_where_its_folder_is_else_warns() {
+        let dir = std::env::temp_dir().join(format!("isowall-check-missing-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let config = |source: &str| {
+            let text = format!(
+                "[wall]\nname = \"w\"\n[volume]\nsource = \"{source}\"\n[[tiles]]\nname = \"t\"\nx = 0\ny = 0\n\
+                 width = 160\nheight = 120\n[[nodes]]\nname = \"n0\"\naddress = \"127.0.0.1:7401\"\ntiles = [\"t\"]\n"
+            );
+            WallConfig::parse(&text, &dir.join("w.toml")).unwrap()
+        };
+        // The folder is here, the file is not (a misspelt name): a problem on both.
+        let here = config("ct-cranum.nrrd");
+        let file = dir.join("ct-cranum.nrrd").display().to_string();
+        for on in [CheckedOn::Node, CheckedOn::Controller] {
+            let e = check_volume_files(&here, on).unwrap_err();
+            assert!(e.starts_with(&format!("{file}: no such file")), "{on:?}: {e}");
+        }
+        let glob = config("steps/step_*.nrrd");
+        std::fs::create_dir_all(dir.join("steps")).unwrap();
+        let e = check_volume_files(&glob, CheckedOn::Controller).unwrap_err();
+        assert!(e.contains("step_*.nrrd: no file matches the pattern"), "{e}");
+        // Nor its folder: a warning on a controller machine, a problem on a node.
+        let elsewhere = config("data/ct.nrrd");
+        let file = dir.join("data/ct.nrrd").display().to_string();
+        let w = check_volume_files(&elsewhere, CheckedOn::Controller).unwrap();
+        assert_eq!(w.len(), 1, "{w:?}");
+        assert!(w[0].starts_with(&format!("{file} is not on this machine")), "{w:?}");
+        let e = check_volume_files(&elsewhere, CheckedOn::Node).unwrap_err();
+        assert!(e.starts_with(&format!("{file}: no such file on this node")), "{e}");
+        // A procedural volume has no file.
+        assert_eq!(check_volume_files(&config("procedural:sphere"), CheckedOn::Node), Ok(Vec::new()));
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

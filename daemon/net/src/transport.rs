@@ -16,8 +16,8 @@ pub const ALPN: &[u8] = b"isowall/1";
 pub enum NetError {
     #[error(transparent)]
     Tls(#[from] TlsError),
-    #[error("cannot listen on {addr}: {source}")]
-    Bind { addr: SocketAddr, source: std::io::Error },
+    #[error("cannot listen on {addr}: {}", bind_reason(*addr, error))]
+    Bind { addr: SocketAddr, error: std::io::Error },
     #[error("cannot resolve '{0}' to an address")]
     Resolve(String),
     #[error("connecting to {peer}: {reason}")]
@@ -103,15 +103,34 @@ pub fn resolve(address: &str) -> Result<SocketAddr, NetError> {
         .ok_or_else(|| NetError::Resolve(address.to_string()))
 }
 
+/// Why a bind failed, in words: a port in use says so and how to find who holds it.
+fn bind_reason(addr: SocketAddr, error: &std::io::Error) -> String {
+    if error.kind() == std::io::ErrorKind::AddrInUse {
+        format!(
+            "the address is in use: another process holds UDP port {port} (QUIC runs over UDP; \
+             `ss -ulpn 'sport = :{port}'` shows which) ({error})",
+            port = addr.port()
+        )
+    } else {
+        error.to_string()
+    }
+}
+
+/// Whether `addr` can be listened on now (a UDP socket is bound there and closed at once), so a
+/// daemon whose port is taken fails before its slow set-up rather than after.
+pub fn check_bindable(addr: SocketAddr) -> Result<(), NetError> {
+    std::net::UdpSocket::bind(addr).map(drop).map_err(|error| NetError::Bind { addr, error })
+}
+
 /// A server endpoint on `addr` that accepts only peers with a wall certificate.
 pub fn server(addr: SocketAddr, identity: &Identity) -> Result<quinn::Endpoint, NetError> {
-    quinn::Endpoint::server(server_config(identity)?, addr).map_err(|source| NetError::Bind { addr, source })
+    quinn::Endpoint::server(server_config(identity)?, addr).map_err(|error| NetError::Bind { addr, error })
 }
 
 /// A client endpoint presenting `identity`.
 pub fn client(identity: &Identity) -> Result<quinn::Endpoint, NetError> {
     let bind: SocketAddr = "0.0.0.0:0".parse().expect("valid address");
-    let mut ep = quinn::Endpoint::client(bind).map_err(|source| NetError::Bind { addr: bind, source })?;
+    let mut ep = quinn::Endpoint::client(bind).map_err(|error| NetError::Bind { addr: bind, error })?;
     ep.set_default_client_config(client_config(identity)?);
     Ok(ep)
 }
@@ -270,3 +289,24 @@ impl ChannelReceiver {
 
 /// Shared handle for a sender used from several tasks.
 pub type SharedSender = Arc<tokio::sync::Mutex<ChannelSender>>;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_port_in_use_is_named_with_its_address() {
+        let taken = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+        let addr = taken.local_addr().unwrap();
+        let e = check_bindable(addr).unwrap_err().to_string();
+        assert!(
+            e.starts_with(&format!(
+                "cannot listen on {addr}: the address is in use: another process holds UDP port {}",
+                addr.port()
+            )),
+            "{e}"
+        );
+        drop(taken);
+        check_bindable(addr).unwrap();
+    }
+}

@@ -14,6 +14,62 @@ pub enum OutputError {
     Png { path: PathBuf, source: image::ImageError },
     #[error("{path}: not a PFM file: {what}")]
     BadPfm { path: PathBuf, what: String },
+    #[error(
+        "{path}: the {aov} AOV is written as {wanted}, not `{found}`; supported: {}",
+        supported_extensions()
+    )]
+    Extension { path: PathBuf, aov: &'static str, wanted: &'static str, found: String },
+}
+
+/// The extension of the file an AOV is written in: `png` for colour (8-bit sRGB), `pfm` else.
+pub fn aov_extension(aov: Aov) -> &'static str {
+    match aov {
+        Aov::Color => "png",
+        _ => "pfm",
+    }
+}
+
+/// Every AOV's file extension, for messages: `.png (color), .pfm (depth, normal, ...)`.
+pub fn supported_extensions() -> String {
+    let of = |ext: &str| {
+        let names: Vec<&str> =
+            Aov::ALL.iter().filter(|a| aov_extension(**a) == ext).map(|a| a.name()).collect();
+        format!(".{ext} ({})", names.join(", "))
+    };
+    format!("{}, {}", of("png"), of("pfm"))
+}
+
+/// Checks that `path` names a file of the format `aov` is written in (by its extension, in any
+/// case), so a render is refused before it starts rather than after.
+pub fn check_aov_path(aov: Aov, path: &Path) -> Result<(), OutputError> {
+    let wanted = aov_extension(aov);
+    let found = path.extension().map(|e| e.to_string_lossy().into_owned()).unwrap_or_default();
+    if found.eq_ignore_ascii_case(wanted) {
+        return Ok(());
+    }
+    Err(OutputError::Extension {
+        path: path.to_owned(),
+        aov: aov.name(),
+        wanted: if wanted == "png" { ".png (PNG)" } else { ".pfm (PFM)" },
+        found: if found.is_empty() { "no extension".into() } else { format!(".{found}") },
+    })
+}
+
+/// Writes `path` through a temporary file beside it, renamed over it once `write` succeeded: a
+/// failed or interrupted write leaves no empty or partial file at `path`.
+pub fn write_atomically(
+    path: &Path,
+    write: impl FnOnce(&Path) -> Result<(), OutputError>,
+) -> Result<(), OutputError> {
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let tmp = path.with_file_name(format!(".{name}.{}.tmp", std::process::id()));
+    let result = write(&tmp).and_then(|()| {
+        std::fs::rename(&tmp, path).map_err(|source| OutputError::Io { path: path.to_owned(), source })
+    });
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result
 }
 
 /// Linear colour to 8-bit sRGB, row-major RGB.
@@ -30,18 +86,33 @@ pub fn write_png(frame: &Frame, path: &Path) -> Result<(), OutputError> {
     write_rgb8_png(path, frame.width, frame.height, &srgb8(frame))
 }
 
-/// Writes an RGB8 image (rows top to bottom) as PNG.
+/// Writes an RGB8 image (rows top to bottom) as PNG, whatever the path's extension.
 pub fn write_rgb8_png(path: &Path, width: u32, height: u32, rgb: &[u8]) -> Result<(), OutputError> {
-    image::save_buffer(path, rgb, width, height, image::ExtendedColorType::Rgb8)
-        .map_err(|source| OutputError::Png { path: path.to_owned(), source })
+    image::save_buffer_with_format(
+        path,
+        rgb,
+        width,
+        height,
+        image::ExtendedColorType::Rgb8,
+        image::ImageFormat::Png,
+    )
+    .map_err(|source| OutputError::Png { path: path.to_owned(), source })
 }
 
-/// Writes one AOV of the frame: colour as PNG, anything else as PFM.
+/// Writes one AOV of the frame: colour as PNG, anything else as PFM, to a path with that
+/// extension ([`check_aov_path`]), through a temporary file ([`write_atomically`]).
 pub fn write_aov(frame: &Frame, aov: Aov, path: &Path) -> Result<(), OutputError> {
-    match aov {
-        Aov::Color => write_png(frame, path),
-        _ => write_pfm(path, frame.width, frame.height, aov.channels(), &frame.aov(aov)),
-    }
+    check_aov_path(aov, path)?;
+    write_atomically(path, |tmp| match aov {
+        Aov::Color => write_png(frame, tmp),
+        _ => write_pfm(tmp, frame.width, frame.height, aov.channels(), &frame.aov(aov)),
+    })
+    .map_err(|e| match e {
+        // Name the file asked for, not the temporary one.
+        OutputError::Io { source, .. } => OutputError::Io { path: path.to_owned(), source },
+        OutputError::Png { source, .. } => OutputError::Png { path: path.to_owned(), source },
+        e => e,
+    })
 }
 
 /// Encodes a PFM: `data` holds `channels` (1 or 3) floats per pixel, rows top to bottom; the file
@@ -166,5 +237,41 @@ mod tests {
         assert_eq!(decode_pfm(&enc).unwrap().data, data);
         assert!(decode_pfm(&enc[..enc.len() - 1]).unwrap_err().contains("needs"));
         assert!(decode_pfm(b"P6\n1 1\n255\n").is_err());
+    }
+
+    #[test]
+    fn an_aovs_file_must_have_its_formats_extension() {
+        assert!(check_aov_path(Aov::Color, Path::new("a/x.png")).is_ok());
+        assert!(check_aov_path(Aov::Color, Path::new("X.PNG")).is_ok());
+        assert!(check_aov_path(Aov::Depth, Path::new("d.pfm")).is_ok());
+        let e = check_aov_path(Aov::Color, Path::new("x.jpg")).unwrap_err().to_string();
+        assert_eq!(
+            e,
+            "x.jpg: the color AOV is written as .png (PNG), not `.jpg`; supported: .png (color), \
+             .pfm (depth, normal, hit, occlusion, bent-normal, ibl)"
+        );
+        let e = check_aov_path(Aov::Normal, Path::new("n.png")).unwrap_err().to_string();
+        assert!(e.starts_with("n.png: the normal AOV is written as .pfm (PFM), not `.png`"), "{e}");
+        let e = check_aov_path(Aov::Color, Path::new("x")).unwrap_err().to_string();
+        assert!(e.contains("not `no extension`"), "{e}");
+    }
+
+    #[test]
+    fn a_failed_write_leaves_neither_the_file_nor_its_temporary() {
+        let dir = std::env::temp_dir().join(format!("isowall-output-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("x.pfm");
+        let e = write_atomically(&path, |tmp| {
+            std::fs::write(tmp, b"partial").unwrap();
+            Err(OutputError::BadPfm { path: tmp.to_owned(), what: "failed half way".into() })
+        });
+        assert!(e.is_err());
+        assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 0, "left behind in {}", dir.display());
+        // A good write replaces the file whole.
+        std::fs::write(&path, b"old").unwrap();
+        write_atomically(&path, |tmp| write_pfm(tmp, 1, 1, 1, &[2.0])).unwrap();
+        assert_eq!(read_pfm(&path).unwrap().data, vec![2.0]);
+        assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 1);
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -195,8 +195,23 @@ pub fn render_accumulated(
     env: Option<&Environment>,
     frames: u32,
 ) -> Frame {
+    render_accumulated_reporting(volume, view, settings, env, frames, None)
+}
+
+/// [`render_accumulated`], calling `on_frame(k)` as each frame is done (k from 1 to `frames`).
+pub fn render_accumulated_reporting(
+    volume: &Volume,
+    view: &View,
+    settings: &RenderSettings,
+    env: Option<&Environment>,
+    frames: u32,
+    mut on_frame: Option<&mut dyn FnMut(u32)>,
+) -> Frame {
     let k = frames.max(1);
     let mut first = render_with_env(volume, view, settings, env);
+    if let Some(report) = on_frame.as_mut() {
+        report(1);
+    }
     if k == 1 {
         return first;
     }
@@ -218,6 +233,9 @@ pub fn render_accumulated(
             }
             occlusion[i] += next.occlusion[i] as f64;
             bent[i] += DVec3::from(widen(next.bent_normal[i]));
+        }
+        if let Some(report) = on_frame.as_mut() {
+            report(f + 1);
         }
     }
     let kf = k as f64;

@@ -199,6 +199,31 @@ fn ao_is_reproducible_and_a_tile_matches_the_whole_image() {
     assert!(differing > 50, "the frame index does not decorrelate ({differing} pixels differ)");
 }
 
+#[test]
+fn frames_reported_one_by_one_accumulate_the_same_image() {
+    let Some(gpu) = common::gpu() else { return };
+    let (volume, iso) = scene(Procedural::Engine, 32);
+    let view = framed(&volume, 32);
+    let gv = gpu.upload(&volume).unwrap();
+    let mut s = RenderSettings::new(iso);
+    s.ao.samples = 2;
+    let whole = gpu.render_accumulated(&gv, &view, &s, None, 3).unwrap().frame;
+    let mut seen = Vec::new();
+    let mut report = |k: u32| seen.push(k);
+    let reported =
+        gpu.render_accumulated_reporting(&gv, &view, &s, None, 3, Some(&mut report)).unwrap().frame;
+    assert_eq!(seen, vec![1, 2, 3]);
+    assert_eq!((&reported.occlusion, &reported.ibl), (&whole.occlusion, &whole.ibl));
+    assert_eq!(reported.color, whole.color);
+    // The reference reports its frames too.
+    let mut seen = Vec::new();
+    let mut report = |k: u32| seen.push(k);
+    let small = View::whole(view.camera, 8, 8);
+    let r = reference::render_accumulated_reporting(&volume, &small, &s, None, 2, Some(&mut report));
+    assert_eq!(seen, vec![1, 2]);
+    assert_eq!(r.occlusion, reference::render_accumulated(&volume, &small, &s, None, 2).occlusion);
+}
+
 /// Looking down at the floor from between the floor and the plate (eye inside the box): every AO
 /// ray from the floor that rises steeply enough meets the plate within R.
 fn under_the_plate(n: u32) -> View {

@@ -2,7 +2,7 @@
 //! and scenes (DESIGN.md "Accuracy and speed"): accuracy.csv, the chart and the summary.
 
 use super::chart::{Chart, Marker, Panel, Series};
-use super::stats::{error_stats, median, scene_spec};
+use super::stats::{error_stats, median, scene_file, scene_spec};
 use crate::args;
 use crate::render::load_volume;
 use anyhow::{Context, Result};
@@ -18,8 +18,10 @@ pub const ACCURACY_SCENES: &str = "procedural:engine,procedural:marschner-lobb,p
 
 #[derive(Args)]
 pub struct AccuracyArgs {
-    /// Scenes as VOLUME[@ISO], comma-separated (VOLUME as for `render --volume`); files that do
-    /// not exist are skipped with a message
+    /// Scenes as VOLUME[@ISO], comma-separated (VOLUME as for `render --volume`; a relative path
+    /// not in the working folder is looked for relative to the checkout this binary was built
+    /// from, where the default scenes' `../shared/data` is); files found in neither are skipped,
+    /// said once at the start
     #[arg(long, default_value = ACCURACY_SCENES)]
     pub scenes: String,
     /// Image size
@@ -521,6 +523,31 @@ pub fn run(a: &AccuracyArgs) -> Result<()> {
         let run = AccuracyRun::from_csv(&text).with_context(|| format!("{}", csv.display()))?;
         return accuracy_report(&run, &a.out, &budgets, None);
     }
+    // Every scene's file, found before anything is measured: what is missing is said once, now.
+    let mut measured: Vec<(String, Option<f64>)> = Vec::new(); // file, iso
+    let mut skipped = Vec::new();
+    let mut why = Vec::new();
+    for scene in a.scenes.split(',').map(str::trim).filter(|s| !s.is_empty()) {
+        let (spec, iso) = scene_spec(scene)?;
+        match scene_file(spec) {
+            Ok(file) => measured.push((file, iso)),
+            Err(e) => {
+                skipped.push(scene.to_string());
+                why.push(e);
+            }
+        }
+    }
+    if !skipped.is_empty() {
+        eprintln!(
+            "isowalld bench accuracy: skipping {} of {} scenes, their files are not here: {}",
+            skipped.len(),
+            skipped.len() + measured.len(),
+            why.join("; ")
+        );
+    }
+    if measured.is_empty() {
+        anyhow::bail!("no scene to measure (skipped: {})", skipped.join(", "));
+    }
     let mut gpu = GpuRenderer::new()?;
     let (w, h) = a.size;
     let repeats = a.repeats.unwrap_or(if a.quick { 1 } else { 3 }).max(1);
@@ -543,16 +570,8 @@ pub fn run(a: &AccuracyArgs) -> Result<()> {
 
     let mut rows: Vec<AccuracyRow> = Vec::new();
     let mut scenes: Vec<(String, String, f64)> = Vec::new(); // key, panel title, primary-only ms
-    let mut skipped = Vec::new();
-    for scene in a.scenes.split(',').map(str::trim).filter(|s| !s.is_empty()) {
-        let (spec, iso) = scene_spec(scene)?;
-        if !spec.starts_with("procedural:") && !std::path::Path::new(spec).exists() {
-            println!("# skipping {scene}: {spec} not found");
-            eprintln!("skipping {scene}: {spec} not found");
-            skipped.push(scene.to_string());
-            continue;
-        }
-        let (volume, iso) = load_volume(Some(spec), None, iso)?;
+    for (spec, iso) in &measured {
+        let (volume, iso) = load_volume(Some(spec), None, *iso)?;
         let key = scene_key(spec);
         let gv = gpu.upload(&volume)?;
         // The volume again with its filtered texture copy, for the texture march's points; the
@@ -645,9 +664,6 @@ pub fn run(a: &AccuracyArgs) -> Result<()> {
             println!("{}", csv_row(&row));
             rows.push(row);
         }
-    }
-    if scenes.is_empty() {
-        anyhow::bail!("no scene to measure (skipped: {})", skipped.join(", "));
     }
 
     // Does the GPU honour `exact`? (Until the exact per-cell kernel exists it marches 0.5 voxel.)

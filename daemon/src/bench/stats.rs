@@ -120,6 +120,42 @@ pub fn scene_spec(scene: &str) -> Result<(&str, Option<f64>)> {
     })
 }
 
+/// The checkout this binary was built from: the benchmarks' default scenes name the shared data
+/// beside it (`../shared/data/...`), relative to it.
+pub fn checkout_dir() -> &'static Path {
+    Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap_or(Path::new("."))
+}
+
+/// Where a scene's volume is read from ([`scene_file_in`] from the working folder and
+/// [`checkout_dir`]).
+pub fn scene_file(spec: &str) -> std::result::Result<String, String> {
+    let cwd = std::env::current_dir().unwrap_or_else(|_| ".".into());
+    scene_file_in(spec, &cwd, checkout_dir())
+}
+
+/// Where the volume of scene `spec` is read from: a procedural volume or a path that exists as
+/// given (relative to `cwd`) as it is; else a relative path that exists relative to `checkout`
+/// (so the default scenes are found from any folder, not only the checkout's root); else why not,
+/// naming the places looked in.
+pub fn scene_file_in(spec: &str, cwd: &Path, checkout: &Path) -> std::result::Result<String, String> {
+    let path = Path::new(spec);
+    if spec.starts_with("procedural:") || cwd.join(path).exists() {
+        return Ok(spec.to_string());
+    }
+    if path.is_relative() {
+        let beside = checkout.join(path);
+        if beside.exists() {
+            return Ok(beside.to_string_lossy().into_owned());
+        }
+        return Err(format!(
+            "{spec} is neither in {} nor in the checkout {} (the shared data sits beside the checkout)",
+            cwd.display(),
+            checkout.display()
+        ));
+    }
+    Err(format!("{spec} does not exist"))
+}
+
 /// RMSE and 99th percentile of |a - b| over pixels where `hit` holds.
 pub fn error_stats(a: &[f32], b: &[f32], hit: &[bool]) -> (f64, f64) {
     let mut d: Vec<f64> =
@@ -143,6 +179,38 @@ pub fn sample_list(list: &str) -> Result<Vec<u32>> {
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+
+    #[test]
+    fn a_scene_file_is_found_from_the_working_folder_else_the_checkout() {
+        let root = std::env::temp_dir().join(format!("isowall-scene-file-{}", std::process::id()));
+        let (checkout, elsewhere) = (root.join("repo"), root.join("away/elsewhere"));
+        std::fs::create_dir_all(root.join("shared/data")).unwrap();
+        std::fs::create_dir_all(&checkout).unwrap();
+        std::fs::create_dir_all(elsewhere.join("mine")).unwrap();
+        std::fs::write(root.join("shared/data/ct.nrrd"), b"").unwrap();
+        std::fs::write(elsewhere.join("mine/v.nrrd"), b"").unwrap();
+        let spec = "../shared/data/ct.nrrd";
+        // From the checkout's root, as given; from elsewhere, beside the checkout.
+        assert_eq!(scene_file_in(spec, &checkout, &checkout).unwrap(), spec);
+        assert_eq!(
+            scene_file_in(spec, &elsewhere, &checkout).unwrap(),
+            checkout.join(spec).to_string_lossy()
+        );
+        // The working folder's own file wins; procedural volumes are as they are.
+        assert_eq!(scene_file_in("mine/v.nrrd", &elsewhere, &checkout).unwrap(), "mine/v.nrrd");
+        assert_eq!(scene_file_in("procedural:engine", &elsewhere, &checkout).unwrap(), "procedural:engine");
+        let e = scene_file_in("../shared/data/mri.nrrd", &elsewhere, &checkout).unwrap_err();
+        assert!(
+            e.starts_with("../shared/data/mri.nrrd is neither in ")
+                && e.contains(&*checkout.to_string_lossy()),
+            "{e}"
+        );
+        std::fs::remove_dir_all(&root).unwrap();
+        // This build's checkout holds its own sources.
+        assert!(checkout_dir().join("daemon/src/bench/stats.rs").is_file());
+    }
+
     #[test]
     fn cpu_time_is_read_past_an_odd_command_name() {
         let line = "4242 (isowalld (bench) x) R 1 2 3 4 5 6 7 8 9 10 123 45 0 0 20 0 9 0 100 2000 30";

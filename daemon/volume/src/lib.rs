@@ -12,13 +12,15 @@
 //!
 //! Modules: [`io`] reads files (raw, NRRD, MetaImage, NIfTI-1), [`procedural`] makes the built-in
 //! volumes, [`blocks`] holds the per-block min/max used for empty-space skipping, [`source`] parses
-//! `PATH | procedural:NAME[:N]`. [`env_files`] names and sizes the image files of a lighting
-//! environment from their headers (for the renderer's loader and for `check-config`).
+//! `PATH | procedural:NAME[:N]`, [`iso`] is the rule an iso value meets against the data's range.
+//! [`env_files`] names and sizes the image files of a lighting environment from their headers
+//! (for the renderer's loader and for `check-config`).
 
 pub mod blocks;
 pub mod env_files;
 pub mod format;
 pub mod io;
+pub mod iso;
 pub mod procedural;
 pub mod region;
 pub mod source;
@@ -30,6 +32,7 @@ use std::path::PathBuf;
 
 pub use blocks::BlockMinMax;
 pub use format::VoxelFormat;
+pub use iso::{check_iso, IsoError};
 pub use region::{Pass, Progress, VolumeInfo, VolumeStream};
 pub use source::VolumeSource;
 pub use steps::{StepCache, StepState};

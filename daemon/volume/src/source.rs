@@ -187,6 +187,15 @@ impl VolumeSource {
     pub fn iso_or_default(&self, given: Option<f64>, (lo, hi): (f32, f32)) -> f64 {
         given.or(self.natural_iso()).unwrap_or(0.5 * (f64::from(lo) + f64::from(hi)))
     }
+
+    /// [`VolumeSource::iso_or_default`], with the iso `given` held to [`crate::check_iso`]
+    /// against the data's range `(lo, hi)` (a chosen default lies within it).
+    pub fn checked_iso(&self, given: Option<f64>, (lo, hi): (f32, f32)) -> Result<f64, crate::IsoError> {
+        if let Some(iso) = given {
+            crate::check_iso(iso, (f64::from(lo), f64::from(hi)))?;
+        }
+        Ok(self.iso_or_default(given, (lo, hi)))
+    }
 }
 
 impl std::fmt::Display for VolumeSource {

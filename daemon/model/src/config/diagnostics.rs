@@ -121,15 +121,36 @@ impl<'a> Doc<'a> {
         self.root.get_ref().iter().find(|(k, _)| k.get_ref() == key).map(|(_, v)| v)
     }
 
-    /// Deserializes one value, recording its error (if any) with its position.
+    /// Deserializes one value, recording its errors with their positions. Deserializing stops at
+    /// a table's first error, so a table is read again without the entry at fault until it reads
+    /// or an error belongs to no entry: every problem of the table is recorded, not only the first.
+    /// The value is returned where only unknown keys were left out (the table's own rules can then
+    /// be checked too); an entry whose value was refused leaves `None`.
     pub(crate) fn de<T: for<'de> Deserialize<'de>>(&mut self, value: &Spanned<DeValue<'a>>) -> Option<T> {
-        match T::deserialize(ValueDeserializer::from(value.clone())) {
-            Ok(t) => Some(t),
-            Err(e) => {
-                let span = e.span().or_else(|| Some(value.span()));
-                self.at_span(span, e.message().to_string());
-                None
+        let mut value = value.clone();
+        let mut left_out: Vec<String> = Vec::new();
+        let mut values_left_out = false;
+        loop {
+            let e = match T::deserialize(ValueDeserializer::from(value.clone())) {
+                Ok(t) => return (!values_left_out).then_some(t),
+                Err(e) => e,
+            };
+            let message = e.message().to_string();
+            // A required key whose value was refused: reported already.
+            if left_out.iter().any(|k| message.starts_with(&format!("missing field `{k}`"))) {
+                return None;
             }
+            let span = e.span().unwrap_or_else(|| value.span());
+            self.at_span(Some(span.clone()), message.clone());
+            let DeValue::Table(table) = value.get_mut() else { return None };
+            let within = |r: Range<usize>| r.contains(&span.start) || (r.is_empty() && r.start == span.start);
+            let key = table
+                .iter()
+                .find(|(k, v)| within(k.span()) || within(v.span()))
+                .map(|(k, _)| k.get_ref().to_string())?;
+            values_left_out |= !message.starts_with("unknown field");
+            table.remove(key.as_str());
+            left_out.push(key);
         }
     }
 

@@ -267,6 +267,31 @@ fn unknown_keys_are_refused_where_they_are() {
 }
 
 #[test]
+fn every_problem_of_a_table_is_reported_not_only_its_unknown_key() {
+    let shown = |text: &str| match WallConfig::parse(text, Path::new("wall.toml")) {
+        Ok(_) => panic!("expected problems in:\n{text}"),
+        Err(e) => e.to_string(),
+    };
+    // An unknown key after a bad value, and before one.
+    for render in ["ibl = \"bnet\"\nao_sample = 8\n", "ao_sample = 8\nibl = \"bnet\"\n"] {
+        let e = shown(&format!("[render]\n{render}\n{GOOD}"));
+        let (ibl, key) = if render.starts_with("ibl") { (2, 3) } else { (3, 2) };
+        assert!(e.contains(&format!("wall.toml:{ibl}:7: unknown variant `bnet`")), "{e}");
+        assert!(e.contains(&format!("wall.toml:{key}:1: unknown field `ao_sample`")), "{e}");
+        assert_eq!(e.lines().count(), 2, "{e}");
+    }
+    // An unknown key beside a value the table's own rules refuse (checked once the table reads).
+    let e = shown(&format!("[render]\nao_sample = 8\nao_samples = 5000\n\n{GOOD}"));
+    assert!(e.contains("wall.toml:2:1: unknown field `ao_sample`"), "{e}");
+    assert!(e.contains("wall.toml:3:14: render: `ao_samples` 5000 is more than"), "{e}");
+    // A required key with a bad value beside an unknown key: both, and not `missing field` too.
+    let e = shown(&with("width = 100", "width = \"100\"\nwidht = 3"));
+    assert!(e.contains("wall.toml:11:9: invalid type"), "{e}");
+    assert!(e.contains("wall.toml:12:1: unknown field `widht`"), "{e}");
+    assert!(!e.contains("missing field"), "{e}");
+}
+
+#[test]
 fn missing_and_mistyped_fields_are_named() {
     // The tile lacks a width: reported at its [[tiles]] header, and the node that lists it is
     // not reported again.

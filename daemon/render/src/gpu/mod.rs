@@ -938,6 +938,21 @@ impl GpuRenderer {
         env: Option<&GpuEnvironment>,
         frames: u32,
     ) -> Result<Rendered, GpuError> {
+        self.render_accumulated_reporting(volume, view, settings, env, frames, None)
+    }
+
+    /// [`GpuRenderer::render_accumulated`], calling `on_frame(k)` as each of the `frames` AO frames
+    /// is done (k from 1): each frame is then submitted and waited for on its own, where without
+    /// `on_frame` all go in one submission. Without AO nothing accumulates and it is not called.
+    pub fn render_accumulated_reporting(
+        &self,
+        volume: &GpuVolume,
+        view: &View,
+        settings: &RenderSettings,
+        env: Option<&GpuEnvironment>,
+        frames: u32,
+        mut on_frame: Option<&mut dyn FnMut(u32)>,
+    ) -> Result<Rendered, GpuError> {
         let env = self.check_frame(volume, view, settings, env, frames)?;
         let (w, h) = (view.rect.width, view.rect.height);
         let n = w as u64 * h as u64;
@@ -974,7 +989,10 @@ impl GpuRenderer {
                 usage: wgpu::BufferUsages::STORAGE,
             })
         };
-        self.ctx.validated("encode", || {
+        let new_encoder =
+            || device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
+        let mut gpu_time = Duration::ZERO;
+        self.ctx.validated("encode", || -> Result<(), GpuError> {
             uniforms.push(uniform(&params));
             self.isosurface.encode(
                 &self.ctx,
@@ -1000,16 +1018,24 @@ impl GpuRenderer {
                         (w, h),
                         dispatches,
                     );
+                    if let Some(report) = on_frame.as_mut() {
+                        let start = Instant::now();
+                        self.ctx.queue.submit([std::mem::replace(&mut enc, new_encoder()).finish()]);
+                        self.ctx.wait()?;
+                        gpu_time += start.elapsed();
+                        report(k + 1);
+                    }
                 }
                 if let Some(d) = &denoise {
                     self.denoise.encode(&self.ctx, &mut enc, d, &params, frames, false);
                 }
             }
-        })?;
+            Ok(())
+        })??;
         let start = Instant::now();
         self.ctx.queue.submit([enc.finish()]);
         self.ctx.wait()?;
-        let gpu_time = start.elapsed();
+        gpu_time += start.elapsed();
 
         let mut enc =
             device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("readback") });
