@@ -29,7 +29,7 @@ impl PreciseWait {
     /// The shortest spin: a sleep's usual overshoot on an idle machine.
     pub const MIN_SPIN: Duration = Duration::from_micros(200);
     /// The longest: the CPU a spin may take from the renders.
-    pub const MAX_SPIN: Duration = Duration::from_millis(3);
+    pub const MAX_SPIN: Duration = Duration::from_micros(500);
     /// Sleeps whose overshoots set the spin.
     pub const WINDOW: usize = 128;
 
