@@ -83,8 +83,6 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
                 _ = &mut stop => break,
             }
             if let Some(dir) = &a.record {
-                // Presented (at its present time, after the release) before it is recorded.
-                wall.settle().await;
                 let tiles = wall.snapshot().await;
                 let id = wall.last_frame_id();
                 let stale: Vec<String> = wall

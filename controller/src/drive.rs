@@ -341,8 +341,6 @@ async fn record_frame(wall: &mut Wall, dir: &std::path::Path) -> Result<()> {
     use std::io::Write;
     std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
     let id = wall.last_frame_id();
-    // Presented (at its present time, after the release) before it is recorded.
-    wall.settle().await;
     let tiles = wall.snapshot().await;
     let (w, h, rgb) = compose(&wall.config, &tiles);
     let out = dir.join(format!("frame-{id:06}.png"));

@@ -731,6 +731,9 @@ impl Wall {
     /// Gathers every node's last presented tiles at full resolution (a pending request is
     /// finished first), waiting at most 10 s for nodes that do not answer.
     pub async fn snapshot(&mut self) -> BTreeMap<String, Vec<TileImage>> {
+        // The frames begun are presented first (at their present times, after their releases):
+        // the snapshot shows the last one.
+        self.settle().await;
         while self.images.is_some() && self.take_images().is_none() {
             self.step().await;
         }
