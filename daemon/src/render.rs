@@ -5,6 +5,7 @@ use crate::progress::Frames;
 use anyhow::{anyhow, bail, Context, Result};
 use clap::{Args, ValueEnum};
 use glam::DVec3;
+use isowall_model::render_state::DEFAULT_EXPOSURE;
 use isowall_model::{
     AoMethod, AoRadius, AoSequence, Aov, Camera, Denoise, IblMethod, RenderSettings, Shading, View,
 };
@@ -211,8 +212,7 @@ pub struct RenderArgs {
     /// Seed mixed into every pixel's sample pattern (renders are reproducible) [default: 0]
     #[arg(long, value_name = "S")]
     pub seed: Option<u32>,
-    /// Exposure: linear colour is multiplied by it before the sRGB transfer [default: 1, or 0.6
-    /// with an IBL method, whose environment adds about as much light as the direct light]
+    /// Exposure: linear colour is multiplied by it before the sRGB transfer [default: 0.6]
     #[arg(long, value_name = "X")]
     pub exposure: Option<f64>,
     /// The edge-aware spatial filter (a-trous, guided by depth, normal and the occlusion
@@ -383,8 +383,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     settings.exposure = match a.exposure {
         Some(x) if x.is_finite() && x >= 0.0 => x,
         Some(x) => bail!("--exposure {x} must be a finite number >= 0"),
-        None if settings.ibl_needs_environment() => 0.6,
-        None => 1.0,
+        None => DEFAULT_EXPOSURE,
     };
     let frames = a.frames.unwrap_or(1);
     if !(1..=isowall_render::gpu::MAX_FRAMES).contains(&frames) {

@@ -2,7 +2,7 @@
 //! and scenes (DESIGN.md "Accuracy and speed"): accuracy.csv, the chart and the summary.
 
 use super::chart::{Chart, Marker, Panel, Series};
-use super::stats::{error_stats, median, scene_file, scene_spec};
+use super::stats::{error_stats, median, scene_file, scene_key, scene_spec};
 use crate::args;
 use crate::render::load_volume;
 use anyhow::{Context, Result};
@@ -211,19 +211,6 @@ fn color_rmse(a: &[[f32; 3]], b: &[[f32; 3]], hit: &[bool]) -> f64 {
     } else {
         (sum / n as f64).sqrt()
     }
-}
-
-/// The short name of a scene: the procedural volume's name, or the file's stem.
-fn scene_key(spec: &str) -> String {
-    if let Some(rest) = spec.strip_prefix("procedural:") {
-        return rest.split(':').next().unwrap_or(rest).to_string();
-    }
-    let name = std::path::Path::new(spec).file_name().and_then(|n| n.to_str()).unwrap_or(spec);
-    [".nii.gz", ".nrrd", ".nhdr", ".mhd", ".mha", ".nii", ".raw"]
-        .iter()
-        .find_map(|ext| name.strip_suffix(ext))
-        .unwrap_or(name)
-        .to_string()
 }
 
 /// A panel title: a readable name, the dimensions and the iso value.
@@ -589,9 +576,6 @@ pub fn run(a: &AccuracyArgs) -> Result<()> {
             s.ao.step_voxels = v.step;
             s.ao.samples = v.samples;
             s.ao.ibl = v.ibl;
-            if v.ibl != IblMethod::None {
-                s.exposure = 0.6; // as `render` does with IBL
-            }
             s
         };
         let env_for = |v: &Variant| (v.ibl != IblMethod::None).then_some(&genv);

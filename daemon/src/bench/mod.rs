@@ -5,6 +5,7 @@ mod accuracy;
 mod chart;
 mod denoise;
 mod frame;
+mod look;
 mod orbit;
 mod stats;
 mod suite;
@@ -58,6 +59,11 @@ pub enum BenchCommand {
     /// consecutive frames; the converged references' own is the floor) and the median ms per
     /// frame; `--out` writes every frame's numbers as CSV.
     Orbit(orbit::OrbitArgs),
+    /// Whether the default look shows shape: per scene and IBL method, how much darker surface
+    /// pixels in creases (A >= 0.3) look than open ones (A <= 0.05) at the same N.L, in linear
+    /// light and as shown (sRGB); `--before` the earlier defaults in the same run, `--out DIR` the
+    /// pictures. Ends with one line `look: darkness X at worst ...`.
+    Look(look::LookArgs),
 }
 
 #[derive(Args)]
@@ -103,6 +109,7 @@ pub fn run(cmd: &BenchCommand) -> Result<()> {
         BenchCommand::Frame(a) => frame::run(a),
         BenchCommand::Denoise(a) => denoise::run(a),
         BenchCommand::Orbit(a) => orbit::run(a),
+        BenchCommand::Look(a) => look::run(a),
     }
 }
 

@@ -120,6 +120,19 @@ pub fn scene_spec(scene: &str) -> Result<(&str, Option<f64>)> {
     })
 }
 
+/// The short name of a scene: the procedural volume's name, or the file's stem.
+pub fn scene_key(spec: &str) -> String {
+    if let Some(rest) = spec.strip_prefix("procedural:") {
+        return rest.split(':').next().unwrap_or(rest).to_string();
+    }
+    let name = std::path::Path::new(spec).file_name().and_then(|n| n.to_str()).unwrap_or(spec);
+    [".nii.gz", ".nrrd", ".nhdr", ".mhd", ".mha", ".nii", ".raw"]
+        .iter()
+        .find_map(|ext| name.strip_suffix(ext))
+        .unwrap_or(name)
+        .to_string()
+}
+
 /// The checkout this binary was built from: the benchmarks' default scenes name the shared data
 /// beside it (`../shared/data/...`), relative to it.
 pub fn checkout_dir() -> &'static Path {

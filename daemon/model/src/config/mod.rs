@@ -42,7 +42,7 @@
 //! ao_sequence = "sobol"           # sobol | r2: the 2D set of ours' directions
 //! ibl = "bent"                    # none | seed | bent | rays
 //! env = "sky"                     # sky | FILE.hdr | DIR (relative to this file's folder)
-//! exposure = 0.6                  # default 0.6 with an IBL method, else 1
+//! exposure = 0.6                  # default 0.6
 //! denoise = "auto"                # off | on | auto: the spatial filter of occlusion and IBL;
 //!                                 # auto (the default): on where target_frame_ms is set and
 //!                                 # ao_samples > 0, so that a governed wall's moving frames (at
@@ -74,7 +74,9 @@
 
 use crate::camera::{Camera, Rect, View};
 use crate::names::name_problem;
-use crate::render_state::{AoMethod, AoRadius, AoSequence, Denoise, IblMethod, RenderSettings, Shading};
+use crate::render_state::{
+    AoMethod, AoRadius, AoSequence, Denoise, IblMethod, RenderSettings, Shading, DEFAULT_EXPOSURE,
+};
 use glam::DVec3;
 use isowall_volume::io::{RawSpec, VoxelType};
 use isowall_volume::procedural::Procedural;
@@ -332,7 +334,7 @@ pub struct RenderConfig {
     pub ibl: IblMethod,
     /// `sky`, an equirectangular `FILE.hdr` or a cube-map `DIR` (relative to the config's folder).
     pub env: String,
-    /// `None`: 0.6 with an IBL method, else 1 (as `isowalld render`).
+    /// `None`: [`DEFAULT_EXPOSURE`] (as `isowalld render`).
     pub exposure: Option<f64>,
     /// The quality governor's target frame time (ms); `None`: off (`ao_samples` every frame).
     pub target_frame_ms: Option<f64>,
@@ -705,7 +707,7 @@ impl WallConfig {
         s.ao.method = r.ao_method;
         s.ao.sequence = r.ao_sequence;
         s.ao.ibl = r.ibl;
-        s.exposure = r.exposure.unwrap_or(if s.ibl_needs_environment() { 0.6 } else { 1.0 });
+        s.exposure = r.exposure.unwrap_or(DEFAULT_EXPOSURE);
         s.denoise = self.denoise(r.target_frame_ms);
         s
     }
