@@ -63,14 +63,15 @@ fn sobol_point(i: u32, key: u32) -> vec2<f32> {
     return vec2<f32>(f32(x >> 8u), f32(y >> 8u)) * (1.0 / 16777216.0);
 }
 
-// `AoSequence`: 0 R2, 1 Sobol (the wire's codes).
+// `AoSequence::code()` (the model's, checked by a test).
 const AO_SEQUENCE_R2: u32 = 0u;
+const AO_SEQUENCE_SOBOL: u32 = 1u;
 
 fn ao_point(sequence: u32, i: u32, key: u32) -> vec2<f32> {
-    if sequence == AO_SEQUENCE_R2 {
-        return r2_point(i, key);
+    if sequence == AO_SEQUENCE_SOBOL {
+        return sobol_point(i, key);
     }
-    return sobol_point(i, key);
+    return r2_point(i, key);
 }
 
 const QUARTER_PI: f32 = 0.78539816339744830962;

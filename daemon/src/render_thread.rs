@@ -16,6 +16,7 @@
 use crate::presenter::Shown;
 use anyhow::{Context, Result};
 use isowall_model::composite::PixelForm;
+use isowall_model::wire::Continuity;
 use isowall_model::{RenderSettings, View};
 use isowall_render::environment::Environment;
 use isowall_render::gpu::present::{Presented, TileSurface};
@@ -36,6 +37,9 @@ pub struct TileJob {
     pub tiles: Vec<(String, View)>,
     pub settings: RenderSettings,
     pub accumulate_frame: u32,
+    /// How the frame relates to the one before it (the model's rule), which each tile's frame
+    /// plan follows.
+    pub continuity: Continuity,
     /// object space: the brick each view renders, by index (a node renders an adopted brick
     /// beside its own, `object.rs`); empty: the one volume.
     pub bricks: Vec<usize>,
@@ -717,7 +721,7 @@ impl RenderLoop {
                 view,
                 settings: &settings,
                 env: self.env.as_ref(),
-                accumulate: job.accumulate_frame > 0,
+                continuity: job.continuity,
                 // A moving camera carries each pixel's history over; object space does not (a
                 // brick's pixels are not the tile's until composited).
                 temporal: !object_space,
@@ -973,6 +977,7 @@ mod tests {
             tiles,
             settings: *settings,
             accumulate_frame: 0,
+            continuity: Continuity::Changed,
             bricks: Vec::new(),
             scale,
             share: read_pixels.then_some(PixelForm::Colour),

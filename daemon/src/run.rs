@@ -810,7 +810,7 @@ async fn execute(
                 }
                 sender.send(&m).await?
             }
-            NodeOutput::Render { state, accumulate_frame } => {
+            NodeOutput::Render { state, accumulate_frame, continuity } => {
                 let spec = match FrameSpec::try_from(&state) {
                     Ok(s) => s,
                     Err(e) => {
@@ -847,6 +847,7 @@ async fn execute(
                     tiles,
                     settings,
                     accumulate_frame,
+                    continuity,
                     bricks,
                     scale,
                     // object space: the shares travel to the tiles' owners.

@@ -4,7 +4,7 @@
 //!
 //! The caller sends [`NodeMachine::hello`] when the connection opens, passes every message to
 //! [`NodeMachine::handle`], and carries out the [`NodeOutput`]s:
-//! - `Render { state, accumulate_frame }`: render `state` (one at a time), then call
+//! - `Render { state, accumulate_frame, continuity }`: render `state` (one at a time), then call
 //!   [`NodeMachine::render_done`], which sends Ready. `accumulate_frame` counts frames with the
 //!   same image (only the frame id changed): 0 after any change, then 1, 2, ... so progressive AO
 //!   can use `settings.ao.frame + accumulate_frame` as its decorrelation index and average in.
@@ -29,13 +29,15 @@ use std::time::Duration;
 
 use crate::codec::check_hello;
 use crate::messages::{Message, ProtocolError, Role, MAX_SWAP_WAIT, MAX_THUMBNAIL_DIVISOR, PROTOCOL_VERSION};
-use crate::wire::{FrameSpec, FrameState};
+use crate::wire::{Continuity, FrameSpec, FrameState};
 
 /// What the daemon's caller must do, in order.
 #[derive(Debug, Clone, PartialEq)]
 pub enum NodeOutput {
-    /// Render this frame, then call [`NodeMachine::render_done`].
-    Render { state: FrameState, accumulate_frame: u32 },
+    /// Render this frame, then call [`NodeMachine::render_done`]. `continuity` is how it relates
+    /// to the frame started before it ([`FrameState::continuity`]): what the renderer's frame plan
+    /// follows.
+    Render { state: FrameState, accumulate_frame: u32, continuity: Continuity },
     /// Send this to the controller.
     Send(Message),
     /// Present this rendered frame at `at` of the daemon's clock (`None`: now), then call
@@ -168,13 +170,14 @@ impl NodeMachine {
     }
 
     fn start(&mut self, state: FrameState) -> NodeOutput {
-        self.accumulate = match &self.last_started {
-            Some(prev) if prev.same_image(&state) => self.accumulate.saturating_add(1),
-            _ => 0,
+        let continuity = state.continuity(self.last_started.as_ref());
+        self.accumulate = match continuity {
+            Continuity::Same => self.accumulate.saturating_add(1),
+            Continuity::ViewMoved | Continuity::Changed => 0,
         };
         self.last_started = Some(state);
         self.rendering = Some(state.frame_id);
-        NodeOutput::Render { state, accumulate_frame: self.accumulate }
+        NodeOutput::Render { state, accumulate_frame: self.accumulate, continuity }
     }
 
     /// A message from the controller. On `Err`, close the connection with the error as the reason.
@@ -339,7 +342,7 @@ mod tests {
 
     fn render(out: &[NodeOutput]) -> Option<(u64, u32)> {
         out.iter().find_map(|o| match o {
-            NodeOutput::Render { state, accumulate_frame } => Some((state.frame_id, *accumulate_frame)),
+            NodeOutput::Render { state, accumulate_frame, .. } => Some((state.frame_id, *accumulate_frame)),
             _ => None,
         })
     }

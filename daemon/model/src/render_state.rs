@@ -17,6 +17,15 @@ pub enum Shading {
 impl Shading {
     /// Every shading model.
     pub const ALL: [Shading; 2] = [Shading::Lambert, Shading::BlinnPhong];
+
+    /// The variant's code: on the wire (`wire.rs`), in the kernels' parameters and in the WGSL's
+    /// constants, one number everywhere (append only: a code never changes meaning).
+    pub const fn code(self) -> u8 {
+        match self {
+            Shading::Lambert => 0,
+            Shading::BlinnPhong => 1,
+        }
+    }
 }
 
 /// The edge-aware spatial filter of the occlusion and IBL terms before compose (`--denoise`,
@@ -32,6 +41,15 @@ pub enum Denoise {
 impl Denoise {
     /// Every setting.
     pub const ALL: [Denoise; 2] = [Denoise::Off, Denoise::On];
+
+    /// The variant's code: on the wire (`wire.rs`), in the kernels' parameters and in the WGSL's
+    /// constants, one number everywhere (append only: a code never changes meaning).
+    pub const fn code(self) -> u8 {
+        match self {
+            Denoise::Off => 0,
+            Denoise::On => 1,
+        }
+    }
 
     pub fn is_on(self) -> bool {
         self == Denoise::On
@@ -174,6 +192,15 @@ pub enum AoMethod {
 impl AoMethod {
     /// Every AO method.
     pub const ALL: [AoMethod; 2] = [AoMethod::Ours, AoMethod::Seed];
+
+    /// The variant's code: on the wire (`wire.rs`), in the kernels' parameters and in the WGSL's
+    /// constants, one number everywhere (append only: a code never changes meaning).
+    pub const fn code(self) -> u8 {
+        match self {
+            AoMethod::Ours => 0,
+            AoMethod::Seed => 1,
+        }
+    }
 }
 
 /// The 2D point set the AO directions of ours come from (DESIGN.md "AO"; the formulas are in
@@ -192,6 +219,15 @@ pub enum AoSequence {
 impl AoSequence {
     /// Every sequence.
     pub const ALL: [AoSequence; 2] = [AoSequence::R2, AoSequence::Sobol];
+
+    /// The variant's code: on the wire (`wire.rs`), in the kernels' parameters and in the WGSL's
+    /// constants, one number everywhere (append only: a code never changes meaning).
+    pub const fn code(self) -> u8 {
+        match self {
+            AoSequence::R2 => 0,
+            AoSequence::Sobol => 1,
+        }
+    }
 
     /// The name on the command line and in configs.
     pub fn name(self) -> &'static str {
@@ -231,6 +267,17 @@ pub enum IblMethod {
 impl IblMethod {
     /// Every IBL method.
     pub const ALL: [IblMethod; 4] = [IblMethod::None, IblMethod::Seed, IblMethod::Bent, IblMethod::Rays];
+
+    /// The variant's code: on the wire (`wire.rs`), in the kernels' parameters and in the WGSL's
+    /// constants, one number everywhere (append only: a code never changes meaning).
+    pub const fn code(self) -> u8 {
+        match self {
+            IblMethod::None => 0,
+            IblMethod::Seed => 1,
+            IblMethod::Bent => 2,
+            IblMethod::Rays => 3,
+        }
+    }
 
     /// The method's name, as the config and the command line spell it.
     pub fn name(self) -> &'static str {

@@ -5,12 +5,9 @@
 //! and validates everything a peer could get wrong (finite numbers, a camera that defines a frame,
 //! positive steps, enum codes in range), returning a [`WireError`] that names the field.
 //!
-//! Enums travel as `u8` codes, fixed here forever (append only):
-//! - shading: 0 Lambert, 1 Blinn-Phong
-//! - AO radius kind: 0 default (8 voxels), 1 world (`radius`), 2 unbounded
-//! - AO method: 0 ours, 1 seed
-//! - IBL: 0 none, 1 seed, 2 bent, 3 rays
-//! - AO sequence: 0 R2, 1 Sobol (Owen-scrambled)
+//! Enums travel as `u8` codes: each enum's `code()` in `render_state.rs` (append only; the kernels'
+//! parameters and the WGSL use the same numbers). The AO radius kind is the wire's own: 0 default
+//! (8 voxels), 1 world (`radius`), 2 unbounded.
 
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
@@ -54,14 +51,14 @@ pub struct WireAo {
     pub radius_kind: u8,
     /// World units when `radius_kind` is 1; 0 otherwise.
     pub radius: f64,
-    /// 0 ours, 1 seed.
+    /// [`AoMethod::code`].
     pub method: u8,
-    /// 0 none, 1 seed, 2 bent, 3 rays.
+    /// [`IblMethod::code`].
     pub ibl: u8,
     pub exact: bool,
     pub step_voxels: f64,
     pub offset_voxels: f64,
-    /// 0 r2, 1 sobol.
+    /// [`AoSequence::code`].
     pub sequence: u8,
     pub frame: u32,
     pub seed: u32,
@@ -73,15 +70,30 @@ pub struct WireSettings {
     pub iso: f64,
     pub step_voxels: f64,
     pub empty_space_skipping: bool,
-    /// 0 Lambert, 1 Blinn-Phong.
+    /// [`Shading::code`].
     pub shading: u8,
     pub light: WireLight,
     pub material: WireMaterial,
     pub exposure: f64,
     pub background: [f64; 3],
     pub ao: WireAo,
-    /// 0 off, 1 on.
+    /// [`Denoise::code`].
     pub denoise: u8,
+}
+
+/// How a frame's image relates to the frame before it on the same node: the one rule of when a
+/// node keeps accumulating, carries its history into a moved camera, or starts over.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Continuity {
+    /// The same image ([`FrameState::same_image`]): keep accumulating.
+    Same,
+    /// Only the view moved (the camera, and with it a light that follows the camera, or the
+    /// light's direction): what a surface point receives is unchanged, so its history may be
+    /// carried over (reprojection).
+    ViewMoved,
+    /// Anything else (iso, AO, light colour, environment, volume, time step, scale), or no frame
+    /// before: start over.
+    Changed,
 }
 
 /// What the controller broadcasts each frame.
@@ -117,6 +129,24 @@ impl FrameState {
             && self.settings == other.settings
             && self.scale == other.scale
             && self.time_step == other.time_step
+    }
+
+    /// How this frame relates to `previous` (the frame rendered before it; `None`: none).
+    pub fn continuity(&self, previous: Option<&FrameState>) -> Continuity {
+        let Some(p) = previous else { return Continuity::Changed };
+        if self.same_image(p) {
+            return Continuity::Same;
+        }
+        let unlit =
+            |s: &WireSettings| WireSettings { light: WireLight { direction: [0.0; 3], ..s.light }, ..*s };
+        if unlit(&self.settings) == unlit(&p.settings)
+            && self.scale == p.scale
+            && self.time_step == p.time_step
+        {
+            Continuity::ViewMoved
+        } else {
+            Continuity::Changed
+        }
     }
 }
 
@@ -284,8 +314,8 @@ impl TryFrom<WireCamera> for Camera {
     }
 }
 
-// Each enum's wire codes have one home, the encoding `match` below (the compiler checks it names
-// every variant); decoding searches the variants for the code.
+// Each enum's code has one home, its `code` in `render_state.rs` (shared with the kernels' parameters
+// and the WGSL); decoding searches the variants for the code.
 
 /// The variant of `all` whose code is `value`, or the error naming `field`.
 fn decode_code<T: Copy>(
@@ -301,43 +331,6 @@ fn decode_code<T: Copy>(
     })
 }
 
-fn shading_code(s: Shading) -> u8 {
-    match s {
-        Shading::Lambert => 0,
-        Shading::BlinnPhong => 1,
-    }
-}
-
-fn denoise_code(d: Denoise) -> u8 {
-    match d {
-        Denoise::Off => 0,
-        Denoise::On => 1,
-    }
-}
-
-fn ao_method_code(m: AoMethod) -> u8 {
-    match m {
-        AoMethod::Ours => 0,
-        AoMethod::Seed => 1,
-    }
-}
-
-fn ao_sequence_code(q: AoSequence) -> u8 {
-    match q {
-        AoSequence::R2 => 0,
-        AoSequence::Sobol => 1,
-    }
-}
-
-fn ibl_code(m: IblMethod) -> u8 {
-    match m {
-        IblMethod::None => 0,
-        IblMethod::Seed => 1,
-        IblMethod::Bent => 2,
-        IblMethod::Rays => 3,
-    }
-}
-
 impl From<&AoSettings> for WireAo {
     fn from(a: &AoSettings) -> Self {
         let (radius_kind, radius) = match a.radius {
@@ -349,12 +342,12 @@ impl From<&AoSettings> for WireAo {
             samples: a.samples,
             radius_kind,
             radius,
-            method: ao_method_code(a.method),
-            ibl: ibl_code(a.ibl),
+            method: a.method.code(),
+            ibl: a.ibl.code(),
             exact: a.exact,
             step_voxels: a.step_voxels,
             offset_voxels: a.offset_voxels,
-            sequence: ao_sequence_code(a.sequence),
+            sequence: a.sequence.code(),
             frame: a.frame,
             seed: a.seed,
         }
@@ -370,8 +363,8 @@ impl TryFrom<WireAo> for AoSettings {
             2 => AoRadius::Unbounded,
             value => return Err(WireError::UnknownCode { field: "settings.ao.radius_kind", value, max: 2 }),
         };
-        let method = decode_code(&AoMethod::ALL, ao_method_code, "settings.ao.method", w.method)?;
-        let ibl = decode_code(&IblMethod::ALL, ibl_code, "settings.ao.ibl", w.ibl)?;
+        let method = decode_code(&AoMethod::ALL, AoMethod::code, "settings.ao.method", w.method)?;
+        let ibl = decode_code(&IblMethod::ALL, IblMethod::code, "settings.ao.ibl", w.ibl)?;
         Ok(AoSettings {
             samples: if w.samples <= crate::render_state::MAX_AO_SAMPLES {
                 w.samples
@@ -388,7 +381,7 @@ impl TryFrom<WireAo> for AoSettings {
             exact: w.exact,
             step_voxels: step("settings.ao.step_voxels", w.step_voxels)?,
             offset_voxels: non_negative("settings.ao.offset_voxels", w.offset_voxels)?,
-            sequence: decode_code(&AoSequence::ALL, ao_sequence_code, "settings.ao.sequence", w.sequence)?,
+            sequence: decode_code(&AoSequence::ALL, AoSequence::code, "settings.ao.sequence", w.sequence)?,
             frame: w.frame,
             seed: w.seed,
         })
@@ -401,7 +394,7 @@ impl From<&RenderSettings> for WireSettings {
             iso: s.iso,
             step_voxels: s.step_voxels,
             empty_space_skipping: s.empty_space_skipping,
-            shading: shading_code(s.shading),
+            shading: s.shading.code(),
             light: WireLight {
                 direction: s.light.direction.to_array(),
                 camera_relative: s.light.camera_relative,
@@ -416,7 +409,7 @@ impl From<&RenderSettings> for WireSettings {
             exposure: s.exposure,
             background: s.background,
             ao: (&s.ao).into(),
-            denoise: denoise_code(s.denoise),
+            denoise: s.denoise.code(),
         }
     }
 }
@@ -430,7 +423,7 @@ impl From<RenderSettings> for WireSettings {
 impl TryFrom<WireSettings> for RenderSettings {
     type Error = WireError;
     fn try_from(w: WireSettings) -> Result<Self, WireError> {
-        let shading = decode_code(&Shading::ALL, shading_code, "settings.shading", w.shading)?;
+        let shading = decode_code(&Shading::ALL, Shading::code, "settings.shading", w.shading)?;
         Ok(RenderSettings {
             iso: finite("settings.iso", w.iso)?,
             step_voxels: step("settings.step_voxels", w.step_voxels)?,
@@ -450,7 +443,7 @@ impl TryFrom<WireSettings> for RenderSettings {
             exposure: non_negative("settings.exposure", w.exposure)?,
             background: finite3("settings.background", w.background)?,
             ao: AoSettings::try_from(w.ao)?,
-            denoise: decode_code(&Denoise::ALL, denoise_code, "settings.denoise", w.denoise)?,
+            denoise: decode_code(&Denoise::ALL, Denoise::code, "settings.denoise", w.denoise)?,
         })
     }
 }
@@ -470,11 +463,11 @@ mod tests {
             let e = decode_code(all, code, "f", max + 1).unwrap_err();
             assert!(matches!(e, WireError::UnknownCode { field: "f", max: m, .. } if m == max), "{e:?}");
         }
-        check(&Shading::ALL, shading_code);
-        check(&AoMethod::ALL, ao_method_code);
-        check(&AoSequence::ALL, ao_sequence_code);
-        check(&IblMethod::ALL, ibl_code);
-        check(&Denoise::ALL, denoise_code);
+        check(&Shading::ALL, Shading::code);
+        check(&AoMethod::ALL, AoMethod::code);
+        check(&AoSequence::ALL, AoSequence::code);
+        check(&IblMethod::ALL, IblMethod::code);
+        check(&Denoise::ALL, Denoise::code);
     }
 
     fn camera() -> Camera {
@@ -580,5 +573,36 @@ mod tests {
         assert!(!a.same_image(&c));
         assert!(!a.same_image(&a.at_time_step(1)), "another time step is another image");
         assert_eq!(a.at_time_step(5).time_step, 5);
+    }
+
+    #[test]
+    fn continuity_is_same_for_the_same_image_view_moved_for_camera_or_light_direction_else_changed() {
+        let a = FrameState::new(1, &camera(), &settings(), 2);
+        assert_eq!(a.continuity(None), Continuity::Changed, "no frame before");
+        let mut next = a;
+        next.frame_id = 2;
+        assert_eq!(next.continuity(Some(&a)), Continuity::Same);
+        let mut moved = next;
+        moved.camera.eye[0] += 1.0;
+        assert_eq!(moved.continuity(Some(&a)), Continuity::ViewMoved);
+        let mut turned = next;
+        turned.settings.light.direction = [1.0, 0.0, 0.0];
+        assert_eq!(turned.continuity(Some(&a)), Continuity::ViewMoved, "the light's direction only");
+        let changes: [(&str, fn(&mut FrameState)); 6] = [
+            ("iso", |f| f.settings.iso += 1.0),
+            ("AO samples", |f| f.settings.ao.samples += 1),
+            ("light colour", |f| f.settings.light.color[0] += 0.1),
+            ("exposure", |f| f.settings.exposure += 0.1),
+            ("scale", |f| f.scale += 1),
+            ("time step", |f| f.time_step += 1),
+        ];
+        for (what, change) in changes {
+            let mut c = moved;
+            change(&mut c);
+            assert_eq!(c.continuity(Some(&a)), Continuity::Changed, "{what} with the camera moved");
+            let mut still = next;
+            change(&mut still);
+            assert_eq!(still.continuity(Some(&a)), Continuity::Changed, "{what}");
+        }
     }
 }

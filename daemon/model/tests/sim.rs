@@ -324,7 +324,7 @@ impl Sim {
         let conn = self.nodes[i].conn;
         for o in outs {
             match o {
-                NodeOutput::Render { state, accumulate_frame: _ } => {
+                NodeOutput::Render { state, .. } => {
                     let cfg = &self.nodes[i].cfg;
                     let (render, jitter) = (cfg.render, cfg.render_jitter);
                     let took = render + self.rng.below(jitter);

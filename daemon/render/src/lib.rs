@@ -6,6 +6,7 @@
 pub mod denoise;
 pub mod environment;
 pub mod frame;
+pub mod frame_plan;
 pub mod gpu;
 pub mod output;
 pub mod reference;

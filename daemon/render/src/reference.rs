@@ -1231,7 +1231,7 @@ mod tests {
         // Rendering is deterministic, and exposure scales the colour of hits only.
         let again = render(&v, &whole, &s);
         assert_eq!((again.color, again.depth, again.fetches), (f.color.clone(), f.depth.clone(), f.fetches));
-        s.exposure = 2.0;
+        s.exposure *= 2.0;
         let bright = render(&v, &whole, &s);
         for i in 0..f.pixel_count() {
             let k = if f.hit[i] { 2.0 } else { 1.0 };

@@ -209,6 +209,19 @@ pub(crate) mod tests {
         assert_eq!(declared(&entries), reflected(Kernel::Present), "{}", Kernel::Present.file_name());
     }
 
+    /// The u32 value of every named module-scope `const` of `kernel`'s WGSL.
+    pub(crate) fn wgsl_constants(kernel: Kernel) -> std::collections::BTreeMap<String, u32> {
+        let module = parse(kernel);
+        module
+            .constants
+            .iter()
+            .filter_map(|(_, c)| match module.global_expressions[c.init] {
+                naga::Expression::Literal(naga::Literal::U32(v)) => Some((c.name.clone()?, v)),
+                _ => None,
+            })
+            .collect()
+    }
+
     /// Parses and validates a kernel with naga, panicking with the shader's own diagnostics.
     pub(crate) fn parse(kernel: Kernel) -> naga::Module {
         let src = source(kernel);

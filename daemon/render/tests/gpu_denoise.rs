@@ -8,6 +8,7 @@
 mod common;
 
 use isowall_model::composite::PixelForm;
+use isowall_model::wire::Continuity;
 use isowall_model::{Denoise, Rect, RenderSettings, View};
 use isowall_render::denoise::{self, Input};
 use isowall_render::gpu::{FrameRead, GpuRenderer, GpuVolume, ReadbackRing, TileFrame, TileTarget};
@@ -169,7 +170,7 @@ fn tile_image(
         view: &tile_view,
         settings: s,
         env: None,
-        accumulate: false,
+        continuity: Continuity::Changed,
         temporal: false,
         share: Some(PixelForm::Colour),
     };
@@ -256,7 +257,7 @@ fn a_steady_denoised_tile_allocates_nothing() {
             view: &tile_view,
             settings: &f,
             env: None,
-            accumulate: true,
+            continuity: if k > 0 { Continuity::Same } else { Continuity::Changed },
             // A still camera never reprojects: temporal on changes nothing.
             temporal: true,
             share: None,

@@ -28,8 +28,9 @@ fn translate(view: &View, by: DVec3) -> View {
     View { camera: Camera { eye: c.eye + by, target: c.target + by, ..c }, ..*view }
 }
 
-/// Renders frame `frame_id` of the tile (sample index `ao.frame + frame_id` on a still camera) and
-/// waits for its read.
+/// Renders frame `frame_id` of the tile (sample index `ao.frame + frame_id` on a still camera) after
+/// a frame of `previous` (`None`: none; how they relate is the model's rule) and waits for its
+/// read.
 #[allow(clippy::too_many_arguments)]
 fn frame(
     gpu: &GpuRenderer,
@@ -39,7 +40,7 @@ fn frame(
     view: &View,
     s: &RenderSettings,
     frame_id: u64,
-    accumulate: bool,
+    previous: Option<(&View, &RenderSettings)>,
     temporal: bool,
 ) -> TileOutput {
     let mut f = *s;
@@ -50,7 +51,7 @@ fn frame(
         view,
         settings: &f,
         env: None,
-        accumulate,
+        continuity: common::continuity(previous, view, s),
         temporal,
         share: Some(PixelForm::Colour),
     };
@@ -87,8 +88,9 @@ fn a_still_camera_with_temporal_on_is_bit_identical_to_temporal_off() {
         let mut on = TileTarget::new(&gpu, "on", &view, 1).unwrap();
         let mut off = TileTarget::new(&gpu, "off", &view, 1).unwrap();
         for k in 0..5u64 {
-            let a = frame(&gpu, &mut on, &mut ring, &gv, &view, &s, k, k > 0, true);
-            let b = frame(&gpu, &mut off, &mut ring, &gv, &view, &s, k, k > 0, false);
+            let before = (k > 0).then_some((&view, &s));
+            let a = frame(&gpu, &mut on, &mut ring, &gv, &view, &s, k, before, true);
+            let b = frame(&gpu, &mut off, &mut ring, &gv, &view, &s, k, before, false);
             assert_eq!(a.rgb8, b.rgb8, "{denoise:?}, frame {k}");
             assert_eq!(a.depth, b.depth);
             assert!(!on.reprojected());
@@ -112,11 +114,11 @@ fn move_once(
     let mut ring = ReadbackRing::new(2);
     let mut tile = TileTarget::new(gpu, "t", view, 1).unwrap();
     for k in 0..still {
-        frame(gpu, &mut tile, &mut ring, gv, view, s, k, k > 0, temporal);
+        frame(gpu, &mut tile, &mut ring, gv, view, s, k, (k > 0).then_some((view, s)), temporal);
     }
     let before = gpu.read_tile_sums(&tile).unwrap();
     // The wall's moving frames do not accumulate (the node machine's accumulate_frame is 0).
-    frame(gpu, &mut tile, &mut ring, gv, moved, s, still, false, temporal);
+    frame(gpu, &mut tile, &mut ring, gv, moved, s, still, (still > 0).then_some((view, s)), temporal);
     let after = gpu.read_tile_sums(&tile).unwrap();
     (before, after, tile)
 }
@@ -298,9 +300,9 @@ fn newly_seen_points_restart_and_a_move_out_of_the_tile_rejects_all() {
     let mut ring = ReadbackRing::new(2);
     let mut tile = TileTarget::new(&gpu, "t", &tile_view, 1).unwrap();
     for k in 0..3 {
-        frame(&gpu, &mut tile, &mut ring, &gv, &tile_view, &s, k, k > 0, true);
+        frame(&gpu, &mut tile, &mut ring, &gv, &tile_view, &s, k, (k > 0).then_some((&tile_view, &s)), true);
     }
-    frame(&gpu, &mut tile, &mut ring, &gv, &shifted, &s, 3, false, true);
+    frame(&gpu, &mut tile, &mut ring, &gv, &shifted, &s, 3, Some((&tile_view, &s)), true);
     assert!(tile.reprojected(), "a camera-only change reprojects");
     let sums = gpu.read_tile_sums(&tile).unwrap();
     let hits = sums.color.iter().filter(|c| c[3] >= 0.5).count();
@@ -326,9 +328,9 @@ fn a_change_of_iso_or_ao_radius_resets_even_with_temporal_on() {
         let mut ring = ReadbackRing::new(2);
         let mut tile = TileTarget::new(&gpu, "t", &view, 1).unwrap();
         for k in 0..4 {
-            frame(&gpu, &mut tile, &mut ring, &gv, &view, &s, k, k > 0, true);
+            frame(&gpu, &mut tile, &mut ring, &gv, &view, &s, k, (k > 0).then_some((&view, &s)), true);
         }
-        let out = frame(&gpu, &mut tile, &mut ring, &gv, &moved, &changed, 4, false, true);
+        let out = frame(&gpu, &mut tile, &mut ring, &gv, &moved, &changed, 4, Some((&view, &s)), true);
         let sums = gpu.read_tile_sums(&tile).unwrap();
         let max_weight = sums.ibl.iter().map(|e| e[3]).fold(0.0f32, f32::max);
         if what == "camera only" {
@@ -339,7 +341,7 @@ fn a_change_of_iso_or_ao_radius_resets_even_with_temporal_on() {
         assert_eq!(max_weight, 1.0, "{what}");
         // Exactly a fresh tile's first frame of the new state.
         let mut fresh = TileTarget::new(&gpu, "f", &view, 1).unwrap();
-        let want = frame(&gpu, &mut fresh, &mut ring, &gv, &moved, &changed, 4, false, false);
+        let want = frame(&gpu, &mut fresh, &mut ring, &gv, &moved, &changed, 4, None, false);
         assert_eq!(out.rgb8, want.rgb8, "{what}");
     }
 }
@@ -358,10 +360,11 @@ fn tile_after(
     let first = View { rect, ..views[0] };
     let mut tile = TileTarget::with_guard(gpu, "t", &first, 1, guard).unwrap();
     let mut out = TileOutput::default();
+    let mut before: Option<View> = None;
     for (k, v) in views.iter().enumerate() {
         let v = View { rect, ..*v };
-        let still = k > 0 && views[k - 1].camera == v.camera;
-        out = frame(gpu, &mut tile, &mut ring, gv, &v, s, k as u64, still, true);
+        out = frame(gpu, &mut tile, &mut ring, gv, &v, s, k as u64, before.as_ref().map(|b| (b, s)), true);
+        before = Some(v);
     }
     assert!(tile.reprojected());
     out.rgb8.unwrap()
@@ -420,6 +423,7 @@ fn moving_frames_draw_new_samples() {
     let mut tile = TileTarget::new(&gpu, "t", &view, 1).unwrap();
     let mut last = view;
     for k in 0..12u64 {
+        let before = last;
         last = orbit(&view, 0.25 * k as f64);
         let tf = TileFrame {
             frame_id: k + 1,
@@ -427,7 +431,7 @@ fn moving_frames_draw_new_samples() {
             view: &last,
             settings: &s,
             env: None,
-            accumulate: false,
+            continuity: common::continuity((k > 0).then_some((&before, &s)), &last, &s),
             temporal: true,
             share: None,
         };

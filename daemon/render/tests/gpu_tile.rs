@@ -7,6 +7,7 @@
 mod common;
 
 use isowall_model::composite::PixelForm;
+use isowall_model::wire::Continuity;
 use isowall_model::{Camera, RenderSettings, View};
 use isowall_render::gpu::{
     FrameRead, GpuRenderer, GpuVolume, ReadbackRing, TileFrame, TileOutput, TileTarget,
@@ -35,7 +36,7 @@ fn frame(
     gv: &GpuVolume,
     view: &View,
     s: &RenderSettings,
-    accumulate: bool,
+    continuity: Continuity,
 ) -> TileOutput {
     let f = TileFrame {
         frame_id: 1,
@@ -43,7 +44,7 @@ fn frame(
         view,
         settings: s,
         env: None,
-        accumulate,
+        continuity,
         temporal: false,
         share: Some(PixelForm::Colour),
     };
@@ -67,7 +68,7 @@ fn the_compose_kernel_is_the_host_compose_and_follows_the_reference() {
         s.ao.samples = samples;
         s.exposure = 1.3;
         let mut tile = TileTarget::new(&gpu, "t", &view, 1).unwrap();
-        let out = frame(&gpu, &mut tile, &mut ring, &gv, &view, &s, false);
+        let out = frame(&gpu, &mut tile, &mut ring, &gv, &view, &s, Continuity::Changed);
         let host = gpu.render(&gv, &view, &s, None).unwrap().frame;
         let (n, max) = differences(out.rgb8.as_ref().unwrap(), &srgb8(&host));
         eprintln!("{samples} samples: {n} channel values differ from the host's compose, by at most {max}");
@@ -88,7 +89,7 @@ fn the_compose_kernel_is_the_host_compose_and_follows_the_reference() {
     // Against the CPU reference's own compose (no AO: E = ambient): the colour of pixels both hit.
     s.ao.samples = 0;
     let mut tile = TileTarget::new(&gpu, "t", &view, 1).unwrap();
-    let out = frame(&gpu, &mut tile, &mut ring, &gv, &view, &s, false);
+    let out = frame(&gpu, &mut tile, &mut ring, &gv, &view, &s, Continuity::Changed);
     let r = reference::render(&volume, &view, &s);
     let rgb = out.rgb8.unwrap();
     let want = srgb8(&r);
@@ -125,7 +126,8 @@ fn accumulation_on_the_gpu_averages_the_frames_and_restarts_when_the_state_chang
     for k in 0..frames {
         let mut f = s;
         f.ao.frame = s.ao.frame + k;
-        out = frame(&gpu, &mut tile, &mut ring, &gv, &view, &f, k > 0);
+        let c = common::continuity((k > 0).then_some((&view, &s)), &view, &f);
+        out = frame(&gpu, &mut tile, &mut ring, &gv, &view, &f, c);
     }
     assert_eq!(tile.frames(), frames);
     let want = gpu.render_accumulated(&gv, &view, &s, None, frames).unwrap().frame;
@@ -137,11 +139,13 @@ fn accumulation_on_the_gpu_averages_the_frames_and_restarts_when_the_state_chang
     let (n, _) = differences(out.rgb8.as_ref().unwrap(), &srgb8(&single));
     assert!(n > 100, "only {n} values differ from a single frame");
 
-    // A change of state restarts the sums even when the caller asks to accumulate.
+    // A change of state restarts the sums: the model's rule says so, and the frame plan follows.
     let mut moved = s;
     moved.iso += 0.05;
     moved.ao.frame = s.ao.frame + frames;
-    let out = frame(&gpu, &mut tile, &mut ring, &gv, &view, &moved, true);
+    let c = common::continuity(Some((&view, &s)), &view, &moved);
+    assert_eq!(c, Continuity::Changed);
+    let out = frame(&gpu, &mut tile, &mut ring, &gv, &view, &moved, c);
     assert_eq!(tile.frames(), 1);
     let want = gpu.render(&gv, &view, &moved, None).unwrap().frame;
     let (n, max) = differences(out.rgb8.as_ref().unwrap(), &srgb8(&want));
@@ -169,7 +173,7 @@ fn a_steady_tile_allocates_nothing_and_reads_back_only_what_leaves_the_node() {
                 view: &view,
                 settings: &f,
                 env: None,
-                accumulate: true,
+                continuity: if k > 0 { Continuity::Same } else { Continuity::Changed },
                 // A still camera never reprojects: temporal on changes nothing.
                 temporal: true,
                 share: share.then_some(PixelForm::Colour),

@@ -6,6 +6,7 @@ mod common;
 
 use glam::DVec3;
 use isowall_model::bricks::{self, Occupancy};
+use isowall_model::wire::Continuity;
 use isowall_model::{AoRadius, Camera, RenderSettings, View};
 use isowall_render::gpu::ObjectSpace;
 use isowall_render::Frame;
@@ -351,7 +352,7 @@ fn composited_canvas(
             view: &canvas_view,
             settings: &raw,
             env: None,
-            accumulate: false,
+            continuity: Continuity::Changed,
             temporal: false,
             share: Some(PixelForm::Shading),
         };
@@ -407,7 +408,7 @@ fn bricks_filtered_on_the_composited_canvas_give_the_single_denoised_render() {
             view: &view,
             settings,
             env: None,
-            accumulate: false,
+            continuity: Continuity::Changed,
             temporal: false,
             share: Some(PixelForm::Colour),
         };

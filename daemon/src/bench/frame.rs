@@ -18,6 +18,7 @@ use crate::render::load_volume;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use isowall_model::composite::PixelForm;
+use isowall_model::wire::Continuity;
 use isowall_model::{Camera, RenderSettings, View};
 use isowall_render::gpu::{
     FrameRead, GpuRenderer, GpuVolume, ReadbackRing, TileFrame, TileTarget, TrafficCount,
@@ -201,7 +202,9 @@ impl Current {
             view,
             settings: &f,
             env: None,
-            accumulate: k > 0 && path != Path::Moving,
+            // The same image accumulates; the moving path stands in for a camera that moves every
+            // frame with reprojection off: every frame starts over.
+            continuity: if k > 0 && path != Path::Moving { Continuity::Same } else { Continuity::Changed },
             temporal: false,
             share: share.then_some(PixelForm::Colour),
         };

@@ -16,7 +16,7 @@ use crate::args;
 use crate::render::load_volume;
 use anyhow::{bail, Result};
 use clap::Args;
-use isowall_model::{Camera, Denoise, RenderSettings, View};
+use isowall_model::{Camera, Denoise, FrameState, RenderSettings, View};
 use isowall_render::gpu::{FrameRead, GpuRenderer, GpuVolume, ReadbackRing, TileFrame, TileSums, TileTarget};
 use isowall_render::Frame;
 use std::path::PathBuf;
@@ -164,14 +164,19 @@ fn run_variant(
     let mut ring = ReadbackRing::<FrameRead>::new(2);
     let mut row = Row { ms: Vec::new(), rmse: Vec::new(), p99: Vec::new(), flicker: Vec::new() };
     let mut last: Option<Vec<f32>> = None;
+    let mut previous: Option<FrameState> = None;
     for (k, view) in views.iter().enumerate() {
+        // As a node decides: by the model's rule, from the frame state before.
+        let state = FrameState::new(k as u64, &view.camera, &s, 1);
+        let continuity = state.continuity(previous.as_ref());
+        previous = Some(state);
         let tf = TileFrame {
             frame_id: k as u64,
             volume: gv,
             view,
             settings: &s,
             env: None,
-            accumulate: false,
+            continuity,
             temporal,
             share: None,
         };

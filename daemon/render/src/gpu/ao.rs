@@ -1,11 +1,13 @@
 //! `Kernel::Ao` (shaders/ao.wgsl): ambient occlusion (ours, or the 2008 `seed` baseline), bent
 //! normal and the IBL term of one frame at every hit, added into accumulators.
 
+use super::frame_params::gpu_code;
 use super::{
-    buffer_entries, frame_entries, storage_entry, FrameParams, GpuContext, GpuError, GpuVolume, PerfOptions,
+    buffer_entries, frame_entries, storage_entry, Aovs, FrameParams, GpuContext, GpuError, GpuVolume,
+    PerfOptions,
 };
 use crate::shaders::Kernel;
-use isowall_model::{AoMethod, RenderSettings};
+use isowall_model::AoMethod;
 
 /// The most dispatches one frame's AO samples are split over.
 pub const MAX_AO_DISPATCHES: u32 = 256;
@@ -16,29 +18,6 @@ const SAMPLE_LOOP_EXTRA: u32 = 40;
 
 /// Iterations an invocation may use before the budget's end, kept free (the set-up's loops).
 const LOOP_BUDGET_RESERVE: u32 = 1024;
-
-/// The iteration cap of the exact AO walk (`exact_occluded` in shaders/ao.wgsl) for one ray: each
-/// iteration enters a new cell or leaves an empty block (plus the odd empty segment where two cell
-/// planes are crossed a rounding error apart, hence the factor 2). The whole box bounds it; a
-/// radius R bounds it tighter: a segment of length R crosses at most ceil(R / s) + 1 planes of an
-/// axis of spacing s, of cells and of blocks alike.
-pub fn exact_walk_cap(volume: &GpuVolume, s: &RenderSettings) -> u32 {
-    let level_cells = volume.ao_level.map_or(volume.block, |l| l.cells).max(1);
-    let counts = volume.ao_level.map_or(volume.counts, |l| l.counts);
-    let n: u64 = volume.dims.iter().map(|&d| d as u64).sum();
-    let nb: u64 = counts.iter().map(|&c| c.max(1) as u64).sum();
-    let whole_box = 2 * (n + 4 * nb) + 16;
-    let cap = match s.ao.radius_world(volume.spacing) {
-        Some(r) if r.is_finite() && r >= 0.0 => {
-            let planes = |cells: f64| -> u64 {
-                (0..3).map(|a| (r / (volume.spacing[a] * cells)).ceil() as u64 + 2).sum()
-            };
-            whole_box.min(2 * (planes(1.0) + 4 * planes(level_cells as f64)) + 16)
-        }
-        _ => whole_box,
-    };
-    cap.min(u32::MAX as u64) as u32
-}
 
 /// How a frame's AO samples are split over dispatches of the kernel. Mesa's lavapipe (llvmpipe)
 /// ends every loop of an invocation once the invocation's loops together have iterated 65535
@@ -73,9 +52,8 @@ pub enum AoPath {
 impl AoPath {
     /// The path a frame of `params` takes.
     pub fn of(params: &FrameParams) -> AoPath {
-        use super::frame_params::{ao_method_code, ibl_code};
-        let ours = params.ao_method == ao_method_code(AoMethod::Ours);
-        if ours && params.ao_exact == 1 && params.ibl != ibl_code(isowall_model::IblMethod::Rays) {
+        let ours = params.ao_method == gpu_code(AoMethod::Ours.code());
+        if ours && params.ao_exact == 1 && params.ibl != gpu_code(isowall_model::IblMethod::Rays.code()) {
             AoPath::Exact
         } else {
             AoPath::Any
@@ -96,7 +74,7 @@ impl AoDispatches {
     /// (`None`: no limit, one dispatch), and writes the samples per dispatch into `params`.
     pub fn split(params: &mut FrameParams, budget: Option<u32>) -> AoDispatches {
         let total = params.ao_samples.max(1);
-        let per_ray = if params.ao_method == super::frame_params::ao_method_code(AoMethod::Seed) {
+        let per_ray = if params.ao_method == gpu_code(AoMethod::Seed.code()) {
             SEED_STEPS
         } else if params.ao_exact == 1 {
             params.ao_pass[1]
@@ -194,9 +172,20 @@ impl AoKernel {
         params: &wgpu::Buffer,
         volume: &GpuVolume,
         env: &wgpu::Buffer,
-        io: [&wgpu::Buffer; 5],
+        aovs: &Aovs,
     ) -> wgpu::BindGroup {
-        let buffers = [params, &volume.voxels, &volume.block_minmax, io[0], io[1], env, io[2], io[3], io[4]];
+        let a = aovs;
+        let buffers = [
+            params,
+            &volume.voxels,
+            &volume.block_minmax,
+            &a.direct,
+            &a.geometry,
+            env,
+            &a.ao_sum,
+            &a.ibl_sum,
+            &a.fetches,
+        ];
         let mut entries = buffer_entries(&buffers);
         entries.push(wgpu::BindGroupEntry {
             binding: 9,
@@ -252,11 +241,11 @@ impl AoKernel {
         params: &wgpu::Buffer,
         volume: &GpuVolume,
         env: &wgpu::Buffer,
-        io: [&wgpu::Buffer; 5],
+        aovs: &Aovs,
         size: (u32, u32),
         dispatches: AoDispatches,
     ) {
-        let bind_group = self.bind(ctx, params, volume, env, io);
+        let bind_group = self.bind(ctx, params, volume, env, aovs);
         self.pass(enc, &bind_group, size, dispatches, None);
     }
 }
@@ -268,7 +257,7 @@ mod tests {
     fn params(samples: u32, method: AoMethod, exact: bool, walk_cap: u32) -> FrameParams {
         let mut p: FrameParams = bytemuck::Zeroable::zeroed();
         p.ao_samples = samples;
-        p.ao_method = super::super::frame_params::ao_method_code(method);
+        p.ao_method = gpu_code(method.code());
         p.ao_exact = u32::from(exact);
         p.ao_pass = [samples.max(1), walk_cap, 0, 0];
         p.max_steps = 900;
@@ -276,13 +265,19 @@ mod tests {
     }
 
     #[test]
+    fn the_wgsl_names_the_paths_by_their_codes() {
+        let ao = crate::shaders::tests::wgsl_constants(Kernel::Ao);
+        assert_eq!(ao.get("AO_PATH_ANY"), Some(&AoPath::Any.code()));
+        assert_eq!(ao.get("AO_PATH_EXACT"), Some(&AoPath::Exact.code()));
+    }
+
+    #[test]
     fn only_ours_exact_without_environment_rays_takes_the_exact_pipeline() {
-        use super::super::frame_params::ibl_code;
         use isowall_model::IblMethod;
         for ibl in IblMethod::ALL {
             for (method, exact) in [(AoMethod::Ours, true), (AoMethod::Ours, false), (AoMethod::Seed, true)] {
                 let mut p = params(32, method, exact, 172);
-                p.ibl = ibl_code(ibl);
+                p.ibl = gpu_code(ibl.code());
                 let want = if method == AoMethod::Ours && exact && ibl != IblMethod::Rays {
                     AoPath::Exact
                 } else {

@@ -3,7 +3,7 @@
 //! accumulated frames, the sRGB encoding, the low-resolution upsample, depth per pixel and the
 //! frame's counters. [`ComposeParams`] is the twin of the WGSL struct.
 
-use super::{storage_entry, GpuContext, GpuError};
+use super::{storage_entry, Aovs, GpuContext, GpuError};
 use crate::shaders::Kernel;
 use bytemuck::{Pod, Zeroable};
 use isowall_model::{RenderSettings, View};
@@ -97,14 +97,16 @@ impl ComposeKernel {
         Ok(ComposeKernel { pipeline, layout, workgroup })
     }
 
-    /// The bind group of a tile: parameters, the low rectangle's (direct + hit, N + depth, summed
-    /// E, fetches), the image written, depth and counters.
+    /// The bind group of a tile: parameters, the low rectangle's `aovs` (direct + hit, N + depth,
+    /// fetches) with `ambient` the E it composes (the IBL sum, or the filter's output), the image
+    /// written, depth and counters.
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn bind(
         &self,
         ctx: &GpuContext,
         params: &wgpu::Buffer,
-        inputs: [&wgpu::Buffer; 4],
+        aovs: &Aovs,
+        ambient: &wgpu::Buffer,
         image: &wgpu::TextureView,
         depth: &wgpu::Buffer,
         counters: &wgpu::Buffer,
@@ -117,10 +119,10 @@ impl ComposeKernel {
             layout: &self.layout,
             entries: &[
                 b(0, params),
-                b(1, inputs[0]),
-                b(2, inputs[1]),
-                b(3, inputs[2]),
-                b(4, inputs[3]),
+                b(1, &aovs.direct),
+                b(2, &aovs.geometry),
+                b(3, ambient),
+                b(4, &aovs.fetches),
                 wgpu::BindGroupEntry { binding: 5, resource: wgpu::BindingResource::TextureView(image) },
                 b(6, depth),
                 b(7, counters),

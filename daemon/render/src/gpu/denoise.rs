@@ -5,7 +5,7 @@
 //! [`crate::denoise`]; [`DenoiseParams`] is the twin of the WGSL struct, one per pass at a dynamic
 //! offset. [`DenoiseBuffers`] are a rectangle's resources (made once per tile).
 
-use super::{storage_entry, FrameParams, GpuContext, GpuError};
+use super::{storage_entry, Aovs, FrameParams, GpuContext, GpuError};
 use crate::denoise::{self, PASSES};
 use crate::shaders::Kernel;
 use bytemuck::{Pod, Zeroable};
@@ -146,9 +146,9 @@ impl DenoiseKernel {
         Ok(DenoiseKernel { pipeline, layout, workgroup, stride })
     }
 
-    /// The resources of an `n`-pixel rectangle whose isosurface and AO outputs are `inputs`
-    /// (direct + hit, N + depth, summed bent + A, summed E).
-    pub(crate) fn buffers(&self, ctx: &GpuContext, n: u64, inputs: [&wgpu::Buffer; 4]) -> DenoiseBuffers {
+    /// The resources of an `n`-pixel rectangle whose isosurface and AO outputs are `aovs`.
+    pub(crate) fn buffers(&self, ctx: &GpuContext, n: u64, aovs: &Aovs) -> DenoiseBuffers {
+        let inputs = aovs.shading();
         let storage = wgpu::BufferUsages::STORAGE;
         let signal = [
             ctx.buffer("denoise signal 0", n * 16, storage),

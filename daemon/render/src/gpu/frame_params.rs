@@ -3,7 +3,7 @@
 
 use super::{GpuEnvironment, GpuVolume};
 use bytemuck::{Pod, Zeroable};
-use isowall_model::{AoMethod, AoSequence, IblMethod, RenderSettings, Shading, View};
+use isowall_model::{RenderSettings, View};
 
 /// Bisection steps after the bracketing march step (then one secant step): h / 4096.
 pub const REFINE_STEPS: u32 = 12;
@@ -55,7 +55,7 @@ pub struct FrameParams {
     pub env_height: u32,
     /// 1: ours tests each cell exactly; 0: marches with `ao_step`
     pub ao_exact: u32,
-    /// Ours' 2D set: 0 R2, 1 Sobol ([`ao_sequence_code`]).
+    /// Ours' 2D set: [`AoSequence::code`].
     pub ao_sequence: u32,
     pub _pad2: u32,
     pub sh: [[f32; 4]; 9],
@@ -84,41 +84,9 @@ pub struct FrameParams {
 /// Performance flag: an AO ray that enters a block whose min >= iso is occluded at once (exact).
 pub const PERF_BLOCK_MIN_EXIT: u32 = 1;
 
-// The kernels' enum codes have one home each, these functions; the WGSL constants that name them
-// are checked against them (the tests below).
-
-/// The kernels' code of an AO sequence (`ao_point` in shaders/sampling.wgsl: `AO_SEQUENCE_*`).
-pub fn ao_sequence_code(q: AoSequence) -> u32 {
-    match q {
-        AoSequence::R2 => 0,
-        AoSequence::Sobol => 1,
-    }
-}
-
-/// The kernels' code of a shading model (shaders/shading.wgsl: `SHADING_*`).
-pub fn shading_code(s: Shading) -> u32 {
-    match s {
-        Shading::Lambert => 0,
-        Shading::BlinnPhong => 1,
-    }
-}
-
-/// The kernels' code of an AO method (shaders/ao.wgsl: `AO_*`).
-pub fn ao_method_code(m: AoMethod) -> u32 {
-    match m {
-        AoMethod::Ours => 0,
-        AoMethod::Seed => 1,
-    }
-}
-
-/// The kernels' code of an IBL method (shaders/ao.wgsl: `IBL_*`).
-pub fn ibl_code(m: IblMethod) -> u32 {
-    match m {
-        IblMethod::None => 0,
-        IblMethod::Seed => 1,
-        IblMethod::Bent => 2,
-        IblMethod::Rays => 3,
-    }
+/// An enum's code in the kernels' parameters: the model's (`code()`, the wire's too), widened.
+pub fn gpu_code(code: u8) -> u32 {
+    u32::from(code)
 }
 
 fn v4(v: glam::DVec3, w: f64) -> [f32; 4] {
@@ -127,6 +95,29 @@ fn v4(v: glam::DVec3, w: f64) -> [f32; 4] {
 
 fn rgb4(c: [f64; 3], w: f64) -> [f32; 4] {
     [c[0] as f32, c[1] as f32, c[2] as f32, w as f32]
+}
+
+/// The iteration cap of the exact AO walk (`exact_occluded` in shaders/ao.wgsl) for one ray: each
+/// iteration enters a new cell or leaves an empty block (plus the odd empty segment where two cell
+/// planes are crossed a rounding error apart, hence the factor 2). The whole box bounds it; a
+/// radius R bounds it tighter: a segment of length R crosses at most ceil(R / s) + 1 planes of an
+/// axis of spacing s, of cells and of blocks alike.
+pub fn exact_walk_cap(volume: &GpuVolume, s: &RenderSettings) -> u32 {
+    let level_cells = volume.ao_level.map_or(volume.block, |l| l.cells).max(1);
+    let counts = volume.ao_level.map_or(volume.counts, |l| l.counts);
+    let n: u64 = volume.dims.iter().map(|&d| d as u64).sum();
+    let nb: u64 = counts.iter().map(|&c| c.max(1) as u64).sum();
+    let whole_box = 2 * (n + 4 * nb) + 16;
+    let cap = match s.ao.radius_world(volume.spacing) {
+        Some(r) if r.is_finite() && r >= 0.0 => {
+            let planes = |cells: f64| -> u64 {
+                (0..3).map(|a| (r / (volume.spacing[a] * cells)).ceil() as u64 + 2).sum()
+            };
+            whole_box.min(2 * (planes(1.0) + 4 * planes(level_cells as f64)) + 16)
+        }
+        _ => whole_box,
+    };
+    cap.min(u32::MAX as u64) as u32
 }
 
 impl FrameParams {
@@ -168,14 +159,14 @@ impl FrameParams {
             full_size: [view.full.0, view.full.1],
             rect_origin: [view.rect.x, view.rect.y],
             rect_size: [view.rect.width, view.rect.height],
-            shading: shading_code(s.shading),
+            shading: gpu_code(s.shading.code()),
             iso: s.iso as f32,
             shininess: s.material.shininess as f32,
             refine_steps: REFINE_STEPS,
             max_steps: max_steps.min(u32::MAX as u64) as u32,
             ao_samples: s.ao.samples,
-            ao_method: ao_method_code(s.ao.method),
-            ibl: ibl_code(s.ao.ibl),
+            ao_method: gpu_code(s.ao.method.code()),
+            ibl: gpu_code(s.ao.ibl.code()),
             frame: s.ao.frame,
             seed: s.ao.seed,
             ao_radius: s.ao.radius_world(volume.spacing).map_or(-1.0, |r| r as f32),
@@ -184,7 +175,7 @@ impl FrameParams {
             env_width: env.width,
             env_height: env.height,
             ao_exact: u32::from(s.ao.exact),
-            ao_sequence: ao_sequence_code(s.ao.sequence),
+            ao_sequence: gpu_code(s.ao.sequence.code()),
             _pad2: 0,
             sh,
             data_offset: match &volume.object {
@@ -202,7 +193,7 @@ impl FrameParams {
                 0,
             ],
             voxel_range: [volume.value_range.0, volume.value_range.1, 0.0, 0.0],
-            ao_pass: [s.ao.samples.max(1), super::ao::exact_walk_cap(volume, s), 0, 0],
+            ao_pass: [s.ao.samples.max(1), exact_walk_cap(volume, s), 0, 0],
         }
     }
 }
@@ -211,50 +202,61 @@ impl FrameParams {
 mod tests {
     use super::*;
     use crate::shaders::Kernel;
+    use isowall_model::{AoMethod, AoSequence, IblMethod, Shading};
     use std::mem::offset_of;
 
-    /// The u32 value of every named module-scope `const` of `kernel`'s WGSL.
-    fn wgsl_constants(kernel: Kernel) -> std::collections::BTreeMap<String, u32> {
-        let module = crate::shaders::tests::parse(kernel);
-        module
-            .constants
-            .iter()
-            .filter_map(|(_, c)| match module.global_expressions[c.init] {
-                naga::Expression::Literal(naga::Literal::U32(v)) => Some((c.name.clone()?, v)),
-                _ => None,
-            })
-            .collect()
-    }
-
     #[test]
-    fn the_wgsl_constants_carry_the_codes_of_this_module() {
+    fn each_enum_has_one_code_on_the_wire_in_the_parameters_and_in_the_wgsl() {
+        use crate::shaders::tests::wgsl_constants;
+        use isowall_model::wire::WireSettings;
         let ao = wgsl_constants(Kernel::Ao);
         let iso = wgsl_constants(Kernel::Isosurface);
-        let mut expected = vec![
-            ("AO_OURS", ao_method_code(AoMethod::Ours)),
-            ("AO_SEED", ao_method_code(AoMethod::Seed)),
-            ("AO_PATH_ANY", super::super::ao::AoPath::Any.code()),
-            ("AO_PATH_EXACT", super::super::ao::AoPath::Exact.code()),
-            ("IBL_NONE", ibl_code(IblMethod::None)),
-            ("IBL_SEED", ibl_code(IblMethod::Seed)),
-            ("IBL_BENT", ibl_code(IblMethod::Bent)),
-            ("IBL_RAYS", ibl_code(IblMethod::Rays)),
-            ("AO_SEQUENCE_R2", ao_sequence_code(AoSequence::R2)),
-            ("PERF_BLOCK_MIN_EXIT", PERF_BLOCK_MIN_EXIT),
-        ];
-        for (name, code) in expected.drain(..) {
-            assert_eq!(ao.get(name), Some(&code), "{name} in the AO kernel");
+        let sampling = &ao; // sampling.wgsl is included by the AO kernel
+                            // (WGSL constant, the kernel's constants, the variant's code, its code on the wire, its
+                            // code in the kernels' parameters).
+        let mut rows: Vec<(&str, &std::collections::BTreeMap<String, u32>, u8, u8, u32)> = Vec::new();
+        let settings = |f: &dyn Fn(&mut RenderSettings)| {
+            let mut s = RenderSettings::new(0.0);
+            f(&mut s);
+            s
+        };
+        for (name, m) in [("AO_OURS", AoMethod::Ours), ("AO_SEED", AoMethod::Seed)] {
+            let s = settings(&|s| s.ao.method = m);
+            rows.push((name, &ao, m.code(), WireSettings::from(&s).ao.method, gpu_code(s.ao.method.code())));
         }
-        for (name, code) in [
-            ("SHADING_LAMBERT", shading_code(Shading::Lambert)),
-            ("SHADING_BLINN_PHONG", shading_code(Shading::BlinnPhong)),
-            ("FLAG_EMPTY_SPACE_SKIPPING", FLAG_EMPTY_SPACE_SKIPPING),
+        for (name, m) in [
+            ("IBL_NONE", IblMethod::None),
+            ("IBL_SEED", IblMethod::Seed),
+            ("IBL_BENT", IblMethod::Bent),
+            ("IBL_RAYS", IblMethod::Rays),
         ] {
-            assert_eq!(iso.get(name), Some(&code), "{name} in the isosurface kernel");
+            let s = settings(&|s| s.ao.ibl = m);
+            rows.push((name, &ao, m.code(), WireSettings::from(&s).ao.ibl, gpu_code(s.ao.ibl.code())));
         }
-        // Every variant has its own code.
-        let codes: Vec<u32> = IblMethod::ALL.map(ibl_code).to_vec();
-        assert!(codes.iter().enumerate().all(|(i, c)| !codes[..i].contains(c)), "{codes:?}");
+        for (name, q) in [("AO_SEQUENCE_R2", AoSequence::R2), ("AO_SEQUENCE_SOBOL", AoSequence::Sobol)] {
+            let s = settings(&|s| s.ao.sequence = q);
+            rows.push((
+                name,
+                sampling,
+                q.code(),
+                WireSettings::from(&s).ao.sequence,
+                gpu_code(s.ao.sequence.code()),
+            ));
+        }
+        for (name, sh) in
+            [("SHADING_LAMBERT", Shading::Lambert), ("SHADING_BLINN_PHONG", Shading::BlinnPhong)]
+        {
+            let s = settings(&|s| s.shading = sh);
+            rows.push((name, &iso, sh.code(), WireSettings::from(&s).shading, gpu_code(s.shading.code())));
+        }
+        assert_eq!(rows.len(), 10, "every variant of every enum the kernels read");
+        for (name, constants, code, wire, gpu) in rows {
+            assert_eq!(u32::from(wire), u32::from(code), "{name} on the wire");
+            assert_eq!(gpu, u32::from(code), "{name} in the parameters");
+            assert_eq!(constants.get(name), Some(&u32::from(code)), "{name} in the WGSL");
+        }
+        assert_eq!(ao.get("PERF_BLOCK_MIN_EXIT"), Some(&PERF_BLOCK_MIN_EXIT));
+        assert_eq!(iso.get("FLAG_EMPTY_SPACE_SKIPPING"), Some(&FLAG_EMPTY_SPACE_SKIPPING));
     }
 
     #[test]

@@ -1,7 +1,9 @@
 //! `Kernel::Isosurface` (shaders/isosurface.wgsl): primary rays, first hit, normal, direct light.
 //! Outputs per pixel: direct light + hit flag, N + depth, trilinear fetches.
 
-use super::{buffer_entries, frame_entries, storage_entry, GpuContext, GpuError, GpuVolume, PerfOptions};
+use super::{
+    buffer_entries, frame_entries, storage_entry, Aovs, GpuContext, GpuError, GpuVolume, PerfOptions,
+};
 use crate::shaders::Kernel;
 
 /// The compiled kernel.
@@ -52,16 +54,16 @@ impl IsosurfaceKernel {
         Ok(IsosurfaceKernel { pipeline, layout, workgroup })
     }
 
-    /// The bind group of the kernel's inputs and `outputs` (direct + hit, N + depth, fetches),
-    /// made once per tile and volume ([`TileTarget`](super::tile::TileTarget)).
+    /// The bind group of the kernel's inputs and its outputs in `aovs` (direct + hit, N + depth,
+    /// fetches), made once per tile and volume ([`TileTarget`](super::tile::TileTarget)).
     pub(crate) fn bind(
         &self,
         ctx: &GpuContext,
         params: &wgpu::Buffer,
         volume: &GpuVolume,
-        outputs: [&wgpu::Buffer; 3],
+        aovs: &Aovs,
     ) -> wgpu::BindGroup {
-        let io = [params, &volume.voxels, &volume.block_minmax, outputs[0], outputs[1], outputs[2]];
+        let io = [params, &volume.voxels, &volume.block_minmax, &aovs.direct, &aovs.geometry, &aovs.fetches];
         let mut entries = buffer_entries(&io);
         entries.push(wgpu::BindGroupEntry {
             binding: 6,
@@ -98,10 +100,10 @@ impl IsosurfaceKernel {
         enc: &mut wgpu::CommandEncoder,
         params: &wgpu::Buffer,
         volume: &GpuVolume,
-        outputs: [&wgpu::Buffer; 3],
+        aovs: &Aovs,
         size: (u32, u32),
     ) {
-        let bind_group = self.bind(ctx, params, volume, outputs);
+        let bind_group = self.bind(ctx, params, volume, aovs);
         self.pass(enc, &bind_group, size, None);
     }
 }

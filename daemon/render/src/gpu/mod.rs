@@ -18,6 +18,7 @@
 //! ([`GpuTraffic`]).
 
 pub mod ao;
+pub mod aovs;
 pub mod compose;
 pub mod denoise;
 pub mod frame_params;
@@ -38,6 +39,7 @@ use std::time::{Duration, Instant};
 use wgpu::util::DeviceExt;
 
 pub use ao::AoKernel;
+pub use aovs::Aovs;
 pub use compose::{ComposeKernel, ComposeParams};
 pub use denoise::{DenoiseKernel, DenoiseParams};
 pub use frame_params::FrameParams;
@@ -775,8 +777,7 @@ pub struct Rendered {
     pub wait_time: Duration,
 }
 
-/// The most frames one `render` accumulates.
-pub const MAX_FRAMES: u32 = 4096;
+pub use crate::frame_plan::MAX_FRAMES;
 
 impl GpuRenderer {
     pub fn new() -> Result<GpuRenderer, GpuError> {
@@ -960,23 +961,17 @@ impl GpuRenderer {
         let with_ao = settings.ao.samples > 0 || settings.ao.ibl != IblMethod::None;
         let denoised = with_ao && settings.denoise.is_on() && settings.ao.samples > 0;
 
-        let sizes = [n * 16, n * 16, n * 4, n * 16, n * 16];
-        let (buffers, staging) = self.ctx.validated("frame buffers", || {
-            let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC;
+        let (aovs, staging) = self.ctx.validated("frame buffers", || {
+            let aovs = Aovs::new(&self.ctx, n, wgpu::BufferUsages::COPY_SRC);
             let read = wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST;
-            let labels = ["direct", "geometry", "fetches", "acc ao", "acc ibl"];
-            let buffers: Vec<_> =
-                labels.iter().zip(sizes).map(|(l, s)| self.ctx.buffer(l, s, storage)).collect();
             let mut staging: Vec<_> =
-                labels.iter().zip(sizes).map(|(l, s)| self.ctx.buffer(l, s, read)).collect();
+                aovs.all().iter().map(|b| self.ctx.buffer("staging", b.size(), read)).collect();
             if denoised {
                 staging.push(self.ctx.buffer("denoised", n * 16, read));
             }
-            (buffers, staging)
+            (aovs, staging)
         })?;
-        let denoise = denoised.then(|| {
-            self.denoise.buffers(&self.ctx, n, [&buffers[0], &buffers[1], &buffers[3], &buffers[4]])
-        });
+        let denoise = denoised.then(|| self.denoise.buffers(&self.ctx, n, &aovs));
 
         let mut enc = device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
         let mut uniforms = Vec::new();
@@ -994,30 +989,14 @@ impl GpuRenderer {
         let mut gpu_time = Duration::ZERO;
         self.ctx.validated("encode", || -> Result<(), GpuError> {
             uniforms.push(uniform(&params));
-            self.isosurface.encode(
-                &self.ctx,
-                &mut enc,
-                &uniforms[0],
-                volume,
-                [&buffers[0], &buffers[1], &buffers[2]],
-                (w, h),
-            );
+            self.isosurface.encode(&self.ctx, &mut enc, &uniforms[0], volume, &aovs, (w, h));
             if with_ao {
                 for k in 0..frames {
                     params.frame = settings.ao.frame.wrapping_add(k);
                     let dispatches = ao::AoDispatches::split(&mut params, self.ctx.loop_budget());
                     uniforms.push(uniform(&params));
                     let u = uniforms.last().expect("just pushed");
-                    self.ao.encode(
-                        &self.ctx,
-                        &mut enc,
-                        u,
-                        volume,
-                        &env.texels,
-                        [&buffers[0], &buffers[1], &buffers[3], &buffers[4], &buffers[2]],
-                        (w, h),
-                        dispatches,
-                    );
+                    self.ao.encode(&self.ctx, &mut enc, u, volume, &env.texels, &aovs, (w, h), dispatches);
                     if let Some(report) = on_frame.as_mut() {
                         let start = Instant::now();
                         self.ctx.queue.submit([std::mem::replace(&mut enc, new_encoder()).finish()]);
@@ -1039,7 +1018,7 @@ impl GpuRenderer {
 
         let mut enc =
             device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("readback") });
-        let sources = buffers.iter().chain(denoise.as_ref().map(|d| &d.out));
+        let sources = aovs.all().into_iter().chain(denoise.as_ref().map(|d| &d.out));
         for (src, dst) in sources.zip(&staging) {
             enc.copy_buffer_to_buffer(src, 0, dst, 0, None);
         }

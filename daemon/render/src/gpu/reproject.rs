@@ -2,7 +2,7 @@
 //! frame into a frame whose camera alone moved (temporal reprojection). The rule and its CPU twin
 //! are [`crate::reproject`]; [`ReprojectParams`] is the twin of the WGSL struct.
 
-use super::{buffer_entries, storage_entry, FrameParams, GpuContext, GpuError};
+use super::{buffer_entries, storage_entry, Aovs, FrameParams, GpuContext, GpuError};
 use crate::reproject::Rule;
 use crate::shaders::Kernel;
 use bytemuck::{Pod, Zeroable};
@@ -82,17 +82,18 @@ impl ReprojectKernel {
         Ok(ReprojectKernel { pipeline, layout, workgroup })
     }
 
-    /// The bind group of a tile: `params`, this frame's (direct + hit, N + depth), the previous
-    /// frame's (direct + hit, N + depth, summed bent + A, summed E), this frame's sums.
+    /// The bind group of a tile: `params`, this frame's `aovs` (direct + hit, N + depth read, the
+    /// sums written) and the previous frame's shading planes (direct + hit, N + depth, summed
+    /// bent + A, summed E: [`Aovs::shading`]'s order).
     pub(crate) fn bind(
         &self,
         ctx: &GpuContext,
         params: &wgpu::Buffer,
-        next: [&wgpu::Buffer; 2],
+        aovs: &Aovs,
         prev: [&wgpu::Buffer; 4],
-        sums: [&wgpu::Buffer; 2],
     ) -> wgpu::BindGroup {
-        let all = [params, next[0], next[1], prev[0], prev[1], prev[2], prev[3], sums[0], sums[1]];
+        let a = aovs;
+        let all = [params, &a.direct, &a.geometry, prev[0], prev[1], prev[2], prev[3], &a.ao_sum, &a.ibl_sum];
         let entries = buffer_entries(&all);
         ctx.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("reproject"),

@@ -23,7 +23,8 @@ use super::compose::ComposeParams;
 use super::denoise::DenoiseBuffers;
 use super::readback::{Read, ReadbackRing, Source};
 use super::reproject::ReprojectParams;
-use super::{FrameParams, GpuEnvironment, GpuError, GpuRenderer, GpuVolume};
+use super::{Aovs, FrameParams, GpuEnvironment, GpuError, GpuRenderer, GpuVolume};
+use crate::frame_plan::{Continuity, FramePlan, Start, Sums};
 use crate::reproject::RULE;
 use isowall_model::composite::PixelForm;
 use isowall_model::{lowres, IblMethod, RenderSettings, View};
@@ -186,8 +187,8 @@ pub struct TileTarget {
     /// filter's guard band, so that a tile filters its edge pixels as the whole image does.
     guard: u32,
     low_size: (u32, u32),
-    /// direct + hit, N + depth, fetches, summed bent + A, summed E (the low rectangle).
-    aov: [wgpu::Buffer; 5],
+    /// The low rectangle's AOVs.
+    aovs: Aovs,
     params: wgpu::Buffer,
     compose_params: wgpu::Buffer,
     depth: wgpu::Buffer,
@@ -198,17 +199,13 @@ pub struct TileTarget {
     history: Option<TileHistory>,
     bound: Option<Bound>,
     timestamps: Option<Timestamps>,
-    /// Frames rendered since the running sums were last cleared or reprojected (with
-    /// `per_pixel`, a pixel's own count is its weight).
-    frames: u32,
-    /// The running sums hold a reprojected history: each pixel's weight (the E sum's w) is its
-    /// frame count, not `frames`.
-    per_pixel: bool,
+    /// What the running sums hold ([`FramePlan`]).
+    sums: Sums,
+    /// The last frame's parameters (a reprojection's previous camera); `None` where the next
+    /// frame must start over (a new tile, or a composited canvas shown instead).
+    previous: Option<FrameParams>,
     /// The last frame was denoised.
     filtered: bool,
-    /// The last frame's parameters with the frame index cleared, and its volume and environment:
-    /// any difference restarts the accumulation.
-    state: Option<(FrameParams, u64, u64)>,
     /// The image the last frame was rendered into.
     latest: usize,
     /// Host bytes a composited canvas is staged in per AOV ([`GpuRenderer::compose_canvas`]):
@@ -315,13 +312,7 @@ impl TileTarget {
         ctx.validated("tile resources", || {
             let storage =
                 wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::COPY_SRC;
-            let aov = [
-                ctx.buffer("direct", n * 16, storage),
-                ctx.buffer("geometry", n * 16, storage),
-                ctx.buffer("fetches", n * 4, storage),
-                ctx.buffer("acc ao", n * 16, storage),
-                ctx.buffer("acc ibl", n * 16, storage),
-            ];
+            let aovs = Aovs::new(ctx, n, storage);
             let params_usage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST;
             let params = ctx.buffer("frame params", std::mem::size_of::<FrameParams>() as u64, params_usage);
             let compose_params =
@@ -329,9 +320,16 @@ impl TileTarget {
             let depth = ctx.buffer("depth", size.0 as u64 * size.1 as u64 * 4, storage);
             let counters = ctx.buffer("counters", COUNTER_BYTES, storage);
             let images = [0; IMAGES].map(|_| TileImage::new(gpu, name, size));
-            let inputs = [&aov[0], &aov[1], &aov[4], &aov[2]];
             let compose = [0, 1, 2].map(|i| {
-                gpu.compose.bind(ctx, &compose_params, inputs, &images[i].storage, &depth, &counters)
+                gpu.compose.bind(
+                    ctx,
+                    &compose_params,
+                    &aovs,
+                    &aovs.ibl_sum,
+                    &images[i].storage,
+                    &depth,
+                    &counters,
+                )
             });
             let timestamps =
                 ctx.device.features().contains(wgpu::Features::TIMESTAMP_QUERY).then(|| Timestamps {
@@ -353,7 +351,7 @@ impl TileTarget {
                 scale,
                 guard,
                 low_size,
-                aov,
+                aovs,
                 params,
                 compose_params,
                 depth,
@@ -364,10 +362,9 @@ impl TileTarget {
                 history: None,
                 bound: None,
                 timestamps,
-                frames: 0,
-                per_pixel: false,
+                sums: Sums::default(),
                 filtered: false,
-                state: None,
+                previous: None,
                 latest: 0,
                 staging: Vec::new(),
             }
@@ -401,12 +398,12 @@ impl TileTarget {
 
     /// Frames in the running sums after the last frame.
     pub fn frames(&self) -> u32 {
-        self.frames
+        self.sums.frames
     }
 
     /// Whether the running sums hold a reprojected history (since they were last cleared).
     pub fn reprojected(&self) -> bool {
-        self.per_pixel
+        self.sums.per_pixel
     }
 
     /// The image holding `frame_id`, if it is still held.
@@ -469,20 +466,6 @@ impl FrameRead {
     }
 }
 
-/// A frame's parameters without what the camera sets (eye, axes, field of view, and the light's
-/// direction, which may follow the camera): two frames whose parameters agree on the rest differ
-/// only by the camera, and their occlusion and IBL terms are the same at a surface point.
-fn without_camera(p: &FrameParams) -> FrameParams {
-    let mut q = *p;
-    q.eye = [0.0; 4];
-    q.forward = [0.0; 4];
-    q.right = [0.0; 4];
-    q.up = [0.0; 4];
-    q.light_dir = [0.0; 4];
-    q.frame = 0;
-    q
-}
-
 /// A tile's low rectangle read back ([`GpuRenderer::read_tile_sums`]): per pixel of the work
 /// rectangle ([`work_view`]), rows top to bottom.
 #[derive(Clone, Debug, Default)]
@@ -509,11 +492,10 @@ pub struct TileFrame<'a> {
     /// `settings.ao.frame` is this frame's index in the sample sequence.
     pub settings: &'a RenderSettings,
     pub env: Option<&'a GpuEnvironment>,
-    /// Keep accumulating onto the running sums where the frame state is unchanged (false:
-    /// restart).
-    pub accumulate: bool,
-    /// Temporal reprojection: where the frame state differs from the previous frame's only by the
-    /// camera, carry the running sums over ([`crate::reproject`]) instead of restarting. A tile
+    /// How the frame relates to the tile's last one (the model's rule, `FrameState::continuity`):
+    /// the same image accumulates, a moved view may reproject, a change restarts.
+    pub continuity: Continuity,
+    /// Temporal reprojection: where the view moved (`continuity`), carry the running sums over ([`crate::reproject`]) instead of restarting. A tile
     /// whose sums hold a reprojected history draws its samples with index `settings.ao.frame +
     /// frame_id` (new samples every frame, the same on every node).
     pub temporal: bool,
@@ -566,31 +548,20 @@ impl GpuRenderer {
         let mut params = FrameParams::new(frame.volume, &low, s, env);
         params.perf[0] = self.perf.flags();
         let dispatches = super::ao::AoDispatches::split(&mut params, ctx.loop_budget());
-        let mut key = params;
-        key.frame = 0;
-        let state = (key, frame.volume.id, env.id);
-        let same = tile.state.as_ref().is_some_and(|(p, v, e)| {
-            bytemuck::bytes_of(p) == bytemuck::bytes_of(&state.0) && (*v, *e) == (state.1, state.2)
+        // The tile's own knowledge: without a last frame, with other resources bound, or over other
+        // pixels, the sums belong to something else.
+        let resources_held =
+            tile.bound.as_ref().is_some_and(|b| (b.volume, b.env) == (frame.volume.id, env.id));
+        let same_pixels = tile.previous.is_some_and(|p| {
+            (p.full_size, p.rect_origin, p.rect_size)
+                == (params.full_size, params.rect_origin, params.rect_size)
         });
-        let camera_moved = !same
-            && tile.state.as_ref().is_some_and(|(p, v, e)| {
-                bytemuck::bytes_of(&without_camera(p)) == bytemuck::bytes_of(&without_camera(&state.0))
-                    && (*v, *e) == (state.1, state.2)
-            });
-        let reproject = frame.temporal && with_ao && camera_moved && tile.frames > 0;
-        let restart = !reproject && (!frame.accumulate || !same || tile.frames >= super::MAX_FRAMES);
-        let prev = tile.state.map(|(p, _, _)| p);
-        tile.state = Some(state);
-        if restart {
-            tile.per_pixel = false;
-        } else if reproject {
-            tile.per_pixel = true;
-        }
-        if tile.per_pixel {
-            params.frame = s.ao.frame.wrapping_add(frame.frame_id as u32);
-        }
+        let continuity = if same_pixels && resources_held { frame.continuity } else { Continuity::Changed };
+        let plan = FramePlan::new(continuity, tile.sums, frame.temporal, with_ao);
+        let (restart, reproject) = (plan.start == Start::Restart, plan.start == Start::Reproject);
+        params.frame = plan.sample_index(s.ao.frame, frame.frame_id);
+        let prev = tile.previous.replace(params);
         if reproject && tile.history.is_none() {
-            let a = &tile.aov;
             let n = low.rect.width as u64 * low.rect.height as u64;
             let made = ctx.validated("tile history resources", || {
                 let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST;
@@ -602,30 +573,18 @@ impl GpuRenderer {
                 ];
                 let params =
                     ctx.buffer("reproject params", std::mem::size_of::<ReprojectParams>() as u64, storage);
-                let bind = self.reproject.bind(
-                    ctx,
-                    &params,
-                    [&a[0], &a[1]],
-                    [&prev[0], &prev[1], &prev[2], &prev[3]],
-                    [&a[3], &a[4]],
-                );
+                let bind =
+                    self.reproject.bind(ctx, &params, &tile.aovs, [&prev[0], &prev[1], &prev[2], &prev[3]]);
                 TileHistory { prev, params, bind }
             })?;
             tile.history = Some(made);
         }
         if tile.bound.as_ref().is_none_or(|b| (b.volume, b.env) != (frame.volume.id, env.id)) {
-            let a = &tile.aov;
             tile.bound = Some(Bound {
                 volume: frame.volume.id,
                 env: env.id,
-                isosurface: self.isosurface.bind(ctx, &tile.params, frame.volume, [&a[0], &a[1], &a[2]]),
-                ao: self.ao.bind(
-                    ctx,
-                    &tile.params,
-                    frame.volume,
-                    &env.texels,
-                    [&a[0], &a[1], &a[3], &a[4], &a[2]],
-                ),
+                isosurface: self.isosurface.bind(ctx, &tile.params, frame.volume, &tile.aovs),
+                ao: self.ao.bind(ctx, &tile.params, frame.volume, &env.texels, &tile.aovs),
             });
         }
         let denoised = with_ao && s.denoise.is_on() && super::denoise::applies(&params);
@@ -633,11 +592,7 @@ impl GpuRenderer {
             self.make_denoise(tile)?;
         }
         let bound = tile.bound.as_ref().expect("bound above");
-        if restart || reproject {
-            tile.frames = 0;
-        }
-        let frames = if with_ao { tile.frames + 1 } else { 0 };
-        let per_pixel = tile.per_pixel;
+        let Sums { frames, per_pixel } = plan.sums;
         let back = tile.back();
         let mut compose = ComposeParams::new(frame.view, &low, scale, s, frames);
         // The filter's output is in running-sum form over `frames` whatever the pixel's weight.
@@ -660,20 +615,21 @@ impl GpuRenderer {
             if let (true, Some(h), Some(prev)) = (reproject, &tile.history, &prev) {
                 // The previous frame's hits and sums, before this frame's isosurface kernel
                 // overwrites them; then the sums carried over onto this frame's hits.
-                for (src, dst) in [0, 1, 3, 4].iter().zip(&h.prev) {
-                    enc.copy_buffer_to_buffer(&tile.aov[*src], 0, dst, 0, None);
+                for (src, dst) in tile.aovs.shading().into_iter().zip(&h.prev) {
+                    enc.copy_buffer_to_buffer(src, 0, dst, 0, None);
                 }
                 let rp = ReprojectParams::new(&params, prev, &RULE);
                 ctx.write_buffer(&h.params, 0, bytemuck::bytes_of(&rp));
                 self.isosurface.pass(&mut enc, &bound.isosurface, low_size, ts(0));
                 self.reproject.pass(&mut enc, &h.bind, low_size);
             } else if restart {
-                enc.clear_buffer(&tile.aov[3], 0, None);
-                enc.clear_buffer(&tile.aov[4], 0, None);
+                for sum in tile.aovs.sums() {
+                    enc.clear_buffer(sum, 0, None);
+                }
                 self.isosurface.pass(&mut enc, &bound.isosurface, low_size, ts(0));
             } else {
                 // The fetches of this frame only (the isosurface kernel's were counted when it ran).
-                enc.clear_buffer(&tile.aov[2], 0, None);
+                enc.clear_buffer(&tile.aovs.fetches, 0, None);
             }
             if with_ao {
                 self.ao.pass(&mut enc, &bound.ao, low_size, dispatches, ts(1));
@@ -696,7 +652,7 @@ impl GpuRenderer {
         let (slot, commands) = slot;
         let submission = ctx.queue.submit([commands]);
         ring.submitted(slot, submission);
-        tile.frames = frames;
+        tile.sums = plan.sums;
         tile.filtered = denoised;
         tile.latest = back;
         tile.images[back].frame_id = Some(frame.frame_id);
@@ -709,16 +665,15 @@ impl GpuRenderer {
             return Ok(());
         }
         let ctx = &self.ctx;
-        let a = &tile.aov;
         let n = tile.low_size.0 as u64 * tile.low_size.1 as u64;
         let made = ctx.validated("tile denoise resources", || {
-            let buffers = self.denoise.buffers(ctx, n, [&a[0], &a[1], &a[3], &a[4]]);
-            let inputs = [&a[0], &a[1], &buffers.out, &a[2]];
+            let buffers = self.denoise.buffers(ctx, n, &tile.aovs);
             let compose = [0, 1, 2].map(|i| {
                 self.compose.bind(
                     ctx,
                     &tile.compose_params,
-                    inputs,
+                    &tile.aovs,
+                    &buffers.out,
                     &tile.images[i].storage,
                     &tile.depth,
                     &tile.counters,
@@ -760,7 +715,7 @@ impl GpuRenderer {
             Some(PixelForm::Colour) => sources.extend([Source::Texture(&tile.images[back].texture), depth]),
             Some(PixelForm::Shading) => {
                 sources.push(depth);
-                sources.extend([0, 1, 3, 4].map(|k| Source::Buffer(&tile.aov[k], aov_bytes)));
+                sources.extend(tile.aovs.shading().map(|b| Source::Buffer(b, aov_bytes)));
             }
             None => {}
         }
@@ -814,9 +769,8 @@ impl GpuRenderer {
             self.make_denoise(tile)?;
         }
         // The canvas is not this tile's own accumulation: its next frame restarts.
-        tile.state = None;
-        tile.per_pixel = false;
-        tile.frames = 0;
+        tile.previous = None;
+        tile.sums = Sums::default();
         // Each pixel's sums are divided by its own weight (the filter's output is in running-sum
         // form over one frame).
         let frames = u32::from(with_ao);
@@ -826,18 +780,18 @@ impl GpuRenderer {
         let slot =
             ctx.validated("canvas frame", || -> Result<(usize, wgpu::CommandBuffer), GpuError> {
                 tile.staging.resize(n * 16, 0);
-                for (k, plane) in [0usize, 1, 3, 4].into_iter().enumerate() {
+                for (k, plane) in tile.aovs.shading().into_iter().enumerate() {
                     for (dst, px) in tile.staging.chunks_exact_mut(16).zip(shading) {
                         dst.copy_from_slice(bytemuck::bytes_of(&px[k]));
                     }
-                    ctx.write_buffer(&tile.aov[plane], 0, &tile.staging);
+                    ctx.write_buffer(plane, 0, &tile.staging);
                 }
                 ctx.write_buffer(&tile.compose_params, 0, bytemuck::bytes_of(&compose));
                 let mut enc = ctx
                     .device
                     .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("canvas") });
                 // The fetches were counted where the bricks were rendered.
-                enc.clear_buffer(&tile.aov[2], 0, None);
+                enc.clear_buffer(&tile.aovs.fetches, 0, None);
                 if let (true, Some(d)) = (denoised, &tile.denoise) {
                     self.denoise.encode(ctx, &mut enc, &d.buffers, &params, frames, true);
                 }
@@ -904,7 +858,7 @@ impl GpuRenderer {
     /// sums), waiting for the GPU: for tests and benchmarks, not the frame path (it allocates).
     pub fn read_tile_sums(&self, tile: &TileTarget) -> Result<TileSums, GpuError> {
         let ctx = &self.ctx;
-        let mut picked = vec![&tile.aov[0], &tile.aov[1], &tile.aov[3], &tile.aov[4]];
+        let mut picked = tile.aovs.shading().to_vec();
         if let (true, Some(d)) = (tile.filtered, &tile.denoise) {
             picked.push(&d.buffers.out);
         }

@@ -2,12 +2,29 @@
 #![allow(dead_code)]
 
 use glam::DVec3;
-use isowall_model::{RenderSettings, View};
+use isowall_model::wire::Continuity;
+use isowall_model::{FrameState, RenderSettings, View};
 use isowall_render::environment::Environment;
 use isowall_render::gpu::{GpuError, GpuRenderer};
 use isowall_render::reference::{self, IblLighting};
 use isowall_render::Frame;
 use isowall_volume::Volume;
+
+/// How a node relates a frame of `view` and `settings` to the frame before it (`None`: none): the
+/// model's rule on the frame states, as `NodeMachine` applies it (the sample index `ao.frame` is
+/// the node's own, advanced per accumulated frame, not part of the frame state).
+pub fn continuity(
+    previous: Option<(&View, &RenderSettings)>,
+    view: &View,
+    settings: &RenderSettings,
+) -> Continuity {
+    let state = |v: &View, s: &RenderSettings| {
+        let mut s = *s;
+        s.ao.frame = 0;
+        FrameState::new(0, &v.camera, &s, 1)
+    };
+    state(view, settings).continuity(previous.map(|(v, s)| state(v, s)).as_ref())
+}
 
 /// The GPU renderer, or `None` (after a message) where no Vulkan adapter exists. Under `CI=true`
 /// a missing adapter fails the test loudly instead: GPU tests never skip silently in CI.
