@@ -215,11 +215,20 @@ impl AoKernel {
     ) {
         let count = dispatches.count.clamp(1, MAX_AO_DISPATCHES);
         for k in 0..count {
-            let timestamp_writes = timestamps.as_ref().map(|t| wgpu::ComputePassTimestampWrites {
-                query_set: t.query_set,
-                beginning_of_pass_write_index: if k == 0 { t.beginning_of_pass_write_index } else { None },
-                end_of_pass_write_index: if k + 1 == count { t.end_of_pass_write_index } else { None },
-            });
+            // A pass between the first and the last writes no timestamp: it has no writes at all
+            // (wgpu refuses timestamp writes that name neither index).
+            let timestamp_writes = timestamps
+                .as_ref()
+                .map(|t| wgpu::ComputePassTimestampWrites {
+                    query_set: t.query_set,
+                    beginning_of_pass_write_index: if k == 0 {
+                        t.beginning_of_pass_write_index
+                    } else {
+                        None
+                    },
+                    end_of_pass_write_index: if k + 1 == count { t.end_of_pass_write_index } else { None },
+                })
+                .filter(|t| t.beginning_of_pass_write_index.is_some() || t.end_of_pass_write_index.is_some());
             let mut pass =
                 enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("ao"), timestamp_writes });
             pass.set_pipeline(match dispatches.path {
@@ -229,24 +238,6 @@ impl AoKernel {
             pass.set_bind_group(0, bind_group, &[k * self.dispatch_stride]);
             pass.dispatch_workgroups(size.0.div_ceil(self.workgroup.0), size.1.div_ceil(self.workgroup.1), 1);
         }
-    }
-
-    /// Records one frame of the kernel over a `size` rectangle. `io` is (direct + hit, N + depth,
-    /// accumulated bent + A, accumulated E, fetches).
-    #[allow(clippy::too_many_arguments)]
-    pub fn encode(
-        &self,
-        ctx: &GpuContext,
-        enc: &mut wgpu::CommandEncoder,
-        params: &wgpu::Buffer,
-        volume: &GpuVolume,
-        env: &wgpu::Buffer,
-        aovs: &Aovs,
-        size: (u32, u32),
-        dispatches: AoDispatches,
-    ) {
-        let bind_group = self.bind(ctx, params, volume, env, aovs);
-        self.pass(enc, &bind_group, size, dispatches, None);
     }
 }
 

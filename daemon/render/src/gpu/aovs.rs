@@ -40,11 +40,6 @@ impl Aovs {
         [&self.direct, &self.geometry, &self.ao_sum, &self.ibl_sum]
     }
 
-    /// Every buffer: direct, geometry, fetches, the AO sum, the IBL sum.
-    pub(crate) fn all(&self) -> [&wgpu::Buffer; 5] {
-        [&self.direct, &self.geometry, &self.fetches, &self.ao_sum, &self.ibl_sum]
-    }
-
     /// The running sums the AO kernel adds into (cleared when accumulation restarts).
     pub(crate) fn sums(&self) -> [&wgpu::Buffer; 2] {
         [&self.ao_sum, &self.ibl_sum]

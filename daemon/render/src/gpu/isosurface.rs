@@ -91,19 +91,4 @@ impl IsosurfaceKernel {
     ) {
         super::pass(enc, &self.pipeline, bind_group, "isosurface", size, self.workgroup, timestamps);
     }
-
-    /// Records the kernel over a `size` rectangle: `outputs` are (direct + hit, N + depth,
-    /// fetches).
-    pub fn encode(
-        &self,
-        ctx: &GpuContext,
-        enc: &mut wgpu::CommandEncoder,
-        params: &wgpu::Buffer,
-        volume: &GpuVolume,
-        aovs: &Aovs,
-        size: (u32, u32),
-    ) {
-        let bind_group = self.bind(ctx, params, volume, aovs);
-        self.pass(enc, &bind_group, size, None);
-    }
 }

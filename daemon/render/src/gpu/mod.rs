@@ -30,6 +30,7 @@ pub mod reproject;
 pub mod tile;
 
 use crate::environment::Environment;
+use crate::frame_plan::Continuity;
 use crate::shaders::{self, Kernel};
 use crate::Frame;
 use isowall_model::{IblMethod, RenderSettings, View};
@@ -769,7 +770,8 @@ pub struct GpuRenderer {
     no_env: GpuEnvironment,
 }
 
-/// A rendered frame and the time the GPU took for it (submit to done, readback excluded).
+/// A rendered frame and the time its frames took (from the first's recording to the last's end,
+/// the AOVs' readback excluded).
 pub struct Rendered {
     pub frame: Frame,
     pub gpu_time: Duration,
@@ -943,8 +945,12 @@ impl GpuRenderer {
     }
 
     /// [`GpuRenderer::render_accumulated`], calling `on_frame(k)` as each of the `frames` AO frames
-    /// is done (k from 1): each frame is then submitted and waited for on its own, where without
-    /// `on_frame` all go in one submission. Without AO nothing accumulates and it is not called.
+    /// is done (k from 1). Without AO nothing accumulates and it is not called.
+    ///
+    /// The frames go through the wall tile's own frame path ([`GpuRenderer::render_tile`]: one
+    /// recording of a frame's kernels for both), over a tile of the whole view: the first frame
+    /// starts over, the others are the same image (the filter, where on, runs on the last); then
+    /// every AOV is read back and composed on the host.
     pub fn render_accumulated_reporting(
         &self,
         volume: &GpuVolume,
@@ -954,92 +960,66 @@ impl GpuRenderer {
         frames: u32,
         mut on_frame: Option<&mut dyn FnMut(u32)>,
     ) -> Result<Rendered, GpuError> {
-        let env = self.check_frame(volume, view, settings, env, frames)?;
+        let bound_env = self.check_frame(volume, view, settings, env, frames)?;
         let (w, h) = (view.rect.width, view.rect.height);
         let n = w as u64 * h as u64;
-        let device = &self.ctx.device;
         let with_ao = settings.ao.samples > 0 || settings.ao.ibl != IblMethod::None;
-        let denoised = with_ao && settings.denoise.is_on() && settings.ao.samples > 0;
-
-        let (aovs, staging) = self.ctx.validated("frame buffers", || {
-            let aovs = Aovs::new(&self.ctx, n, wgpu::BufferUsages::COPY_SRC);
-            let read = wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST;
-            let mut staging: Vec<_> =
-                aovs.all().iter().map(|b| self.ctx.buffer("staging", b.size(), read)).collect();
-            if denoised {
-                staging.push(self.ctx.buffer("denoised", n * 16, read));
-            }
-            (aovs, staging)
-        })?;
-        let denoise = denoised.then(|| self.denoise.buffers(&self.ctx, n, &aovs));
-
-        let mut enc = device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
-        let mut uniforms = Vec::new();
-        let mut params = FrameParams::new(volume, view, settings, env);
-        params.perf[0] = self.perf.flags();
-        let uniform = |p: &FrameParams| {
-            self.ctx.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some("frame params"),
-                contents: bytemuck::bytes_of(p),
-                usage: wgpu::BufferUsages::STORAGE,
-            })
-        };
-        let new_encoder =
-            || device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
-        let mut gpu_time = Duration::ZERO;
-        self.ctx.validated("encode", || -> Result<(), GpuError> {
-            uniforms.push(uniform(&params));
-            self.isosurface.encode(&self.ctx, &mut enc, &uniforms[0], volume, &aovs, (w, h));
-            if with_ao {
-                for k in 0..frames {
-                    params.frame = settings.ao.frame.wrapping_add(k);
-                    let dispatches = ao::AoDispatches::split(&mut params, self.ctx.loop_budget());
-                    uniforms.push(uniform(&params));
-                    let u = uniforms.last().expect("just pushed");
-                    self.ao.encode(&self.ctx, &mut enc, u, volume, &env.texels, &aovs, (w, h), dispatches);
-                    if let Some(report) = on_frame.as_mut() {
-                        let start = Instant::now();
-                        self.ctx.queue.submit([std::mem::replace(&mut enc, new_encoder()).finish()]);
-                        self.ctx.wait()?;
-                        gpu_time += start.elapsed();
-                        report(k + 1);
-                    }
-                }
-                if let Some(d) = &denoise {
-                    self.denoise.encode(&self.ctx, &mut enc, d, &params, frames, false);
-                }
+        let runs = if with_ao { frames } else { 1 };
+        let mut tile = TileTarget::new(self, "render", view, 1)?;
+        let mut ring = ReadbackRing::<FrameRead>::new(2);
+        let mut fetches = 0u64;
+        let mut collect = |ring: &mut ReadbackRing<FrameRead>| -> Result<(), GpuError> {
+            for read in ring.take_ready() {
+                let (_, out) = FrameRead::decode(read, self.ctx.queue.get_timestamp_period())?;
+                fetches += out.counters.fetches;
             }
             Ok(())
-        })??;
+        };
         let start = Instant::now();
-        self.ctx.queue.submit([enc.finish()]);
-        self.ctx.wait()?;
-        gpu_time += start.elapsed();
-
-        let mut enc =
-            device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("readback") });
-        let sources = aovs.all().into_iter().chain(denoise.as_ref().map(|d| &d.out));
-        for (src, dst) in sources.zip(&staging) {
-            enc.copy_buffer_to_buffer(src, 0, dst, 0, None);
+        for k in 0..runs {
+            let mut s = *settings;
+            s.ao.frame = settings.ao.frame.wrapping_add(k);
+            if k + 1 < runs {
+                s.denoise = isowall_model::Denoise::Off;
+            }
+            let frame = TileFrame {
+                frame_id: u64::from(k),
+                volume,
+                view,
+                settings: &s,
+                env: Some(bound_env),
+                continuity: if k == 0 { Continuity::Changed } else { Continuity::Same },
+                temporal: false,
+                share: None,
+            };
+            while !ring.has_free_slot() {
+                ring.wait_oldest(&self.ctx)?;
+                collect(&mut ring)?;
+            }
+            self.render_tile(&mut tile, &frame, &mut ring)?;
+            if let (true, Some(report)) = (with_ao, on_frame.as_mut()) {
+                ring.wait_oldest(&self.ctx)?;
+                collect(&mut ring)?;
+                report(k + 1);
+            }
         }
-        self.ctx.queue.submit([enc.finish()]);
-        let (bytes, readback_wait) = read_buffers(&self.ctx, &staging)?;
-
-        let direct: &[[f32; 4]] = bytemuck::cast_slice(&bytes[0]);
-        let geometry: &[[f32; 4]] = bytemuck::cast_slice(&bytes[1]);
-        let fetches: &[u32] = bytemuck::cast_slice(&bytes[2]);
-        let acc_ao: &[[f32; 4]] = bytemuck::cast_slice(&bytes[3]);
-        let acc_ibl: &[[f32; 4]] = bytemuck::cast_slice(&bytes[4]);
-        // Denoised: E * frames (rgb) and A * frames (w) of the filter, in place of the sums'.
-        let filtered: Option<&[[f32; 4]]> = bytes.get(5).map(|b| bytemuck::cast_slice(b));
+        while ring.in_flight() > 0 {
+            ring.wait_oldest(&self.ctx)?;
+            collect(&mut ring)?;
+        }
+        collect(&mut ring)?;
+        let gpu_time = start.elapsed();
+        let readback = Instant::now();
+        let sums = self.read_tile_sums(&tile)?;
+        let readback_wait = readback.elapsed();
         let mut frame = Frame::new(w, h);
         let k = if with_ao { frames as f32 } else { 1.0 };
         let exposure = settings.exposure as f32;
         let albedo = settings.material.albedo.map(|a| a as f32);
         let basis = view.camera.basis();
         for i in 0..n as usize {
-            let g = geometry[i];
-            if direct[i][3] < 0.5 {
+            let (direct, g) = (sums.color[i], sums.geometry[i]);
+            if direct[3] < 0.5 {
                 frame.color[i] = settings.background.map(|c| c as f32);
                 continue;
             }
@@ -1047,10 +1027,12 @@ impl GpuRenderer {
             frame.normal[i] = [g[0], g[1], g[2]];
             frame.depth[i] = g[3];
             let (a, bent, e) = if with_ao {
-                let b = glam::Vec3::new(acc_ao[i][0], acc_ao[i][1], acc_ao[i][2]).normalize_or_zero();
-                match filtered {
+                let acc = sums.ao[i];
+                let b = glam::Vec3::new(acc[0], acc[1], acc[2]).normalize_or_zero();
+                match &sums.denoised {
+                    // Denoised: E * frames (rgb) and A * frames (w) of the filter, in place of the sums'.
                     Some(f) => (f[i][3] / k, b, [0, 1, 2].map(|c| f[i][c] / k)),
-                    None => (acc_ao[i][3] / k, b, [0, 1, 2].map(|c| acc_ibl[i][c] / k)),
+                    None => (acc[3] / k, b, [0, 1, 2].map(|c| sums.ibl[i][c] / k)),
                 }
             } else {
                 let nv = glam::Vec3::from_array(frame.normal[i]);
@@ -1061,9 +1043,9 @@ impl GpuRenderer {
             frame.occlusion[i] = a;
             frame.bent_normal[i] = bent.to_array();
             frame.ibl[i] = e;
-            frame.color[i] = std::array::from_fn(|c| exposure * (direct[i][c] + albedo[c] * e[c]));
+            frame.color[i] = std::array::from_fn(|c| exposure * (direct[c] + albedo[c] * e[c]));
         }
-        frame.fetches = fetches.iter().map(|&f| f as u64).sum();
+        frame.fetches = fetches;
         tracing::debug!(
             width = w,
             height = h,
