@@ -152,7 +152,8 @@ pub(crate) fn scene_and_range(config: &WallConfig) -> Result<(Camera, RenderSett
             let v = source.load_step_within(raw.as_ref(), 0, &limit)?;
             let info =
                 VolumeInfo { name: v.name.clone(), dims: v.dims(), spacing: v.spacing(), origin: v.origin() };
-            return Ok((info, v.value_range()));
+            let blocks = BlockMinMax::new(&v, BlockMinMax::DEFAULT_BLOCK);
+            return Ok((info, blocks, v.orientation()));
         }
         let stream = source.stream(raw.as_ref())?;
         let info = stream.info().clone();
@@ -160,15 +161,20 @@ pub(crate) fn scene_and_range(config: &WallConfig) -> Result<(Camera, RenderSett
         let voxels = (x as u64).saturating_mul(y as u64).saturating_mul(z as u64);
         limit.check(voxels, &format!("{source} ({x}x{y}x{z})")).map_err(|e| anyhow!("{e}"))?;
         let blocks = stream.block_minmax(BlockMinMax::DEFAULT_BLOCK)?;
-        Ok((info, blocks.value_range()))
+        Ok((info, blocks, stream.orientation()))
     });
     bar.finish_and_clear();
-    let (info, (lo, hi)) = scanned.with_context(|| format!("cannot read volume {source}"))?;
+    let (info, blocks, orientation) = scanned.with_context(|| format!("cannot read volume {source}"))?;
+    let (lo, hi) = blocks.value_range();
     let iso = source
         .checked_iso(config.volume.iso, (lo, hi))
         .map_err(|e| anyhow!("{}: [volume] iso {e} ({source})", config.path.display()))?;
+    // The default camera frames the surface at the iso (the blocks that reach it), as
+    // `isowalld render` does.
+    let volume_box = (info.box_min(), info.box_max());
+    let fit = blocks.object_box(iso, info.dims, info.origin, info.spacing).unwrap_or(volume_box);
     Ok((
-        config.camera_for(info.box_min(), info.box_max()),
+        config.camera_framing(volume_box, fit, orientation),
         config.render_settings(iso),
         (lo as f64, hi as f64),
     ))
