@@ -135,6 +135,7 @@ fn render_help_names_every_contract_flag() {
         "--iso",
         "--size",
         "--eye",
+        "--view",
         "--target",
         "--up",
         "--fov-y",
@@ -156,6 +157,53 @@ fn render_help_names_every_contract_flag() {
     ] {
         assert!(help.contains(flag), "render --help lacks {flag}");
     }
+}
+
+/// `--view NAME`: an unknown name is refused with the list of names before anything is loaded,
+/// `--view` with `--eye` is refused, and `--view anterior` of the real CT renders the skull.
+#[test]
+fn a_view_name_is_checked_and_the_anterior_view_of_the_ct_renders() {
+    let dir = tempfile::tempdir().unwrap();
+    let out =
+        run_in(dir.path(), "isowalld", &["render", "--volume", "procedural:sphere:16", "--view", "front"]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("unknown view 'front': one of anterior|posterior|left|right|superior|inferior"),
+        "{err}"
+    );
+    let args = ["render", "--volume", "procedural:sphere:16", "--view", "left", "--eye", "1,2,3"];
+    let out = run_in(dir.path(), "isowalld", &args);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("--view") && err.contains("--eye") && err.contains("cannot be used with"), "{err}");
+
+    let Some(shared) = shared_dir() else { return };
+    let ct = shared.join("data/ct-cranium.nrrd");
+    let file = dir.path().join("anterior.pfm");
+    let args = [
+        "render",
+        "--volume",
+        ct.to_str().unwrap(),
+        "--iso",
+        "300",
+        "--size",
+        "64x64",
+        "--view",
+        "anterior",
+        "--aov",
+        "hit",
+        "--out",
+        file.to_str().unwrap(),
+    ];
+    let out = run_in(dir.path(), "isowalld", &args);
+    if !gpu_ok("render --view anterior", &out) {
+        return;
+    }
+    let hit = read_pfm(&file).unwrap();
+    let hits = hit.data.iter().filter(|&&v| v == 1.0).count();
+    assert_eq!((hit.width, hit.height), (64, 64));
+    assert!(hits > 64 * 64 / 10, "the anterior view hits {hits} of 4096 pixels");
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
