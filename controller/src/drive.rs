@@ -5,7 +5,7 @@ use crate::wall::{compose, quantile, report, Wall};
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
 use isowall_model::config::WallConfig;
-use isowall_model::{Camera, Governor, Motion, RenderSettings};
+use isowall_model::{Camera, Governor, Motion, RenderSettings, ViewFraming};
 use isowall_net::CaMode;
 use isowall_volume::{BlockMinMax, VolumeInfo, VolumeSource};
 use std::path::PathBuf;
@@ -137,6 +137,14 @@ pub(crate) fn scene(config: &WallConfig) -> Result<(Camera, RenderSettings)> {
 
 /// [`scene`] and the volume's value range.
 pub(crate) fn scene_and_range(config: &WallConfig) -> Result<(Camera, RenderSettings, (f64, f64))> {
+    scene_range_and_framing(config).map(|(c, s, r, _)| (c, s, r))
+}
+
+/// [`scene_and_range`] and what the named views frame (the object's box at the iso, the volume's
+/// orientation, the wall image's size).
+pub(crate) fn scene_range_and_framing(
+    config: &WallConfig,
+) -> Result<(Camera, RenderSettings, (f64, f64), ViewFraming)> {
     let source: VolumeSource = config.volume_source().parse()?;
     let raw = config.raw_spec().map_err(|e| anyhow!("{e}"))?;
     let bar = crate::progress::spinner(format!("reading volume {source}"));
@@ -177,6 +185,7 @@ pub(crate) fn scene_and_range(config: &WallConfig) -> Result<(Camera, RenderSett
         config.camera_framing(volume_box, fit, orientation),
         config.render_settings(iso),
         (lo as f64, hi as f64),
+        ViewFraming { fit, orientation, size: config.wall_size() },
     ))
 }
 

@@ -187,6 +187,25 @@ impl Camera {
     }
 }
 
+/// What a named view frames, kept by a session that offers the views: the box to frame (the
+/// object's at the iso, or the volume's), the volume's patient orientation and the image size.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ViewFraming {
+    pub fit: (DVec3, DVec3),
+    pub orientation: Option<Orientation>,
+    pub size: (u32, u32),
+}
+
+impl ViewFraming {
+    /// The camera of `view` with `fov_y_deg`, looking at the centre of the box and framing it
+    /// ([`Camera::framing_towards`]).
+    pub fn camera(&self, view: ViewPreset, fov_y_deg: f64) -> Camera {
+        let (side, up) = view.directions(self.orientation);
+        let (lo, hi) = self.fit;
+        Camera::framing_towards(lo, hi, 0.5 * (lo + hi), side, up, fov_y_deg, self.size.0, self.size.1)
+    }
+}
+
 /// The vertical field of view of a framing, degrees.
 pub const DEFAULT_FOV_Y_DEG: f64 = 35.0;
 

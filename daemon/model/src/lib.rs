@@ -53,7 +53,7 @@ pub mod sim;
 pub mod swap_timing;
 pub mod wire;
 
-pub use camera::{Camera, CameraError, Rect, UnknownView, View, ViewPreset};
+pub use camera::{Camera, CameraError, Rect, UnknownView, View, ViewFraming, ViewPreset};
 pub use config::{
     CameraConfig, CertConfig, ConfigErrors, NodeConfig, Problem, RenderConfig, TileConfig, VolumeConfig,
     WallConfig, WallMode, WallSection,
