@@ -344,7 +344,14 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     let (volume, iso) =
         load_volume_step_within(spec.as_deref(), raw.as_ref(), (a.iso, "--iso"), a.step, &limit)?;
     let (w, h) = a.size.unwrap_or((800, 600));
-    let framing = Camera::framing_view(object_box(&volume, iso), a.view, volume.orientation(), w, h);
+    let fit = object_box(&volume, iso);
+    tracing::info!(
+        framed = ?(fit.0.to_array(), fit.1.to_array()),
+        volume = ?(volume.box_min().to_array(), volume.box_max().to_array()),
+        orientation = volume.orientation().map(|o| o.code()).unwrap_or_else(|| "none".into()),
+        "the object's box at the iso"
+    );
+    let framing = Camera::framing_view(fit, a.view, volume.orientation(), w, h);
     let centre = 0.5 * (volume.box_min() + volume.box_max());
     let camera = match a.eye {
         None => Camera {
