@@ -5,7 +5,7 @@
 use glam::{DQuat, DVec3};
 use isowall_model::joystick::JoystickConfig;
 use isowall_model::render_state::MAX_AO_SAMPLES;
-use isowall_model::{Camera, Denoise, IblMethod, RenderSettings};
+use isowall_model::{Camera, Denoise, IblMethod, RenderSettings, ViewFraming, ViewPreset};
 
 /// A key, as the session sees it (the glue converts terminal key events).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -45,13 +45,21 @@ pub enum Action {
     Step(i8),
     /// Time steps: double (+) or halve (-) the play rate.
     Rate(i8),
+    /// Look from a side of the patient, framed ([`ViewPreset`]).
+    View(ViewPreset),
     Screenshot,
     Quit,
 }
 
 /// The key help shown by `isowall session`.
 pub const KEY_HELP: &str =
-    "arrows/wasd orbit, ijkl pan, +/- zoom, ]/[ iso, >/< AO samples, b IBL, f denoise, space play/pause, n/N step, )/( rate, p screenshot, q quit";
+    "arrows/wasd orbit, ijkl pan, +/- zoom, ]/[ iso, >/< AO samples, b IBL, f denoise, space play/pause, n/N step, )/( rate, 1-6 view anterior/posterior/left/right/superior/inferior, p screenshot, q quit";
+
+/// The view keys: `1` to `6` in the order of [`ViewPreset::ALL`].
+fn view_key(c: char) -> Option<ViewPreset> {
+    let i = c.to_digit(10)? as usize;
+    (1..=ViewPreset::ALL.len()).contains(&i).then(|| ViewPreset::ALL[i - 1])
+}
 
 /// The action of a key, if any.
 pub fn action_for_key(key: Key) -> Option<Action> {
@@ -78,6 +86,7 @@ pub fn action_for_key(key: Key) -> Option<Action> {
         Key::Char('N') => Step(-1),
         Key::Char(')') => Rate(1),
         Key::Char('(') => Rate(-1),
+        Key::Char(c) if view_key(c).is_some() => View(view_key(c)?),
         Key::Char('p') => Screenshot,
         Key::Char('q') | Key::Esc | Key::CtrlC => Quit,
         _ => return None,
@@ -102,6 +111,8 @@ pub struct SessionState {
     /// box, would be the surface).
     pub iso_range: (f64, f64),
     pub playback: Playback,
+    /// What the named views frame; `None`: they are not offered.
+    pub framing: Option<ViewFraming>,
 }
 
 impl SessionState {
@@ -113,6 +124,19 @@ impl SessionState {
             iso_step: if span > 0.0 { span / 100.0 } else { 1e-3 },
             iso_range: (value_range.0.min(value_range.1), value_range.0.max(value_range.1)),
             playback: Playback::new(1, DEFAULT_RATE),
+            framing: None,
+        }
+    }
+
+    /// The camera of `view` with the current field of view, framed; `false` (nothing changes)
+    /// where the session has no framing.
+    pub fn view(&mut self, view: ViewPreset) -> bool {
+        match self.framing {
+            Some(f) => {
+                self.camera = f.camera(view, self.camera.fov_y_deg);
+                true
+            }
+            None => false,
         }
     }
 
@@ -188,6 +212,9 @@ impl SessionState {
             Action::PlayPause => self.playback.playing = !self.playback.playing,
             Action::Step(s) => self.playback.step_by(s as i32),
             Action::Rate(s) => self.playback.change_rate(s),
+            Action::View(v) => {
+                self.view(v);
+            }
             Action::Screenshot => {}
             Action::Quit => return true,
         }
@@ -317,6 +344,25 @@ mod tests {
         assert_eq!(action_for_key(Key::Char('N')), Some(Action::Step(-1)));
         assert_eq!(action_for_key(Key::Char(')')), Some(Action::Rate(1)));
         assert_eq!(action_for_key(Key::Char('z')), None);
+        assert_eq!(action_for_key(Key::Char('1')), Some(Action::View(ViewPreset::Anterior)));
+        assert_eq!(action_for_key(Key::Char('5')), Some(Action::View(ViewPreset::Superior)));
+        assert_eq!(action_for_key(Key::Char('6')), Some(Action::View(ViewPreset::Inferior)));
+        assert_eq!(action_for_key(Key::Char('0')), None);
+        assert_eq!(action_for_key(Key::Char('7')), None);
+    }
+
+    #[test]
+    fn view_keys_frame_the_box_from_the_patient_side() {
+        let mut s = state();
+        let before = s.camera;
+        assert!(!s.view(ViewPreset::Left), "no framing, no view");
+        assert_eq!(s.camera, before);
+        let fit = (DVec3::new(-1.0, -2.0, -3.0), DVec3::new(3.0, 2.0, 1.0));
+        s.framing = Some(ViewFraming { fit, orientation: None, size: (64, 48) });
+        assert!(!s.apply(Action::View(ViewPreset::Superior)));
+        let c = s.camera;
+        assert_eq!((c.target, c.up, c.fov_y_deg), (DVec3::new(1.0, 0.0, -1.0), -DVec3::Y, before.fov_y_deg));
+        assert!((c.eye - c.target).normalize().z > 0.999, "superior looks from +z: {c:?}");
     }
 
     #[test]

@@ -5,7 +5,7 @@ use crate::wall::{compose, quantile, report, Wall};
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
 use isowall_model::config::WallConfig;
-use isowall_model::{Camera, Governor, Motion, RenderSettings};
+use isowall_model::{Camera, Governor, Motion, RenderSettings, ViewFraming};
 use isowall_net::CaMode;
 use isowall_volume::{BlockMinMax, VolumeInfo, VolumeSource};
 use std::path::PathBuf;
@@ -137,6 +137,14 @@ pub(crate) fn scene(config: &WallConfig) -> Result<(Camera, RenderSettings)> {
 
 /// [`scene`] and the volume's value range.
 pub(crate) fn scene_and_range(config: &WallConfig) -> Result<(Camera, RenderSettings, (f64, f64))> {
+    scene_range_and_framing(config).map(|(c, s, r, _)| (c, s, r))
+}
+
+/// [`scene_and_range`] and what the named views frame (the object's box at the iso, the volume's
+/// orientation, the wall image's size).
+pub(crate) fn scene_range_and_framing(
+    config: &WallConfig,
+) -> Result<(Camera, RenderSettings, (f64, f64), ViewFraming)> {
     let source: VolumeSource = config.volume_source().parse()?;
     let raw = config.raw_spec().map_err(|e| anyhow!("{e}"))?;
     let bar = crate::progress::spinner(format!("reading volume {source}"));
@@ -152,7 +160,8 @@ pub(crate) fn scene_and_range(config: &WallConfig) -> Result<(Camera, RenderSett
             let v = source.load_step_within(raw.as_ref(), 0, &limit)?;
             let info =
                 VolumeInfo { name: v.name.clone(), dims: v.dims(), spacing: v.spacing(), origin: v.origin() };
-            return Ok((info, v.value_range()));
+            let blocks = BlockMinMax::new(&v, BlockMinMax::DEFAULT_BLOCK);
+            return Ok((info, blocks, v.orientation()));
         }
         let stream = source.stream(raw.as_ref())?;
         let info = stream.info().clone();
@@ -160,17 +169,23 @@ pub(crate) fn scene_and_range(config: &WallConfig) -> Result<(Camera, RenderSett
         let voxels = (x as u64).saturating_mul(y as u64).saturating_mul(z as u64);
         limit.check(voxels, &format!("{source} ({x}x{y}x{z})")).map_err(|e| anyhow!("{e}"))?;
         let blocks = stream.block_minmax(BlockMinMax::DEFAULT_BLOCK)?;
-        Ok((info, blocks.value_range()))
+        Ok((info, blocks, stream.orientation()))
     });
     bar.finish_and_clear();
-    let (info, (lo, hi)) = scanned.with_context(|| format!("cannot read volume {source}"))?;
+    let (info, blocks, orientation) = scanned.with_context(|| format!("cannot read volume {source}"))?;
+    let (lo, hi) = blocks.value_range();
     let iso = source
         .checked_iso(config.volume.iso, (lo, hi))
         .map_err(|e| anyhow!("{}: [volume] iso {e} ({source})", config.path.display()))?;
+    // The default camera frames the surface at the iso (the blocks that reach it), as
+    // `isowalld render` does.
+    let volume_box = (info.box_min(), info.box_max());
+    let fit = blocks.object_box(iso, info.dims, info.origin, info.spacing).unwrap_or(volume_box);
     Ok((
-        config.camera_for(info.box_min(), info.box_max()),
+        config.camera_framing(volume_box, fit, orientation),
         config.render_settings(iso),
         (lo as f64, hi as f64),
+        ViewFraming { fit, orientation, size: config.wall_size() },
     ))
 }
 

@@ -5,7 +5,7 @@
 //! skew, iso, AO samples, IBL). While nothing changes the wall keeps refining its progressive AO.
 
 use crate::controls::{action_for_key, Action, Axes, Key, SessionState, KEY_HELP};
-use crate::drive::{load, runtime, scene_and_range, time_steps};
+use crate::drive::{load, runtime, scene_range_and_framing, time_steps};
 use crate::start::{self, StartArgs};
 use crate::wall::compose;
 use anyhow::{Context, Result};
@@ -167,9 +167,10 @@ fn gamepad(tx: mpsc::Sender<Input>, j: JoystickConfig) {
 
 pub fn session(a: &SessionArgs) -> Result<()> {
     let config = load(&a.config)?;
-    let (camera, settings, range) = scene_and_range(&config)?;
+    let (camera, settings, range, framing) = scene_range_and_framing(&config)?;
     let joystick = config.joystick.clone();
     let mut state = SessionState::new(camera, settings, range);
+    state.framing = Some(framing);
     state.playback.steps = time_steps(&config)?;
     std::fs::create_dir_all(&a.screenshots)
         .with_context(|| format!("cannot create {}", a.screenshots.display()))?;

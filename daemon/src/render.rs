@@ -8,12 +8,13 @@ use glam::DVec3;
 use isowall_model::render_state::DEFAULT_EXPOSURE;
 use isowall_model::{
     AoMethod, AoRadius, AoSequence, Aov, Camera, Denoise, IblMethod, RenderSettings, Shading, View,
+    ViewPreset,
 };
 use isowall_render::environment::{EnvSource, Environment};
 use isowall_render::gpu::GpuRenderer;
 use isowall_render::{output, reference, Frame};
 use isowall_volume::io::{RawSpec, VolumeLimit, VoxelType};
-use isowall_volume::{Volume, VolumeSource};
+use isowall_volume::{BlockMinMax, Volume, VolumeSource};
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -97,6 +98,11 @@ impl From<DenoiseArg> for Denoise {
     }
 }
 
+/// `--view NAME`, one of [`ViewPreset::names`].
+fn view_preset(s: &str) -> Result<ViewPreset, String> {
+    s.parse().map_err(|e: isowall_model::UnknownView| e.to_string())
+}
+
 /// `--ao-radius R|unbounded`.
 fn ao_radius(s: &str) -> Result<AoRadius, String> {
     if s == "unbounded" {
@@ -145,10 +151,21 @@ pub struct RenderArgs {
     /// Image size in pixels [default: 800x600]
     #[arg(long, value_name = "WxH", value_parser = args::size)]
     pub size: Option<(u32, u32)>,
-    /// Camera position (world units) [default: a view that frames the volume]
+    /// Camera position (world units) [default: a view that frames the surface at the iso (the
+    /// blocks that reach it; the volume's box where none does): with --view from that side, for
+    /// a scan with a patient orientation from the anterior, else a three-quarter view from the
+    /// front-right (-y, +x) and above]
     #[arg(long, value_name = "X,Y,Z", value_parser = args::vec3, allow_hyphen_values = true)]
     pub eye: Option<DVec3>,
-    /// Point the camera looks at [default: the centre of the volume]
+    /// Look at the volume from a side of the patient, framed: anterior (the face, superior up),
+    /// posterior, left, right (superior up), superior, inferior (anterior up). Where the file has no
+    /// orientation (NRRD space, NIfTI qform/sform, DICOM ImageOrientationPatient) the world axes
+    /// are read as LPS: anterior looks from -y, posterior +y, left +x, right -x, superior +z,
+    /// inferior -z. Not with --eye; --target, --up, --fov-y still apply
+    #[arg(long, value_name = "NAME", value_parser = view_preset, conflicts_with = "eye")]
+    pub view: Option<ViewPreset>,
+    /// Point the camera looks at [default: the centre of what is framed; with --eye the centre of
+    /// the volume]
     #[arg(long, value_name = "X,Y,Z", value_parser = args::vec3, allow_hyphen_values = true)]
     pub target: Option<DVec3>,
     /// Camera up direction [default: 0,0,1 (world up is +z)]
@@ -327,7 +344,14 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     let (volume, iso) =
         load_volume_step_within(spec.as_deref(), raw.as_ref(), (a.iso, "--iso"), a.step, &limit)?;
     let (w, h) = a.size.unwrap_or((800, 600));
-    let framing = Camera::framing(volume.box_min(), volume.box_max(), w, h);
+    let fit = object_box(&volume, iso);
+    tracing::info!(
+        framed = ?(fit.0.to_array(), fit.1.to_array()),
+        volume = ?(volume.box_min().to_array(), volume.box_max().to_array()),
+        orientation = volume.orientation().map(|o| o.code()).unwrap_or_else(|| "none".into()),
+        "the object's box at the iso"
+    );
+    let framing = Camera::framing_view(fit, a.view, volume.orientation(), w, h);
     let centre = 0.5 * (volume.box_min() + volume.box_max());
     let camera = match a.eye {
         None => Camera {
@@ -448,6 +472,14 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         frame.fetches_per_pixel(),
     );
     Ok(())
+}
+
+/// The box a default camera frames: the object's at `iso` at block resolution
+/// ([`BlockMinMax::object_box`]), or the volume's where no block reaches `iso`.
+pub fn object_box(volume: &Volume, iso: f64) -> (DVec3, DVec3) {
+    BlockMinMax::new(volume, BlockMinMax::DEFAULT_BLOCK)
+        .object_box(iso, volume.dims(), volume.origin(), volume.spacing())
+        .unwrap_or((volume.box_min(), volume.box_max()))
 }
 
 /// The filter's CPU twin on a reference frame: occlusion and IBL filtered, the colour's IBL part

@@ -224,7 +224,7 @@ fn the_api_refuses_missing_tokens_and_bad_input_and_changes_nothing() {
     let before = con.status();
     let (lo, hi) = (before["volume"]["min"].as_f64().unwrap(), before["volume"]["max"].as_f64().unwrap());
     // Bad input: a 4xx with the reason, naming the field where there is one.
-    let cases: [(&str, &str, &str, u16, &str); 10] = [
+    let cases: [(&str, &str, &str, u16, &str); 11] = [
         ("/api/render", "application/json", "{\"iso\": ", 400, "EOF"),
         ("/api/render", "application/json", "{\"isovalue\": 1}", 422, "unknown field `isovalue`"),
         ("/api/render", "application/json", "{\"ibl\": \"mirror\"}", 422, "unknown variant `mirror`"),
@@ -233,6 +233,13 @@ fn the_api_refuses_missing_tokens_and_bad_input_and_changes_nothing() {
         ("/api/render", "application/json", "{\"ao_samples\": 100000}", 422, "is more than 1024"),
         ("/api/render", "application/json", "{\"exposure\": -2}", 422, "`exposure` -2 must be"),
         ("/api/camera", "application/json", "{\"zoom\": 0}", 422, "`zoom` 0 is not a factor"),
+        (
+            "/api/camera",
+            "application/json",
+            "{\"view\": \"front\"}",
+            422,
+            "unknown variant `front`, expected one of `anterior`",
+        ),
         ("/api/time", "application/json", "{\"play\": \"play\"}", 422, "one time step, nothing to play"),
         ("/api/time", "application/json", "{\"step\": 1}", 422, "the volume has 1 time step (0..=0)"),
     ];
@@ -370,6 +377,21 @@ fn the_api_refuses_missing_tokens_and_bad_input_and_changes_nothing() {
             break;
         }
         assert!(Instant::now() < give_up, "reset kept eye {} (was {eye0})", s["camera"]["eye"]);
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    // A named view: from above (superior is +z for a volume without orientation).
+    assert_eq!(con.post("/api/camera", "{\"view\": \"superior\"}").status, 200);
+    let give_up = Instant::now() + Duration::from_secs(30);
+    loop {
+        let c = con.status()["camera"].clone();
+        let (eye, target) = (&c["eye"], &c["target"]);
+        let dz = eye[2].as_f64().unwrap() - target[2].as_f64().unwrap();
+        let dxy = (eye[0].as_f64().unwrap() - target[0].as_f64().unwrap()).abs()
+            + (eye[1].as_f64().unwrap() - target[1].as_f64().unwrap()).abs();
+        if dz > 0.0 && dxy < 1e-6 * dz {
+            break;
+        }
+        assert!(Instant::now() < give_up, "the superior view never showed: {c}");
         std::thread::sleep(Duration::from_millis(100));
     }
 }

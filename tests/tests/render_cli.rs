@@ -135,6 +135,7 @@ fn render_help_names_every_contract_flag() {
         "--iso",
         "--size",
         "--eye",
+        "--view",
         "--target",
         "--up",
         "--fov-y",
@@ -156,6 +157,89 @@ fn render_help_names_every_contract_flag() {
     ] {
         assert!(help.contains(flag), "render --help lacks {flag}");
     }
+}
+
+/// `--view NAME`: an unknown name is refused with the list of names before anything is loaded,
+/// `--view` with `--eye` is refused, and `--view anterior` of the real CT renders the skull.
+#[test]
+fn a_view_name_is_checked_and_the_anterior_view_of_the_ct_renders() {
+    let dir = tempfile::tempdir().unwrap();
+    let out =
+        run_in(dir.path(), "isowalld", &["render", "--volume", "procedural:sphere:16", "--view", "front"]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("unknown view 'front': one of anterior|posterior|left|right|superior|inferior"),
+        "{err}"
+    );
+    let args = ["render", "--volume", "procedural:sphere:16", "--view", "left", "--eye", "1,2,3"];
+    let out = run_in(dir.path(), "isowalld", &args);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("--view") && err.contains("--eye") && err.contains("cannot be used with"), "{err}");
+
+    let Some(shared) = shared_dir() else { return };
+    let ct = shared.join("data/ct-cranium.nrrd");
+    let file = dir.path().join("anterior.pfm");
+    let args = [
+        "render",
+        "--volume",
+        ct.to_str().unwrap(),
+        "--iso",
+        "300",
+        "--size",
+        "64x64",
+        "--view",
+        "anterior",
+        "--aov",
+        "hit",
+        "--out",
+        file.to_str().unwrap(),
+    ];
+    let out = run_in(dir.path(), "isowalld", &args);
+    if !gpu_ok("render --view anterior", &out) {
+        return;
+    }
+    let hit = read_pfm(&file).unwrap();
+    let hits = hit.data.iter().filter(|&&v| v == 1.0).count();
+    assert_eq!((hit.width, hit.height), (64, 64));
+    assert!(hits > 64 * 64 / 10, "the anterior view hits {hits} of 4096 pixels");
+}
+
+/// A scan with a patient orientation (NRRD `space: RAS`) opens anterior, superior up: the default
+/// render is `--view anterior`'s, and not the posterior one (two balls of different sizes, so no
+/// two sides look alike).
+#[test]
+fn an_oriented_scan_opens_from_the_anterior() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut bytes = b"NRRD0004\ntype: float\ndimension: 3\nsizes: 20 20 20\nspace: RAS\n\
+                      space directions: (1,0,0) (0,1,0) (0,0,1)\nendian: little\nencoding: raw\n\n"
+        .to_vec();
+    for k in 0..20 {
+        for j in 0..20 {
+            for i in 0..20 {
+                let p = [i as f64, j as f64, k as f64];
+                let d = |c: [f64; 3], r: f64| r - ((0..3).map(|a| (p[a] - c[a]).powi(2)).sum::<f64>()).sqrt();
+                let v = d([6.0, 8.0, 9.0], 4.0).max(d([13.0, 11.0, 10.0], 2.5));
+                bytes.extend((v as f32).to_le_bytes());
+            }
+        }
+    }
+    std::fs::write(dir.path().join("balls.nrrd"), bytes).unwrap();
+    let hits = |name: &str, extra: &[&str]| {
+        let mut args =
+            vec!["render", "--volume", "balls.nrrd", "--iso", "0", "--size", "48x40", "--aov", "hit"];
+        args.extend(["--out", name]);
+        args.extend_from_slice(extra);
+        let out = run_in(dir.path(), "isowalld", &args);
+        gpu_ok(&format!("render {extra:?}"), &out).then(|| read_pfm(&dir.path().join(name)).unwrap().data)
+    };
+    let Some(default) = hits("default.pfm", &[]) else { return };
+    let anterior = hits("anterior.pfm", &["--view", "anterior"]).unwrap();
+    let posterior = hits("posterior.pfm", &["--view", "posterior"]).unwrap();
+    assert!(default.iter().filter(|&&v| v == 1.0).count() > 100, "the balls are hardly in view");
+    assert!(default == anterior, "the default view of an oriented scan is not the anterior one");
+    assert!(default != posterior, "the anterior and posterior views look alike");
 }
 
 fn median(mut v: Vec<f64>) -> f64 {

@@ -18,7 +18,7 @@ use crate::path::CameraPath;
 use crate::wall::{quantile, Wall};
 use anyhow::Result;
 use isowall_model::messages::{TileImage, MAX_THUMBNAIL_DIVISOR};
-use isowall_model::{Camera, Governor, Motion, RenderSettings, WallConfig};
+use isowall_model::{Camera, Governor, Motion, RenderSettings, ViewFraming, WallConfig};
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::path::PathBuf;
 use std::sync::atomic::Ordering;
@@ -63,6 +63,8 @@ pub struct Scene {
     pub camera: Camera,
     pub settings: RenderSettings,
     pub range: (f64, f64),
+    /// What the named views frame.
+    pub framing: ViewFraming,
     /// The volume's time steps (1: none to play).
     pub steps: u32,
     pub demo: Option<(PathBuf, CameraPath)>,
@@ -124,6 +126,7 @@ pub async fn run(
     let now = Instant::now();
     let mut session = SessionState::new(scene.camera, scene.settings, scene.range);
     session.playback.steps = scene.steps.max(1);
+    session.framing = Some(scene.framing);
     let controls = Controls {
         session,
         home: scene.camera,

@@ -18,7 +18,7 @@ mod pictures;
 mod server;
 mod status;
 
-use crate::drive::{load, runtime, scene_and_range, time_steps};
+use crate::drive::{load, runtime, scene_range_and_framing, time_steps};
 use crate::start::{self, StartArgs};
 use anyhow::{bail, Context, Result};
 use clap::Args;
@@ -79,7 +79,7 @@ pub fn access(listen: &str, token: Option<&str>, read_only: bool) -> Result<Acce
 pub fn console(a: &ConsoleArgs) -> Result<()> {
     let access = access(&a.listen, a.token.as_deref(), a.read_only)?;
     let config = load(&a.config)?;
-    let (camera, settings, range) = scene_and_range(&config)?;
+    let (camera, settings, range, framing) = scene_range_and_framing(&config)?;
     let steps = time_steps(&config)?;
     let demo = match &a.demo_path {
         Some(p) => {
@@ -101,7 +101,7 @@ pub fn console(a: &ConsoleArgs) -> Result<()> {
             .with_context(|| format!("cannot listen on {}", access.listen))?;
         let local = listener.local_addr().context("listening address")?;
         let (daemons, wall) = start::open(config, &a.start).await?;
-        let scene = frame_loop::Scene { camera, settings, range, steps, demo };
+        let scene = frame_loop::Scene { camera, settings, range, framing, steps, demo };
         let limits = server::Limits::default();
         let (shared, commands) = api::Shared::new(access.clone(), limits);
         let looper = tokio::spawn(frame_loop::run(wall, daemons, scene, shared.clone(), commands));

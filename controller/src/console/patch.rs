@@ -5,7 +5,7 @@
 
 use crate::controls::{SessionState, MAX_RATE, MIN_RATE};
 use isowall_model::config::{render_problems, RenderConfig};
-use isowall_model::{AoMethod, Camera, Denoise, IblMethod, RenderSettings, Shading};
+use isowall_model::{AoMethod, Camera, Denoise, IblMethod, RenderSettings, Shading, ViewPreset};
 use serde::{Deserialize, Deserializer};
 
 /// A refused change: the field it is about and why.
@@ -63,6 +63,9 @@ pub enum DemoCommand {
 #[derive(Clone, Debug, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct CameraPatch {
+    /// A named view of the volume, framed (after `reset`, before the other fields apply):
+    /// anterior | posterior | left | right | superior | inferior.
+    pub view: Option<ViewPreset>,
     pub eye: Option<[f64; 3]>,
     pub target: Option<[f64; 3]>,
     pub up: Option<[f64; 3]>,
@@ -173,6 +176,12 @@ impl Controls {
         if p.reset {
             *c = self.home;
         }
+        if let Some(v) = p.view {
+            if !next.session.view(v) {
+                return Err(Refusal::new("view", "camera: `view`: no framing is known for this wall"));
+            }
+        }
+        let c = &mut next.session.camera;
         let vec = |field: &'static str, v: [f64; 3]| {
             if v.iter().all(|x| x.is_finite()) {
                 Ok(glam::DVec3::from_array(v))
@@ -381,6 +390,26 @@ mod tests {
         c.demo_available = true;
         c.apply_camera(&serde_json::from_str(r#"{"demo": "start"}"#).unwrap()).unwrap();
         assert!(c.demo);
+    }
+
+    #[test]
+    fn a_view_patch_frames_the_box_then_the_other_fields_apply() {
+        let mut c = controls();
+        let p: CameraPatch = serde_json::from_str(r#"{"view": "left"}"#).unwrap();
+        let before = c.session;
+        assert_eq!(c.apply_camera(&p).unwrap_err().field, "view", "no framing known");
+        assert_eq!(c.session, before);
+        let fit = (DVec3::splat(-1.0), DVec3::splat(1.0));
+        c.session.framing = Some(isowall_model::ViewFraming { fit, orientation: None, size: (64, 48) });
+        c.apply_camera(&p).unwrap();
+        let cam = c.session.camera;
+        assert!((cam.eye - cam.target).normalize().x > 0.999, "left looks from +x: {cam:?}");
+        let p: CameraPatch = serde_json::from_str(r#"{"view": "anterior", "fov_y": 20}"#).unwrap();
+        c.apply_camera(&p).unwrap();
+        let cam = c.session.camera;
+        assert!((cam.eye - cam.target).normalize().y < -0.999 && cam.fov_y_deg == 20.0, "{cam:?}");
+        let e = serde_json::from_str::<CameraPatch>(r#"{"view": "front"}"#).unwrap_err().to_string();
+        assert!(e.contains("unknown variant `front`") && e.contains("`anterior`"), "{e}");
     }
 
     #[test]

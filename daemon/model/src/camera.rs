@@ -10,6 +10,7 @@
 //! wall is exactly one big image.
 
 use glam::DVec3;
+use isowall_volume::{Orientation, PatientDir};
 use serde::{Deserialize, Serialize};
 
 /// The least eye distance a framing gives a box: relative to the box's size, so that a volume of
@@ -111,14 +112,45 @@ impl Camera {
     /// above (world up is +z), at the distance where all eight corners fit a `width` x `height`
     /// image with a 5% margin.
     pub fn framing(box_min: DVec3, box_max: DVec3, width: u32, height: u32) -> Camera {
-        let fov_y_deg: f64 = 35.0;
         let centre = 0.5 * (box_min + box_max);
-        let dir = DVec3::new(0.9, -1.5, 0.8).normalize();
-        let mut cam = Camera { eye: centre + dir, target: centre, up: DVec3::Z, fov_y_deg };
+        Camera::framing_towards(
+            box_min,
+            box_max,
+            centre,
+            THREE_QUARTER_SIDE.normalize(),
+            DVec3::Z,
+            DEFAULT_FOV_Y_DEG,
+            width,
+            height,
+        )
+    }
+
+    /// The framing rule: a camera looking at `target` from the `side` direction (a unit world
+    /// vector from the target towards the eye) with `up` and `fov_y_deg`, at the least distance
+    /// where all eight corners of the box fit a `width` x `height` image with a 5% margin and the
+    /// whole box (its bounding sphere, widened by the target's distance from its centre) stays in
+    /// front of the eye. An `up` parallel to `side` or a bad field of view gives the camera at
+    /// distance 1 (the caller's validation says what is wrong).
+    #[allow(clippy::too_many_arguments)]
+    pub fn framing_towards(
+        box_min: DVec3,
+        box_max: DVec3,
+        target: DVec3,
+        side: DVec3,
+        up: DVec3,
+        fov_y_deg: f64,
+        width: u32,
+        height: u32,
+    ) -> Camera {
+        let mut cam = Camera { eye: target + side, target, up, fov_y_deg };
+        // The frame alone (at the origin: a far box's coordinates are the caller's to check).
+        if (Camera { eye: side, target: DVec3::ZERO, up, fov_y_deg }).validate().is_err() {
+            return cam;
+        }
         let b = cam.basis();
         let tan_y = 0.95 * b.tan_half_fov;
         let tan_x = tan_y * width as f64 / height.max(1) as f64;
-        // Corner c at lateral offsets (x, y) and depth z from the centre fits when
+        // Corner c at lateral offsets (x, y) and depth z from the target fits when
         // |x| / (dist + z) <= tan_x and |y| / (dist + z) <= tan_y.
         let floor = framing_floor(box_min, box_max);
         let mut dist: f64 = floor;
@@ -127,14 +159,155 @@ impl Camera {
                 if i & 1 == 0 { box_min.x } else { box_max.x },
                 if i & 2 == 0 { box_min.y } else { box_max.y },
                 if i & 4 == 0 { box_min.z } else { box_max.z },
-            ) - centre;
+            ) - target;
             let z = c.dot(b.forward);
             dist = dist.max(c.dot(b.right).abs() / tan_x - z).max(c.dot(b.up).abs() / tan_y - z);
         }
         // Keep the eye outside the box's bounding sphere, so the whole box is in front of it.
-        dist = dist.max(1.01 * (0.5 * (box_max - box_min).length()).max(floor));
-        cam.eye = centre - dist * b.forward;
+        let centre = 0.5 * (box_min + box_max);
+        let reach = 0.5 * (box_max - box_min).length() + (target - centre).length();
+        dist = dist.max(1.01 * reach.max(floor));
+        cam.eye = target - dist * b.forward;
         cam
+    }
+
+    /// The default camera for a scene: looking at the centre of `fit` (the box to frame: the
+    /// object's at the current iso, [`isowall_volume::BlockMinMax::object_box`], or the volume's)
+    /// from [`default_side`]'s direction, framed by [`Camera::framing_towards`].
+    pub fn framing_view(
+        fit: (DVec3, DVec3),
+        view: Option<ViewPreset>,
+        orientation: Option<Orientation>,
+        width: u32,
+        height: u32,
+    ) -> Camera {
+        let (side, up) = default_side(view, orientation);
+        let centre = 0.5 * (fit.0 + fit.1);
+        Camera::framing_towards(fit.0, fit.1, centre, side, up, DEFAULT_FOV_Y_DEG, width, height)
+    }
+}
+
+/// What a named view frames, kept by a session that offers the views: the box to frame (the
+/// object's at the iso, or the volume's), the volume's patient orientation and the image size.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ViewFraming {
+    pub fit: (DVec3, DVec3),
+    pub orientation: Option<Orientation>,
+    pub size: (u32, u32),
+}
+
+impl ViewFraming {
+    /// The camera of `view` with `fov_y_deg`, looking at the centre of the box and framing it
+    /// ([`Camera::framing_towards`]).
+    pub fn camera(&self, view: ViewPreset, fov_y_deg: f64) -> Camera {
+        let (side, up) = view.directions(self.orientation);
+        let (lo, hi) = self.fit;
+        Camera::framing_towards(lo, hi, 0.5 * (lo + hi), side, up, fov_y_deg, self.size.0, self.size.1)
+    }
+}
+
+/// The vertical field of view of a framing, degrees.
+pub const DEFAULT_FOV_Y_DEG: f64 = 35.0;
+
+/// The three-quarter view's side (not normalised): front-right and above, with world up +z.
+const THREE_QUARTER_SIDE: DVec3 = DVec3::new(0.9, -1.5, 0.8);
+
+/// Where a default camera looks from (`side`, a unit vector from the target towards the eye)
+/// and its `up`: the named `view` where one is given; else, for a volume with a patient
+/// orientation, [`ViewPreset::Anterior`] (the face, superior up); else the three-quarter view
+/// from the front-right and above (world up +z), Isowall's default before orientations.
+pub fn default_side(view: Option<ViewPreset>, orientation: Option<Orientation>) -> (DVec3, DVec3) {
+    match (view, orientation) {
+        (Some(v), o) => v.directions(o),
+        (None, Some(o)) => ViewPreset::Anterior.directions(Some(o)),
+        (None, None) => (THREE_QUARTER_SIDE.normalize(), DVec3::Z),
+    }
+}
+
+/// A view of the volume from one side of the patient: the one list of view names, for the
+/// command line, the config, the controller's keys and the console.
+///
+/// `anterior`: the eye in front of the face looking posterior, superior up; `posterior` from
+/// behind, superior up; `left` / `right` from the patient's left / right side, superior up;
+/// `superior` from above, anterior up; `inferior` from below, anterior up. Where the volume has
+/// no orientation, the names mean the world axes read as LPS ([`Orientation::ASSUMED`], DICOM's
+/// patient frame with world up +z): anterior looks from -y, posterior from +y, left from +x,
+/// right from -x, superior from +z, inferior from -z.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ViewPreset {
+    Anterior,
+    Posterior,
+    Left,
+    Right,
+    Superior,
+    Inferior,
+}
+
+impl ViewPreset {
+    pub const ALL: [ViewPreset; 6] = [
+        ViewPreset::Anterior,
+        ViewPreset::Posterior,
+        ViewPreset::Left,
+        ViewPreset::Right,
+        ViewPreset::Superior,
+        ViewPreset::Inferior,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            ViewPreset::Anterior => "anterior",
+            ViewPreset::Posterior => "posterior",
+            ViewPreset::Left => "left",
+            ViewPreset::Right => "right",
+            ViewPreset::Superior => "superior",
+            ViewPreset::Inferior => "inferior",
+        }
+    }
+
+    /// Every name, `|`-separated, for messages and help.
+    pub fn names() -> String {
+        ViewPreset::ALL.map(ViewPreset::name).join("|")
+    }
+
+    /// The patient side the eye is on and the patient direction that is up on the screen.
+    pub fn patient_side_and_up(self) -> (PatientDir, PatientDir) {
+        use PatientDir::*;
+        match self {
+            ViewPreset::Anterior => (Anterior, Superior),
+            ViewPreset::Posterior => (Posterior, Superior),
+            ViewPreset::Left => (Left, Superior),
+            ViewPreset::Right => (Right, Superior),
+            ViewPreset::Superior => (Superior, Anterior),
+            ViewPreset::Inferior => (Inferior, Anterior),
+        }
+    }
+
+    /// The world directions of [`ViewPreset::patient_side_and_up`] for a volume of `orientation`
+    /// ([`Orientation::ASSUMED`] where it has none): (side, a unit vector from the target
+    /// towards the eye; up).
+    pub fn directions(self, orientation: Option<Orientation>) -> (DVec3, DVec3) {
+        let o = orientation.unwrap_or(Orientation::ASSUMED);
+        let (side, up) = self.patient_side_and_up();
+        (o.world_dir(side), o.world_dir(up))
+    }
+}
+
+impl std::fmt::Display for ViewPreset {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// A view name that is none of [`ViewPreset::names`].
+#[derive(Debug, thiserror::Error, PartialEq)]
+#[error("unknown view '{0}': one of {names}", names = ViewPreset::names())]
+pub struct UnknownView(pub String);
+
+impl std::str::FromStr for ViewPreset {
+    type Err = UnknownView;
+    fn from_str(s: &str) -> Result<ViewPreset, UnknownView> {
+        ViewPreset::ALL.into_iter().find(|v| v.name() == s).ok_or_else(|| UnknownView(s.to_string()))
     }
 }
 
@@ -316,6 +489,92 @@ mod tests {
                     "corner {c:?} outside vertically for {w}x{h}"
                 );
             }
+        }
+    }
+
+    /// Each view looks from its side of the patient with its up, in a volume's own orientation
+    /// and, where it has none, in the world axes read as LPS.
+    #[test]
+    fn views_look_from_their_patient_side() {
+        use PatientDir::*;
+        let (lo, hi) = (DVec3::ZERO, DVec3::new(40.0, 30.0, 20.0));
+        let centre = 0.5 * (lo + hi);
+        // No orientation: LPS world axes.
+        let lps = [
+            (ViewPreset::Anterior, -DVec3::Y, DVec3::Z),
+            (ViewPreset::Posterior, DVec3::Y, DVec3::Z),
+            (ViewPreset::Left, DVec3::X, DVec3::Z),
+            (ViewPreset::Right, -DVec3::X, DVec3::Z),
+            (ViewPreset::Superior, DVec3::Z, -DVec3::Y),
+            (ViewPreset::Inferior, -DVec3::Z, -DVec3::Y),
+        ];
+        // A RAS volume whose z runs inferior (a flipped NIfTI).
+        let rai = Orientation::new([Right, Anterior, Inferior]).unwrap();
+        let ras_flipped = [
+            (ViewPreset::Anterior, DVec3::Y, -DVec3::Z),
+            (ViewPreset::Left, -DVec3::X, -DVec3::Z),
+            (ViewPreset::Superior, -DVec3::Z, DVec3::Y),
+        ];
+        for (orientation, cases) in [(None, &lps[..]), (Some(rai), &ras_flipped[..])] {
+            for &(view, side, up) in cases {
+                let cam = Camera::framing_view((lo, hi), Some(view), orientation, 64, 48);
+                cam.validate().unwrap();
+                assert_eq!(cam.target, centre);
+                let to_eye = (cam.eye - cam.target).normalize();
+                assert!((to_eye - side).length() < 1e-12, "{view} {orientation:?}: eye towards {to_eye}");
+                assert_eq!(cam.up, up, "{view} {orientation:?}");
+            }
+        }
+        // Looking at the face from the anterior, the patient's left is on the screen's right.
+        let cam = Camera::framing_view((lo, hi), Some(ViewPreset::Anterior), None, 64, 48);
+        assert!(cam.basis().right.dot(Orientation::ASSUMED.world_dir(Left)) > 0.99);
+        // The default: an oriented scan opens anterior, superior up; one without keeps the
+        // three-quarter view of `framing`.
+        let oriented = Camera::framing_view((lo, hi), None, Some(rai), 64, 48);
+        assert_eq!(oriented, Camera::framing_view((lo, hi), Some(ViewPreset::Anterior), Some(rai), 64, 48));
+        let plain = Camera::framing_view((lo, hi), None, None, 64, 48);
+        let old = Camera::framing(lo, hi, 64, 48);
+        assert!((plain.eye - old.eye).length() < 1e-9 && plain.target == old.target && plain.up == old.up);
+    }
+
+    #[test]
+    fn view_names_round_trip_and_unknown_names_list_them() {
+        for v in ViewPreset::ALL {
+            assert_eq!(v.name().parse::<ViewPreset>(), Ok(v));
+        }
+        let e = "front".parse::<ViewPreset>().unwrap_err().to_string();
+        assert_eq!(e, "unknown view 'front': one of anterior|posterior|left|right|superior|inferior");
+    }
+
+    /// Framing a sub-box fills the image with it: the box's projected extent reaches the 5%
+    /// margin on one side, where framing the whole volume leaves it small.
+    #[test]
+    fn framing_a_sub_box_fills_the_image_with_it() {
+        let (vlo, vhi) = (DVec3::ZERO, DVec3::new(100.0, 100.0, 100.0));
+        let (lo, hi) = (DVec3::new(40.0, 45.0, 30.0), DVec3::new(60.0, 55.0, 50.0));
+        let extent = |cam: &Camera, w: u32, h: u32| {
+            let b = cam.basis();
+            let tan_x = b.tan_half_fov * w as f64 / h as f64;
+            let mut m: f64 = 0.0;
+            for i in 0..8 {
+                let c = DVec3::new(
+                    if i & 1 == 0 { lo.x } else { hi.x },
+                    if i & 2 == 0 { lo.y } else { hi.y },
+                    if i & 4 == 0 { lo.z } else { hi.z },
+                );
+                let v = c - cam.eye;
+                let z = v.dot(b.forward);
+                m = m.max(v.dot(b.right).abs() / z / tan_x).max(v.dot(b.up).abs() / z / b.tan_half_fov);
+            }
+            m
+        };
+        for view in [None, Some(ViewPreset::Anterior), Some(ViewPreset::Superior)] {
+            let sub = Camera::framing_view((lo, hi), view, None, 64, 48);
+            let whole = Camera::framing_view((vlo, vhi), view, None, 64, 48);
+            let (fs, fw) = (extent(&sub, 64, 48), extent(&whole, 64, 48));
+            assert!((fs - 0.95).abs() < 1e-9, "{view:?}: the sub-box reaches {fs} of the half-image");
+            assert!(fw < 0.5, "{view:?}: framed with the volume, the sub-box reaches only {fw}");
+            assert_eq!(sub.target, 0.5 * (lo + hi));
         }
     }
 }

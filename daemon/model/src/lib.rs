@@ -53,13 +53,14 @@ pub mod sim;
 pub mod swap_timing;
 pub mod wire;
 
-pub use camera::{Camera, CameraError, Rect, View};
+pub use camera::{Camera, CameraError, Rect, UnknownView, View, ViewFraming, ViewPreset};
 pub use config::{
     CameraConfig, CertConfig, ConfigErrors, NodeConfig, Problem, RenderConfig, TileConfig, VolumeConfig,
     WallConfig, WallMode, WallSection,
 };
 pub use frame_controller::{ControllerOutput, FrameController, FrameStats, NodeFrameStats};
 pub use governor::{Governor, GovernorError, Motion, MAX_SCALE};
+pub use isowall_volume::{Orientation, PatientDir};
 pub use messages::{Message, ProtocolError, Role, TileImage, PROTOCOL_VERSION};
 pub use node_machine::{NodeMachine, NodeOutput};
 pub use render_state::{

@@ -6,6 +6,7 @@
 //! holds no point of the object and a ray may cross it without sampling.
 
 use crate::Volume;
+use glam::DVec3;
 
 #[derive(Clone, Debug)]
 pub struct BlockMinMax {
@@ -90,12 +91,83 @@ impl BlockMinMax {
         let n = self.minmax.iter().filter(|m| m[1] >= iso).count();
         n as f64 / self.minmax.len().max(1) as f64
     }
+
+    /// The world box of the object {f >= iso} at block resolution: the union of the closed boxes
+    /// of the blocks with `max >= iso`, for a grid of `dims` samples at `origin` with `spacing`
+    /// (the volume these blocks were made of). Those are the blocks a surface crossing can lie in
+    /// (`min <= iso <= max`) and the blocks wholly inside the object (`min > iso`); the latter add
+    /// nothing to the crossings' box except where the object meets the volume's box, whose face
+    /// then closes it with a cap (DESIGN.md "Volume"), which is surface too. `None` where no
+    /// block reaches `iso` (nothing to see).
+    pub fn object_box(
+        &self,
+        iso: f64,
+        dims: [usize; 3],
+        origin: DVec3,
+        spacing: DVec3,
+    ) -> Option<(DVec3, DVec3)> {
+        let (mut lo, mut hi) = ([usize::MAX; 3], [0usize; 3]);
+        for bz in 0..self.counts[2] {
+            for by in 0..self.counts[1] {
+                for bx in 0..self.counts[0] {
+                    if f64::from(self.get(bx, by, bz)[1]) < iso {
+                        continue;
+                    }
+                    for (a, b) in [bx, by, bz].into_iter().enumerate() {
+                        lo[a] = lo[a].min(b);
+                        hi[a] = hi[a].max(b);
+                    }
+                }
+            }
+        }
+        if lo[0] == usize::MAX {
+            return None;
+        }
+        let last = dims.map(|n| n.max(1) - 1);
+        let sample =
+            |a: usize, b: usize| origin[a] + b.saturating_mul(self.block).min(last[a]) as f64 * spacing[a];
+        Some((
+            DVec3::new(sample(0, lo[0]), sample(1, lo[1]), sample(2, lo[2])),
+            DVec3::new(sample(0, hi[0] + 1), sample(1, hi[1] + 1), sample(2, hi[2] + 1)),
+        ))
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use glam::DVec3;
+
+    #[test]
+    fn the_object_box_holds_the_blocks_that_reach_the_iso() {
+        // A 40 x 30 x 20 grid, spacing (0.5, 1, 2) from (10, -5, 3), with a solid (value 10) over
+        // samples x 12..=20, y 3..=9, z 0..=19 (it meets the box's z faces: caps), 0 elsewhere.
+        let dims = [40, 30, 20];
+        let (origin, spacing) = (DVec3::new(10.0, -5.0, 3.0), DVec3::new(0.5, 1.0, 2.0));
+        let mut data = vec![0f32; dims.iter().product()];
+        for k in 0..20 {
+            for j in 3..=9 {
+                for i in 12..=20 {
+                    data[i + 40 * (j + 30 * k)] = 10.0;
+                }
+            }
+        }
+        let v = Volume::new("box", dims, spacing, origin, data).unwrap();
+        let b = BlockMinMax::new(&v, 8);
+        // Samples 12..=20 lie in blocks 1..=2 (samples 8..=24), 3..=9 in blocks 0..=1 (0..=16),
+        // z in every block (0..=19): the box of those blocks' samples.
+        let (lo, hi) = b.object_box(5.0, dims, origin, spacing).unwrap();
+        let world = |i: f64, j: f64, k: f64| origin + spacing * DVec3::new(i, j, k);
+        assert_eq!((lo, hi), (world(8.0, 0.0, 0.0), world(24.0, 16.0, 19.0)));
+        // Every sample of the object is inside, and the box is well inside the volume's.
+        assert!(lo.cmple(world(12.0, 3.0, 0.0)).all() && hi.cmpge(world(20.0, 9.0, 19.0)).all());
+        assert!((hi - lo).x < 0.5 * (v.box_max() - v.box_min()).x);
+        // An iso at the data's minimum: every block, the volume's box; above the maximum: none.
+        assert_eq!(b.object_box(0.0, dims, origin, spacing), Some((v.box_min(), v.box_max())));
+        assert_eq!(b.object_box(10.5, dims, origin, spacing), None);
+        // The blocks of one level coarser give a box that holds the finer one.
+        let (clo, chi) = b.coarsen(2).object_box(5.0, dims, origin, spacing).unwrap();
+        assert!(clo.cmple(lo).all() && chi.cmpge(hi).all());
+    }
 
     #[test]
     fn blocks_bound_every_sample_they_cover_including_shared_faces() {

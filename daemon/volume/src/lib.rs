@@ -21,6 +21,7 @@ pub mod env_files;
 pub mod format;
 pub mod io;
 pub mod iso;
+pub mod orientation;
 pub mod procedural;
 pub mod region;
 pub mod source;
@@ -33,6 +34,7 @@ use std::path::PathBuf;
 pub use blocks::BlockMinMax;
 pub use format::VoxelFormat;
 pub use iso::{check_iso, IsoError};
+pub use orientation::{Orientation, PatientDir, PatientFrame};
 pub use region::{Pass, Progress, VolumeInfo, VolumeStream};
 pub use source::VolumeSource;
 pub use steps::{StepCache, StepState};
@@ -63,6 +65,8 @@ pub struct Volume {
     data: Vec<f32>,
     /// Where it came from, for messages: a path or `procedural:NAME:N`.
     pub name: String,
+    /// Which patient direction each world axis points to, where the file says so.
+    orientation: Option<Orientation>,
 }
 
 impl Volume {
@@ -100,7 +104,7 @@ impl Volume {
             let (i, j, k) = (first % dims[0], (first / dims[0]) % dims[1], first / (dims[0] * dims[1]));
             return Err(VolumeError::NonFinite { path: PathBuf::from(&name), count, i, j, k });
         }
-        Ok(Volume { dims, spacing, origin, data, name })
+        Ok(Volume { dims, spacing, origin, data, name, orientation: None })
     }
 
     pub fn dims(&self) -> [usize; 3] {
@@ -114,6 +118,14 @@ impl Volume {
     }
     pub fn data(&self) -> &[f32] {
         &self.data
+    }
+    /// The patient orientation the file gave, if any ([`Orientation`]).
+    pub fn orientation(&self) -> Option<Orientation> {
+        self.orientation
+    }
+    /// The volume with `orientation` as its patient orientation.
+    pub fn with_orientation(self, orientation: Option<Orientation>) -> Volume {
+        Volume { orientation, ..self }
     }
     /// Bytes the voxel buffer holds in memory: as allocated (capacity, not length).
     pub fn resident_bytes(&self) -> usize {

@@ -97,6 +97,8 @@ pub type ProgressFn = Box<dyn Fn(Progress) + Send + Sync>;
 /// A volume source opened for partial reads.
 pub struct VolumeStream {
     info: VolumeInfo,
+    /// The patient orientation the source gives, if any.
+    orientation: Option<crate::Orientation>,
     kind: Kind,
     progress: Option<ProgressFn>,
 }
@@ -123,7 +125,12 @@ impl VolumeSource {
                     spacing: DVec3::ONE,
                     origin: DVec3::ZERO,
                 };
-                Ok(VolumeStream { info, kind: Kind::Procedural(*kind, *size), progress: None })
+                Ok(VolumeStream {
+                    info,
+                    orientation: None,
+                    kind: Kind::Procedural(*kind, *size),
+                    progress: None,
+                })
             }
             VolumeSource::DicomSeries { path, series } => {
                 self.only_step_0(step)?;
@@ -151,7 +158,8 @@ impl VolumeSource {
                             spacing,
                             origin,
                         };
-                        Ok(VolumeStream { info, kind: Kind::File(plan), progress: None })
+                        let orientation = crate::io::plan_orientation(path)?;
+                        Ok(VolumeStream { info, orientation, kind: Kind::File(plan), progress: None })
                     }
                     None => {
                         let v = crate::io::load_step(path, raw, step)?;
@@ -161,7 +169,8 @@ impl VolumeSource {
                             spacing: v.spacing(),
                             origin: v.origin(),
                         };
-                        Ok(VolumeStream { info, kind: Kind::Whole(Box::new(v)), progress: None })
+                        let orientation = v.orientation();
+                        Ok(VolumeStream { info, orientation, kind: Kind::Whole(Box::new(v)), progress: None })
                     }
                 }
             }
@@ -301,7 +310,14 @@ impl VolumeStream {
             spacing: series.spacing,
             origin: series.origin,
         };
-        VolumeStream { info, kind: Kind::Dicom(Box::new(series)), progress: None }
+        let orientation = series.orientation;
+        VolumeStream { info, orientation, kind: Kind::Dicom(Box::new(series)), progress: None }
+    }
+
+    /// The patient orientation the source gives (NRRD `space`, NIfTI qform/sform, DICOM
+    /// ImageOrientationPatient), if any.
+    pub fn orientation(&self) -> Option<crate::Orientation> {
+        self.orientation
     }
 
     /// Reports every z-slice a pass has done to `f` (from the calling thread, in order; the last

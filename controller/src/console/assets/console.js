@@ -246,6 +246,9 @@ $("play").addEventListener("click", () => post("/api/time", { play: status && st
 $("orbit").addEventListener("click", () => post("/api/camera", { orbit: status && status.orbit.playing ? "pause" : "play" }));
 $("demo").addEventListener("click", () => post("/api/camera", { demo: status && status.demo.playing ? "stop" : "start" }));
 $("home").addEventListener("click", () => post("/api/camera", { reset: true, orbit: "pause", demo: "stop" }));
+for (const b of document.querySelectorAll("#views button[data-view]")) {
+  b.addEventListener("click", () => post("/api/camera", { view: b.dataset.view, orbit: "pause", demo: "stop" }));
+}
 
 // Drag on the wall to orbit, wheel to zoom.
 (function () {

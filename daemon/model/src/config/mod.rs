@@ -17,9 +17,13 @@
 //!                                 # present on that grid of the controller's clock
 //!
 //! [camera]      # the one wall camera, over the whole wall image (DESIGN.md "Camera")
-//! eye = [x, y, z]                 # optional: omitted -> a view that frames the volume
-//! target = [x, y, z]              # optional: default the volume's centre
-//! up = [0, 0, 1]                  # default +z
+//! eye = [x, y, z]                 # optional: omitted -> a view that frames the volume's
+//!                                 # surface at the iso (anterior for a scan with orientation)
+//! view = "anterior"               # optional, not with eye: anterior | posterior | left | right |
+//!                                 # superior | inferior (the patient's side; world axes as LPS
+//!                                 # where the file has no orientation); sets the up direction
+//! target = [x, y, z]              # optional: default the centre of what is framed
+//! up = [0, 0, 1]                  # default +z (with a view or an oriented scan: the view's)
 //! fov_y = 35.0                    # vertical, over the whole wall image, degrees (default 35)
 //!
 //! [volume]
@@ -72,7 +76,7 @@
 //! straight line stays straight across a mullion (DESIGN.md "Camera"). The model reads no files:
 //! [`WallConfig::parse`] takes the text; [`WallConfig::load`] is a thin helper that only reads it.
 
-use crate::camera::{Camera, Rect, View};
+use crate::camera::{Camera, Rect, View, ViewPreset};
 use crate::names::name_problem;
 use crate::render_state::{
     AoMethod, AoRadius, AoSequence, Denoise, IblMethod, RenderSettings, Shading, DEFAULT_EXPOSURE,
@@ -81,6 +85,7 @@ use glam::DVec3;
 use isowall_volume::io::{RawSpec, VoxelType};
 use isowall_volume::procedural::Procedural;
 use isowall_volume::source::SERIES_SELECTOR;
+use isowall_volume::Orientation;
 use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::ops::Range;
@@ -137,7 +142,7 @@ pub const GPU_BYTES_PER_TILE_PIXEL: u64 = 100;
 /// pixels): 8 GiB, about 86 million pixels (ten 3840x2160 tiles).
 pub const MAX_NODE_GPU_BYTES: u64 = 8 << 30;
 /// Default vertical field of view of the wall camera, degrees (that of [`Camera::framing`]).
-pub const DEFAULT_FOV_Y_DEG: f64 = 35.0;
+pub const DEFAULT_FOV_Y_DEG: f64 = crate::camera::DEFAULT_FOV_Y_DEG;
 /// Names a node may not have: its certificate files would clash with the CA's and the controller's.
 pub const RESERVED_NODE_NAMES: [&str; 2] = ["ca", "controller"];
 
@@ -275,6 +280,8 @@ fn default_message_limit_bytes() -> u64 {
 pub struct CameraConfig {
     /// `None`: a view that frames the volume (see [`WallConfig::camera_for`]).
     pub eye: Option<[f64; 3]>,
+    /// A named view (not with `eye`): the side of the patient the camera looks from.
+    pub view: Option<ViewPreset>,
     /// `None`: the volume's centre.
     pub target: Option<[f64; 3]>,
     pub up: [f64; 3],
@@ -284,7 +291,7 @@ pub struct CameraConfig {
 
 impl Default for CameraConfig {
     fn default() -> Self {
-        CameraConfig { eye: None, target: None, up: [0.0, 0.0, 1.0], fov_y: DEFAULT_FOV_Y_DEG }
+        CameraConfig { eye: None, view: None, target: None, up: [0.0, 0.0, 1.0], fov_y: DEFAULT_FOV_Y_DEG }
     }
 }
 
@@ -684,15 +691,37 @@ impl WallConfig {
     /// (the same direction, at the distance where the box fits with the configured target, up and
     /// field of view).
     pub fn camera_for(&self, box_min: DVec3, box_max: DVec3) -> Camera {
+        self.camera_framing((box_min, box_max), (box_min, box_max), None)
+    }
+
+    /// The configured wall camera with its defaults filled for a scene: `volume` the volume's
+    /// box, `fit` the box to frame (the object's at the iso, or the volume's), `orientation` the
+    /// volume's. Target: the configured one, else the centre of `fit`. Without `eye`: from the
+    /// configured `view`'s side with its up, else (an oriented scan) from the anterior, else with
+    /// the configured up from the three-quarter direction of [`Camera::framing`]
+    /// ([`crate::camera::default_side`]), at the distance where `fit` fits the whole wall image.
+    pub fn camera_framing(
+        &self,
+        volume: (DVec3, DVec3),
+        fit: (DVec3, DVec3),
+        orientation: Option<Orientation>,
+    ) -> Camera {
         let c = &self.camera;
-        let centre = 0.5 * (box_min + box_max);
-        let target = c.target.map(DVec3::from_array).unwrap_or(centre);
-        let up = DVec3::from_array(c.up);
+        let target = c.target.map(DVec3::from_array);
+        let configured_up = DVec3::from_array(c.up);
         match c.eye {
-            Some(eye) => Camera { eye: DVec3::from_array(eye), target, up, fov_y_deg: c.fov_y },
+            Some(eye) => Camera {
+                eye: DVec3::from_array(eye),
+                target: target.unwrap_or(0.5 * (volume.0 + volume.1)),
+                up: configured_up,
+                fov_y_deg: c.fov_y,
+            },
             None => {
                 let (w, h) = self.wall_size();
-                framing_with(box_min, box_max, target, up, c.fov_y, w.max(1), h.max(1))
+                let (side, view_up) = crate::camera::default_side(c.view, orientation);
+                let up = if c.view.is_some() || orientation.is_some() { view_up } else { configured_up };
+                let target = target.unwrap_or(0.5 * (fit.0 + fit.1));
+                Camera::framing_towards(fit.0, fit.1, target, side, up, c.fov_y, w.max(1), h.max(1))
             }
         }
     }
@@ -832,46 +861,4 @@ impl WallConfig {
         }
         s
     }
-}
-
-/// [`Camera::framing`]'s view direction, generalised to a given target, up and field of view:
-/// the distance where all eight corners fit a `width` x `height` image with a 5% margin, and the
-/// whole box stays in front of the eye. With the box centre, +z and 35 degrees it is
-/// `Camera::framing`.
-fn framing_with(
-    box_min: DVec3,
-    box_max: DVec3,
-    target: DVec3,
-    up: DVec3,
-    fov_y_deg: f64,
-    width: u32,
-    height: u32,
-) -> Camera {
-    let base = Camera::framing(box_min, box_max, width, height);
-    let forward = (base.target - base.eye).normalize();
-    let mut cam = Camera { eye: target - forward, target, up, fov_y_deg };
-    if cam.validate().is_err() {
-        // Up parallel to the framing direction, or a bad fov: give the camera as configured and
-        // let the caller's validation say what is wrong.
-        return cam;
-    }
-    let b = cam.basis();
-    let tan_y = 0.95 * b.tan_half_fov;
-    let tan_x = tan_y * width as f64 / height as f64;
-    let floor = crate::camera::framing_floor(box_min, box_max);
-    let mut dist: f64 = floor;
-    for i in 0..8 {
-        let c = DVec3::new(
-            if i & 1 == 0 { box_min.x } else { box_max.x },
-            if i & 2 == 0 { box_min.y } else { box_max.y },
-            if i & 4 == 0 { box_min.z } else { box_max.z },
-        ) - target;
-        let z = c.dot(b.forward);
-        dist = dist.max(c.dot(b.right).abs() / tan_x - z).max(c.dot(b.up).abs() / tan_y - z);
-    }
-    let centre = 0.5 * (box_min + box_max);
-    let reach = 0.5 * (box_max - box_min).length() + (target - centre).length();
-    dist = dist.max(1.01 * reach.max(floor));
-    cam.eye = target - dist * b.forward;
-    cam
 }

@@ -797,6 +797,42 @@ fn the_default_camera_frames_the_volume_over_the_whole_wall() {
 }
 
 #[test]
+fn a_camera_view_is_one_of_the_names_and_not_with_eye_or_another_up() {
+    let camera = |body: &str| format!("[camera]\n{body}\n\n{GOOD}");
+    let c = WallConfig::parse(&camera("view = \"superior\""), Path::new("w.toml")).unwrap();
+    assert_eq!(c.camera.view, Some(ViewPreset::Superior));
+    let ps = expect(&camera("view = \"front\""), Some(2), "unknown variant `front`");
+    assert!(ps[0].message.contains("`anterior`") && ps[0].message.contains("`inferior`"), "{ps:?}");
+    expect(&camera("eye = [1, 2, 3]\nview = \"left\""), Some(3), "`view` and `eye` both place the eye");
+    expect(&camera("view = \"left\"\nup = [0, 1, 0]"), Some(3), "`view` sets the up direction");
+    // The default up written out is no conflict.
+    WallConfig::parse(&camera("view = \"left\"\nup = [0, 0, 1]"), Path::new("w.toml")).unwrap();
+}
+
+#[test]
+fn the_default_camera_frames_the_object_box_from_the_view_or_the_orientation() {
+    use crate::PatientDir::*;
+    let mut c = example("local-2x2.toml");
+    let volume = (DVec3::ZERO, DVec3::new(255.0, 255.0, 117.0));
+    let fit = (DVec3::new(100.0, 80.0, 20.0), DVec3::new(150.0, 200.0, 90.0));
+    let (w, h) = c.wall_size();
+    // No view, no orientation: the three-quarter framing of the object's box.
+    let cam = c.camera_framing(volume, fit, None);
+    assert_eq!(cam, Camera::framing_view(fit, None, None, w, h));
+    // An oriented scan opens anterior, its superior up, whatever the configured up.
+    let ras = Orientation::new([Right, Anterior, Superior]).unwrap();
+    let cam = c.camera_framing(volume, fit, Some(ras));
+    assert_eq!(cam, Camera::framing_view(fit, Some(ViewPreset::Anterior), Some(ras), w, h));
+    assert!((cam.eye - cam.target).normalize().y > 0.999, "RAS anterior is +y: {cam:?}");
+    // A configured view; an explicit target is kept.
+    c.camera.view = Some(ViewPreset::Left);
+    c.camera.target = Some([120.0, 130.0, 50.0]);
+    let cam = c.camera_framing(volume, fit, None);
+    assert_eq!((cam.target, cam.up), (DVec3::new(120.0, 130.0, 50.0), DVec3::Z));
+    assert!((cam.eye - cam.target).normalize().x > 0.999, "left is +x without orientation: {cam:?}");
+}
+
+#[test]
 fn render_settings_take_the_render_defaults() {
     let c = WallConfig::parse(GOOD, Path::new("w.toml")).unwrap();
     assert_eq!(c.render_settings(2.0), RenderSettings::new(2.0));

@@ -90,6 +90,15 @@ pub(crate) fn validate_camera(doc: &mut Doc<'_>, c: &CameraConfig) {
             }
         }
     }
+    if c.view.is_some() && c.eye.is_some() {
+        doc.at(&at("view"), "camera: `view` and `eye` both place the eye: give one");
+    }
+    if c.view.is_some() && c.up != CameraConfig::default().up {
+        doc.at(
+            &at("up"),
+            "camera: `view` sets the up direction (superior, or anterior from above and below): drop `up`",
+        );
+    }
     if finite && DVec3::from_array(c.up).length() == 0.0 {
         doc.at(&at("up"), "camera: `up` is the zero vector");
         finite = false;

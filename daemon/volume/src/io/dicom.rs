@@ -14,7 +14,9 @@
 //! - x runs along the rows (the row direction), y down the columns, z along the normal; the
 //!   volume lives in that frame, so for the usual axial orientation (`1\0\0\0\1\0`) world
 //!   coordinates are the patient's (LPS) millimetres, and for any other orientation they are the
-//!   patient's rotated into the grid (Isowall's grids are axis-aligned);
+//!   patient's rotated into the grid (Isowall's grids are axis-aligned); the patient direction
+//!   each of x, y, z leans towards most (LPS) is kept as the volume's [`crate::Orientation`]
+//!   (none without ImageOrientationPatient, or for a grid 45 degrees off the patient's axes);
 //! - the spacing is PixelSpacing (0028,0030) (row spacing, then column spacing: y first) and the
 //!   step between slice positions (the median step, rounded to 1e-6); a series of one slice takes SpacingBetweenSlices (0018,0088),
 //!   SliceThickness (0018,0050) or 1;
@@ -37,7 +39,7 @@
 //! the slice's bytes. Partial reads ([`crate::region`]) decode only the slices of a region.
 
 use super::{format_err, Layout, VolumeLimit, VoxelType};
-use crate::{Volume, VolumeError};
+use crate::{Orientation, PatientFrame, Volume, VolumeError};
 use dicom_core::Tag;
 use dicom_dictionary_std::tags;
 use dicom_object::{InMemDicomObject, OpenFileOptions};
@@ -108,6 +110,8 @@ pub struct Series {
     pub dims: [usize; 3],
     pub spacing: DVec3,
     pub origin: DVec3,
+    /// The patient directions of x, y, z, where the files give ImageOrientationPatient.
+    pub orientation: Option<Orientation>,
     slices: Vec<Slice>,
 }
 
@@ -127,6 +131,8 @@ struct SliceHeader {
     modality: String,
     description: String,
     shape: Shape,
+    /// Whether ImageOrientationPatient is given (else rows along x, columns along y, unnamed).
+    oriented: bool,
     position: Option<DVec3>,
     thickness: Option<f64>,
     slope: f64,
@@ -236,10 +242,10 @@ fn slice_header(path: &Path, obj: &Header) -> Result<SliceHeader, VolumeError> {
             [1.0, 1.0]
         }
     };
-    let (row_dir, col_dir) =
+    let (row_dir, col_dir, oriented) =
         match floats(path, obj, tags::IMAGE_ORIENTATION_PATIENT, "ImageOrientationPatient", 6)? {
-            Some(v) => (DVec3::new(v[0], v[1], v[2]), DVec3::new(v[3], v[4], v[5])),
-            None => (DVec3::X, DVec3::Y),
+            Some(v) => (DVec3::new(v[0], v[1], v[2]), DVec3::new(v[3], v[4], v[5]), true),
+            None => (DVec3::X, DVec3::Y, false),
         };
     let (lr, lc) = (row_dir.length(), col_dir.length());
     if (lr - 1.0).abs() > 1e-3 || (lc - 1.0).abs() > 1e-3 {
@@ -280,6 +286,7 @@ fn slice_header(path: &Path, obj: &Header) -> Result<SliceHeader, VolumeError> {
             row_dir: row_dir / lr,
             col_dir: col_dir / lc,
         },
+        oriented,
         position,
         thickness,
         slope,
@@ -467,7 +474,21 @@ impl Series {
         // PixelSpacing is (between rows, between columns): y first.
         let spacing = DVec3::new(shape.pixel_spacing[1], shape.pixel_spacing[0], dz);
         let origin = DVec3::new(p0.dot(shape.row_dir), p0.dot(shape.col_dir), p0.dot(normal));
-        Ok(Series { name: path.to_path_buf(), uid, dims: [nx, ny, nz], spacing, origin, slices })
+        // x along the rows, y down the columns, z along the normal (slices in increasing depth).
+        let orientation = if first.oriented {
+            let o = Orientation::from_directions([shape.row_dir, shape.col_dir, normal], PatientFrame::Lps);
+            if o.is_none() {
+                tracing::warn!(
+                    "{}: ImageOrientationPatient turns the grid 45 degrees off the patient's axes: no \
+                     orientation is kept (views are named by the world axes)",
+                    first_path.display()
+                );
+            }
+            o
+        } else {
+            None
+        };
+        Ok(Series { name: path.to_path_buf(), uid, dims: [nx, ny, nz], spacing, origin, orientation, slices })
     }
 
     /// The files of the slices, in z order.
@@ -514,7 +535,8 @@ impl Series {
         for k in 0..nz {
             self.read_slice(k, &mut data)?;
         }
-        super::make_volume(&self.name, self.dims, self.spacing, self.origin, data)
+        Ok(super::make_volume(&self.name, self.dims, self.spacing, self.origin, data)?
+            .with_orientation(self.orientation))
     }
 }
 
@@ -783,6 +805,28 @@ mod tests {
             assert!((r.spacing() - v.spacing()).abs().max_element() < 1e-9, "{}", r.spacing());
             assert!((r.origin() - v.origin()).abs().max_element() < 1e-9, "{}", r.origin());
             assert_eq!(r.data(), v.data());
+        }
+    }
+
+    #[test]
+    fn image_orientation_names_the_patient_directions_of_the_axes() {
+        let v = ct_like([4, 3, 5]);
+        for (orientation, want) in [
+            // Axial: rows towards the patient's left, columns posterior, slices superior.
+            ([1.0, 0.0, 0.0, 0.0, 1.0, 0.0], Some("LPS")),
+            // Coronal: rows left, columns inferior, the normal (row x column) posterior.
+            ([1.0, 0.0, 0.0, 0.0, 0.0, -1.0], Some("LIP")),
+            // Sagittal, 37 degrees oblique: rows posterior, columns superior, the normal left.
+            ([0.0, 0.8, 0.6, 0.0, -0.6, 0.8], Some("PSL")),
+            // 45 degrees between left and posterior: no nearest axis.
+            ([0.5f64.sqrt(), 0.5f64.sqrt(), 0.0, -(0.5f64.sqrt()), 0.5f64.sqrt(), 0.0], None),
+        ] {
+            let dir = tempfile::tempdir().unwrap();
+            let writer = SeriesWriter { orientation, ..SeriesWriter::new("1.2.826.0.1.3680043.10.9") };
+            writer.write(&v, dir.path()).unwrap();
+            let read = read(dir.path(), None, &VolumeLimit::default()).unwrap();
+            assert_eq!(read.orientation().map(|o| o.code()).as_deref(), want, "{orientation:?}");
+            assert_eq!(read.data(), v.data(), "{orientation:?}: the grid is the written one");
         }
     }
 

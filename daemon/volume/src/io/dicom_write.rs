@@ -23,6 +23,9 @@ pub struct SeriesWriter {
     pub shift_per_slice: [f64; 2],
     /// First file name number (`slice_NNNN.dcm`).
     pub first_number: usize,
+    /// ImageOrientationPatient: the row and column directions (LPS); the volume's x, y and z
+    /// (their cross product) lie along them, so positions are `x row + y column + z normal`.
+    pub orientation: [f64; 6],
 }
 
 impl SeriesWriter {
@@ -34,6 +37,7 @@ impl SeriesWriter {
             z_positions: None,
             shift_per_slice: [0.0; 2],
             first_number: 0,
+            orientation: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0],
         }
     }
 
@@ -43,6 +47,9 @@ impl SeriesWriter {
         let [nx, ny, nz] = v.dims();
         let (s, o) = (v.spacing(), v.origin());
         let mut files = Vec::with_capacity(nz);
+        let [rx, ry, rz, cx, cy, cz] = self.orientation;
+        let (row, col) = (glam::DVec3::new(rx, ry, rz), glam::DVec3::new(cx, cy, cz));
+        let normal = row.cross(col);
         for k in 0..nz {
             let z = self.z_positions.as_ref().map_or(o.z + k as f64 * s.z, |p| p[k]);
             let shift = self.shift_per_slice.map(|d| d * k as f64);
@@ -72,16 +79,15 @@ impl SeriesWriter {
                 el(
                     tags::IMAGE_POSITION_PATIENT,
                     VR::DS,
-                    PrimitiveValue::Strs(
-                        [ds(o.x + shift[0]), ds(o.y + shift[1]), ds(z)].into_iter().collect(),
-                    ),
+                    PrimitiveValue::Strs({
+                        let p = (o.x + shift[0]) * row + (o.y + shift[1]) * col + z * normal;
+                        [ds(p.x), ds(p.y), ds(p.z)].into_iter().collect()
+                    }),
                 ),
                 el(
                     tags::IMAGE_ORIENTATION_PATIENT,
                     VR::DS,
-                    PrimitiveValue::Strs(
-                        ["1", "0", "0", "0", "1", "0"].map(String::from).into_iter().collect(),
-                    ),
+                    PrimitiveValue::Strs(self.orientation.map(ds).into_iter().collect()),
                 ),
                 el(tags::SLICE_THICKNESS, VR::DS, str_(&ds(s.z))),
                 el(tags::SAMPLES_PER_PIXEL, VR::US, PrimitiveValue::from(1u16)),

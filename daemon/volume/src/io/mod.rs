@@ -210,6 +210,15 @@ fn time_step(path: &Path, v: Volume, steps: usize, step: usize) -> Result<Volume
 
 /// Where the voxels of a file are, for partial reads ([`crate::region`]): raw files and NRRD
 /// (unless a `space directions` mirrors an axis). `None`: the format is read whole.
+/// The patient orientation of a file read by a [`plan`] (from its header): a NRRD's `space`;
+/// raw files have none.
+pub(crate) fn plan_orientation(path: &Path) -> Result<Option<crate::Orientation>, VolumeError> {
+    match FileFormat::of(path) {
+        FileFormat::Nrrd => nrrd::orientation(path),
+        _ => Ok(None),
+    }
+}
+
 pub(crate) fn plan(
     path: &Path,
     raw: Option<&RawSpec>,

@@ -17,8 +17,13 @@
 //! - origin `qoffset_x/y/z` when `qform_code` > 0, else the sform's translation when
 //!   `sform_code` > 0, else 0.
 //!
-//! Not supported: orientation. The grid is taken as axis-aligned, index axes along world x, y, z;
-//! a qform rotation, `qfac` or a rotating sform is ignored with a warning. Units (`xyzt_units`)
+//! - patient orientation from the same transform (qform first, as for the origin): the grid
+//!   stays axis-aligned, index axes along world x, y, z, and each axis is named by the RAS+
+//!   direction its rotated column leans towards most ([`crate::Orientation`]); a rotation of 45
+//!   degrees or more off the patient's axes keeps none (with a warning). Non-finite quaternion or
+//!   `srow_*` values of the transform in use are refused.
+//!
+//! Not resampled: a qform or sform rotation (warned about). Units (`xyzt_units`)
 //! are not converted. Refused with an error: Analyze 7.5 headers (no NIfTI magic), other
 //! datatypes (complex, RGB, 64-bit), dimensions past the 4th above 1, zero or non-finite spacing, a
 //! `vox_offset` inside the header.
@@ -27,7 +32,7 @@ use super::{
     check_raw_size, format_err, io_err, make_volume, open, read_data, read_full, read_voxels, DataSpec,
     Encoding, Files, Layout, Scale, VolumeLimit, VoxelType, MAX_VOXELS,
 };
-use crate::{Volume, VolumeError};
+use crate::{Orientation, PatientFrame, Volume, VolumeError};
 use glam::DVec3;
 use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
@@ -175,6 +180,8 @@ struct Header {
     len: usize,
     /// `dim[4]` of a 4-D file (1 otherwise); the steps are stacked along z in `layout`.
     time_steps: usize,
+    /// The patient directions of the grid axes, from the qform or sform.
+    orientation: Option<Orientation>,
 }
 
 /// A header's fields as both versions hold them (NIfTI-2 widens them to 64 bits).
@@ -398,30 +405,46 @@ impl Header {
             .then_some(Scale { slope, inter });
 
         let (qform_code, sform_code) = (f.qform_code, f.sform_code);
-        let origin = if qform_code > 0 {
-            let [b, c, d] = f.quatern;
-            let qfac = f.pixdim[0];
-            if b != 0.0 || c != 0.0 || d != 0.0 || qfac < 0.0 {
-                tracing::warn!(
-                    "{}: the qform rotates or flips the grid; Isowall ignores orientation and takes the axes as x, y, z",
-                    path.display()
-                );
-            }
-            DVec3::from_array(f.qoffset)
+        // The grid stays axis-aligned (index axes along world x, y, z); the rotation names the
+        // axes' patient directions ([`Orientation`], NIfTI's world is RAS+).
+        let (origin, columns) = if qform_code > 0 {
+            let columns = qform_columns(f.quatern, f.pixdim[0]).map_err(err)?;
+            (DVec3::from_array(f.qoffset), Some(columns))
         } else if sform_code > 0 {
             let [x, y, z] = f.srow;
-            let diagonal =
-                x[1] == 0.0 && x[2] == 0.0 && y[0] == 0.0 && y[2] == 0.0 && z[0] == 0.0 && z[1] == 0.0;
-            if !diagonal {
+            for (name, row) in [("srow_x", x), ("srow_y", y), ("srow_z", z)] {
+                if row.iter().any(|v| !v.is_finite()) {
+                    return Err(err(format!("{name} {row:?} is not finite (sform_code {sform_code})")));
+                }
+            }
+            let columns = [0, 1, 2].map(|c| DVec3::new(x[c], y[c], z[c]));
+            (DVec3::new(x[3], y[3], z[3]), Some(columns))
+        } else {
+            (DVec3::ZERO, None)
+        };
+        let orientation = columns.and_then(|columns| {
+            let o = Orientation::from_directions(columns, PatientFrame::Ras);
+            let axis_aligned = columns.iter().enumerate().all(|(a, c)| {
+                (0..3).filter(|&b| b != a).all(|b| c[b].abs() <= 1e-6 * c.length()) && c[a] > 0.0
+            });
+            if o.is_none() {
                 tracing::warn!(
-                    "{}: the sform rotates the grid; Isowall ignores orientation and takes the axes as x, y, z",
-                    path.display()
+                    "{}: the {} turns the grid's axes 45 degrees or more off the patient's: no orientation is \
+                     kept (views are named by the world axes)",
+                    path.display(),
+                    if qform_code > 0 { "qform" } else { "sform" }
+                );
+            } else if !axis_aligned {
+                tracing::warn!(
+                    "{}: the {} rotates or flips the grid; Isowall keeps the grid axis-aligned and names its \
+                     axes {} (the nearest patient directions)",
+                    path.display(),
+                    if qform_code > 0 { "qform" } else { "sform" },
+                    o.map(|o| o.code()).unwrap_or_default()
                 );
             }
-            DVec3::new(x[3], y[3], z[3])
-        } else {
-            DVec3::ZERO
-        };
+            o
+        });
         if !origin.is_finite() {
             return Err(err(format!("the origin ({}, {}, {}) is not finite", origin.x, origin.y, origin.z)));
         }
@@ -430,6 +453,7 @@ impl Header {
             layout,
             spacing,
             origin,
+            orientation,
             vox_offset: vox_offset as u64,
             scale,
             single_file,
@@ -439,8 +463,35 @@ impl Header {
     }
 
     fn volume(&self, path: &Path, data: Vec<f32>) -> Result<(Volume, usize), VolumeError> {
-        Ok((make_volume(path, self.layout.dims, self.spacing, self.origin, data)?, self.time_steps))
+        let volume = make_volume(path, self.layout.dims, self.spacing, self.origin, data)?
+            .with_orientation(self.orientation);
+        Ok((volume, self.time_steps))
     }
+}
+
+/// The qform's rotation as the world directions of the three grid axes (unit columns): the
+/// quaternion (b, c, d) with a = sqrt(1 - b^2 - c^2 - d^2), and the third column times `qfac`
+/// (`pixdim[0]`, -1 where negative, else 1). As the NIfTI reference does, a quaternion whose
+/// b^2 + c^2 + d^2 reaches 1 is normalised with a = 0.
+fn qform_columns(quatern: [f64; 3], qfac: f64) -> Result<[DVec3; 3], String> {
+    let [mut b, mut c, mut d] = quatern;
+    if !(b.is_finite() && c.is_finite() && d.is_finite()) {
+        return Err(format!("quatern_b/c/d ({b}, {c}, {d}) are not finite (qform_code > 0)"));
+    }
+    let sum = b * b + c * c + d * d;
+    let a = if 1.0 - sum < 1e-7 {
+        let n = sum.sqrt();
+        (b, c, d) = (b / n, c / n, d / n);
+        0.0
+    } else {
+        (1.0 - sum).sqrt()
+    };
+    let flip = if qfac < 0.0 { -1.0 } else { 1.0 };
+    Ok([
+        DVec3::new(a * a + b * b - c * c - d * d, 2.0 * (b * c + a * d), 2.0 * (b * d - a * c)),
+        DVec3::new(2.0 * (b * c - a * d), a * a + c * c - b * b - d * d, 2.0 * (c * d + a * b)),
+        flip * DVec3::new(2.0 * (b * d + a * c), 2.0 * (c * d - a * b), a * a + d * d - c * c - b * b),
+    ])
 }
 
 #[cfg(test)]
@@ -478,6 +529,7 @@ mod tests {
         inter: f32,
         qform_code: i16,
         sform_code: i16,
+        quatern: [f32; 3],
         qoffset: [f32; 3],
         srow: [[f32; 4]; 3],
         magic: &'static [u8; 4],
@@ -495,6 +547,7 @@ mod tests {
             inter: 0.0,
             qform_code: 0,
             sform_code: 0,
+            quatern: [0.0; 3],
             qoffset: [0.0; 3],
             srow: [[0.0; 4]; 3],
             magic: b"n+1\0",
@@ -525,6 +578,9 @@ mod tests {
         put(116, &f.inter.to_le_bytes());
         put(252, &f.qform_code.to_le_bytes());
         put(254, &f.sform_code.to_le_bytes());
+        for (i, q) in f.quatern.iter().enumerate() {
+            put(256 + 4 * i, &q.to_le_bytes());
+        }
         for (i, q) in f.qoffset.iter().enumerate() {
             put(268 + 4 * i, &q.to_le_bytes());
         }
@@ -606,6 +662,54 @@ mod tests {
         };
         fs::write(&p, nii(&f, &raw)).unwrap();
         check(&load(&p, None).unwrap(), DIMS, SPACING, DVec3::new(1.0, 2.0, 3.0), &vals);
+    }
+
+    #[test]
+    fn qform_and_sform_name_the_patient_directions_of_the_axes() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("o.nii");
+        let vals = values(VoxelType::U8, 24);
+        let raw = encode(&vals, VoxelType::U8, false);
+        let base = fields(VoxelType::U8, false);
+        let code = |f: &Fields| {
+            fs::write(&p, nii(f, &raw)).unwrap();
+            load(&p, None).unwrap().orientation().map(|o| o.code())
+        };
+        let h = std::f32::consts::FRAC_1_SQRT_2;
+        for (quatern, qfac, want) in [
+            ([0.0, 0.0, 0.0], 1.0, "RAS"),
+            // qfac -1 flips the third axis.
+            ([0.0, 0.0, 0.0], -1.0, "RAI"),
+            // 180 degrees about z: x left, y posterior (a = 0, b^2 + c^2 + d^2 = 1).
+            ([0.0, 0.0, 1.0], 1.0, "LPS"),
+            // 90 degrees about x: y superior, z posterior (a coronal grid).
+            ([h, 0.0, 0.0], 1.0, "RSP"),
+        ] {
+            let mut pixdim = base.pixdim;
+            pixdim[0] = qfac;
+            let f = Fields { qform_code: 1, quatern, pixdim, ..base.clone() };
+            assert_eq!(code(&f).as_deref(), Some(want), "quatern {quatern:?} qfac {qfac}");
+        }
+        // The sform when there is no qform: columns x anterior, y left, z inferior.
+        let srow = [[0.0, -2.0, 0.0, 1.0], [0.5, 0.0, 0.0, 2.0], [0.0, 0.0, -1.25, 3.0]];
+        assert_eq!(code(&Fields { sform_code: 1, srow, ..base.clone() }).as_deref(), Some("ALI"));
+        // 45 degrees about z: no nearest patient axis, no orientation; neither code: none.
+        let f = Fields {
+            qform_code: 1,
+            quatern: [0.0, 0.0, (0.125f32 * std::f32::consts::PI).sin()],
+            ..base.clone()
+        };
+        assert_eq!(code(&f), None);
+        assert_eq!(code(&base), None);
+        // Hostile values of the transform in use are refused, naming the field.
+        let f = Fields { qform_code: 1, quatern: [f32::NAN, 0.0, 0.0], ..base.clone() };
+        let m = error_of(dir.path(), "q.nii", &nii(&f, &raw)).to_string();
+        assert!(m.contains("quatern_b/c/d") && m.contains("not finite"), "{m}");
+        let mut srow = srow;
+        srow[1][1] = f32::INFINITY;
+        let m =
+            error_of(dir.path(), "s.nii", &nii(&Fields { sform_code: 1, srow, ..base }, &raw)).to_string();
+        assert!(m.contains("srow_y") && m.contains("not finite"), "{m}");
     }
 
     fn error_of(dir: &Path, name: &str, bytes: &[u8]) -> VolumeError {

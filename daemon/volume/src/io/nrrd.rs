@@ -13,8 +13,12 @@
 //! - geometry from `spacings`, or from `space directions` lying along the world axes (a negative
 //!   direction mirrors the data, so every sample keeps its world position), and `space origin`;
 //!   neither gives spacing 1 (with a warning); the origin defaults to 0;
+//! - patient orientation from `space` (`right-anterior-superior`, `left-posterior-superior`,
+//!   `RAS`, `LPS`, ...): the world axes are the space's (a mirrored direction keeps them), so
+//!   `space` names them ([`crate::Orientation`]); `scanner-xyz` and `3D-*-handed` have none, an
+//!   unknown space is refused;
 //! - comments, `key:=value` pairs, CRLF line endings; fields Isowall does not use (`content`,
-//!   `kinds`, `centers`, `axis mins`, `labels`, `units`, `space`, `measurement frame`, ...) are
+//!   `kinds`, `centers`, `axis mins`, `labels`, `units`, `measurement frame`, ...) are
 //!   ignored, unknown fields warned about and ignored;
 //! - `dimension: 4`: a series of 3-D time steps along the 4th (slowest) axis; the per-axis fields
 //!   have a 4th entry, which is ignored (`spacings ... nan`, `space directions ... none`); the
@@ -29,7 +33,7 @@ use super::{
     data_file_path, dims3, format_err, make_volume, open, skip_lines, spacing3, vec3, AxisSteps, DataSpec,
     Encoding, Files, HeaderLines, Layout, VolumeLimit, VoxelType,
 };
-use crate::{Volume, VolumeError};
+use crate::{Orientation, PatientDir, Volume, VolumeError};
 use glam::DVec3;
 use std::collections::HashMap;
 use std::io::BufRead;
@@ -84,7 +88,8 @@ pub(crate) fn read(path: &Path, limit: &VolumeLimit) -> Result<(Volume, usize), 
         Some(steps) => (steps.spacing(), steps.apply(origin, header.dims, &mut data)),
         None => (header.spacings.unwrap_or(DVec3::ONE), origin),
     };
-    Ok((make_volume(path, header.dims, spacing, origin, data)?, header.time_steps))
+    let volume = make_volume(path, header.dims, spacing, origin, data)?.with_orientation(header.orientation);
+    Ok((volume, header.time_steps))
 }
 
 /// The number of time steps of the NRRD file at `path` (its header only).
@@ -92,6 +97,13 @@ pub(crate) fn time_steps(path: &Path) -> Result<usize, VolumeError> {
     let (r, _) = open(path)?;
     let mut lines = HeaderLines::new(r, path, "NRRD");
     Ok(Header::read(path, &mut lines)?.time_steps)
+}
+
+/// The patient orientation of the NRRD file at `path` (its header only), from `space`.
+pub(crate) fn orientation(path: &Path) -> Result<Option<Orientation>, VolumeError> {
+    let (r, _) = open(path)?;
+    let mut lines = HeaderLines::new(r, path, "NRRD");
+    Ok(Header::read(path, &mut lines)?.orientation)
 }
 
 /// Where the voxels of the NRRD file at `path` are, for partial reads; `None` where a `space
@@ -185,6 +197,8 @@ struct Header {
     blank_line: bool,
     /// The 4th size of a 4-D file (1 otherwise); the steps are stacked along z in `dims`.
     time_steps: usize,
+    /// The patient directions of the world axes, from `space`.
+    orientation: Option<Orientation>,
 }
 
 /// Fields Isowall reads or knowingly ignores, with their alternative spellings.
@@ -198,6 +212,7 @@ const FIELDS: &[(&str, &[&str])] = &[
     ("space directions", &[]),
     ("space origin", &[]),
     ("space dimension", &[]),
+    ("space", &[]),
     ("data file", &["datafile"]),
     ("line skip", &["lineskip"]),
     ("byte skip", &["byteskip"]),
@@ -216,7 +231,6 @@ const FIELDS: &[(&str, &[&str])] = &[
     ("units", &[]),
     ("kinds", &[]),
     ("thicknesses", &[]),
-    ("space", &[]),
     ("space units", &[]),
     ("measurement frame", &[]),
     ("sample units", &["sampleunits"]),
@@ -360,6 +374,10 @@ impl Header {
         if spacings.is_none() && steps.is_none() {
             tracing::warn!("{}: no 'spacings' or 'space directions': assuming spacing 1", path.display());
         }
+        let orientation = match get("space") {
+            Some((n, name)) => space_orientation(name).map_err(|e| err(n, e))?,
+            None => None,
+        };
         let origin = match get("space origin") {
             Some((n, o)) => Some(vector(o).and_then(|v| vec3("space origin", &v)).map_err(|e| err(n, e))?),
             None => None,
@@ -412,6 +430,7 @@ impl Header {
             byte_skip,
             blank_line,
             time_steps,
+            orientation,
         })
     }
 }
@@ -468,6 +487,30 @@ fn vector(s: &str) -> Result<String, String> {
         Some(inner) if !inner.contains(['(', ')']) => Ok(inner.to_string()),
         _ => Err(format!("expected a vector '(x,y,z)', got '{s}'")),
     }
+}
+
+/// `space`: the patient directions of the space's axes, which are the world axes (`space
+/// directions` must lie along them, a negative one mirrors the data, so +x, +y, +z stay the
+/// space's). `None` for the spaces without anatomy (`scanner-xyz`, `3D-right-handed`,
+/// `3D-left-handed`); a `-time` space's first three axes are its spatial ones.
+fn space_orientation(value: &str) -> Result<Option<Orientation>, String> {
+    use PatientDir::*;
+    let name = value.trim().to_ascii_lowercase();
+    let spatial = name.strip_suffix("-time").unwrap_or(&name);
+    let axes = match spatial {
+        "right-anterior-superior" | "ras" | "rast" => [Right, Anterior, Superior],
+        "left-anterior-superior" | "las" | "last" => [Left, Anterior, Superior],
+        "left-posterior-superior" | "lps" | "lpst" => [Left, Posterior, Superior],
+        "scanner-xyz" | "3d-right-handed" | "3d-left-handed" => return Ok(None),
+        _ => {
+            return Err(format!(
+                "space: '{value}' is not a NRRD space (right-anterior-superior, left-anterior-superior, \
+                 left-posterior-superior, their -time forms, RAS, LAS, LPS, RAST, LAST, LPST, scanner-xyz, \
+                 3D-right-handed, 3D-left-handed)"
+            ))
+        }
+    };
+    Ok(Orientation::new(axes))
 }
 
 /// `space directions`: three vectors `(x,y,z)`, each along its own world axis.
@@ -673,6 +716,43 @@ mod tests {
         let crlf = header("short", false, "raw", "\n").replace('\n', "\r\n");
         write(&p, &crlf, &raw);
         check(&load(&p, None).unwrap(), DIMS, spacing, DVec3::ZERO, &vals);
+    }
+
+    #[test]
+    fn space_names_the_patient_directions_of_the_world_axes() {
+        let dir = tempfile::tempdir().unwrap();
+        let vals: Vec<f64> = (0..24).map(|v| v as f64).collect();
+        let raw = encode(&vals, VoxelType::F32, false);
+        let p = dir.path().join("oriented.nrrd");
+        let with = |space: &str, geometry: &str| {
+            format!(
+                "NRRD0005\ntype: float\ndimension: 3\nspace: {space}\nsizes: 4 3 2\n{geometry}\n\
+                 endian: little\nencoding: raw\n\n"
+            )
+        };
+        let axial = "space directions: (0.5,0,0) (0,1,0) (0,0,2)";
+        // A mirrored direction keeps the world axes the space's: the orientation is the space's.
+        let mirrored = "space directions: (-0.5,0,0) (0,1,0) (0,0,-2)";
+        for (space, geometry, code) in [
+            ("left-posterior-superior", axial, Some("LPS")),
+            ("LPS", mirrored, Some("LPS")),
+            ("right-anterior-superior", axial, Some("RAS")),
+            ("RAS", "spacings: 1 1 1", Some("RAS")),
+            ("left-anterior-superior", mirrored, Some("LAS")),
+            ("scanner-xyz", axial, None),
+            ("3D-right-handed", axial, None),
+        ] {
+            write(&p, &with(space, geometry), &raw);
+            let v = load(&p, None).unwrap();
+            assert_eq!(v.orientation().map(|o| o.code()).as_deref(), code, "space {space}");
+        }
+        write(&p, &header("float", false, "raw", "\n"), &raw);
+        assert_eq!(load(&p, None).unwrap().orientation(), None, "no space, no orientation");
+        let m = error_of(dir.path(), "bogus.nrrd", &with("sideways", axial), &raw);
+        assert!(
+            m.contains("bogus.nrrd") && m.contains("line 4: space: 'sideways' is not a NRRD space"),
+            "{m}"
+        );
     }
 
     #[test]
