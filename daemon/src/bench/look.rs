@@ -70,7 +70,7 @@ pub struct LookArgs {
     /// Override the exposure
     #[arg(long, value_name = "X")]
     pub exposure: Option<f64>,
-    /// Turn the default camera by this many degrees about the world's up axis through its target
+    /// Turn the default camera (`isowalld render`'s) by this many degrees about the world's up axis through its target
     #[arg(long, value_name = "DEG", default_value_t = 0.0, allow_negative_numbers = true)]
     pub yaw: f64,
     /// Write each render as DIR/look-SCENE-IBL[-before].png
@@ -201,7 +201,10 @@ pub fn run(a: &LookArgs) -> Result<()> {
         let file = scene_file(spec).map_err(|e| anyhow!("{e}"))?;
         let (volume, iso) = load_volume(Some(&file), None, iso)?;
         let gv = gpu.upload(&volume)?;
-        let view = View::whole(Camera::framing(volume.box_min(), volume.box_max(), w, h).yawed(a.yaw), w, h);
+        // The default camera of `isowalld render`: the surface's box, the orientation's side.
+        let fit = crate::render::object_box(&volume, iso);
+        let camera = Camera::framing_view(fit, None, volume.orientation(), w, h).yawed(a.yaw);
+        let view = View::whole(camera, w, h);
         let spacing = volume.spacing().max_element();
         let key = super::stats::scene_key(spec);
         for &method in &methods {
