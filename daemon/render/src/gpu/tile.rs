@@ -140,7 +140,7 @@ impl ShownImages {
             gpu.ctx.validated("tile images", || [0; IMAGES].map(|_| TileImage::new(gpu, name, size)))?;
         Ok(ShownImages {
             name: name.to_string(),
-            id: super::next_resource_id(),
+            id: super::resources::next_resource_id(),
             size,
             images,
             latest: 0,
@@ -346,7 +346,7 @@ impl TileTarget {
                 });
             TileTarget {
                 name: name.to_string(),
-                id: super::next_resource_id(),
+                id: super::resources::next_resource_id(),
                 size,
                 scale,
                 guard,
