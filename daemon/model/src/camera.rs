@@ -154,12 +154,8 @@ impl Camera {
         // |x| / (dist + z) <= tan_x and |y| / (dist + z) <= tan_y.
         let floor = framing_floor(box_min, box_max);
         let mut dist: f64 = floor;
-        for i in 0..8 {
-            let c = DVec3::new(
-                if i & 1 == 0 { box_min.x } else { box_max.x },
-                if i & 2 == 0 { box_min.y } else { box_max.y },
-                if i & 4 == 0 { box_min.z } else { box_max.z },
-            ) - target;
+        for corner in corners(box_min, box_max) {
+            let c = corner - target;
             let z = c.dot(b.forward);
             dist = dist.max(c.dot(b.right).abs() / tan_x - z).max(c.dot(b.up).abs() / tan_y - z);
         }
@@ -309,6 +305,17 @@ impl std::str::FromStr for ViewPreset {
     fn from_str(s: &str) -> Result<ViewPreset, UnknownView> {
         ViewPreset::ALL.into_iter().find(|v| v.name() == s).ok_or_else(|| UnknownView(s.to_string()))
     }
+}
+
+/// The eight corners of the axis-aligned box `[lo, hi]`.
+pub fn corners(lo: DVec3, hi: DVec3) -> [DVec3; 8] {
+    std::array::from_fn(|i| {
+        DVec3::new(
+            if i & 1 == 0 { lo.x } else { hi.x },
+            if i & 2 == 0 { lo.y } else { hi.y },
+            if i & 4 == 0 { lo.z } else { hi.z },
+        )
+    })
 }
 
 /// A rectangle of pixels inside the full image: `x, y` its top-left pixel, `width x height` its size.
@@ -474,12 +481,7 @@ mod tests {
             cam.validate().unwrap();
             let b = cam.basis();
             let tan_x = b.tan_half_fov * w as f64 / h as f64;
-            for i in 0..8 {
-                let c = DVec3::new(
-                    if i & 1 == 0 { lo.x } else { hi.x },
-                    if i & 2 == 0 { lo.y } else { hi.y },
-                    if i & 4 == 0 { lo.z } else { hi.z },
-                );
+            for c in corners(lo, hi) {
                 let v = c - cam.eye;
                 let z = v.dot(b.forward);
                 assert!(z > 0.0);
@@ -556,12 +558,7 @@ mod tests {
             let b = cam.basis();
             let tan_x = b.tan_half_fov * w as f64 / h as f64;
             let mut m: f64 = 0.0;
-            for i in 0..8 {
-                let c = DVec3::new(
-                    if i & 1 == 0 { lo.x } else { hi.x },
-                    if i & 2 == 0 { lo.y } else { hi.y },
-                    if i & 4 == 0 { lo.z } else { hi.z },
-                );
+            for c in corners(lo, hi) {
                 let v = c - cam.eye;
                 let z = v.dot(b.forward);
                 m = m.max(v.dot(b.right).abs() / z / tan_x).max(v.dot(b.up).abs() / z / b.tan_half_fov);

@@ -773,12 +773,7 @@ fn the_default_camera_frames_the_volume_over_the_whole_wall() {
     let (w, h) = c3.wall_size();
     let b = cam.basis();
     let tan_x = b.tan_half_fov * w as f64 / h as f64;
-    for i in 0..8 {
-        let corner = DVec3::new(
-            if i & 1 == 0 { lo.x } else { hi.x },
-            if i & 2 == 0 { lo.y } else { hi.y },
-            if i & 4 == 0 { lo.z } else { hi.z },
-        );
+    for corner in crate::camera::corners(lo, hi) {
         let v = corner - cam.eye;
         let z = v.dot(b.forward);
         assert!(z > 0.0 && v.dot(b.right).abs() / z <= tan_x && v.dot(b.up).abs() / z <= b.tan_half_fov);
