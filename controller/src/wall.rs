@@ -679,6 +679,25 @@ impl Wall {
     }
 
     /// Whether `node` is connected (it takes part in the next frame).
+    /// The version and GPU `node` last told (`Message::NodeInfo`).
+    pub fn node_info(&self, node: &str) -> Option<&isowall_model::messages::NodeInfo> {
+        self.machine.node_info(node)
+    }
+
+    /// Asks `node` over its connection to restart (`Message::Restart`): it exits for its
+    /// supervisor (systemd) to start it again, and rejoins as any node that comes back. Fails
+    /// when the node is not connected.
+    pub async fn restart(&mut self, node: &str, reason: &str) -> Result<()> {
+        if !self.senders.contains_key(node) {
+            bail!("node {node} is not connected: nothing to ask it (restart it on its machine)");
+        }
+        let reason: String = reason.chars().take(isowall_model::messages::MAX_RESTART_REASON_CHARS).collect();
+        tracing::info!(%node, %reason, "asking the node to restart");
+        let message = Message::Restart { reason };
+        self.execute(vec![ControllerOutput::Send { node: node.to_string(), message }]).await;
+        Ok(())
+    }
+
     pub fn is_up(&self, node: &str) -> bool {
         self.senders.contains_key(node)
     }

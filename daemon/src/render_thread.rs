@@ -260,6 +260,29 @@ struct RenderLoop {
 pub struct TileRenderer {
     handle: RenderHandle,
     thread: Option<std::thread::JoinHandle<()>>,
+    /// The GPU the render thread opened, as the node tells the controller.
+    pub gpu: GpuInfo,
+}
+
+/// The GPU adapter the render thread opened (from wgpu's `AdapterInfo`, as text: no wgpu type
+/// leaves the render thread).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct GpuInfo {
+    pub adapter: String,
+    pub backend: String,
+    pub driver: String,
+    pub driver_info: String,
+}
+
+impl GpuInfo {
+    fn of(info: &wgpu::AdapterInfo) -> GpuInfo {
+        GpuInfo {
+            adapter: info.name.clone(),
+            backend: format!("{:?}", info.backend),
+            driver: info.driver.clone(),
+            driver_info: info.driver_info.clone(),
+        }
+    }
 }
 
 /// Sends jobs to the render thread (cloneable: the network and the window event loop hold one
@@ -280,7 +303,7 @@ impl TileRenderer {
         steps: Option<TimeSteps>,
     ) -> Result<TileRenderer> {
         let (jobs, rx) = mpsc::channel::<Job>();
-        let (ready_tx, ready_rx) = mpsc::channel::<Result<String, String>>();
+        let (ready_tx, ready_rx) = mpsc::channel::<Result<GpuInfo, String>>();
         let thread = std::thread::Builder::new()
             .name("render".into())
             .spawn(move || {
@@ -303,7 +326,7 @@ impl TileRenderer {
                 })();
                 let (gpu, first, genv) = match setup {
                     Ok(s) => {
-                        let _ = ready_tx.send(Ok(s.0.adapter_name().to_string()));
+                        let _ = ready_tx.send(Ok(GpuInfo::of(s.0.adapter_info())));
                         s
                     }
                     Err(e) => {
@@ -389,9 +412,9 @@ impl TileRenderer {
             })
             .context("cannot start the render thread")?;
         match ready_rx.recv() {
-            Ok(Ok(adapter)) => {
-                tracing::info!(%adapter, "render thread ready");
-                Ok(TileRenderer { handle: RenderHandle { jobs }, thread: Some(thread) })
+            Ok(Ok(gpu)) => {
+                tracing::info!(adapter = %gpu.adapter, backend = %gpu.backend, driver = %gpu.driver, "render thread ready");
+                Ok(TileRenderer { handle: RenderHandle { jobs }, thread: Some(thread), gpu })
             }
             Ok(Err(e)) => anyhow::bail!("GPU set-up failed: {e}"),
             Err(_) => anyhow::bail!("the render thread ended during set-up"),
@@ -405,7 +428,7 @@ impl TileRenderer {
     /// Waits for the render thread to end (once every other [`RenderHandle`] is dropped): its
     /// window surfaces go before the windows do.
     pub fn join(self) {
-        let TileRenderer { handle, thread } = self;
+        let TileRenderer { handle, thread, .. } = self;
         drop(handle);
         if let Some(t) = thread {
             let _ = t.join();
