@@ -143,6 +143,7 @@ fn drive(machine: &mut NodeMachine, t: Duration, outputs: Vec<NodeOutput>) {
             | NodeOutput::SnapshotWanted
             | NodeOutput::ThumbnailWanted { .. }
             | NodeOutput::Closed { .. }
+            | NodeOutput::Restart { .. }
             | NodeOutput::Bricks { .. }
             | NodeOutput::LoadBrick { .. } => {}
         }
