@@ -47,6 +47,9 @@ pub struct TileJob {
     pub share: Option<PixelForm>,
     /// The frame's time step (a time-varying volume; taken modulo its step count).
     pub time_step: u32,
+    /// The node's name where the operator asked the tiles to identify themselves: each tile's
+    /// image shows it and the tile's name in its top-left corner (screen space).
+    pub identify: Option<String>,
 }
 
 /// A tile's image of a frame: 8-bit sRGB, rows top to bottom. Where the frame stayed on the GPU
@@ -235,6 +238,8 @@ const READ_SLOTS: usize = 8;
 /// The render thread's state between jobs.
 struct RenderLoop {
     gpu: GpuRenderer,
+    /// Identify labels drawn: (text, the tile's size, the label), one per tile.
+    labels: Vec<(String, (u32, u32), (u32, u32, Vec<u8>))>,
     /// By brick index (0: the whole volume in screen space).
     volumes: Vec<(usize, isowall_render::gpu::GpuVolume)>,
     env: Option<isowall_render::gpu::GpuEnvironment>,
@@ -341,6 +346,7 @@ impl TileRenderer {
                 drop(volume);
                 let mut r = RenderLoop {
                     gpu,
+                    labels: Vec::new(),
                     volumes: vec![(index, first)],
                     env: genv,
                     targets: Vec::new(),
@@ -749,6 +755,21 @@ impl RenderLoop {
             self.gpu
                 .render_tile(&mut self.targets[k], &frame, &mut self.ring)
                 .map_err(|e| format!("tile {name}: {e}"))?;
+            if let Some(node) = job.identify.as_ref().filter(|_| !object_space) {
+                let text = format!("{node} {name}");
+                let max = (view.rect.width, view.rect.height);
+                if !self.labels.iter().any(|(t, m, _)| *t == text && *m == max) {
+                    self.labels.retain(|(t, _, _)| !t.ends_with(&format!(" {name}")));
+                    self.labels.push((text.clone(), max, crate::identify::label(&text, max)));
+                }
+                if let Some((_, _, (w, h, rgba))) =
+                    self.labels.iter().find(|(t, m, _)| *t == text && *m == max)
+                {
+                    self.gpu
+                        .stamp(&self.targets[k], rgba, (*w, *h))
+                        .map_err(|e| format!("tile {name}: {e}"))?;
+                }
+            }
         }
         Ok(())
     }
@@ -1000,6 +1021,7 @@ mod tests {
             scale,
             share: read_pixels.then_some(PixelForm::Colour),
             time_step: 0,
+            identify: None,
         };
         r.handle().submit(job).unwrap();
         let result = rx.blocking_recv().unwrap().unwrap();

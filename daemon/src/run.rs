@@ -75,6 +75,8 @@ struct Node {
     render_dead: bool,
     /// The controller asked the node to restart (`Message::Restart`), and why.
     restart: Option<String>,
+    /// The operator asked the tiles to show their names (`Message::Identify`).
+    identify: bool,
     /// What the node tells the controller after its Hello: its version and GPU.
     info: isowall_model::messages::NodeInfo,
     /// Which controller drives the node: one at a time (the model's rule).
@@ -241,6 +243,7 @@ pub fn run(a: &RunArgs) -> Result<()> {
         slow: std::time::Duration::from_millis(a.slow_ms),
         render_dead: false,
         restart: None,
+        identify: false,
         info: isowall_model::messages::NodeInfo {
             version: env!("CARGO_PKG_VERSION").to_string(),
             adapter: renderer.gpu.adapter.clone(),
@@ -545,6 +548,7 @@ async fn serve_seated(
     crate::notify::status(&format!("serving the controller at {remote}"));
     let Channel { connection, mut sender, mut receiver } = channel;
     let mut machine = NodeMachine::new(node.name.clone(), node.tiles.clone());
+    node.identify = false;
     node.pending = None;
     node.presenting.clear();
     if let Some(o) = node.object.as_mut() {
@@ -888,6 +892,7 @@ async fn execute(
                     // object space: the shares travel to the tiles' owners.
                     share: node.object.as_ref().map(|o| o.form()),
                     time_step: spec.time_step,
+                    identify: node.identify.then(|| node.name.clone()),
                 }) {
                     tracing::error!("{e}");
                     node.render_dead = true;
@@ -960,6 +965,17 @@ async fn execute(
                     sender.send(&Message::BrickFailed { brick, reason }).await?;
                 }
             },
+            NodeOutput::Identify { on } => {
+                tracing::info!(
+                    on,
+                    "identify: the tiles {} their names",
+                    if on { "show" } else { "no longer show" }
+                );
+                if on && node.object.is_some() {
+                    tracing::warn!("identify: object space tiles are composited elsewhere; only screen space shows names");
+                }
+                node.identify = on;
+            }
             NodeOutput::Restart { reason } => {
                 node.restart = Some(reason.clone());
                 return Err(NetError::Connection { peer: "controller".into(), reason });

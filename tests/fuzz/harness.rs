@@ -144,6 +144,7 @@ fn drive(machine: &mut NodeMachine, t: Duration, outputs: Vec<NodeOutput>) {
             | NodeOutput::ThumbnailWanted { .. }
             | NodeOutput::Closed { .. }
             | NodeOutput::Restart { .. }
+            | NodeOutput::Identify { .. }
             | NodeOutput::Bricks { .. }
             | NodeOutput::LoadBrick { .. } => {}
         }

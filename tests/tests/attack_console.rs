@@ -577,6 +577,7 @@ fn the_operator_lock_refuses_every_other_clients_change_and_reads_stay_open() {
         ("/api/bookmarks/recall", r#"{"name": "stolen"}"#),
         ("/api/bookmarks/delete", r#"{"name": "stolen"}"#),
         ("/api/nodes/node0/restart", "{}"),
+        ("/api/identify", r#"{"on": true}"#),
     ];
     let forged = "0".repeat(32);
     for (path, body) in changes {
@@ -592,7 +593,7 @@ fn the_operator_lock_refuses_every_other_clients_change_and_reads_stay_open() {
             assert!(j["error"].as_str().unwrap().contains("locked by `alice`"), "{j}");
         }
     }
-    eprintln!("another client's 27 changes while alice holds the lock: all 423");
+    eprintln!("another client's 30 changes while alice holds the lock: all 423");
     // Reads stay open.
     let a = agent(Duration::from_secs(20));
     for path in ["/api/status", "/api/bookmarks", "/api/nodes/node0/log", "/api/snapshot.png?width=32"] {
@@ -604,6 +605,7 @@ fn the_operator_lock_refuses_every_other_clients_change_and_reads_stay_open() {
     assert_eq!((&after["render"], &after["camera"]), (&before["render"], &before["camera"]));
     assert!(w.nodes.iter().all(|n| n.restarts.lock().unwrap().is_empty()));
     assert!(!w.dir.path().join("console-attack.bookmarks.toml").exists());
+    assert_eq!(after["wall"]["identify"], false);
     // The holder's own changes go ahead.
     let mine = [("X-Isowall-Lock", id.as_str())];
     assert_eq!(con.post(&alice, "/api/render", r#"{"exposure": 0.5}"#, &mine).status, 200);

@@ -15,7 +15,9 @@
 //! as text (a `<script>` line in the log stays text); camera bookmarks are saved, recalled and
 //! deleted from the page (the file beside the config), a malformed file is named at its line;
 //! the operator lock taken in the page refuses another client's change with 423 until released;
-//! the restart button restarts a local node (a new process) and its card comes back up.
+//! the identify button makes the screen show its node's and tile's name (its snapshot's corner)
+//! and takes it away again; the restart button restarts a local node (a new process) and its
+//! card comes back up.
 //!
 //! The browser test also prints what the page costs (run it with `--nocapture`): the thumbnail's
 //! latency (swap released -> painted in the page), fps without and with the page open, and the
@@ -1061,6 +1063,52 @@ async fn the_page_shows_each_nodes_gpu_and_log_and_drives_bookmarks_the_lock_and
     )
     .await;
     assert_eq!(con.post("/api/render", "{\"exposure\": 0.5}").status, 200);
+
+    // Identify: the screen shows its node's and tile's name in its top-left corner (in the
+    // snapshot, which is what the screen shows); off again, the corner is the picture's again.
+    let corner = |img: &image::RgbImage| -> Vec<u8> {
+        let (w, h) = (img.width().min(32), img.height().min(24));
+        (0..h).flat_map(|y| (0..w).flat_map(move |x| img.get_pixel(x, y).0)).collect()
+    };
+    let mean_diff = |a: &[u8], b: &[u8]| {
+        a.iter().zip(b).map(|(x, y)| f64::from(x.abs_diff(*y))).sum::<f64>() / a.len().max(1) as f64
+    };
+    let shot = |con: &std::sync::Arc<Console>| {
+        let con = con.clone();
+        async move { tokio::task::spawn_blocking(move || snapshot(&con)).await.unwrap() }
+    };
+    let before = shot(&con).await;
+    page.find(fantoccini::Locator::Id("identify")).await.unwrap().click().await.unwrap();
+    until(
+        &page,
+        "document.getElementById('identify').textContent === 'stop identifying'",
+        Duration::from_secs(10),
+    )
+    .await;
+    let give_up = Instant::now() + Duration::from_secs(20);
+    let on = loop {
+        let img = shot(&con).await;
+        if mean_diff(&corner(&img), &corner(&before)) > 20.0 {
+            break img;
+        }
+        assert!(Instant::now() < give_up, "the label never showed in the corner");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    };
+    // White text on black: both in the corner.
+    let c = corner(&on);
+    assert!(
+        c.chunks(3).any(|p| p.iter().all(|v| *v > 200)) && c.chunks(3).any(|p| p.iter().all(|v| *v < 10))
+    );
+    page.find(fantoccini::Locator::Id("identify")).await.unwrap().click().await.unwrap();
+    let give_up = Instant::now() + Duration::from_secs(20);
+    loop {
+        let img = shot(&con).await;
+        if mean_diff(&corner(&img), &corner(&before)) < 3.0 {
+            break;
+        }
+        assert!(Instant::now() < give_up, "the label stayed after identify was turned off");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
 
     // Restart from the page: a local node is killed and started again (a new process, its log
     // going on), and its card comes back up.

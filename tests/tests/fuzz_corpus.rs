@@ -420,6 +420,7 @@ fn message_seeds() -> Vec<(String, Vec<u8>)> {
             driver_info: "Mesa 25.0.7".into(),
         }),
         Message::Restart { reason: "the operator's console asked".into() },
+        Message::Identify { on: true },
     ];
     let mut out: Vec<(String, Vec<u8>)> = all
         .iter()

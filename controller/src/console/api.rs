@@ -13,6 +13,7 @@
 //! - `GET /api/nodes/{name}/log?lines=N`: a local node's last log lines (`logs.rs`);
 //! - `GET /api/bookmarks`, `POST /api/bookmarks` (save the camera as `name`),
 //!   `POST /api/bookmarks/recall`, `POST /api/bookmarks/delete`: camera bookmarks (`bookmarks.rs`);
+//! - `POST /api/identify`: `{"on": bool}` each screen shows its node's and tile's name;
 //! - `POST /api/lock`, `POST /api/lock/release`: the operator lock (`lock.rs`): while one client
 //!   holds it, every other client's change is refused with 423 (reads stay open).
 //!
@@ -196,6 +197,7 @@ pub fn router(shared: Arc<Shared>) -> Router {
         .route("/api/bookmarks", get(list_bookmarks).post(save_bookmark))
         .route("/api/bookmarks/recall", post(recall_bookmark))
         .route("/api/bookmarks/delete", post(delete_bookmark))
+        .route("/api/identify", post(identify))
         .route("/api/lock", post(take_lock))
         .route("/api/lock/release", post(release_lock))
         .layer(axum::middleware::from_fn_with_state(shared.clone(), operator_lock))
@@ -865,6 +867,22 @@ async fn delete_bookmark(
     let name = b.name;
     let list = on_bookmarks(&shared, move |p| bookmarks::delete(p, &name)).await?;
     Ok(bookmarks_json(&shared, &list, None))
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct IdentifyBody {
+    on: bool,
+}
+
+async fn identify(
+    State(shared): State<Arc<Shared>>,
+    body: Result<Json<IdentifyBody>, JsonRejection>,
+) -> Result<Response, ApiError> {
+    read_only(&shared)?;
+    let Json(b) = body.map_err(bad_json)?;
+    ask(&shared, |tx| Command::Identify(b.on, tx)).await?;
+    Ok(Json(serde_json::json!({ "ok": true, "on": b.on })).into_response())
 }
 
 #[cfg(test)]

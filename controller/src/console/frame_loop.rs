@@ -46,6 +46,8 @@ pub enum Command {
     Restart(String, String, oneshot::Sender<Result<String, ApiError>>),
     /// The camera of the next frame (a bookmark saves it).
     CameraNow(oneshot::Sender<Result<Camera, ApiError>>),
+    /// The tiles show (`true`) or stop showing their node's and their own name.
+    Identify(bool, oneshot::Sender<Result<(), ApiError>>),
 }
 
 /// Where the frame loop answers an image request.
@@ -232,6 +234,12 @@ impl Loop {
                     self.published = None;
                 }
                 let _ = reply.send(r);
+                false
+            }
+            Command::Identify(on, reply) => {
+                wall.set_identify(on).await;
+                self.published = None;
+                let _ = reply.send(Ok(()));
                 false
             }
             Command::CameraNow(reply) => {
@@ -513,6 +521,7 @@ impl Loop {
                 height,
                 deadline_ms: cfg.wall.deadline_ms,
                 tiles,
+                identify: wall.identify(),
             },
             frame,
             render: RenderInfo {

@@ -31,6 +31,8 @@ pub struct WallInfo {
     pub height: u32,
     pub deadline_ms: u64,
     pub tiles: Vec<TileInfo>,
+    /// Whether each tile shows its node's and its own name (`POST /api/identify`).
+    pub identify: bool,
 }
 
 #[derive(Clone, Debug, Serialize)]

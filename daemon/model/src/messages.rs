@@ -19,6 +19,7 @@
 //!     SnapshotRequest / ThumbnailRequest { divisor } ---> (whenever asked)
 //!     <---------------------------------------- Snapshot { tiles } (each 1/divisor the size)
 //!     <---------------------------------------- NodeInfo (once, after its Hello: version, GPU)
+//!     Identify { on } --------------------------> (the operator's: tiles show their names)
 //!     Restart { reason } -----------------------> (the operator's: the daemon exits with
 //!                                                  [`RESTART_EXIT_CODE`], its supervisor restarts it)
 //! ```
@@ -266,6 +267,9 @@ pub enum Message {
     /// Only the controller holding the node's seat can send it: every other one is refused
     /// before its first message (`crate::seat`).
     Restart { reason: String },
+    /// Controller -> daemon: from the next frame on, each of its tiles shows (`on`) or stops
+    /// showing its node's and its own name in its top-left corner (the operator's identify).
+    Identify { on: bool },
 }
 
 /// The largest downscale a [`Message::ThumbnailRequest`] may ask for.
@@ -294,6 +298,7 @@ impl Message {
             Message::StepLate { .. } => "StepLate",
             Message::NodeInfo(_) => "NodeInfo",
             Message::Restart { .. } => "Restart",
+            Message::Identify { .. } => "Identify",
         }
     }
 
@@ -308,7 +313,8 @@ impl Message {
             | Message::ThumbnailRequest { .. }
             | Message::Bricks { .. }
             | Message::LoadBrick { .. }
-            | Message::Restart { .. } => Some(Role::Controller),
+            | Message::Restart { .. }
+            | Message::Identify { .. } => Some(Role::Controller),
             Message::Ready { .. }
             | Message::Presented { .. }
             | Message::Pong { .. }

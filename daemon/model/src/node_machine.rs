@@ -63,6 +63,9 @@ pub enum NodeOutput {
     /// to restart: log `reason`, close the connection and exit with
     /// [`crate::messages::RESTART_EXIT_CODE`] for its supervisor to start it again.
     Restart { reason: String },
+    /// Show (`on`) or stop showing the node's and each tile's name on its tiles, from the next
+    /// frame on.
+    Identify { on: bool },
 }
 
 /// Running counts of a daemon.
@@ -273,6 +276,7 @@ impl NodeMachine {
                 self.reset();
                 Ok(vec![NodeOutput::Restart { reason: crate::messages::printable(&reason) }])
             }
+            Message::Identify { on } => Ok(vec![NodeOutput::Identify { on }]),
             Message::Bye { reason } => {
                 self.reset();
                 Ok(vec![NodeOutput::Closed { reason }])
@@ -542,6 +546,10 @@ mod tests {
         let long = "r".repeat(MAX_RESTART_REASON_CHARS + 1);
         let e = m.handle(ms(0), restart(&long)).unwrap_err();
         assert!(e.problem.contains("257 characters, more than 256"), "{e}");
+        assert_eq!(
+            machine().handle(ms(0), Message::Identify { on: true }).unwrap(),
+            vec![NodeOutput::Identify { on: true }]
+        );
         // A daemon's message on the controller's side is refused.
         let e = machine().handle(ms(0), Message::NodeInfo(Default::default())).unwrap_err();
         assert!(e.problem.contains("only a daemon"), "{e}");

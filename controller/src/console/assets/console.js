@@ -241,6 +241,7 @@ function showControls(s) {
   setText($("demo"), s.demo.playing ? "stop demo path" : "start demo path");
   setProp($("demo"), "disabled", !s.demo.path);
   setProp($("demo"), "title", s.demo.path ? s.demo.path : "start the console with --demo-path FILE");
+  setText($("identify"), s.wall.identify ? "stop identifying" : "identify screens");
   showLock(s.console.lock);
 }
 
@@ -360,6 +361,7 @@ wire("rate", "change", (el) => post("/api/time", { rate: Number(el.value) }));
 $("play").addEventListener("click", () => post("/api/time", { play: status && status.time.playing ? "pause" : "play" }));
 $("orbit").addEventListener("click", () => post("/api/camera", { orbit: status && status.orbit.playing ? "pause" : "play" }));
 $("demo").addEventListener("click", () => post("/api/camera", { demo: status && status.demo.playing ? "stop" : "start" }));
+$("identify").addEventListener("click", () => post("/api/identify", { on: !(status && status.wall.identify) }));
 $("home").addEventListener("click", () => post("/api/camera", { reset: true, orbit: "pause", demo: "stop" }));
 
 // Drag on the wall to orbit, wheel to zoom.
