@@ -472,7 +472,13 @@ fn a_page_of_another_site_is_refused_and_curl_and_the_page_are_not() {
     let evil = [("Origin", "https://evil.example")];
     // Every API route, read or change, refused with the reason; the same from curl (no Origin)
     // or the console's own page answered.
-    for path in ["/api/status", "/api/snapshot.png", "/api/snapshot.png?width=32"] {
+    for path in [
+        "/api/status",
+        "/api/snapshot.png",
+        "/api/snapshot.png?width=32",
+        "/api/bookmarks",
+        "/api/nodes/node0/log",
+    ] {
         let r = con.get(&a, path, &evil).unwrap();
         assert_eq!(r.status, 403, "{path}: {}", r.text());
         assert!(r.json()["error"].as_str().unwrap().contains("`https://evil.example` is not this console's"));
@@ -493,6 +499,27 @@ fn a_page_of_another_site_is_refused_and_curl_and_the_page_are_not() {
     };
     let (status, body) = post(Some("http://evil.example"));
     assert_eq!(status, 403, "{body}");
+    // The operator's changes alike: another site's page restarts, bookmarks, identifies and
+    // locks nothing.
+    for (path, body) in [
+        ("/api/nodes/node0/restart", "{}"),
+        ("/api/bookmarks", r#"{"name": "evil"}"#),
+        ("/api/bookmarks/recall", r#"{"name": "evil"}"#),
+        ("/api/bookmarks/delete", r#"{"name": "evil"}"#),
+        ("/api/identify", r#"{"on": true}"#),
+        ("/api/lock", "{}"),
+        ("/api/lock/release", "{}"),
+    ] {
+        for headers in [vec![("Origin", "https://evil.example")], vec![("Sec-Fetch-Site", "cross-site")]] {
+            let r = con.post(&a, path, body, &headers);
+            assert_eq!(r.status, 403, "{path} {headers:?}: {}", r.text());
+        }
+    }
+    std::thread::sleep(Duration::from_millis(300));
+    let s = con.status();
+    assert!(s["console"]["lock"].is_null() && s["wall"]["identify"] == false, "{}", s["console"]);
+    assert!(w.nodes.iter().all(|n| n.restarts.lock().unwrap().is_empty()), "another site restarted a node");
+    assert!(!w.dir.path().join("console-attack.bookmarks.toml").exists());
     assert_eq!(post(Some(&own)).0, 200);
     assert_eq!(post(None).0, 200);
     // The live status over a WebSocket: another site's page refused (before: node addresses,
@@ -537,6 +564,26 @@ fn a_token_is_never_taken_from_a_url_and_the_websocket_sends_it_as_a_subprotocol
     assert!(head.starts_with("HTTP/1.1 401"), "{head}");
     let head = websocket(con.addr, &format!("/api/live?token={token}"), &[]);
     assert!(head.starts_with("HTTP/1.1 400"), "{head}");
+    // The operator's changes: without the token 401, with it refused by --read-only (403).
+    for (path, body) in [
+        ("/api/nodes/node0/restart", "{}"),
+        ("/api/bookmarks", r#"{"name": "x"}"#),
+        ("/api/bookmarks/recall", r#"{"name": "x"}"#),
+        ("/api/bookmarks/delete", r#"{"name": "x"}"#),
+        ("/api/identify", r#"{"on": true}"#),
+        ("/api/lock", "{}"),
+        ("/api/lock/release", "{}"),
+    ] {
+        let r = a.post(format!("{}{path}", con.base)).header("Content-Type", "application/json").send(body);
+        assert_eq!(r.unwrap().status().as_u16(), 401, "{path} without the token");
+        let r = con.post(&a, path, body, &[]);
+        assert_eq!(r.status, 403, "{path} on a read-only console: {}", r.text());
+    }
+    for path in ["/api/bookmarks", "/api/nodes/node0/log"] {
+        assert_eq!(con.get(&a, path, &[]).unwrap().status, 401, "{path} without the token");
+        assert_eq!(con.get(&a, path, &[("Authorization", bearer.as_str())]).unwrap().status, 200, "{path}");
+    }
+    assert!(w.nodes.iter().all(|n| n.restarts.lock().unwrap().is_empty()));
     // Nothing prints the token.
     assert!(!con.log().contains(token), "the console's log holds the token:\n{}", con.log());
 }
