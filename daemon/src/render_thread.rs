@@ -236,10 +236,18 @@ struct SnapshotWait {
 const READ_SLOTS: usize = 8;
 
 /// The render thread's state between jobs.
+/// A tile's identify label (`identify.rs`), drawn once for its text and the tile's size.
+struct Label {
+    text: String,
+    tile: (u32, u32),
+    size: (u32, u32),
+    rgba: Vec<u8>,
+}
+
 struct RenderLoop {
     gpu: GpuRenderer,
-    /// Identify labels drawn: (text, the tile's size, the label), one per tile.
-    labels: Vec<(String, (u32, u32), (u32, u32, Vec<u8>))>,
+    /// Identify labels drawn, one per tile.
+    labels: Vec<Label>,
     /// By brick index (0: the whole volume in screen space).
     volumes: Vec<(usize, isowall_render::gpu::GpuVolume)>,
     env: Option<isowall_render::gpu::GpuEnvironment>,
@@ -758,17 +766,19 @@ impl RenderLoop {
             if let Some(node) = job.identify.as_ref().filter(|_| !object_space) {
                 let text = format!("{node} {name}");
                 let max = (view.rect.width, view.rect.height);
-                if !self.labels.iter().any(|(t, m, _)| *t == text && *m == max) {
-                    self.labels.retain(|(t, _, _)| !t.ends_with(&format!(" {name}")));
-                    self.labels.push((text.clone(), max, crate::identify::label(&text, max)));
-                }
-                if let Some((_, _, (w, h, rgba))) =
-                    self.labels.iter().find(|(t, m, _)| *t == text && *m == max)
-                {
-                    self.gpu
-                        .stamp(&self.targets[k], rgba, (*w, *h))
-                        .map_err(|e| format!("tile {name}: {e}"))?;
-                }
+                let at = match self.labels.iter().position(|l| l.text == text && l.tile == max) {
+                    Some(i) => i,
+                    None => {
+                        self.labels.retain(|l| !l.text.ends_with(&format!(" {name}")));
+                        let (w, h, rgba) = crate::identify::label(&text, max);
+                        self.labels.push(Label { text, tile: max, size: (w, h), rgba });
+                        self.labels.len() - 1
+                    }
+                };
+                let label = &self.labels[at];
+                self.gpu
+                    .stamp(&self.targets[k], &label.rgba, label.size)
+                    .map_err(|e| format!("tile {name}: {e}"))?;
             }
         }
         Ok(())
