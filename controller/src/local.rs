@@ -27,6 +27,10 @@ pub struct LocalDaemons {
     children: Vec<(String, Child)>,
     /// Each daemon's log, in the order of `children`.
     logs: Vec<PathBuf>,
+    /// How they were started, to start one again ([`LocalDaemons::restart`]).
+    config_path: PathBuf,
+    display: String,
+    windowed: bool,
 }
 
 impl LocalDaemons {
@@ -35,29 +39,79 @@ impl LocalDaemons {
     pub fn start(config: &WallConfig, log_dir: &Path, display: &str, windowed: bool) -> Result<LocalDaemons> {
         let bin = daemon_binary();
         std::fs::create_dir_all(log_dir).with_context(|| format!("cannot create {}", log_dir.display()))?;
-        let mut me = LocalDaemons { children: Vec::new(), logs: Vec::new() };
+        let mut me = LocalDaemons {
+            children: Vec::new(),
+            logs: Vec::new(),
+            config_path: config.path.clone(),
+            display: display.to_string(),
+            windowed,
+        };
         for node in config.nodes.iter().filter(|n| is_loopback(&n.address)) {
             let log_path = log_dir.join(format!("{}.log", node.name));
-            let log = std::fs::File::create(&log_path)
+            std::fs::File::create(&log_path)
                 .with_context(|| format!("cannot create {}", log_path.display()))?;
-            let child = Command::new(&bin)
-                .arg("run")
-                .arg("--config")
-                .arg(&config.path)
-                .arg("--node")
-                .arg(&node.name)
-                .args(["--display", display])
-                .args(windowed.then_some("--windowed"))
-                .stdin(Stdio::null())
-                .stdout(log.try_clone()?)
-                .stderr(log)
-                .spawn()
-                .with_context(|| format!("cannot start {} for node {}", bin.display(), node.name))?;
+            let child = me.spawn(&bin, &node.name, &log_path)?;
             eprintln!("isowall: started node {} (pid {}, log {})", node.name, child.id(), log_path.display());
             me.children.push((node.name.clone(), child));
             me.logs.push(log_path);
         }
         Ok(me)
+    }
+
+    /// Starts `isowalld run` for `node`, its output appended to `log` (appending: a line written
+    /// into the log by anyone else is never overwritten, and a restarted daemon's log goes on).
+    fn spawn(&self, bin: &Path, node: &str, log: &Path) -> Result<Child> {
+        let file = std::fs::OpenOptions::new()
+            .append(true)
+            .create(true)
+            .open(log)
+            .with_context(|| format!("cannot open {}", log.display()))?;
+        Command::new(bin)
+            .arg("run")
+            .arg("--config")
+            .arg(&self.config_path)
+            .arg("--node")
+            .arg(node)
+            .args(["--display", &self.display])
+            .args(self.windowed.then_some("--windowed"))
+            .stdin(Stdio::null())
+            .stdout(file.try_clone()?)
+            .stderr(file)
+            .spawn()
+            .with_context(|| format!("cannot start {} for node {node}", bin.display()))
+    }
+
+    /// Whether `node` is one of these daemons.
+    pub fn has(&self, node: &str) -> bool {
+        self.children.iter().any(|(n, _)| n == node)
+    }
+
+    /// (node, log file) of every daemon.
+    pub fn logs(&self) -> Vec<(String, PathBuf)> {
+        self.children.iter().map(|(n, _)| n.clone()).zip(self.logs.iter().cloned()).collect()
+    }
+
+    /// Kills `node`'s daemon (if it runs) and starts it again with the same arguments, its log
+    /// going on; the new pid. The wall reconnects it as any node that comes back.
+    pub fn restart(&mut self, node: &str) -> Result<u32> {
+        let i = self
+            .children
+            .iter()
+            .position(|(n, _)| n == node)
+            .with_context(|| format!("node {node} is not a daemon this controller started"))?;
+        {
+            let child = &mut self.children[i].1;
+            if child.try_wait().ok().flatten().is_none() {
+                let _ = child.kill();
+            }
+            let _ = child.wait();
+        }
+        let log = self.logs[i].clone();
+        let child = self.spawn(&daemon_binary(), node, &log)?;
+        let pid = child.id();
+        tracing::info!(%node, pid, log = %log.display(), "local daemon restarted");
+        self.children[i].1 = child;
+        Ok(pid)
     }
 
     /// Waits until every daemon listens (its log says `ready on`), or one has exited (the wall

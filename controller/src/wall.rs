@@ -125,6 +125,9 @@ pub struct Wall {
     last_try: HashMap<String, Instant>,
     /// object space: which node renders each brick (a dead node's goes to a survivor).
     bricks: Option<BrickAssigner>,
+    /// Whether the tiles show their names (the operator's identify); told to each node again
+    /// when it (re)connects.
+    identify: bool,
 }
 
 impl Wall {
@@ -180,6 +183,7 @@ impl Wall {
             reconnecting: Default::default(),
             last_try: HashMap::new(),
             bricks: None,
+            identify: false,
         };
         if wall.config.wall.mode == isowall_model::WallMode::Object {
             wall.bricks = Some(BrickAssigner::new(names.clone()));
@@ -307,6 +311,10 @@ impl Wall {
         self.senders.insert(name.to_string(), sender);
         self.connections.insert(name.to_string(), connection);
         self.execute(outputs).await;
+        if self.identify {
+            let message = Message::Identify { on: true };
+            self.execute(vec![ControllerOutput::Send { node: name.to_string(), message }]).await;
+        }
         // object space: its home brick is its own again; it gets the map before its first frame.
         if let Some(a) = self.bricks.as_mut() {
             let adoption = a.node_up(now, name);
@@ -679,6 +687,42 @@ impl Wall {
     }
 
     /// Whether `node` is connected (it takes part in the next frame).
+    /// The version and GPU `node` last told (`Message::NodeInfo`).
+    pub fn node_info(&self, node: &str) -> Option<&isowall_model::messages::NodeInfo> {
+        self.machine.node_info(node)
+    }
+
+    /// Asks `node` over its connection to restart (`Message::Restart`): it exits for its
+    /// supervisor (systemd) to start it again, and rejoins as any node that comes back. Fails
+    /// when the node is not connected.
+    pub async fn restart(&mut self, node: &str, reason: &str) -> Result<()> {
+        if !self.senders.contains_key(node) {
+            bail!("node {node} is not connected: nothing to ask it (restart it on its machine)");
+        }
+        let reason: String = reason.chars().take(isowall_model::messages::MAX_RESTART_REASON_CHARS).collect();
+        tracing::info!(%node, %reason, "asking the node to restart");
+        let message = Message::Restart { reason };
+        self.execute(vec![ControllerOutput::Send { node: node.to_string(), message }]).await;
+        Ok(())
+    }
+
+    /// Every tile shows (`on`) or stops showing its node's and its own name from the next frame
+    /// (`Message::Identify` to every connected node; a node that connects later is told too).
+    pub async fn set_identify(&mut self, on: bool) {
+        self.identify = on;
+        tracing::info!(on, "identify: the tiles {} their names", if on { "show" } else { "no longer show" });
+        let sends = self
+            .senders
+            .keys()
+            .map(|node| ControllerOutput::Send { node: node.clone(), message: Message::Identify { on } })
+            .collect();
+        self.execute(sends).await;
+    }
+
+    pub fn identify(&self) -> bool {
+        self.identify
+    }
+
     pub fn is_up(&self, node: &str) -> bool {
         self.senders.contains_key(node)
     }

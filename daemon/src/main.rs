@@ -4,6 +4,7 @@
 mod args;
 mod bench;
 mod display;
+mod identify;
 mod notify;
 mod object;
 mod peer_addr;

@@ -51,6 +51,9 @@ pub struct TileJob {
     pub share: Option<PixelForm>,
     /// The frame's time step (a time-varying volume; taken modulo its step count).
     pub time_step: u32,
+    /// The node's name where the operator asked the tiles to identify themselves: each tile's
+    /// image shows it and the tile's name in its top-left corner (screen space).
+    pub identify: Option<String>,
 }
 
 /// A tile's image of a frame: 8-bit sRGB, rows top to bottom. Where the frame stayed on the GPU
@@ -237,8 +240,18 @@ struct SnapshotWait {
 const READ_SLOTS: usize = 8;
 
 /// The render thread's state between jobs.
+/// A tile's identify label (`identify.rs`), drawn once for its text and the tile's size.
+struct Label {
+    text: String,
+    tile: (u32, u32),
+    size: (u32, u32),
+    rgba: Vec<u8>,
+}
+
 struct RenderLoop {
     gpu: GpuRenderer,
+    /// Identify labels drawn, one per tile.
+    labels: Vec<Label>,
     /// By brick index (0: the whole volume in screen space).
     volumes: Vec<(usize, isowall_render::gpu::GpuVolume)>,
     env: Option<isowall_render::gpu::GpuEnvironment>,
@@ -264,6 +277,29 @@ struct RenderLoop {
 pub struct TileRenderer {
     handle: RenderHandle,
     thread: Option<std::thread::JoinHandle<()>>,
+    /// The GPU the render thread opened, as the node tells the controller.
+    pub gpu: GpuInfo,
+}
+
+/// The GPU adapter the render thread opened (from wgpu's `AdapterInfo`, as text: no wgpu type
+/// leaves the render thread).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct GpuInfo {
+    pub adapter: String,
+    pub backend: String,
+    pub driver: String,
+    pub driver_info: String,
+}
+
+impl GpuInfo {
+    fn of(info: &wgpu::AdapterInfo) -> GpuInfo {
+        GpuInfo {
+            adapter: info.name.clone(),
+            backend: format!("{:?}", info.backend),
+            driver: info.driver.clone(),
+            driver_info: info.driver_info.clone(),
+        }
+    }
 }
 
 /// Sends jobs to the render thread (cloneable: the network and the window event loop hold one
@@ -284,7 +320,7 @@ impl TileRenderer {
         steps: Option<TimeSteps>,
     ) -> Result<TileRenderer> {
         let (jobs, rx) = mpsc::channel::<Job>();
-        let (ready_tx, ready_rx) = mpsc::channel::<Result<String, String>>();
+        let (ready_tx, ready_rx) = mpsc::channel::<Result<GpuInfo, String>>();
         let thread = std::thread::Builder::new()
             .name("render".into())
             .spawn(move || {
@@ -307,7 +343,7 @@ impl TileRenderer {
                 })();
                 let (gpu, first, genv) = match setup {
                     Ok(s) => {
-                        let _ = ready_tx.send(Ok(s.0.adapter_name().to_string()));
+                        let _ = ready_tx.send(Ok(GpuInfo::of(s.0.adapter_info())));
                         s
                     }
                     Err(e) => {
@@ -322,6 +358,7 @@ impl TileRenderer {
                 drop(volume);
                 let mut r = RenderLoop {
                     gpu,
+                    labels: Vec::new(),
                     volumes: vec![(index, first)],
                     env: genv,
                     targets: Vec::new(),
@@ -393,9 +430,9 @@ impl TileRenderer {
             })
             .context("cannot start the render thread")?;
         match ready_rx.recv() {
-            Ok(Ok(adapter)) => {
-                tracing::info!(%adapter, "render thread ready");
-                Ok(TileRenderer { handle: RenderHandle { jobs }, thread: Some(thread) })
+            Ok(Ok(gpu)) => {
+                tracing::info!(adapter = %gpu.adapter, backend = %gpu.backend, driver = %gpu.driver, "render thread ready");
+                Ok(TileRenderer { handle: RenderHandle { jobs }, thread: Some(thread), gpu })
             }
             Ok(Err(e)) => anyhow::bail!("GPU set-up failed: {e}"),
             Err(_) => anyhow::bail!("the render thread ended during set-up"),
@@ -409,7 +446,7 @@ impl TileRenderer {
     /// Waits for the render thread to end (once every other [`RenderHandle`] is dropped): its
     /// window surfaces go before the windows do.
     pub fn join(self) {
-        let TileRenderer { handle, thread } = self;
+        let TileRenderer { handle, thread, .. } = self;
         drop(handle);
         if let Some(t) = thread {
             let _ = t.join();
@@ -730,6 +767,23 @@ impl RenderLoop {
             self.gpu
                 .render_tile(&mut self.targets[k], &frame, &mut self.ring)
                 .map_err(|e| format!("tile {name}: {e}"))?;
+            if let Some(node) = job.identify.as_ref().filter(|_| !object_space) {
+                let text = format!("{node} {name}");
+                let max = (view.rect.width, view.rect.height);
+                let at = match self.labels.iter().position(|l| l.text == text && l.tile == max) {
+                    Some(i) => i,
+                    None => {
+                        self.labels.retain(|l| !l.text.ends_with(&format!(" {name}")));
+                        let (w, h, rgba) = crate::identify::label(&text, max);
+                        self.labels.push(Label { text, tile: max, size: (w, h), rgba });
+                        self.labels.len() - 1
+                    }
+                };
+                let label = &self.labels[at];
+                self.gpu
+                    .stamp(&self.targets[k], &label.rgba, label.size)
+                    .map_err(|e| format!("tile {name}: {e}"))?;
+            }
         }
         Ok(())
     }
@@ -982,6 +1036,7 @@ mod tests {
             scale,
             share: read_pixels.then_some(PixelForm::Colour),
             time_step: 0,
+            identify: None,
         };
         r.handle().submit(job).unwrap();
         let result = rx.blocking_recv().unwrap().unwrap();

@@ -18,7 +18,7 @@ use anyhow::{anyhow, Context, Result};
 use clap::Args;
 use isowall_model::config::{WallConfig, WallMode};
 use isowall_model::handshake_limit::{HandshakeLimit, HandshakeLimiter};
-use isowall_model::messages::{Message, TileImage};
+use isowall_model::messages::{Message, TileImage, RESTART_EXIT_CODE};
 use isowall_model::node_machine::{NodeMachine, NodeOutput};
 use isowall_model::wire::FrameSpec;
 use isowall_net::pixels::{PeerPixelsIn, PixelInbox};
@@ -73,6 +73,12 @@ struct Node {
     limit: usize,
     /// The render thread is gone: the node must exit (and be restarted).
     render_dead: bool,
+    /// The controller asked the node to restart (`Message::Restart`), and why.
+    restart: Option<String>,
+    /// The operator asked the tiles to show their names (`Message::Identify`).
+    identify: bool,
+    /// What the node tells the controller after its Hello: its version and GPU.
+    info: isowall_model::messages::NodeInfo,
     /// Which controller drives the node: one at a time (the model's rule).
     seat: isowall_model::seat::Seat,
     /// The number of the next controller connection served or refused.
@@ -236,6 +242,15 @@ pub fn run(a: &RunArgs) -> Result<()> {
         limit,
         slow: std::time::Duration::from_millis(a.slow_ms),
         render_dead: false,
+        restart: None,
+        identify: false,
+        info: isowall_model::messages::NodeInfo {
+            version: env!("CARGO_PKG_VERSION").to_string(),
+            adapter: renderer.gpu.adapter.clone(),
+            backend: renderer.gpu.backend.clone(),
+            driver: renderer.gpu.driver.clone(),
+            driver_info: renderer.gpu.driver_info.clone(),
+        },
         seat: isowall_model::seat::Seat::new(&node.name, transport::IDLE_TIMEOUT),
         next_link: 0,
         pending: None,
@@ -533,6 +548,7 @@ async fn serve_seated(
     crate::notify::status(&format!("serving the controller at {remote}"));
     let Channel { connection, mut sender, mut receiver } = channel;
     let mut machine = NodeMachine::new(node.name.clone(), node.tiles.clone());
+    node.identify = false;
     node.pending = None;
     node.presenting.clear();
     if let Some(o) = node.object.as_mut() {
@@ -544,6 +560,11 @@ async fn serve_seated(
     }
     if let Err(e) = machine.handle(node.epoch.elapsed(), hello) {
         transport::close(&connection, &e.to_string());
+        return Ok(());
+    }
+    // Once per connection: the operator's console shows the node's version and GPU.
+    if let Err(e) = sender.send(&Message::NodeInfo(node.info.clone())).await {
+        tracing::warn!("{e}");
         return Ok(());
     }
     // Each message with the moment it arrived: a Ping's time is that, not when the loop got to it.
@@ -641,6 +662,9 @@ async fn serve_seated(
             }
         };
         if let Err(e) = execute(node, &mut machine, &mut sender, outputs).await {
+            if let Some(reason) = node.restart.take() {
+                restart(&connection, &reason).await;
+            }
             tracing::warn!("controller connection ended: {e}");
             break Ok(());
         }
@@ -651,6 +675,22 @@ async fn serve_seated(
     };
     reader.abort();
     outcome
+}
+
+/// The controller holding the seat asked the node to restart: the connection is closed with the
+/// reason and the process exits with [`RESTART_EXIT_CODE`], not 0, so that its supervisor
+/// (systemd's `Restart=on-failure`, `wall-configs/systemd/`) starts it again; the controller
+/// reconnects it as it does any node that comes back.
+async fn restart(connection: &quinn::Connection, reason: &str) -> ! {
+    tracing::warn!(
+        reason = %reason,
+        "the controller asked this node to restart: exiting with status {RESTART_EXIT_CODE} for its supervisor to start it again"
+    );
+    crate::notify::stopping(&format!("restarting at the controller's request: {reason}"));
+    transport::close(connection, "the node restarts at the controller's request");
+    // The close goes out before the process does (bounded).
+    let _ = tokio::time::timeout(std::time::Duration::from_millis(300), connection.closed()).await;
+    std::process::exit(RESTART_EXIT_CODE)
 }
 
 /// A frame presented (by the presenter, or the windows on the render thread): its tiles are the
@@ -853,6 +893,7 @@ async fn execute(
                     // object space: the shares travel to the tiles' owners.
                     share: node.object.as_ref().map(|o| o.form()),
                     time_step: spec.time_step,
+                    identify: node.identify.then(|| node.name.clone()),
                 }) {
                     tracing::error!("{e}");
                     node.render_dead = true;
@@ -925,6 +966,21 @@ async fn execute(
                     sender.send(&Message::BrickFailed { brick, reason }).await?;
                 }
             },
+            NodeOutput::Identify { on } => {
+                tracing::info!(
+                    on,
+                    "identify: the tiles {} their names",
+                    if on { "show" } else { "no longer show" }
+                );
+                if on && node.object.is_some() {
+                    tracing::warn!("identify: object space tiles are composited elsewhere; only screen space shows names");
+                }
+                node.identify = on;
+            }
+            NodeOutput::Restart { reason } => {
+                node.restart = Some(reason.clone());
+                return Err(NetError::Connection { peer: "controller".into(), reason });
+            }
             NodeOutput::Closed { reason } => {
                 tracing::info!(
                     "the controller said goodbye: {}",

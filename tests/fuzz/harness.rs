@@ -143,6 +143,8 @@ fn drive(machine: &mut NodeMachine, t: Duration, outputs: Vec<NodeOutput>) {
             | NodeOutput::SnapshotWanted
             | NodeOutput::ThumbnailWanted { .. }
             | NodeOutput::Closed { .. }
+            | NodeOutput::Restart { .. }
+            | NodeOutput::Identify { .. }
             | NodeOutput::Bricks { .. }
             | NodeOutput::LoadBrick { .. } => {}
         }

@@ -11,10 +11,17 @@
 //! - connections: a crowd of half-sent requests does not hold a newcomer out;
 //! - origins: a page of another site (its `Origin`, or `Sec-Fetch-Site`) is refused on every API
 //!   route, the WebSocket included, while curl-like clients and the console's own page are not;
-//!   a token is never taken from a URL.
+//!   a token is never taken from a URL;
+//! - the operator lock: while one client holds it, every other client's change (every POST
+//!   route) is refused with 423 naming the holder and changes nothing; reads stay open; it lapses
+//!   when idle;
+//! - restart, logs, bookmarks, node info: a restart reaches only a node of the wall (told over its
+//!   connection, its reason bounded and escaped), a log path names a node or nothing, bookmark
+//!   names and a malformed bookmarks file are refused without touching the file, and what a node
+//!   says of itself is bounded and escaped.
 
 use isowall_e2e::{bin, free_udp_ports, run_in, wall_config_2x1};
-use isowall_model::messages::{Message, TileImage};
+use isowall_model::messages::{Message, NodeInfo, TileImage};
 use isowall_model::node_machine::{NodeMachine, NodeOutput};
 use isowall_net::transport::{self, Channel};
 use isowall_net::Identity;
@@ -38,6 +45,10 @@ struct NodeCtl {
     silent: AtomicBool,
     /// Snapshot and thumbnail requests received.
     asked: AtomicU64,
+    /// The reasons of the Restarts received (each closes the connection, as the daemon's exit).
+    restarts: std::sync::Mutex<Vec<String>>,
+    /// Connections the node greeted.
+    connections: AtomicU64,
 }
 
 /// A node played by the test on `port` with `keys/NAME.*`: its tile `(name, w, h)` blue.
@@ -55,13 +66,26 @@ async fn fake_node(keys: PathBuf, name: String, port: u16, tile: (String, u32, u
     };
     while let Some(incoming) = endpoint.accept().await {
         let Ok(conn) = incoming.await else { continue };
-        let Ok(Channel { mut sender, mut receiver, .. }) = Channel::accept(conn, "controller", 1 << 20).await
+        let Ok(Channel { connection, mut sender, mut receiver }) =
+            Channel::accept(conn, "controller", 1 << 20).await
         else {
             continue;
         };
         let mut m = NodeMachine::new(name.clone(), vec![tname.clone()]);
         let epoch = Instant::now();
         if sender.send(&m.hello()).await.is_err() {
+            continue;
+        }
+        ctl.connections.fetch_add(1, Ordering::Relaxed);
+        // What it says of itself: markup and a terminal escape, for the console to show as text.
+        let info = NodeInfo {
+            version: "0.0.0-fake".into(),
+            adapter: format!("fake <script>alert('{name}')</script>\u{1b}[31m"),
+            backend: "Vulkan".into(),
+            driver: "none".into(),
+            driver_info: "played by the test".into(),
+        };
+        if sender.send(&Message::NodeInfo(info)).await.is_err() {
             continue;
         }
         'conn: while let Ok(Some(msg)) = receiver.recv().await {
@@ -92,6 +116,11 @@ async fn fake_node(keys: PathBuf, name: String, port: u16, tile: (String, u32, u
                             .then(|| Message::Snapshot { tiles: vec![image.downscaled(divisor)] })
                     }
                     NodeOutput::Closed { .. } => break 'conn,
+                    NodeOutput::Restart { reason } => {
+                        ctl.restarts.lock().unwrap().push(reason);
+                        connection.close(75u32.into(), b"restarting");
+                        break 'conn;
+                    }
                     _ => None,
                 };
                 if let Some(msg) = answer {
@@ -189,6 +218,25 @@ impl Console {
         Ok(Reply { status: r.status().as_u16(), body: r.body_mut().read_to_vec()? })
     }
 
+    /// `POST PATH` with a JSON body and `headers` (the token added where the console has one).
+    fn post(&self, a: &ureq::Agent, path: &str, body: &str, headers: &[(&str, &str)]) -> Reply {
+        let mut req = a.post(format!("{}{path}", self.base)).header("Content-Type", "application/json");
+        if let Some(b) = &self.bearer {
+            req = req.header("Authorization", b.as_str());
+        }
+        for (k, v) in headers {
+            req = req.header(*k, *v);
+        }
+        let mut r = req.send(body).expect("the console answers");
+        Reply { status: r.status().as_u16(), body: r.body_mut().read_to_vec().expect("a body") }
+    }
+
+    fn status(&self) -> Value {
+        let r = self.get(&agent(Duration::from_secs(20)), "/api/status", &[]).expect("the status");
+        assert_eq!(r.status, 200, "{}", r.text());
+        r.json()
+    }
+
     /// Swaps released since the wall came up.
     fn released(&self) -> u64 {
         let auth: Vec<(&str, &str)> = self.bearer.iter().map(|b| ("Authorization", b.as_str())).collect();
@@ -208,7 +256,7 @@ impl Console {
 
 /// A 2x1 wall of 64x48 tiles whose two nodes are played by the test; its console started.
 struct FakeWall {
-    _dir: tempfile::TempDir,
+    dir: tempfile::TempDir,
     _rt: tokio::runtime::Runtime,
     nodes: [Arc<NodeCtl>; 2],
     con: Console,
@@ -230,7 +278,7 @@ fn fake_wall(extra: &[&str], fds: u32) -> FakeWall {
         rt.spawn(fake_node(keys, format!("node{i}"), ports[i], (format!("t{i}"), 64, 48), ctl.clone()));
     }
     let con = Console::start(dir.path(), &config, extra, fds);
-    FakeWall { _dir: dir, _rt: rt, nodes, con }
+    FakeWall { dir, _rt: rt, nodes, con }
 }
 
 #[test]
@@ -424,7 +472,13 @@ fn a_page_of_another_site_is_refused_and_curl_and_the_page_are_not() {
     let evil = [("Origin", "https://evil.example")];
     // Every API route, read or change, refused with the reason; the same from curl (no Origin)
     // or the console's own page answered.
-    for path in ["/api/status", "/api/snapshot.png", "/api/snapshot.png?width=32"] {
+    for path in [
+        "/api/status",
+        "/api/snapshot.png",
+        "/api/snapshot.png?width=32",
+        "/api/bookmarks",
+        "/api/nodes/node0/log",
+    ] {
         let r = con.get(&a, path, &evil).unwrap();
         assert_eq!(r.status, 403, "{path}: {}", r.text());
         assert!(r.json()["error"].as_str().unwrap().contains("`https://evil.example` is not this console's"));
@@ -445,6 +499,27 @@ fn a_page_of_another_site_is_refused_and_curl_and_the_page_are_not() {
     };
     let (status, body) = post(Some("http://evil.example"));
     assert_eq!(status, 403, "{body}");
+    // The operator's changes alike: another site's page restarts, bookmarks, identifies and
+    // locks nothing.
+    for (path, body) in [
+        ("/api/nodes/node0/restart", "{}"),
+        ("/api/bookmarks", r#"{"name": "evil"}"#),
+        ("/api/bookmarks/recall", r#"{"name": "evil"}"#),
+        ("/api/bookmarks/delete", r#"{"name": "evil"}"#),
+        ("/api/identify", r#"{"on": true}"#),
+        ("/api/lock", "{}"),
+        ("/api/lock/release", "{}"),
+    ] {
+        for headers in [vec![("Origin", "https://evil.example")], vec![("Sec-Fetch-Site", "cross-site")]] {
+            let r = con.post(&a, path, body, &headers);
+            assert_eq!(r.status, 403, "{path} {headers:?}: {}", r.text());
+        }
+    }
+    std::thread::sleep(Duration::from_millis(300));
+    let s = con.status();
+    assert!(s["console"]["lock"].is_null() && s["wall"]["identify"] == false, "{}", s["console"]);
+    assert!(w.nodes.iter().all(|n| n.restarts.lock().unwrap().is_empty()), "another site restarted a node");
+    assert!(!w.dir.path().join("console-attack.bookmarks.toml").exists());
     assert_eq!(post(Some(&own)).0, 200);
     assert_eq!(post(None).0, 200);
     // The live status over a WebSocket: another site's page refused (before: node addresses,
@@ -489,6 +564,223 @@ fn a_token_is_never_taken_from_a_url_and_the_websocket_sends_it_as_a_subprotocol
     assert!(head.starts_with("HTTP/1.1 401"), "{head}");
     let head = websocket(con.addr, &format!("/api/live?token={token}"), &[]);
     assert!(head.starts_with("HTTP/1.1 400"), "{head}");
+    // The operator's changes: without the token 401, with it refused by --read-only (403).
+    for (path, body) in [
+        ("/api/nodes/node0/restart", "{}"),
+        ("/api/bookmarks", r#"{"name": "x"}"#),
+        ("/api/bookmarks/recall", r#"{"name": "x"}"#),
+        ("/api/bookmarks/delete", r#"{"name": "x"}"#),
+        ("/api/identify", r#"{"on": true}"#),
+        ("/api/lock", "{}"),
+        ("/api/lock/release", "{}"),
+    ] {
+        let r = a.post(format!("{}{path}", con.base)).header("Content-Type", "application/json").send(body);
+        assert_eq!(r.unwrap().status().as_u16(), 401, "{path} without the token");
+        let r = con.post(&a, path, body, &[]);
+        assert_eq!(r.status, 403, "{path} on a read-only console: {}", r.text());
+    }
+    for path in ["/api/bookmarks", "/api/nodes/node0/log"] {
+        assert_eq!(con.get(&a, path, &[]).unwrap().status, 401, "{path} without the token");
+        assert_eq!(con.get(&a, path, &[("Authorization", bearer.as_str())]).unwrap().status, 200, "{path}");
+    }
+    assert!(w.nodes.iter().all(|n| n.restarts.lock().unwrap().is_empty()));
     // Nothing prints the token.
     assert!(!con.log().contains(token), "the console's log holds the token:\n{}", con.log());
+}
+
+/// Waits until `done` holds for the status (at most 20 s).
+fn wait_status(con: &Console, what: &str, done: impl Fn(&Value) -> bool) -> Value {
+    let give_up = Instant::now() + Duration::from_secs(20);
+    loop {
+        let s = con.status();
+        if done(&s) {
+            return s;
+        }
+        assert!(Instant::now() < give_up, "{what}: {s}");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+#[test]
+fn the_operator_lock_refuses_every_other_clients_change_and_reads_stay_open() {
+    let w = fake_wall(&["--lock-idle-s", "3"], 1024);
+    let con = &w.con;
+    let (alice, mallory) = (agent(Duration::from_secs(30)), agent(Duration::from_secs(30)));
+    let r = con.post(&alice, "/api/lock", r#"{"holder": "alice"}"#, &[]);
+    assert_eq!(r.status, 200, "{}", r.text());
+    let id = r.json()["lock_id"].as_str().unwrap().to_string();
+    assert_eq!(id.len(), 32);
+    let since = r.json()["since_unix_ms"].as_u64().unwrap();
+    let before = wait_status(con, "the lock in the status", |s| s["console"]["lock"]["holder"] == "alice");
+    // Every change of another client: 423, naming the holder and since when, whatever the id
+    // it makes up.
+    let changes = [
+        ("/api/lock", r#"{"holder": "mallory"}"#),
+        ("/api/lock/release", "{}"),
+        ("/api/render", r#"{"exposure": 0.25}"#),
+        ("/api/camera", r#"{"yaw_deg": 30}"#),
+        ("/api/time", r#"{"rate": 2}"#),
+        ("/api/bookmarks", r#"{"name": "stolen"}"#),
+        ("/api/bookmarks/recall", r#"{"name": "stolen"}"#),
+        ("/api/bookmarks/delete", r#"{"name": "stolen"}"#),
+        ("/api/nodes/node0/restart", "{}"),
+        ("/api/identify", r#"{"on": true}"#),
+    ];
+    let forged = "0".repeat(32);
+    for (path, body) in changes {
+        for headers in [vec![], vec![("X-Isowall-Lock", forged.as_str())], vec![("X-Isowall-Lock", "")]] {
+            let r = con.post(&mallory, path, body, &headers);
+            assert_eq!(r.status, 423, "{path} {headers:?}: {}", r.text());
+            let j = r.json();
+            assert_eq!(
+                (j["holder"].as_str(), j["since_unix_ms"].as_u64()),
+                (Some("alice"), Some(since)),
+                "{j}"
+            );
+            assert!(j["error"].as_str().unwrap().contains("locked by `alice`"), "{j}");
+        }
+    }
+    eprintln!("another client's 30 changes while alice holds the lock: all 423");
+    // Reads stay open.
+    let a = agent(Duration::from_secs(20));
+    for path in ["/api/status", "/api/bookmarks", "/api/nodes/node0/log", "/api/snapshot.png?width=32"] {
+        assert_eq!(con.get(&a, path, &[]).unwrap().status, 200, "{path}");
+    }
+    // Nothing changed: the settings, the camera, no restart, no bookmarks file.
+    std::thread::sleep(Duration::from_millis(300));
+    let after = con.status();
+    assert_eq!((&after["render"], &after["camera"]), (&before["render"], &before["camera"]));
+    assert!(w.nodes.iter().all(|n| n.restarts.lock().unwrap().is_empty()));
+    assert!(!w.dir.path().join("console-attack.bookmarks.toml").exists());
+    assert_eq!(after["wall"]["identify"], false);
+    // The holder's own changes go ahead.
+    let mine = [("X-Isowall-Lock", id.as_str())];
+    assert_eq!(con.post(&alice, "/api/render", r#"{"exposure": 0.5}"#, &mine).status, 200);
+    wait_status(con, "the holder's change", |s| s["render"]["exposure"] == 0.5);
+    // Idle for its 3 s: it lapses, and anybody may change the wall again.
+    std::thread::sleep(Duration::from_millis(3500));
+    let r = con.post(&mallory, "/api/render", r#"{"exposure": 0.75}"#, &[]);
+    assert_eq!(r.status, 200, "after the lock lapsed: {}", r.text());
+    wait_status(con, "the lapsed lock", |s| s["console"]["lock"].is_null());
+    // Taken again and released by its holder (only): open again.
+    let r = con.post(&mallory, "/api/lock", r#"{"holder": "mallory"}"#, &[]);
+    let id2 = r.json()["lock_id"].as_str().unwrap().to_string();
+    assert_ne!(id2, id);
+    assert_eq!(con.post(&alice, "/api/lock/release", "{}", &mine).status, 423);
+    assert_eq!(
+        con.post(&mallory, "/api/lock/release", "{}", &[("X-Isowall-Lock", id2.as_str())]).status,
+        200
+    );
+    assert_eq!(con.post(&alice, "/api/render", r#"{"exposure": 1.0}"#, &[]).status, 200);
+}
+
+#[test]
+fn restarts_logs_bookmarks_and_node_info_refuse_what_is_not_theirs() {
+    let w = fake_wall(&[], 1024);
+    let con = &w.con;
+    let a = agent(Duration::from_secs(30));
+    // What a node says of itself: kept as text, escaped, bounded (the page sets it as text).
+    let s = wait_status(con, "node info", |s| s["nodes"][0]["version"] == "0.0.0-fake");
+    let adapter = s["nodes"][0]["adapter"].as_str().unwrap();
+    assert_eq!(adapter, "fake <script>alert('node0')</script>\\u{1b}[31m");
+    assert_eq!(
+        (s["nodes"][0]["backend"].as_str(), s["nodes"][0]["local_log"].as_bool()),
+        (Some("Vulkan"), Some(false))
+    );
+
+    // Restart: only a node of the wall, as JSON; told over its connection with the reason
+    // escaped and cut, then the node is back.
+    for (path, body, status) in [
+        ("/api/nodes/node9/restart", "{}", 404),
+        ("/api/nodes/..%2Fnode0/restart", "{}", 404),
+        ("/api/nodes/node0/restart", r#"{"reason": 5}"#, 422),
+        ("/api/nodes/node0/restart", r#"{"why": "x"}"#, 422),
+    ] {
+        let r = con.post(&a, path, body, &[]);
+        assert_eq!(r.status, status, "{path} {body}: {}", r.text());
+    }
+    let r = a
+        .post(format!("{}/api/nodes/node0/restart", con.base))
+        .header("Content-Type", "text/plain")
+        .send("{}")
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 415, "a form post cannot restart a node");
+    assert!(w.nodes[0].restarts.lock().unwrap().is_empty(), "refused, yet restarted");
+    let connections = w.nodes[0].connections.load(Ordering::Relaxed);
+    let reason = format!("\u{1b}[2J<b>{}", "r".repeat(400));
+    let r =
+        con.post(&a, "/api/nodes/node0/restart", &serde_json::json!({ "reason": reason }).to_string(), &[]);
+    assert_eq!(r.status, 200, "{}", r.text());
+    assert!(
+        r.json()["how"].as_str().unwrap().contains("told to restart over its connection"),
+        "{}",
+        r.text()
+    );
+    let give_up = Instant::now() + Duration::from_secs(20);
+    while w.nodes[0].restarts.lock().unwrap().is_empty() {
+        assert!(Instant::now() < give_up, "node0 never got its Restart:\n{}", con.log());
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let told = w.nodes[0].restarts.lock().unwrap()[0].clone();
+    assert!(told.starts_with("\\u{1b}[2J<b>rrr"), "{told}");
+    assert!(told.chars().count() <= 310, "{} characters told", told.chars().count());
+    assert!(w.nodes[1].restarts.lock().unwrap().is_empty(), "node1 was not asked");
+    // The wall reconnects it, as any node that comes back.
+    let give_up = Instant::now() + Duration::from_secs(30);
+    while w.nodes[0].connections.load(Ordering::Relaxed) <= connections {
+        assert!(Instant::now() < give_up, "node0 was not reconnected:\n{}", con.log());
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    wait_status(con, "node0 up again", |s| s["nodes"][0]["state"] == "up");
+
+    // Logs: a node of the wall or nothing; a remote node's stays on its machine.
+    for (path, status) in [
+        ("/api/nodes/node0/log?lines=0", 400),
+        ("/api/nodes/node0/log?lines=100000", 400),
+        ("/api/nodes/node0/log?path=/etc/passwd", 400),
+        ("/api/nodes/..%2F..%2Fetc%2Fpasswd/log", 404),
+        ("/api/nodes/keys%2Fcontroller.key/log", 404),
+    ] {
+        assert_eq!(con.get(&a, path, &[]).unwrap().status, status, "{path}");
+    }
+    let log = con.get(&a, "/api/nodes/node1/log", &[]).unwrap().json();
+    assert_eq!((log["local"].as_bool(), log["lines"].as_array().map(Vec::len)), (Some(false), Some(0)));
+    assert!(log["note"].as_str().unwrap().contains("journalctl"), "{log}");
+
+    // Bookmarks: names checked, unknown ones named, the file beside the config written whole.
+    let file = w.dir.path().join("console-attack.bookmarks.toml");
+    for name in ["", "../../etc/passwd", "<script>", "a\nb", " lead", &"n".repeat(41), "é"] {
+        let body = serde_json::json!({ "name": name }).to_string();
+        let r = con.post(&a, "/api/bookmarks", &body, &[]);
+        assert_eq!((r.status, r.json()["field"].as_str()), (422, Some("name")), "{name:?}: {}", r.text());
+    }
+    assert!(!file.exists(), "a refused name wrote the file");
+    assert_eq!(con.post(&a, "/api/bookmarks", r#"{"name": "front", "eye": [0, 0, 0]}"#, &[]).status, 422);
+    let r = con.post(&a, "/api/bookmarks", r#"{"name": "front"}"#, &[]);
+    assert_eq!(r.status, 200, "{}", r.text());
+    assert_eq!(r.json()["bookmarks"][0]["name"], "front");
+    assert!(std::fs::read_to_string(&file).unwrap().contains("name = \"front\""));
+    assert_eq!(con.post(&a, "/api/bookmarks/recall", r#"{"name": "back"}"#, &[]).status, 404);
+    assert_eq!(con.post(&a, "/api/bookmarks/delete", r#"{"name": "back"}"#, &[]).status, 404);
+    // A malformed file: named at its line, listed as none, never written over.
+    let broken = "[[bookmark]]\nname = \"front\"\neye = [1, 2]\n";
+    std::fs::write(&file, broken).unwrap();
+    let r = con.get(&a, "/api/bookmarks", &[]).unwrap();
+    assert_eq!(r.status, 200);
+    let error = r.json()["error"].as_str().unwrap().to_string();
+    assert!(error.contains("console-attack.bookmarks.toml:3: "), "{error}");
+    let r = con.post(&a, "/api/bookmarks", r#"{"name": "other"}"#, &[]);
+    assert_eq!(r.status, 409, "{}", r.text());
+    assert_eq!(std::fs::read_to_string(&file).unwrap(), broken, "a malformed file was written over");
+    // A file too large to be bookmarks is not read whole.
+    std::fs::write(&file, vec![b'#'; 1 << 20]).unwrap();
+    let error = con.get(&a, "/api/bookmarks", &[]).unwrap().json()["error"].as_str().unwrap().to_string();
+    assert!(error.contains("larger than"), "{error}");
+    // The console runs on.
+    let released = con.released();
+    let give_up = Instant::now() + Duration::from_secs(20);
+    while con.released() <= released {
+        assert!(Instant::now() < give_up, "the frames stopped");
+        std::thread::sleep(Duration::from_millis(100));
+    }
 }

@@ -849,6 +849,121 @@ fn a_second_controller_is_refused_with_the_reason_and_the_first_keeps_its_nodes(
     assert!(String::from_utf8_lossy(&third.stdout).contains("frames: 5 "), "{third_err}");
 }
 
+/// The console's status, from its address in `out` (`isowall console` prints it).
+fn console_status(out: &Path) -> Option<serde_json::Value> {
+    let base =
+        text(out).lines().find_map(|l| l.strip_prefix("isowall console: serving "))?.trim().to_string();
+    let agent = ureq::Agent::new_with_config(
+        ureq::config::Config::builder()
+            .http_status_as_error(false)
+            .timeout_global(Some(Duration::from_secs(20)))
+            .build(),
+    );
+    let mut r = agent.get(format!("{base}api/status")).call().ok()?;
+    serde_json::from_slice(&r.body_mut().read_to_vec().ok()?).ok()
+}
+
+fn console_post(out: &Path, path: &str, body: &str) -> (u16, String) {
+    let base = text(out)
+        .lines()
+        .find_map(|l| l.strip_prefix("isowall console: serving "))
+        .unwrap()
+        .trim()
+        .to_string();
+    let agent = ureq::Agent::new_with_config(
+        ureq::config::Config::builder()
+            .http_status_as_error(false)
+            .timeout_global(Some(Duration::from_secs(30)))
+            .build(),
+    );
+    let mut r =
+        agent.post(format!("{base}{path}")).header("Content-Type", "application/json").send(body).unwrap();
+    (r.status().as_u16(), String::from_utf8_lossy(&r.body_mut().read_to_vec().unwrap()).into_owned())
+}
+
+#[test]
+fn only_the_controller_holding_a_node_restarts_it_and_it_exits_for_its_supervisor() {
+    // The unit restarts a daemon that exits with anything but 0, which is how a Restart ends it.
+    let unit =
+        std::fs::read_to_string(isowall_e2e::repo_root().join("wall-configs/systemd/isowalld.service"))
+            .unwrap();
+    assert!(
+        unit.lines().any(|l| l.trim() == "Restart=on-failure"),
+        "the unit does not restart a failed node"
+    );
+    assert!(!unit.contains("RestartPreventExitStatus"), "the unit would not restart a restarting node");
+    let dir = tempfile::tempdir().unwrap();
+    let ports = free_udp_ports(2);
+    let config = wall_config_2x1(dir.path(), "restart", &ports, 16, 12, 0, 1);
+    keygen(dir.path(), &config);
+    let Some(mut daemons) = nodes(dir.path(), &config, 2) else { return };
+    let cfg = config.to_str().unwrap();
+    // The seated controller: a console driving nodes it did not start (as on a real wall).
+    let (_console, out, err) =
+        spawn_isowall(dir.path(), "console", &["console", cfg, "--listen", "127.0.0.1:0"]);
+    let give_up = Instant::now() + Duration::from_secs(90);
+    loop {
+        let up = console_status(&out)
+            .is_some_and(|s| s["nodes"].as_array().unwrap().iter().all(|n| n["state"] == "up"));
+        if up {
+            break;
+        }
+        assert!(Instant::now() < give_up, "the console never had both nodes up:\n{}", text(&err));
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    // Its version and GPU, as node0 told them.
+    let s = console_status(&out).unwrap();
+    assert_eq!(s["nodes"][0]["version"].as_str(), Some(env!("CARGO_PKG_VERSION")), "{}", s["nodes"][0]);
+    assert!(s["nodes"][0]["adapter"].as_str().is_some_and(|a| !a.is_empty()), "{}", s["nodes"][0]);
+    assert!(s["nodes"][0]["backend"].as_str().is_some_and(|b| !b.is_empty()), "{}", s["nodes"][0]);
+
+    // Another peer with the controller's own certificate, while the console holds the node: it
+    // is refused before any message of its counts, so its Restart restarts nothing.
+    let rt = runtime();
+    let intruder = rt.block_on(async {
+        let identity = Identity::load(&dir.path().join("keys"), isowall_net::tls::CONTROLLER).unwrap();
+        let endpoint = transport::client(&identity).unwrap();
+        match hello_as_controller(&endpoint, addr(ports[0]), "node0").await {
+            Err(reason) => reason,
+            Ok(mut ch) => {
+                let _ = ch.sender.send(&Message::Restart { reason: "intruder".into() }).await;
+                closed(&ch.connection, Duration::from_secs(5)).await
+            }
+        }
+    });
+    assert!(intruder.contains("node0 is driven by another controller"), "{intruder}");
+    std::thread::sleep(Duration::from_secs(1));
+    assert!(daemons[0].child.try_wait().unwrap().is_none(), "the intruder's Restart ended node0");
+    assert!(!daemons[0].log_text().contains("asked this node to restart"), "{}", daemons[0].log_text());
+
+    // The console's restart: node0 exits with the restart status, for its supervisor.
+    let (status, body) = console_post(&out, "api/nodes/node0/restart", r#"{"reason": "test"}"#);
+    assert_eq!(status, 200, "{body}");
+    assert!(body.contains("told to restart over its connection"), "{body}");
+    let give_up = Instant::now() + Duration::from_secs(20);
+    let code = loop {
+        if let Some(st) = daemons[0].child.try_wait().unwrap() {
+            break st.code();
+        }
+        assert!(Instant::now() < give_up, "node0 did not exit:\n{}", daemons[0].log_text());
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    let log = daemons[0].log_text();
+    assert_eq!(code, Some(isowall_model::messages::RESTART_EXIT_CODE), "{log}");
+    assert!(log.contains("asked this node to restart") && log.contains("test"), "{log}");
+    assert!(daemons[1].child.try_wait().unwrap().is_none(), "node1 was not asked");
+    // Started again (as systemd does): the console has it back.
+    daemons[0] = Daemon::start(dir.path(), &config, "node0", &[]);
+    assert!(daemons[0].wait_ready(Duration::from_secs(60)), "{}", daemons[0].log_text());
+    let give_up = Instant::now() + Duration::from_secs(40);
+    while !console_status(&out)
+        .is_some_and(|s| s["nodes"][0]["state"] == "up" && s["nodes"][0]["version"].is_string())
+    {
+        assert!(Instant::now() < give_up, "node0 did not rejoin:\n{}", text(&err));
+        std::thread::sleep(Duration::from_millis(200));
+    }
+}
+
 // ---- 9: a wall starts without a dead node ------------------------------------------------------
 
 #[test]

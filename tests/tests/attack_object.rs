@@ -414,8 +414,8 @@ async fn silent_node(identity: Identity, addr: SocketAddr, stop: Arc<AtomicBool>
                             let reason = "a silent test peer".to_string();
                             sender.send(&Message::BrickFailed { brick, reason }).await
                         }
-                        NodeOutput::Bricks { .. } => Ok(()),
-                        NodeOutput::Closed { .. } => return,
+                        NodeOutput::Bricks { .. } | NodeOutput::Identify { .. } => Ok(()),
+                        NodeOutput::Closed { .. } | NodeOutput::Restart { .. } => return,
                     };
                     if sent.is_err() {
                         return;

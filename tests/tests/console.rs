@@ -10,6 +10,15 @@
 //! the console's own page opened with `#token=T` reads both (the token in a header and a
 //! WebSocket subprotocol, never in a URL).
 //!
+//! A second browser test drives what an operator does beside the picture: each node's card shows
+//! its isowalld version, GPU adapter and driver (as the node told them) and its recent log lines
+//! as text (a `<script>` line in the log stays text); camera bookmarks are saved, recalled and
+//! deleted from the page (the file beside the config), a malformed file is named at its line;
+//! the operator lock taken in the page refuses another client's change with 423 until released;
+//! the identify button makes the screen show its node's and tile's name (its snapshot's corner)
+//! and takes it away again; the restart button restarts a local node (a new process) and its
+//! card comes back up.
+//!
 //! The browser test also prints what the page costs (run it with `--nocapture`): the thumbnail's
 //! latency (swap released -> painted in the page), fps without and with the page open, and the
 //! bytes per second the page costs the wall and the console. With `CI=true` a missing chromium
@@ -913,5 +922,253 @@ ws.onerror = () => {{ if (result.ws === "pending") result.ws = "refused"; }};
     )
     .await;
     assert_eq!(js(&page, "document.getElementById('link').textContent").await, "live");
+    page.close().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_page_shows_each_nodes_gpu_and_log_and_drives_bookmarks_the_lock_and_restarts() {
+    let Some((driver, chromium)) = driver() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let config = wall(dir.path(), 1, (32, 24), 20000);
+    let (d, c) = (dir.path().to_path_buf(), config.clone());
+    let Some(con) =
+        tokio::task::spawn_blocking(move || Console::start(&d, &c, &["--local"], None)).await.unwrap()
+    else {
+        return;
+    };
+    let con = std::sync::Arc::new(con);
+    let status = |con: &std::sync::Arc<Console>| {
+        let con = con.clone();
+        async move { tokio::task::spawn_blocking(move || con.status()).await.unwrap() }
+    };
+    let page = browser(&driver, &chromium, &dir.path().join("chromium-profile")).await;
+    page.goto(&format!("{}/", con.base)).await.unwrap();
+    until(
+        &page,
+        "document.querySelectorAll('.node-card[data-state=up]').length === 1",
+        Duration::from_secs(60),
+    )
+    .await;
+
+    // Version, GPU and driver: what the node told, in the status and on its card.
+    let s = status(&con).await;
+    let n = &s["nodes"][0];
+    let (version, adapter, backend) =
+        (n["version"].as_str().unwrap(), n["adapter"].as_str().unwrap(), n["backend"].as_str().unwrap());
+    assert_eq!(version, env!("CARGO_PKG_VERSION"));
+    assert!(!adapter.is_empty() && !backend.is_empty(), "{n}");
+    let field = |f: &str| {
+        format!(
+            "document.querySelector('.node-card[data-node=\"node0\"] dd[data-field=\"{f}\"]').textContent"
+        )
+    };
+    until(
+        &page,
+        &format!("{} === {}", field("version"), serde_json::json!(version)),
+        Duration::from_secs(10),
+    )
+    .await;
+    let gpu = js(&page, &field("gpu")).await;
+    assert_eq!(gpu.as_str(), Some(format!("{adapter} ({backend})").as_str()));
+    assert_eq!(n["local_log"], true);
+
+    // The log: its last lines, as text; a line of markup stays text.
+    let log = dir.path().join("logs/node0.log");
+    let hostile = "<script>window.pwned = 1</script><b id=\"injected\">bold</b>";
+    std::fs::OpenOptions::new()
+        .append(true)
+        .open(&log)
+        .unwrap()
+        .write_all(format!("{hostile}\n").as_bytes())
+        .unwrap();
+    page.find(fantoccini::Locator::Css(".node-card[data-node=\"node0\"] details.log summary"))
+        .await
+        .unwrap()
+        .click()
+        .await
+        .unwrap();
+    let pre = "document.querySelector('.node-card[data-node=\"node0\"] pre.log')";
+    until(
+        &page,
+        &format!("{pre}.textContent.includes({})", serde_json::json!(hostile)),
+        Duration::from_secs(10),
+    )
+    .await;
+    assert_eq!(js(&page, &format!("{pre}.textContent.includes('ready on')")).await, Value::Bool(true));
+    assert_eq!(
+        js(&page, "document.getElementById('injected') === null && window.pwned === undefined").await,
+        Value::Bool(true)
+    );
+    assert_eq!(js(&page, &format!("{pre}.children.length")).await, 0, "the log became markup");
+
+    // Bookmarks: save the camera under a name, move, recall, delete; the file beside the config.
+    let file = dir.path().join("console.bookmarks.toml");
+    let eye0 = s["camera"]["eye"].clone();
+    let name_box = page.find(fantoccini::Locator::Id("bookmark-name")).await.unwrap();
+    name_box.send_keys("front view").await.unwrap();
+    page.find(fantoccini::Locator::Id("bookmark-save")).await.unwrap().click().await.unwrap();
+    until(
+        &page,
+        "[...document.getElementById('bookmark-list').options].some(o => o.value === 'front view')",
+        Duration::from_secs(10),
+    )
+    .await;
+    assert!(std::fs::read_to_string(&file).unwrap().contains("name = \"front view\""));
+    assert_eq!(con.post("/api/camera", "{\"yaw_deg\": 50}").status, 200);
+    let moved = loop {
+        let s = status(&con).await;
+        if s["camera"]["eye"] != eye0 {
+            break s["camera"]["eye"].clone();
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    assert_ne!(moved, eye0);
+    page.find(fantoccini::Locator::Id("bookmark-recall")).await.unwrap().click().await.unwrap();
+    let give_up = Instant::now() + Duration::from_secs(20);
+    loop {
+        let eye = status(&con).await["camera"]["eye"].clone();
+        let near = eye
+            .as_array()
+            .unwrap()
+            .iter()
+            .zip(eye0.as_array().unwrap())
+            .all(|(a, b)| (a.as_f64().unwrap() - b.as_f64().unwrap()).abs() < 1e-6);
+        if near {
+            break;
+        }
+        assert!(Instant::now() < give_up, "recall kept eye {eye}, the bookmark has {eye0}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    page.find(fantoccini::Locator::Id("bookmark-delete")).await.unwrap().click().await.unwrap();
+    until(&page, "document.getElementById('bookmark-list').options.length === 0", Duration::from_secs(10))
+        .await;
+    assert!(!std::fs::read_to_string(&file).unwrap().contains("front view"));
+    // A malformed file: the page names it at its line; the console goes on.
+    std::fs::write(&file, "[[bookmark]]\nname = 7\n").unwrap();
+    js(&page, "(loadBookmarks(), true)").await;
+    until(
+        &page,
+        "document.getElementById('bookmark-note').textContent.includes('console.bookmarks.toml:2: ')",
+        Duration::from_secs(10),
+    )
+    .await;
+
+    // The lock: taken in the page; another client's change is refused with 423 naming the
+    // holder, the page's own changes go ahead; released, the other client may change again.
+    page.find(fantoccini::Locator::Id("lock-holder")).await.unwrap().send_keys("alice").await.unwrap();
+    page.find(fantoccini::Locator::Id("lock-take")).await.unwrap().click().await.unwrap();
+    until(
+        &page,
+        "document.getElementById('lock-note').textContent.startsWith('you hold the lock')",
+        Duration::from_secs(10),
+    )
+    .await;
+    let r = con.post("/api/render", "{\"exposure\": 0.5}");
+    assert_eq!(
+        (r.status, r.json()["holder"].as_str()),
+        (423, Some("alice")),
+        "{}",
+        String::from_utf8_lossy(&r.body)
+    );
+    page.find(fantoccini::Locator::Id("home")).await.unwrap().click().await.unwrap();
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    assert_eq!(
+        js(&page, "document.getElementById('control-error').textContent").await,
+        "",
+        "the holder's change was refused"
+    );
+    page.find(fantoccini::Locator::Id("lock-release")).await.unwrap().click().await.unwrap();
+    until(
+        &page,
+        "document.getElementById('lock-note').textContent.startsWith('nobody holds')",
+        Duration::from_secs(10),
+    )
+    .await;
+    assert_eq!(con.post("/api/render", "{\"exposure\": 0.5}").status, 200);
+
+    // Identify: the screen shows its node's and tile's name in its top-left corner (in the
+    // snapshot, which is what the screen shows); off again, the corner is the picture's again.
+    let corner = |img: &image::RgbImage| -> Vec<u8> {
+        let (w, h) = (img.width().min(32), img.height().min(24));
+        (0..h).flat_map(|y| (0..w).flat_map(move |x| img.get_pixel(x, y).0)).collect()
+    };
+    let mean_diff = |a: &[u8], b: &[u8]| {
+        a.iter().zip(b).map(|(x, y)| f64::from(x.abs_diff(*y))).sum::<f64>() / a.len().max(1) as f64
+    };
+    let shot = |con: &std::sync::Arc<Console>| {
+        let con = con.clone();
+        async move { tokio::task::spawn_blocking(move || snapshot(&con)).await.unwrap() }
+    };
+    let before = shot(&con).await;
+    page.find(fantoccini::Locator::Id("identify")).await.unwrap().click().await.unwrap();
+    until(
+        &page,
+        "document.getElementById('identify').textContent === 'stop identifying'",
+        Duration::from_secs(10),
+    )
+    .await;
+    // White text on black over the corner: far from the picture there before.
+    let labelled = |c: &[u8]| {
+        c.chunks(3).any(|p| p.iter().all(|v| *v > 200))
+            && c.chunks(3).filter(|p| p.iter().all(|v| *v < 10)).count() > c.len() / 6
+    };
+    let give_up = Instant::now() + Duration::from_secs(20);
+    loop {
+        let c = corner(&shot(&con).await);
+        if labelled(&c) && mean_diff(&c, &corner(&before)) > 20.0 {
+            break;
+        }
+        assert!(
+            Instant::now() < give_up,
+            "the label never showed in the corner (difference {:.1} from before)",
+            mean_diff(&c, &corner(&before))
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    page.find(fantoccini::Locator::Id("identify")).await.unwrap().click().await.unwrap();
+    let give_up = Instant::now() + Duration::from_secs(20);
+    loop {
+        let img = shot(&con).await;
+        if mean_diff(&corner(&img), &corner(&before)) < 3.0 {
+            break;
+        }
+        assert!(Instant::now() < give_up, "the label stayed after identify was turned off");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+
+    // Restart from the page: a local node is killed and started again (a new process, its log
+    // going on), and its card comes back up.
+    let pid0 = status(&con).await["nodes"][0]["pid"].as_u64().expect("a local node's pid");
+    js(&page, "(window.confirm = () => true, true)").await;
+    page.find(fantoccini::Locator::Css(".node-card[data-node=\"node0\"] button.restart"))
+        .await
+        .unwrap()
+        .click()
+        .await
+        .unwrap();
+    until(
+        &page,
+        "document.querySelector('.node-card[data-node=\"node0\"] .restart-note').textContent.includes('killed and started again')",
+        Duration::from_secs(20),
+    )
+    .await;
+    let give_up = Instant::now() + Duration::from_secs(90);
+    loop {
+        let s = status(&con).await;
+        let n = &s["nodes"][0];
+        if n["pid"].as_u64().is_some_and(|p| p != pid0)
+            && n["state"] == "up"
+            && s["frame"]["released"].as_u64() > Some(0)
+        {
+            break;
+        }
+        assert!(Instant::now() < give_up, "node0 did not come back after its restart: {n}");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    assert!(
+        std::fs::read_to_string(&log).unwrap().contains(hostile),
+        "the restarted node's log started over"
+    );
+    until(&page, &card_state("node0", "up"), Duration::from_secs(30)).await;
     page.close().await.unwrap();
 }

@@ -15,7 +15,7 @@ mod harness;
 use harness::Outcome;
 use isowall_model::camera::Camera;
 use isowall_model::codec;
-use isowall_model::messages::{Message, Role, TileImage, PROTOCOL_VERSION};
+use isowall_model::messages::{Message, NodeInfo, Role, TileImage, PROTOCOL_VERSION};
 use isowall_model::render_state::RenderSettings;
 use isowall_model::wire::FrameState;
 use std::io::Write;
@@ -412,6 +412,15 @@ fn message_seeds() -> Vec<(String, Vec<u8>)> {
             }],
         },
         Message::Bye { reason: "done".into() },
+        Message::NodeInfo(NodeInfo {
+            version: "0.1.0".into(),
+            adapter: "llvmpipe (LLVM 19.1.7, 256 bits)".into(),
+            backend: "Vulkan".into(),
+            driver: "llvmpipe".into(),
+            driver_info: "Mesa 25.0.7".into(),
+        }),
+        Message::Restart { reason: "the operator's console asked".into() },
+        Message::Identify { on: true },
     ];
     let mut out: Vec<(String, Vec<u8>)> = all
         .iter()
@@ -429,6 +438,7 @@ fn message_seeds() -> Vec<(String, Vec<u8>)> {
         state(2),
         Message::Swap { frame_id: 2, present_at_us: None },
         Message::SnapshotRequest,
+        Message::Restart { reason: "operator".into() },
         Message::Bye { reason: "done".into() },
     ];
     for ctl in [0u8, 1, 2, 3 + 4 * 12] {

@@ -7,7 +7,15 @@
 //! - `POST /api/render`: a partial set of render settings (`patch::RenderPatch`);
 //! - `POST /api/camera`: camera moves, orbit and demo path (`patch::CameraPatch`);
 //! - `POST /api/time`: a time-varying volume's step, play or pause and rate (`patch::TimePatch`);
-//! - `GET /api/live`: a WebSocket pushing the status, `?hz=` times a second (1..=10, default 4).
+//! - `GET /api/live`: a WebSocket pushing the status, `?hz=` times a second (1..=10, default 4);
+//! - `POST /api/nodes/{name}/restart`: restart a node (a local daemon killed and started again,
+//!   a remote one told `Restart` over its connection, its supervisor starting it again);
+//! - `GET /api/nodes/{name}/log?lines=N`: a local node's last log lines (`logs.rs`);
+//! - `GET /api/bookmarks`, `POST /api/bookmarks` (save the camera as `name`),
+//!   `POST /api/bookmarks/recall`, `POST /api/bookmarks/delete`: camera bookmarks (`bookmarks.rs`);
+//! - `POST /api/identify`: `{"on": bool}` each screen shows its node's and tile's name;
+//! - `POST /api/lock`, `POST /api/lock/release`: the operator lock (`lock.rs`): while one client
+//!   holds it, every other client's change is refused with 423 (reads stay open).
 //!
 //! Refusals are JSON `{"error": REASON, "field": FIELD}` with a 4xx status, and change nothing.
 //! Every `/api` request from a browser must come from this console's own page: one whose
@@ -21,7 +29,9 @@
 //! Without a token (loopback), requests must name a loopback host (no DNS rebinding from a web
 //! page), and POSTs must be JSON (so a cross-site form cannot send one).
 
+use super::bookmarks::{self, Bookmark, BookmarkError};
 use super::frame_loop::{divisor_for, Command};
+use super::lock::{self, OperatorLock};
 use super::patch::{CameraPatch, Refusal, RenderPatch, TimePatch};
 use super::pictures::Pictures;
 use super::server::Limits;
@@ -81,16 +91,50 @@ pub struct Shared {
     pub limits: Limits,
     /// Places for live WebSockets ([`MAX_LIVE`]).
     pub live_slots: Arc<tokio::sync::Semaphore>,
+    /// The operator lock, on the clock of `epoch`.
+    pub lock: std::sync::Mutex<OperatorLock>,
+    pub epoch: Instant,
+    /// The log file of each daemon the console started (`--local`), by node.
+    pub logs: std::sync::Mutex<std::collections::HashMap<String, std::path::PathBuf>>,
+    /// The camera bookmarks file (beside the wall config), and one writer at a time.
+    pub bookmarks: std::path::PathBuf,
+    pub bookmarks_writer: tokio::sync::Mutex<()>,
+}
+
+/// What the console is started with beyond its access rules.
+pub struct Options {
+    pub bookmarks: std::path::PathBuf,
+    pub lock_idle: Duration,
 }
 
 impl Shared {
-    pub fn new(access: Access, limits: Limits) -> (Arc<Shared>, mpsc::Receiver<Command>) {
+    pub fn new(access: Access, limits: Limits, options: Options) -> (Arc<Shared>, mpsc::Receiver<Command>) {
         let (commands, rx) = mpsc::channel(64);
         let (status, _) = watch::channel(None);
         let pictures = Arc::new(Pictures::default());
         let served_bytes = AtomicU64::new(0);
         let live_slots = Arc::new(tokio::sync::Semaphore::new(MAX_LIVE));
-        (Arc::new(Shared { access, status, commands, served_bytes, pictures, limits, live_slots }), rx)
+        let shared = Shared {
+            access,
+            status,
+            commands,
+            served_bytes,
+            pictures,
+            limits,
+            live_slots,
+            lock: std::sync::Mutex::new(OperatorLock::new(options.lock_idle)),
+            epoch: Instant::now(),
+            logs: Default::default(),
+            bookmarks: options.bookmarks,
+            bookmarks_writer: tokio::sync::Mutex::new(()),
+        };
+        (Arc::new(shared), rx)
+    }
+
+    /// The operator lock (a poisoned mutex still holds a consistent lock: every change to it is
+    /// one assignment).
+    pub fn lock(&self) -> std::sync::MutexGuard<'_, OperatorLock> {
+        self.lock.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
     }
 }
 
@@ -148,6 +192,15 @@ pub fn router(shared: Arc<Shared>) -> Router {
         .route("/api/camera", post(camera))
         .route("/api/time", post(time))
         .route("/api/live", get(live))
+        .route("/api/nodes/{name}/restart", post(restart))
+        .route("/api/nodes/{name}/log", get(node_log))
+        .route("/api/bookmarks", get(list_bookmarks).post(save_bookmark))
+        .route("/api/bookmarks/recall", post(recall_bookmark))
+        .route("/api/bookmarks/delete", post(delete_bookmark))
+        .route("/api/identify", post(identify))
+        .route("/api/lock", post(take_lock))
+        .route("/api/lock/release", post(release_lock))
+        .layer(axum::middleware::from_fn_with_state(shared.clone(), operator_lock))
         .layer(axum::middleware::from_fn_with_state(shared.clone(), authorize))
         .layer(axum::middleware::from_fn(same_origin_only));
     Router::new()
@@ -557,6 +610,279 @@ async fn push_changes<S, E, T>(
             }
         }
     }
+}
+
+/// The header a lock holder's changes carry its lock id in.
+pub const LOCK_HEADER: &str = "x-isowall-lock";
+
+fn lock_id(headers: &HeaderMap) -> Option<&str> {
+    headers.get(LOCK_HEADER).and_then(|v| v.to_str().ok())
+}
+
+fn unix_ms() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| u64::try_from(d.as_millis()).unwrap_or(u64::MAX))
+}
+
+fn locked(l: lock::Locked) -> Response {
+    let body = serde_json::json!({
+        "error": l.message(),
+        "field": null,
+        "holder": l.holder,
+        "since_unix_ms": l.since_unix_ms,
+        "held_s": l.held_s,
+    });
+    (StatusCode::LOCKED, Json(body)).into_response()
+}
+
+/// Every change (a POST) but taking and releasing the lock: refused with 423 while another client
+/// holds the operator lock. Reads (GET) are never locked.
+async fn operator_lock(State(shared): State<Arc<Shared>>, req: Request, next: Next) -> Response {
+    let path = req.uri().path();
+    if req.method() != Method::GET && path != "/api/lock" && path != "/api/lock/release" {
+        let now = shared.epoch.elapsed();
+        if let Err(l) = shared.lock().check(now, lock_id(req.headers())) {
+            return locked(l);
+        }
+    }
+    next.run(req).await
+}
+
+#[derive(Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+struct TakeLock {
+    /// Who takes it, as others are told (e.g. the operator's name).
+    holder: Option<String>,
+}
+
+async fn take_lock(
+    State(shared): State<Arc<Shared>>,
+    headers: HeaderMap,
+    body: Result<Json<TakeLock>, JsonRejection>,
+) -> Result<Response, ApiError> {
+    read_only(&shared)?;
+    let Json(t) = body.map_err(bad_json)?;
+    let (now, unix) = (shared.epoch.elapsed(), unix_ms());
+    let holder = t.holder.unwrap_or_else(|| "an operator".into());
+    let taken = shared.lock().take(now, unix, &holder, lock::fresh_id(unix), lock_id(&headers));
+    match taken {
+        Ok(h) => Ok(Json(serde_json::json!({
+            "lock_id": h.id,
+            "holder": h.holder,
+            "since_unix_ms": h.since_unix_ms,
+            "idle_timeout_s": shared.lock().idle().as_secs_f64(),
+        }))
+        .into_response()),
+        Err(l) => Ok(locked(l)),
+    }
+}
+
+async fn release_lock(
+    State(shared): State<Arc<Shared>>,
+    headers: HeaderMap,
+    body: Result<Json<serde_json::Map<String, serde_json::Value>>, JsonRejection>,
+) -> Result<Response, ApiError> {
+    read_only(&shared)?;
+    let Json(_) = body.map_err(bad_json)?;
+    let released = shared.lock().release(shared.epoch.elapsed(), lock_id(&headers));
+    match released {
+        Ok(()) => Ok(Json(serde_json::json!({ "ok": true })).into_response()),
+        Err(l) => Ok(locked(l)),
+    }
+}
+
+/// A node of this wall by its name in the path (refused before anything else happens).
+fn known_node(shared: &Shared, name: &str) -> Result<(), ApiError> {
+    let s = latest(shared)?;
+    if s.nodes.iter().any(|n| n.name == name) {
+        return Ok(());
+    }
+    Err(ApiError {
+        status: StatusCode::NOT_FOUND,
+        field: Some("name"),
+        message: format!("no node `{}` in this wall", isowall_model::messages::printable(name)),
+    })
+}
+
+#[derive(Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+struct RestartBody {
+    /// Why, for the node's log.
+    reason: Option<String>,
+}
+
+async fn restart(
+    State(shared): State<Arc<Shared>>,
+    axum::extract::Path(name): axum::extract::Path<String>,
+    body: Result<Json<RestartBody>, JsonRejection>,
+) -> Result<Response, ApiError> {
+    read_only(&shared)?;
+    let Json(b) = body.map_err(bad_json)?;
+    known_node(&shared, &name)?;
+    let reason = b.reason.unwrap_or_else(|| "the operator's console asked".into());
+    let how = ask(&shared, |tx| Command::Restart(name.clone(), reason, tx)).await?;
+    Ok(Json(serde_json::json!({ "ok": true, "node": name, "how": how })).into_response())
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct LogQuery {
+    lines: Option<usize>,
+}
+
+async fn node_log(
+    State(shared): State<Arc<Shared>>,
+    axum::extract::Path(name): axum::extract::Path<String>,
+    q: Result<Query<LogQuery>, QueryRejection>,
+) -> Result<Response, ApiError> {
+    let Query(q) = q.map_err(bad_query)?;
+    known_node(&shared, &name)?;
+    let n = q.lines.unwrap_or(super::logs::DEFAULT_LINES);
+    if !(1..=super::logs::MAX_LINES).contains(&n) {
+        return Err(ApiError {
+            status: StatusCode::BAD_REQUEST,
+            field: Some("lines"),
+            message: format!("lines {n} is not in 1..={}", super::logs::MAX_LINES),
+        });
+    }
+    let path = shared.logs.lock().unwrap_or_else(std::sync::PoisonError::into_inner).get(&name).cloned();
+    let body = match path {
+        Some(p) => {
+            let shown = p.display().to_string();
+            let lines = tokio::task::spawn_blocking(move || super::logs::tail(&p, n))
+                .await
+                .map_err(|e| ApiError::internal(e.to_string()))?
+                .map_err(|e| ApiError::internal(format!("{shown}: {e}")))?;
+            serde_json::json!({ "node": name, "source": shown, "local": true, "lines": lines })
+        }
+        None => serde_json::json!({
+            "node": name,
+            "source": null,
+            "local": false,
+            "lines": [],
+            "note": "a remote node: its log stays on its machine (journalctl -u isowalld); the console shows what it hears over the wall's connection",
+        }),
+    };
+    Ok(([(header::CACHE_CONTROL, "no-store")], Json(body)).into_response())
+}
+
+fn bookmark_error(e: BookmarkError) -> ApiError {
+    let status = match e {
+        BookmarkError::Name(_) => StatusCode::UNPROCESSABLE_ENTITY,
+        BookmarkError::Unknown(_) => StatusCode::NOT_FOUND,
+        BookmarkError::Full | BookmarkError::Malformed { .. } => StatusCode::CONFLICT,
+        BookmarkError::Write { .. } => StatusCode::INTERNAL_SERVER_ERROR,
+    };
+    let field = matches!(e, BookmarkError::Name(_) | BookmarkError::Unknown(_)).then_some("name");
+    ApiError { status, field, message: e.to_string() }
+}
+
+/// Runs a bookmarks file operation off the runtime's threads, one writer at a time.
+async fn on_bookmarks<T: Send + 'static>(
+    shared: &Shared,
+    f: impl FnOnce(&std::path::Path) -> Result<T, BookmarkError> + Send + 'static,
+) -> Result<T, ApiError> {
+    let _one = shared.bookmarks_writer.lock().await;
+    let path = shared.bookmarks.clone();
+    tokio::task::spawn_blocking(move || f(&path))
+        .await
+        .map_err(|e| ApiError::internal(e.to_string()))?
+        .map_err(bookmark_error)
+}
+
+fn bookmarks_json(shared: &Shared, list: &[Bookmark], error: Option<String>) -> Response {
+    let body = serde_json::json!({
+        "file": shared.bookmarks.display().to_string(),
+        "bookmarks": list,
+        "error": error,
+    });
+    ([(header::CACHE_CONTROL, "no-store")], Json(body)).into_response()
+}
+
+/// The bookmarks; a malformed file is reported in `error` (FILE:LINE), not as a failure.
+async fn list_bookmarks(State(shared): State<Arc<Shared>>) -> Result<Response, ApiError> {
+    match on_bookmarks(&shared, bookmarks::load).await {
+        Ok(list) => Ok(bookmarks_json(&shared, &list, None)),
+        Err(e) if e.status == StatusCode::CONFLICT => Ok(bookmarks_json(&shared, &[], Some(e.message))),
+        Err(e) => Err(e),
+    }
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct BookmarkName {
+    name: String,
+}
+
+async fn save_bookmark(
+    State(shared): State<Arc<Shared>>,
+    body: Result<Json<BookmarkName>, JsonRejection>,
+) -> Result<Response, ApiError> {
+    read_only(&shared)?;
+    let Json(b) = body.map_err(bad_json)?;
+    bookmarks::check_name(&b.name).map_err(bookmark_error)?;
+    let c = ask(&shared, Command::CameraNow).await?;
+    let mark = Bookmark {
+        name: b.name,
+        eye: c.eye.to_array(),
+        target: c.target.to_array(),
+        up: c.up.to_array(),
+        fov_y: c.fov_y_deg,
+    };
+    tracing::info!(name = %mark.name, "console: camera bookmark saved");
+    let list = on_bookmarks(&shared, move |p| bookmarks::save(p, mark)).await?;
+    Ok(bookmarks_json(&shared, &list, None))
+}
+
+async fn recall_bookmark(
+    State(shared): State<Arc<Shared>>,
+    body: Result<Json<BookmarkName>, JsonRejection>,
+) -> Result<Response, ApiError> {
+    read_only(&shared)?;
+    let Json(b) = body.map_err(bad_json)?;
+    bookmarks::check_name(&b.name).map_err(bookmark_error)?;
+    let list = on_bookmarks(&shared, bookmarks::load).await?;
+    let mark = list
+        .iter()
+        .find(|m| m.name == b.name)
+        .ok_or_else(|| bookmark_error(BookmarkError::Unknown(b.name.clone())))?;
+    let patch = CameraPatch {
+        eye: Some(mark.eye),
+        target: Some(mark.target),
+        up: Some(mark.up),
+        fov_y: Some(mark.fov_y),
+        ..CameraPatch::default()
+    };
+    ask(&shared, |tx| Command::Camera(patch, tx)).await?;
+    Ok(Json(serde_json::json!({ "ok": true, "name": b.name })).into_response())
+}
+
+async fn delete_bookmark(
+    State(shared): State<Arc<Shared>>,
+    body: Result<Json<BookmarkName>, JsonRejection>,
+) -> Result<Response, ApiError> {
+    read_only(&shared)?;
+    let Json(b) = body.map_err(bad_json)?;
+    let name = b.name;
+    let list = on_bookmarks(&shared, move |p| bookmarks::delete(p, &name)).await?;
+    Ok(bookmarks_json(&shared, &list, None))
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct IdentifyBody {
+    on: bool,
+}
+
+async fn identify(
+    State(shared): State<Arc<Shared>>,
+    body: Result<Json<IdentifyBody>, JsonRejection>,
+) -> Result<Response, ApiError> {
+    read_only(&shared)?;
+    let Json(b) = body.map_err(bad_json)?;
+    ask(&shared, |tx| Command::Identify(b.on, tx)).await?;
+    Ok(Json(serde_json::json!({ "ok": true, "on": b.on })).into_response())
 }
 
 #[cfg(test)]

@@ -41,6 +41,13 @@ pub enum Command {
     /// The nodes' last presented tiles downscaled by a divisor (1: full size). Requests for the
     /// same divisor while one is pending share its answer.
     Images(u32, ImagesReply),
+    /// Restart a node (by name, with a reason for its log): a daemon the console started is
+    /// killed and started again; any other is told `Restart` over its connection. Answers how.
+    Restart(String, String, oneshot::Sender<Result<String, ApiError>>),
+    /// The camera of the next frame (a bookmark saves it).
+    CameraNow(oneshot::Sender<Result<Camera, ApiError>>),
+    /// The tiles show (`true`) or stop showing their node's and their own name.
+    Identify(bool, oneshot::Sender<Result<(), ApiError>>),
 }
 
 /// Where the frame loop answers an image request.
@@ -113,6 +120,8 @@ struct Loop {
     published: Option<Instant>,
     /// Every node on this machine: their present times give the true swap skew.
     one_machine: bool,
+    /// The nodes whose daemon the console started (their log is `logs/NODE.log`).
+    local_logs: std::collections::BTreeSet<String>,
 }
 
 pub async fn run(
@@ -123,6 +132,9 @@ pub async fn run(
     mut commands: mpsc::Receiver<Command>,
 ) -> Result<()> {
     wall.sync_clocks(5).await;
+    if let Some(d) = &daemons {
+        shared.logs.lock().unwrap_or_else(std::sync::PoisonError::into_inner).extend(d.logs());
+    }
     let now = Instant::now();
     let mut session = SessionState::new(scene.camera, scene.settings, scene.range);
     session.playback.steps = scene.steps.max(1);
@@ -157,6 +169,10 @@ pub async fn run(
         started: now,
         published: None,
         one_machine: crate::wall::one_machine(&wall.config),
+        local_logs: daemons
+            .as_ref()
+            .map(|d| d.logs().into_iter().map(|(n, _)| n).collect())
+            .unwrap_or_default(),
     };
     let mut last = Instant::now();
     let mut frames = 0u64;
@@ -164,7 +180,7 @@ pub async fn run(
         // Everything the API asked since the last frame; never waits.
         let mut moved = false;
         while let Ok(cmd) = commands.try_recv() {
-            moved |= me.command(&mut wall, cmd).await;
+            moved |= me.command(&mut wall, &mut daemons, cmd).await;
         }
         if commands.is_closed() && commands.is_empty() {
             break;
@@ -194,8 +210,45 @@ pub async fn run(
 
 impl Loop {
     /// Carries out one command; `true` if it moved the camera (the governor's motion).
-    async fn command(&mut self, wall: &mut Wall, cmd: Command) -> bool {
+    async fn command(&mut self, wall: &mut Wall, daemons: &mut Option<LocalDaemons>, cmd: Command) -> bool {
         match cmd {
+            Command::Restart(node, reason, reply) => {
+                let reason = isowall_model::messages::printable(&reason);
+                let r = match daemons.as_mut().filter(|d| d.has(&node)) {
+                    Some(d) => {
+                        tracing::info!(%node, %reason, "console: restarting the local daemon");
+                        // Its connection goes with the process; the wall reconnects the new one.
+                        d.restart(&node)
+                            .map(|pid| format!("local daemon killed and started again (pid {pid})"))
+                            .map_err(|e| ApiError::internal(format!("{e:#}")))
+                    }
+                    None => {
+                        tracing::info!(%node, %reason, "console: asking the node to restart");
+                        wall.restart(&node, &reason)
+                            .await
+                            .map(|()| {
+                                "told to restart over its connection: its supervisor starts it again"
+                                    .to_string()
+                            })
+                            .map_err(|e| ApiError::new(axum::http::StatusCode::CONFLICT, format!("{e:#}")))
+                    }
+                };
+                if r.is_ok() {
+                    self.published = None;
+                }
+                let _ = reply.send(r);
+                false
+            }
+            Command::Identify(on, reply) => {
+                wall.set_identify(on).await;
+                self.published = None;
+                let _ = reply.send(Ok(()));
+                false
+            }
+            Command::CameraNow(reply) => {
+                let _ = reply.send(Ok(self.controls.session.camera));
+                false
+            }
             Command::Render(p, reply) => {
                 let r = self.controls.apply_render(&p).map_err(ApiError::refused);
                 let _ = reply.send(r);
@@ -454,6 +507,12 @@ impl Loop {
                     bricks: wall.bricks_of(&n.name),
                     clock_error_us: wall.clock_error_us(&n.name),
                     late_swaps: wall.late_swaps(&n.name),
+                    version: wall.node_info(&n.name).map(|i| i.version.clone()),
+                    adapter: wall.node_info(&n.name).map(|i| i.adapter.clone()),
+                    backend: wall.node_info(&n.name).map(|i| i.backend.clone()),
+                    driver: wall.node_info(&n.name).map(|i| i.driver.clone()),
+                    driver_info: wall.node_info(&n.name).map(|i| i.driver_info.clone()),
+                    local_log: self.local_logs.contains(&n.name),
                 }
             })
             .collect();
@@ -465,6 +524,7 @@ impl Loop {
                 height,
                 deadline_ms: cfg.wall.deadline_ms,
                 tiles,
+                identify: wall.identify(),
             },
             frame,
             render: RenderInfo {
@@ -524,6 +584,16 @@ impl Loop {
                 node_image_bytes: wall.snapshot_bytes,
                 thumbnails: self.thumbnails,
                 served_bytes: self.shared.served_bytes.load(Ordering::Relaxed),
+                lock: {
+                    let mut lock = self.shared.lock();
+                    let now = self.shared.epoch.elapsed();
+                    let idle_s = lock.idle().as_secs_f64();
+                    lock.holder(now).map(|h| LockInfo {
+                        holder: h.holder.clone(),
+                        since_unix_ms: h.since_unix_ms,
+                        idle_timeout_s: idle_s,
+                    })
+                },
             },
         }
     }

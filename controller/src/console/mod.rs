@@ -12,7 +12,10 @@
 //! way). The HTTP server (`server.rs`) bounds connections and the time to send a request.
 
 mod api;
+mod bookmarks;
 mod frame_loop;
+mod lock;
+mod logs;
 mod patch;
 mod pictures;
 mod server;
@@ -42,6 +45,9 @@ pub struct ConsoleArgs {
     /// A camera path (keyframes in TOML, as `isowall demo --path`) the page can start and stop
     #[arg(long, value_name = "FILE")]
     pub demo_path: Option<PathBuf>,
+    /// The operator lock lapses after this many seconds without a change from its holder
+    #[arg(long, value_name = "S", default_value_t = lock::DEFAULT_IDLE.as_secs(), value_parser = clap::value_parser!(u64).range(1..=86400))]
+    pub lock_idle_s: u64,
     #[command(flatten)]
     pub start: StartArgs,
 }
@@ -103,7 +109,11 @@ pub fn console(a: &ConsoleArgs) -> Result<()> {
         let (daemons, wall) = start::open(config, &a.start).await?;
         let scene = frame_loop::Scene { camera, settings, range, framing, steps, demo };
         let limits = server::Limits::default();
-        let (shared, commands) = api::Shared::new(access.clone(), limits);
+        let options = api::Options {
+            bookmarks: bookmarks::path_for(&a.config),
+            lock_idle: std::time::Duration::from_secs(a.lock_idle_s),
+        };
+        let (shared, commands) = api::Shared::new(access.clone(), limits, options);
         let looper = tokio::spawn(frame_loop::run(wall, daemons, scene, shared.clone(), commands));
         // Printed for scripts and tests: the page's address, once it serves.
         println!("isowall console: serving http://{local}/");

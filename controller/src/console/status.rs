@@ -31,6 +31,8 @@ pub struct WallInfo {
     pub height: u32,
     pub deadline_ms: u64,
     pub tiles: Vec<TileInfo>,
+    /// Whether each tile shows its node's and its own name (`POST /api/identify`).
+    pub identify: bool,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -156,6 +158,16 @@ pub struct ConsoleInfo {
     pub thumbnails: u64,
     /// Bytes the console sent to pages and scripts (bodies and WebSocket messages).
     pub served_bytes: u64,
+    /// Who holds the operator lock (`null`: nobody; changes are open to every client).
+    pub lock: Option<LockInfo>,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct LockInfo {
+    pub holder: String,
+    pub since_unix_ms: u64,
+    /// It lapses after this long without a change from its holder.
+    pub idle_timeout_s: f64,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -187,6 +199,15 @@ pub struct NodeCard {
     pub clock_error_us: Option<i64>,
     /// Swaps that reached it after their present time, since the console started.
     pub late_swaps: u64,
+    /// What the node told of itself (`Message::NodeInfo`, its texts bounded and made printable;
+    /// `null` until it has): the isowalld version, and its GPU adapter, backend and driver.
+    pub version: Option<String>,
+    pub adapter: Option<String>,
+    pub backend: Option<String>,
+    pub driver: Option<String>,
+    pub driver_info: Option<String>,
+    /// Whether the console started its daemon and reads its log (`/api/nodes/NAME/log`).
+    pub local_log: bool,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]

@@ -230,6 +230,10 @@ struct NodeState {
     clock_fitted: bool,
     /// object space: the bricks it was asked to load and has not answered for.
     loads_owed: std::collections::BTreeSet<u64>,
+    /// Its version and GPU, from its last NodeInfo (kept while it is down: the last known).
+    info: Option<crate::messages::NodeInfo>,
+    /// Whether it sent its NodeInfo on this connection (once per connection).
+    info_told: bool,
 }
 
 impl NodeState {
@@ -247,6 +251,7 @@ impl NodeState {
         self.waiting_since = None;
         self.resident_bytes = None;
         self.loads_owed.clear();
+        self.info_told = false;
     }
 }
 
@@ -398,6 +403,11 @@ impl FrameController {
     /// The node's process resident memory as its last Pong on its current connection said.
     pub fn resident_bytes(&self, node: &str) -> Option<u64> {
         self.nodes.get(node)?.resident_bytes
+    }
+
+    /// The version and GPU `node` last told (its texts made printable and bounded on receipt).
+    pub fn node_info(&self, node: &str) -> Option<&crate::messages::NodeInfo> {
+        self.nodes.get(node)?.info.as_ref()
     }
 
     pub fn is_up(&self, node: &str) -> bool {
@@ -958,6 +968,15 @@ impl FrameController {
                 st.missing = missing.clone();
                 Ok(vec![ControllerOutput::PixelsMissing { node: node.to_string(), frame_id, peers: missing }])
             }
+            Message::NodeInfo(info) => {
+                info.validate().map_err(err)?;
+                let st = self.nodes.get_mut(node).expect("checked");
+                if std::mem::replace(&mut st.info_told, true) {
+                    return Ok(self.ignore(now, node, "a second NodeInfo on one connection".into()));
+                }
+                st.info = Some(info.printable());
+                Ok(Vec::new())
+            }
             // What only the controller sends, refused above.
             _ => Err(err("only the controller sends this".into())),
         }
@@ -1184,6 +1203,44 @@ mod tests {
             assert_eq!(sends(&out), vec![(n.to_string(), "Ping")]);
         }
         c
+    }
+
+    #[test]
+    fn node_info_is_kept_once_per_connection_bounded_and_printable() {
+        use crate::messages::{NodeInfo, MAX_NODE_INFO_CHARS};
+        let mut c = controller(&["a", "b"]);
+        assert_eq!(c.node_info("a"), None);
+        let info = NodeInfo {
+            version: "0.1.0".into(),
+            adapter: "llvmpipe\u{1b}[2J".into(),
+            backend: "Vulkan".into(),
+            driver: "llvmpipe".into(),
+            driver_info: "Mesa".into(),
+        };
+        assert!(c.handle(ms(1), "a", Message::NodeInfo(info.clone())).unwrap().is_empty());
+        let kept = c.node_info("a").unwrap();
+        assert_eq!((kept.version.as_str(), kept.adapter.as_str()), ("0.1.0", "llvmpipe\\u{1b}[2J"));
+        // A second one on the same connection is ignored (and told within the node's budget).
+        let mut other = info.clone();
+        other.version = "9.9.9".into();
+        let out = c.handle(ms(2), "a", Message::NodeInfo(other.clone())).unwrap();
+        assert_eq!(ignored(&out), vec!["ignored a second NodeInfo on one connection".to_string()]);
+        assert_eq!(c.node_info("a").unwrap().version, "0.1.0");
+        // A new connection tells it again; kept while the node is down.
+        c.node_down(ms(3), "a", "gone");
+        assert_eq!(c.node_info("a").unwrap().version, "0.1.0");
+        c.node_up(ms(4), "a").unwrap();
+        c.handle(ms(5), "a", Message::NodeInfo(other)).unwrap();
+        assert_eq!(c.node_info("a").unwrap().version, "9.9.9");
+        // Too long: a protocol error, nothing kept.
+        let mut long = info;
+        long.driver_info = "d".repeat(MAX_NODE_INFO_CHARS + 1);
+        let e = c.handle(ms(6), "b", Message::NodeInfo(long)).unwrap_err();
+        assert!(e.problem.contains("`driver_info` has 257 characters"), "{e}");
+        assert_eq!(c.node_info("b"), None);
+        // The controller's own message from a node is refused.
+        let e = c.handle(ms(7), "b", Message::Restart { reason: String::new() }).unwrap_err();
+        assert!(e.problem.contains("only the controller"), "{e}");
     }
 
     #[test]

@@ -18,6 +18,10 @@
 //!     <---------------------------------------- Pong { id, t0, t1, sent, resident_bytes }
 //!     SnapshotRequest / ThumbnailRequest { divisor } ---> (whenever asked)
 //!     <---------------------------------------- Snapshot { tiles } (each 1/divisor the size)
+//!     <---------------------------------------- NodeInfo (once, after its Hello: version, GPU)
+//!     Identify { on } --------------------------> (the operator's: tiles show their names)
+//!     Restart { reason } -----------------------> (the operator's: the daemon exits with
+//!                                                  [`RESTART_EXIT_CODE`], its supervisor restarts it)
 //! ```
 //!
 //! In object space a daemon also sends Composited before Ready, and when a node dies the
@@ -31,10 +35,67 @@ use serde::{Deserialize, Serialize};
 use crate::wire::FrameState;
 
 /// The protocol version of this build; a peer's [`Message::Hello`] must carry the same.
-pub const PROTOCOL_VERSION: u16 = 8;
+pub const PROTOCOL_VERSION: u16 = 9;
 
 /// The furthest ahead a Swap's present time may be: a node never waits longer for one.
 pub const MAX_SWAP_WAIT: std::time::Duration = std::time::Duration::from_secs(1);
+
+/// The exit status of a daemon told to [`Message::Restart`]: not 0, so a supervisor that restarts
+/// a failed service (systemd's `Restart=on-failure`) brings it back; 75 is `EX_TEMPFAIL`.
+pub const RESTART_EXIT_CODE: i32 = 75;
+
+/// The most characters of each of a [`NodeInfo`]'s texts; a longer one is refused on receipt.
+pub const MAX_NODE_INFO_CHARS: usize = 256;
+
+/// The most characters of a [`Message::Restart`]'s reason.
+pub const MAX_RESTART_REASON_CHARS: usize = 256;
+
+/// What a daemon says about itself once after its Hello: its build and its GPU (wgpu's
+/// `AdapterInfo`, converted to text by the daemon). Each text is at most [`MAX_NODE_INFO_CHARS`].
+#[derive(Serialize, Deserialize, Debug, Clone, PartialEq, Eq, Default)]
+pub struct NodeInfo {
+    /// The isowalld version (the crate's, and `git describe` where the build had one).
+    pub version: String,
+    /// The GPU adapter's name.
+    pub adapter: String,
+    /// Its backend (`Vulkan`, `Metal`, ...).
+    pub backend: String,
+    /// The driver's name and its own description of itself (`driver_info`).
+    pub driver: String,
+    pub driver_info: String,
+}
+
+impl NodeInfo {
+    /// Checks every text's length (in characters) against [`MAX_NODE_INFO_CHARS`].
+    pub fn validate(&self) -> Result<(), String> {
+        for (field, text) in [
+            ("version", &self.version),
+            ("adapter", &self.adapter),
+            ("backend", &self.backend),
+            ("driver", &self.driver),
+            ("driver_info", &self.driver_info),
+        ] {
+            let n = text.chars().count();
+            if n > MAX_NODE_INFO_CHARS {
+                return Err(format!(
+                    "NodeInfo `{field}` has {n} characters, more than {MAX_NODE_INFO_CHARS}"
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// The same with every text made [`printable`] (control characters escaped).
+    pub fn printable(&self) -> NodeInfo {
+        NodeInfo {
+            version: printable(&self.version),
+            adapter: printable(&self.adapter),
+            backend: printable(&self.backend),
+            driver: printable(&self.driver),
+            driver_info: printable(&self.driver_info),
+        }
+    }
+}
 
 /// Which side of a connection a peer is.
 #[derive(Serialize, Deserialize, Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -199,6 +260,16 @@ pub enum Message {
     /// came; the node waited `waited_us` for it (a bounded wait) and rendered `shown_step`
     /// (the frame's own step once loaded in time, else the last one it had).
     StepLate { frame_id: u64, shown_step: u32, waited_us: u64 },
+    /// Daemon -> controller, once after its Hello: its version and GPU ([`NodeInfo`]).
+    NodeInfo(NodeInfo),
+    /// Controller -> daemon: exit with [`RESTART_EXIT_CODE`] so the node's supervisor starts it
+    /// again (the operator's restart); `reason` (at most [`MAX_RESTART_REASON_CHARS`]) is logged.
+    /// Only the controller holding the node's seat can send it: every other one is refused
+    /// before its first message (`crate::seat`).
+    Restart { reason: String },
+    /// Controller -> daemon: from the next frame on, each of its tiles shows (`on`) or stops
+    /// showing its node's and its own name in its top-left corner (the operator's identify).
+    Identify { on: bool },
 }
 
 /// The largest downscale a [`Message::ThumbnailRequest`] may ask for.
@@ -225,6 +296,9 @@ impl Message {
             Message::BrickFailed { .. } => "BrickFailed",
             Message::ThumbnailRequest { .. } => "ThumbnailRequest",
             Message::StepLate { .. } => "StepLate",
+            Message::NodeInfo(_) => "NodeInfo",
+            Message::Restart { .. } => "Restart",
+            Message::Identify { .. } => "Identify",
         }
     }
 
@@ -238,7 +312,9 @@ impl Message {
             | Message::SnapshotRequest
             | Message::ThumbnailRequest { .. }
             | Message::Bricks { .. }
-            | Message::LoadBrick { .. } => Some(Role::Controller),
+            | Message::LoadBrick { .. }
+            | Message::Restart { .. }
+            | Message::Identify { .. } => Some(Role::Controller),
             Message::Ready { .. }
             | Message::Presented { .. }
             | Message::Pong { .. }
@@ -246,7 +322,8 @@ impl Message {
             | Message::Composited { .. }
             | Message::BrickLoaded { .. }
             | Message::BrickFailed { .. }
-            | Message::StepLate { .. } => Some(Role::Daemon),
+            | Message::StepLate { .. }
+            | Message::NodeInfo(_) => Some(Role::Daemon),
         }
     }
 }
@@ -344,6 +421,27 @@ mod tests {
         assert_eq!(m.sender(), Some(Role::Daemon));
         assert_eq!(Message::Swap { frame_id: 1, present_at_us: None }.sender(), Some(Role::Controller));
         assert_eq!(Message::Bye { reason: String::new() }.sender(), None);
+    }
+
+    #[test]
+    fn node_info_texts_are_bounded_and_made_printable() {
+        let mut i = NodeInfo {
+            version: "0.1.0".into(),
+            adapter: "llvmpipe".into(),
+            backend: "Vulkan".into(),
+            driver: "llvmpipe".into(),
+            driver_info: "Mesa 24".into(),
+        };
+        assert_eq!(i.validate(), Ok(()));
+        i.driver_info = "\u{1b}[31mred\n".into();
+        assert_eq!(i.printable().driver_info, "\\u{1b}[31mred\\n");
+        i.adapter = "é".repeat(MAX_NODE_INFO_CHARS);
+        assert_eq!(i.validate(), Ok(()), "characters, not bytes");
+        i.adapter.push('x');
+        let e = i.validate().unwrap_err();
+        assert!(e.contains("`adapter` has 257 characters, more than 256"), "{e}");
+        assert_eq!(Message::NodeInfo(i).sender(), Some(Role::Daemon));
+        assert_eq!(Message::Restart { reason: String::new() }.sender(), Some(Role::Controller));
     }
 
     #[test]

@@ -28,7 +28,10 @@ use std::collections::VecDeque;
 use std::time::Duration;
 
 use crate::codec::check_hello;
-use crate::messages::{Message, ProtocolError, Role, MAX_SWAP_WAIT, MAX_THUMBNAIL_DIVISOR, PROTOCOL_VERSION};
+use crate::messages::{
+    Message, ProtocolError, Role, MAX_RESTART_REASON_CHARS, MAX_SWAP_WAIT, MAX_THUMBNAIL_DIVISOR,
+    PROTOCOL_VERSION,
+};
 use crate::wire::{Continuity, FrameSpec, FrameState};
 
 /// What the daemon's caller must do, in order.
@@ -58,6 +61,13 @@ pub enum NodeOutput {
     Bricks { from_frame: u64, holders: Vec<Option<String>> },
     /// Load this brick beside the node's own, then send `BrickLoaded` (or `BrickFailed`).
     LoadBrick { brick: u64 },
+    /// The controller (the one holding the node's seat: no other gets this far) asked the node
+    /// to restart: log `reason`, close the connection and exit with
+    /// [`crate::messages::RESTART_EXIT_CODE`] for its supervisor to start it again.
+    Restart { reason: String },
+    /// Show (`on`) or stop showing the node's and each tile's name on its tiles, from the next
+    /// frame on.
+    Identify { on: bool },
 }
 
 /// Running counts of a daemon.
@@ -259,6 +269,17 @@ impl NodeMachine {
                 }
                 Ok(vec![NodeOutput::ThumbnailWanted { divisor }])
             }
+            Message::Restart { reason } => {
+                let n = reason.chars().count();
+                if n > MAX_RESTART_REASON_CHARS {
+                    return err(format!(
+                        "a Restart reason of {n} characters, more than {MAX_RESTART_REASON_CHARS}"
+                    ));
+                }
+                self.reset();
+                Ok(vec![NodeOutput::Restart { reason: crate::messages::printable(&reason) }])
+            }
+            Message::Identify { on } => Ok(vec![NodeOutput::Identify { on }]),
             Message::Bye { reason } => {
                 self.reset();
                 Ok(vec![NodeOutput::Closed { reason }])
@@ -510,5 +531,30 @@ mod tests {
         let out = m.handle(ms(0), Message::Bye { reason: "done".into() }).unwrap();
         assert_eq!(out, vec![NodeOutput::Closed { reason: "done".into() }]);
         assert_eq!(m.rendering(), None);
+    }
+
+    #[test]
+    fn a_restart_is_carried_out_only_after_the_handshake_with_a_bounded_reason() {
+        let restart = |r: &str| Message::Restart { reason: r.into() };
+        // Before Hello (a peer that was refused the seat never gets here either).
+        let mut m = NodeMachine::new("n1", vec![]);
+        let e = m.handle(ms(0), restart("x")).unwrap_err();
+        assert!(e.problem.contains("must be Hello"), "{e}");
+        let mut m = machine();
+        m.handle(ms(0), Message::FrameState(state(1, -5.0))).unwrap();
+        let out = m.handle(ms(1), restart("operator\nasked")).unwrap();
+        assert_eq!(out, vec![NodeOutput::Restart { reason: "operator\\nasked".into() }]);
+        assert_eq!(m.rendering(), None, "the frames in flight are forgotten");
+        let mut m = machine();
+        let long = "r".repeat(MAX_RESTART_REASON_CHARS + 1);
+        let e = m.handle(ms(0), restart(&long)).unwrap_err();
+        assert!(e.problem.contains("257 characters, more than 256"), "{e}");
+        assert_eq!(
+            machine().handle(ms(0), Message::Identify { on: true }).unwrap(),
+            vec![NodeOutput::Identify { on: true }]
+        );
+        // A daemon's message on the controller's side is refused.
+        let e = machine().handle(ms(0), Message::NodeInfo(Default::default())).unwrap_err();
+        assert!(e.problem.contains("only a daemon"), "{e}");
     }
 }

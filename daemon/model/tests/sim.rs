@@ -369,8 +369,11 @@ impl Sim {
                     self.send_up(i, &Message::Snapshot { tiles });
                 }
                 NodeOutput::Closed { reason } => self.close(i, &format!("controller said bye: {reason}")),
-                // Object space only; this controller never sends them.
-                NodeOutput::Bricks { .. } | NodeOutput::LoadBrick { .. } => {}
+                // Object space's, and the operator's; this controller never sends them.
+                NodeOutput::Bricks { .. }
+                | NodeOutput::LoadBrick { .. }
+                | NodeOutput::Restart { .. }
+                | NodeOutput::Identify { .. } => {}
             }
         }
     }

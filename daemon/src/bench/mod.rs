@@ -2,7 +2,7 @@
 //! hardware-free counts (trilinear fetches per pixel) sit beside them.
 
 mod accuracy;
-mod chart;
+pub(crate) mod chart;
 mod denoise;
 mod frame;
 mod look;

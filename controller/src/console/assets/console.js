@@ -100,8 +100,9 @@ function swapLine(f) {
   return parts.join(" · ");
 }
 
-// A node's card: made once, then only its fields' text changes.
-const FIELDS = ["since", "render", "ready", "memory", "clock", "shows", "address"];
+// A node's card: made once, then only its fields' text changes. Everything a node or its log says
+// goes in as text (textContent), never as HTML.
+const FIELDS = ["since", "render", "ready", "memory", "clock", "shows", "address", "version", "gpu", "driver"];
 function card(box, name) {
   let c = box.querySelector('.node-card[data-node="' + CSS.escape(name) + '"]');
   if (c) return c;
@@ -121,10 +122,56 @@ function card(box, name) {
     dd.dataset.field = f;
     dl.append(dt, dd);
   }
-  c.append(state, title, dl);
+  const actions = document.createElement("div");
+  actions.className = "actions";
+  const restart = document.createElement("button");
+  restart.className = "restart";
+  restart.textContent = "restart";
+  restart.addEventListener("click", async () => {
+    if (!confirm("Restart node " + name + "?")) return;
+    const r = await post("/api/nodes/" + encodeURIComponent(name) + "/restart", { reason: "restart button of the console's page" });
+    if (r && r.ok) {
+      const j = await r.json();
+      $("control-error").textContent = "";
+      c.querySelector(".restart-note").textContent = j.how;
+    }
+  });
+  const note = document.createElement("span");
+  note.className = "restart-note note";
+  actions.append(restart, note);
+  const log = document.createElement("details");
+  log.className = "log";
+  const summary = document.createElement("summary");
+  summary.textContent = "recent log";
+  const pre = document.createElement("pre");
+  pre.className = "log";
+  log.append(summary, pre);
+  log.addEventListener("toggle", () => { if (log.open) fetchLog(name, pre); });
+  c.append(state, title, dl, actions, log);
   box.appendChild(c);
   return c;
 }
+
+// The last lines of a node's log (a daemon the console started), as text.
+async function fetchLog(name, pre) {
+  try {
+    const r = await fetch("/api/nodes/" + encodeURIComponent(name) + "/log?lines=50", { headers: authHeaders, cache: "no-store" });
+    const j = await r.json();
+    if (!r.ok) { pre.textContent = "log: " + j.error; return; }
+    setText(pre, j.local ? j.lines.join("\n") : j.note);
+    pre.dataset.source = j.source || "";
+  } catch (e) {
+    pre.textContent = "log: " + e;
+  }
+}
+
+// Open logs follow their node every 2 s.
+setInterval(() => {
+  if (document.hidden) return;
+  for (const d of document.querySelectorAll(".node-card details.log[open]")) {
+    fetchLog(d.closest(".node-card").dataset.node, d.querySelector("pre.log"));
+  }
+}, 2000);
 
 function showNodes(s) {
   const box = $("nodes");
@@ -143,8 +190,12 @@ function showNodes(s) {
         (n.late_swaps ? ", " + n.late_swaps + " late swaps" : ""),
       shows: what,
       address: n.address,
+      version: n.version === null ? "–" : n.version,
+      gpu: n.adapter === null ? "–" : n.adapter + " (" + n.backend + ")",
+      driver: n.driver === null ? "–" : (n.driver + " " + n.driver_info).trim() || "–",
     };
     for (const f of FIELDS) setText(c.querySelector('dd[data-field="' + f + '"]'), text[f]);
+    setProp(c.querySelector("button.restart"), "hidden", s.console.read_only);
   }
 }
 
@@ -190,23 +241,88 @@ function showControls(s) {
   setText($("demo"), s.demo.playing ? "stop demo path" : "start demo path");
   setProp($("demo"), "disabled", !s.demo.path);
   setProp($("demo"), "title", s.demo.path ? s.demo.path : "start the console with --demo-path FILE");
+  setText($("identify"), s.wall.identify ? "stop identifying" : "identify screens");
+  showLock(s.console.lock);
 }
 
+// ---- the operator lock ----
+// The lock id this tab holds (kept for the tab only); its changes carry it in X-Isowall-Lock.
+let lockId = sessionStorage.getItem("isowall-lock");
+let lockSince = Number(sessionStorage.getItem("isowall-lock-since"));
+function dropLock() { lockId = null; sessionStorage.removeItem("isowall-lock"); sessionStorage.removeItem("isowall-lock-since"); }
+function showLock(l) {
+  const mine = lockId !== null && l !== null && l.since_unix_ms === lockSince;
+  // Released, lapsed, or taken by another since: this tab's id is no good any more.
+  if (lockId !== null && !mine) dropLock();
+  setText($("lock-note"), l === null ? "nobody holds the lock: every client may change the wall"
+    : (mine ? "you hold the lock" : "locked by " + l.holder) + " since " + new Date(l.since_unix_ms).toLocaleTimeString() +
+      " (lapses after " + l.idle_timeout_s.toFixed(0) + " s idle)");
+  setProp($("lock-take"), "hidden", mine);
+  setProp($("lock-release"), "hidden", !mine);
+}
+$("lock-take").addEventListener("click", async () => {
+  const r = await post("/api/lock", { holder: $("lock-holder").value || "an operator" });
+  if (r && r.ok) {
+    const j = await r.json();
+    lockId = j.lock_id;
+    lockSince = j.since_unix_ms;
+    sessionStorage.setItem("isowall-lock", lockId);
+    sessionStorage.setItem("isowall-lock-since", String(lockSince));
+    showLock({ holder: j.holder, since_unix_ms: j.since_unix_ms, idle_timeout_s: j.idle_timeout_s });
+  }
+});
+$("lock-release").addEventListener("click", async () => {
+  const r = await post("/api/lock/release", {});
+  if (r && r.ok) { dropLock(); showLock(null); }
+});
+
+// ---- camera bookmarks ----
+async function showBookmarks(j) {
+  const list = $("bookmark-list");
+  list.replaceChildren(...j.bookmarks.map((b) => {
+    const o = document.createElement("option");
+    o.value = b.name;
+    o.textContent = b.name;
+    return o;
+  }));
+  setText($("bookmark-note"), j.error ? "bookmarks file: " + j.error : j.bookmarks.length + " bookmark(s) in " + j.file);
+}
+async function loadBookmarks() {
+  try {
+    const r = await fetch("/api/bookmarks", { headers: authHeaders, cache: "no-store" });
+    if (r.ok) showBookmarks(await r.json());
+  } catch (e) {
+    $("bookmark-note").textContent = "bookmarks: " + e;
+  }
+}
+$("bookmark-save").addEventListener("click", async () => {
+  const r = await post("/api/bookmarks", { name: $("bookmark-name").value });
+  if (r && r.ok) showBookmarks(await r.json());
+});
+$("bookmark-recall").addEventListener("click", () => post("/api/bookmarks/recall", { name: $("bookmark-list").value }));
+$("bookmark-delete").addEventListener("click", async () => {
+  const r = await post("/api/bookmarks/delete", { name: $("bookmark-list").value });
+  if (r && r.ok) showBookmarks(await r.json());
+});
+loadBookmarks();
+
+// A change: JSON, with the token and the lock id this tab holds; answers the response (null
+// when it could not be sent) and shows a refusal.
 async function post(path, body) {
   try {
-    const r = await fetch(path, {
-      method: "POST",
-      headers: Object.assign({ "Content-Type": "application/json" }, authHeaders),
-      body: JSON.stringify(body),
-    });
+    const headers = Object.assign({ "Content-Type": "application/json" }, authHeaders);
+    if (lockId) headers["X-Isowall-Lock"] = lockId;
+    const r = await fetch(path, { method: "POST", headers, body: JSON.stringify(body) });
     if (!r.ok) {
-      const e = await r.json().catch(() => ({ error: r.statusText }));
+      const e = await r.clone().json().catch(() => ({ error: r.statusText }));
       $("control-error").textContent = (e.field ? e.field + ": " : "") + e.error;
     } else {
       $("control-error").textContent = "";
     }
+    return r;
   } catch (e) {
     $("control-error").textContent = String(e);
+    return null;
   }
 }
 
@@ -245,6 +361,7 @@ wire("rate", "change", (el) => post("/api/time", { rate: Number(el.value) }));
 $("play").addEventListener("click", () => post("/api/time", { play: status && status.time.playing ? "pause" : "play" }));
 $("orbit").addEventListener("click", () => post("/api/camera", { orbit: status && status.orbit.playing ? "pause" : "play" }));
 $("demo").addEventListener("click", () => post("/api/camera", { demo: status && status.demo.playing ? "stop" : "start" }));
+$("identify").addEventListener("click", () => post("/api/identify", { on: !(status && status.wall.identify) }));
 $("home").addEventListener("click", () => post("/api/camera", { reset: true, orbit: "pause", demo: "stop" }));
 for (const b of document.querySelectorAll("#views button[data-view]")) {
   b.addEventListener("click", () => post("/api/camera", { view: b.dataset.view, orbit: "pause", demo: "stop" }));

@@ -470,6 +470,11 @@ impl GpuRenderer {
         &self.ctx.info.name
     }
 
+    /// What wgpu says of the adapter: name, backend, driver and its description.
+    pub fn adapter_info(&self) -> &wgpu::AdapterInfo {
+        &self.ctx.info
+    }
+
     /// Uploads a volume (voxels packed as the options' format) and its block min/max for rendering.
     pub fn upload(&self, volume: &Volume) -> Result<GpuVolume, GpuError> {
         let p = self.perf;

@@ -816,6 +816,35 @@ impl GpuRenderer {
         Ok(())
     }
 
+    /// Writes `rgba` (8-bit RGBA, `size` pixels, rows top to bottom) over the top-left corner of
+    /// the tile's latest image (the frame just rendered), cut to the image: the operator's
+    /// identify label. The write reaches the image before anything submitted after it (a
+    /// presentation, a snapshot's read).
+    pub fn stamp(&self, tile: &TileTarget, rgba: &[u8], size: (u32, u32)) -> Result<(), GpuError> {
+        let (w, h) = (size.0.min(tile.size.0), size.1.min(tile.size.1));
+        if w == 0 || h == 0 || rgba.len() as u64 != 4 * u64::from(size.0) * u64::from(size.1) {
+            return Ok(());
+        }
+        let ctx = &self.ctx;
+        ctx.validated("tile label", || {
+            ctx.write_texture(
+                wgpu::TexelCopyTextureInfo {
+                    texture: &tile.images[tile.latest].texture,
+                    mip_level: 0,
+                    origin: wgpu::Origin3d::ZERO,
+                    aspect: wgpu::TextureAspect::All,
+                },
+                rgba,
+                wgpu::TexelCopyBufferLayout {
+                    offset: 0,
+                    bytes_per_row: Some(4 * size.0),
+                    rows_per_image: Some(size.1),
+                },
+                wgpu::Extent3d { width: w, height: h, depth_or_array_layers: 1 },
+            )
+        })
+    }
+
     /// Uploads frame `frame_id`'s image of a tile composited on the CPU (`rgb8`: 8-bit sRGB,
     /// rows top to bottom, the images' size) into `shown`'s next image, for its windows.
     pub fn show_image(&self, shown: &mut ShownImages, frame_id: u64, rgb8: &[u8]) -> Result<(), GpuError> {
