@@ -11,7 +11,8 @@
 
 use crate::drive::{load, orbit_camera, runtime, scene};
 use crate::local::{is_loopback, LocalDaemons};
-use crate::wall::{quantile, Wall};
+use crate::report::quantile;
+use crate::wall::{FrameRequest, Wall};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use isowall_model::config::{TileConfig, WallConfig, WallMode};
@@ -80,7 +81,7 @@ fn bench_swap(a: &BenchArgs, config: WallConfig) -> Result<()> {
         "isowall bench --swap: wall '{}' ({} nodes{}), {} frames of an orbit ({} degrees/frame) per run, offscreen",
         config.wall.name,
         config.nodes.len(),
-        if crate::wall::one_machine(&config) { ", every one on this machine" } else { "" },
+        if crate::report::one_machine(&config) { ", every one on this machine" } else { "" },
         a.frames,
         a.degrees_per_frame
     );
@@ -112,7 +113,7 @@ fn bench_swap(a: &BenchArgs, config: WallConfig) -> Result<()> {
                 elapsed.as_secs_f64(),
                 a.frames as f64 / elapsed.as_secs_f64().max(1e-9)
             );
-            print!("{}", crate::wall::swap_report(&wall));
+            print!("{}", crate::report::swap_report(&wall));
         }
         wall.close("the bench is done").await;
         Ok::<(), anyhow::Error>(())
@@ -245,12 +246,12 @@ fn measure_column(a: &BenchArgs, config: &WallConfig, dir: &Path) -> Result<Vec<
         for &k in &a.samples {
             let mut s = settings;
             s.ao.samples = k;
-            wall.frame(&orbit_camera(&base, 0, a.degrees_per_frame), &s).await?;
+            wall.frame(&FrameRequest::new(orbit_camera(&base, 0, a.degrees_per_frame), s)).await?;
             wall.settle().await;
             let first = wall.finished.len();
             let start = Instant::now();
             for f in 1..=a.frames {
-                wall.frame(&orbit_camera(&base, f, a.degrees_per_frame), &s).await?;
+                wall.frame(&FrameRequest::new(orbit_camera(&base, f, a.degrees_per_frame), s)).await?;
             }
             let elapsed = start.elapsed();
             wall.settle().await;

@@ -6,8 +6,10 @@
 
 use crate::drive::{load, runtime, scene};
 use crate::path::{frame_time, CameraPath, Defaults};
+use crate::picture::compose;
+use crate::report::report;
 use crate::start::{self, StartArgs};
-use crate::wall::{compose, report};
+use crate::wall::FrameRequest;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use isowall_model::render_state::MAX_AO_SAMPLES;
@@ -77,9 +79,9 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
                 }
             }
             let camera = key.camera();
-            wall.time_step = key.step;
+            let request = FrameRequest::new(camera, s).at_time_step(key.step);
             tokio::select! {
-                r = wall.frame(&camera, &s) => r?,
+                r = wall.frame(&request) => r?,
                 _ = &mut stop => break,
             }
             if let Some(dir) = &a.record {

@@ -1,7 +1,9 @@
 //! The controller's commands that talk to a wall: `keygen`, `up`, `orbit`, `snapshot`.
 
 use crate::local::LocalDaemons;
-use crate::wall::{compose, quantile, report, Wall};
+use crate::picture::compose;
+use crate::report::{quantile, report};
+use crate::wall::{FrameRequest, Wall};
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
 use isowall_model::config::WallConfig;
@@ -312,21 +314,18 @@ pub(crate) async fn drive(
     let period = (o.fps > 0.0).then(|| Duration::from_secs_f64(1.0 / o.fps));
     let mut first_swap = None;
     let mut governed = GovernorLog::default();
-    let mut settings = *settings;
+    let settings = *settings;
     let total = o.frames + o.still_frames;
     let steps = time_steps(&wall.config)?;
     for k in 0..total {
         let played = if o.play { k } else { 0 };
-        wall.time_step = ((u64::from(o.step) + played) % u64::from(steps)) as u32;
+        let step = ((u64::from(o.step) + played) % u64::from(steps)) as u32;
         if let Some(p) = period {
             tokio::time::sleep_until((start + p.mul_f64(k as f64)).into()).await;
         }
         let camera = orbit_camera(base, k.min(o.frames.saturating_sub(1)), o.degrees_per_frame);
-        if let Some(g) = &governor {
-            settings.ao.samples = g.samples();
-            wall.scale = g.scale();
-        }
-        wall.frame(&camera, &settings).await?;
+        let request = FrameRequest::new(camera, settings).at_time_step(step).governed(governor.as_ref());
+        wall.frame(&request).await?;
         if let Some(dir) = &o.record_frames {
             record_frame(wall, dir).await?;
         }
@@ -334,7 +333,7 @@ pub(crate) async fn drive(
             // The next frame moves while the orbit goes on.
             let motion = if k + 1 < o.frames { Motion::Moving } else { Motion::Still };
             let frame = wall.releases.last().map_or(Duration::ZERO, |r| r.1);
-            governed.push(settings.ao.samples, wall.scale, frame, motion);
+            governed.push(request.settings.ao.samples, request.scale, frame, motion);
             g.observe(frame.as_secs_f64() * 1e3, motion);
         }
         if k == 0 {
@@ -441,11 +440,11 @@ pub(crate) async fn write_snapshot(wall: &mut Wall, out: &std::path::Path) -> Re
     image::save_buffer(out, &rgb, w, h, image::ExtendedColorType::Rgb8)
         .with_context(|| format!("cannot write {}", out.display()))?;
     let got: usize = tiles.values().map(Vec::len).sum();
-    let d = crate::wall::bounded_divisor(&wall.config, 1);
+    let d = crate::picture::bounded_divisor(&wall.config, 1);
     let scale = if d > 1 {
         format!(
             " at 1/{d} scale: the whole wall's image is over the {} bytes a snapshot takes",
-            crate::wall::MAX_WALL_IMAGE_BYTES
+            crate::picture::MAX_WALL_IMAGE_BYTES
         )
     } else {
         String::new()
@@ -514,7 +513,7 @@ impl ResourceWatch {
     fn median_of_last(wall: &Wall, n: u64) -> Option<Duration> {
         let r = &wall.releases;
         let from = r.len().saturating_sub(n as usize);
-        crate::wall::quantile(r[from..].iter().map(|x| x.1).collect(), 0.5)
+        crate::report::quantile(r[from..].iter().map(|x| x.1).collect(), 0.5)
     }
 
     fn after_frame(&mut self, k: u64, wall: &Wall) {

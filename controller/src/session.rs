@@ -6,8 +6,9 @@
 
 use crate::controls::{action_for_key, Action, Axes, Key, SessionState, KEY_HELP};
 use crate::drive::{load, runtime, scene_range_and_framing, time_steps};
+use crate::picture::compose;
 use crate::start::{self, StartArgs};
-use crate::wall::compose;
+use crate::wall::FrameRequest;
 use anyhow::{Context, Result};
 use clap::Args;
 use isowall_model::joystick::{JoystickConfig, PadAxis, PadButton};
@@ -221,9 +222,9 @@ pub fn session(a: &SessionArgs) -> Result<()> {
             last = Instant::now();
             state.apply_axes(axes, dt, &wall.config.joystick);
             state.playback.advance(dt);
-            wall.time_step = state.playback.step;
+            let request = FrameRequest::new(state.camera, state.settings).at_time_step(state.playback.step);
             tokio::select! {
-                r = wall.frame(&state.camera, &state.settings) => r?,
+                r = wall.frame(&request) => r?,
                 _ = &mut ctrl_c => break 'frames,
             }
             if screenshot {

@@ -2,6 +2,7 @@
 //! [`FrameController`] with what arrives and carry out what it asks, frame after frame; gather
 //! snapshots; report statistics. The network code only moves bytes and calls the state machine.
 
+use crate::report::micros;
 use anyhow::{anyhow, bail, Context, Result};
 use isowall_model::adoption::{AdoptionOutput, BrickAssigner};
 use isowall_model::codec;
@@ -10,7 +11,7 @@ use isowall_model::frame_controller::{ControllerOutput, FrameController, FrameSt
 use isowall_model::links::{Link as LinkId, Links};
 use isowall_model::messages::{printable, Message, Role, TileImage};
 use isowall_model::wire::FrameState;
-use isowall_model::{Camera, RenderSettings};
+use isowall_model::{Camera, Governor, RenderSettings};
 use isowall_net::transport::{self, Channel, ChannelSender};
 use isowall_net::Identity;
 use std::collections::{BTreeMap, HashMap};
@@ -90,6 +91,41 @@ fn trim_history<T>(v: &mut Vec<T>) {
     }
 }
 
+/// What a front end asks of the wall for one frame ([`Wall::frame`]): the camera, the render
+/// settings, the time step and the internal resolution divisor. `up`/`orbit`, the session, demos,
+/// the bench table and the console all ask through it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FrameRequest {
+    pub camera: Camera,
+    pub settings: RenderSettings,
+    /// The time step of a time-varying volume (0 otherwise).
+    pub time_step: u32,
+    /// The internal resolution divisor (1: full; the quality governor's).
+    pub scale: u32,
+}
+
+impl FrameRequest {
+    /// A frame of `camera` and `settings` at time step 0, full resolution.
+    pub fn new(camera: Camera, settings: RenderSettings) -> FrameRequest {
+        FrameRequest { camera, settings, time_step: 0, scale: 1 }
+    }
+
+    /// The same frame at time step `step`.
+    pub fn at_time_step(self, step: u32) -> FrameRequest {
+        FrameRequest { time_step: step, ..self }
+    }
+
+    /// The governed frame, the one step every front end with a quality governor takes: where a
+    /// governor is set, its AO samples and resolution divisor replace the request's.
+    pub fn governed(mut self, governor: Option<&Governor>) -> FrameRequest {
+        if let Some(g) = governor {
+            self.settings.ao.samples = g.samples();
+            self.scale = g.scale();
+        }
+        self
+    }
+}
+
 /// A connected wall.
 pub struct Wall {
     pub config: WallConfig,
@@ -103,10 +139,6 @@ pub struct Wall {
     endpoint: quinn::Endpoint,
     epoch: Instant,
     next_frame: u64,
-    /// The internal resolution divisor sent with the next frame states (the governor's; 1: full).
-    pub scale: u32,
-    /// The time step the next frames render (a time-varying volume).
-    pub time_step: u32,
     /// Statistics of the last finished frames (at most [`HISTORY`]..2 x [`HISTORY`]).
     pub finished: Vec<FrameStats>,
     /// The last releases: (frame, barrier time, stragglers), bounded like `finished`.
@@ -172,8 +204,6 @@ impl Wall {
             // The clock every process of this machine shares: see `isowall_net::clock`.
             epoch: isowall_net::clock::epoch(),
             next_frame: 1,
-            scale: 1,
-            time_step: 0,
             finished: Vec::new(),
             releases: Vec::new(),
             released: 0,
@@ -392,7 +422,12 @@ impl Wall {
         }
     }
 
-    fn now(&self) -> Duration {
+    /// The barrier's machine, for what the reports read of it.
+    pub(crate) fn machine(&self) -> &FrameController {
+        &self.machine
+    }
+
+    pub(crate) fn now(&self) -> Duration {
         self.epoch.elapsed()
     }
 
@@ -618,14 +653,15 @@ impl Wall {
 
     /// Runs one frame: begins it (on a paced wall, once the previous frame's present time has
     /// come: `FrameController::next_begin_at`) and waits until its swap is released.
-    pub async fn frame(&mut self, camera: &Camera, settings: &RenderSettings) -> Result<()> {
+    pub async fn frame(&mut self, request: &FrameRequest) -> Result<()> {
         while let Some(at) = self.machine.next_begin_at(self.now()) {
             self.step_until(Some(at)).await;
         }
         self.retry_down_nodes();
         let id = self.next_frame;
         self.next_frame += 1;
-        let state = FrameState::new(id, camera, settings, self.scale).at_time_step(self.time_step);
+        let state = FrameState::new(id, &request.camera, &request.settings, request.scale)
+            .at_time_step(request.time_step);
         let now = self.now();
         let out = self.machine.begin_frame(now, state).map_err(|e| anyhow!("{e}"))?;
         self.execute(out).await;
@@ -805,383 +841,5 @@ impl Wall {
         // Reconnections still under way or queued hold connections too: close them all.
         self.endpoint.close(quinn::VarInt::from_u32(0), reason.as_bytes());
         self.endpoint.wait_idle().await;
-    }
-}
-
-/// Places every tile's image by the wall geometry into one RGB image; bezels and gaps dark, tiles
-/// with no image (a node down) a grey placeholder.
-pub fn compose(config: &WallConfig, tiles: &BTreeMap<String, Vec<TileImage>>) -> (u32, u32, Vec<u8>) {
-    compose_scaled(config, tiles, 1)
-}
-
-/// The most bytes a composed wall image takes (RGB): a wall whose image at the asked scale is
-/// larger is composed smaller (by a whole factor more), so no snapshot or thumbnail allocates more.
-pub const MAX_WALL_IMAGE_BYTES: u64 = 512 << 20;
-
-/// The divisor a wall image asked at `divisor` is composed at: the least multiple of it whose
-/// image fits [`MAX_WALL_IMAGE_BYTES`].
-pub fn bounded_divisor(config: &WallConfig, divisor: u32) -> u32 {
-    let d = divisor.max(1);
-    let (w, h) = config.wall_size();
-    let bytes = |k: u32| 3 * w.div_ceil(d * k) as u64 * h.div_ceil(d * k) as u64;
-    let k = (1..=u32::MAX / d).find(|&k| bytes(k) <= MAX_WALL_IMAGE_BYTES).unwrap_or(u32::MAX / d);
-    d * k
-}
-
-/// [`compose`] of tiles downscaled by `divisor` (`TileImage::downscaled`): the wall image
-/// `ceil(w / D)` x `ceil(h / D)`, tile (x, y) placed at (x / D, y / D), with D = `divisor`, or
-/// the [`bounded_divisor`] where the image would be larger than [`MAX_WALL_IMAGE_BYTES`] (the
-/// tiles are then downscaled further here).
-pub fn compose_scaled(
-    config: &WallConfig,
-    tiles: &BTreeMap<String, Vec<TileImage>>,
-    divisor: u32,
-) -> (u32, u32, Vec<u8>) {
-    let asked = divisor.max(1);
-    let d = bounded_divisor(config, asked);
-    let (w, h) = config.wall_size();
-    let (w, h) = (w.div_ceil(d), h.div_ceil(d));
-    let mut img = vec![12u8; w as usize * h as usize * 3];
-    let smaller: Vec<TileImage> = if d == asked {
-        Vec::new()
-    } else {
-        tiles.values().flatten().map(|t| t.downscaled(d / asked)).collect()
-    };
-    let by_name: HashMap<&str, &TileImage> = if d == asked {
-        tiles.values().flatten().map(|t| (t.name.as_str(), t)).collect()
-    } else {
-        smaller.iter().map(|t| (t.name.as_str(), t)).collect()
-    };
-    for full in &config.tiles {
-        let tile = isowall_model::config::TileConfig {
-            x: full.x / d,
-            y: full.y / d,
-            width: full.width.div_ceil(d).min(w - full.x / d),
-            height: full.height.div_ceil(d).min(h - full.y / d),
-            ..full.clone()
-        };
-        let image = by_name
-            .get(tile.name.as_str())
-            .filter(|t| t.width == full.width.div_ceil(d) && t.height == full.height.div_ceil(d));
-        for y in 0..tile.height {
-            let row = (tile.y + y) as usize * w as usize;
-            for x in 0..tile.width {
-                let dst = (row + (tile.x + x) as usize) * 3;
-                let px: [u8; 3] = match image {
-                    Some(t) => {
-                        let src = ((y * t.width + x) * 3) as usize;
-                        [t.rgb8[src], t.rgb8[src + 1], t.rgb8[src + 2]]
-                    }
-                    // Placeholder: grey with a darker diagonal cross.
-                    None if x * tile.height / tile.width.max(1) == y
-                        || (tile.width - 1 - x) * tile.height / tile.width.max(1) == y =>
-                    {
-                        [40, 40, 40]
-                    }
-                    None => [96, 96, 96],
-                };
-                img[dst..dst + 3].copy_from_slice(&px);
-            }
-        }
-    }
-    (w, h, img)
-}
-
-/// Whether every node of the wall is on this machine (its address a loopback one): they and the
-/// controller share one clock (`isowall_net::clock`), so their own present times give the true
-/// swap skew.
-pub fn one_machine(config: &WallConfig) -> bool {
-    config.nodes.iter().all(|n| transport::resolve(&n.address).is_ok_and(|a| a.ip().is_loopback()))
-}
-
-/// The swap's lines of the report: the skew measured (and, on one machine, the true one), the
-/// timed swap's margin and late swaps, the clocks' error bounds, and on a paced wall the
-/// frame-interval jitter.
-pub fn swap_report(wall: &Wall) -> String {
-    let ms = |d: Option<Duration>| d.map_or("-".to_string(), |d| format!("{:.3} ms", d.as_secs_f64() * 1e3));
-    let line = |what: &str, v: Vec<Duration>| {
-        format!(
-            "{what}: p50 {} p99 {} max {} over {} frames\n",
-            ms(quantile(v.clone(), 0.5)),
-            ms(quantile(v.clone(), 0.99)),
-            ms(quantile(v.clone(), 1.0)),
-            v.len()
-        )
-    };
-    let mut s = line(
-        "swap skew (measured, controller clock)",
-        wall.finished.iter().filter_map(|f| f.swap_skew).collect(),
-    );
-    if one_machine(&wall.config) {
-        s += &line(
-            "swap skew (true: every node on this machine's one clock)",
-            wall.finished.iter().filter_map(|f| f.node_clock_skew).collect(),
-        );
-    }
-    let timing = wall.machine.swap_timing();
-    let presents: usize = wall
-        .finished
-        .iter()
-        .map(|f| f.per_node.iter().filter(|n| n.presented_node_time_us.is_some()).count())
-        .sum();
-    let late: usize = wall.finished.iter().map(|f| f.late_swaps).sum();
-    let margins: Vec<Duration> = wall.finished.iter().filter_map(|f| f.margin).collect();
-    if margins.is_empty() {
-        s += &format!("timed swap: {} (each node presents when its Swap arrives)\n", timing.setting());
-    } else {
-        s += &format!(
-            "timed swap: margin {} (release -> present: p50 {} p99 {}), late swaps {late} of {presents} presents\n",
-            timing.setting(),
-            ms(quantile(margins.clone(), 0.5)),
-            ms(quantile(margins, 0.99)),
-        );
-    }
-    let now = micros(wall.now());
-    let offsets: Vec<(String, i64, i64)> = wall
-        .machine
-        .nodes()
-        .filter_map(|n| {
-            let o = wall.machine.clock_offset(n)?;
-            Some((n.to_string(), o.offset_at(now), o.error_at(now)))
-        })
-        .collect();
-    if let Some((node, _, worst)) = offsets.iter().max_by_key(|b| b.2) {
-        s += &format!(
-            "clock offsets (node - controller, within the error bound): worst bound {worst} us ({node}); {}\n",
-            offsets.iter().map(|(n, o, b)| format!("{n} {o:+} us within {b}")).collect::<Vec<_>>().join(", ")
-        );
-    }
-    // How precisely each node presented at its present time, by its own clock.
-    let mut waits: BTreeMap<&str, Vec<Duration>> = BTreeMap::new();
-    for n in wall.finished.iter().flat_map(|f| &f.per_node).filter(|n| !n.late_swap) {
-        if let (Some(at), Some(shown)) = (n.present_at_us, n.presented_node_time_us) {
-            let after = u64::try_from(shown.saturating_sub(at)).unwrap_or(0);
-            waits.entry(n.node.as_str()).or_default().push(Duration::from_micros(after));
-        }
-    }
-    if !waits.is_empty() {
-        s += &format!(
-            "presented after the present time (on-time swaps, node clocks): {}\n",
-            waits
-                .into_iter()
-                .map(|(n, v)| format!(
-                    "{n} p50 {} p99 {}",
-                    ms(quantile(v.clone(), 0.5)),
-                    ms(quantile(v, 0.99))
-                ))
-                .collect::<Vec<_>>()
-                .join(", ")
-        );
-    }
-    if let Some((period, jitter)) = interval_jitter(wall) {
-        s += &format!(
-            "frame pacing: {:.2} fps; {}",
-            1.0 / period.as_secs_f64(),
-            line("interval jitter |interval - period|", jitter)
-        );
-    }
-    s
-}
-
-/// On a paced wall, its period and each interval's |interval - period| between consecutive
-/// finished frames' present moments (each the mean of its nodes', in controller time).
-pub fn interval_jitter(wall: &Wall) -> Option<(Duration, Vec<Duration>)> {
-    let period = wall.machine.swap_timing().period()?;
-    let moments: Vec<f64> = wall
-        .finished
-        .iter()
-        .filter_map(|f| {
-            let t: Vec<f64> =
-                f.per_node.iter().filter_map(|n| n.presented_at).map(|d| d.as_secs_f64()).collect();
-            (!t.is_empty()).then(|| t.iter().sum::<f64>() / t.len() as f64)
-        })
-        .collect();
-    let jitter = moments
-        .windows(2)
-        .map(|w| Duration::from_secs_f64(((w[1] - w[0]) - period.as_secs_f64()).abs()))
-        .collect();
-    Some((period, jitter))
-}
-
-fn micros(t: Duration) -> i64 {
-    i64::try_from(t.as_micros()).unwrap_or(i64::MAX)
-}
-
-/// p-quantile of durations (nearest rank).
-pub fn quantile(mut v: Vec<Duration>, q: f64) -> Option<Duration> {
-    if v.is_empty() {
-        return None;
-    }
-    v.sort();
-    Some(v[((v.len() - 1) as f64 * q).round() as usize])
-}
-
-/// Human statistics of a run.
-/// Time-varying volumes: the steps the frames played and the frames whose step was not loaded
-/// on some node when the frame came (it waited, bounded) or that showed another step. Empty
-/// when every frame was at step 0.
-pub fn time_step_report(finished: &[FrameStats]) -> String {
-    if finished.iter().all(|f| f.time_step == 0) {
-        return String::new();
-    }
-    let changes = finished.windows(2).filter(|w| w[0].time_step != w[1].time_step).count();
-    let (mut waited, mut other) = (Vec::new(), Vec::new());
-    for f in finished {
-        for n in &f.per_node {
-            if let Some(l) = n.step_late {
-                waited.push(format!("{}@{}", n.node, f.frame_id));
-                if l.shown_step != f.time_step {
-                    other.push(format!(
-                        "{}@{} (step {} for {})",
-                        n.node, f.frame_id, l.shown_step, f.time_step
-                    ));
-                }
-            }
-        }
-    }
-    let frames_waited: std::collections::BTreeSet<u64> = finished
-        .iter()
-        .filter(|f| f.per_node.iter().any(|n| n.step_late.is_some()))
-        .map(|f| f.frame_id)
-        .collect();
-    let mut s = format!(
-        "time steps: {} step changes over {} frames; frames that waited for their step: {}; frames with another step shown: {}\n",
-        changes,
-        finished.len(),
-        frames_waited.len(),
-        other.len()
-    );
-    if !waited.is_empty() {
-        s += &format!("  waited (node@frame): {}\n", waited.join(", "));
-    }
-    if !other.is_empty() {
-        s += &format!("  another step shown: {}\n", other.join(", "));
-    }
-    s
-}
-
-pub fn report(wall: &Wall, elapsed: Duration) -> String {
-    let frames = wall.released;
-    let mut s = format!(
-        "frames: {frames} in {:.2} s ({:.1} fps)\n",
-        elapsed.as_secs_f64(),
-        frames as f64 / elapsed.as_secs_f64().max(1e-9)
-    );
-    if frames > wall.releases.len() as u64 {
-        s += &format!("(the statistics below are over the last {} frames)\n", wall.releases.len());
-    }
-    let ms = |d: Option<Duration>| d.map_or("-".to_string(), |d| format!("{:.2} ms", d.as_secs_f64() * 1e3));
-    let barrier: Vec<Duration> = wall.releases.iter().map(|r| r.1).collect();
-    s += &format!(
-        "barrier (frame state sent -> swap released): p50 {} p99 {} max {}\n",
-        ms(quantile(barrier.clone(), 0.5)),
-        ms(quantile(barrier.clone(), 0.99)),
-        ms(quantile(barrier, 1.0))
-    );
-    s += &swap_report(wall);
-    let mut per_node: BTreeMap<&str, (Vec<Duration>, Vec<Duration>)> = BTreeMap::new();
-    for f in &wall.finished {
-        for n in &f.per_node {
-            let e = per_node.entry(n.node.as_str()).or_default();
-            e.0.extend(n.render);
-            e.1.extend(n.ready_after);
-        }
-    }
-    for (node, (render, ready)) in per_node {
-        s += &format!(
-            "  {node}: render p50 {} max {}; ready after p50 {} max {}\n",
-            ms(quantile(render.clone(), 0.5)),
-            ms(quantile(render, 1.0)),
-            ms(quantile(ready.clone(), 0.5)),
-            ms(quantile(ready, 1.0)),
-        );
-    }
-    // What the nodes said that was not asked for, or could not be true: ignored, counted here.
-    for node in wall.machine.nodes() {
-        if let Some(c) = wall.machine.counters(node).filter(|c| c.ignored + c.refused_times > 0) {
-            s += &format!(
-                "  {node}: {} unsolicited messages ignored, {} impossible times refused (kept out of the skew)\n",
-                c.ignored, c.refused_times
-            );
-        }
-    }
-    // object space: bytes each node sent its peers per frame, and its compositing time.
-    // Per node: bytes sent, compositing times, resident bytes, compositing work.
-    type ObjectStats = (Vec<u64>, Vec<Duration>, u64, Vec<Duration>);
-    let mut object: BTreeMap<&str, ObjectStats> = BTreeMap::new();
-    for f in &wall.finished {
-        for n in &f.per_node {
-            if let (Some(b), Some(c)) = (n.bytes_sent, n.composite) {
-                let e = object.entry(n.node.as_str()).or_default();
-                e.0.push(b);
-                e.1.push(c);
-                e.2 = n.resident_bytes.unwrap_or(0);
-                e.3.extend(n.merge);
-            }
-        }
-    }
-    if !object.is_empty() {
-        s +=
-            "object space (bytes sent to peers per frame; compositing: own render done -> tiles composited, \
-              of which work: encode, decode, merge):\n";
-    }
-    for (node, (mut bytes, composite, resident, merge)) in object {
-        bytes.sort_unstable();
-        let median = bytes[(bytes.len() - 1) / 2];
-        s += &format!(
-            "  {node}: sent p50 {median} B ({:.2} MB) max {} B; composite p50 {} max {}; work p50 {} max {}; resident volume {resident} B\n",
-            median as f64 / 1e6,
-            bytes.last().copied().unwrap_or(0),
-            ms(quantile(composite.clone(), 0.5)),
-            ms(quantile(composite, 1.0)),
-            ms(quantile(merge.clone(), 0.5)),
-            ms(quantile(merge, 1.0)),
-        );
-    }
-    s += &time_step_report(&wall.finished);
-    let stragglers: Vec<String> =
-        wall.releases.iter().flat_map(|r| r.2.iter().map(|n| format!("{n}@{}", r.0))).collect();
-    if !stragglers.is_empty() {
-        s += &format!("stragglers (node@frame): {}\n", stragglers.join(", "));
-    }
-    s
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// A wall of 16 x 8 UHD tiles is 61440x17280 pixels, 3.2 GB as RGB: its snapshot is composed
-    /// at 1/3 scale (1.06 GB at 1/2 would be over the bound), each tile placed where it belongs.
-    #[test]
-    fn a_wall_image_over_the_bound_is_composed_smaller() {
-        let mut text = String::from("[wall]\nname = \"huge\"\nmessage_limit_bytes = 1073741824\n\n[volume]\nsource = \"procedural:sphere\"\n");
-        for i in 0..128 {
-            let (x, y) = (3840 * (i % 16), 2160 * (i / 16));
-            text += &format!("\n[[tiles]]\nname = \"t{i}\"\nx = {x}\ny = {y}\nwidth = 3840\nheight = 2160\n");
-            text += &format!(
-                "\n[[nodes]]\nname = \"n{i}\"\naddress = \"10.0.0.{}:7400\"\ntiles = [\"t{i}\"]\n",
-                i + 1
-            );
-        }
-        let config = WallConfig::parse(&text, std::path::Path::new("huge.toml")).unwrap();
-        assert_eq!(config.wall_size(), (61440, 17280));
-        assert_eq!(bounded_divisor(&config, 1), 3);
-        assert_eq!(bounded_divisor(&config, 4), 4, "a thumbnail's divisor already within the bound");
-        // Tile t17 (second row, second column) all white; no other tile has an image.
-        let white = TileImage {
-            name: "t17".into(),
-            width: 3840,
-            height: 2160,
-            frame_id: 1,
-            rgb8: vec![255; 3840 * 2160 * 3],
-        };
-        let tiles = BTreeMap::from([("n17".to_string(), vec![white])]);
-        let (w, h, rgb) = compose(&config, &tiles);
-        assert_eq!((w, h), (20480, 5760));
-        assert!(rgb.len() as u64 <= MAX_WALL_IMAGE_BYTES);
-        let at = |x: u32, y: u32| rgb[(y as usize * w as usize + x as usize) * 3];
-        assert_eq!(at(1280 + 640, 720 + 360), 255, "t17's centre");
-        assert_eq!(at(100, 300), 96, "t0 has no image: the placeholder's grey");
     }
 }

@@ -30,13 +30,10 @@
 //! page), and POSTs must be JSON (so a cross-site form cannot send one).
 
 use super::bookmarks::{self, Bookmark, BookmarkError};
-use super::frame_loop::{divisor_for, Command};
-use super::lock::{self, OperatorLock};
-use super::patch::{CameraPatch, Refusal, RenderPatch, TimePatch};
-use super::pictures::Pictures;
-use super::server::Limits;
+use super::lock;
+use super::patch::{CameraPatch, RenderPatch, TimePatch};
+use super::shared::{divisor_for, ApiError, Command, Shared, MAX_LIVE};
 use super::status::Status;
-use super::Access;
 use axum::body::Body;
 use axum::extract::rejection::{JsonRejection, QueryRejection};
 use axum::extract::ws::rejection::WebSocketUpgradeRejection;
@@ -52,8 +49,8 @@ use serde::Deserialize;
 use std::net::{IpAddr, SocketAddr};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
-use std::time::{Duration, Instant};
-use tokio::sync::{mpsc, oneshot, watch};
+use std::time::Duration;
+use tokio::sync::{oneshot, watch};
 
 const INDEX_HTML: &str = include_str!("assets/index.html");
 const CONSOLE_JS: &str = include_str!("assets/console.js");
@@ -71,118 +68,10 @@ const LIVE_SEND_DEADLINE: Duration = Duration::from_secs(10);
 const LOOP_TIMEOUT: Duration = Duration::from_secs(30);
 /// The largest request body read (the API's changes are a few hundred bytes of JSON).
 pub const MAX_BODY_BYTES: usize = 64 * 1024;
-/// Live WebSockets open at once, all clients together (each holds a connection).
-pub const MAX_LIVE: usize = 64;
 /// The WebSocket subprotocol the page asks for (and the server answers with).
 pub const LIVE_PROTOCOL: &str = "isowall";
 /// The prefix of the subprotocol that carries the token: `isowall-token.` and T in hex.
 pub const TOKEN_PROTOCOL_PREFIX: &str = "isowall-token.";
-
-/// What the handlers share with the frame loop.
-pub struct Shared {
-    pub access: Access,
-    /// The latest status (`None` until the first frame).
-    pub status: watch::Sender<Option<Arc<Status>>>,
-    pub commands: mpsc::Sender<Command>,
-    /// Bytes of response bodies and WebSocket messages sent.
-    pub served_bytes: AtomicU64,
-    /// Snapshots and thumbnails: asked of the nodes, shared and bounded.
-    pub pictures: Arc<Pictures>,
-    pub limits: Limits,
-    /// Places for live WebSockets ([`MAX_LIVE`]).
-    pub live_slots: Arc<tokio::sync::Semaphore>,
-    /// The operator lock, on the clock of `epoch`.
-    pub lock: std::sync::Mutex<OperatorLock>,
-    pub epoch: Instant,
-    /// The log file of each daemon the console started (`--local`), by node.
-    pub logs: std::sync::Mutex<std::collections::HashMap<String, std::path::PathBuf>>,
-    /// The camera bookmarks file (beside the wall config), and one writer at a time.
-    pub bookmarks: std::path::PathBuf,
-    pub bookmarks_writer: tokio::sync::Mutex<()>,
-}
-
-/// What the console is started with beyond its access rules.
-pub struct Options {
-    pub bookmarks: std::path::PathBuf,
-    pub lock_idle: Duration,
-}
-
-impl Shared {
-    pub fn new(access: Access, limits: Limits, options: Options) -> (Arc<Shared>, mpsc::Receiver<Command>) {
-        let (commands, rx) = mpsc::channel(64);
-        let (status, _) = watch::channel(None);
-        let pictures = Arc::new(Pictures::default());
-        let served_bytes = AtomicU64::new(0);
-        let live_slots = Arc::new(tokio::sync::Semaphore::new(MAX_LIVE));
-        let shared = Shared {
-            access,
-            status,
-            commands,
-            served_bytes,
-            pictures,
-            limits,
-            live_slots,
-            lock: std::sync::Mutex::new(OperatorLock::new(options.lock_idle)),
-            epoch: Instant::now(),
-            logs: Default::default(),
-            bookmarks: options.bookmarks,
-            bookmarks_writer: tokio::sync::Mutex::new(()),
-        };
-        (Arc::new(shared), rx)
-    }
-
-    /// The operator lock (a poisoned mutex still holds a consistent lock: every change to it is
-    /// one assignment).
-    pub fn lock(&self) -> std::sync::MutexGuard<'_, OperatorLock> {
-        self.lock.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
-    }
-}
-
-/// A whole-wall image.
-#[derive(Clone, Debug)]
-pub struct Picture {
-    pub png: Vec<u8>,
-    pub width: u32,
-    pub height: u32,
-    /// The oldest frame among its tiles (`None`: no tile answered).
-    pub frame_id: Option<u64>,
-    /// Since that frame's swap was released, when it was taken.
-    pub age: Option<Duration>,
-    pub taken: Instant,
-}
-
-/// A refusal or failure, as the API answers it.
-#[derive(Clone, Debug)]
-pub struct ApiError {
-    pub status: StatusCode,
-    pub field: Option<&'static str>,
-    pub message: String,
-}
-
-impl ApiError {
-    pub fn new(status: StatusCode, message: impl Into<String>) -> ApiError {
-        ApiError { status, field: None, message: message.into() }
-    }
-
-    pub fn refused(r: Refusal) -> ApiError {
-        ApiError { status: StatusCode::UNPROCESSABLE_ENTITY, field: Some(r.field), message: r.message }
-    }
-
-    pub fn internal(message: impl Into<String>) -> ApiError {
-        ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, message)
-    }
-}
-
-impl IntoResponse for ApiError {
-    fn into_response(self) -> Response {
-        let body = serde_json::json!({ "error": self.message, "field": self.field });
-        let mut r = (self.status, Json(body)).into_response();
-        if self.status == StatusCode::UNAUTHORIZED {
-            r.headers_mut().insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
-        }
-        r
-    }
-}
 
 pub fn router(shared: Arc<Shared>) -> Router {
     let api = Router::new()

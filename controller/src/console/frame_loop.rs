@@ -9,22 +9,22 @@
 //! up after [`THUMBNAIL_GIVE_UP`] ([`SNAPSHOT_GIVE_UP`] at full size); a request whose every
 //! asker has left is dropped.
 
-use super::api::{ApiError, Shared};
-use super::patch::{CameraPatch, Controls, RenderPatch, TimePatch};
+use super::patch::Controls;
+use super::shared::{ApiError, Captured, Command, ImagesReply, Shared};
 use super::status::{self, NodeHealth, Status};
 use crate::controls::SessionState;
 use crate::local::LocalDaemons;
 use crate::path::CameraPath;
-use crate::wall::{quantile, Wall};
+use crate::report::quantile;
+use crate::wall::{FrameRequest, Wall};
 use anyhow::Result;
-use isowall_model::messages::{TileImage, MAX_THUMBNAIL_DIVISOR};
 use isowall_model::{Camera, Governor, Motion, RenderSettings, ViewFraming, WallConfig};
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::path::PathBuf;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
-use tokio::sync::{mpsc, oneshot};
+use tokio::sync::mpsc;
 
 /// How long a thumbnail waits for a node that does not answer.
 pub const THUMBNAIL_GIVE_UP: Duration = Duration::from_secs(2);
@@ -32,38 +32,6 @@ pub const THUMBNAIL_GIVE_UP: Duration = Duration::from_secs(2);
 pub const SNAPSHOT_GIVE_UP: Duration = Duration::from_secs(5);
 /// The status is published this often at most.
 const PUBLISH_EVERY: Duration = Duration::from_millis(100);
-
-/// What the API asks the frame loop for.
-pub enum Command {
-    Render(RenderPatch, oneshot::Sender<Result<(), ApiError>>),
-    Camera(CameraPatch, oneshot::Sender<Result<(), ApiError>>),
-    Time(TimePatch, oneshot::Sender<Result<(), ApiError>>),
-    /// The nodes' last presented tiles downscaled by a divisor (1: full size). Requests for the
-    /// same divisor while one is pending share its answer.
-    Images(u32, ImagesReply),
-    /// Restart a node (by name, with a reason for its log): a daemon the console started is
-    /// killed and started again; any other is told `Restart` over its connection. Answers how.
-    Restart(String, String, oneshot::Sender<Result<String, ApiError>>),
-    /// The camera of the next frame (a bookmark saves it).
-    CameraNow(oneshot::Sender<Result<Camera, ApiError>>),
-    /// The tiles show (`true`) or stop showing their node's and their own name.
-    Identify(bool, oneshot::Sender<Result<(), ApiError>>),
-}
-
-/// Where the frame loop answers an image request.
-pub type ImagesReply = oneshot::Sender<Result<Arc<Captured>, ApiError>>;
-
-/// Tiles the nodes sent for one image request, composed into a picture off the frame loop.
-pub struct Captured {
-    pub config: Arc<WallConfig>,
-    pub divisor: u32,
-    pub tiles: BTreeMap<String, Vec<TileImage>>,
-    /// The oldest frame among the tiles (`None`: no tile answered).
-    pub frame_id: Option<u64>,
-    /// Since that frame's swap was released, when the tiles were taken.
-    pub age: Option<Duration>,
-    pub taken: Instant,
-}
 
 /// The scene the console starts with.
 pub struct Scene {
@@ -75,17 +43,6 @@ pub struct Scene {
     /// The volume's time steps (1: none to play).
     pub steps: u32,
     pub demo: Option<(PathBuf, CameraPath)>,
-}
-
-/// The divisors thumbnails are asked at: each about 1.5 times the one before, so that any
-/// number of widths asked for comes to a dozen requests of the nodes at most.
-const DIVISORS: [u32; 11] = [1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48];
-
-/// The thumbnail downscale for a page `width` pixels wide: the smallest of [`DIVISORS`] (or
-/// [`MAX_THUMBNAIL_DIVISOR`]) whose image fits.
-pub fn divisor_for(wall_width: u32, width: u32) -> u32 {
-    let fits = wall_width.div_ceil(width.max(1)).clamp(1, MAX_THUMBNAIL_DIVISOR);
-    DIVISORS.iter().copied().find(|d| *d >= fits).unwrap_or(MAX_THUMBNAIL_DIVISOR)
 }
 
 fn unix_ms() -> u64 {
@@ -168,7 +125,7 @@ pub async fn run(
         frame_samples: (scene.settings.ao.samples, 1),
         started: now,
         published: None,
-        one_machine: crate::wall::one_machine(&wall.config),
+        one_machine: crate::report::one_machine(&wall.config),
         local_logs: daemons
             .as_ref()
             .map(|d| d.logs().into_iter().map(|(n, _)| n).collect())
@@ -188,10 +145,8 @@ pub async fn run(
         let dt = last.elapsed().as_secs_f64().min(0.25);
         last = Instant::now();
         moved |= me.advance(dt);
-        let settings = me.frame_settings(&mut wall);
-        let camera = me.controls.session.camera;
-        wall.time_step = me.controls.session.playback.step;
-        if let Err(e) = wall.frame(&camera, &settings).await {
+        let request = me.frame_request();
+        if let Err(e) = wall.frame(&request).await {
             tracing::warn!("console: no frame: {e:#}");
             me.after_frame(&mut wall, &mut daemons, false, moved).await;
             tokio::time::sleep(Duration::from_millis(200)).await;
@@ -323,9 +278,9 @@ impl Loop {
         stepped
     }
 
-    /// The settings of the next frame: the operator's, with the governor's samples and scale.
-    fn frame_settings(&mut self, wall: &mut Wall) -> RenderSettings {
-        let mut s = self.controls.session.settings;
+    /// The next frame: the operator's camera, settings and time step, governed.
+    fn frame_request(&mut self) -> FrameRequest {
+        let s = self.controls.session.settings;
         match self.controls.target_frame_ms {
             Some(t) => {
                 if self.governor.as_ref().is_none_or(|(target, _)| *target != t) {
@@ -335,15 +290,12 @@ impl Loop {
             }
             None => self.governor = None,
         }
-        match &self.governor {
-            Some((_, g)) => {
-                s.ao.samples = g.samples();
-                wall.scale = g.scale();
-            }
-            None => wall.scale = 1,
-        }
-        self.frame_samples = (s.ao.samples, wall.scale);
-        s
+        let session = &self.controls.session;
+        let request = FrameRequest::new(session.camera, s)
+            .at_time_step(session.playback.step)
+            .governed(self.governor.as_ref().map(|(_, g)| g));
+        self.frame_samples = (request.settings.ao.samples, request.scale);
+        request
     }
 
     async fn after_frame(
@@ -473,7 +425,7 @@ impl Loop {
             swap_margin_ms: wall.finished.last().and_then(|f| f.margin).map(ms),
             late_swaps: wall.finished.iter().map(|f| f.late_swaps).sum(),
             frame_rate: wall.swap_timing().period().map(|p| 1.0 / p.as_secs_f64()),
-            interval_jitter_ms_p99: crate::wall::interval_jitter(wall).and_then(|(_, j)| q(&j, 0.99)),
+            interval_jitter_ms_p99: crate::report::interval_jitter(wall).and_then(|(_, j)| q(&j, 0.99)),
         };
         let s = &self.controls.session.settings;
         let c = &self.controls.session.camera;
@@ -596,26 +548,5 @@ impl Loop {
                 },
             },
         }
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn the_thumbnail_divisor_is_the_smallest_that_fits() {
-        assert_eq!(divisor_for(328, 328), 1);
-        assert_eq!(divisor_for(328, 400), 1);
-        assert_eq!(divisor_for(328, 164), 2);
-        assert_eq!(divisor_for(328, 163), 3);
-        assert_eq!(divisor_for(7680, 640), 12);
-        // Rounded up to the next of a few sizes: 328 / 70 needs 5, asked at 6.
-        assert_eq!(divisor_for(328, 70), 6);
-        assert_eq!(divisor_for(1 << 20, 1), MAX_THUMBNAIL_DIVISOR);
-        assert_eq!(divisor_for(328, 0), MAX_THUMBNAIL_DIVISOR);
-        // Every width from 1 to 4096 of a 7680-pixel wall: a dozen divisors at most.
-        let distinct: std::collections::BTreeSet<u32> = (1..=4096).map(|w| divisor_for(7680, w)).collect();
-        assert!(distinct.len() <= 12, "{distinct:?}");
     }
 }

@@ -19,6 +19,7 @@ mod logs;
 mod patch;
 mod pictures;
 mod server;
+mod shared;
 mod status;
 
 use crate::drive::{load, runtime, scene_range_and_framing, time_steps};
@@ -109,11 +110,11 @@ pub fn console(a: &ConsoleArgs) -> Result<()> {
         let (daemons, wall) = start::open(config, &a.start).await?;
         let scene = frame_loop::Scene { camera, settings, range, framing, steps, demo };
         let limits = server::Limits::default();
-        let options = api::Options {
+        let options = shared::Options {
             bookmarks: bookmarks::path_for(&a.config),
             lock_idle: std::time::Duration::from_secs(a.lock_idle_s),
         };
-        let (shared, commands) = api::Shared::new(access.clone(), limits, options);
+        let (shared, commands) = shared::Shared::new(access.clone(), limits, options);
         let looper = tokio::spawn(frame_loop::run(wall, daemons, scene, shared.clone(), commands));
         // Printed for scripts and tests: the page's address, once it serves.
         println!("isowall console: serving http://{local}/");

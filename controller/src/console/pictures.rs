@@ -15,9 +15,8 @@
 //!   waits for it; when the last one goes (its connection closed), the frame loop drops it. A
 //!   client waits [`WAIT_AT_MOST`] at most.
 
-use super::api::{ApiError, Picture};
-use super::frame_loop::{Captured, Command};
-use crate::wall::compose_scaled;
+use super::shared::{ApiError, Captured, Command, Picture};
+use crate::picture::compose_scaled;
 use axum::http::StatusCode;
 use std::collections::HashMap;
 use std::net::{IpAddr, Ipv4Addr};

@@ -1,0 +1,194 @@
+//! What the console's HTTP handlers and its frame loop share: the state the handlers read
+//! (`Shared`), the commands they send the loop (`Command`) and its answers (`Captured`,
+//! `Picture`), the API's errors, and the thumbnail divisors. Neither `api.rs` nor `frame_loop.rs`
+//! imports the other.
+
+use super::lock::OperatorLock;
+use super::patch::{CameraPatch, Refusal, RenderPatch, TimePatch};
+use super::pictures::Pictures;
+use super::server::Limits;
+use super::status::Status;
+use super::Access;
+use axum::http::{header, HeaderValue, StatusCode};
+use axum::response::{IntoResponse, Response};
+use axum::Json;
+use isowall_model::messages::{TileImage, MAX_THUMBNAIL_DIVISOR};
+use isowall_model::{Camera, WallConfig};
+use std::collections::BTreeMap;
+use std::sync::atomic::AtomicU64;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tokio::sync::{mpsc, oneshot, watch};
+
+/// Live WebSockets open at once, all clients together (each holds a connection).
+pub const MAX_LIVE: usize = 64;
+
+/// What the handlers share with the frame loop.
+pub struct Shared {
+    pub access: Access,
+    /// The latest status (`None` until the first frame).
+    pub status: watch::Sender<Option<Arc<Status>>>,
+    pub commands: mpsc::Sender<Command>,
+    /// Bytes of response bodies and WebSocket messages sent.
+    pub served_bytes: AtomicU64,
+    /// Snapshots and thumbnails: asked of the nodes, shared and bounded.
+    pub pictures: Arc<Pictures>,
+    pub limits: Limits,
+    /// Places for live WebSockets ([`MAX_LIVE`]).
+    pub live_slots: Arc<tokio::sync::Semaphore>,
+    /// The operator lock, on the clock of `epoch`.
+    pub lock: std::sync::Mutex<OperatorLock>,
+    pub epoch: Instant,
+    /// The log file of each daemon the console started (`--local`), by node.
+    pub logs: std::sync::Mutex<std::collections::HashMap<String, std::path::PathBuf>>,
+    /// The camera bookmarks file (beside the wall config), and one writer at a time.
+    pub bookmarks: std::path::PathBuf,
+    pub bookmarks_writer: tokio::sync::Mutex<()>,
+}
+
+/// What the console is started with beyond its access rules.
+pub struct Options {
+    pub bookmarks: std::path::PathBuf,
+    pub lock_idle: Duration,
+}
+
+impl Shared {
+    pub fn new(access: Access, limits: Limits, options: Options) -> (Arc<Shared>, mpsc::Receiver<Command>) {
+        let (commands, rx) = mpsc::channel(64);
+        let (status, _) = watch::channel(None);
+        let pictures = Arc::new(Pictures::default());
+        let served_bytes = AtomicU64::new(0);
+        let live_slots = Arc::new(tokio::sync::Semaphore::new(MAX_LIVE));
+        let shared = Shared {
+            access,
+            status,
+            commands,
+            served_bytes,
+            pictures,
+            limits,
+            live_slots,
+            lock: std::sync::Mutex::new(OperatorLock::new(options.lock_idle)),
+            epoch: Instant::now(),
+            logs: Default::default(),
+            bookmarks: options.bookmarks,
+            bookmarks_writer: tokio::sync::Mutex::new(()),
+        };
+        (Arc::new(shared), rx)
+    }
+
+    /// The operator lock (a poisoned mutex still holds a consistent lock: every change to it is
+    /// one assignment).
+    pub fn lock(&self) -> std::sync::MutexGuard<'_, OperatorLock> {
+        self.lock.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+}
+
+/// A whole-wall image.
+#[derive(Clone, Debug)]
+pub struct Picture {
+    pub png: Vec<u8>,
+    pub width: u32,
+    pub height: u32,
+    /// The oldest frame among its tiles (`None`: no tile answered).
+    pub frame_id: Option<u64>,
+    /// Since that frame's swap was released, when it was taken.
+    pub age: Option<Duration>,
+    pub taken: Instant,
+}
+
+/// A refusal or failure, as the API answers it.
+#[derive(Clone, Debug)]
+pub struct ApiError {
+    pub status: StatusCode,
+    pub field: Option<&'static str>,
+    pub message: String,
+}
+
+impl ApiError {
+    pub fn new(status: StatusCode, message: impl Into<String>) -> ApiError {
+        ApiError { status, field: None, message: message.into() }
+    }
+
+    pub fn refused(r: Refusal) -> ApiError {
+        ApiError { status: StatusCode::UNPROCESSABLE_ENTITY, field: Some(r.field), message: r.message }
+    }
+
+    pub fn internal(message: impl Into<String>) -> ApiError {
+        ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, message)
+    }
+}
+
+impl IntoResponse for ApiError {
+    fn into_response(self) -> Response {
+        let body = serde_json::json!({ "error": self.message, "field": self.field });
+        let mut r = (self.status, Json(body)).into_response();
+        if self.status == StatusCode::UNAUTHORIZED {
+            r.headers_mut().insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
+        }
+        r
+    }
+}
+
+/// What the API asks the frame loop for.
+pub enum Command {
+    Render(RenderPatch, oneshot::Sender<Result<(), ApiError>>),
+    Camera(CameraPatch, oneshot::Sender<Result<(), ApiError>>),
+    Time(TimePatch, oneshot::Sender<Result<(), ApiError>>),
+    /// The nodes' last presented tiles downscaled by a divisor (1: full size). Requests for the
+    /// same divisor while one is pending share its answer.
+    Images(u32, ImagesReply),
+    /// Restart a node (by name, with a reason for its log): a daemon the console started is
+    /// killed and started again; any other is told `Restart` over its connection. Answers how.
+    Restart(String, String, oneshot::Sender<Result<String, ApiError>>),
+    /// The camera of the next frame (a bookmark saves it).
+    CameraNow(oneshot::Sender<Result<Camera, ApiError>>),
+    /// The tiles show (`true`) or stop showing their node's and their own name.
+    Identify(bool, oneshot::Sender<Result<(), ApiError>>),
+}
+
+/// Where the frame loop answers an image request.
+pub type ImagesReply = oneshot::Sender<Result<Arc<Captured>, ApiError>>;
+
+/// Tiles the nodes sent for one image request, composed into a picture off the frame loop.
+pub struct Captured {
+    pub config: Arc<WallConfig>,
+    pub divisor: u32,
+    pub tiles: BTreeMap<String, Vec<TileImage>>,
+    /// The oldest frame among the tiles (`None`: no tile answered).
+    pub frame_id: Option<u64>,
+    /// Since that frame's swap was released, when the tiles were taken.
+    pub age: Option<Duration>,
+    pub taken: Instant,
+}
+
+/// The divisors thumbnails are asked at: each about 1.5 times the one before, so that any
+/// number of widths asked for comes to a dozen requests of the nodes at most.
+const DIVISORS: [u32; 11] = [1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48];
+
+/// The thumbnail downscale for a page `width` pixels wide: the smallest of [`DIVISORS`] (or
+/// [`MAX_THUMBNAIL_DIVISOR`]) whose image fits.
+pub fn divisor_for(wall_width: u32, width: u32) -> u32 {
+    let fits = wall_width.div_ceil(width.max(1)).clamp(1, MAX_THUMBNAIL_DIVISOR);
+    DIVISORS.iter().copied().find(|d| *d >= fits).unwrap_or(MAX_THUMBNAIL_DIVISOR)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_thumbnail_divisor_is_the_smallest_that_fits() {
+        assert_eq!(divisor_for(328, 328), 1);
+        assert_eq!(divisor_for(328, 400), 1);
+        assert_eq!(divisor_for(328, 164), 2);
+        assert_eq!(divisor_for(328, 163), 3);
+        assert_eq!(divisor_for(7680, 640), 12);
+        // Rounded up to the next of a few sizes: 328 / 70 needs 5, asked at 6.
+        assert_eq!(divisor_for(328, 70), 6);
+        assert_eq!(divisor_for(1 << 20, 1), MAX_THUMBNAIL_DIVISOR);
+        assert_eq!(divisor_for(328, 0), MAX_THUMBNAIL_DIVISOR);
+        // Every width from 1 to 4096 of a 7680-pixel wall: a dozen divisors at most.
+        let distinct: std::collections::BTreeSet<u32> = (1..=4096).map(|w| divisor_for(7680, w)).collect();
+        assert!(distinct.len() <= 12, "{distinct:?}");
+    }
+}
