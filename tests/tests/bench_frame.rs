@@ -61,10 +61,11 @@ fn frame_bench_counts_what_a_frame_moves_on_every_path_and_compares_with_a_basel
     assert_eq!(object[7] - screen[7], 8.0 * w * h, "{saved}");
     // The snapshot reads the tile's image once: 4 bytes a pixel.
     assert_eq!(row("snapshot", "default")[7], 4.0 * w * h, "{saved}");
-    // The earlier path: every AOV read back (68 bytes a pixel) and its buffers made every frame.
+    // The earlier path: every shading AOV read back (64 bytes a pixel, through `render`, beside the
+    // frame's counters and timestamps) and its buffers made every frame.
     for path in ["screen", "object", "moving"] {
         let b = row(path, "before");
-        assert_eq!(b[7], 68.0 * w * h, "{path}/before:\n{saved}");
+        assert!(b[7] >= 64.0 * w * h && b[7] < 64.0 * w * h + 256.0, "{path}/before:\n{saved}");
         assert!(b[6] >= 10.0, "{path}/before: its buffers made every frame:\n{saved}");
     }
     // Steady accumulating frames do not run the isosurface kernel; moving ones do.
