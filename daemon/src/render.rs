@@ -81,6 +81,17 @@ pub enum IblArg {
     Rays,
 }
 
+impl From<IblArg> for IblMethod {
+    fn from(i: IblArg) -> Self {
+        match i {
+            IblArg::None => IblMethod::None,
+            IblArg::Seed => IblMethod::Seed,
+            IblArg::Bent => IblMethod::Bent,
+            IblArg::Rays => IblMethod::Rays,
+        }
+    }
+}
+
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub enum DenoiseArg {
     /// The running sums as they are
@@ -392,12 +403,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         settings.ao.sequence = q.into();
     }
     if let Some(i) = a.ibl {
-        settings.ao.ibl = match i {
-            IblArg::None => IblMethod::None,
-            IblArg::Seed => IblMethod::Seed,
-            IblArg::Bent => IblMethod::Bent,
-            IblArg::Rays => IblMethod::Rays,
-        };
+        settings.ao.ibl = i.into();
     }
     settings.ao.seed = a.seed.unwrap_or(0);
     settings.denoise = a.denoise.map(Denoise::from).unwrap_or_default();

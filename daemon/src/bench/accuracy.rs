@@ -106,12 +106,7 @@ impl Variant {
     }
 
     fn ibl_name(&self) -> &'static str {
-        match self.ibl {
-            IblMethod::None => "none",
-            IblMethod::Seed => "seed",
-            IblMethod::Bent => "bent",
-            IblMethod::Rays => "rays",
-        }
+        self.ibl.name()
     }
 
     /// The chart's curve this point belongs to (every point with the same curve but `samples`);

@@ -10,7 +10,7 @@
 
 use super::stats::{scene_file, scene_spec};
 use crate::args;
-use crate::render::load_volume;
+use crate::render::{load_volume, IblArg};
 use anyhow::{anyhow, Result};
 use clap::Args;
 use isowall_model::render_state::linear_to_srgb;
@@ -50,9 +50,9 @@ pub struct LookArgs {
     /// for the bins to hold the pixels they should)
     #[arg(long, default_value_t = 8)]
     pub frames: u32,
-    /// IBL methods to measure, comma-separated (none, seed, bent, rays)
-    #[arg(long, default_value = "none,bent")]
-    pub ibl: String,
+    /// IBL methods to measure, comma-separated
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "none,bent")]
+    pub ibl: Vec<IblArg>,
     /// Also measure the look before these defaults (key light 0.9, ambient 0.15, AO radius 8
     /// voxels, exposure 1 or 0.6 with IBL), in the same run
     #[arg(long)]
@@ -170,19 +170,11 @@ fn radius(arg: &str, largest_spacing: f64) -> Result<AoRadius> {
     Ok(AoRadius::World(if voxels { r * largest_spacing } else { r }))
 }
 
-fn ibl_method(name: &str) -> Result<IblMethod> {
-    IblMethod::ALL
-        .into_iter()
-        .find(|m| m.name() == name)
-        .ok_or_else(|| anyhow!("--ibl '{name}': one of none, seed, bent, rays"))
-}
-
 pub fn run(a: &LookArgs) -> Result<()> {
     let gpu = GpuRenderer::new()?;
     let (w, h) = a.size;
     let sky = gpu.upload_environment(&Environment::sky())?;
-    let methods: Vec<IblMethod> =
-        a.ibl.split(',').map(str::trim).filter(|s| !s.is_empty()).map(ibl_method).collect::<Result<_>>()?;
+    let methods: Vec<IblMethod> = a.ibl.iter().map(|&i| i.into()).collect();
     if let Some(dir) = &a.out {
         std::fs::create_dir_all(dir).map_err(|e| anyhow!("--out {}: {e}", dir.display()))?;
     }
