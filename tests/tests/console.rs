@@ -1063,6 +1063,10 @@ async fn the_page_shows_each_nodes_gpu_and_log_and_drives_bookmarks_the_lock_and
         Duration::from_secs(10),
     )
     .await;
+    // A status made before the take, arriving after its answer, leaves the tab's lock alone.
+    let stale = "(() => { const s = JSON.parse(JSON.stringify(status)); s.console.lock = null; \
+                 s.console.lock_changes = lockChanges - 1; show(s); return lockId !== null; })()";
+    assert_eq!(js(&page, stale).await, Value::Bool(true), "a stale status dropped the tab's lock");
     let r = con.post("/api/render", "{\"exposure\": 0.5}");
     assert_eq!(
         (r.status, r.json()["holder"].as_str()),

@@ -32,7 +32,7 @@
 use super::bookmarks::{self, Bookmark, BookmarkError};
 use super::lock;
 use super::patch::{CameraPatch, RenderPatch, TimePatch};
-use super::shared::{divisor_for, ApiError, Command, Shared, MAX_LIVE};
+use super::shared::{divisor_for, unix_ms, ApiError, Command, Shared, MAX_LIVE};
 use super::status::Status;
 use axum::body::Body;
 use axum::extract::rejection::{JsonRejection, QueryRejection};
@@ -508,12 +508,6 @@ fn lock_id(headers: &HeaderMap) -> Option<&str> {
     headers.get(LOCK_HEADER).and_then(|v| v.to_str().ok())
 }
 
-fn unix_ms() -> u64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| u64::try_from(d.as_millis()).unwrap_or(u64::MAX))
-}
-
 fn locked(l: lock::Locked) -> Response {
     let body = serde_json::json!({
         "error": l.message(),
@@ -554,13 +548,18 @@ async fn take_lock(
     let Json(t) = body.map_err(bad_json)?;
     let (now, unix) = (shared.epoch.elapsed(), unix_ms());
     let holder = t.holder.unwrap_or_else(|| "an operator".into());
-    let taken = shared.lock().take(now, unix, &holder, lock::fresh_id(unix), lock_id(&headers));
+    let (taken, changes) = {
+        let mut lock = shared.lock();
+        let taken = lock.take(now, unix, &holder, lock::fresh_id(unix), lock_id(&headers));
+        (taken, lock.changes())
+    };
     match taken {
         Ok(h) => Ok(Json(serde_json::json!({
             "lock_id": h.id,
             "holder": h.holder,
             "since_unix_ms": h.since_unix_ms,
             "idle_timeout_s": shared.lock().idle().as_secs_f64(),
+            "lock_changes": changes,
         }))
         .into_response()),
         Err(l) => Ok(locked(l)),

@@ -10,7 +10,7 @@
 //! asker has left is dropped.
 
 use super::patch::Controls;
-use super::shared::{ApiError, Captured, Command, ImagesReply, Shared};
+use super::shared::{unix_ms, ApiError, Captured, Command, ImagesReply, Shared};
 use super::status::{self, NodeHealth, Status};
 use crate::controls::SessionState;
 use crate::local::LocalDaemons;
@@ -43,12 +43,6 @@ pub struct Scene {
     /// The volume's time steps (1: none to play).
     pub steps: u32,
     pub demo: Option<(PathBuf, CameraPath)>,
-}
-
-fn unix_ms() -> u64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| u64::try_from(d.as_millis()).unwrap_or(u64::MAX))
 }
 
 struct Loop {
@@ -377,6 +371,18 @@ impl Loop {
         use status::*;
         let cfg = &wall.config;
         let (width, height) = cfg.wall_size();
+        // The holder and the count of changes under one guard, so the two agree.
+        let (lock, lock_changes) = {
+            let mut lock = self.shared.lock();
+            let now = self.shared.epoch.elapsed();
+            let idle_s = lock.idle().as_secs_f64();
+            let info = lock.holder(now).map(|h| LockInfo {
+                holder: h.holder.clone(),
+                since_unix_ms: h.since_unix_ms,
+                idle_timeout_s: idle_s,
+            });
+            (info, lock.changes())
+        };
         let tiles = cfg
             .tiles
             .iter()
@@ -536,16 +542,8 @@ impl Loop {
                 node_image_bytes: wall.snapshot_bytes,
                 thumbnails: self.thumbnails,
                 served_bytes: self.shared.served_bytes.load(Ordering::Relaxed),
-                lock: {
-                    let mut lock = self.shared.lock();
-                    let now = self.shared.epoch.elapsed();
-                    let idle_s = lock.idle().as_secs_f64();
-                    lock.holder(now).map(|h| LockInfo {
-                        holder: h.holder.clone(),
-                        since_unix_ms: h.since_unix_ms,
-                        idle_timeout_s: idle_s,
-                    })
-                },
+                lock,
+                lock_changes,
             },
         }
     }

@@ -46,21 +46,30 @@ impl Locked {
 pub struct OperatorLock {
     idle: Duration,
     held: Option<Holder>,
+    /// How many times the holder changed (taken, released, lapsed): a page reading the status
+    /// tells by it whether the status was made before or after its own take.
+    changes: u64,
 }
 
 impl OperatorLock {
     pub fn new(idle: Duration) -> OperatorLock {
-        OperatorLock { idle, held: None }
+        OperatorLock { idle, held: None, changes: 0 }
     }
 
     pub fn idle(&self) -> Duration {
         self.idle
     }
 
+    /// How many times the holder changed so far (see the field).
+    pub fn changes(&self) -> u64 {
+        self.changes
+    }
+
     /// The holder at `now` (a lapsed lock is dropped first).
     pub fn holder(&mut self, now: Duration) -> Option<&Holder> {
         if self.held.as_ref().is_some_and(|h| now.saturating_sub(h.last_used) >= self.idle) {
             let h = self.held.take().expect("checked");
+            self.changes += 1;
             tracing::info!(holder = %h.holder, "console: the operator lock lapsed after {:?} idle", self.idle);
         }
         self.held.as_ref()
@@ -96,6 +105,7 @@ impl OperatorLock {
         let h = Holder { id, holder, since: now, since_unix_ms: unix_ms, last_used: now };
         tracing::info!(holder = %h.holder, "console: the operator lock is taken");
         self.held = Some(h.clone());
+        self.changes += 1;
         Ok(h)
     }
 
@@ -117,6 +127,7 @@ impl OperatorLock {
             Some(h) if presented.is_some_and(|p| same(p, &h.id)) => {
                 tracing::info!(holder = %h.holder, "console: the operator lock is released");
                 self.held = None;
+                self.changes += 1;
                 Ok(())
             }
             Some(_) => Err(self.locked(self.held.as_ref().expect("held"), now)),
@@ -161,6 +172,7 @@ mod tests {
         assert_eq!(lock.check(s(0), None), Ok(()), "nobody holds it: open");
         let a = lock.take(s(10), 1_000, "alice\n", "id-a".into(), None).unwrap();
         assert_eq!((a.holder.as_str(), a.since_unix_ms), ("alice", 1_000));
+        assert_eq!(lock.changes(), 1, "taken");
         let refused = lock.take(s(11), 2_000, "bob", "id-b".into(), None).unwrap_err();
         assert_eq!((refused.holder.as_str(), refused.since_unix_ms, refused.held_s), ("alice", 1_000, 1.0));
         assert!(refused.message().contains("locked by `alice`"), "{}", refused.message());
@@ -173,13 +185,16 @@ mod tests {
         // Renewing with its own id keeps the id.
         assert_eq!(lock.take(s(100), 0, "alice", "other".into(), Some("id-a")).unwrap().id, "id-a");
         assert!(lock.release(s(101), Some("id-b")).is_err(), "only the holder releases");
+        assert_eq!(lock.changes(), 1, "renewals, uses and refusals change no holder");
         assert_eq!(lock.release(s(101), Some("id-a")), Ok(()));
+        assert_eq!(lock.changes(), 2, "released");
         assert_eq!(lock.check(s(102), None), Ok(()));
         // Idle: lapses.
         lock.take(s(200), 0, "bob", "id-b".into(), None).unwrap();
         assert!(lock.check(s(259), None).is_err());
         assert_eq!(lock.check(s(260), None), Ok(()), "60 s idle: lapsed");
         assert!(lock.holder(s(260)).is_none());
+        assert_eq!(lock.changes(), 4, "taken by bob, lapsed");
     }
 
     #[test]

@@ -172,6 +172,13 @@ pub fn divisor_for(wall_width: u32, width: u32) -> u32 {
     DIVISORS.iter().copied().find(|d| *d >= fits).unwrap_or(MAX_THUMBNAIL_DIVISOR)
 }
 
+/// The wall-clock time now, ms since the Unix epoch (for pages; rules use `Shared::epoch`).
+pub fn unix_ms() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| u64::try_from(d.as_millis()).unwrap_or(u64::MAX))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -160,6 +160,9 @@ pub struct ConsoleInfo {
     pub served_bytes: u64,
     /// Who holds the operator lock (`null`: nobody; changes are open to every client).
     pub lock: Option<LockInfo>,
+    /// How many times the lock's holder had changed when this status was made: a page that took
+    /// the lock at change N ignores the lock of a status made before it (`< N`).
+    pub lock_changes: u64,
 }
 
 #[derive(Clone, Debug, Serialize)]

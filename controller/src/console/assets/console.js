@@ -242,14 +242,21 @@ function showControls(s) {
   setProp($("demo"), "disabled", !s.demo.path);
   setProp($("demo"), "title", s.demo.path ? s.demo.path : "start the console with --demo-path FILE");
   setText($("identify"), s.wall.identify ? "stop identifying" : "identify screens");
-  showLock(s.console.lock);
+  // A status made before this tab took the lock (it can arrive after the take's answer) says
+  // nothing about this tab's lock.
+  if (lockId === null || s.console.lock_changes >= lockChanges) showLock(s.console.lock);
 }
 
 // ---- the operator lock ----
 // The lock id this tab holds (kept for the tab only); its changes carry it in X-Isowall-Lock.
 let lockId = sessionStorage.getItem("isowall-lock");
 let lockSince = Number(sessionStorage.getItem("isowall-lock-since"));
-function dropLock() { lockId = null; sessionStorage.removeItem("isowall-lock"); sessionStorage.removeItem("isowall-lock-since"); }
+// The lock's count of holder changes when this tab took it (see `console.lock_changes`).
+let lockChanges = Number(sessionStorage.getItem("isowall-lock-changes"));
+function dropLock() {
+  lockId = null;
+  for (const k of ["isowall-lock", "isowall-lock-since", "isowall-lock-changes"]) sessionStorage.removeItem(k);
+}
 function showLock(l) {
   const mine = lockId !== null && l !== null && l.since_unix_ms === lockSince;
   // Released, lapsed, or taken by another since: this tab's id is no good any more.
@@ -266,8 +273,10 @@ $("lock-take").addEventListener("click", async () => {
     const j = await r.json();
     lockId = j.lock_id;
     lockSince = j.since_unix_ms;
+    lockChanges = j.lock_changes;
     sessionStorage.setItem("isowall-lock", lockId);
     sessionStorage.setItem("isowall-lock-since", String(lockSince));
+    sessionStorage.setItem("isowall-lock-changes", String(lockChanges));
     showLock({ holder: j.holder, since_unix_ms: j.since_unix_ms, idle_timeout_s: j.idle_timeout_s });
   }
 });
