@@ -36,14 +36,16 @@
 //!   with the composited frame. A dead node's brick is not adopted: the survivors answer
 //!   `BrickFailed` with the reason and the wall composites without it until its node is back.
 
-use crate::render_thread::{BrickData, CanvasJob, JobResult, StepsOf, TileResult};
+use crate::render_thread::{BrickData, CanvasJob, JobResult, RenderHandle, StepsOf, TileResult};
 use anyhow::{anyhow, Context, Result};
 use isowall_model::adoption::AdoptionError;
 use isowall_model::bricks::{self, Brick, Occupancy};
 use isowall_model::composite::{Composited, PixelForm, TileCanvas};
 use isowall_model::config::WallConfig;
 use isowall_model::messages::Message;
-use isowall_model::object_machine::{BrickGeometry, FrameViews, ObjectMachine, ObjectOutput};
+use isowall_model::object_machine::{BrickGeometry, ObjectMachine, ObjectOutput};
+use isowall_model::render_plan::RenderPlan;
+use isowall_model::wire::{Continuity, FrameSpec};
 use isowall_model::{Camera, RenderSettings};
 use isowall_net::pixels::{PeerConnection, PeerPixelsIn, PixelOutbox};
 use isowall_net::transport;
@@ -214,7 +216,7 @@ pub fn spawn_load(
     plan: Arc<BrickPlan>,
     brick: u64,
     index: usize,
-    renderer: crate::render_thread::RenderHandle,
+    renderer: RenderHandle,
     done: tokio::sync::mpsc::UnboundedSender<LoadDone>,
     delay: Duration,
 ) {
@@ -363,36 +365,38 @@ impl ObjectNode {
         self.machine.announce(frame_id);
     }
 
-    /// The frame's settings within what the halo allows (the model's rules), with a warning
-    /// when they change.
-    pub fn bound_settings(&mut self, frame_id: u64, s: &RenderSettings) -> RenderSettings {
-        let (s, warning) = self.machine.bound_settings(s);
-        if let Some(w) = warning {
+    /// What this node renders of a frame (the model's [`ObjectMachine::plan`]): its warnings
+    /// logged, the adopted bricks it no longer holds dropped from the GPU, early pixels that
+    /// broke the rules answered.
+    pub fn plan(
+        &mut self,
+        spec: &FrameSpec,
+        accumulate_frame: u32,
+        continuity: Continuity,
+        renderer: &RenderHandle,
+    ) -> RenderPlan {
+        let frame_id = spec.frame_id;
+        let p = self.machine.plan(self.now(), spec, accumulate_frame, continuity);
+        if let Some(w) = &p.warning {
             tracing::warn!(frame_id, "object space: {w}");
         }
-        s
-    }
-
-    /// The views this node renders for a frame (the model's [`ObjectMachine::views`]).
-    pub fn views(&mut self, frame_id: u64, camera: Camera, settings: &RenderSettings) -> FrameViews {
-        let now = self.now();
         if self.filter_guard.is_some() {
-            self.cameras.insert(frame_id, (camera, *settings));
+            self.cameras.insert(frame_id, (spec.camera, p.plan.settings));
         }
-        let (views, out) = self.machine.views(now, frame_id, camera, srgb8_of(settings.background));
-        for b in &views.unload {
+        for &b in &p.unload {
             tracing::info!(frame_id, brick = b, "object space: dropping adopted brick (its home is back)");
+            let _ = renderer.unload(b);
         }
-        for b in &views.not_loaded {
+        for b in &p.not_loaded {
             tracing::error!(
                 frame_id,
                 brick = b,
                 "object space: the map gives this node a brick it has not loaded"
             );
         }
-        let done = self.execute(out);
+        let done = self.execute(p.outputs);
         debug_assert!(done.is_empty(), "a frame starting completes nothing");
-        views
+        p.plan
     }
 
     /// Carries out the machine's outputs; returns the composited frames.
@@ -488,7 +492,7 @@ impl ObjectNode {
 
     /// `LoadBrick`: starts loading the brick beside this node's own (an answer comes through
     /// [`ObjectNode::load_done`]), or the answer to send at once.
-    pub fn load(&mut self, brick: u64, renderer: &crate::render_thread::RenderHandle) -> Option<Message> {
+    pub fn load(&mut self, brick: u64, renderer: &RenderHandle) -> Option<Message> {
         let mut answer = None;
         for out in self.machine.load(brick) {
             match out {
@@ -596,12 +600,4 @@ impl From<TileResult> for TileCanvas {
             shading: r.shading,
         }
     }
-}
-
-/// The sRGB8 of a linear background colour, as the renderer writes misses.
-fn srgb8_of(c: [f64; 3]) -> [u8; 3] {
-    let mut f = isowall_render::Frame::new(1, 1);
-    f.color[0] = c.map(|x| x as f32);
-    let v = isowall_render::output::srgb8(&f);
-    [v[0], v[1], v[2]]
 }

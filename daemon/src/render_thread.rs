@@ -15,8 +15,7 @@
 
 use crate::presenter::Shown;
 use anyhow::{Context, Result};
-use isowall_model::composite::PixelForm;
-use isowall_model::wire::Continuity;
+use isowall_model::render_plan::RenderPlan;
 use isowall_model::{RenderSettings, View};
 use isowall_render::environment::Environment;
 use isowall_render::gpu::present::{Presented, TileSurface};
@@ -33,24 +32,11 @@ use std::time::{Duration, Instant};
 /// One frame to render: the views of the node's tiles, the settings, and where in the
 /// progressive accumulation it stands (0 restarts it).
 pub struct TileJob {
-    pub frame_id: u64,
-    pub tiles: Vec<(String, View)>,
-    pub settings: RenderSettings,
-    pub accumulate_frame: u32,
-    /// How the frame relates to the one before it (the model's rule), which each tile's frame
-    /// plan follows.
-    pub continuity: Continuity,
-    /// object space: the brick each view renders, by index (a node renders an adopted brick
-    /// beside its own, `object.rs`); empty: the one volume.
-    pub bricks: Vec<usize>,
-    /// The internal resolution divisor (1 ..= 4, `isowall_model::lowres`): each tile renders its
-    /// view of the image divided by it and is upsampled (nearest) to its full size on the GPU.
-    pub scale: u32,
-    /// Read each view's pixels back in this form (object space: they travel to the tile's
-    /// owner); `None`: the frame stays on the GPU and the results carry no pixels.
-    pub share: Option<PixelForm>,
-    /// The frame's time step (a time-varying volume; taken modulo its step count).
-    pub time_step: u32,
+    /// What to render (the model's plan: `isowall_model::render_plan`). object space: `bricks`
+    /// names the brick each view renders (a node renders an adopted brick beside its own,
+    /// `object.rs`), and the pixels are read back in `share`'s form to travel to the tiles'
+    /// owners; screen space: the one volume, and the frame stays on the GPU.
+    pub plan: RenderPlan,
     /// The node's name where the operator asked the tiles to identify themselves: each tile's
     /// image shows it and the tile's name in its top-left corner (screen space).
     pub identify: Option<String>,
@@ -629,13 +615,14 @@ impl RenderLoop {
     /// Renders a job's tiles (each submitted as soon as it is recorded); its result is sent once
     /// its reads arrive. False when the results' receiver is gone.
     fn render(&mut self, job: &TileJob) -> bool {
+        let plan = &job.plan;
         let started = Instant::now();
-        let step_late = self.show_step(job.frame_id, job.time_step);
+        let step_late = self.show_step(plan.frame_id, plan.time_step);
         match self.submit(job) {
             Ok(()) => {
-                let n = job.tiles.len();
+                let n = plan.views.len();
                 self.frames.push_back(InFlight {
-                    frame_id: job.frame_id,
+                    frame_id: plan.frame_id,
                     step_late,
                     started,
                     tiles: vec![None; n],
@@ -713,56 +700,57 @@ impl RenderLoop {
     }
 
     fn submit(&mut self, job: &TileJob) -> Result<(), String> {
+        let plan = &job.plan;
         // The tiles' resources, kept where they fit, made where they do not (start, resize, scale,
         // the filter turned on or off: a denoised tile renders a guard band of the filter's reach
         // beyond its edges, so that the wall's tiles filter their edge pixels as one image).
         // A brick's view (object space) is not filtered: its pixels are not the image's until
         // composited; the tile's owner filters the composited canvas (`RenderLoop::canvas`).
-        let object_space = !job.bricks.is_empty();
-        let denoise = job.settings.denoise.is_on() && !object_space;
+        let object_space = !plan.bricks.is_empty();
+        let denoise = plan.settings.denoise.is_on() && !object_space;
         let guard = if denoise { isowall_render::denoise::reach() } else { 0 };
         let mut targets = std::mem::take(&mut self.targets);
-        let mut kept = Vec::with_capacity(job.tiles.len());
-        for (name, view) in &job.tiles {
+        let mut kept = Vec::with_capacity(plan.views.len());
+        for (name, view) in &plan.views {
             let reuse =
-                targets.iter().position(|t| t.name == *name && t.fits_with_guard(view, job.scale, guard));
+                targets.iter().position(|t| t.name == *name && t.fits_with_guard(view, plan.scale, guard));
             let target = match reuse {
                 Some(i) => targets.swap_remove(i),
-                None => TileTarget::with_guard(&self.gpu, name, view, job.scale, guard)
+                None => TileTarget::with_guard(&self.gpu, name, view, plan.scale, guard)
                     .map_err(|e| format!("tile {name}: {e}"))?,
             };
             kept.push(target);
         }
         self.targets = kept;
-        for k in 0..job.tiles.len() {
+        for k in 0..plan.views.len() {
             while !self.ring.has_free_slot() {
                 self.ring.wait_oldest(&self.gpu.ctx).map_err(|e| e.to_string())?;
                 self.take_reads();
             }
-            let (name, view) = &job.tiles[k];
-            let gv = match job.bricks.get(k) {
+            let (name, view) = &plan.views[k];
+            let gv = match plan.bricks.get(k) {
                 None => Some(&self.volumes[0].1),
                 Some(b) => self.volumes.iter().find(|v| v.0 == *b).map(|v| &v.1),
             };
             let Some(gv) = gv else {
-                return Err(format!("tile {name}: brick {:?} is not loaded", job.bricks.get(k)));
+                return Err(format!("tile {name}: brick {:?} is not loaded", plan.bricks.get(k)));
             };
-            let mut settings = job.settings;
-            settings.ao.frame = settings.ao.frame.wrapping_add(job.accumulate_frame);
+            let mut settings = plan.settings;
+            settings.ao.frame = settings.ao.frame.wrapping_add(plan.accumulate_frame);
             if !denoise {
                 settings.denoise = isowall_model::Denoise::Off;
             }
             let frame = TileFrame {
-                frame_id: job.frame_id,
+                frame_id: plan.frame_id,
                 volume: gv,
                 view,
                 settings: &settings,
                 env: self.env.as_ref(),
-                continuity: job.continuity,
+                continuity: plan.continuity,
                 // A moving camera carries each pixel's history over; object space does not (a
                 // brick's pixels are not the tile's until composited).
                 temporal: !object_space,
-                share: job.share,
+                share: plan.share,
             };
             self.gpu
                 .render_tile(&mut self.targets[k], &frame, &mut self.ring)
@@ -985,6 +973,8 @@ impl RenderLoop {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use isowall_model::composite::PixelForm;
+    use isowall_model::wire::Continuity;
     use isowall_model::{Camera, Rect};
     use isowall_render::gpu::GpuError;
 
@@ -1026,18 +1016,18 @@ mod tests {
         scale: u32,
         read_pixels: bool,
     ) -> JobResult {
-        let job = TileJob {
+        let plan = RenderPlan {
             frame_id,
-            tiles,
+            views: tiles,
+            bricks: Vec::new(),
             settings: *settings,
+            scale,
             accumulate_frame: 0,
             continuity: Continuity::Changed,
-            bricks: Vec::new(),
-            scale,
-            share: read_pixels.then_some(PixelForm::Colour),
             time_step: 0,
-            identify: None,
+            share: read_pixels.then_some(PixelForm::Colour),
         };
+        let job = TileJob { plan, identify: None };
         r.handle().submit(job).unwrap();
         let result = rx.blocking_recv().unwrap().unwrap();
         assert_eq!(result.frame_id, frame_id);

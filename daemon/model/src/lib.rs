@@ -47,6 +47,7 @@ pub mod names;
 pub mod node_machine;
 pub mod object_machine;
 pub mod peer_log;
+pub mod render_plan;
 pub mod render_state;
 pub mod seat;
 pub mod sim;

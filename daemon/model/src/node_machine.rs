@@ -4,7 +4,8 @@
 //!
 //! The caller sends [`NodeMachine::hello`] when the connection opens, passes every message to
 //! [`NodeMachine::handle`], and carries out the [`NodeOutput`]s:
-//! - `Render { state, accumulate_frame, continuity }`: render `state` (one at a time), then call
+//! - `Render { state, accumulate_frame, continuity }`: render `state` (one at a time: the node's
+//!   space makes it a [`crate::render_plan::RenderPlan`], what to render), then call
 //!   [`NodeMachine::render_done`], which sends Ready. `accumulate_frame` counts frames with the
 //!   same image (only the frame id changed): 0 after any change, then 1, 2, ... so progressive AO
 //!   can use `settings.ao.frame + accumulate_frame` as its decorrelation index and average in.

@@ -46,6 +46,9 @@ use crate::composite::{
 };
 use crate::config::{TileConfig, WallConfig};
 use crate::messages::Message;
+use crate::render_plan::RenderPlan;
+use crate::render_state::srgb8;
+use crate::wire::{Continuity, FrameSpec};
 use crate::{AoMethod, AoRadius, Camera, Rect, RenderSettings, View};
 use glam::DVec3;
 use std::collections::{BTreeMap, BTreeSet};
@@ -77,6 +80,21 @@ pub struct FrameViews {
     pub unload: Vec<usize>,
     /// Bricks the map gives this node that it has not loaded (left out).
     pub not_loaded: Vec<usize>,
+}
+
+/// A frame's start in object space ([`ObjectMachine::plan`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ObjectPlan {
+    /// What to render.
+    pub plan: RenderPlan,
+    /// Adopted bricks to drop before rendering (the map gives them to another node).
+    pub unload: Vec<usize>,
+    /// Bricks the map gives this node that it has not loaded (left out).
+    pub not_loaded: Vec<usize>,
+    /// Why the settings were bounded by the halo, when the reason is new.
+    pub warning: Option<String>,
+    /// Carry these out (pixels that came early and broke the rules).
+    pub outputs: Vec<ObjectOutput>,
 }
 
 /// What the caller must do.
@@ -352,6 +370,35 @@ impl ObjectMachine {
         self.submitted.insert(frame_id, views.iter().map(|(n, v)| (n.clone(), v.rect)).collect());
         self.submitted.retain(|&id, _| id.saturating_add(FRAMES_KEPT) > frame_id);
         (FrameViews { views, bricks, unload, not_loaded }, refused.into_iter().map(refused_output).collect())
+    }
+
+    /// Frame `spec` starts rendering at `now` ([`crate::render_plan`]): the node's bricks over
+    /// the rectangles they cover, with the settings bounded by the halo, at scale 1 (tiles are
+    /// composited by full-resolution depth), the pixels read back in the wall's form; and what
+    /// goes with it ([`ObjectPlan`]).
+    pub fn plan(
+        &mut self,
+        now: Duration,
+        spec: &FrameSpec,
+        accumulate_frame: u32,
+        continuity: Continuity,
+    ) -> ObjectPlan {
+        let (settings, warning) = self.bound_settings(&spec.settings);
+        // As the renderer writes a miss: the colour in f32, then 8-bit sRGB.
+        let background = settings.background.map(|c| srgb8(f64::from(c as f32)));
+        let (v, outputs) = self.views(now, spec.frame_id, spec.camera, background);
+        let plan = RenderPlan {
+            frame_id: spec.frame_id,
+            views: v.views,
+            bricks: v.bricks,
+            settings,
+            scale: 1,
+            accumulate_frame,
+            continuity,
+            time_step: spec.time_step,
+            share: Some(self.form()),
+        };
+        ObjectPlan { plan, unload: v.unload, not_loaded: v.not_loaded, warning, outputs }
     }
 
     /// A brick map from the controller (`Message::Bricks`): frames from `from_frame` on follow

@@ -397,6 +397,11 @@ pub fn linear_to_srgb(x: f64) -> f64 {
     }
 }
 
+/// 8-bit sRGB of a linear value: the transfer function, rounded to the nearest code.
+pub fn srgb8(x: f64) -> u8 {
+    (linear_to_srgb(x) * 255.0 + 0.5).floor() as u8
+}
+
 /// Direct light at a surface point, linear RGB, for unit `n` (facing the viewer), unit `l` towards
 /// the light and unit `v` towards the viewer: albedo * (ambient + light * N.L) + specular (Blinn-Phong).
 /// The one formula both renderers follow (the WGSL twin is `shade` in shaders/shading.wgsl).
@@ -429,6 +434,7 @@ mod tests {
         assert!((linear_to_srgb(0.5) - 0.735_356_983).abs() < 1e-6);
         assert_eq!(linear_to_srgb(f64::NAN), 0.0);
         assert_eq!(linear_to_srgb(7.0), linear_to_srgb(1.0));
+        assert_eq!((srgb8(0.0), srgb8(1.0), srgb8(0.5), srgb8(f64::NAN)), (0, 255, 188, 0));
     }
 
     #[test]

@@ -848,3 +848,42 @@ fn a_guard_band_grows_views_footprints_and_canvases_and_the_shading_form_travels
         }
     }
 }
+
+/// A frame's plan in object space: the views of `views`, always at scale 1 whatever the frame's
+/// (the tiles are composited by full-resolution depth), `seed` AO rendered as `ours` and a radius
+/// past the halo bounded by it (warned once), the pixels shared in the wall's form, and the
+/// background of misses in 8-bit sRGB.
+#[test]
+fn object_space_plans_its_bricks_at_scale_one_within_the_halo_and_shares_them() {
+    use isowall_model::render_plan::RenderPlan;
+    use isowall_model::wire::{Continuity, FrameSpec};
+    use isowall_model::{AoMethod, AoRadius};
+    let config = config();
+    let camera = config.camera_for(DVec3::ZERO, DVec3::splat(47.0));
+    let geometry =
+        BrickGeometry { owned: owned(), own: 0, own_bytes: 1000, spacing: DVec3::ONE, halo: [3; 3] };
+    let mut m = ObjectMachine::new(&config, "node0", geometry.clone(), None);
+    let mut settings = RenderSettings::new(0.5);
+    settings.ao.method = AoMethod::Seed;
+    settings.ao.radius = AoRadius::World(40.0);
+    let spec = FrameSpec { frame_id: 1, camera, settings, scale: 3, time_step: 2 };
+    let p = m.plan(ms(0), &spec, 5, Continuity::ViewMoved);
+    let mut same = ObjectMachine::new(&config, "node0", geometry, None);
+    let (views, _) = same.views(ms(0), 1, camera, [0; 3]);
+    assert_eq!((p.plan.views.clone(), p.plan.bricks.clone()), (views.views, views.bricks));
+    assert!(!p.plan.views.is_empty());
+    assert_eq!((p.plan.scale, p.plan.time_step, p.plan.accumulate_frame), (1, 2, 5));
+    assert_eq!(p.plan.continuity, Continuity::ViewMoved);
+    assert_eq!(p.plan.share, Some(m.form()));
+    assert_eq!(p.plan.settings.ao.method, AoMethod::Ours);
+    let AoRadius::World(r) = p.plan.settings.ao.radius else { panic!("{:?}", p.plan.settings.ao.radius) };
+    assert!(r < 3.0, "the radius {r} is bounded by the 3-voxel halo");
+    assert!(p.warning.is_some());
+    assert!(
+        m.plan(ms(1), &FrameSpec { frame_id: 2, ..spec }, 0, Continuity::Changed).warning.is_none(),
+        "warned once"
+    );
+    // Screen space of the same frame: every own tile at the frame's scale, nothing shared.
+    let screen = RenderPlan::screen(&config, &["t0".to_string()], &spec, 5, Continuity::ViewMoved);
+    assert_eq!((screen.scale, screen.share, screen.settings), (3, None, settings));
+}

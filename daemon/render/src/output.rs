@@ -2,7 +2,7 @@
 //! for one channel, `PF` for three, negative scale = little endian).
 
 use crate::frame::Frame;
-use isowall_model::render_state::linear_to_srgb;
+use isowall_model::render_state::srgb8 as srgb8_of;
 use isowall_model::Aov;
 use std::path::{Path, PathBuf};
 
@@ -74,11 +74,7 @@ pub fn write_atomically(
 
 /// Linear colour to 8-bit sRGB, row-major RGB.
 pub fn srgb8(frame: &Frame) -> Vec<u8> {
-    frame
-        .color
-        .iter()
-        .flat_map(|c| c.map(|x| (linear_to_srgb(x as f64) * 255.0 + 0.5).floor() as u8))
-        .collect()
+    frame.color.iter().flat_map(|c| c.map(|x| srgb8_of(f64::from(x)))).collect()
 }
 
 /// Writes the colour AOV as an 8-bit sRGB PNG.

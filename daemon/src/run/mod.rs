@@ -8,7 +8,7 @@
 //! alone touches the GPU.
 
 use crate::display::{self, Display, DisplayMode, WindowSetup};
-use crate::object::{LoadDone, ObjectNode};
+use crate::object::ObjectNode;
 use crate::presenter::{Presenter, Shown};
 use crate::render::load_volume_within;
 use crate::render_thread::{
@@ -18,7 +18,7 @@ use anyhow::{anyhow, Context, Result};
 use clap::Args;
 use isowall_model::config::{WallConfig, WallMode};
 use isowall_model::messages::TileImage;
-use isowall_net::pixels::{PeerPixelsIn, PixelInbox};
+use isowall_net::pixels::PixelInbox;
 use isowall_net::transport::{self};
 use isowall_net::Identity;
 use isowall_render::environment::{EnvSource, Environment};
@@ -28,9 +28,11 @@ use tokio::sync::mpsc::UnboundedReceiver;
 
 mod admission;
 mod session;
+mod space;
 
 use admission::{admit, Greeted, Handshakes, LiveConnections};
 use session::serve;
+use space::{ObjectSpace, Space};
 
 #[derive(Args, Debug, Clone)]
 pub struct RunArgs {
@@ -98,14 +100,8 @@ struct Node {
     shown_rx: UnboundedReceiver<Shown>,
     /// The tiles on show (the last presented frame), for snapshots.
     shown: Option<(u64, Vec<TileResult>)>,
-    // object space
-    /// The brick's compositing and peers (`object.rs`); `None` in screen space.
-    object: Option<ObjectNode>,
-    /// Peers' pixels as they arrive, and who hands their connections over.
-    peer_rx: Option<tokio::sync::mpsc::Receiver<PeerPixelsIn>>,
-    inbox: Option<PixelInbox>,
-    /// Adopted bricks loaded (or not), for the controller.
-    load_rx: Option<UnboundedReceiver<LoadDone>>,
+    /// Screen or object space, and what object space waits on (`space.rs`).
+    space: Space,
 }
 
 /// The tiles on show (the last presented frame), each downscaled by `divisor` (1: as shown).
@@ -114,7 +110,7 @@ async fn shown_tiles(node: &Node, divisor: u32) -> Vec<TileImage> {
         |t: &TileResult, id: u64| TileImage::downscale(&t.name, t.width, t.height, id, &t.rgb8, divisor);
     match &node.shown {
         // object space: the composited tiles, on the CPU.
-        Some((id, tiles)) if node.object.is_some() => tiles.iter().map(|t| image(t, *id)).collect(),
+        Some((id, tiles)) if node.space.object().is_some() => tiles.iter().map(|t| image(t, *id)).collect(),
         // screen space: the images stayed on the GPU; read them now.
         Some((id, _)) => match node.renderer.snapshot(*id).await {
             Ok(tiles) => tiles.iter().map(|t| image(t, *id)).collect(),
@@ -184,7 +180,7 @@ pub fn run(a: &RunArgs) -> Result<()> {
         crate::render::volume_limit(config.volume.max_bytes.map(|b| (b, "[volume] max_bytes")), true)?;
     // object space: only the brick and its halo.
     let steps;
-    let (volume, object, peer_rx, inbox, load_rx) = if config.wall.mode == WallMode::Object {
+    let (volume, space) = if config.wall.mode == WallMode::Object {
         let setup = crate::object::load_brick(&config, &node.name, raw.as_ref(), volume_limit)?;
         // A time-varying volume: the brick of every step, within the same budget.
         let (cache_bytes, wait) = step_budget(&config);
@@ -192,7 +188,7 @@ pub fn run(a: &RunArgs) -> Result<()> {
         let (load_tx, load_rx) = tokio::sync::mpsc::unbounded_channel();
         let mut object = ObjectNode::new(&config, &node.name, &setup, load_tx)?;
         object.adopt_delay = std::time::Duration::from_millis(a.adopt_delay_ms);
-        let (tx, rx) = tokio::sync::mpsc::channel(64);
+        let (tx, peer_rx) = tokio::sync::mpsc::channel(64);
         let nodes = config.nodes.iter().map(|n| n.name.clone()).collect();
         if object.max_pixels_bytes() > limit {
             tracing::warn!(
@@ -206,7 +202,8 @@ pub fn run(a: &RunArgs) -> Result<()> {
         // A peer's stream may be no longer than what its bricks can send this node's tiles.
         let inbox =
             PixelInbox::new(tx, nodes, &node.name, limit.min(object.max_pixels_bytes()), object.deadline());
-        (RenderVolume::Brick(Box::new(setup.data)), Some(object), Some(rx), Some(inbox), Some(load_rx))
+        let space = ObjectSpace { node: object, peer_rx, inbox, load_rx };
+        (RenderVolume::Brick(Box::new(setup.data)), Space::Object(Box::new(space)))
     } else {
         let iso_from = format!("{}: [volume] iso", config.path.display());
         let (volume, _iso) = load_volume_within(
@@ -216,7 +213,7 @@ pub fn run(a: &RunArgs) -> Result<()> {
             &volume_limit,
         )?;
         steps = time_steps(&config, raw.as_ref(), volume_limit)?;
-        (RenderVolume::Whole(volume), None, None, None, None)
+        (RenderVolume::Whole(volume), Space::Screen)
     };
     let env_src: EnvSource = config.env_source().parse().context("[render] env")?;
     let env = Environment::from_source(&env_src).context("cannot load the environment")?;
@@ -261,10 +258,7 @@ pub fn run(a: &RunArgs) -> Result<()> {
         shown_tx,
         shown_rx,
         shown: None,
-        object,
-        peer_rx,
-        inbox,
-        load_rx,
+        space,
     };
     match display {
         Display::Offscreen => network(state, addr, identity, None),
@@ -292,7 +286,7 @@ fn network(
         .build()
         .context("cannot start the async runtime")?;
     runtime.block_on(async move {
-        if let Some(o) = state.object.as_mut() {
+        if let Some(o) = state.space.object_mut() {
             o.open_endpoint(&identity)?;
         }
         let endpoint = transport::server(addr, &identity)?;
@@ -307,7 +301,7 @@ fn network(
         // go to the object-space inbox, everything else is refused without touching the session.
         let (conn_tx, mut conns) = tokio::sync::mpsc::channel::<Greeted>(2);
         let acceptor = endpoint.clone();
-        let inbox = state.inbox.clone();
+        let inbox = state.space.inbox();
         let limit = state.limit;
         let live = LiveConnections::default();
         let handshakes = Handshakes::new(state.epoch);

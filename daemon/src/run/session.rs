@@ -3,18 +3,17 @@
 //! pixels and adoptions).
 
 use super::admission::Greeted;
+use super::space::SpaceEvent;
 use super::{shown_tiles, Node};
-use crate::object::{Done, LoadDone};
+use crate::object::Done;
 use crate::presenter::Shown;
 use crate::render_thread::{JobResult, TileJob, TileResult};
 use anyhow::{anyhow, Result};
 use isowall_model::messages::{Message, RESTART_EXIT_CODE};
 use isowall_model::node_machine::{NodeMachine, NodeOutput};
 use isowall_model::wire::FrameSpec;
-use isowall_net::pixels::PeerPixelsIn;
 use isowall_net::transport::{self, Channel, NetError};
 use std::time::Instant;
-use tokio::sync::mpsc::UnboundedReceiver;
 
 /// Serves one controller until its connection ends (it closes it, or it is silent for the QUIC
 /// idle timeout). Another controller that connects meanwhile is refused with the reason, and the
@@ -55,7 +54,7 @@ async fn serve_seated(
     node.identify = false;
     node.pending = None;
     node.presenting.clear();
-    if let Some(o) = node.object.as_mut() {
+    if let Some(o) = node.space.object_mut() {
         o.reset();
     }
     if let Err(e) = sender.send(&machine.hello()).await {
@@ -84,11 +83,10 @@ async fn serve_seated(
         }
     });
     let outcome = loop {
-        let composite_deadline = node.object.as_ref().and_then(|o| o.next_timeout());
         let outputs = tokio::select! {
             m = msg_rx.recv() => match m.map(|(at, r)| (at.saturating_duration_since(node.epoch), r)) {
                 Some((arrived, Ok(Some(msg)))) => match {
-                    if let (Some(o), Message::FrameState(s)) = (node.object.as_mut(), &msg) {
+                    if let (Some(o), Message::FrameState(s)) = (node.space.object_mut(), &msg) {
                         o.announce(s.frame_id);
                     }
                     if matches!(msg, Message::Ping { .. }) {
@@ -121,7 +119,7 @@ async fn serve_seated(
                     }
                     // object space: the tiles are done once the peers' pixels are in (or their
                     // deadline passed).
-                    match node.object.as_mut() {
+                    match node.space.object_mut() {
                         Some(o) => {
                             let done = o.local_done(done);
                             composited(node, &mut machine, &mut sender, done).await
@@ -137,23 +135,7 @@ async fn serve_seated(
                 None => break Err(anyhow!("the render thread has stopped")),
             },
             Some(shown) = node.shown_rx.recv() => presented(node, &mut machine, shown),
-            Some(item) = recv_peer(&mut node.peer_rx) => {
-                let done = node.object.as_mut().map(|o| o.peer(item)).unwrap_or_default();
-                composited(node, &mut machine, &mut sender, done).await
-            }
-            _ = sleep_until(composite_deadline) => {
-                let done = node.object.as_mut().map(|o| o.handle_timeout()).unwrap_or_default();
-                composited(node, &mut machine, &mut sender, done).await
-            }
-            Some(done) = recv_load(&mut node.load_rx) => {
-                if let Some(o) = node.object.as_mut() {
-                    let msg = o.load_done(done);
-                    if let Err(e) = sender.send(&msg).await {
-                        tracing::warn!("{e}");
-                    }
-                }
-                Vec::new()
-            }
+            event = node.space.next() => space_event(node, &mut machine, &mut sender, event).await,
             Some(other) = conns.recv() => {
                 let from = other.channel.connection.remote_address();
                 let link = node.next_link;
@@ -219,20 +201,26 @@ fn presented(node: &mut Node, machine: &mut NodeMachine, shown: Shown) -> Vec<No
     machine.presented(since(at), frame_id, since(waiting_from))
 }
 
-/// object space: the next peer's pixels (never, in screen space).
-async fn recv_peer(rx: &mut Option<tokio::sync::mpsc::Receiver<PeerPixelsIn>>) -> Option<PeerPixelsIn> {
-    match rx {
-        Some(rx) => rx.recv().await,
-        None => std::future::pending().await,
-    }
-}
-
-/// object space: the next compositing deadline (never when none is pending).
-async fn sleep_until(at: Option<tokio::time::Instant>) {
-    match at {
-        Some(at) => tokio::time::sleep_until(at).await,
-        None => std::future::pending().await,
-    }
+/// object space: what it waited for came (`Space::next`).
+async fn space_event(
+    node: &mut Node,
+    machine: &mut NodeMachine,
+    sender: &mut transport::ChannelSender,
+    event: SpaceEvent,
+) -> Vec<NodeOutput> {
+    let Some(o) = node.space.object_mut() else { return Vec::new() };
+    let done = match event {
+        SpaceEvent::Peer(item) => o.peer(item),
+        SpaceEvent::Deadline => o.handle_timeout(),
+        SpaceEvent::Loaded(loaded) => {
+            let msg = o.load_done(loaded);
+            if let Err(e) = sender.send(&msg).await {
+                tracing::warn!("{e}");
+            }
+            return Vec::new();
+        }
+    };
+    composited(node, machine, sender, done).await
 }
 
 /// object space: frames composited, in order.
@@ -293,14 +281,6 @@ async fn composited(
         out.extend(frame_done(node, machine, sender, d.job, Some(d.report)).await);
     }
     out
-}
-
-/// object space: the next adoption's outcome (never, in screen space).
-async fn recv_load(rx: &mut Option<UnboundedReceiver<LoadDone>>) -> Option<LoadDone> {
-    match rx {
-        Some(rx) => rx.recv().await,
-        None => std::future::pending().await,
-    }
 }
 
 /// A frame's tiles are done (rendered; in object space, composited): keep them for the swap and
@@ -364,41 +344,16 @@ async fn execute(
                 };
                 let _span =
                     tracing::info_span!("frame", frame_id = spec.frame_id, node = %node.name).entered();
-                let (tiles, settings, bricks) = match node.object.as_mut() {
-                    // object space: each brick it holds over its covered rectangle of every tile.
-                    Some(o) => {
-                        let s = o.bound_settings(spec.frame_id, &spec.settings);
-                        let v = o.views(spec.frame_id, spec.camera, &s);
-                        for b in v.unload {
-                            let _ = node.renderer.unload(b);
-                        }
-                        (v.views, s, v.bricks)
-                    }
-                    None => (
-                        node.tiles
-                            .iter()
-                            .filter_map(|t| node.config.tile_view(spec.camera, t).map(|v| (t.clone(), v)))
-                            .collect(),
-                        spec.settings,
-                        Vec::new(),
-                    ),
-                };
-                // object space composites full-resolution depth: it always renders at scale 1.
-                let scale = if node.object.is_some() { 1 } else { spec.scale };
-                tracing::debug!(accumulate_frame, scale, "render");
-                if let Err(e) = node.renderer.submit(TileJob {
-                    frame_id: spec.frame_id,
-                    tiles,
-                    settings,
-                    accumulate_frame,
-                    continuity,
-                    bricks,
-                    scale,
-                    // object space: the shares travel to the tiles' owners.
-                    share: node.object.as_ref().map(|o| o.form()),
-                    time_step: spec.time_step,
-                    identify: node.identify.then(|| node.name.clone()),
-                }) {
+                let plan = node.space.plan(
+                    &node.config,
+                    &node.tiles,
+                    &spec,
+                    (accumulate_frame, continuity),
+                    &node.renderer,
+                );
+                tracing::debug!(accumulate_frame, scale = plan.scale, views = plan.views.len(), "render");
+                let identify = node.identify.then(|| node.name.clone());
+                if let Err(e) = node.renderer.submit(TileJob { plan, identify }) {
                     tracing::error!("{e}");
                     node.render_dead = true;
                 }
@@ -448,7 +403,7 @@ async fn execute(
                 sender.send(&Message::Snapshot { tiles: shown_tiles(node, divisor).await }).await?;
             }
             // object space: a brick map, an adoption (`object.rs`).
-            NodeOutput::Bricks { from_frame, holders } => match node.object.as_mut() {
+            NodeOutput::Bricks { from_frame, holders } => match node.space.object_mut() {
                 Some(o) => match o.set_map(from_frame, holders) {
                     Ok(done) => queue.extend(composited(node, machine, sender, done).await),
                     Err(e) => {
@@ -459,7 +414,7 @@ async fn execute(
                 },
                 None => tracing::warn!("ignoring a brick map: this wall is not in object mode"),
             },
-            NodeOutput::LoadBrick { brick } => match node.object.as_mut() {
+            NodeOutput::LoadBrick { brick } => match node.space.object_mut() {
                 Some(o) => {
                     if let Some(answer) = o.load(brick, &node.renderer) {
                         sender.send(&answer).await?;
@@ -476,7 +431,7 @@ async fn execute(
                     "identify: the tiles {} their names",
                     if on { "show" } else { "no longer show" }
                 );
-                if on && node.object.is_some() {
+                if on && node.space.object().is_some() {
                     tracing::warn!("identify: object space tiles are composited elsewhere; only screen space shows names");
                 }
                 node.identify = on;
