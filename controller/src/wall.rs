@@ -168,6 +168,98 @@ impl Wall {
     /// background (once a second each), and each joins at the frame after it answers. Fails only
     /// when no node answers within `timeout`.
     pub async fn connect(config: WallConfig, timeout: Duration, grace: Duration) -> Result<Wall> {
+        let mut wall = Wall::new(config)?;
+        let total = wall.config.nodes.len();
+        let start = Instant::now();
+        let mut first_up: Option<Instant> = None;
+        let mut errors: BTreeMap<String, String> = BTreeMap::new();
+        let bar = crate::progress::nodes(&wall.config.wall.name, total);
+        let mut first_round = true;
+        loop {
+            wall.try_nodes(&mut errors, &bar, &mut first_up).await;
+            if errors.is_empty() {
+                bar.finish_and_clear();
+                return Ok(wall);
+            }
+            let waiting: Vec<&str> = errors.keys().map(String::as_str).collect();
+            bar.set_message(format!("waiting for {}", waiting.join(", ")));
+            if first_round {
+                // Name the unreachable nodes and why at once, not only at the timeout.
+                for e in errors.values() {
+                    crate::progress::say(&bar, &format!("isowall: cannot reach node {e}; retrying"));
+                }
+                first_round = false;
+            }
+            if first_up.is_some_and(|t| t.elapsed() >= grace) {
+                bar.finish_and_clear();
+                for e in errors.values() {
+                    eprintln!("isowall: starting without node {e}; it joins when it answers");
+                }
+                let now = Instant::now();
+                for node in errors.keys() {
+                    wall.last_try.insert(node.clone(), now);
+                }
+                return Ok(wall);
+            }
+            if start.elapsed() > timeout {
+                bar.finish_and_clear();
+                let list: Vec<String> = errors.values().cloned().collect();
+                bail!(
+                    "cannot reach {} of {} nodes after {:?}:\n  {}",
+                    errors.len(),
+                    total,
+                    timeout,
+                    list.join("\n  ")
+                );
+            }
+            tokio::time::sleep(Duration::from_millis(200)).await;
+        }
+    }
+
+    /// One round of connecting: every node not up yet, at once (a dead one costs its timeout
+    /// once, not per node). `errors` holds why each node is not up; `first_up` when the first
+    /// came up.
+    async fn try_nodes(
+        &mut self,
+        errors: &mut BTreeMap<String, String>,
+        bar: &indicatif::ProgressBar,
+        first_up: &mut Option<Instant>,
+    ) {
+        let mut tries = tokio::task::JoinSet::new();
+        for node in self.config.nodes.clone() {
+            if self.senders.contains_key(&node.name) {
+                continue;
+            }
+            let (ep, limit) = (self.endpoint.clone(), self.limit());
+            tries.spawn(async move {
+                let r = establish(ep, node.name.clone(), node.address.clone(), limit).await;
+                (node, r)
+            });
+        }
+        let total = self.config.nodes.len();
+        while let Some(done) = tries.join_next().await {
+            let Ok((node, r)) = done else { continue };
+            let why = match r {
+                Ok(link) => match self.attach(&node.name, link).await {
+                    Ok(()) => {
+                        errors.remove(&node.name);
+                        first_up.get_or_insert_with(Instant::now);
+                        bar.set_position(self.senders.len() as u64);
+                        let up = format!("isowall: node {} up ({}/{total})", node.name, self.senders.len());
+                        crate::progress::say(bar, &up);
+                        continue;
+                    }
+                    Err(e) => format!("{e:#}"),
+                },
+                Err(e) => printable(&format!("{e:#}")),
+            };
+            errors.insert(node.name.clone(), format!("{} ({}): {why}", node.name, node.address));
+        }
+    }
+
+    /// The wall of `config`, no node connected yet: its frame machine set for the wall's
+    /// deadline, pings and swap timing.
+    fn new(config: WallConfig) -> Result<Wall> {
         let identity =
             Identity::load(&config.cert_dir(), isowall_net::tls::CONTROLLER).with_context(|| {
                 format!("no controller certificate: run `isowall keygen --config {}`", config.path.display())
@@ -216,94 +308,9 @@ impl Wall {
             identify: false,
         };
         if wall.config.wall.mode == isowall_model::WallMode::Object {
-            wall.bricks = Some(BrickAssigner::new(names.clone()));
+            wall.bricks = Some(BrickAssigner::new(names));
         }
-        let start = Instant::now();
-        let mut first_up: Option<Instant> = None;
-        let mut errors: BTreeMap<String, String> = BTreeMap::new();
-        let bar = crate::progress::nodes(&wall.config.wall.name, names.len());
-        let mut first_round = true;
-        loop {
-            // Every node not up yet, at once: a dead one costs its timeout once, not per node.
-            let mut tries = tokio::task::JoinSet::new();
-            for node in wall.config.nodes.clone() {
-                if wall.senders.contains_key(&node.name) {
-                    continue;
-                }
-                let (ep, limit) = (wall.endpoint.clone(), wall.limit());
-                tries.spawn(async move {
-                    let r = establish(ep, node.name.clone(), node.address.clone(), limit).await;
-                    (node, r)
-                });
-            }
-            while let Some(done) = tries.join_next().await {
-                let Ok((node, r)) = done else { continue };
-                match r {
-                    Ok(link) => match wall.attach(&node.name, link).await {
-                        Ok(()) => {
-                            errors.remove(&node.name);
-                            first_up.get_or_insert_with(Instant::now);
-                            bar.set_position(wall.senders.len() as u64);
-                            crate::progress::say(
-                                &bar,
-                                &format!(
-                                    "isowall: node {} up ({}/{})",
-                                    node.name,
-                                    wall.senders.len(),
-                                    names.len()
-                                ),
-                            );
-                        }
-                        Err(e) => {
-                            errors.insert(
-                                node.name.clone(),
-                                format!("{} ({}): {e:#}", node.name, node.address),
-                            );
-                        }
-                    },
-                    Err(e) => {
-                        let e = printable(&format!("{e:#}"));
-                        errors.insert(node.name.clone(), format!("{} ({}): {e}", node.name, node.address));
-                    }
-                }
-            }
-            if errors.is_empty() {
-                bar.finish_and_clear();
-                return Ok(wall);
-            }
-            let waiting: Vec<&str> = errors.keys().map(String::as_str).collect();
-            bar.set_message(format!("waiting for {}", waiting.join(", ")));
-            if first_round {
-                // Name the unreachable nodes and why at once, not only at the timeout.
-                for e in errors.values() {
-                    crate::progress::say(&bar, &format!("isowall: cannot reach node {e}; retrying"));
-                }
-                first_round = false;
-            }
-            if first_up.is_some_and(|t| t.elapsed() >= grace) {
-                bar.finish_and_clear();
-                for e in errors.values() {
-                    eprintln!("isowall: starting without node {e}; it joins when it answers");
-                }
-                let now = Instant::now();
-                for node in errors.keys() {
-                    wall.last_try.insert(node.clone(), now);
-                }
-                return Ok(wall);
-            }
-            if start.elapsed() > timeout {
-                bar.finish_and_clear();
-                let list: Vec<String> = errors.values().cloned().collect();
-                bail!(
-                    "cannot reach {} of {} nodes after {:?}:\n  {}",
-                    errors.len(),
-                    names.len(),
-                    timeout,
-                    list.join("\n  ")
-                );
-            }
-            tokio::time::sleep(Duration::from_millis(200)).await;
-        }
+        Ok(wall)
     }
 
     fn limit(&self) -> usize {

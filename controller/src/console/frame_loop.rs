@@ -371,109 +371,9 @@ impl Loop {
         use status::*;
         let cfg = &wall.config;
         let (width, height) = cfg.wall_size();
-        // The holder and the count of changes under one guard, so the two agree.
-        let (lock, lock_changes) = {
-            let mut lock = self.shared.lock();
-            let now = self.shared.epoch.elapsed();
-            let idle_s = lock.idle().as_secs_f64();
-            let info = lock.holder(now).map(|h| LockInfo {
-                holder: h.holder.clone(),
-                since_unix_ms: h.since_unix_ms,
-                idle_timeout_s: idle_s,
-            });
-            (info, lock.changes())
-        };
-        let tiles = cfg
-            .tiles
-            .iter()
-            .map(|t| TileInfo {
-                name: t.name.clone(),
-                node: cfg.node_of_tile(&t.name).map(|n| n.name.clone()).unwrap_or_default(),
-                x: t.x,
-                y: t.y,
-                width: t.width,
-                height: t.height,
-                bezel: t.bezel,
-            })
-            .collect();
-        let now = Instant::now();
-        let fps = {
-            let recent: Vec<&(u64, Instant)> = self
-                .released_at
-                .iter()
-                .filter(|(_, t)| now.duration_since(*t) < Duration::from_secs(2))
-                .collect();
-            match (recent.first(), recent.last()) {
-                (Some(a), Some(b)) if recent.len() > 1 => {
-                    (recent.len() - 1) as f64 / b.1.duration_since(a.1).as_secs_f64().max(1e-9)
-                }
-                _ => 0.0,
-            }
-        };
-        let intervals: Vec<Duration> = self.intervals.iter().map(|x| x.1).collect();
-        let skews: Vec<Duration> = wall.finished.iter().filter_map(|f| f.swap_skew).collect();
-        let true_skews: Vec<Duration> = wall.finished.iter().filter_map(|f| f.node_clock_skew).collect();
-        let tail = |v: &[Duration]| v[v.len().saturating_sub(SERIES)..].iter().map(|d| ms(*d)).collect();
-        let q = |v: &[Duration], p: f64| quantile(v.to_vec(), p).map(ms);
-        let frame = FrameInfo {
-            id: wall.releases.last().map_or(0, |r| r.0),
-            released: wall.released,
-            fps,
-            frame_ms: tail(&intervals),
-            skew_ms: tail(&skews),
-            frame_ms_p50: q(&intervals, 0.5),
-            frame_ms_p99: q(&intervals, 0.99),
-            skew_ms_p50: q(&skews, 0.5),
-            skew_ms_p99: q(&skews, 0.99),
-            true_skew_ms_p50: self.one_machine.then(|| q(&true_skews, 0.5)).flatten(),
-            true_skew_ms_p99: self.one_machine.then(|| q(&true_skews, 0.99)).flatten(),
-            swap_margin: wall.swap_timing().setting().to_string(),
-            swap_margin_ms: wall.finished.last().and_then(|f| f.margin).map(ms),
-            late_swaps: wall.finished.iter().map(|f| f.late_swaps).sum(),
-            frame_rate: wall.swap_timing().period().map(|p| 1.0 / p.as_secs_f64()),
-            interval_jitter_ms_p99: crate::report::interval_jitter(wall).and_then(|(_, j)| q(&j, 0.99)),
-        };
+        let (lock, lock_changes) = self.lock_info();
         let s = &self.controls.session.settings;
         let c = &self.controls.session.camera;
-        let times = last_times(&wall.finished);
-        let resident: BTreeMap<&str, u64> = wall
-            .finished
-            .iter()
-            .rev()
-            .take(8)
-            .flat_map(|f| f.per_node.iter().filter_map(|n| n.resident_bytes.map(|b| (n.node.as_str(), b))))
-            .collect();
-        let nodes = cfg
-            .nodes
-            .iter()
-            .map(|n| {
-                let h = &self.health[&n.name];
-                let (render_ms, ready_ms) = times.get(&n.name).copied().unwrap_or_default();
-                NodeCard {
-                    name: n.name.clone(),
-                    address: n.address.clone(),
-                    state: h.state,
-                    reason: h.reason.clone(),
-                    since_s: h.since.elapsed().as_secs_f64(),
-                    since_unix_ms: h.since_unix_ms,
-                    render_ms,
-                    ready_ms,
-                    rss_kib: wall.resident_bytes(&n.name).map(|b| b / 1024),
-                    pid: self.pids.get(&n.name).copied(),
-                    resident_volume_bytes: resident.get(n.name.as_str()).copied(),
-                    tiles: n.tiles.clone(),
-                    bricks: wall.bricks_of(&n.name),
-                    clock_error_us: wall.clock_error_us(&n.name),
-                    late_swaps: wall.late_swaps(&n.name),
-                    version: wall.node_info(&n.name).map(|i| i.version.clone()),
-                    adapter: wall.node_info(&n.name).map(|i| i.adapter.clone()),
-                    backend: wall.node_info(&n.name).map(|i| i.backend.clone()),
-                    driver: wall.node_info(&n.name).map(|i| i.driver.clone()),
-                    driver_info: wall.node_info(&n.name).map(|i| i.driver_info.clone()),
-                    local_log: self.local_logs.contains(&n.name),
-                }
-            })
-            .collect();
         Status {
             wall: WallInfo {
                 name: cfg.wall.name.clone(),
@@ -481,10 +381,10 @@ impl Loop {
                 width,
                 height,
                 deadline_ms: cfg.wall.deadline_ms,
-                tiles,
+                tiles: tile_infos(cfg),
                 identify: wall.identify(),
             },
-            frame,
+            frame: self.frame_info(wall),
             render: RenderInfo {
                 iso: s.iso,
                 ao_samples: s.ao.samples,
@@ -534,7 +434,7 @@ impl Loop {
                     frames_waited: wall.finished.iter().filter(|f| waited(f)).count() as u64,
                 }
             },
-            nodes,
+            nodes: self.node_cards(wall),
             console: ConsoleInfo {
                 read_only: self.shared.access.read_only,
                 token: self.shared.access.token.is_some(),
@@ -547,4 +447,120 @@ impl Loop {
             },
         }
     }
+
+    /// Who holds the operator lock, and the count of its holder's changes, read under one guard
+    /// so the two agree.
+    fn lock_info(&self) -> (Option<status::LockInfo>, u64) {
+        let mut lock = self.shared.lock();
+        let now = self.shared.epoch.elapsed();
+        let idle_s = lock.idle().as_secs_f64();
+        let info = lock.holder(now).map(|h| status::LockInfo {
+            holder: h.holder.clone(),
+            since_unix_ms: h.since_unix_ms,
+            idle_timeout_s: idle_s,
+        });
+        (info, lock.changes())
+    }
+
+    /// The frame rate, frame times and swap skews of the last frames.
+    fn frame_info(&self, wall: &Wall) -> status::FrameInfo {
+        use status::*;
+        let now = Instant::now();
+        let fps = {
+            let recent: Vec<&(u64, Instant)> = self
+                .released_at
+                .iter()
+                .filter(|(_, t)| now.duration_since(*t) < Duration::from_secs(2))
+                .collect();
+            match (recent.first(), recent.last()) {
+                (Some(a), Some(b)) if recent.len() > 1 => {
+                    (recent.len() - 1) as f64 / b.1.duration_since(a.1).as_secs_f64().max(1e-9)
+                }
+                _ => 0.0,
+            }
+        };
+        let intervals: Vec<Duration> = self.intervals.iter().map(|x| x.1).collect();
+        let skews: Vec<Duration> = wall.finished.iter().filter_map(|f| f.swap_skew).collect();
+        let true_skews: Vec<Duration> = wall.finished.iter().filter_map(|f| f.node_clock_skew).collect();
+        let tail = |v: &[Duration]| v[v.len().saturating_sub(SERIES)..].iter().map(|d| ms(*d)).collect();
+        let q = |v: &[Duration], p: f64| quantile(v.to_vec(), p).map(ms);
+        FrameInfo {
+            id: wall.releases.last().map_or(0, |r| r.0),
+            released: wall.released,
+            fps,
+            frame_ms: tail(&intervals),
+            skew_ms: tail(&skews),
+            frame_ms_p50: q(&intervals, 0.5),
+            frame_ms_p99: q(&intervals, 0.99),
+            skew_ms_p50: q(&skews, 0.5),
+            skew_ms_p99: q(&skews, 0.99),
+            true_skew_ms_p50: self.one_machine.then(|| q(&true_skews, 0.5)).flatten(),
+            true_skew_ms_p99: self.one_machine.then(|| q(&true_skews, 0.99)).flatten(),
+            swap_margin: wall.swap_timing().setting().to_string(),
+            swap_margin_ms: wall.finished.last().and_then(|f| f.margin).map(ms),
+            late_swaps: wall.finished.iter().map(|f| f.late_swaps).sum(),
+            frame_rate: wall.swap_timing().period().map(|p| 1.0 / p.as_secs_f64()),
+            interval_jitter_ms_p99: crate::report::interval_jitter(wall).and_then(|(_, j)| q(&j, 0.99)),
+        }
+    }
+
+    /// Each node's card: health, times, memory, tiles and bricks, version and GPU.
+    fn node_cards(&self, wall: &Wall) -> Vec<status::NodeCard> {
+        use status::*;
+        let cfg = &wall.config;
+        let times = last_times(&wall.finished);
+        let resident: BTreeMap<&str, u64> = wall
+            .finished
+            .iter()
+            .rev()
+            .take(8)
+            .flat_map(|f| f.per_node.iter().filter_map(|n| n.resident_bytes.map(|b| (n.node.as_str(), b))))
+            .collect();
+        cfg.nodes
+            .iter()
+            .map(|n| {
+                let h = &self.health[&n.name];
+                let (render_ms, ready_ms) = times.get(&n.name).copied().unwrap_or_default();
+                NodeCard {
+                    name: n.name.clone(),
+                    address: n.address.clone(),
+                    state: h.state,
+                    reason: h.reason.clone(),
+                    since_s: h.since.elapsed().as_secs_f64(),
+                    since_unix_ms: h.since_unix_ms,
+                    render_ms,
+                    ready_ms,
+                    rss_kib: wall.resident_bytes(&n.name).map(|b| b / 1024),
+                    pid: self.pids.get(&n.name).copied(),
+                    resident_volume_bytes: resident.get(n.name.as_str()).copied(),
+                    tiles: n.tiles.clone(),
+                    bricks: wall.bricks_of(&n.name),
+                    clock_error_us: wall.clock_error_us(&n.name),
+                    late_swaps: wall.late_swaps(&n.name),
+                    version: wall.node_info(&n.name).map(|i| i.version.clone()),
+                    adapter: wall.node_info(&n.name).map(|i| i.adapter.clone()),
+                    backend: wall.node_info(&n.name).map(|i| i.backend.clone()),
+                    driver: wall.node_info(&n.name).map(|i| i.driver.clone()),
+                    driver_info: wall.node_info(&n.name).map(|i| i.driver_info.clone()),
+                    local_log: self.local_logs.contains(&n.name),
+                }
+            })
+            .collect()
+    }
+}
+/// The wall's tiles for the page: where each is, its node, its bezel.
+fn tile_infos(cfg: &isowall_model::config::WallConfig) -> Vec<status::TileInfo> {
+    use status::*;
+    cfg.tiles
+        .iter()
+        .map(|t| TileInfo {
+            name: t.name.clone(),
+            node: cfg.node_of_tile(&t.name).map(|n| n.name.clone()).unwrap_or_default(),
+            x: t.x,
+            y: t.y,
+            width: t.width,
+            height: t.height,
+            bezel: t.bezel,
+        })
+        .collect()
 }

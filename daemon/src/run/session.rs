@@ -9,11 +9,11 @@ use crate::object::Done;
 use crate::presenter::Shown;
 use crate::render_thread::{JobResult, TileJob, TileResult};
 use anyhow::{anyhow, Result};
-use isowall_model::messages::{Message, RESTART_EXIT_CODE};
+use isowall_model::messages::{Message, ProtocolError, RESTART_EXIT_CODE};
 use isowall_model::node_machine::{NodeMachine, NodeOutput};
-use isowall_model::wire::FrameSpec;
+use isowall_model::wire::{Continuity, FrameSpec, FrameState};
 use isowall_net::transport::{self, Channel, NetError};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 /// Serves one controller until its connection ends (it closes it, or it is silent for the QUIC
 /// idle timeout). Another controller that connects meanwhile is refused with the reason, and the
@@ -85,15 +85,7 @@ async fn serve_seated(
     let outcome = loop {
         let outputs = tokio::select! {
             m = msg_rx.recv() => match m.map(|(at, r)| (at.saturating_duration_since(node.epoch), r)) {
-                Some((arrived, Ok(Some(msg)))) => match {
-                    if let (Some(o), Message::FrameState(s)) = (node.space.object_mut(), &msg) {
-                        o.announce(s.frame_id);
-                    }
-                    if matches!(msg, Message::Ping { .. }) {
-                        machine.set_resident_bytes(process_resident_bytes());
-                    }
-                    machine.handle(arrived, msg)
-                } {
+                Some((arrived, Ok(Some(msg)))) => match from_controller(node, &mut machine, arrived, msg) {
                     Ok(out) => out,
                     Err(e) => {
                         tracing::warn!("closing the controller connection: {e}");
@@ -113,20 +105,7 @@ async fn serve_seated(
                 }
             },
             r = node.results.recv() => match r {
-                Some(Ok(done)) => {
-                    if !node.slow.is_zero() {
-                        tokio::time::sleep(node.slow).await;
-                    }
-                    // object space: the tiles are done once the peers' pixels are in (or their
-                    // deadline passed).
-                    match node.space.object_mut() {
-                        Some(o) => {
-                            let done = o.local_done(done);
-                            composited(node, &mut machine, &mut sender, done).await
-                        }
-                        None => frame_done(node, &mut machine, &mut sender, done, None).await,
-                    }
-                }
+                Some(Ok(done)) => rendered(node, &mut machine, &mut sender, done).await,
                 Some(Err(e)) => {
                     tracing::error!("render failed: {e}");
                     transport::close(&connection, &format!("render failed: {e}"));
@@ -137,13 +116,7 @@ async fn serve_seated(
             Some(shown) = node.shown_rx.recv() => presented(node, &mut machine, shown),
             event = node.space.next() => space_event(node, &mut machine, &mut sender, event).await,
             Some(other) = conns.recv() => {
-                let from = other.channel.connection.remote_address();
-                let link = node.next_link;
-                node.next_link += 1;
-                if let Err(reason) = node.seat.take(node.epoch.elapsed(), link, &from.to_string()) {
-                    tracing::warn!(%from, "refused a second controller: {reason}");
-                    transport::close(&other.channel.connection, &reason);
-                }
+                refuse_second(node, other);
                 Vec::new()
             }
         };
@@ -161,6 +134,55 @@ async fn serve_seated(
     };
     reader.abort();
     outcome
+}
+
+/// A message from the seated controller, arrived at `arrived` of the node's clock, to the
+/// machine (object space hears of each frame state first; a Ping's Pong carries the memory).
+fn from_controller(
+    node: &mut Node,
+    machine: &mut NodeMachine,
+    arrived: Duration,
+    msg: Message,
+) -> Result<Vec<NodeOutput>, ProtocolError> {
+    if let (Some(o), Message::FrameState(s)) = (node.space.object_mut(), &msg) {
+        o.announce(s.frame_id);
+    }
+    if matches!(msg, Message::Ping { .. }) {
+        machine.set_resident_bytes(process_resident_bytes());
+    }
+    machine.handle(arrived, msg)
+}
+
+/// The render thread finished a frame's tiles (object space: they are done once the peers'
+/// pixels are in, or their deadline passed).
+async fn rendered(
+    node: &mut Node,
+    machine: &mut NodeMachine,
+    sender: &mut transport::ChannelSender,
+    done: JobResult,
+) -> Vec<NodeOutput> {
+    if !node.slow.is_zero() {
+        tokio::time::sleep(node.slow).await;
+    }
+    match node.space.object_mut() {
+        Some(o) => {
+            let done = o.local_done(done);
+            composited(node, machine, sender, done).await
+        }
+        None => frame_done(node, machine, sender, done, None).await,
+    }
+}
+
+/// Another controller came while one holds the seat: refused with the seat's reason, the
+/// session undisturbed.
+fn refuse_second(node: &mut Node, other: Greeted) {
+    let from = other.channel.connection.remote_address();
+    let link = node.next_link;
+    node.next_link += 1;
+    if let Err(reason) = node.seat.take(node.epoch.elapsed(), link, &from.to_string()) {
+        tracing::warn!(%from, "refused a second controller: {reason}");
+        transport::close(&other.channel.connection, &reason);
+    }
 }
 
 /// The controller holding the seat asked the node to restart: the connection is closed with the
@@ -335,58 +357,9 @@ async fn execute(
                 sender.send(&m).await?
             }
             NodeOutput::Render { state, accumulate_frame, continuity } => {
-                let spec = match FrameSpec::try_from(&state) {
-                    Ok(s) => s,
-                    Err(e) => {
-                        tracing::warn!("frame {}: {e}", state.frame_id);
-                        continue;
-                    }
-                };
-                let _span =
-                    tracing::info_span!("frame", frame_id = spec.frame_id, node = %node.name).entered();
-                let plan = node.space.plan(
-                    &node.config,
-                    &node.tiles,
-                    &spec,
-                    (accumulate_frame, continuity),
-                    &node.renderer,
-                );
-                tracing::debug!(accumulate_frame, scale = plan.scale, views = plan.views.len(), "render");
-                let identify = node.identify.then(|| node.name.clone());
-                if let Err(e) = node.renderer.submit(TileJob { plan, identify }) {
-                    tracing::error!("{e}");
-                    node.render_dead = true;
-                }
+                render(node, &state, (accumulate_frame, continuity))
             }
-            NodeOutput::Present { frame_id, at } => {
-                if let Some(p) = node.pending.take().filter(|p| p.frame_id == frame_id) {
-                    node.presenting.push_back((frame_id, p.tiles));
-                }
-                // The node's clock is the instants since its epoch.
-                let at = at.map(|t| node.epoch + t);
-                if node.on_screen {
-                    match node.renderer.present(frame_id, at) {
-                        Ok(rx) => {
-                            let tx = node.shown_tx.clone();
-                            tokio::spawn(async move {
-                                if let Ok(shown) = rx.await {
-                                    let _ = tx.send(shown);
-                                }
-                            });
-                        }
-                        Err(e) => {
-                            let now = Instant::now();
-                            let _ = node.shown_tx.send(Shown {
-                                frame_id,
-                                waiting_from: now,
-                                result: Err(e.to_string()),
-                            });
-                        }
-                    }
-                } else {
-                    node.presenter.present(frame_id, at);
-                }
-            }
+            NodeOutput::Present { frame_id, at } => present(node, frame_id, at),
             NodeOutput::LateSwap { frame_id, late_by } => {
                 tracing::info!(
                     frame_id,
@@ -450,6 +423,54 @@ async fn execute(
         }
     }
     Ok(())
+}
+
+/// Renders a frame: the node's space makes the model's plan, the render thread carries it out.
+fn render(node: &mut Node, state: &FrameState, (accumulate_frame, continuity): (u32, Continuity)) {
+    let spec = match FrameSpec::try_from(state) {
+        Ok(s) => s,
+        Err(e) => {
+            tracing::warn!("frame {}: {e}", state.frame_id);
+            return;
+        }
+    };
+    let _span = tracing::info_span!("frame", frame_id = spec.frame_id, node = %node.name).entered();
+    let plan =
+        node.space.plan(&node.config, &node.tiles, &spec, (accumulate_frame, continuity), &node.renderer);
+    tracing::debug!(accumulate_frame, scale = plan.scale, views = plan.views.len(), "render");
+    let identify = node.identify.then(|| node.name.clone());
+    if let Err(e) = node.renderer.submit(TileJob { plan, identify }) {
+        tracing::error!("{e}");
+        node.render_dead = true;
+    }
+}
+
+/// The Swap came: the frame's tiles become the ones presenting, shown at `at` of the node's clock
+/// (now when `None`) in its windows or by the presenting thread.
+fn present(node: &mut Node, frame_id: u64, at: Option<Duration>) {
+    if let Some(p) = node.pending.take().filter(|p| p.frame_id == frame_id) {
+        node.presenting.push_back((frame_id, p.tiles));
+    }
+    // The node's clock is the instants since its epoch.
+    let at = at.map(|t| node.epoch + t);
+    if node.on_screen {
+        match node.renderer.present(frame_id, at) {
+            Ok(rx) => {
+                let tx = node.shown_tx.clone();
+                tokio::spawn(async move {
+                    if let Ok(shown) = rx.await {
+                        let _ = tx.send(shown);
+                    }
+                });
+            }
+            Err(e) => {
+                let now = Instant::now();
+                let _ = node.shown_tx.send(Shown { frame_id, waiting_from: now, result: Err(e.to_string()) });
+            }
+        }
+    } else {
+        node.presenter.present(frame_id, at);
+    }
 }
 
 /// This process's resident memory (`VmRSS` of `/proc/self/status`), told to the controller with

@@ -529,18 +529,7 @@ impl GpuRenderer {
     ) -> Result<(), GpuError> {
         let ctx = &self.ctx;
         let scale = tile.scale;
-        if !tile.fits_with_guard(frame.view, scale, tile.guard) {
-            return Err(GpuError::View(format!(
-                "tile {}: its resources are {}x{} at scale {scale}, the view's rectangle is {}x{}",
-                tile.name, tile.size.0, tile.size.1, frame.view.rect.width, frame.view.rect.height
-            )));
-        }
-        if frame.share == Some(PixelForm::Shading) && (scale != 1 || tile.guard != 0) {
-            return Err(GpuError::View(format!(
-                "tile {}: a shading share needs scale 1 and no guard band (scale {scale}, guard {})",
-                tile.name, tile.guard
-            )));
-        }
+        check_fits(tile, frame)?;
         let low = work_view(frame.view, scale, tile.guard);
         let env = self.check_frame(frame.volume, &low, frame.settings, frame.env, 1)?;
         let s = frame.settings;
@@ -561,23 +550,8 @@ impl GpuRenderer {
         let (restart, reproject) = (plan.start == Start::Restart, plan.start == Start::Reproject);
         params.frame = plan.sample_index(s.ao.frame, frame.frame_id);
         let prev = tile.previous.replace(params);
-        if reproject && tile.history.is_none() {
-            let n = low.rect.width as u64 * low.rect.height as u64;
-            let made = ctx.validated("tile history resources", || {
-                let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST;
-                let prev = [
-                    ctx.buffer("previous direct", n * 16, storage),
-                    ctx.buffer("previous geometry", n * 16, storage),
-                    ctx.buffer("previous acc ao", n * 16, storage),
-                    ctx.buffer("previous acc ibl", n * 16, storage),
-                ];
-                let params =
-                    ctx.buffer("reproject params", std::mem::size_of::<ReprojectParams>() as u64, storage);
-                let bind =
-                    self.reproject.bind(ctx, &params, &tile.aovs, [&prev[0], &prev[1], &prev[2], &prev[3]]);
-                TileHistory { prev, params, bind }
-            })?;
-            tile.history = Some(made);
+        if reproject {
+            self.make_history(tile, &low)?;
         }
         if tile.bound.as_ref().is_none_or(|b| (b.volume, b.env) != (frame.volume.id, env.id)) {
             tile.bound = Some(Bound {
@@ -656,6 +630,32 @@ impl GpuRenderer {
         tile.filtered = denoised;
         tile.latest = back;
         tile.images[back].frame_id = Some(frame.frame_id);
+        Ok(())
+    }
+
+    /// The reprojection's resources of `tile` (the previous frame's shading AOVs), made on its
+    /// first reprojected frame and kept.
+    fn make_history(&self, tile: &mut TileTarget, low: &View) -> Result<(), GpuError> {
+        if tile.history.is_some() {
+            return Ok(());
+        }
+        let ctx = &self.ctx;
+        let n = low.rect.width as u64 * low.rect.height as u64;
+        let made = ctx.validated("tile history resources", || {
+            let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST;
+            let prev = [
+                ctx.buffer("previous direct", n * 16, storage),
+                ctx.buffer("previous geometry", n * 16, storage),
+                ctx.buffer("previous acc ao", n * 16, storage),
+                ctx.buffer("previous acc ibl", n * 16, storage),
+            ];
+            let params =
+                ctx.buffer("reproject params", std::mem::size_of::<ReprojectParams>() as u64, storage);
+            let bind =
+                self.reproject.bind(ctx, &params, &tile.aovs, [&prev[0], &prev[1], &prev[2], &prev[3]]);
+            TileHistory { prev, params, bind }
+        })?;
+        tile.history = Some(made);
         Ok(())
     }
 
@@ -943,4 +943,22 @@ impl GpuRenderer {
         ring.submitted(slot, submission);
         Ok(())
     }
+}
+/// `frame` fits `tile`'s resources: its view's rectangle at the tile's scale and guard band, and
+/// a shading share only at scale 1 without a guard band.
+fn check_fits(tile: &TileTarget, frame: &TileFrame) -> Result<(), GpuError> {
+    let scale = tile.scale;
+    if !tile.fits_with_guard(frame.view, scale, tile.guard) {
+        return Err(GpuError::View(format!(
+            "tile {}: its resources are {}x{} at scale {scale}, the view's rectangle is {}x{}",
+            tile.name, tile.size.0, tile.size.1, frame.view.rect.width, frame.view.rect.height
+        )));
+    }
+    if frame.share == Some(PixelForm::Shading) && (scale != 1 || tile.guard != 0) {
+        return Err(GpuError::View(format!(
+            "tile {}: a shading share needs scale 1 and no guard band (scale {scale}, guard {})",
+            tile.name, tile.guard
+        )));
+    }
+    Ok(())
 }
