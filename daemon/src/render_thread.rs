@@ -706,8 +706,8 @@ impl RenderLoop {
         // beyond its edges, so that the wall's tiles filter their edge pixels as one image).
         // A brick's view (object space) is not filtered: its pixels are not the image's until
         // composited; the tile's owner filters the composited canvas (`RenderLoop::canvas`).
-        let object_space = !plan.bricks.is_empty();
-        let denoise = plan.settings.denoise.is_on() && !object_space;
+        let settings = plan.view_settings();
+        let denoise = settings.denoise.is_on();
         let guard = if denoise { isowall_render::denoise::reach() } else { 0 };
         let mut targets = std::mem::take(&mut self.targets);
         let mut kept = Vec::with_capacity(plan.views.len());
@@ -735,11 +735,6 @@ impl RenderLoop {
             let Some(gv) = gv else {
                 return Err(format!("tile {name}: brick {:?} is not loaded", plan.bricks.get(k)));
             };
-            let mut settings = plan.settings;
-            settings.ao.frame = settings.ao.frame.wrapping_add(plan.accumulate_frame);
-            if !denoise {
-                settings.denoise = isowall_model::Denoise::Off;
-            }
             let frame = TileFrame {
                 frame_id: plan.frame_id,
                 volume: gv,
@@ -749,13 +744,13 @@ impl RenderLoop {
                 continuity: plan.continuity,
                 // A moving camera carries each pixel's history over; object space does not (a
                 // brick's pixels are not the tile's until composited).
-                temporal: !object_space,
+                temporal: plan.views_are_tiles(),
                 share: plan.share,
             };
             self.gpu
                 .render_tile(&mut self.targets[k], &frame, &mut self.ring)
                 .map_err(|e| format!("tile {name}: {e}"))?;
-            if let Some(node) = job.identify.as_ref().filter(|_| !object_space) {
+            if let Some(node) = job.identify.as_ref().filter(|_| plan.views_are_tiles()) {
                 let text = format!("{node} {name}");
                 let max = (view.rect.width, view.rect.height);
                 let at = match self.labels.iter().position(|l| l.text == text && l.tile == max) {

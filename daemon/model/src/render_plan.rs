@@ -15,7 +15,7 @@
 use crate::composite::PixelForm;
 use crate::config::WallConfig;
 use crate::wire::{Continuity, FrameSpec};
-use crate::{RenderSettings, View};
+use crate::{Denoise, RenderSettings, View};
 
 /// A frame to render (module docs).
 #[derive(Debug, Clone, PartialEq)]
@@ -62,6 +62,25 @@ impl RenderPlan {
             time_step: spec.time_step,
             share: None,
         }
+    }
+
+    /// Whether the views are the wall's own pixels (screen space), not bricks' views that become
+    /// a tile's only once composited (object space).
+    pub fn views_are_tiles(&self) -> bool {
+        self.bricks.is_empty()
+    }
+
+    /// The settings each view renders with: the AO sample pattern advanced by the frames of the
+    /// same image so far (progressive AO averages decorrelated frames in), and the filter only
+    /// where the views are tiles (object space filters the composited canvas at the tile's owner,
+    /// by the frame's own settings).
+    pub fn view_settings(&self) -> RenderSettings {
+        let mut s = self.settings;
+        s.ao.frame = s.ao.frame.wrapping_add(self.accumulate_frame);
+        if !self.views_are_tiles() {
+            s.denoise = Denoise::Off;
+        }
+        s
     }
 }
 
@@ -116,5 +135,23 @@ tiles = ["a", "b"]
         assert_eq!(plan.continuity, Continuity::Same);
         assert_eq!((plan.share, plan.bricks.is_empty()), (None, true));
         assert_eq!(plan.settings, spec.settings);
+    }
+
+    #[test]
+    fn views_render_with_the_pattern_of_their_frame_and_only_tiles_are_filtered() {
+        let config = WallConfig::parse(WALL, Path::new("w.toml")).unwrap();
+        let camera =
+            Camera { eye: DVec3::new(0.0, -10.0, 0.0), target: DVec3::ZERO, up: DVec3::Z, fov_y_deg: 40.0 };
+        let mut settings = RenderSettings::new(0.5);
+        settings.ao.frame = u32::MAX - 1;
+        settings.denoise = Denoise::On;
+        let spec = FrameSpec { frame_id: 1, camera, settings, scale: 1, time_step: 0 };
+        let mut plan = RenderPlan::screen(&config, &["a".to_string()], &spec, 3, Continuity::Same);
+        let v = plan.view_settings();
+        assert_eq!((v.ao.frame, v.denoise), (1, Denoise::On), "advanced by 3, wrapping; a tile is filtered");
+        assert_eq!(plan.settings.ao.frame, u32::MAX - 1, "the frame's own settings stay as sent");
+        plan.bricks = vec![0];
+        assert!(!plan.views_are_tiles());
+        assert_eq!(plan.view_settings().denoise, Denoise::Off, "a brick's view is filtered once composited");
     }
 }
