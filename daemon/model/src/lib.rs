@@ -28,6 +28,7 @@
 //! - [`sim`]: the wall at scale: a LAN model on a virtual clock driving the machines above.
 
 pub mod adoption;
+pub mod balance;
 pub mod bricks;
 pub mod camera;
 #[cfg(feature = "cli")]

@@ -5,17 +5,21 @@
 //!   message through the codec: barrier time and swap skew as the node count grows.
 //! - [`object`]: N [`crate::object_machine::ObjectMachine`]s compositing a wall of 1080p tiles by
 //!   direct send: bytes per node and compositing time per frame.
+//! - [`balance`]: load-balanced screen space: the model's [`crate::balance::Balancer`] over a
+//!   wall of 1080p tiles with a scan in the middle, against every node rendering its own tiles.
 //! - [`radix`]: the sort-last schedules to compare with on the same network (radix-k, binary
 //!   swap, direct-send as radix-k's one-round case), over the same brick footprints.
 //!
 //! `cargo run -p isowall-model --release --example wall_scale` prints the table and writes
 //! docs/scale/; docs/scale.md reads it.
 
+pub mod balance;
 pub mod lan;
 pub mod object;
 pub mod radix;
 pub mod screen;
 
+pub use balance::{run_balance, BalanceFrame, BalanceSpec};
 pub use lan::{Events, Lan, LanCounts, LanModel, Rng, Scheduled};
 pub use object::{run_object, ObjectReport, ObjectSpec, ObjectWall, PixelCost};
 pub use radix::{run_radix, PixelBox, RadixReport, Scene};
