@@ -1,5 +1,6 @@
 //! The wall at scale (docs/scale.md): the model's machines on the simulated LAN at 4, 16, 64 and
-//! 256 nodes, and the compositing schedules beside direct-send. Prints the tables and writes
+//! 256 nodes, the compositing schedules beside direct-send, and load-balanced screen space on
+//! walls of 4 to 64 nodes (docs/balance.md). Prints the tables and writes
 //! `docs/scale/*.csv` and `docs/scale/*.svg` (or into the folder given as the first argument).
 //!
 //! `cargo run -p isowall-model --release --example wall_scale [OUT_DIR]`
@@ -11,8 +12,8 @@ use std::time::Duration;
 use isowall_model::sim::radix::factors;
 use isowall_model::sim::screen::percentiles;
 use isowall_model::sim::{
-    run_object, run_radix, run_screen, LanModel, ObjectSpec, ObjectWall, PixelCost, RadixReport, Scene,
-    ScreenSpec,
+    run_balance, run_object, run_radix, run_screen, BalanceFrame, BalanceSpec, LanModel, ObjectSpec,
+    ObjectWall, PixelCost, RadixReport, Scene, ScreenSpec,
 };
 
 const NODES: [usize; 4] = [4, 16, 64, 256];
@@ -378,5 +379,45 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         ),
     )?;
     println!("\nwrote {}", out.display());
+    balance_table(&out)?;
+    Ok(())
+}
+
+/// Load-balanced screen space (`sim::balance`): per wall and orbit speed, means from frame 8 on.
+fn balance_table(out: &std::path::Path) -> Result<(), Box<dyn std::error::Error>> {
+    let mean =
+        |f: &[BalanceFrame], g: &dyn Fn(&BalanceFrame) -> f64| f.iter().map(g).sum::<f64>() / f.len() as f64;
+    let mut csv = String::from(
+        "cols,rows,degrees,unbalanced_slowest_over_mean,balanced_slowest_over_mean,unbalanced_ms,balanced_ms,ideal_ms,moved_mpixels\n",
+    );
+    println!("\nload-balanced screen space: 1080p tiles, one node each, a scan in the middle, 60 frames; means over frames 8-59");
+    println!("| wall | degrees/frame | slowest/mean unbalanced | balanced | frame ms unbalanced | balanced | ideal | Mpixels moved |");
+    println!("|---|---|---|---|---|---|---|---|");
+    for (cols, rows) in [(2, 2), (4, 2), (6, 4), (8, 8)] {
+        for degrees in [0.0, 1.0, 3.0] {
+            let mut spec = BalanceSpec::new(cols, rows);
+            spec.degrees = degrees;
+            let frames = run_balance(&spec);
+            let f = &frames[8..];
+            let row = [
+                mean(f, &|f| f.unbalanced),
+                mean(f, &|f| f.balanced),
+                mean(f, &|f| f.unbalanced_ms),
+                mean(f, &|f| f.balanced_ms),
+                mean(f, &|f| f.ideal_ms),
+                mean(f, &|f| f.moved_pixels as f64 / 1e6),
+            ];
+            println!(
+                "| {cols}x{rows} | {degrees} | {:.3} | {:.3} | {:.1} | {:.1} | {:.1} | {:.2} |",
+                row[0], row[1], row[2], row[3], row[4], row[5]
+            );
+            let _ = writeln!(
+                csv,
+                "{cols},{rows},{degrees},{:.4},{:.4},{:.2},{:.2},{:.2},{:.3}",
+                row[0], row[1], row[2], row[3], row[4], row[5]
+            );
+        }
+    }
+    std::fs::write(out.join("balance.csv"), csv)?;
     Ok(())
 }

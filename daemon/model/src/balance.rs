@@ -35,7 +35,7 @@ pub const DEFAULT_HYSTERESIS: f64 = 0.05;
 /// still learn the costs.
 pub const STILL_SETTLE_FRAMES: u32 = 8;
 /// The weight of the newest cost in each band's estimate.
-pub const DEFAULT_SMOOTHING: f64 = 0.5;
+pub const DEFAULT_SMOOTHING: f64 = 0.8;
 
 /// Rows `first_row ..first_row + rows` of tile `tile` (its full width), rendered by `renderer`.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
