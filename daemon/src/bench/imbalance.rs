@@ -11,7 +11,7 @@
 //! the mean, by fetches and by time, averaged over the still and the orbiting frames.
 
 use super::stats::process_cpu_ms;
-use crate::render::{load_volume_within, object_box, volume_limit};
+use crate::render::{load_wall_volume, object_box, volume_limit};
 use anyhow::{anyhow, bail, Context, Result};
 use clap::Args;
 use isowall_model::config::WallConfig;
@@ -393,18 +393,8 @@ pub fn run(a: &ImbalanceArgs) -> Result<()> {
         bail!("--scale 0: at least 1");
     }
     let config = WallConfig::load(&a.config).map_err(|e| anyhow!("{e}"))?;
-    if config.tiles.is_empty() || config.nodes.is_empty() {
-        bail!("{}: a wall needs tiles and nodes", a.config.display());
-    }
-    let raw = config.raw_spec().map_err(|e| anyhow!("{}: {e}", a.config.display()))?;
     let limit = volume_limit(config.volume.max_bytes.map(|b| (b, "[volume] max_bytes")), true)?;
-    let iso_from = format!("{}: [volume] iso", a.config.display());
-    let (volume, iso) = load_volume_within(
-        Some(&config.volume_source()),
-        raw.as_ref(),
-        (config.volume.iso, &iso_from),
-        &limit,
-    )?;
+    let (volume, iso) = load_wall_volume(&config, &limit)?;
     let mut settings = config.render_settings(iso);
     if let Some(n) = a.samples {
         settings.ao.samples = n;
