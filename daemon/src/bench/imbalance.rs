@@ -371,8 +371,16 @@ fn wall_camera(config: &WallConfig, volume: &isowall_volume::Volume, iso: f64) -
     config.camera_framing((volume.box_min(), volume.box_max()), object_box(volume, iso), volume.orientation())
 }
 
-/// Every tile of `config` with its view of `camera` at 1/`scale` resolution and its resources.
-fn bench_tiles(gpu: &GpuRenderer, config: &WallConfig, camera: Camera, scale: u32) -> Result<Vec<BenchTile>> {
+/// Every tile of `config` with its view of `camera` at 1/`scale` resolution and its resources
+/// (with the filter's guard band where `s` denoises, as a node makes them).
+fn bench_tiles(
+    gpu: &GpuRenderer,
+    config: &WallConfig,
+    camera: Camera,
+    scale: u32,
+    s: &RenderSettings,
+) -> Result<Vec<BenchTile>> {
+    let guard = if s.denoise.is_on() { isowall_render::denoise::reach() } else { 0 };
     config
         .tiles
         .iter()
@@ -381,8 +389,8 @@ fn bench_tiles(gpu: &GpuRenderer, config: &WallConfig, camera: Camera, scale: u3
                 .tile_view(camera, &t.name)
                 .ok_or_else(|| anyhow!("{}: no tile '{}'", config.path.display(), t.name))?;
             let view = lowres::scaled_view(&view, scale);
-            let target =
-                TileTarget::new(gpu, &t.name, &view, 1).with_context(|| format!("tile {}", t.name))?;
+            let target = TileTarget::with_guard(gpu, &t.name, &view, 1, guard)
+                .with_context(|| format!("tile {}", t.name))?;
             Ok(BenchTile { name: t.name.clone(), view, target })
         })
         .collect()
@@ -410,7 +418,7 @@ pub fn run(a: &ImbalanceArgs) -> Result<()> {
         None
     };
     let camera = wall_camera(&config, &volume, iso);
-    let mut tiles = bench_tiles(&gpu, &config, camera, a.scale)?;
+    let mut tiles = bench_tiles(&gpu, &config, camera, a.scale, &settings)?;
     print_header(a, &config, &gpu, &volume.name, iso, &settings, &tiles);
     let scene = Scene { gpu: &gpu, volume: &gv, env: env.as_ref(), settings };
     let plan = frame_plan(&camera, a.still, a.frames, a.degrees);
