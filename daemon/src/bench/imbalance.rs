@@ -15,6 +15,7 @@ use crate::render::{load_wall_volume, object_box, volume_limit};
 use anyhow::{anyhow, bail, Context, Result};
 use clap::Args;
 use isowall_model::config::WallConfig;
+use isowall_model::wire::Continuity;
 use isowall_model::{lowres, Camera, FrameState, RenderSettings, View};
 use isowall_render::environment::{EnvSource, Environment};
 use isowall_render::gpu::{
@@ -221,17 +222,18 @@ fn render_tile_frame(
     scene: &Scene,
     tile: &mut BenchTile,
     view: &View,
-    frame: (u64, isowall_model::wire::Continuity),
+    frame_id: u64,
+    continuity: Continuity,
     ring: &mut ReadbackRing<FrameRead>,
 ) -> Result<Work> {
     let cpu_before = process_cpu_ms();
     let tf = TileFrame {
-        frame_id: frame.0,
+        frame_id,
         volume: scene.volume,
         view,
         settings: &scene.settings,
         env: scene.env,
-        continuity: frame.1,
+        continuity,
         temporal: true,
         share: None,
     };
@@ -277,7 +279,7 @@ fn measure(
         let mut work = Vec::new();
         for tile in tiles.iter_mut() {
             let view = View { camera: *camera, ..tile.view };
-            let w = render_tile_frame(scene, tile, &view, (id as u64, continuity), &mut ring)?;
+            let w = render_tile_frame(scene, tile, &view, id as u64, continuity, &mut ring)?;
             work.push((tile.name.clone(), w));
         }
         let nodes = node_sums(config, &work)?;
@@ -355,7 +357,11 @@ fn print_summary(frames: &[FrameWork]) {
         let r: Vec<String> = Measure::ALL.iter().map(|&m| fmt(phase_ratio(frames, phase, m), 3)).collect();
         println!("{name},{}", r.join(","));
     }
-    let r = |phase, m| fmt(phase_ratio(frames, phase, m), 2);
+    // "n/a" where a phase has no frames (`--still 0`, `--frames 0`).
+    let r = |phase, m| match fmt(phase_ratio(frames, phase, m), 2) {
+        s if s.is_empty() => "n/a".to_string(),
+        s => s,
+    };
     println!(
         "imbalance: slowest/mean {} still, {} orbiting (by fetches); {} still, {} orbiting (by ms)",
         r(Phase::Still, Measure::Fetches),
