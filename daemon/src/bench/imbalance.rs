@@ -201,6 +201,7 @@ struct BenchTile {
 }
 
 /// What every frame renders with.
+#[derive(Clone, Copy)]
 struct Scene<'a> {
     gpu: &'a GpuRenderer,
     volume: &'a GpuVolume,
@@ -270,16 +271,22 @@ fn measure(
 ) -> Result<Vec<FrameWork>> {
     let mut ring = ReadbackRing::<FrameRead>::new(2);
     let mut previous: Option<FrameState> = None;
+    let mut accumulate = 0u32;
     let mut frames = Vec::new();
     for (id, (phase, k, camera)) in plan.iter().enumerate() {
         // As a node decides: by the model's rule, from the frame state before.
         let state = FrameState::new(id as u64, camera, &scene.settings, 1);
         let continuity = state.continuity(previous.as_ref());
         previous = Some(state);
+        // The node's decorrelation index: the AO pattern advanced by the frames of the same image.
+        accumulate = if continuity == Continuity::Same { accumulate.saturating_add(1) } else { 0 };
+        let mut settings = scene.settings;
+        settings.ao.frame = settings.ao.frame.wrapping_add(accumulate);
+        let this = Scene { settings, ..*scene };
         let mut work = Vec::new();
         for tile in tiles.iter_mut() {
             let view = View { camera: *camera, ..tile.view };
-            let w = render_tile_frame(scene, tile, &view, id as u64, continuity, &mut ring)?;
+            let w = render_tile_frame(&this, tile, &view, id as u64, continuity, &mut ring)?;
             work.push((tile.name.clone(), w));
         }
         let nodes = node_sums(config, &work)?;
