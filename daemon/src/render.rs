@@ -8,7 +8,7 @@ use glam::DVec3;
 use isowall_model::render_state::DEFAULT_EXPOSURE;
 use isowall_model::{
     AoMethod, AoRadius, AoSequence, Aov, Camera, Denoise, IblMethod, RenderSettings, Shading, View,
-    ViewPreset,
+    ViewPreset, WallConfig,
 };
 use isowall_render::environment::{EnvSource, Environment};
 use isowall_render::gpu::GpuRenderer;
@@ -297,6 +297,14 @@ pub fn load_volume_within(
     limit: &VolumeLimit,
 ) -> Result<(Volume, f64)> {
     load_volume_step_within(spec, raw, iso, 0, limit)
+}
+
+/// The whole volume of a wall config (`[volume]`: source, raw layout, iso) within `limit`, as a
+/// screen-space node loads it; errors name the config.
+pub fn load_wall_volume(config: &WallConfig, limit: &VolumeLimit) -> Result<(Volume, f64)> {
+    let raw = config.raw_spec().map_err(|e| anyhow!("{}: {e}", config.path.display()))?;
+    let iso_from = format!("{}: [volume] iso", config.path.display());
+    load_volume_within(Some(&config.volume_source()), raw.as_ref(), (config.volume.iso, &iso_from), limit)
 }
 
 /// [`load_volume_within`] of time step `step`.

@@ -5,6 +5,7 @@ mod accuracy;
 pub(crate) mod chart;
 mod denoise;
 mod frame;
+mod imbalance;
 mod look;
 mod orbit;
 mod stats;
@@ -64,6 +65,13 @@ pub enum BenchCommand {
     /// light and as shown (sRGB); `--before` the earlier defaults in the same run, `--out DIR` the
     /// pictures. Ends with one line `look: darkness X at worst ...`.
     Look(look::LookArgs),
+    /// How unevenly a wall's nodes share a frame in screen space (a wall is as slow as its slowest
+    /// node): every tile of `--config`'s wall rendered through the tile path, still and orbiting;
+    /// per frame and node the trilinear fetches, ms (submit to done), CPU ms and share of the
+    /// wall's work, the slowest node over the mean per frame and averaged. `--scale S` renders
+    /// each tile at 1/S resolution per axis (fetches then about 1/S^2 of a full frame's). Ends
+    /// with one line `imbalance: slowest/mean X still, Y orbiting (by fetches); ...`.
+    Imbalance(imbalance::ImbalanceArgs),
 }
 
 #[derive(Args)]
@@ -110,6 +118,7 @@ pub fn run(cmd: &BenchCommand) -> Result<()> {
         BenchCommand::Denoise(a) => denoise::run(a),
         BenchCommand::Orbit(a) => orbit::run(a),
         BenchCommand::Look(a) => look::run(a),
+        BenchCommand::Imbalance(a) => imbalance::run(a),
     }
 }
 

@@ -10,7 +10,7 @@
 use crate::display::{self, Display, DisplayMode, WindowSetup};
 use crate::object::ObjectNode;
 use crate::presenter::{Presenter, Shown};
-use crate::render::load_volume_within;
+use crate::render::load_wall_volume;
 use crate::render_thread::{
     JobResult, RenderHandle, RenderVolume, StepsOf, TileRenderer, TileResult, TimeSteps,
 };
@@ -205,13 +205,7 @@ pub fn run(a: &RunArgs) -> Result<()> {
         let space = ObjectSpace { node: object, peer_rx, inbox, load_rx };
         (RenderVolume::Brick(Box::new(setup.data)), Space::Object(Box::new(space)))
     } else {
-        let iso_from = format!("{}: [volume] iso", config.path.display());
-        let (volume, _iso) = load_volume_within(
-            Some(&config.volume_source()),
-            raw.as_ref(),
-            (config.volume.iso, &iso_from),
-            &volume_limit,
-        )?;
+        let (volume, _iso) = load_wall_volume(&config, &volume_limit)?;
         steps = time_steps(&config, raw.as_ref(), volume_limit)?;
         (RenderVolume::Whole(volume), Space::Screen)
     };
