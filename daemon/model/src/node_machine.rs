@@ -33,7 +33,7 @@ use crate::messages::{
     Message, ProtocolError, Role, MAX_RESTART_REASON_CHARS, MAX_SWAP_WAIT, MAX_THUMBNAIL_DIVISOR,
     PROTOCOL_VERSION,
 };
-use crate::wire::{Continuity, FrameSpec, FrameState};
+use crate::wire::{Continuity, FrameSequence, FrameSpec, FrameState};
 
 /// What the daemon's caller must do, in order.
 #[derive(Debug, Clone, PartialEq)]
@@ -99,9 +99,8 @@ pub struct NodeMachine {
     rendered: Option<u64>,
     /// Present told, `presented` not yet called: (frame, present time).
     presenting: VecDeque<(u64, Option<Duration>)>,
-    /// The last frame state started, for `accumulate_frame`.
-    last_started: Option<FrameState>,
-    accumulate: u32,
+    /// The frames started, for `accumulate_frame` and `continuity`.
+    started: FrameSequence,
     last_presented: Option<u64>,
     counters: NodeMachineCounters,
     /// The daemon process's resident memory as last told by its runtime, sent with each Pong.
@@ -126,8 +125,7 @@ impl NodeMachine {
             queued: None,
             rendered: None,
             presenting: VecDeque::new(),
-            last_started: None,
-            accumulate: 0,
+            started: FrameSequence::default(),
             last_presented: None,
             counters: NodeMachineCounters::default(),
             resident_bytes: 0,
@@ -181,14 +179,9 @@ impl NodeMachine {
     }
 
     fn start(&mut self, state: FrameState) -> NodeOutput {
-        let continuity = state.continuity(self.last_started.as_ref());
-        self.accumulate = match continuity {
-            Continuity::Same => self.accumulate.saturating_add(1),
-            Continuity::ViewMoved | Continuity::Changed => 0,
-        };
-        self.last_started = Some(state);
+        let (continuity, accumulate_frame) = self.started.start(state);
         self.rendering = Some(state.frame_id);
-        NodeOutput::Render { state, accumulate_frame: self.accumulate, continuity }
+        NodeOutput::Render { state, accumulate_frame, continuity }
     }
 
     /// A message from the controller. On `Err`, close the connection with the error as the reason.

@@ -150,6 +150,28 @@ impl FrameState {
     }
 }
 
+/// Frames as a node starts them, one after another: how each follows the one before
+/// ([`FrameState::continuity`]) and how many frames of the same image came before it (0 after any
+/// change), the index progressive AO decorrelates its samples by.
+#[derive(Debug, Clone, Default)]
+pub struct FrameSequence {
+    last: Option<FrameState>,
+    same: u32,
+}
+
+impl FrameSequence {
+    /// `state` starts: its continuity and its count of earlier frames of the same image.
+    pub fn start(&mut self, state: FrameState) -> (Continuity, u32) {
+        let continuity = state.continuity(self.last.as_ref());
+        self.same = match continuity {
+            Continuity::Same => self.same.saturating_add(1),
+            Continuity::ViewMoved | Continuity::Changed => 0,
+        };
+        self.last = Some(state);
+        (continuity, self.same)
+    }
+}
+
 /// A frame's state in model types: what [`FrameState`] validates into.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct FrameSpec {
@@ -604,5 +626,25 @@ mod tests {
             change(&mut still);
             assert_eq!(still.continuity(Some(&a)), Continuity::Changed, "{what}");
         }
+    }
+
+    #[test]
+    fn a_sequence_counts_frames_of_the_same_image_and_starts_over_on_any_change() {
+        let mut seq = FrameSequence::default();
+        let a = FrameState::new(1, &camera(), &settings(), 1);
+        let at = |id, mut f: FrameState| {
+            f.frame_id = id;
+            f
+        };
+        assert_eq!(seq.start(a), (Continuity::Changed, 0));
+        assert_eq!(seq.start(at(2, a)), (Continuity::Same, 1));
+        assert_eq!(seq.start(at(3, a)), (Continuity::Same, 2));
+        let mut moved = at(4, a);
+        moved.camera.eye[0] += 1.0;
+        assert_eq!(seq.start(moved), (Continuity::ViewMoved, 0));
+        assert_eq!(seq.start(at(5, moved)), (Continuity::Same, 1));
+        let mut iso = at(6, moved);
+        iso.settings.iso += 1.0;
+        assert_eq!(seq.start(iso), (Continuity::Changed, 0));
     }
 }

@@ -15,7 +15,7 @@ use crate::render::{load_wall_volume, object_box, volume_limit};
 use anyhow::{anyhow, bail, Context, Result};
 use clap::Args;
 use isowall_model::config::WallConfig;
-use isowall_model::wire::Continuity;
+use isowall_model::wire::{Continuity, FrameSequence};
 use isowall_model::{lowres, Camera, FrameState, RenderSettings, View};
 use isowall_render::environment::{EnvSource, Environment};
 use isowall_render::gpu::{
@@ -270,16 +270,12 @@ fn measure(
     scale: u32,
 ) -> Result<Vec<FrameWork>> {
     let mut ring = ReadbackRing::<FrameRead>::new(2);
-    let mut previous: Option<FrameState> = None;
-    let mut accumulate = 0u32;
+    let mut sequence = FrameSequence::default();
     let mut frames = Vec::new();
     for (id, (phase, k, camera)) in plan.iter().enumerate() {
         // As a node decides: by the model's rule, from the frame state before.
-        let state = FrameState::new(id as u64, camera, &scene.settings, 1);
-        let continuity = state.continuity(previous.as_ref());
-        previous = Some(state);
+        let (continuity, accumulate) = sequence.start(FrameState::new(id as u64, camera, &scene.settings, 1));
         // The node's decorrelation index: the AO pattern advanced by the frames of the same image.
-        accumulate = if continuity == Continuity::Same { accumulate.saturating_add(1) } else { 0 };
         let mut settings = scene.settings;
         settings.ao.frame = settings.ao.frame.wrapping_add(accumulate);
         let this = Scene { settings, ..*scene };
