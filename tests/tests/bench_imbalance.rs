@@ -73,3 +73,35 @@ fn a_config_that_cannot_be_read_is_named() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("missing.toml"), "{err}");
 }
+
+/// `--bands`: every tile also rendered as bands of rows, each its own view; the CSV has every
+/// frame's bands of every tile, and a node's bands add up to what its tiles fetched whole (the
+/// same rays, cut into rectangles: what a balanced node renders costs what the whole tile did).
+#[test]
+fn bands_of_a_tile_cost_what_the_tile_did() {
+    let dir = tempfile::tempdir().unwrap();
+    wall_config_2x1(dir.path(), "tiny", &[7402, 7403], 64, 48, 0, 4);
+    let args = ["bench", "imbalance", "--config", "tiny.toml", "--frames", "2", "--still", "1"];
+    let out =
+        run_in(dir.path(), "isowalld", &[&args[..], &["--bands", "4", "--bands-out", "bands.csv"]].concat());
+    if !gpu_ok("isowalld bench imbalance --bands", &out) {
+        return;
+    }
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+    let csv = std::fs::read_to_string(dir.path().join("bands.csv")).unwrap();
+    let mut lines = csv.lines();
+    assert_eq!(lines.next(), Some("frame,tile,node,width,height,band,pixels_full,fetches_full"));
+    let bands: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
+    assert_eq!(bands.len(), 4 * 2 * 4, "4 frames x 2 tiles x 4 bands:\n{csv}");
+    for (frame, node, fetches, _, _, _) in node_rows(&stdout) {
+        let of: Vec<&Vec<&str>> = bands.iter().filter(|b| b[0] == frame && b[2] == node).collect();
+        assert_eq!(of.len(), 4, "{frame} {node}");
+        let sum: u64 = of.iter().map(|b| b[7].parse::<u64>().unwrap()).sum();
+        let pixels: u64 = of.iter().map(|b| b[6].parse::<u64>().unwrap()).sum();
+        assert_eq!((sum, pixels), (fetches, 64 * 48), "{frame} {node}:\n{csv}");
+    }
+    // Without --bands-out, --bands is refused before anything renders.
+    let out = run_in(dir.path(), "isowalld", &[&args[..], &["--bands", "4"]].concat());
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--bands-out"));
+}

@@ -12,8 +12,8 @@ use std::time::Duration;
 use isowall_model::sim::radix::factors;
 use isowall_model::sim::screen::percentiles;
 use isowall_model::sim::{
-    run_balance, run_object, run_radix, run_screen, BalanceFrame, BalanceSpec, LanModel, ObjectSpec,
-    ObjectWall, PixelCost, RadixReport, Scene, ScreenSpec,
+    measured_costs, run_balance, run_balance_on, run_object, run_radix, run_screen, BalanceFrame,
+    BalanceSpec, LanModel, ObjectSpec, ObjectWall, PixelCost, RadixReport, Scene, ScreenSpec, Transfer,
 };
 
 const NODES: [usize; 4] = [4, 16, 64, 256];
@@ -419,5 +419,42 @@ fn balance_table(out: &std::path::Path) -> Result<(), Box<dyn std::error::Error>
         }
     }
     std::fs::write(out.join("balance.csv"), csv)?;
+    measured_balance_table()?;
+    Ok(())
+}
+
+/// The same over the costs measured on lavapipe (`isowalld bench imbalance --bands 32`,
+/// docs/bench/imbalance-bands-*.csv), orbit frames only, at GPU-like rates (module docs of
+/// docs/balance.md): 0.3 ns a fetch, 1 ns a pixel, 3-byte pixels over 10 Gbit/s.
+fn measured_balance_table() -> Result<(), Box<dyn std::error::Error>> {
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../docs/bench");
+    let transfer = Transfer { bytes_per_pixel: 3.0, bandwidth: 1.25e9, noise: 0.05, seed: SEED };
+    println!("\nload-balanced screen space over measured costs (orbit frames, 1 degree each; means from the 8th on)");
+    println!("| wall | nodes | slowest/mean unbalanced | balanced | frame ms unbalanced | balanced | ideal | balanced / ideal | Mpixels moved |");
+    println!("|---|---|---|---|---|---|---|---|---|");
+    for wall in ["sva-4", "bench-4x2-1080p", "bench-6x4-1080p"] {
+        let path = dir.join(format!("imbalance-bands-{wall}.csv"));
+        let Ok(text) = std::fs::read_to_string(&path) else {
+            println!("| {wall} | (no {}) |", path.display());
+            continue;
+        };
+        let (tiles, frames) = measured_costs(&text, 0.3, 1.0)?;
+        let orbit: Vec<_> =
+            frames.into_iter().filter(|(l, _)| l.starts_with("orbit")).map(|(_, c)| c).collect();
+        let f = run_balance_on(&tiles, &orbit, &transfer, false);
+        let f = &f[8.min(f.len())..];
+        let mean = |g: &dyn Fn(&BalanceFrame) -> f64| f.iter().map(g).sum::<f64>() / f.len().max(1) as f64;
+        println!(
+            "| {wall} | {} | {:.3} | {:.3} | {:.1} | {:.1} | {:.1} | {:.3} | {:.2} |",
+            tiles.len(),
+            mean(&|f| f.unbalanced),
+            mean(&|f| f.balanced),
+            mean(&|f| f.unbalanced_ms),
+            mean(&|f| f.balanced_ms),
+            mean(&|f| f.ideal_ms),
+            mean(&|f| f.balanced_ms / f.ideal_ms),
+            mean(&|f| f.moved_pixels as f64 / 1e6)
+        );
+    }
     Ok(())
 }

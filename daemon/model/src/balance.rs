@@ -29,13 +29,13 @@ use crate::config::WallConfig;
 /// Bands per tile by default: 32 bands of a 1080-row tile are about 34 rows each.
 pub const DEFAULT_BANDS: u32 = 32;
 /// A new split replaces the one in use only where it predicts a slowest/mean this much lower.
-pub const DEFAULT_HYSTERESIS: f64 = 0.05;
+pub const DEFAULT_HYSTERESIS: f64 = 0.02;
 /// Frames of a still view after which its split is kept (unless a node leaves): a still wall's
 /// rectangles then keep their renderers, and with them the pixels' running sums; the first ones
 /// still learn the costs.
 pub const STILL_SETTLE_FRAMES: u32 = 8;
 /// The weight of the newest cost in each band's estimate.
-pub const DEFAULT_SMOOTHING: f64 = 0.8;
+pub const DEFAULT_SMOOTHING: f64 = 1.0;
 
 /// Rows `first_row ..first_row + rows` of tile `tile` (its full width), rendered by `renderer`.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]

@@ -44,6 +44,14 @@ pub struct ImbalanceArgs {
     /// AO samples per pixel per frame (default: the config's `[render] ao_samples`)
     #[arg(long)]
     pub samples: Option<u32>,
+    /// Also render every tile as this many bands of rows, each its own view (as a balanced node
+    /// renders a work rectangle), and write each band's fetches and pixels per frame to
+    /// --bands-out (the load-balancing simulator's costs: 32 bands, the split's)
+    #[arg(long, value_name = "N", requires = "bands_out", value_parser = clap::value_parser!(u32).range(1..=256))]
+    pub bands: Option<u32>,
+    /// Where --bands writes its CSV
+    #[arg(long, value_name = "FILE", requires = "bands")]
+    pub bands_out: Option<PathBuf>,
 }
 
 /// What a frame is, for the averages.
@@ -433,7 +441,87 @@ pub fn run(a: &ImbalanceArgs) -> Result<()> {
     let plan = frame_plan(&camera, a.still, a.frames, a.degrees);
     let frames = measure(&config, &scene, &mut tiles, &plan, a.scale)?;
     print_summary(&frames);
+    if let (Some(n), Some(out)) = (a.bands, &a.bands_out) {
+        let mut bands = band_tiles(&gpu, &tiles, n, &settings)?;
+        let csv = measure_bands(&config, &scene, &mut bands, &plan, a.scale)?;
+        std::fs::write(out, csv).with_context(|| format!("writing {}", out.display()))?;
+        println!("# bands: {n} a tile, each its own view; per frame and band in {}", out.display());
+    }
     Ok(())
+}
+
+/// The CSV header of --bands-out: per frame, tile and band, the full-resolution tile's size, the
+/// band's pixels and fetches at full resolution (the counts at the bench's scale times scale^2).
+pub const BANDS_HEADER: &str = "frame,tile,node,width,height,band,pixels_full,fetches_full";
+
+/// Each tile's `n` bands of rows of its view (band k: rows `k * h / n` up to the next), each with
+/// its own resources, as a node that renders it as a work rectangle makes them.
+fn band_tiles(
+    gpu: &GpuRenderer,
+    tiles: &[BenchTile],
+    n: u32,
+    s: &RenderSettings,
+) -> Result<Vec<Vec<BenchTile>>> {
+    let guard = if s.denoise.is_on() { isowall_render::denoise::reach() } else { 0 };
+    tiles
+        .iter()
+        .map(|t| {
+            let h = t.view.rect.height;
+            (0..n)
+                .filter_map(|k| {
+                    let (a, b) = (k * h / n, (k + 1) * h / n);
+                    (b > a).then_some((k, a, b))
+                })
+                .map(|(k, a, b)| {
+                    let rect = isowall_model::Rect { y: t.view.rect.y + a, height: b - a, ..t.view.rect };
+                    let view = View { rect, ..t.view };
+                    let name = format!("{}/{k}", t.name);
+                    let target = TileTarget::with_guard(gpu, &name, &view, 1, guard)
+                        .with_context(|| format!("tile {} band {k}", t.name))?;
+                    Ok(BenchTile { name, view, target })
+                })
+                .collect()
+        })
+        .collect()
+}
+
+/// Renders every frame of `plan` on every band of every tile (as [`measure`] does the tiles):
+/// the --bands-out CSV.
+fn measure_bands(
+    config: &WallConfig,
+    scene: &Scene,
+    bands: &mut [Vec<BenchTile>],
+    plan: &[(Phase, u32, Camera)],
+    scale: u32,
+) -> Result<String> {
+    let mut ring = ReadbackRing::<FrameRead>::new(2);
+    let mut sequence = FrameSequence::default();
+    let mut csv = format!("{BANDS_HEADER}\n");
+    let s2 = u64::from(scale) * u64::from(scale);
+    for (id, (phase, k, camera)) in plan.iter().enumerate() {
+        let (continuity, accumulate) = sequence.start(FrameState::new(id as u64, camera, &scene.settings, 1));
+        let mut settings = scene.settings;
+        settings.ao.frame = settings.ao.frame.wrapping_add(accumulate);
+        let this = Scene { settings, ..*scene };
+        for (tile, tile_bands) in config.tiles.iter().zip(bands.iter_mut()) {
+            let node = config.node_of_tile(&tile.name).map(|n| n.name.as_str()).unwrap_or("");
+            for (b, band) in tile_bands.iter_mut().enumerate() {
+                let view = View { camera: *camera, ..band.view };
+                let w = render_tile_frame(&this, band, &view, id as u64, continuity, &mut ring)?;
+                csv.push_str(&format!(
+                    "{},{},{node},{},{},{b},{},{}\n",
+                    phase.label(*k),
+                    tile.name,
+                    tile.width,
+                    tile.height,
+                    w.pixels * s2,
+                    w.fetches * s2
+                ));
+            }
+        }
+        eprintln!("bands: frame {} done", phase.label(*k));
+    }
+    Ok(csv)
 }
 
 fn print_header(

@@ -19,7 +19,10 @@ pub mod object;
 pub mod radix;
 pub mod screen;
 
-pub use balance::{run_balance, BalanceFrame, BalanceSpec};
+pub use balance::{
+    grid, measured_costs, run_balance, run_balance_on, BalanceFrame, BalanceSpec, FrameCosts, SimTile,
+    Transfer,
+};
 pub use lan::{Events, Lan, LanCounts, LanModel, Rng, Scheduled};
 pub use object::{run_object, ObjectReport, ObjectSpec, ObjectWall, PixelCost};
 pub use radix::{run_radix, PixelBox, RadixReport, Scene};
