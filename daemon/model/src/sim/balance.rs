@@ -89,6 +89,9 @@ pub struct SimTile {
 /// (band k: rows `k * height / bands` up to the next), milliseconds.
 pub type FrameCosts = Vec<Vec<f64>>;
 
+/// A measured frame's label (`first`, `still1`, `orbit1`, ...) and its costs.
+pub type LabelledCosts = (String, FrameCosts);
+
 /// How a run moves pixels and measures.
 #[derive(Debug, Clone, Copy)]
 pub struct Transfer {
@@ -283,7 +286,7 @@ pub fn measured_costs(
     csv: &str,
     ns_per_fetch: f64,
     ns_per_pixel: f64,
-) -> Result<(Vec<SimTile>, Vec<(String, FrameCosts)>), SimError> {
+) -> Result<(Vec<SimTile>, Vec<LabelledCosts>), SimError> {
     let bad = |line: usize, why: &str| SimError::Config(format!("bands CSV line {}: {why}", line + 1));
     let mut lines = csv.lines().enumerate();
     match lines.next() {
@@ -291,7 +294,7 @@ pub fn measured_costs(
         _ => return Err(bad(0, "not the header of `bench imbalance --bands-out`")),
     }
     let mut tiles: Vec<SimTile> = Vec::new();
-    let mut frames: Vec<(String, FrameCosts)> = Vec::new();
+    let mut frames: Vec<LabelledCosts> = Vec::new();
     for (n, line) in lines.filter(|(_, l)| !l.trim().is_empty()) {
         let f: Vec<&str> = line.split(',').collect();
         let [frame, tile, node, width, height, band, pixels, fetches] = f[..] else {
