@@ -30,7 +30,8 @@ pub struct ReprojectParams {
     pub max_age: f32,
     pub plane_tolerance: f32,
     pub normal_agreement: f32,
-    pub _pad0: u32,
+    /// 1: the nearest previous pixel instead of the bilinear taps ([`Rule::nearest`]).
+    pub nearest: u32,
 }
 
 impl ReprojectParams {
@@ -55,7 +56,7 @@ impl ReprojectParams {
             max_age: rule.max_age,
             plane_tolerance: rule.plane_tolerance,
             normal_agreement: rule.normal_agreement,
-            _pad0: 0,
+            nearest: u32::from(rule.nearest),
         }
     }
 }
@@ -142,7 +143,7 @@ mod tests {
                 ("max_age", offset_of!(ReprojectParams, max_age)),
                 ("plane_tolerance", offset_of!(ReprojectParams, plane_tolerance)),
                 ("normal_agreement", offset_of!(ReprojectParams, normal_agreement)),
-                ("_pad0", offset_of!(ReprojectParams, _pad0)),
+                ("nearest", offset_of!(ReprojectParams, nearest)),
             ],
         );
     }
