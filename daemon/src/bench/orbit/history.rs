@@ -123,13 +123,23 @@ mod tests {
         assert!(s.rms_bias < 1e-6, "{s:?}");
         assert!((s.rms_std - 0.2 * (4.0f64 / 3.0).sqrt()).abs() < 1e-6, "{s:?}");
         assert!((s.rmse - 0.2).abs() < 1e-6, "{s:?}");
-        // Both: an offset of 0.1 plus the spread; bias^2 + std^2 = RMSE^2.
-        let both: Vec<Vec<f32>> = noisy.iter().map(|run| run.iter().map(|a| a + 0.1).collect()).collect();
-        let s = split(&both, &truth);
-        assert!((s.rms_bias - 0.1).abs() < 1e-5, "{s:?}");
+        // Both, with independent noise: an offset of 0.1 plus uniform noise in [-0.3, 0.3] (std
+        // 0.3 / sqrt(3)) over many pixels; the mean's own noise is not counted as bias.
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut noise = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            ((state >> 11) as f64 / (1u64 << 53) as f64 * 0.6 - 0.3) as f32
+        };
+        let many: Vec<f32> = (0..20_000).map(|i| (i % 100) as f32 / 100.0).collect();
+        let both: Vec<Vec<f32>> = (0..4).map(|_| many.iter().map(|t| t + 0.1 + noise()).collect()).collect();
+        let s = split(&both, &many);
+        assert!((s.rms_bias - 0.1).abs() < 0.005, "{s:?}");
+        assert!((s.rms_std - 0.3 / 3f64.sqrt()).abs() < 0.005, "{s:?}");
         assert!((s.rmse.powi(2) - s.rms_bias.powi(2) - s.rms_std.powi(2)).abs() < 1e-9);
         // A pixel one run missed is left out.
-        let mut missed = both.clone();
+        let mut missed = noisy.clone();
         missed[2][0] = f32::NAN;
         assert_eq!(split(&missed, &truth).pixels, 2);
     }
