@@ -15,7 +15,7 @@ use isowall_render::gpu::{
     tile::work_view, FrameRead, GpuRenderer, GpuVolume, ReadbackRing, TileFrame, TileOutput, TileSums,
     TileTarget,
 };
-use isowall_render::reproject::{self, Geometry, RULE};
+use isowall_render::reproject::{self, Geometry, Rule, RULE};
 
 /// `view` with its camera turned by `deg` degrees about the world's z axis through its target.
 fn orbit(view: &View, deg: f64) -> View {
@@ -111,8 +111,24 @@ fn move_once(
     still: u64,
     temporal: bool,
 ) -> (TileSums, TileSums, TileTarget) {
+    move_once_under(gpu, gv, view, moved, s, still, temporal, RULE)
+}
+
+/// [`move_once`] with the tile's reprojection under `rule`.
+#[allow(clippy::too_many_arguments)]
+fn move_once_under(
+    gpu: &GpuRenderer,
+    gv: &GpuVolume,
+    view: &View,
+    moved: &View,
+    s: &RenderSettings,
+    still: u64,
+    temporal: bool,
+    rule: Rule,
+) -> (TileSums, TileSums, TileTarget) {
     let mut ring = ReadbackRing::new(2);
     let mut tile = TileTarget::new(gpu, "t", view, 1).unwrap();
+    tile.set_reproject_rule(rule);
     for k in 0..still {
         frame(gpu, &mut tile, &mut ring, gv, view, s, k, (k > 0).then_some((view, s)), temporal);
     }
@@ -125,20 +141,31 @@ fn move_once(
 
 #[test]
 fn the_gpu_reprojection_is_its_cpu_twin() {
+    gpu_reprojection_is_its_cpu_twin(RULE);
+}
+
+#[test]
+fn the_gpu_reprojection_is_its_cpu_twin_with_the_nearest_pixel() {
+    gpu_reprojection_is_its_cpu_twin(Rule { nearest: true, ..RULE });
+}
+
+/// After still frames and a 4 degree orbit, the GPU's carried sums under `rule` are the CPU
+/// twin's.
+fn gpu_reprojection_is_its_cpu_twin(rule: Rule) {
     let Some(gpu) = common::gpu() else { return };
     let (volume, view, s) = common::ambient_sphere_scene(96, 72);
     let gv = gpu.upload(&volume).unwrap();
     let moved = orbit(&view, 4.0);
     // 20 still frames: older than the maximum age, so the carried sums are scaled down.
     let still = 20;
-    assert!(still as f32 > RULE.max_age);
-    let (before, after, tile) = move_once(&gpu, &gv, &view, &moved, &s, still, true);
+    assert!(still as f32 > rule.max_age);
+    let (before, after, tile) = move_once_under(&gpu, &gv, &view, &moved, &s, still, true, rule);
     assert!(tile.reprojected());
     let (ha, da, na) = geometry(&before);
     let (hb, db, nb) = geometry(&after);
     let prev = Geometry { view: &view, hit: &ha, depth: &da, normal: &na };
     let next = Geometry { view: &moved, hit: &hb, depth: &db, normal: &nb };
-    let (carried_ao, carried_ibl) = reproject::reproject(&prev, &before.ao, &before.ibl, &next, &RULE);
+    let (carried_ao, carried_ibl) = reproject::reproject(&prev, &before.ao, &before.ibl, &next, &rule);
     let (mut mismatched, mut accepted, mut hits) = (0, 0, 0);
     for i in 0..hb.len() {
         if !hb[i] {
@@ -154,7 +181,7 @@ fn the_gpu_reprojection_is_its_cpu_twin() {
         }
         if carried_ibl[i][3] > 0.0 {
             accepted += 1;
-            assert!((carried_ibl[i][3] - RULE.max_age).abs() < 1e-4, "aged weight {}", carried_ibl[i][3]);
+            assert!((carried_ibl[i][3] - rule.max_age).abs() < 1e-4, "aged weight {}", carried_ibl[i][3]);
             // This frame added an occlusion in [0, 1] to the carried sum.
             let added = after.ao[i][3] - carried_ao[i][3];
             assert!((-1e-4..=1.0 + 1e-4).contains(&added), "pixel {i}: added {added}");
