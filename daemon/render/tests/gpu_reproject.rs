@@ -99,24 +99,10 @@ fn a_still_camera_with_temporal_on_is_bit_identical_to_temporal_off() {
     }
 }
 
-/// A tile with `still` frames of `view` then one frame of `moved`, temporal on or off: the sums
-/// before and after the move.
+/// A tile with `still` frames of `view` then one frame of `moved`, temporal on or off, its
+/// reprojection under `rule`: the sums before and after the move.
 #[allow(clippy::too_many_arguments)]
 fn move_once(
-    gpu: &GpuRenderer,
-    gv: &GpuVolume,
-    view: &View,
-    moved: &View,
-    s: &RenderSettings,
-    still: u64,
-    temporal: bool,
-) -> (TileSums, TileSums, TileTarget) {
-    move_once_under(gpu, gv, view, moved, s, still, temporal, RULE)
-}
-
-/// [`move_once`] with the tile's reprojection under `rule`.
-#[allow(clippy::too_many_arguments)]
-fn move_once_under(
     gpu: &GpuRenderer,
     gv: &GpuVolume,
     view: &View,
@@ -159,7 +145,7 @@ fn gpu_reprojection_is_its_cpu_twin(rule: Rule) {
     // 20 still frames: older than the maximum age, so the carried sums are scaled down.
     let still = 20;
     assert!(still as f32 > rule.max_age);
-    let (before, after, tile) = move_once_under(&gpu, &gv, &view, &moved, &s, still, true, rule);
+    let (before, after, tile) = move_once(&gpu, &gv, &view, &moved, &s, still, true, rule);
     assert!(tile.reprojected());
     let (ha, da, na) = geometry(&before);
     let (hb, db, nb) = geometry(&after);
@@ -202,7 +188,7 @@ fn the_filter_of_a_reprojected_history_is_its_cpu_twin_with_per_pixel_counts() {
     s.denoise = Denoise::On;
     let gv = gpu.upload(&volume).unwrap();
     let moved = orbit(&view, 3.0);
-    let (_, after, tile) = move_once(&gpu, &gv, &view, &moved, &s, 2, true);
+    let (_, after, tile) = move_once(&gpu, &gv, &view, &moved, &s, 2, true, RULE);
     assert!(tile.reprojected());
     let (hit, depth, normal) = geometry(&after);
     let weight: Vec<f32> = after.ibl.iter().map(|e| e[3]).collect();
@@ -251,8 +237,8 @@ fn after_a_small_move_the_kept_history_is_closer_to_the_converged_occlusion() {
     let mut converged = s;
     converged.ao.frame = 1000;
     let truth = gpu.render_accumulated(&gv, &moved, &converged, None, 128).unwrap().frame;
-    let (_, with, _) = move_once(&gpu, &gv, &view, &moved, &s, 8, true);
-    let (_, without, _) = move_once(&gpu, &gv, &view, &moved, &s, 8, false);
+    let (_, with, _) = move_once(&gpu, &gv, &view, &moved, &s, 8, true, RULE);
+    let (_, without, _) = move_once(&gpu, &gv, &view, &moved, &s, 8, false, RULE);
     let error = |a: &[f32]| common::rmse(a, &truth.occlusion, |i| truth.hit[i] && a[i].is_finite());
     let (e_with, e_without) = (error(&occlusion(&with)), error(&occlusion(&without)));
     eprintln!("occlusion RMSE after a 2 degree orbit: reprojected {e_with:.4}, restarted {e_without:.4}");
@@ -272,7 +258,7 @@ fn newly_seen_points_restart_and_a_move_out_of_the_tile_rejects_all() {
     let cam = Camera { eye, target: DVec3::new(eye.x, eye.y, 0.0), up: DVec3::Y, fov_y_deg: 60.0 };
     let view = View { camera: cam, ..framing };
     let moved = translate(&view, DVec3::new(4.0, 0.0, 0.0));
-    let (before, after, _) = move_once(&gpu, &gv, &view, &moved, &s, 3, true);
+    let (before, after, _) = move_once(&gpu, &gv, &view, &moved, &s, 3, true, RULE);
     let (ha, da, _) = geometry(&before);
     let (hb, db, _) = geometry(&after);
     let eye_a = view.camera.eye;
