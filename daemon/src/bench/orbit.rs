@@ -34,7 +34,7 @@ use crate::args;
 use crate::render::load_volume;
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use history::{split, Buckets, Split};
+use history::{blurred, split, Buckets, Split, BLUR_SIGMAS};
 use isowall_model::{Camera, Denoise, FrameState, RenderSettings, View};
 use isowall_render::gpu::{FrameRead, GpuRenderer, GpuVolume, ReadbackRing, TileFrame, TileSums, TileTarget};
 use isowall_render::reproject::{Rule, RULE};
@@ -84,7 +84,8 @@ pub struct OrbitArgs {
 }
 
 /// The CSV header of `--split-out`.
-pub const SPLIT_HEADER: &str = "scene,frame,rmse,rms_bias,rms_std,pixels";
+pub const SPLIT_HEADER: &str =
+    "scene,frame,rmse,rms_bias,rms_std,pixels,bias_vs_blur0.5,bias_vs_blur1,bias_vs_blur1.5,bias_vs_blur2";
 
 /// The CSV header of `--buckets-out`.
 pub const BUCKETS_HEADER: &str = "scene,variant,history_frames,pixel_fraction,rmse";
@@ -470,7 +471,7 @@ fn reprojected_split(
     s: &RenderSettings,
     a: &OrbitArgs,
     first: Vec<Vec<f32>>,
-) -> Result<Vec<Split>> {
+) -> Result<Vec<FrameSplit>> {
     let v = Variant::new("reprojected", a.samples, true, false);
     let mut runs = vec![first];
     for r in 1..a.repeats {
@@ -481,26 +482,42 @@ fn reprojected_split(
     Ok((0..o.views.len())
         .map(|k| {
             let frame: Vec<Vec<f32>> = runs.iter().map(|run| run[k].clone()).collect();
-            split(&frame, &o.refs[k].1)
+            let (truth, width) = (&o.refs[k].1, o.views[k].rect.width as usize);
+            FrameSplit {
+                split: split(&frame, truth),
+                blurred_bias: BLUR_SIGMAS.map(|sigma| split(&frame, &blurred(truth, width, sigma)).rms_bias),
+            }
         })
         .collect())
 }
 
+/// A frame's split, and its RMS bias against the reference blurred by each of [`BLUR_SIGMAS`].
+struct FrameSplit {
+    split: Split,
+    blurred_bias: [f64; 4],
+}
+
 /// Prints the split per frame and its means over frames `from`.., and adds it to the CSV.
-fn print_split(scene: &str, split: &[Split], from: usize, repeats: u32, csv: &mut String) {
-    println!("# {scene}: the reprojected orbit over {repeats} runs of disjoint patterns, per frame: RMSE, RMS bias (the reference's own noise included), RMS std");
+fn print_split(scene: &str, split: &[FrameSplit], from: usize, repeats: u32, csv: &mut String) {
+    println!("# {scene}: the reprojected orbit over {repeats} runs of disjoint patterns, per frame: RMSE, RMS bias (the reference's own noise included), RMS std; the RMS bias against the reference blurred by a Gaussian of 0.5, 1, 1.5, 2 pixels");
     println!("{SPLIT_HEADER}");
-    for (k, sp) in split.iter().enumerate() {
-        let line = format!("{scene},{k},{:.5},{:.5},{:.5},{}", sp.rmse, sp.rms_bias, sp.rms_std, sp.pixels);
+    for (k, f) in split.iter().enumerate() {
+        let sp = &f.split;
+        let blur = f.blurred_bias.map(|b| format!("{b:.5}")).join(",");
+        let line =
+            format!("{scene},{k},{:.5},{:.5},{:.5},{},{blur}", sp.rmse, sp.rms_bias, sp.rms_std, sp.pixels);
         println!("{line}");
         csv.push_str(&format!("{line}\n"));
     }
-    let over = |f: fn(&Split) -> f64| mean(&split[from..].iter().map(f).collect::<Vec<_>>());
+    let over = |f: &dyn Fn(&FrameSplit) -> f64| mean(&split[from..].iter().map(f).collect::<Vec<_>>());
+    let blur: Vec<String> =
+        (0..BLUR_SIGMAS.len()).map(|b| format!("{:.5}", over(&|f| f.blurred_bias[b]))).collect();
     println!(
-        "{scene},mean {from}..,{:.5},{:.5},{:.5},",
-        over(|s| s.rmse),
-        over(|s| s.rms_bias),
-        over(|s| s.rms_std)
+        "{scene},mean {from}..,{:.5},{:.5},{:.5},,{}",
+        over(&|f| f.split.rmse),
+        over(&|f| f.split.rms_bias),
+        over(&|f| f.split.rms_std),
+        blur.join(",")
     );
 }
 

@@ -9,6 +9,11 @@
 //! v / R. So over the pixels: RMS std = sqrt(mean v), RMS bias = sqrt(mean (m - t)^2 - mean v / R)
 //! (0 where noise alone explains it), and RMSE^2 = bias^2 + std^2. The truth is itself an estimate
 //! (the converged reference): its noise counts as bias here, the part no repeat can average out.
+//!
+//! How much of the bias is a blur: the same split against the reference blurred in screen space
+//! ([`blurred`], a Gaussian of [`BLUR_SIGMAS`] pixels over hit pixels): where the history is
+//! the truth seen through a blur of about that width, its bias against the blurred reference is
+//! small. (Blurring also averages away some of the reference's own noise.)
 
 /// A frame's error over repeated runs: RMSE, its RMS bias and RMS std, over the pixels every
 /// run and the truth hit.
@@ -44,6 +49,37 @@ pub fn split(repeats: &[Vec<f32>], truth: &[f32]) -> Split {
         rms_std: var.sqrt(),
         pixels: n,
     }
+}
+
+/// The widths (Gaussian sigma, pixels) the reference is blurred by to compare the bias with.
+pub const BLUR_SIGMAS: [f64; 4] = [0.5, 1.0, 1.5, 2.0];
+
+/// `image` (rows of `width` pixels; NaN: no hit) blurred by a Gaussian of `sigma` pixels over
+/// the hit pixels only, renormalized; a pixel without a hit stays NaN.
+pub fn blurred(image: &[f32], width: usize, sigma: f64) -> Vec<f32> {
+    let r = (3.0 * sigma).ceil() as i64;
+    let kernel: Vec<f64> = (-r..=r).map(|d| (-((d * d) as f64) / (2.0 * sigma * sigma)).exp()).collect();
+    let (w, h) = (width as i64, (image.len() / width.max(1)) as i64);
+    let at = |x: i64, y: i64| (x >= 0 && y >= 0 && x < w && y < h).then(|| image[(x + y * w) as usize]);
+    (0..image.len())
+        .map(|i| {
+            if !image[i].is_finite() {
+                return f32::NAN;
+            }
+            let (x, y) = (i as i64 % w, i as i64 / w);
+            let (mut sum, mut norm) = (0.0, 0.0);
+            for dy in -r..=r {
+                for dx in -r..=r {
+                    if let Some(v) = at(x + dx, y + dy).filter(|v| v.is_finite()) {
+                        let k = kernel[(dx + r) as usize] * kernel[(dy + r) as usize];
+                        sum += k * v as f64;
+                        norm += k;
+                    }
+                }
+            }
+            (sum / norm) as f32
+        })
+        .collect()
 }
 
 /// The history buckets: a pixel's weight (frames' worth of samples, the E sum's w) in
@@ -142,6 +178,32 @@ mod tests {
         let mut missed = noisy.clone();
         missed[2][0] = f32::NAN;
         assert_eq!(split(&missed, &truth).pixels, 2);
+    }
+
+    #[test]
+    fn a_blur_spreads_an_edge_over_hit_pixels_only() {
+        // Rows of 8: a step from 0 to 1 between columns 3 and 4; column 7 has no hit.
+        let image: Vec<f32> = (0..8 * 5)
+            .map(|i| {
+                if i % 8 == 7 {
+                    f32::NAN
+                } else if i % 8 >= 4 {
+                    1.0
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let b = blurred(&image, 8, 1.0);
+        let row = &b[16..24];
+        assert!(row[7].is_nan());
+        assert!(row[3] > 0.1 && row[3] < 0.5 && row[4] > 0.5 && row[4] < 0.9, "{row:?}");
+        assert!(row[0] < 0.01, "{row:?}");
+        // Column 6 sees no hit to its right: only the ones of columns 4-5 and the edge's zeros.
+        assert!(row[6] > row[4], "{row:?}");
+        // A constant stays constant.
+        let flat = blurred(&[0.3f32; 64], 8, 2.0);
+        assert!(flat.iter().all(|v| (v - 0.3).abs() < 1e-6));
     }
 
     #[test]
