@@ -154,6 +154,35 @@ struct Seen {
     view: View,
     hit: Vec<bool>,
     depth: Vec<f32>,
+    /// N (outward); empty where not needed.
+    normal: Vec<[f32; 3]>,
+}
+
+impl Seen {
+    /// Whether pixel `q` saw the surface pixel `i` saw, as the reprojection accepts a tap: both
+    /// hits, q's point within a footprint of i's tangent plane, the normals within [`RULE`]'s
+    /// agreement.
+    fn same_surface(&self) -> impl Fn(usize, usize) -> bool + '_ {
+        let b = self.view.camera.basis();
+        let w = self.view.rect.width;
+        let pixel = 2.0 * b.tan_half_fov / self.view.full.1 as f64;
+        let points: Vec<glam::DVec3> = (0..self.hit.len())
+            .map(|i| {
+                let dir = self.view.ray_dir(&b, i as u32 % w, i as u32 / w);
+                self.view.camera.eye + self.depth[i] as f64 * dir
+            })
+            .collect();
+        move |i, q| {
+            let (n, m) = (self.normal[i], self.normal[q]);
+            let n = glam::DVec3::new(n[0] as f64, n[1] as f64, n[2] as f64);
+            let m = glam::DVec3::new(m[0] as f64, m[1] as f64, m[2] as f64);
+            let plane = n.dot(points[q] - points[i]).abs();
+            self.hit[i]
+                && self.hit[q]
+                && plane <= (RULE.plane_tolerance as f64) * pixel * self.depth[i] as f64
+                && n.dot(m) >= RULE.normal_agreement as f64
+        }
+    }
 }
 
 /// Per pixel of `next`, the pixel of `prev` that saw the same surface point (the projection of its
@@ -385,7 +414,7 @@ fn references(
         let f: Frame = gpu.render_accumulated(gv, v, &r, None, frames.max(1))?.frame;
         let occlusion: Vec<f32> =
             (0..f.pixel_count()).map(|i| if f.hit[i] { f.occlusion[i] } else { f32::NAN }).collect();
-        refs.push((Seen { view: *v, hit: f.hit, depth: f.depth }, occlusion));
+        refs.push((Seen { view: *v, hit: f.hit, depth: f.depth, normal: f.normal }, occlusion));
     }
     Ok(refs)
 }
@@ -482,10 +511,12 @@ fn reprojected_split(
     Ok((0..o.views.len())
         .map(|k| {
             let frame: Vec<Vec<f32>> = runs.iter().map(|run| run[k].clone()).collect();
-            let (truth, width) = (&o.refs[k].1, o.views[k].rect.width as usize);
+            let ((seen, truth), width) = (&o.refs[k], o.views[k].rect.width as usize);
+            let same = seen.same_surface();
             FrameSplit {
                 split: split(&frame, truth),
-                blurred_bias: BLUR_SIGMAS.map(|sigma| split(&frame, &blurred(truth, width, sigma)).rms_bias),
+                blurred_bias: BLUR_SIGMAS
+                    .map(|sigma| split(&frame, &blurred(truth, width, sigma, &same)).rms_bias),
             }
         })
         .collect())
@@ -537,7 +568,7 @@ mod tests {
                 (-eye.z / d.z) as f32
             })
             .collect();
-        Seen { view, hit: vec![true; 16 * 12], depth }
+        Seen { view, hit: vec![true; 16 * 12], depth, normal: Vec::new() }
     }
 
     #[test]

@@ -11,9 +11,10 @@
 //! (the converged reference): its noise counts as bias here, the part no repeat can average out.
 //!
 //! How much of the bias is a blur: the same split against the reference blurred in screen space
-//! ([`blurred`], a Gaussian of [`BLUR_SIGMAS`] pixels over hit pixels): where the history is
-//! the truth seen through a blur of about that width, its bias against the blurred reference is
-//! small. (Blurring also averages away some of the reference's own noise.)
+//! ([`blurred`], a Gaussian of [`BLUR_SIGMAS`] pixels over the neighbours on the same surface as
+//! the reprojection would accept them): where the history is the truth seen through a blur of
+//! about that width, its bias against the blurred reference is small. (Blurring also averages away
+//! some of the reference's own noise.)
 
 /// A frame's error over repeated runs: RMSE, its RMS bias and RMS std, over the pixels every
 /// run and the truth hit.
@@ -55,12 +56,12 @@ pub fn split(repeats: &[Vec<f32>], truth: &[f32]) -> Split {
 pub const BLUR_SIGMAS: [f64; 4] = [0.5, 1.0, 1.5, 2.0];
 
 /// `image` (rows of `width` pixels; NaN: no hit) blurred by a Gaussian of `sigma` pixels over
-/// the hit pixels only, renormalized; a pixel without a hit stays NaN.
-pub fn blurred(image: &[f32], width: usize, sigma: f64) -> Vec<f32> {
+/// the hit pixels `q` with `same(i, q)` for pixel `i`, renormalized; a pixel without a hit stays NaN.
+pub fn blurred(image: &[f32], width: usize, sigma: f64, same: &dyn Fn(usize, usize) -> bool) -> Vec<f32> {
     let r = (3.0 * sigma).ceil() as i64;
     let kernel: Vec<f64> = (-r..=r).map(|d| (-((d * d) as f64) / (2.0 * sigma * sigma)).exp()).collect();
     let (w, h) = (width as i64, (image.len() / width.max(1)) as i64);
-    let at = |x: i64, y: i64| (x >= 0 && y >= 0 && x < w && y < h).then(|| image[(x + y * w) as usize]);
+    let at = |x: i64, y: i64| (x >= 0 && y >= 0 && x < w && y < h).then_some((x + y * w) as usize);
     (0..image.len())
         .map(|i| {
             if !image[i].is_finite() {
@@ -70,9 +71,9 @@ pub fn blurred(image: &[f32], width: usize, sigma: f64) -> Vec<f32> {
             let (mut sum, mut norm) = (0.0, 0.0);
             for dy in -r..=r {
                 for dx in -r..=r {
-                    if let Some(v) = at(x + dx, y + dy).filter(|v| v.is_finite()) {
+                    if let Some(q) = at(x + dx, y + dy).filter(|&q| image[q].is_finite() && same(i, q)) {
                         let k = kernel[(dx + r) as usize] * kernel[(dy + r) as usize];
-                        sum += k * v as f64;
+                        sum += k * image[q] as f64;
                         norm += k;
                     }
                 }
@@ -194,7 +195,7 @@ mod tests {
                 }
             })
             .collect();
-        let b = blurred(&image, 8, 1.0);
+        let b = blurred(&image, 8, 1.0, &|_, _| true);
         let row = &b[16..24];
         assert!(row[7].is_nan());
         assert!(row[3] > 0.1 && row[3] < 0.5 && row[4] > 0.5 && row[4] < 0.9, "{row:?}");
@@ -202,8 +203,11 @@ mod tests {
         // Column 6 sees no hit to its right: only the ones of columns 4-5 and the edge's zeros.
         assert!(row[6] > row[4], "{row:?}");
         // A constant stays constant.
-        let flat = blurred(&[0.3f32; 64], 8, 2.0);
+        let flat = blurred(&[0.3f32; 64], 8, 2.0, &|_, _| true);
         assert!(flat.iter().all(|v| (v - 0.3).abs() < 1e-6));
+        // Pixels on another surface (here: the other side of the step) are left out.
+        let sides = blurred(&image, 8, 1.0, &|i, q| (i % 8 >= 4) == (q % 8 >= 4));
+        assert!(sides[16..23].iter().zip(&image[16..23]).all(|(b, a)| (b - a).abs() < 1e-6), "{sides:?}");
     }
 
     #[test]
