@@ -85,7 +85,8 @@ pub struct OrbitArgs {
 
 /// The CSV header of `--split-out`.
 pub const SPLIT_HEADER: &str =
-    "scene,frame,rmse,rms_bias,rms_std,pixels,bias_vs_blur0.5,bias_vs_blur1,bias_vs_blur1.5,bias_vs_blur2";
+    "scene,frame,rmse,rms_bias,rms_std,pixels,bias_vs_blur0.5,bias_vs_blur1,bias_vs_blur1.5,bias_vs_blur2,\
+     edge_pixels,edge_rms_bias,edge_rms_std,interior_rms_bias,interior_rms_std";
 
 /// The CSV header of `--buckets-out`.
 pub const BUCKETS_HEADER: &str = "scene,variant,history_frames,pixel_fraction,rmse";
@@ -513,19 +514,45 @@ fn reprojected_split(
             let frame: Vec<Vec<f32>> = runs.iter().map(|run| run[k].clone()).collect();
             let ((seen, truth), width) = (&o.refs[k], o.views[k].rect.width as usize);
             let same = seen.same_surface();
+            let edge = on_edge(seen.hit.len(), width, &same);
+            let only = |want: bool| -> Vec<f32> {
+                truth.iter().zip(&edge).map(|(&t, &e)| if e == want { t } else { f32::NAN }).collect()
+            };
             FrameSplit {
                 split: split(&frame, truth),
                 blurred_bias: BLUR_SIGMAS
                     .map(|sigma| split(&frame, &blurred(truth, width, sigma, &same)).rms_bias),
+                edge: split(&frame, &only(true)),
+                interior: split(&frame, &only(false)),
             }
         })
         .collect())
 }
 
-/// A frame's split, and its RMS bias against the reference blurred by each of [`BLUR_SIGMAS`].
+/// Per pixel of a `width`-wide image of `n` pixels: whether one of its eight neighbours (in the
+/// image) did not see its surface (`same`: a silhouette, a crease, a hit next to none).
+fn on_edge(n: usize, width: usize, same: &dyn Fn(usize, usize) -> bool) -> Vec<bool> {
+    let (w, h) = (width as i64, (n / width.max(1)) as i64);
+    (0..n)
+        .map(|i| {
+            let (x, y) = (i as i64 % w, i as i64 / w);
+            (-1..=1).any(|dy| {
+                (-1..=1).any(|dx| {
+                    let (qx, qy) = (x + dx, y + dy);
+                    qx >= 0 && qy >= 0 && qx < w && qy < h && !same(i, (qx + qy * w) as usize)
+                })
+            })
+        })
+        .collect()
+}
+
+/// A frame's split; its RMS bias against the reference blurred by each of [`BLUR_SIGMAS`]; the
+/// split over the pixels [`on_edge`] and over the others.
 struct FrameSplit {
     split: Split,
     blurred_bias: [f64; 4],
+    edge: Split,
+    interior: Split,
 }
 
 /// Prints the split per frame and its means over frames `from`.., and adds it to the CSV.
@@ -535,8 +562,19 @@ fn print_split(scene: &str, split: &[FrameSplit], from: usize, repeats: u32, csv
     for (k, f) in split.iter().enumerate() {
         let sp = &f.split;
         let blur = f.blurred_bias.map(|b| format!("{b:.5}")).join(",");
-        let line =
-            format!("{scene},{k},{:.5},{:.5},{:.5},{},{blur}", sp.rmse, sp.rms_bias, sp.rms_std, sp.pixels);
+        let (e, i) = (&f.edge, &f.interior);
+        let line = format!(
+            "{scene},{k},{:.5},{:.5},{:.5},{},{blur},{},{:.5},{:.5},{:.5},{:.5}",
+            sp.rmse,
+            sp.rms_bias,
+            sp.rms_std,
+            sp.pixels,
+            e.pixels,
+            e.rms_bias,
+            e.rms_std,
+            i.rms_bias,
+            i.rms_std
+        );
         println!("{line}");
         csv.push_str(&format!("{line}\n"));
     }
@@ -544,11 +582,16 @@ fn print_split(scene: &str, split: &[FrameSplit], from: usize, repeats: u32, csv
     let blur: Vec<String> =
         (0..BLUR_SIGMAS.len()).map(|b| format!("{:.5}", over(&|f| f.blurred_bias[b]))).collect();
     println!(
-        "{scene},mean {from}..,{:.5},{:.5},{:.5},,{}",
+        "{scene},mean {from}..,{:.5},{:.5},{:.5},,{},{:.0},{:.5},{:.5},{:.5},{:.5}",
         over(&|f| f.split.rmse),
         over(&|f| f.split.rms_bias),
         over(&|f| f.split.rms_std),
-        blur.join(",")
+        blur.join(","),
+        over(&|f| f.edge.pixels as f64),
+        over(&|f| f.edge.rms_bias),
+        over(&|f| f.edge.rms_std),
+        over(&|f| f.interior.rms_bias),
+        over(&|f| f.interior.rms_std)
     );
 }
 
@@ -569,6 +612,15 @@ mod tests {
             })
             .collect();
         Seen { view, hit: vec![true; 16 * 12], depth, normal: Vec::new() }
+    }
+
+    #[test]
+    fn an_edge_is_where_a_neighbour_saw_another_surface() {
+        // 5 x 4 pixels: columns 0-1 one surface, 2-4 another.
+        let edge = on_edge(20, 5, &|i, q| (i % 5 < 2) == (q % 5 < 2));
+        let cols: Vec<usize> = (0..5).filter(|&x| edge[x + 5]).collect();
+        assert_eq!(cols, vec![1, 2]);
+        assert!(!on_edge(20, 5, &|_, _| true).iter().any(|&e| e));
     }
 
     #[test]
