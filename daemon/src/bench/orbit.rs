@@ -20,7 +20,9 @@
 //!   more than 33 frames);
 //! - the reprojected orbit repeated `--repeats` times with disjoint sample patterns (each repeat's
 //!   `settings.ao.frame` offset by [`REPEAT_STRIDE`]), its error per frame split into RMS bias and
-//!   RMS std over the repeats ([`history::split`] says how);
+//!   RMS std over the repeats ([`history::split`] says how); and where the bias sits: the RMS
+//!   bias against the reference blurred over the same surface ([`history::blurred`]), and the
+//!   split over pixels with a neighbour on another surface ([`on_edge`]) and over the rest;
 //! - per reprojected variant, the pixels of frames `--from-frame`.. grouped by their history's
 //!   weight (frames' worth of samples: 1-2, 2-4, 4-8, 8-16, 16+), each group's share and RMSE.
 //!
