@@ -42,10 +42,20 @@ pub struct Rule {
     /// Carry the one previous pixel the projection falls in (weight 1) instead of the four
     /// bilinear taps around it.
     pub nearest: bool,
+    /// Carry only the accepted share of the history: the counting taps' sums blended by their
+    /// bilinear weights without renormalizing them to 1, so where taps are rejected the history
+    /// (weight included) shrinks by the rejected share.
+    pub accepted_share: bool,
 }
 
 /// The rule the renderer uses.
-pub const RULE: Rule = Rule { max_age: 16.0, plane_tolerance: 1.0, normal_agreement: 0.9, nearest: false };
+pub const RULE: Rule = Rule {
+    max_age: 16.0,
+    plane_tolerance: 1.0,
+    normal_agreement: 0.9,
+    nearest: false,
+    accepted_share: false,
+};
 
 /// A frame's geometry over its (low) rectangle: per pixel, rows top to bottom.
 pub struct Geometry<'a> {
@@ -176,8 +186,9 @@ pub fn reproject(
                 }
             }
             if wsum > 0.0 {
-                ao = ao.map(|x| x / wsum);
-                ibl = ibl.map(|x| x / wsum);
+                let norm = if rule.accepted_share { 1.0 } else { wsum };
+                ao = ao.map(|x| x / norm);
+                ibl = ibl.map(|x| x / norm);
                 let k = keep(ibl[3], rule);
                 if k < 1.0 {
                     ao = ao.map(|x| x * k);

@@ -135,6 +135,11 @@ fn the_gpu_reprojection_is_its_cpu_twin_with_the_nearest_pixel() {
     gpu_reprojection_is_its_cpu_twin(Rule { nearest: true, ..RULE });
 }
 
+#[test]
+fn the_gpu_reprojection_is_its_cpu_twin_carrying_the_accepted_share() {
+    gpu_reprojection_is_its_cpu_twin(Rule { accepted_share: true, ..RULE });
+}
+
 /// After still frames and a 4 degree orbit, the GPU's carried sums under `rule` are the CPU
 /// twin's.
 fn gpu_reprojection_is_its_cpu_twin(rule: Rule) {
@@ -167,7 +172,11 @@ fn gpu_reprojection_is_its_cpu_twin(rule: Rule) {
         }
         if carried_ibl[i][3] > 0.0 {
             accepted += 1;
-            assert!((carried_ibl[i][3] - rule.max_age).abs() < 1e-4, "aged weight {}", carried_ibl[i][3]);
+            // Aged to the cap; carrying the accepted share, less where taps were rejected.
+            let carried = carried_ibl[i][3];
+            let aged =
+                (carried - rule.max_age).abs() < 1e-4 || (rule.accepted_share && carried < rule.max_age);
+            assert!(aged, "aged weight {carried}");
             // This frame added an occlusion in [0, 1] to the carried sum.
             let added = after.ao[i][3] - carried_ao[i][3];
             assert!((-1e-4..=1.0 + 1e-4).contains(&added), "pixel {i}: added {added}");
