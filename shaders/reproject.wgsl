@@ -3,11 +3,13 @@
 // of the (low) rectangle, after the isosurface kernel of the new frame and before the AO kernel.
 // The rule and its CPU twin are daemon/render/src/reproject.rs:
 // - a hit p = eye + depth dir of the new frame is projected into the previous frame's camera; the
-//   four previous pixels around the projection (bilinear taps) are candidates;
+//   four previous pixels around the projection (bilinear taps) are candidates (with `nearest`,
+//   the one the projection falls in, at weight 1);
 // - a tap counts where it lies in the previous rectangle, had a hit, p lies within
 //   `plane_tolerance` of its footprint (depth * 2 tan(fov_y / 2) / H) from its tangent plane, the
 //   normals agree (dot >= `normal_agreement`) and both frames see the same side of the surface;
-// - the new sums are the counting taps' sums blended by their bilinear weights (renormalized),
+// - the new sums are the counting taps' sums blended by their bilinear weights (renormalized;
+//   with `accepted_share` not: the rejected taps' share of the history is dropped),
 //   scaled to an age of at most `max_age` frames: sums * min(1, max_age / weight), the weight
 //   (frames' worth of samples) being the w of the E sum;
 // - every other pixel (no hit, no tap counting) starts at 0.
@@ -32,7 +34,11 @@ struct ReprojectParams {
     max_age: f32,                // frames of history kept at most
     plane_tolerance: f32,        // plane distance accepted, in previous pixel footprints
     normal_agreement: f32,       // the least dot of the two normals accepted
+    nearest: u32,                // 1: the previous pixel the projection falls in, not bilinear
+    accepted_share: u32,         // 1: the blend not renormalized (rejected taps' share dropped)
     _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
 }
 
 // A read-only storage buffer, not a uniform: see frame.wgsl (lavapipe's uniform inlining).
@@ -110,8 +116,12 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         let at = previous_position(p);
         if at.z > 0.0 {
             // The four previous pixels around the projection, bilinear weights over the
-            // consistent ones.
-            let f = at.xy - vec2<f32>(0.5);
+            // consistent ones (nearest: the taps' base is the pixel the projection falls in, at
+            // weight 1, the other taps at 0).
+            var f = at.xy - vec2<f32>(0.5);
+            if params.nearest != 0u {
+                f = floor(at.xy);
+            }
             let base = floor(f);
             let t = f - base;
             let b = vec2<i32>(base);
@@ -131,8 +141,9 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
                 }
             }
             if wsum > 0.0 {
-                ao = sum_ao / wsum;
-                ibl = sum_ibl / wsum;
+                let norm = select(wsum, 1.0, params.accepted_share != 0u);
+                ao = sum_ao / norm;
+                ibl = sum_ibl / norm;
                 let weight = ibl.w;
                 if weight > params.max_age {
                     let keep = params.max_age / weight;

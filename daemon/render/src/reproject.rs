@@ -15,7 +15,8 @@
 //!   Bilinear, not the nearest pixel: with the nearest pixel a history moving less than half a
 //!   pixel a frame stays where it is on the screen while the surface moves on (measured with
 //!   `isowalld bench orbit`: on the engine at 1 degree a frame the occlusion error grew over the
-//!   frames past a restart's);
+//!   frames past a restart's). [`Rule::nearest`] takes the one previous pixel the projection
+//!   falls in instead, for measurements;
 //! - the carried sums are scaled to an age of at most [`Rule::max_age`] frames: each pixel carries
 //!   its weight (frames' worth of samples: the AO kernel adds its share of a frame to the w of the
 //!   E sum), and the sums are multiplied by `min(1, max_age / weight)`, so that old samples of a
@@ -38,10 +39,23 @@ pub struct Rule {
     pub plane_tolerance: f32,
     /// The least dot product of the two normals accepted.
     pub normal_agreement: f32,
+    /// Carry the one previous pixel the projection falls in (weight 1) instead of the four
+    /// bilinear taps around it.
+    pub nearest: bool,
+    /// Carry only the accepted share of the history: the counting taps' sums blended by their
+    /// bilinear weights without renormalizing them to 1, so where taps are rejected the history
+    /// (weight included) shrinks by the rejected share.
+    pub accepted_share: bool,
 }
 
 /// The rule the renderer uses.
-pub const RULE: Rule = Rule { max_age: 16.0, plane_tolerance: 1.0, normal_agreement: 0.9 };
+pub const RULE: Rule = Rule {
+    max_age: 16.0,
+    plane_tolerance: 1.0,
+    normal_agreement: 0.9,
+    nearest: false,
+    accepted_share: false,
+};
 
 /// A frame's geometry over its (low) rectangle: per pixel, rows top to bottom.
 pub struct Geometry<'a> {
@@ -116,7 +130,8 @@ pub fn sources(prev: &Geometry, next: &Geometry, rule: &Rule) -> Vec<Vec<(usize,
             let (p, dir) = nc.point(next, i);
             let Some((u, v)) = position(&pc, p) else { return taps };
             let n = next.normal[i];
-            let (fx, fy) = (u - 0.5, v - 0.5);
+            // Nearest: the taps' base is the pixel the projection falls in, at weight 1.
+            let (fx, fy) = if rule.nearest { (u.floor(), v.floor()) } else { (u - 0.5, v - 0.5) };
             let (bx, by) = (fx.floor(), fy.floor());
             let (tx, ty) = (fx - bx, fy - by);
             for k in 0..4 {
@@ -171,8 +186,9 @@ pub fn reproject(
                 }
             }
             if wsum > 0.0 {
-                ao = ao.map(|x| x / wsum);
-                ibl = ibl.map(|x| x / wsum);
+                let norm = if rule.accepted_share { 1.0 } else { wsum };
+                ao = ao.map(|x| x / norm);
+                ibl = ibl.map(|x| x / norm);
                 let k = keep(ibl[3], rule);
                 if k < 1.0 {
                     ao = ao.map(|x| x * k);
@@ -239,6 +255,26 @@ mod tests {
         let (hf, df, nf) = plane(&far);
         let gf = Geometry { view: &far, hit: &hf, depth: &df, normal: &nf };
         assert!(sources(&ga, &gf, &RULE).iter().all(|s| s.is_empty()));
+    }
+
+    #[test]
+    fn the_nearest_rule_carries_the_one_pixel_the_projection_falls_in() {
+        let a = view(DVec3::new(0.0, 0.0, 2.0));
+        let (hit, depth, normal) = plane(&a);
+        let ga = Geometry { view: &a, hit: &hit, depth: &depth, normal: &normal };
+        let nearest = Rule { nearest: true, ..RULE };
+        // A still camera: every pixel carries itself alone.
+        for (i, taps) in sources(&ga, &ga, &nearest).iter().enumerate() {
+            assert_eq!(taps, &vec![(i, 1.0)], "pixel {i}");
+        }
+        // Moved a third of a pixel sideways: bilinear blends two columns, nearest keeps one.
+        let pixel = 2.0 * 2.0 * (20.0f64).to_radians().tan() / 24.0;
+        let b = view(DVec3::new(pixel / 3.0, 0.0, 2.0));
+        let (hb, db, nb) = plane(&b);
+        let gb = Geometry { view: &b, hit: &hb, depth: &db, normal: &nb };
+        let centre = 12 * 32 + 16;
+        assert_eq!(sources(&ga, &gb, &nearest)[centre].len(), 1);
+        assert!(sources(&ga, &gb, &RULE)[centre].len() >= 2);
     }
 
     #[test]

@@ -15,7 +15,7 @@ use isowall_render::gpu::{
     tile::work_view, FrameRead, GpuRenderer, GpuVolume, ReadbackRing, TileFrame, TileOutput, TileSums,
     TileTarget,
 };
-use isowall_render::reproject::{self, Geometry, RULE};
+use isowall_render::reproject::{self, Geometry, Rule, RULE};
 
 /// `view` with its camera turned by `deg` degrees about the world's z axis through its target.
 fn orbit(view: &View, deg: f64) -> View {
@@ -99,8 +99,8 @@ fn a_still_camera_with_temporal_on_is_bit_identical_to_temporal_off() {
     }
 }
 
-/// A tile with `still` frames of `view` then one frame of `moved`, temporal on or off: the sums
-/// before and after the move.
+/// A tile with `still` frames of `view` then one frame of `moved`, temporal on or off, its
+/// reprojection under `rule`: the sums before and after the move.
 #[allow(clippy::too_many_arguments)]
 fn move_once(
     gpu: &GpuRenderer,
@@ -110,9 +110,11 @@ fn move_once(
     s: &RenderSettings,
     still: u64,
     temporal: bool,
+    rule: Rule,
 ) -> (TileSums, TileSums, TileTarget) {
     let mut ring = ReadbackRing::new(2);
     let mut tile = TileTarget::new(gpu, "t", view, 1).unwrap();
+    tile.set_reproject_rule(rule);
     for k in 0..still {
         frame(gpu, &mut tile, &mut ring, gv, view, s, k, (k > 0).then_some((view, s)), temporal);
     }
@@ -125,20 +127,36 @@ fn move_once(
 
 #[test]
 fn the_gpu_reprojection_is_its_cpu_twin() {
+    gpu_reprojection_is_its_cpu_twin(RULE);
+}
+
+#[test]
+fn the_gpu_reprojection_is_its_cpu_twin_with_the_nearest_pixel() {
+    gpu_reprojection_is_its_cpu_twin(Rule { nearest: true, ..RULE });
+}
+
+#[test]
+fn the_gpu_reprojection_is_its_cpu_twin_carrying_the_accepted_share() {
+    gpu_reprojection_is_its_cpu_twin(Rule { accepted_share: true, ..RULE });
+}
+
+/// After still frames and a 4 degree orbit, the GPU's carried sums under `rule` are the CPU
+/// twin's.
+fn gpu_reprojection_is_its_cpu_twin(rule: Rule) {
     let Some(gpu) = common::gpu() else { return };
     let (volume, view, s) = common::ambient_sphere_scene(96, 72);
     let gv = gpu.upload(&volume).unwrap();
     let moved = orbit(&view, 4.0);
     // 20 still frames: older than the maximum age, so the carried sums are scaled down.
     let still = 20;
-    assert!(still as f32 > RULE.max_age);
-    let (before, after, tile) = move_once(&gpu, &gv, &view, &moved, &s, still, true);
+    assert!(still as f32 > rule.max_age);
+    let (before, after, tile) = move_once(&gpu, &gv, &view, &moved, &s, still, true, rule);
     assert!(tile.reprojected());
     let (ha, da, na) = geometry(&before);
     let (hb, db, nb) = geometry(&after);
     let prev = Geometry { view: &view, hit: &ha, depth: &da, normal: &na };
     let next = Geometry { view: &moved, hit: &hb, depth: &db, normal: &nb };
-    let (carried_ao, carried_ibl) = reproject::reproject(&prev, &before.ao, &before.ibl, &next, &RULE);
+    let (carried_ao, carried_ibl) = reproject::reproject(&prev, &before.ao, &before.ibl, &next, &rule);
     let (mut mismatched, mut accepted, mut hits) = (0, 0, 0);
     for i in 0..hb.len() {
         if !hb[i] {
@@ -154,7 +172,11 @@ fn the_gpu_reprojection_is_its_cpu_twin() {
         }
         if carried_ibl[i][3] > 0.0 {
             accepted += 1;
-            assert!((carried_ibl[i][3] - RULE.max_age).abs() < 1e-4, "aged weight {}", carried_ibl[i][3]);
+            // Aged to the cap; carrying the accepted share, less where taps were rejected.
+            let carried = carried_ibl[i][3];
+            let aged =
+                (carried - rule.max_age).abs() < 1e-4 || (rule.accepted_share && carried < rule.max_age);
+            assert!(aged, "aged weight {carried}");
             // This frame added an occlusion in [0, 1] to the carried sum.
             let added = after.ao[i][3] - carried_ao[i][3];
             assert!((-1e-4..=1.0 + 1e-4).contains(&added), "pixel {i}: added {added}");
@@ -175,7 +197,7 @@ fn the_filter_of_a_reprojected_history_is_its_cpu_twin_with_per_pixel_counts() {
     s.denoise = Denoise::On;
     let gv = gpu.upload(&volume).unwrap();
     let moved = orbit(&view, 3.0);
-    let (_, after, tile) = move_once(&gpu, &gv, &view, &moved, &s, 2, true);
+    let (_, after, tile) = move_once(&gpu, &gv, &view, &moved, &s, 2, true, RULE);
     assert!(tile.reprojected());
     let (hit, depth, normal) = geometry(&after);
     let weight: Vec<f32> = after.ibl.iter().map(|e| e[3]).collect();
@@ -224,8 +246,8 @@ fn after_a_small_move_the_kept_history_is_closer_to_the_converged_occlusion() {
     let mut converged = s;
     converged.ao.frame = 1000;
     let truth = gpu.render_accumulated(&gv, &moved, &converged, None, 128).unwrap().frame;
-    let (_, with, _) = move_once(&gpu, &gv, &view, &moved, &s, 8, true);
-    let (_, without, _) = move_once(&gpu, &gv, &view, &moved, &s, 8, false);
+    let (_, with, _) = move_once(&gpu, &gv, &view, &moved, &s, 8, true, RULE);
+    let (_, without, _) = move_once(&gpu, &gv, &view, &moved, &s, 8, false, RULE);
     let error = |a: &[f32]| common::rmse(a, &truth.occlusion, |i| truth.hit[i] && a[i].is_finite());
     let (e_with, e_without) = (error(&occlusion(&with)), error(&occlusion(&without)));
     eprintln!("occlusion RMSE after a 2 degree orbit: reprojected {e_with:.4}, restarted {e_without:.4}");
@@ -245,7 +267,7 @@ fn newly_seen_points_restart_and_a_move_out_of_the_tile_rejects_all() {
     let cam = Camera { eye, target: DVec3::new(eye.x, eye.y, 0.0), up: DVec3::Y, fov_y_deg: 60.0 };
     let view = View { camera: cam, ..framing };
     let moved = translate(&view, DVec3::new(4.0, 0.0, 0.0));
-    let (before, after, _) = move_once(&gpu, &gv, &view, &moved, &s, 3, true);
+    let (before, after, _) = move_once(&gpu, &gv, &view, &moved, &s, 3, true, RULE);
     let (ha, da, _) = geometry(&before);
     let (hb, db, _) = geometry(&after);
     let eye_a = view.camera.eye;

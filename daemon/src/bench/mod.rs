@@ -58,7 +58,10 @@ pub enum BenchCommand {
     /// denoised). Per variant: the occlusion RMSE and p99 |error| against a converged render of
     /// each frame's camera, flicker (mean change of the occlusion of a surface point between
     /// consecutive frames; the converged references' own is the floor) and the median ms per
-    /// frame; `--out` writes every frame's numbers as CSV.
+    /// frame; `--out` writes every frame's numbers as CSV. Where the history's error goes: raw at
+    /// `--compare-samples`, the reprojection rule's ablations (nearest pixel, rejection tests off,
+    /// history caps), means from `--from-frame`, the reprojected error split into bias and std
+    /// over `--repeats` runs (`--split-out`) and by history length (`--buckets-out`).
     Orbit(orbit::OrbitArgs),
     /// Whether the default look shows shape: per scene and IBL method, how much darker surface
     /// pixels in creases (A >= 0.3) look than open ones (A <= 0.05) at the same N.L, in linear

@@ -10,14 +10,37 @@
 //! pixel found by projecting its hit into the previous camera and accepted only where the
 //! previous depth there agrees within 1%: the occlusion is view-independent, so the truth changes
 //! by nothing; the converged references' own flicker is printed as the floor).
+//!
+//! Where the reprojected history's error goes, in the same run:
+//! - `raw32` (`raw` followed by `--compare-samples`): every frame restarts at that many samples, the
+//!   error a history of that many samples would have without bias;
+//! - ablations of the reprojection rule (`reprojected/...`): the nearest previous pixel instead of
+//!   the bilinear taps, the plane test off, the normal test off, both off (the same-side test stays),
+//!   the accepted taps' blend not renormalized (a history shrinks by its rejected share),
+//!   a history cap of 8, 32 and 64 frames instead of 16 (32 and 64 differ only in an orbit of
+//!   more than 33 frames);
+//! - the reprojected orbit repeated `--repeats` times with disjoint sample patterns (each repeat's
+//!   `settings.ao.frame` offset by [`REPEAT_STRIDE`]), its error per frame split into RMS bias and
+//!   RMS std over the repeats ([`history::split`] says how); and where the bias sits: the RMS
+//!   bias against the reference blurred over the same surface ([`history::blurred`]), and the
+//!   split over pixels with a neighbour on another surface ([`on_edge`]) and over the rest;
+//! - per reprojected variant, the pixels of frames `--from-frame`.. grouped by their history's
+//!   weight (frames' worth of samples: 1-2, 2-4, 4-8, 8-16, 16+), each group's share and RMSE.
+//!
+//! Every variant's mean RMSE is printed over frames 1.. and over `--from-frame`.. (the first
+//! frames of a history are short by construction).
+
+mod history;
 
 use super::stats::{error_stats, median, scene_spec};
 use crate::args;
 use crate::render::load_volume;
-use anyhow::{bail, Result};
+use anyhow::{bail, Context, Result};
 use clap::Args;
+use history::{blurred, split, Buckets, Split, BLUR_SIGMAS};
 use isowall_model::{Camera, Denoise, FrameState, RenderSettings, View};
 use isowall_render::gpu::{FrameRead, GpuRenderer, GpuVolume, ReadbackRing, TileFrame, TileSums, TileTarget};
+use isowall_render::reproject::{Rule, RULE};
 use isowall_render::Frame;
 use std::path::PathBuf;
 use std::time::Instant;
@@ -46,18 +69,85 @@ pub struct OrbitArgs {
     /// Write every frame's numbers to this CSV
     #[arg(long, value_name = "FILE")]
     pub out: Option<PathBuf>,
+    /// AO samples a frame of the `raw` comparison variant (its name: raw followed by this)
+    #[arg(long, default_value_t = 32)]
+    pub compare_samples: u32,
+    /// The first frame of the second means (and of the history buckets)
+    #[arg(long, default_value_t = 8)]
+    pub from_frame: u32,
+    /// Runs of the reprojected orbit with disjoint sample patterns, for its bias and std (0 or 1: none)
+    #[arg(long, default_value_t = 4)]
+    pub repeats: u32,
+    /// Write the reprojected orbit's bias and std per frame to this CSV
+    #[arg(long, value_name = "FILE")]
+    pub split_out: Option<PathBuf>,
+    /// Write the error per history bucket to this CSV
+    #[arg(long, value_name = "FILE")]
+    pub buckets_out: Option<PathBuf>,
 }
+
+/// The CSV header of `--split-out`.
+pub const SPLIT_HEADER: &str =
+    "scene,frame,rmse,rms_bias,rms_std,pixels,bias_vs_blur0.5,bias_vs_blur1,bias_vs_blur1.5,bias_vs_blur2,\
+     edge_pixels,edge_rms_bias,edge_rms_std,interior_rms_bias,interior_rms_std";
+
+/// The CSV header of `--buckets-out`.
+pub const BUCKETS_HEADER: &str = "scene,variant,history_frames,pixel_fraction,rmse";
+
+/// The offset of a repeat's sample patterns (`settings.ao.frame`): more frames than an orbit has,
+/// fewer than the references' offset.
+const REPEAT_STRIDE: u32 = 10_000;
 
 /// The CSV header of `--out`.
 pub const HEADER: &str = "scene,variant,frame,ms,occlusion_rmse,occlusion_p99,flicker";
 
-/// The variants: (name, temporal reprojection, denoise).
-const VARIANTS: [(&str, bool, bool); 4] = [
-    ("raw", false, false),
-    ("reprojected", true, false),
-    ("denoised", false, true),
-    ("reprojected+denoised", true, true),
-];
+/// A way of rendering the orbit.
+#[derive(Clone, Debug)]
+struct Variant {
+    name: String,
+    samples: u32,
+    temporal: bool,
+    denoise: bool,
+    rule: Rule,
+}
+
+impl Variant {
+    fn new(name: &str, samples: u32, temporal: bool, denoise: bool) -> Variant {
+        Variant { name: name.to_string(), samples, temporal, denoise, rule: RULE }
+    }
+
+    /// `reprojected` under another rule.
+    fn ablation(name: &str, samples: u32, rule: Rule) -> Variant {
+        Variant { rule, ..Variant::new(&format!("reprojected/{name}"), samples, true, false) }
+    }
+}
+
+/// A plane tolerance and normal agreement no tap fails.
+const UNTESTED_PLANE: f32 = 1e30;
+const UNTESTED_NORMAL: f32 = -2.0;
+
+/// The variants at `samples` a frame: today's four, raw at `compare` samples, the rule's ablations.
+fn variants(samples: u32, compare: u32) -> Vec<Variant> {
+    let mut v = vec![
+        Variant::new("raw", samples, false, false),
+        Variant::new("reprojected", samples, true, false),
+        Variant::new("denoised", samples, false, true),
+        Variant::new("reprojected+denoised", samples, true, true),
+        Variant::new(&format!("raw{compare}"), compare, false, false),
+    ];
+    let ablations = [
+        ("nearest", Rule { nearest: true, ..RULE }),
+        ("no-plane-test", Rule { plane_tolerance: UNTESTED_PLANE, ..RULE }),
+        ("no-normal-test", Rule { normal_agreement: UNTESTED_NORMAL, ..RULE }),
+        ("no-rejection", Rule { plane_tolerance: UNTESTED_PLANE, normal_agreement: UNTESTED_NORMAL, ..RULE }),
+        ("accepted-share", Rule { accepted_share: true, ..RULE }),
+        ("cap8", Rule { max_age: 8.0, ..RULE }),
+        ("cap32", Rule { max_age: 32.0, ..RULE }),
+        ("cap64", Rule { max_age: 64.0, ..RULE }),
+    ];
+    v.extend(ablations.into_iter().map(|(name, rule)| Variant::ablation(name, samples, rule)));
+    v
+}
 
 /// `view` with its camera turned by `deg` degrees about the world's z axis through its target.
 fn orbit(view: &View, deg: f64) -> View {
@@ -69,6 +159,35 @@ struct Seen {
     view: View,
     hit: Vec<bool>,
     depth: Vec<f32>,
+    /// N (outward); empty where not needed.
+    normal: Vec<[f32; 3]>,
+}
+
+impl Seen {
+    /// Whether pixel `q` saw the surface pixel `i` saw, as the reprojection accepts a tap: both
+    /// hits, q's point within a footprint of i's tangent plane, the normals within [`RULE`]'s
+    /// agreement.
+    fn same_surface(&self) -> impl Fn(usize, usize) -> bool + '_ {
+        let b = self.view.camera.basis();
+        let w = self.view.rect.width;
+        let pixel = 2.0 * b.tan_half_fov / self.view.full.1 as f64;
+        let points: Vec<glam::DVec3> = (0..self.hit.len())
+            .map(|i| {
+                let dir = self.view.ray_dir(&b, i as u32 % w, i as u32 / w);
+                self.view.camera.eye + self.depth[i] as f64 * dir
+            })
+            .collect();
+        move |i, q| {
+            let (n, m) = (self.normal[i], self.normal[q]);
+            let n = glam::DVec3::new(n[0] as f64, n[1] as f64, n[2] as f64);
+            let m = glam::DVec3::new(m[0] as f64, m[1] as f64, m[2] as f64);
+            let plane = n.dot(points[q] - points[i]).abs();
+            self.hit[i]
+                && self.hit[q]
+                && plane <= (RULE.plane_tolerance as f64) * pixel * self.depth[i] as f64
+                && n.dot(m) >= RULE.normal_agreement as f64
+        }
+    }
 }
 
 /// Per pixel of `next`, the pixel of `prev` that saw the same surface point (the projection of its
@@ -135,12 +254,24 @@ fn shown_occlusion(sums: &TileSums, frames: u32) -> Vec<f32> {
         .collect()
 }
 
+/// Per pixel, the weight of a tile's history (frames' worth of samples).
+fn history_weight(sums: &TileSums) -> Vec<f32> {
+    sums.ibl.iter().map(|e| e[3]).collect()
+}
+
+/// What a frame showed: per pixel, the occlusion (NaN without a hit) and the history's weight.
+struct Shown {
+    occlusion: Vec<f32>,
+    weight: Vec<f32>,
+}
+
 /// A variant's numbers over the orbit.
 struct Row {
     ms: Vec<f64>,
     rmse: Vec<f64>,
     p99: Vec<f64>,
     flicker: Vec<f64>,
+    shown: Vec<Shown>,
 }
 
 fn mean(v: &[f64]) -> f64 {
@@ -148,21 +279,27 @@ fn mean(v: &[f64]) -> f64 {
     v.iter().sum::<f64>() / v.len().max(1) as f64
 }
 
-#[allow(clippy::too_many_arguments)]
-fn run_variant(
-    gpu: &GpuRenderer,
-    gv: &GpuVolume,
-    views: &[View],
-    refs: &[(Seen, Vec<f32>)],
-    s: &RenderSettings,
-    temporal: bool,
-    denoise: bool,
-) -> Result<Row> {
+/// A scene's orbit: its volume on the GPU, the frames' views, their references (what each saw,
+/// the converged occlusion).
+struct Orbit<'a> {
+    gpu: &'a GpuRenderer,
+    gv: &'a GpuVolume,
+    views: &'a [View],
+    refs: &'a [(Seen, Vec<f32>)],
+}
+
+/// Renders the orbit as `v` says from settings `s` (sample patterns from `s.ao.frame`).
+fn run_variant(o: &Orbit, s: &RenderSettings, v: &Variant) -> Result<Row> {
+    let Orbit { gpu, gv, views, refs } = *o;
     let mut s = *s;
-    s.denoise = if denoise { Denoise::On } else { Denoise::Off };
+    s.ao.samples = v.samples;
+    s.denoise = if v.denoise { Denoise::On } else { Denoise::Off };
+    let temporal = v.temporal;
     let mut tile = TileTarget::new(gpu, "orbit", &views[0], 1)?;
+    tile.set_reproject_rule(v.rule);
     let mut ring = ReadbackRing::<FrameRead>::new(2);
-    let mut row = Row { ms: Vec::new(), rmse: Vec::new(), p99: Vec::new(), flicker: Vec::new() };
+    let mut row =
+        Row { ms: Vec::new(), rmse: Vec::new(), p99: Vec::new(), flicker: Vec::new(), shown: Vec::new() };
     let mut last: Option<Vec<f32>> = None;
     let mut previous: Option<FrameState> = None;
     for (k, view) in views.iter().enumerate() {
@@ -189,7 +326,8 @@ fn run_variant(
             }
         }
         row.ms.push(start.elapsed().as_secs_f64() * 1e3);
-        let a = shown_occlusion(&gpu.read_tile_sums(&tile)?, tile.frames());
+        let sums = gpu.read_tile_sums(&tile)?;
+        let a = shown_occlusion(&sums, tile.frames());
         let (seen, truth) = &refs[k];
         let both: Vec<bool> = (0..a.len()).map(|i| seen.hit[i] && a[i].is_finite()).collect();
         let (rmse, p99) = error_stats(&a, truth, &both);
@@ -198,15 +336,21 @@ fn run_variant(
         if let Some(prev) = &last {
             row.flicker.push(flicker(&refs[k - 1].0, seen, prev, &a));
         }
+        row.shown.push(Shown { occlusion: a.clone(), weight: history_weight(&sums) });
         last = Some(a);
     }
     Ok(row)
 }
 
+/// The CSVs of a run, each from its header.
+struct Tables {
+    frames: String,
+    split: String,
+    buckets: String,
+}
+
 pub fn run(a: &OrbitArgs) -> Result<()> {
-    if a.frames < 2 {
-        bail!("--frames {}: at least 2 (flicker compares consecutive frames)", a.frames);
-    }
+    check(a)?;
     let gpu = GpuRenderer::new()?;
     let (w, h) = a.size;
     println!(
@@ -219,58 +363,240 @@ pub fn run(a: &OrbitArgs) -> Result<()> {
         a.reference_frames,
         a.reference_frames * 32
     );
-    println!("# per variant: mean over frames 1.. of the occlusion RMSE and p99 |error| against each frame's reference, mean flicker, median ms");
-    println!("scene,variant,rmse,p99,flicker,ms");
-    let mut csv = format!("{HEADER}\n");
+    println!("# per variant: mean over frames 1.. of the occlusion RMSE and p99 |error| against each frame's reference, mean flicker, median ms; rmse_from: the mean RMSE over frames {}..", a.from_frame);
+    println!("scene,variant,rmse,p99,flicker,ms,rmse_from");
+    let mut t = Tables {
+        frames: format!("{HEADER}\n"),
+        split: format!("{SPLIT_HEADER}\n"),
+        buckets: format!("{BUCKETS_HEADER}\n"),
+    };
     for scene in a.scenes.split(',').map(str::trim).filter(|s| !s.is_empty()) {
-        let (spec, iso) = scene_spec(scene)?;
-        let (volume, iso) = load_volume(Some(spec), None, iso)?;
-        let gv = gpu.upload(&volume)?;
-        let start = View::whole(Camera::framing(volume.box_min(), volume.box_max(), w, h), w, h);
-        let views: Vec<View> = (0..a.frames).map(|k| orbit(&start, k as f64 * a.degrees)).collect();
-        let mut s = RenderSettings::new(iso);
-        s.ao.samples = a.samples;
-        let mut r = s;
-        r.ao.samples = 32;
-        r.ao.frame = 1_000_000; // disjoint from the measured frames' patterns
-        let mut refs = Vec::new();
-        for v in &views {
-            let f: Frame = gpu.render_accumulated(&gv, v, &r, None, a.reference_frames.max(1))?.frame;
-            let occlusion: Vec<f32> =
-                (0..f.pixel_count()).map(|i| if f.hit[i] { f.occlusion[i] } else { f32::NAN }).collect();
-            refs.push((Seen { view: *v, hit: f.hit, depth: f.depth }, occlusion));
-        }
-        let floor: Vec<f64> = (1..refs.len())
-            .map(|k| flicker(&refs[k - 1].0, &refs[k].0, &refs[k - 1].1, &refs[k].1))
-            .collect();
-        for (k, f) in floor.iter().enumerate() {
-            csv.push_str(&format!("{},reference,{},,,,{f:.5}\n", volume.name, k + 1));
-        }
-        println!("{},reference,,,{:.4},", volume.name, mean(&floor));
-        for (name, temporal, denoise) in VARIANTS {
-            let row = run_variant(&gpu, &gv, &views, &refs, &s, temporal, denoise)?;
-            for k in 0..views.len() {
-                let fl = if k == 0 { String::new() } else { format!("{:.5}", row.flicker[k - 1]) };
-                csv.push_str(&format!(
-                    "{},{name},{k},{:.2},{:.5},{:.5},{fl}\n",
-                    volume.name, row.ms[k], row.rmse[k], row.p99[k]
-                ));
-            }
-            println!(
-                "{},{name},{:.4},{:.4},{:.4},{:.1}",
-                volume.name,
-                mean(&row.rmse[1..]),
-                mean(&row.p99[1..]),
-                mean(&row.flicker),
-                median(row.ms.clone())
-            );
-        }
+        run_scene(&gpu, a, scene, &mut t)?;
     }
-    if let Some(path) = &a.out {
-        std::fs::write(path, csv).map_err(|e| anyhow::anyhow!("writing {}: {e}", path.display()))?;
-        println!("# saved {}", path.display());
+    for (path, text) in [(&a.out, &t.frames), (&a.split_out, &t.split), (&a.buckets_out, &t.buckets)] {
+        if let Some(path) = path {
+            std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))?;
+            println!("# saved {}", path.display());
+        }
     }
     Ok(())
+}
+
+/// The arguments' limits.
+fn check(a: &OrbitArgs) -> Result<()> {
+    if a.frames < 2 {
+        bail!("--frames {}: at least 2 (flicker compares consecutive frames)", a.frames);
+    }
+    if a.frames >= REPEAT_STRIDE {
+        bail!(
+            "--frames {}: fewer than {REPEAT_STRIDE} (the repeats' sample patterns would overlap)",
+            a.frames
+        );
+    }
+    if a.from_frame == 0 || a.from_frame >= a.frames {
+        bail!("--from-frame {}: from 1 to --frames - 1 ({})", a.from_frame, a.frames - 1);
+    }
+    if a.repeats > 99 {
+        bail!("--repeats {}: at most 99 (their patterns must stay clear of the references')", a.repeats);
+    }
+    Ok(())
+}
+
+/// Each frame's converged reference under settings `s`: what it saw and its occlusion (NaN
+/// without a hit), from `frames` frames of 32 samples with patterns disjoint from the measured ones.
+fn references(
+    gpu: &GpuRenderer,
+    gv: &GpuVolume,
+    views: &[View],
+    s: &RenderSettings,
+    frames: u32,
+) -> Result<Vec<(Seen, Vec<f32>)>> {
+    let mut r = *s;
+    r.ao.samples = 32;
+    r.ao.frame = 1_000_000; // disjoint from the measured frames' patterns
+    let mut refs = Vec::new();
+    for v in views {
+        let f: Frame = gpu.render_accumulated(gv, v, &r, None, frames.max(1))?.frame;
+        let occlusion: Vec<f32> =
+            (0..f.pixel_count()).map(|i| if f.hit[i] { f.occlusion[i] } else { f32::NAN }).collect();
+        refs.push((Seen { view: *v, hit: f.hit, depth: f.depth, normal: f.normal }, occlusion));
+    }
+    Ok(refs)
+}
+
+fn run_scene(gpu: &GpuRenderer, a: &OrbitArgs, scene: &str, t: &mut Tables) -> Result<()> {
+    let (spec, iso) = scene_spec(scene)?;
+    let (volume, iso) = load_volume(Some(spec), None, iso)?;
+    let gv = gpu.upload(&volume)?;
+    let (w, h) = a.size;
+    let start = View::whole(Camera::framing(volume.box_min(), volume.box_max(), w, h), w, h);
+    let views: Vec<View> = (0..a.frames).map(|k| orbit(&start, k as f64 * a.degrees)).collect();
+    let mut s = RenderSettings::new(iso);
+    s.ao.samples = a.samples;
+    let refs = references(gpu, &gv, &views, &s, a.reference_frames)?;
+    let name = &volume.name;
+    let floor: Vec<f64> =
+        (1..refs.len()).map(|k| flicker(&refs[k - 1].0, &refs[k].0, &refs[k - 1].1, &refs[k].1)).collect();
+    for (k, f) in floor.iter().enumerate() {
+        t.frames.push_str(&format!("{name},reference,{},,,,{f:.5}\n", k + 1));
+    }
+    println!("{name},reference,,,{:.4},,", mean(&floor));
+    let o = Orbit { gpu, gv: &gv, views: &views, refs: &refs };
+    let from = a.from_frame as usize;
+    let mut first_run = None;
+    let mut bucket_lines = Vec::new();
+    for v in variants(a.samples, a.compare_samples) {
+        let row = run_variant(&o, &s, &v)?;
+        push_frames(&mut t.frames, name, &v.name, &row);
+        println!(
+            "{name},{},{:.4},{:.4},{:.4},{:.1},{:.4}",
+            v.name,
+            mean(&row.rmse[1..]),
+            mean(&row.p99[1..]),
+            mean(&row.flicker),
+            median(row.ms.clone()),
+            mean(&row.rmse[from..])
+        );
+        if v.temporal && !v.denoise {
+            for b in history_buckets(&row, &refs, from).errors() {
+                let line = format!("{name},{},{},{:.4},{:.5}", v.name, b.name, b.fraction, b.rmse);
+                t.buckets.push_str(&format!("{line}\n"));
+                bucket_lines.push(line);
+            }
+        }
+        if v.name == "reprojected" {
+            first_run = Some(row.shown.into_iter().map(|f| f.occlusion).collect::<Vec<_>>());
+        }
+    }
+    println!("# {name}: the reprojected variants' pixels of frames {from}.. by history (frames' worth of samples): share of pixels, RMSE");
+    println!("{BUCKETS_HEADER}");
+    bucket_lines.iter().for_each(|l| println!("{l}"));
+    if let (Some(first), true) = (first_run, a.repeats >= 2) {
+        let split = reprojected_split(&o, &s, a, first)?;
+        print_split(name, &split, from, a.repeats, &mut t.split);
+    }
+    Ok(())
+}
+
+/// A variant's frames as rows of the `--out` CSV.
+fn push_frames(csv: &mut String, scene: &str, variant: &str, row: &Row) {
+    for k in 0..row.rmse.len() {
+        let fl = if k == 0 { String::new() } else { format!("{:.5}", row.flicker[k - 1]) };
+        csv.push_str(&format!(
+            "{scene},{variant},{k},{:.2},{:.5},{:.5},{fl}\n",
+            row.ms[k], row.rmse[k], row.p99[k]
+        ));
+    }
+}
+
+/// The error of a variant's frames `from`.. by history length.
+fn history_buckets(row: &Row, refs: &[(Seen, Vec<f32>)], from: usize) -> Buckets {
+    let mut b = Buckets::default();
+    for (shown, (_, truth)) in row.shown.iter().zip(refs).skip(from) {
+        b.add(&shown.occlusion, truth, &shown.weight);
+    }
+    b
+}
+
+/// Per frame, the reprojected orbit's error split over `--repeats` runs, `first` (its occlusion
+/// per frame) the run already made.
+fn reprojected_split(
+    o: &Orbit,
+    s: &RenderSettings,
+    a: &OrbitArgs,
+    first: Vec<Vec<f32>>,
+) -> Result<Vec<FrameSplit>> {
+    let v = Variant::new("reprojected", a.samples, true, false);
+    let mut runs = vec![first];
+    for r in 1..a.repeats {
+        let mut sr = *s;
+        sr.ao.frame = r * REPEAT_STRIDE;
+        runs.push(run_variant(o, &sr, &v)?.shown.into_iter().map(|f| f.occlusion).collect());
+    }
+    Ok((0..o.views.len())
+        .map(|k| {
+            let frame: Vec<Vec<f32>> = runs.iter().map(|run| run[k].clone()).collect();
+            let ((seen, truth), width) = (&o.refs[k], o.views[k].rect.width as usize);
+            let same = seen.same_surface();
+            let edge = on_edge(seen.hit.len(), width, &same);
+            let only = |want: bool| -> Vec<f32> {
+                truth.iter().zip(&edge).map(|(&t, &e)| if e == want { t } else { f32::NAN }).collect()
+            };
+            FrameSplit {
+                split: split(&frame, truth),
+                blurred_bias: BLUR_SIGMAS
+                    .map(|sigma| split(&frame, &blurred(truth, width, sigma, &same)).rms_bias),
+                edge: split(&frame, &only(true)),
+                interior: split(&frame, &only(false)),
+            }
+        })
+        .collect())
+}
+
+/// Per pixel of a `width`-wide image of `n` pixels: whether one of its eight neighbours (in the
+/// image) did not see its surface (`same`: a silhouette, a crease, a hit next to none).
+fn on_edge(n: usize, width: usize, same: &dyn Fn(usize, usize) -> bool) -> Vec<bool> {
+    let (w, h) = (width as i64, (n / width.max(1)) as i64);
+    (0..n)
+        .map(|i| {
+            let (x, y) = (i as i64 % w, i as i64 / w);
+            (-1..=1).any(|dy| {
+                (-1..=1).any(|dx| {
+                    let (qx, qy) = (x + dx, y + dy);
+                    qx >= 0 && qy >= 0 && qx < w && qy < h && !same(i, (qx + qy * w) as usize)
+                })
+            })
+        })
+        .collect()
+}
+
+/// A frame's split; its RMS bias against the reference blurred by each of [`BLUR_SIGMAS`]; the
+/// split over the pixels [`on_edge`] and over the others.
+struct FrameSplit {
+    split: Split,
+    blurred_bias: [f64; 4],
+    edge: Split,
+    interior: Split,
+}
+
+/// Prints the split per frame and its means over frames `from`.., and adds it to the CSV.
+fn print_split(scene: &str, split: &[FrameSplit], from: usize, repeats: u32, csv: &mut String) {
+    println!("# {scene}: the reprojected orbit over {repeats} runs of disjoint patterns, per frame: RMSE, RMS bias (the reference's own noise included), RMS std; the RMS bias against the reference blurred by a Gaussian of 0.5, 1, 1.5, 2 pixels");
+    println!("{SPLIT_HEADER}");
+    for (k, f) in split.iter().enumerate() {
+        let sp = &f.split;
+        let blur = f.blurred_bias.map(|b| format!("{b:.5}")).join(",");
+        let (e, i) = (&f.edge, &f.interior);
+        let line = format!(
+            "{scene},{k},{:.5},{:.5},{:.5},{},{blur},{},{:.5},{:.5},{:.5},{:.5}",
+            sp.rmse,
+            sp.rms_bias,
+            sp.rms_std,
+            sp.pixels,
+            e.pixels,
+            e.rms_bias,
+            e.rms_std,
+            i.rms_bias,
+            i.rms_std
+        );
+        println!("{line}");
+        csv.push_str(&format!("{line}\n"));
+    }
+    let over = |f: &dyn Fn(&FrameSplit) -> f64| mean(&split[from..].iter().map(f).collect::<Vec<_>>());
+    let blur: Vec<String> =
+        (0..BLUR_SIGMAS.len()).map(|b| format!("{:.5}", over(&|f| f.blurred_bias[b]))).collect();
+    println!(
+        "{scene},mean {from}..,{:.5},{:.5},{:.5},,{},{:.0},{:.5},{:.5},{:.5},{:.5}",
+        over(&|f| f.split.rmse),
+        over(&|f| f.split.rms_bias),
+        over(&|f| f.split.rms_std),
+        blur.join(","),
+        over(&|f| f.edge.pixels as f64),
+        over(&|f| f.edge.rms_bias),
+        over(&|f| f.edge.rms_std),
+        over(&|f| f.interior.rms_bias),
+        over(&|f| f.interior.rms_std)
+    );
 }
 
 #[cfg(test)]
@@ -289,7 +615,16 @@ mod tests {
                 (-eye.z / d.z) as f32
             })
             .collect();
-        Seen { view, hit: vec![true; 16 * 12], depth }
+        Seen { view, hit: vec![true; 16 * 12], depth, normal: Vec::new() }
+    }
+
+    #[test]
+    fn an_edge_is_where_a_neighbour_saw_another_surface() {
+        // 5 x 4 pixels: columns 0-1 one surface, 2-4 another.
+        let edge = on_edge(20, 5, &|i, q| (i % 5 < 2) == (q % 5 < 2));
+        let cols: Vec<usize> = (0..5).filter(|&x| edge[x + 5]).collect();
+        assert_eq!(cols, vec![1, 2]);
+        assert!(!on_edge(20, 5, &|_, _| true).iter().any(|&e| e));
     }
 
     #[test]

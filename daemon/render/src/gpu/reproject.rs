@@ -30,7 +30,13 @@ pub struct ReprojectParams {
     pub max_age: f32,
     pub plane_tolerance: f32,
     pub normal_agreement: f32,
+    /// 1: the nearest previous pixel instead of the bilinear taps ([`Rule::nearest`]).
+    pub nearest: u32,
+    /// 1: the accepted taps' blend is not renormalized ([`Rule::accepted_share`]).
+    pub accepted_share: u32,
     pub _pad0: u32,
+    pub _pad1: u32,
+    pub _pad2: u32,
 }
 
 impl ReprojectParams {
@@ -55,7 +61,11 @@ impl ReprojectParams {
             max_age: rule.max_age,
             plane_tolerance: rule.plane_tolerance,
             normal_agreement: rule.normal_agreement,
+            nearest: u32::from(rule.nearest),
+            accepted_share: u32::from(rule.accepted_share),
             _pad0: 0,
+            _pad1: 0,
+            _pad2: 0,
         }
     }
 }
@@ -142,7 +152,11 @@ mod tests {
                 ("max_age", offset_of!(ReprojectParams, max_age)),
                 ("plane_tolerance", offset_of!(ReprojectParams, plane_tolerance)),
                 ("normal_agreement", offset_of!(ReprojectParams, normal_agreement)),
+                ("nearest", offset_of!(ReprojectParams, nearest)),
+                ("accepted_share", offset_of!(ReprojectParams, accepted_share)),
                 ("_pad0", offset_of!(ReprojectParams, _pad0)),
+                ("_pad1", offset_of!(ReprojectParams, _pad1)),
+                ("_pad2", offset_of!(ReprojectParams, _pad2)),
             ],
         );
     }

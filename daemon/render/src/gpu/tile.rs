@@ -25,7 +25,7 @@ use super::readback::{Read, ReadbackRing, Source};
 use super::reproject::ReprojectParams;
 use super::{Aovs, FrameParams, GpuEnvironment, GpuError, GpuRenderer, GpuVolume};
 use crate::frame_plan::{Continuity, FramePlan, Start, Sums};
-use crate::reproject::RULE;
+use crate::reproject::{Rule, RULE};
 use isowall_model::composite::PixelForm;
 use isowall_model::{lowres, IblMethod, RenderSettings, View};
 
@@ -197,6 +197,8 @@ pub struct TileTarget {
     compose: [wgpu::BindGroup; IMAGES],
     denoise: Option<TileDenoise>,
     history: Option<TileHistory>,
+    /// The reprojection's acceptance and ageing rule ([`RULE`] unless set).
+    rule: Rule,
     bound: Option<Bound>,
     timestamps: Option<Timestamps>,
     /// What the running sums hold ([`FramePlan`]).
@@ -360,6 +362,7 @@ impl TileTarget {
                 compose,
                 denoise: None,
                 history: None,
+                rule: RULE,
                 bound: None,
                 timestamps,
                 sums: Sums::default(),
@@ -399,6 +402,12 @@ impl TileTarget {
     /// Frames in the running sums after the last frame.
     pub fn frames(&self) -> u32 {
         self.sums.frames
+    }
+
+    /// The rule the tile's reprojection follows from its next frame on (measurements compare
+    /// rules; the renderer's is [`RULE`]).
+    pub fn set_reproject_rule(&mut self, rule: Rule) {
+        self.rule = rule;
     }
 
     /// Whether the running sums hold a reprojected history (since they were last cleared).
@@ -592,7 +601,7 @@ impl GpuRenderer {
                 for (src, dst) in tile.aovs.shading().into_iter().zip(&h.prev) {
                     enc.copy_buffer_to_buffer(src, 0, dst, 0, None);
                 }
-                let rp = ReprojectParams::new(&params, prev, &RULE);
+                let rp = ReprojectParams::new(&params, prev, &tile.rule);
                 ctx.write_buffer(&h.params, 0, bytemuck::bytes_of(&rp));
                 self.isosurface.pass(&mut enc, &bound.isosurface, low_size, ts(0));
                 self.reproject.pass(&mut enc, &h.bind, low_size);
