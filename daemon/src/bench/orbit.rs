@@ -16,7 +16,8 @@
 //!   error a history of that many samples would have without bias;
 //! - ablations of the reprojection rule (`reprojected/...`): the nearest previous pixel instead of
 //!   the bilinear taps, the plane test off, the normal test off, both off (the same-side test stays),
-//!   the accepted taps' blend not renormalized (a history shrinks by its rejected share),
+//!   the accepted taps' blend renormalized to 1 (the rule before `accepted_share`: a history at an
+//!   edge keeps its whole weight),
 //!   a history cap of 8, 32 and 64 frames instead of 16 (32 and 64 differ only in an orbit of
 //!   more than 33 frames);
 //! - the reprojected orbit repeated `--repeats` times with disjoint sample patterns (each repeat's
@@ -140,7 +141,7 @@ fn variants(samples: u32, compare: u32) -> Vec<Variant> {
         ("no-plane-test", Rule { plane_tolerance: UNTESTED_PLANE, ..RULE }),
         ("no-normal-test", Rule { normal_agreement: UNTESTED_NORMAL, ..RULE }),
         ("no-rejection", Rule { plane_tolerance: UNTESTED_PLANE, normal_agreement: UNTESTED_NORMAL, ..RULE }),
-        ("accepted-share", Rule { accepted_share: true, ..RULE }),
+        ("renormalized", Rule { accepted_share: false, ..RULE }),
         ("cap8", Rule { max_age: 8.0, ..RULE }),
         ("cap32", Rule { max_age: 32.0, ..RULE }),
         ("cap64", Rule { max_age: 64.0, ..RULE }),
