@@ -8,8 +8,9 @@
 // - a tap counts where it lies in the previous rectangle, had a hit, p lies within
 //   `plane_tolerance` of its footprint (depth * 2 tan(fov_y / 2) / H) from its tangent plane, the
 //   normals agree (dot >= `normal_agreement`) and both frames see the same side of the surface;
-// - the new sums are the counting taps' sums blended by their bilinear weights (renormalized;
-//   with `accepted_share` not: the rejected taps' share of the history is dropped),
+// - the new sums are the counting taps' sums blended by their bilinear weights, with
+//   `accepted_share` (the renderer's rule) not renormalized: the rejected taps' share of the
+//   history is dropped; without it renormalized to 1,
 //   scaled to an age of at most `max_age` frames: sums * min(1, max_age / weight), the weight
 //   (frames' worth of samples) being the w of the E sum;
 // - every other pixel (no hit, no tap counting) starts at 0.
