@@ -476,4 +476,20 @@ mod tests {
         short.observe(&short.split().rects[0].clone(), 3.0);
         assert_eq!(short.loads(short.split())["n"], 3.0);
     }
+
+    #[test]
+    fn a_wall_config_gives_each_node_its_own_tiles_first() {
+        let toml = "[wall]\nname = \"w\"\n[camera]\neye = [0, -10, 0]\ntarget = [0, 0, 0]\nup = [0, 0, 1]\n\
+                    [volume]\nsource = \"procedural:engine\"\n\
+                    [[tiles]]\nname = \"a\"\nx = 0\ny = 0\nwidth = 64\nheight = 48\n\
+                    [[tiles]]\nname = \"b\"\nx = 64\ny = 0\nwidth = 64\nheight = 48\n\
+                    [[nodes]]\nname = \"n0\"\naddress = \"127.0.0.1:7000\"\ntiles = [\"a\"]\n\
+                    [[nodes]]\nname = \"n1\"\naddress = \"127.0.0.1:7001\"\ntiles = [\"b\"]\n";
+        let config = WallConfig::parse(toml, std::path::Path::new("w.toml")).unwrap();
+        let b = Balancer::for_wall(&config);
+        let rects: Vec<(&str, u32, &str)> =
+            b.split().rects.iter().map(|r| (r.tile.as_str(), r.rows, r.renderer.as_str())).collect();
+        assert_eq!(rects, [("a", 48, "n0"), ("b", 48, "n1")]);
+        assert_eq!(b.hysteresis(), DEFAULT_HYSTERESIS);
+    }
 }
