@@ -470,6 +470,24 @@ impl TryFrom<WireSettings> for RenderSettings {
     }
 }
 
+/// A work rectangle of the load-balanced split on the wire ([`crate::balance::WorkRect`]): the
+/// tile and its renderer by their index in the wall config's `tiles` and `nodes` (both ends read
+/// the same config), rows `first_row .. first_row + rows` of the tile, its full width.
+#[derive(Serialize, Deserialize, Debug, Clone, Copy, PartialEq, Eq)]
+pub struct WireWorkRect {
+    pub tile: u32,
+    pub first_row: u32,
+    pub rows: u32,
+    pub renderer: u32,
+}
+
+/// A frame's split on the wire ([`crate::balance::Split`]); checked whole by
+/// [`crate::balance::share::split_from_wire`] before a node uses any of it.
+#[derive(Serialize, Deserialize, Debug, Clone, Default, PartialEq, Eq)]
+pub struct WireSplit {
+    pub rects: Vec<WireWorkRect>,
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -19,12 +19,18 @@
 //!   renderers, so their running sums stay where they are.
 //! - Nodes that take part ([`Balancer::set_nodes`]): a node that is down renders nothing, and its
 //!   tiles (which nobody shows) are left out.
+//! - What a node makes of a split ([`share::NodeShare`]): the rectangles it renders, those it
+//!   sends to each tile's owner, and those each peer sends it (the compositor's expectation); and
+//!   the split on the wire ([`crate::wire::WireSplit`]: tiles and nodes by their index in the
+//!   wall config), checked whole before a node uses it.
 
 use std::collections::{BTreeMap, BTreeSet};
 
 use serde::{Deserialize, Serialize};
 
 use crate::config::WallConfig;
+
+pub mod share;
 
 /// Bands per tile by default: 32 bands of a 1080-row tile are about 34 rows each.
 pub const DEFAULT_BANDS: u32 = 32;
