@@ -57,6 +57,9 @@
 // adds its share (its samples / all samples) of the frame's estimate (`AoDispatches` in
 // daemon/render/src/gpu/ao.rs: lavapipe ends an invocation's loops past 65535 iterations in all).
 @group(0) @binding(9) var<storage, read> ao_dispatch: vec4<u32>;
+// Accumulated per frame: the hit position the samples were taken at (xyz, world; w 0), weighted
+// as acc_ibl.w: divided by it, where a reprojected history stands (reproject.wgsl's drift test).
+@group(0) @binding(10) var<storage, read_write> acc_pos: array<vec4<f32>>;
 
 // The pipeline's path (`AoPath` in daemon/render/src/gpu/ao.rs): AO_PATH_ANY holds every method
 // and test, the frame's parameters choosing; AO_PATH_EXACT only ours with the exact test and no
@@ -580,5 +583,6 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     acc_ao[idx] += share * vec4<f32>(bent_n, a);
     acc_ibl[idx] += vec4<f32>(share * e, share);
+    acc_pos[idx] += vec4<f32>(share * p, 0.0);
     out_fetches[idx] += fetches;
 }

@@ -13,6 +13,10 @@
 //   history is dropped; without it renormalized to 1,
 //   scaled to an age of at most `max_age` frames: sums * min(1, max_age / weight), the weight
 //   (frames' worth of samples) being the w of the E sum;
+//   before the cap, a history whose samples stand too far from p is scaled down
+//   (`drift_tolerance`): the carried position sum over the weight is where the history's samples
+//   were taken, on average; at a distance d of more than the tolerance (in footprints of p) the
+//   sums are multiplied by (tolerance / d)^2;
 // - every other pixel (no hit, no tap counting) starts at 0.
 //
 //#include camera.wgsl
@@ -37,7 +41,7 @@ struct ReprojectParams {
     normal_agreement: f32,       // the least dot of the two normals accepted
     nearest: u32,                // 1: the previous pixel the projection falls in, not bilinear
     accepted_share: u32,         // 1: the blend not renormalized (rejected taps' share dropped)
-    _pad0: u32,
+    drift_tolerance: f32,        // footprints the history's samples may stand from p, unscaled
     _pad1: u32,
     _pad2: u32,
 }
@@ -58,6 +62,9 @@ var<private> params: ReprojectParams;
 // This frame's running sums, before the AO kernel adds its frame.
 @group(0) @binding(7) var<storage, read_write> acc_ao: array<vec4<f32>>;
 @group(0) @binding(8) var<storage, read_write> acc_ibl: array<vec4<f32>>;
+// The previous frame's summed sample positions, and this frame's carried over.
+@group(0) @binding(9) var<storage, read> prev_pos: array<vec4<f32>>;
+@group(0) @binding(10) var<storage, read_write> acc_pos: array<vec4<f32>>;
 
 // Where world point p falls in the previous full image, in pixels (x right, y down; pixel
 // (i, j) covers [i, i + 1) x [j, j + 1)), or a negative z where it lies behind the camera.
@@ -110,6 +117,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let i = gid.x + gid.y * params.rect_size.x;
     var ao = vec4<f32>(0.0);
     var ibl = vec4<f32>(0.0);
+    var pos = vec4<f32>(0.0);
     if in_color[i].w >= 0.5 {
         let dir = camera_ray(params.rect_origin + gid.xy, params.full_size, params.forward, params.right.xyz, params.up.xyz);
         let g = in_geometry[i];
@@ -129,6 +137,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             var wsum = 0.0;
             var sum_ao = vec4<f32>(0.0);
             var sum_ibl = vec4<f32>(0.0);
+            var sum_pos = vec4<f32>(0.0);
             for (var k = 0; k < 4; k += 1) {
                 let o = vec2<i32>(k & 1, k >> 1u);
                 let w = select(1.0 - t.x, t.x, o.x == 1) * select(1.0 - t.y, t.y, o.y == 1);
@@ -139,21 +148,35 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
                     wsum += w;
                     sum_ao += w * prev_ao[j];
                     sum_ibl += w * prev_ibl[j];
+                    sum_pos += w * prev_pos[j];
                 }
             }
             if wsum > 0.0 {
                 let norm = select(wsum, 1.0, params.accepted_share != 0u);
                 ao = sum_ao / norm;
                 ibl = sum_ibl / norm;
+                pos = sum_pos / norm;
+                if ibl.w > 0.0 {
+                    let footprint = g.w * 2.0 * params.forward.w / f32(params.full_size.y);
+                    let d = length(pos.xyz / ibl.w - p) / footprint;
+                    if d > params.drift_tolerance {
+                        let r = params.drift_tolerance / d;
+                        ao *= r * r;
+                        ibl *= r * r;
+                        pos *= r * r;
+                    }
+                }
                 let weight = ibl.w;
                 if weight > params.max_age {
                     let keep = params.max_age / weight;
                     ao *= keep;
                     ibl *= keep;
+                    pos *= keep;
                 }
             }
         }
     }
     acc_ao[i] = ao;
     acc_ibl[i] = ibl;
+    acc_pos[i] = pos;
 }

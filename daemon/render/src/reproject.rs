@@ -26,6 +26,13 @@
 //!   its weight (frames' worth of samples: the AO kernel adds its share of a frame to the w of the
 //!   E sum), and the sums are multiplied by `min(1, max_age / weight)`, so that old samples of a
 //!   moving view fade and a pixel's estimate follows the surface it shows;
+//! - before the cap, a history whose samples stand too far from the new hit is scaled down
+//!   ([`Rule::drift`]): each pixel also sums the hit positions its samples were taken
+//!   at (weighted as the others, so position sum / weight is where its history stands); at a
+//!   distance d of more than the tolerance (in footprints of the new hit) the sums are multiplied
+//!   by (tolerance / d)^2. Where taps are rejected a history is carried from one side only and
+//!   creeps away from the point it stands for, a little each frame: near a crease or a
+//!   silhouette that drift, not noise, was the moving error (docs/bench/orbit-drift-lavapipe.md);
 //! - every other pixel starts at 0 (its weight restarts).
 //!
 //! A tile whose history was reprojected divides its sums by the per-pixel weight (compose and the
@@ -51,11 +58,48 @@ pub struct Rule {
     /// bilinear weights without renormalizing them to 1, so where taps are rejected the history
     /// (weight included) shrinks by the rejected share.
     pub accepted_share: bool,
+    /// How far the carried history's samples may stand from the new hit before the history is
+    /// scaled down by (tolerance / distance)^2.
+    pub drift: DriftTolerance,
+}
+
+/// [`Rule::drift`]: a distance in footprints of the new hit.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum DriftTolerance {
+    /// No drift test.
+    Off,
+    /// This many footprints.
+    Fixed(f32),
+    /// This many footprints over the square root of the AO samples a frame: the more samples a
+    /// frame brings, the less a drifted history is worth against them (measured best on the
+    /// engine: 1 footprint at 4 samples, 0.25-0.5 at 16).
+    OverSqrtSamples(f32),
+}
+
+impl DriftTolerance {
+    /// The tolerance in footprints at `samples` AO samples a frame (infinite: no test).
+    pub fn footprints(self, samples: u32) -> f32 {
+        match self {
+            DriftTolerance::Off => f32::INFINITY,
+            DriftTolerance::Fixed(t) => t,
+            DriftTolerance::OverSqrtSamples(scale) => scale / (samples.max(1) as f32).sqrt(),
+        }
+    }
 }
 
 /// The rule the renderer uses.
-pub const RULE: Rule =
-    Rule { max_age: 16.0, plane_tolerance: 1.0, normal_agreement: 0.9, nearest: false, accepted_share: true };
+pub const RULE: Rule = Rule {
+    max_age: 16.0,
+    plane_tolerance: 1.0,
+    normal_agreement: 0.9,
+    nearest: false,
+    accepted_share: true,
+    drift: DriftTolerance::OverSqrtSamples(DRIFT_SCALE),
+};
+
+/// The renderer's drift tolerance times the square root of the AO samples a frame: 1 footprint
+/// at 4 samples (docs/bench/orbit-drift-lavapipe.md).
+pub const DRIFT_SCALE: f32 = 2.0;
 
 /// A frame's geometry over its (low) rectangle: per pixel, rows top to bottom.
 pub struct Geometry<'a> {
@@ -165,39 +209,61 @@ pub fn keep(weight: f32, rule: &Rule) -> f32 {
     }
 }
 
-/// The CPU twin of `Kernel::Reproject`: `next`'s running sums (bent + A, E rgb + weight) carried
-/// from `prev`'s (`prev_ao`, `prev_ibl`) under `rule`, before the AO kernel adds the new frame.
-pub fn reproject(
-    prev: &Geometry,
-    prev_ao: &[[f32; 4]],
-    prev_ibl: &[[f32; 4]],
-    next: &Geometry,
-    rule: &Rule,
-) -> (Vec<[f32; 4]>, Vec<[f32; 4]>) {
-    sources(prev, next, rule)
-        .into_iter()
-        .map(|taps| {
-            let (mut wsum, mut ao, mut ibl) = (0.0f32, [0.0f32; 4], [0.0f32; 4]);
-            for (j, w) in taps {
-                wsum += w;
-                for c in 0..4 {
-                    ao[c] += w * prev_ao[j][c];
-                    ibl[c] += w * prev_ibl[j][c];
-                }
+/// A rectangle's running sums, per pixel: bent + A, E rgb + weight, position (xyz) + 0.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Sums {
+    pub ao: Vec<[f32; 4]>,
+    pub ibl: Vec<[f32; 4]>,
+    pub pos: Vec<[f32; 4]>,
+}
+
+/// The factor a history whose samples stand `distance` footprints from the new hit is scaled by
+/// at a tolerance of `tolerance` footprints: `min(1, (tolerance / distance)^2)`.
+pub fn drift_keep(distance: f32, tolerance: f32) -> f32 {
+    if distance > tolerance {
+        let r = tolerance / distance;
+        r * r
+    } else {
+        1.0
+    }
+}
+
+/// The CPU twin of `Kernel::Reproject`: `next`'s running sums carried from `prev`'s under
+/// `rule`, before the AO kernel adds the new frame of `samples` AO samples.
+pub fn reproject(prev: &Geometry, prev_sums: &Sums, next: &Geometry, rule: &Rule, samples: u32) -> Sums {
+    let tolerance = rule.drift.footprints(samples);
+    let nc = Camera32::new(next.view);
+    let pixel_size = 2.0 * nc.rays.tan_half / nc.rays.full.1;
+    let mut out = Sums::default();
+    for (i, taps) in sources(prev, next, rule).into_iter().enumerate() {
+        let (mut wsum, mut ao, mut ibl, mut pos) = (0.0f32, [0.0f32; 4], [0.0f32; 4], [0.0f32; 4]);
+        for (j, w) in taps {
+            wsum += w;
+            for c in 0..4 {
+                ao[c] += w * prev_sums.ao[j][c];
+                ibl[c] += w * prev_sums.ibl[j][c];
+                pos[c] += w * prev_sums.pos[j][c];
             }
-            if wsum > 0.0 {
-                let norm = if rule.accepted_share { 1.0 } else { wsum };
-                ao = ao.map(|x| x / norm);
-                ibl = ibl.map(|x| x / norm);
-                let k = keep(ibl[3], rule);
-                if k < 1.0 {
-                    ao = ao.map(|x| x * k);
-                    ibl = ibl.map(|x| x * k);
-                }
+        }
+        if wsum > 0.0 {
+            let norm = if rule.accepted_share { 1.0 } else { wsum };
+            let mut k = 1.0 / norm;
+            if ibl[3] * k > 0.0 {
+                let (p, _) = nc.point(next, i);
+                let centre: [f32; 3] = std::array::from_fn(|c| pos[c] / ibl[3]);
+                let d = sub(centre, p);
+                k *= drift_keep(dot(d, d).sqrt() / (next.depth[i] * pixel_size), tolerance);
             }
-            (ao, ibl)
-        })
-        .unzip()
+            k *= keep(ibl[3] * k, rule);
+            ao = ao.map(|x| x * k);
+            ibl = ibl.map(|x| x * k);
+            pos = pos.map(|x| x * k);
+        }
+        out.ao.push(ao);
+        out.ibl.push(ibl);
+        out.pos.push(pos);
+    }
+    out
 }
 
 #[cfg(test)]
@@ -275,6 +341,47 @@ mod tests {
         let centre = 12 * 32 + 16;
         assert_eq!(sources(&ga, &gb, &nearest)[centre].len(), 1);
         assert!(sources(&ga, &gb, &RULE)[centre].len() >= 2);
+    }
+
+    #[test]
+    fn a_history_that_drifted_off_its_point_is_scaled_down_by_the_squared_ratio() {
+        // The renderer's tolerance: 1 footprint at 4 samples a frame, half at 16.
+        assert_eq!(RULE.drift.footprints(4), 1.0);
+        assert_eq!(RULE.drift.footprints(16), 0.5);
+        assert_eq!(DriftTolerance::Fixed(0.3).footprints(16), 0.3);
+        assert_eq!(DriftTolerance::Off.footprints(4), f32::INFINITY);
+        assert_eq!(drift_keep(0.5, 1.0), 1.0);
+        assert_eq!(drift_keep(2.0, 1.0), 0.25);
+        assert_eq!(drift_keep(1e9, DriftTolerance::Off.footprints(4)), 1.0);
+        // A still camera carries each pixel from itself: a history of weight 4 whose samples
+        // stand where the pixel's hit is keeps its weight; one standing two footprints beside it
+        // (along the plane) keeps a quarter.
+        let a = view(DVec3::new(0.0, 0.0, 2.0));
+        let (hit, depth, normal) = plane(&a);
+        let g = Geometry { view: &a, hit: &hit, depth: &depth, normal: &normal };
+        let cam = Camera32::new(&a);
+        let footprint = |i: usize| depth[i] * 2.0 * cam.rays.tan_half / cam.rays.full.1;
+        let sums = |offset: f32| {
+            let pos = (0..hit.len())
+                .map(|i| {
+                    let (p, _) = cam.point(&g, i);
+                    [4.0 * (p[0] + offset * footprint(i)), 4.0 * p[1], 4.0 * p[2], 0.0]
+                })
+                .collect();
+            Sums {
+                ao: vec![[0.0, 0.0, 4.0, 2.0]; hit.len()],
+                ibl: vec![[1.0, 1.0, 1.0, 4.0]; hit.len()],
+                pos,
+            }
+        };
+        let centre = 12 * 32 + 16;
+        for (offset, want) in [(0.0, 4.0), (2.0 * RULE.drift.footprints(4), 1.0)] {
+            let out = reproject(&g, &sums(offset), &g, &RULE, 4);
+            let weight = out.ibl[centre][3];
+            assert!((weight - want).abs() < 1e-3 * want, "offset {offset}: weight {weight}");
+            // Every sum is scaled alike: the occlusion estimate (A / weight) is unchanged.
+            assert!((out.ao[centre][3] / weight - 0.5).abs() < 1e-5);
+        }
     }
 
     #[test]

@@ -15,7 +15,7 @@ use isowall_render::gpu::{
     tile::work_view, FrameRead, GpuRenderer, GpuVolume, ReadbackRing, TileFrame, TileOutput, TileSums,
     TileTarget,
 };
-use isowall_render::reproject::{self, Geometry, Rule, RULE};
+use isowall_render::reproject::{self, DriftTolerance, Geometry, Rule, RULE};
 
 /// `view` with its camera turned by `deg` degrees about the world's z axis through its target.
 fn orbit(view: &View, deg: f64) -> View {
@@ -140,10 +140,22 @@ fn the_gpu_reprojection_is_its_cpu_twin_carrying_the_accepted_share() {
     gpu_reprojection_is_its_cpu_twin(Rule { accepted_share: true, ..RULE });
 }
 
+#[test]
+fn the_gpu_reprojection_is_its_cpu_twin_without_and_with_a_tight_drift_test() {
+    if common::gpu().is_none() {
+        return;
+    }
+    let loose = gpu_reprojection_is_its_cpu_twin(Rule { drift: DriftTolerance::Off, ..RULE });
+    let tight = gpu_reprojection_is_its_cpu_twin(Rule { drift: DriftTolerance::Fixed(0.1), ..RULE });
+    // The tight test scales histories the loose one keeps whole.
+    assert!(tight > loose, "histories below the cap: {tight} with the tight test, {loose} without");
+}
+
 /// After still frames and a 4 degree orbit, the GPU's carried sums under `rule` are the CPU
-/// twin's.
-fn gpu_reprojection_is_its_cpu_twin(rule: Rule) {
-    let Some(gpu) = common::gpu() else { return };
+/// twin's. Returns how many carried histories are below the cap (scaled by a rejected share or
+/// the drift test).
+fn gpu_reprojection_is_its_cpu_twin(rule: Rule) -> usize {
+    let Some(gpu) = common::gpu() else { return 0 };
     let (volume, view, s) = common::ambient_sphere_scene(96, 72);
     let gv = gpu.upload(&volume).unwrap();
     let moved = orbit(&view, 4.0);
@@ -156,8 +168,12 @@ fn gpu_reprojection_is_its_cpu_twin(rule: Rule) {
     let (hb, db, nb) = geometry(&after);
     let prev = Geometry { view: &view, hit: &ha, depth: &da, normal: &na };
     let next = Geometry { view: &moved, hit: &hb, depth: &db, normal: &nb };
-    let (carried_ao, carried_ibl) = reproject::reproject(&prev, &before.ao, &before.ibl, &next, &rule);
-    let (mut mismatched, mut accepted, mut hits) = (0, 0, 0);
+    let prev_sums =
+        reproject::Sums { ao: before.ao.clone(), ibl: before.ibl.clone(), pos: before.pos.clone() };
+    let twin = reproject::reproject(&prev, &prev_sums, &next, &rule, s.ao.samples);
+    let (carried_ao, carried_ibl) = (&twin.ao, &twin.ibl);
+    let (mut mismatched, mut accepted, mut hits, mut below_cap) = (0, 0, 0, 0);
+    let (basis, w) = (moved.camera.basis(), moved.rect.width as usize);
     for i in 0..hb.len() {
         if !hb[i] {
             assert_eq!(after.ibl[i][3], 0.0, "no hit, pixel {i}");
@@ -172,11 +188,24 @@ fn gpu_reprojection_is_its_cpu_twin(rule: Rule) {
         }
         if carried_ibl[i][3] > 0.0 {
             accepted += 1;
-            // Aged to the cap; carrying the accepted share, less where taps were rejected.
+            // Aged to the cap; carrying the accepted share, or a drifted history, less.
             let carried = carried_ibl[i][3];
-            let aged =
-                (carried - rule.max_age).abs() < 1e-4 || (rule.accepted_share && carried < rule.max_age);
+            let scaled = rule.accepted_share || rule.drift != DriftTolerance::Off;
+            let aged = (carried - rule.max_age).abs() < 1e-4 || (scaled && carried < rule.max_age);
             assert!(aged, "aged weight {carried}");
+            if carried < rule.max_age - 1e-4 {
+                below_cap += 1;
+            }
+            // The carried positions are the twin's: this frame added its own hit to them.
+            let hit =
+                moved.camera.eye + f64::from(db[i]) * moved.ray_dir(&basis, (i % w) as u32, (i / w) as u32);
+            for (c, want) in [hit.x, hit.y, hit.z].into_iter().enumerate() {
+                let added = f64::from(after.pos[i][c] - twin.pos[i][c]);
+                assert!(
+                    (added - want).abs() <= 1e-3 * (1.0 + want.abs()),
+                    "pixel {i}: added {added}, hit {want}"
+                );
+            }
             // This frame added an occlusion in [0, 1] to the carried sum.
             let added = after.ao[i][3] - carried_ao[i][3];
             assert!((-1e-4..=1.0 + 1e-4).contains(&added), "pixel {i}: added {added}");
@@ -188,6 +217,7 @@ fn gpu_reprojection_is_its_cpu_twin(rule: Rule) {
     // Borderline pixels (a projection on a pixel edge, a plane distance at the tolerance) may fall
     // either way in f32 on the two sides.
     assert!(mismatched * 200 <= hits, "{mismatched} of {hits} differ");
+    below_cap
 }
 
 #[test]

@@ -60,7 +60,7 @@ pub enum BenchCommand {
     /// consecutive frames; the converged references' own is the floor) and the median ms per
     /// frame; `--out` writes every frame's numbers as CSV. Where the history's error goes: raw at
     /// `--compare-samples`, the reprojection rule's ablations (nearest pixel, rejection tests off,
-    /// history caps), means from `--from-frame`, the reprojected error split into bias and std
+    /// history caps, drift tolerances), means from `--from-frame`, the reprojected error split into bias and std
     /// over `--repeats` runs (`--split-out`) and by history length (`--buckets-out`).
     Orbit(orbit::OrbitArgs),
     /// Whether the default look shows shape: per scene and IBL method, how much darker surface

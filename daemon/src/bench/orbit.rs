@@ -19,7 +19,8 @@
 //!   the accepted taps' blend renormalized to 1 (the rule before `accepted_share`: a history at an
 //!   edge keeps its whole weight),
 //!   a history cap of 8, 32 and 64 frames instead of 16 (32 and 64 differ only in an orbit of
-//!   more than 33 frames);
+//!   more than 33 frames), the drift test off and at other tolerances (`Rule::drift`: 1 and 3
+//!   footprints over the square root of the samples a frame instead of 2);
 //! - the reprojected orbit repeated `--repeats` times with disjoint sample patterns (each repeat's
 //!   `settings.ao.frame` offset by [`REPEAT_STRIDE`]), its error per frame split into RMS bias and
 //!   RMS std over the repeats ([`history::split`] says how); and where the bias sits: the RMS
@@ -41,7 +42,7 @@ use clap::Args;
 use history::{blurred, split, Buckets, Split, BLUR_SIGMAS};
 use isowall_model::{Camera, Denoise, FrameState, RenderSettings, View};
 use isowall_render::gpu::{FrameRead, GpuRenderer, GpuVolume, ReadbackRing, TileFrame, TileSums, TileTarget};
-use isowall_render::reproject::{Rule, RULE};
+use isowall_render::reproject::{DriftTolerance, Rule, RULE};
 use isowall_render::Frame;
 use std::path::PathBuf;
 use std::time::Instant;
@@ -145,6 +146,9 @@ fn variants(samples: u32, compare: u32) -> Vec<Variant> {
         ("cap8", Rule { max_age: 8.0, ..RULE }),
         ("cap32", Rule { max_age: 32.0, ..RULE }),
         ("cap64", Rule { max_age: 64.0, ..RULE }),
+        ("no-drift-test", Rule { drift: DriftTolerance::Off, ..RULE }),
+        ("drift-scale1", Rule { drift: DriftTolerance::OverSqrtSamples(1.0), ..RULE }),
+        ("drift-scale3", Rule { drift: DriftTolerance::OverSqrtSamples(3.0), ..RULE }),
     ];
     v.extend(ablations.into_iter().map(|(name, rule)| Variant::ablation(name, samples, rule)));
     v

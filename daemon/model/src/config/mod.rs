@@ -134,12 +134,12 @@ pub const MAX_WALL_EXTENT: u64 = 1 << 20;
 /// one terabytes.
 pub const SPARSE_WALL_PIXELS: u64 = 1 << 24;
 pub const MAX_WALL_SPARSENESS: u64 = 64;
-/// The GPU bytes a node's tile takes per pixel, at most: five AOV buffers (68 bytes a pixel of
+/// The GPU bytes a node's tile takes per pixel, at most: six AOV buffers (84 bytes a pixel of
 /// its work rectangle, the denoiser's guard band included), the depth buffer (4) and six RGBA8
 /// images (24) (`TileTarget` and `ShownImages` in daemon/render/src/gpu/tile.rs), rounded up.
-pub const GPU_BYTES_PER_TILE_PIXEL: u64 = 100;
+pub const GPU_BYTES_PER_TILE_PIXEL: u64 = 116;
 /// The most GPU memory a node's tiles may take together ([`GPU_BYTES_PER_TILE_PIXEL`] times their
-/// pixels): 8 GiB, about 86 million pixels (ten 3840x2160 tiles).
+/// pixels): 8 GiB, about 74 million pixels (eight 3840x2160 tiles).
 pub const MAX_NODE_GPU_BYTES: u64 = 8 << 30;
 /// Default vertical field of view of the wall camera, degrees (that of [`Camera::framing`]).
 pub const DEFAULT_FOV_Y_DEG: f64 = crate::camera::DEFAULT_FOV_Y_DEG;

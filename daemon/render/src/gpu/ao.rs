@@ -126,6 +126,7 @@ impl AoKernel {
             storage_entry(6, false),
             storage_entry(7, false),
             storage_entry(8, false),
+            storage_entry(10, false),
             wgpu::BindGroupLayoutEntry {
                 binding: 9,
                 visibility: wgpu::ShaderStages::COMPUTE,
@@ -187,6 +188,7 @@ impl AoKernel {
             &a.fetches,
         ];
         let mut entries = buffer_entries(&buffers);
+        entries.push(wgpu::BindGroupEntry { binding: 10, resource: a.pos_sum.as_entire_binding() });
         entries.push(wgpu::BindGroupEntry {
             binding: 9,
             resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {

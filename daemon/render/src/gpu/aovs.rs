@@ -1,6 +1,6 @@
 //! The AOV buffers of a rectangle of pixels, the kernels' shared working set, by name: the
 //! isosurface kernel writes `direct`, `geometry` and `fetches`; the AO kernel adds into `ao_sum`,
-//! `ibl_sum` and `fetches`; reprojection, the filter and compose read them.
+//! `ibl_sum`, `pos_sum` and `fetches`; reprojection, the filter and compose read them.
 
 use super::GpuContext;
 
@@ -19,6 +19,10 @@ pub struct Aovs {
     pub ao_sum: wgpu::Buffer,
     /// Summed E (rgb) and the pixel's weight (w: frames' worth of samples).
     pub ibl_sum: wgpu::Buffer,
+    /// Summed hit position (xyz, world) the samples were taken at, weighted as the other sums
+    /// (w: 0): divided by the weight, where a reprojected history stands on the surface
+    /// ([`crate::reproject::Rule::drift_tolerance`]).
+    pub pos_sum: wgpu::Buffer,
 }
 
 impl Aovs {
@@ -31,6 +35,7 @@ impl Aovs {
             fetches: ctx.buffer("fetches", n * 4, usage),
             ao_sum: ctx.buffer("acc ao", n * VEC4_BYTES, usage),
             ibl_sum: ctx.buffer("acc ibl", n * VEC4_BYTES, usage),
+            pos_sum: ctx.buffer("acc pos", n * VEC4_BYTES, usage),
         }
     }
 
@@ -41,7 +46,7 @@ impl Aovs {
     }
 
     /// The running sums the AO kernel adds into (cleared when accumulation restarts).
-    pub(crate) fn sums(&self) -> [&wgpu::Buffer; 2] {
-        [&self.ao_sum, &self.ibl_sum]
+    pub(crate) fn sums(&self) -> [&wgpu::Buffer; 3] {
+        [&self.ao_sum, &self.ibl_sum, &self.pos_sum]
     }
 }

@@ -34,7 +34,8 @@ pub struct ReprojectParams {
     pub nearest: u32,
     /// 1: the accepted taps' blend is not renormalized ([`Rule::accepted_share`]).
     pub accepted_share: u32,
-    pub _pad0: u32,
+    /// [`Rule::drift`] at the frame's AO samples, in footprints (infinite: no test).
+    pub drift_tolerance: f32,
     pub _pad1: u32,
     pub _pad2: u32,
 }
@@ -63,7 +64,7 @@ impl ReprojectParams {
             normal_agreement: rule.normal_agreement,
             nearest: u32::from(rule.nearest),
             accepted_share: u32::from(rule.accepted_share),
-            _pad0: 0,
+            drift_tolerance: rule.drift.footprints(next.ao_samples),
             _pad1: 0,
             _pad2: 0,
         }
@@ -79,11 +80,13 @@ pub struct ReprojectKernel {
 
 impl ReprojectKernel {
     /// The bind group layout: parameters, this frame's hit flags and geometry, the previous
-    /// frame's hit flags, geometry and sums, this frame's sums written (a test holds it to naga's
-    /// reflection of the WGSL).
+    /// frame's hit flags, geometry and sums, this frame's sums written, the previous frame's
+    /// position sum, this frame's written (a test holds it to naga's reflection of the WGSL).
     pub(crate) fn entries() -> Vec<wgpu::BindGroupLayoutEntry> {
         let mut entries: Vec<_> = (0..=6).map(|b| storage_entry(b, true)).collect();
         entries.extend((7..=8).map(|b| storage_entry(b, false)));
+        entries.push(storage_entry(9, true));
+        entries.push(storage_entry(10, false));
         entries
     }
 
@@ -94,16 +97,29 @@ impl ReprojectKernel {
 
     /// The bind group of a tile: `params`, this frame's `aovs` (direct + hit, N + depth read, the
     /// sums written) and the previous frame's shading planes (direct + hit, N + depth, summed
-    /// bent + A, summed E: [`Aovs::shading`]'s order).
+    /// bent + A, summed E: [`Aovs::shading`]'s order) and position sum.
     pub(crate) fn bind(
         &self,
         ctx: &GpuContext,
         params: &wgpu::Buffer,
         aovs: &Aovs,
         prev: [&wgpu::Buffer; 4],
+        prev_pos: &wgpu::Buffer,
     ) -> wgpu::BindGroup {
         let a = aovs;
-        let all = [params, &a.direct, &a.geometry, prev[0], prev[1], prev[2], prev[3], &a.ao_sum, &a.ibl_sum];
+        let all = [
+            params,
+            &a.direct,
+            &a.geometry,
+            prev[0],
+            prev[1],
+            prev[2],
+            prev[3],
+            &a.ao_sum,
+            &a.ibl_sum,
+            prev_pos,
+            &a.pos_sum,
+        ];
         let entries = buffer_entries(&all);
         ctx.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("reproject"),
@@ -154,7 +170,7 @@ mod tests {
                 ("normal_agreement", offset_of!(ReprojectParams, normal_agreement)),
                 ("nearest", offset_of!(ReprojectParams, nearest)),
                 ("accepted_share", offset_of!(ReprojectParams, accepted_share)),
-                ("_pad0", offset_of!(ReprojectParams, _pad0)),
+                ("drift_tolerance", offset_of!(ReprojectParams, drift_tolerance)),
                 ("_pad1", offset_of!(ReprojectParams, _pad1)),
                 ("_pad2", offset_of!(ReprojectParams, _pad2)),
             ],

@@ -59,6 +59,8 @@ struct TileDenoise {
 struct TileHistory {
     /// direct + hit, N + depth, summed bent + A, summed E (+ weight), of the previous frame.
     prev: [wgpu::Buffer; 4],
+    /// The previous frame's summed sample positions.
+    prev_pos: wgpu::Buffer,
     params: wgpu::Buffer,
     bind: wgpu::BindGroup,
 }
@@ -487,6 +489,8 @@ pub struct TileSums {
     pub ao: Vec<[f32; 4]>,
     /// Summed E (rgb) and the pixel's weight (w: frames' worth of samples).
     pub ibl: Vec<[f32; 4]>,
+    /// Summed sample positions (xyz), weighted as `ibl`'s w.
+    pub pos: Vec<[f32; 4]>,
     /// Where the last frame was denoised, the filter's output in running-sum form over
     /// [`TileTarget::frames`]: E * frames (rgb), A * frames (w).
     pub denoised: Option<Vec<[f32; 4]>>,
@@ -601,6 +605,7 @@ impl GpuRenderer {
                 for (src, dst) in tile.aovs.shading().into_iter().zip(&h.prev) {
                     enc.copy_buffer_to_buffer(src, 0, dst, 0, None);
                 }
+                enc.copy_buffer_to_buffer(&tile.aovs.pos_sum, 0, &h.prev_pos, 0, None);
                 let rp = ReprojectParams::new(&params, prev, &tile.rule);
                 ctx.write_buffer(&h.params, 0, bytemuck::bytes_of(&rp));
                 self.isosurface.pass(&mut enc, &bound.isosurface, low_size, ts(0));
@@ -658,11 +663,12 @@ impl GpuRenderer {
                 ctx.buffer("previous acc ao", n * 16, storage),
                 ctx.buffer("previous acc ibl", n * 16, storage),
             ];
+            let prev_pos = ctx.buffer("previous acc pos", n * 16, storage);
             let params =
                 ctx.buffer("reproject params", std::mem::size_of::<ReprojectParams>() as u64, storage);
-            let bind =
-                self.reproject.bind(ctx, &params, &tile.aovs, [&prev[0], &prev[1], &prev[2], &prev[3]]);
-            TileHistory { prev, params, bind }
+            let prev_planes = [&prev[0], &prev[1], &prev[2], &prev[3]];
+            let bind = self.reproject.bind(ctx, &params, &tile.aovs, prev_planes, &prev_pos);
+            TileHistory { prev, prev_pos, params, bind }
         })?;
         tile.history = Some(made);
         Ok(())
@@ -897,6 +903,7 @@ impl GpuRenderer {
     pub fn read_tile_sums(&self, tile: &TileTarget) -> Result<TileSums, GpuError> {
         let ctx = &self.ctx;
         let mut picked = tile.aovs.shading().to_vec();
+        picked.push(&tile.aovs.pos_sum);
         if let (true, Some(d)) = (tile.filtered, &tile.denoise) {
             picked.push(&d.buffers.out);
         }
@@ -920,8 +927,8 @@ impl GpuRenderer {
         ctx.queue.submit([enc.finish()]);
         let (bytes, _) = super::read_buffers(ctx, &staging)?;
         let v = |k: usize| bytemuck::pod_collect_to_vec::<u8, [f32; 4]>(&bytes[k]);
-        let denoised = (bytes.len() > 4).then(|| v(4));
-        Ok(TileSums { color: v(0), geometry: v(1), ao: v(2), ibl: v(3), denoised })
+        let denoised = (bytes.len() > 5).then(|| v(5));
+        Ok(TileSums { color: v(0), geometry: v(1), ao: v(2), ibl: v(3), pos: v(4), denoised })
     }
 
     /// Records a read of the image holding `frame_id` (a snapshot) into `ring` and submits it;
