@@ -21,7 +21,7 @@ pub struct Aovs {
     pub ibl_sum: wgpu::Buffer,
     /// Summed hit position (xyz, world) the samples were taken at, weighted as the other sums
     /// (w: 0): divided by the weight, where a reprojected history stands on the surface
-    /// ([`crate::reproject::Rule::drift_tolerance`]).
+    /// ([`crate::reproject::Rule::drift`]).
     pub pos_sum: wgpu::Buffer,
 }
 
