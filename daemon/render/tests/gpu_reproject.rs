@@ -118,10 +118,10 @@ fn move_once(
     for k in 0..still {
         frame(gpu, &mut tile, &mut ring, gv, view, s, k, (k > 0).then_some((view, s)), temporal);
     }
-    let before = gpu.read_tile_sums(&tile).unwrap();
+    let before = gpu.read_tile_sums_with_positions(&tile).unwrap();
     // The wall's moving frames do not accumulate (the node machine's accumulate_frame is 0).
     frame(gpu, &mut tile, &mut ring, gv, moved, s, still, (still > 0).then_some((view, s)), temporal);
-    let after = gpu.read_tile_sums(&tile).unwrap();
+    let after = gpu.read_tile_sums_with_positions(&tile).unwrap();
     (before, after, tile)
 }
 

@@ -489,7 +489,8 @@ pub struct TileSums {
     pub ao: Vec<[f32; 4]>,
     /// Summed E (rgb) and the pixel's weight (w: frames' worth of samples).
     pub ibl: Vec<[f32; 4]>,
-    /// Summed sample positions (xyz), weighted as `ibl`'s w.
+    /// Summed sample positions (xyz), weighted as `ibl`'s w; empty unless read
+    /// ([`GpuRenderer::read_tile_sums_with_positions`]).
     pub pos: Vec<[f32; 4]>,
     /// Where the last frame was denoised, the filter's output in running-sum form over
     /// [`TileTarget::frames`]: E * frames (rgb), A * frames (w).
@@ -901,9 +902,20 @@ impl GpuRenderer {
     /// Reads back the tile's low rectangle as its last frame left it (hit flags, geometry, running
     /// sums), waiting for the GPU: for tests and benchmarks, not the frame path (it allocates).
     pub fn read_tile_sums(&self, tile: &TileTarget) -> Result<TileSums, GpuError> {
+        self.read_sums(tile, false)
+    }
+
+    /// [`GpuRenderer::read_tile_sums`] with the summed sample positions too (the drift test's).
+    pub fn read_tile_sums_with_positions(&self, tile: &TileTarget) -> Result<TileSums, GpuError> {
+        self.read_sums(tile, true)
+    }
+
+    fn read_sums(&self, tile: &TileTarget, positions: bool) -> Result<TileSums, GpuError> {
         let ctx = &self.ctx;
         let mut picked = tile.aovs.shading().to_vec();
-        picked.push(&tile.aovs.pos_sum);
+        if positions {
+            picked.push(&tile.aovs.pos_sum);
+        }
         if let (true, Some(d)) = (tile.filtered, &tile.denoise) {
             picked.push(&d.buffers.out);
         }
@@ -927,8 +939,10 @@ impl GpuRenderer {
         ctx.queue.submit([enc.finish()]);
         let (bytes, _) = super::read_buffers(ctx, &staging)?;
         let v = |k: usize| bytemuck::pod_collect_to_vec::<u8, [f32; 4]>(&bytes[k]);
-        let denoised = (bytes.len() > 5).then(|| v(5));
-        Ok(TileSums { color: v(0), geometry: v(1), ao: v(2), ibl: v(3), pos: v(4), denoised })
+        let planes = if positions { 5 } else { 4 };
+        let denoised = (bytes.len() > planes).then(|| v(planes));
+        let pos = if positions { v(4) } else { Vec::new() };
+        Ok(TileSums { color: v(0), geometry: v(1), ao: v(2), ibl: v(3), pos, denoised })
     }
 
     /// Records a read of the image holding `frame_id` (a snapshot) into `ring` and submits it;
