@@ -583,6 +583,8 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     acc_ao[idx] += share * vec4<f32>(bent_n, a);
     acc_ibl[idx] += vec4<f32>(share * e, share);
-    acc_pos[idx] += vec4<f32>(share * p, 0.0);
+    if params.positions != 0u {
+        acc_pos[idx] += vec4<f32>(share * p, 0.0);
+    }
     out_fetches[idx] += fetches;
 }

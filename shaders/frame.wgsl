@@ -37,7 +37,8 @@ struct FrameParams {
     env_height: u32,
     ao_exact: u32,           // ours: 1 exact per-cell test, 0 march with ao_step
     ao_sequence: u32,        // ours' 2D set: 0 R2, 1 Sobol (Owen-scrambled)
-    _pad2: u32,
+    // 1: the AO kernel sums the sample positions (a temporal tile's drift test)
+    positions: u32,
     sh: array<vec4<f32>, 9>, // SH9 of the environment (rgb), for IBL `bent`
     // object space (bricks.rs): the volume buffer holds a brick and its halo.
     data_offset: vec4<f32>,  // xyz: global sample index of the buffer's first sample; w: 1 in object space

@@ -241,7 +241,10 @@ pub fn report(wall: &Wall, elapsed: Duration) -> String {
             }
         }
     }
-    if !object.is_empty() {
+    if !object.is_empty() && wall.config.wall.balance {
+        s += "balance (bytes of rectangles sent to their tiles' owners per frame; placing: own render done -> \
+              tiles placed, of which work: encode, decode, place):\n";
+    } else if !object.is_empty() {
         s +=
             "object space (bytes sent to peers per frame; compositing: own render done -> tiles composited, \
               of which work: encode, decode, merge):\n";

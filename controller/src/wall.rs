@@ -5,12 +5,14 @@
 use crate::report::micros;
 use anyhow::{anyhow, bail, Context, Result};
 use isowall_model::adoption::{AdoptionOutput, BrickAssigner};
+use isowall_model::balance::share::split_to_wire;
+use isowall_model::balance::{Balancer, Split, WorkRect};
 use isowall_model::codec;
 use isowall_model::config::WallConfig;
 use isowall_model::frame_controller::{ControllerOutput, FrameController, FrameStats};
 use isowall_model::links::{Link as LinkId, Links};
 use isowall_model::messages::{printable, Message, Role, TileImage};
-use isowall_model::wire::FrameState;
+use isowall_model::wire::{Continuity, FrameState, WireRectCost};
 use isowall_model::{Camera, Governor, RenderSettings};
 use isowall_net::transport::{self, Channel, ChannelSender};
 use isowall_net::Identity;
@@ -160,6 +162,22 @@ pub struct Wall {
     /// Whether the tiles show their names (the operator's identify); told to each node again
     /// when it (re)connects.
     identify: bool,
+    /// A balanced screen-space wall (`[wall] balance = true`): the split's state.
+    balance: Option<WallBalance>,
+}
+
+/// A balanced wall's split on the controller: the model's rule, the split the nodes were sent
+/// last, and the last frame begun (whether the next one shows the same image).
+struct WallBalance {
+    balancer: Balancer,
+    /// Off: every node renders its own tiles (`Wall::set_balance`; the bench's unbalanced run).
+    on: bool,
+    sent: Option<Split>,
+    /// The nodes the split was sent to.
+    sent_to: Vec<String>,
+    last: Option<FrameState>,
+    /// Rows of the split sent last that another node than the tile's owner renders.
+    moved_rows: u64,
 }
 
 impl Wall {
@@ -306,7 +324,18 @@ impl Wall {
             last_try: HashMap::new(),
             bricks: None,
             identify: false,
+            balance: None,
         };
+        if wall.config.wall.balance {
+            wall.balance = Some(WallBalance {
+                balancer: Balancer::for_wall(&wall.config),
+                on: true,
+                sent: None,
+                sent_to: Vec::new(),
+                last: None,
+                moved_rows: 0,
+            });
+        }
         if wall.config.wall.mode == isowall_model::WallMode::Object {
             wall.bricks = Some(BrickAssigner::new(names));
         }
@@ -389,6 +418,70 @@ impl Wall {
         if self.bricks.as_mut().is_some_and(BrickAssigner::take_changed) {
             self.send_map(None).await;
         }
+    }
+
+    /// A balanced wall: the split for the frame `state` begins, sent to every up node before the
+    /// frame's state where it changed (or to a node that came back, which has none).
+    async fn send_split(&mut self, state: &FrameState) {
+        let mut up: Vec<String> = self.senders.keys().cloned().collect();
+        up.sort();
+        let Some(b) = self.balance.as_mut() else { return };
+        let still = state.continuity(b.last.as_ref()) == Continuity::Same;
+        b.last = Some(*state);
+        b.balancer.set_nodes(up.iter().cloned());
+        let split = if b.on { b.balancer.next_split(still).clone() } else { b.balancer.own_tiles() };
+        if b.sent.as_ref() == Some(&split) && b.sent_to == up {
+            return;
+        }
+        b.sent_to = up.clone();
+        let wire = match split_to_wire(&split, &self.config) {
+            Ok(w) => w,
+            Err(e) => {
+                eprintln!("isowall: balance: cannot send the split: {e}");
+                return;
+            }
+        };
+        b.moved_rows = 0;
+        for r in &split.rects {
+            if self.config.node_of_tile(&r.tile).is_some_and(|o| o.name != r.renderer) {
+                b.moved_rows += u64::from(r.rows);
+            }
+        }
+        b.sent = Some(split);
+        let message = Message::Split { from_frame: state.frame_id, split: wire };
+        let sends =
+            up.into_iter().map(|node| ControllerOutput::Send { node, message: message.clone() }).collect();
+        Box::pin(self.execute(sends)).await;
+    }
+
+    /// A balanced wall: what each rectangle `node` rendered cost, for the split's rule. Entries
+    /// that name no tile of the wall are left out.
+    fn observe_costs(&mut self, node: &str, costs: &[WireRectCost]) {
+        let Some(b) = self.balance.as_mut() else { return };
+        for c in costs {
+            let Some(tile) = self.config.tiles.get(c.tile as usize) else { continue };
+            let rect = WorkRect {
+                tile: tile.name.clone(),
+                first_row: c.first_row,
+                rows: c.rows,
+                renderer: node.into(),
+            };
+            b.balancer.observe(&rect, c.cost as f64);
+        }
+    }
+
+    /// A balanced wall: whether the split follows the costs (`true`, the config's default) or
+    /// every node renders its own tiles, from the next frame on.
+    pub fn set_balance(&mut self, on: bool) {
+        if let Some(b) = self.balance.as_mut() {
+            b.on = on;
+        }
+    }
+
+    /// A balanced wall: the split sent last, and the rows of it that travel to another node.
+    pub fn split(&self) -> Option<(&Split, u64)> {
+        let b = self.balance.as_ref()?;
+        Some((b.sent.as_ref()?, b.moved_rows))
     }
 
     /// object space: the brick map from the next frame on, to `only` or every up node.
@@ -527,6 +620,7 @@ impl Wall {
                 ControllerOutput::PeerIgnored { node, what, held_back } => {
                     eprintln!("isowall: node {node}: {what}{}", self.held_back(&node, held_back));
                 }
+                ControllerOutput::RectCosts { node, costs, .. } => self.observe_costs(&node, &costs),
                 ControllerOutput::PixelsMissing { node, frame_id, peers } => {
                     if peers.is_empty() {
                         eprintln!(
@@ -669,6 +763,7 @@ impl Wall {
         self.next_frame += 1;
         let state = FrameState::new(id, &request.camera, &request.settings, request.scale)
             .at_time_step(request.time_step);
+        self.send_split(&state).await;
         let now = self.now();
         let out = self.machine.begin_frame(now, state).map_err(|e| anyhow!("{e}"))?;
         self.execute(out).await;

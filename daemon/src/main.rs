@@ -2,12 +2,14 @@
 //! files, `bench` measures the renderer, `check-config` checks a wall config.
 
 mod args;
+mod balanced;
 mod bench;
 mod display;
 mod identify;
 mod notify;
 mod object;
 mod peer_addr;
+mod pixel_links;
 mod presenter;
 mod progress;
 mod render;

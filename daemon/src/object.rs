@@ -36,6 +36,7 @@
 //!   with the composited frame. A dead node's brick is not adopted: the survivors answer
 //!   `BrickFailed` with the reason and the wall composites without it until its node is back.
 
+use crate::pixel_links::PixelLinks;
 use crate::render_thread::{BrickData, CanvasJob, JobResult, RenderHandle, StepsOf, TileResult};
 use anyhow::{anyhow, Context, Result};
 use isowall_model::adoption::AdoptionError;
@@ -47,8 +48,7 @@ use isowall_model::object_machine::{BrickGeometry, ObjectMachine, ObjectOutput};
 use isowall_model::render_plan::RenderPlan;
 use isowall_model::wire::{Continuity, FrameSpec};
 use isowall_model::{Camera, RenderSettings};
-use isowall_net::pixels::{PeerConnection, PeerPixelsIn, PixelOutbox};
-use isowall_net::transport;
+use isowall_net::pixels::PeerPixelsIn;
 use isowall_net::Identity;
 use isowall_render::gpu::ObjectSpace;
 use isowall_volume::io::{RawSpec, VolumeLimit};
@@ -56,7 +56,6 @@ use isowall_volume::region::VolumeStream;
 use isowall_volume::steps::StepCache;
 use isowall_volume::{BlockMinMax, VolumeInfo, VolumeSource, VoxelRange};
 use std::collections::HashMap;
-use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -242,7 +241,9 @@ pub fn spawn_load(
 /// A composited frame: its tiles for the swap and the controller's `Composited`.
 pub struct Done {
     pub job: JobResult,
-    pub report: Message,
+    /// For the controller before Ready: object space's `Composited`; a balanced wall's
+    /// `RectCosts` and `Composited`.
+    pub reports: Vec<Message>,
     /// Where the wall filters the composited tile: the canvases the render thread filters and
     /// composes into the tiles' images (`job.tiles` is empty until then).
     pub canvas: Option<CanvasJob>,
@@ -256,16 +257,10 @@ pub struct ObjectNode {
     load_tx: tokio::sync::mpsc::UnboundedSender<LoadDone>,
     /// Fault injection (`--adopt-delay-ms`): a wait before reading an adopted brick.
     pub adopt_delay: Duration,
-    addrs: HashMap<String, SocketAddr>,
-    outbox: Option<PixelOutbox>,
-    /// The peers' open connections by link (to close the one whose pixels break the rules).
-    connections: HashMap<u64, PeerConnection>,
+    /// The pixel streams to and from the peers.
+    links: PixelLinks,
     /// The machine's clock.
     epoch: Instant,
-    /// How long each wait for a peer may take (the wall's deadline).
-    deadline: Duration,
-    /// The peers the last composited frame went without (logged when it changes).
-    missing: Vec<String>,
     /// A time-varying volume: the frames whose step was late here (the render thread's
     /// report), until they are composited.
     step_late: HashMap<u64, (u32, Duration)>,
@@ -306,22 +301,14 @@ impl ObjectNode {
                 plan.source
             ));
         }
-        let mut addrs = HashMap::new();
-        for peer in machine.receivers() {
-            let n = config.node(peer).ok_or_else(|| anyhow!("no node '{peer}' in the wall config"))?;
-            addrs.insert(peer.clone(), transport::resolve(&n.address)?);
-        }
+        let links = PixelLinks::new(config, machine.receivers())?;
         Ok(ObjectNode {
             machine,
             plan: setup.plan.clone(),
             load_tx,
             adopt_delay: Duration::ZERO,
-            addrs,
-            outbox: None,
-            connections: HashMap::new(),
+            links,
             epoch: Instant::now(),
-            deadline: Duration::from_millis(config.wall.deadline_ms),
-            missing: Vec::new(),
             step_late: HashMap::new(),
             filter_guard,
             cameras: HashMap::new(),
@@ -344,7 +331,7 @@ impl ObjectNode {
 
     /// The wall's deadline: each wait for a peer's stream ends there.
     pub fn deadline(&self) -> Duration {
-        self.deadline
+        self.links.deadline()
     }
 
     /// A new controller session: its frame ids start afresh.
@@ -356,8 +343,7 @@ impl ObjectNode {
 
     /// Opens the endpoint this node connects to its peers from (inside the async runtime).
     pub fn open_endpoint(&mut self, identity: &Identity) -> Result<()> {
-        self.outbox = Some(PixelOutbox::new(identity, self.addrs.clone(), self.deadline)?);
-        Ok(())
+        self.links.open_endpoint(identity)
     }
 
     /// A frame state arrived from the controller.
@@ -402,46 +388,22 @@ impl ObjectNode {
     /// Carries out the machine's outputs; returns the composited frames.
     fn execute(&mut self, outputs: Vec<ObjectOutput>) -> Vec<Done> {
         let mut done = Vec::new();
-        for out in outputs {
+        for out in self.links.execute(outputs) {
             match out {
-                ObjectOutput::SendPixels { peer, frame_id, bytes } => match &self.outbox {
-                    Some(o) => o.send(&peer, frame_id, bytes),
-                    None => tracing::error!(frame_id, %peer, "cannot send pixels: no client endpoint"),
-                },
-                ObjectOutput::ClosePeer { peer, link, reason } => {
-                    tracing::warn!(%peer, link, "closing the peer's connection: {reason}");
-                    if let Some(c) = self.connections.get(&link) {
-                        c.close(&reason);
-                    }
-                }
-                ObjectOutput::Dropped { peer, reason } => {
-                    tracing::warn!(%peer, "dropped the peer's pixels, its connection kept: {reason}")
-                }
                 ObjectOutput::Composited(c) => {
                     let report = self.machine.report(self.now(), &c);
-                    if c.missing != self.missing {
-                        if c.missing.is_empty() {
-                            tracing::info!(
-                                frame_id = c.frame_id,
-                                "composited with every peer's pixels again"
-                            );
-                        } else {
-                            tracing::warn!(
-                                frame_id = c.frame_id,
-                                missing = ?c.missing,
-                                "composited without the pixels of {} (not in by the compositing deadline; not waited for until they send again)",
-                                c.missing.join(", ")
-                            );
-                        }
-                        self.missing = c.missing.clone();
-                    }
+                    self.links.note_missing(&c);
                     let (job, canvas) = self.finish(c);
-                    done.push(Done { job, report, canvas });
+                    done.push(Done { job, reports: vec![report], canvas });
                 }
                 // Only `load` gives these, and handles them there.
                 ObjectOutput::Send(_) | ObjectOutput::Load { .. } => {
                     tracing::error!("object space: an adoption's output outside an adoption")
                 }
+                // The links carried them out.
+                ObjectOutput::SendPixels { .. }
+                | ObjectOutput::ClosePeer { .. }
+                | ObjectOutput::Dropped { .. } => {}
             }
         }
         done
@@ -550,10 +512,7 @@ impl ObjectNode {
     pub fn peer(&mut self, item: PeerPixelsIn) -> Vec<Done> {
         let (id, t0) = (item.pixels.frame_id, Instant::now());
         let link = item.connection.link();
-        if !self.connections.contains_key(&link) {
-            self.connections.retain(|_, c| c.is_open());
-            self.connections.insert(link, item.connection);
-        }
+        self.links.keep(item.connection);
         let out = self.machine.peer(self.now(), &item.cert, link, item.pixels);
         self.machine.add_work(id, t0.elapsed());
         self.execute(out)
@@ -581,6 +540,7 @@ impl From<TileCanvas> for TileResult {
             rgb8: t.rgb8,
             depth: t.depth,
             shading: t.shading,
+            fetches: 0,
         }
     }
 }

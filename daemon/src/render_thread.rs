@@ -56,6 +56,8 @@ pub struct TileResult {
     /// object space, shading form: per pixel the AOVs the tile's owner filters and composes
     /// (`isowall_render::gpu::TileOutput::shading`); empty otherwise.
     pub shading: Vec<[[f32; 4]; 4]>,
+    /// The trilinear fetches its render took (0 where it was not rendered here).
+    pub fetches: u64,
 }
 
 /// object space, where the wall filters the composited tile: the canvases of a frame's tiles
@@ -530,7 +532,11 @@ impl<'a> OnShow<'a> {
     /// form changed), those holding the later frame.
     fn tile(&self, name: &str) -> Option<&'a dyn Presentable> {
         if !self.object_space {
-            return self.targets.iter().find(|t| t.name == name).map(|t| t as &dyn Presentable);
+            if let Some(t) = self.targets.iter().find(|t| t.name == name) {
+                return Some(t);
+            }
+            // A balanced wall: its targets hold rectangles; its tiles are placed on the CPU.
+            return self.shown.iter().find(|t| t.name == name).map(|t| t as &dyn Presentable);
         }
         let canvas = self.canvases.iter().find(|t| t.name == name).map(|t| t as &dyn Presentable);
         let shown = self.shown.iter().find(|t| t.name == name).map(|t| t as &dyn Presentable);
@@ -750,7 +756,10 @@ impl RenderLoop {
             self.gpu
                 .render_tile(&mut self.targets[k], &frame, &mut self.ring)
                 .map_err(|e| format!("tile {name}: {e}"))?;
-            if let Some(node) = job.identify.as_ref().filter(|_| plan.views_are_tiles()) {
+            // Only a tile's own view shows its name (not a balanced wall's rectangle of it).
+            if let Some(node) =
+                job.identify.as_ref().filter(|_| plan.views_are_tiles() && plan.share.is_none())
+            {
                 let text = format!("{node} {name}");
                 let max = (view.rect.width, view.rect.height);
                 let at = match self.labels.iter().position(|l| l.text == text && l.tile == max) {
@@ -893,6 +902,7 @@ impl RenderLoop {
                 rgb8: out.rgb8.unwrap_or_default(),
                 depth: out.depth.unwrap_or_default(),
                 shading: out.shading.unwrap_or_default(),
+                fetches: out.counters.fetches,
             };
             let tiles = match tag.kind {
                 ReadKind::Canvas => {

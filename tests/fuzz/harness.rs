@@ -146,7 +146,8 @@ fn drive(machine: &mut NodeMachine, t: Duration, outputs: Vec<NodeOutput>) {
             | NodeOutput::Restart { .. }
             | NodeOutput::Identify { .. }
             | NodeOutput::Bricks { .. }
-            | NodeOutput::LoadBrick { .. } => {}
+            | NodeOutput::LoadBrick { .. }
+            | NodeOutput::Split { .. } => {}
         }
     }
 }

@@ -59,7 +59,7 @@ use crate::clock::{ClockEstimator, ClockOffset, ClockSample};
 use crate::messages::{printable, Message, ProtocolError, Role, TileImage};
 use crate::peer_log::PeerLog;
 use crate::swap_timing::SwapTiming;
-use crate::wire::FrameState;
+use crate::wire::{FrameState, WireRectCost};
 
 /// Pings and swaps remembered per node, at most (older ones are forgotten: their answers will be
 /// protocol errors, which they are after this many have gone unanswered).
@@ -100,6 +100,9 @@ pub enum ControllerOutput {
     /// says which and why (its text made printable). At most [`PeerLog::LINES`] of these per node
     /// per [`PeerLog::INTERVAL`]; `held_back` more were counted since the last one told.
     PeerIgnored { node: String, what: String, held_back: u64 },
+    /// load-balanced screen space: what each rectangle `node` rendered of `frame_id` cost (the
+    /// caller's `crate::balance::Balancer` observes them).
+    RectCosts { node: String, frame_id: u64, costs: Vec<WireRectCost> },
 }
 
 /// One node's part in one frame.
@@ -968,6 +971,17 @@ impl FrameController {
                 st.missing = missing.clone();
                 Ok(vec![ControllerOutput::PixelsMissing { node: node.to_string(), frame_id, peers: missing }])
             }
+            Message::RectCosts { frame_id, costs } => {
+                let st = self.nodes.get(node).expect("checked");
+                let sent = matches!((st.first_sent, st.last_sent), (Some(a), Some(b)) if (a..=b).contains(&frame_id));
+                if !sent || st.last_ready.is_some_and(|r| frame_id <= r) {
+                    return Err(err(format!(
+                        "RectCosts for frame {frame_id}, which it is not rendering (sent {:?}..={:?}, ready {:?})",
+                        st.first_sent, st.last_sent, st.last_ready
+                    )));
+                }
+                Ok(vec![ControllerOutput::RectCosts { node: node.to_string(), frame_id, costs }])
+            }
             Message::NodeInfo(info) => {
                 info.validate().map_err(err)?;
                 let st = self.nodes.get_mut(node).expect("checked");
@@ -1358,6 +1372,23 @@ mod tests {
         assert_eq!(stats.time_step, 6);
         assert_eq!(stats.per_node[0].step_late, Some(told));
         assert_eq!(stats.per_node[1].step_late, None);
+    }
+
+    #[test]
+    fn a_balanced_walls_costs_go_to_the_caller_only_for_a_frame_the_node_renders() {
+        let mut c = controller(&["a", "b"]);
+        c.begin_frame(ms(0), state(1)).unwrap();
+        let costs = vec![WireRectCost { tile: 0, first_row: 0, rows: 8, cost: 77 }];
+        let msg = |id| Message::RectCosts { frame_id: id, costs: costs.clone() };
+        let out = c.handle(ms(5), "a", msg(1)).unwrap();
+        assert_eq!(
+            out,
+            vec![ControllerOutput::RectCosts { node: "a".into(), frame_id: 1, costs: costs.clone() }]
+        );
+        // For a frame never sent, or after its Ready, RectCosts breaks the protocol.
+        assert!(c.handle(ms(6), "b", msg(2)).is_err());
+        c.handle(ms(7), "a", Message::Ready { frame_id: 1, render_us: 0 }).unwrap();
+        assert!(c.handle(ms(8), "a", msg(1)).is_err());
     }
 
     #[test]

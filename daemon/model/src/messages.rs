@@ -28,14 +28,19 @@
 //! controller sends Bricks (the brick map from a frame on) to every node and LoadBrick to the
 //! survivor that adopts its brick, which answers BrickLoaded or BrickFailed ([`crate::adoption`]).
 //!
+//! A load-balanced screen-space wall (`[wall] balance = true`, [`crate::balance`]) has the
+//! controller send Split (the wall's work rectangles from a frame on) before the frame it starts
+//! with; each daemon sends RectCosts (what each rectangle it rendered cost) and Composited (the
+//! bytes it sent its peers, the peers it went without) before Ready.
+//!
 //! The bytes of these messages are [`crate::codec`]'s business; this module knows no encoding.
 
 use serde::{Deserialize, Serialize};
 
-use crate::wire::FrameState;
+use crate::wire::{FrameState, WireRectCost, WireSplit};
 
 /// The protocol version of this build; a peer's [`Message::Hello`] must carry the same.
-pub const PROTOCOL_VERSION: u16 = 9;
+pub const PROTOCOL_VERSION: u16 = 10;
 
 /// The furthest ahead a Swap's present time may be: a node never waits longer for one.
 pub const MAX_SWAP_WAIT: std::time::Duration = std::time::Duration::from_secs(1);
@@ -270,6 +275,13 @@ pub enum Message {
     /// Controller -> daemon: from the next frame on, each of its tiles shows (`on`) or stops
     /// showing its node's and its own name in its top-left corner (the operator's identify).
     Identify { on: bool },
+    // load-balanced screen space
+    /// Controller -> daemon (`[wall] balance = true`): from frame `from_frame` on, the wall's
+    /// work rectangles are `split` (checked whole by `crate::balance::share::split_from_wire`).
+    Split { from_frame: u64, split: WireSplit },
+    /// Daemon -> controller, before Ready (`[wall] balance = true`): what each rectangle it
+    /// rendered of the frame cost (`crate::balance::node::rect_cost`).
+    RectCosts { frame_id: u64, costs: Vec<WireRectCost> },
 }
 
 /// The largest downscale a [`Message::ThumbnailRequest`] may ask for.
@@ -299,6 +311,8 @@ impl Message {
             Message::NodeInfo(_) => "NodeInfo",
             Message::Restart { .. } => "Restart",
             Message::Identify { .. } => "Identify",
+            Message::Split { .. } => "Split",
+            Message::RectCosts { .. } => "RectCosts",
         }
     }
 
@@ -314,7 +328,8 @@ impl Message {
             | Message::Bricks { .. }
             | Message::LoadBrick { .. }
             | Message::Restart { .. }
-            | Message::Identify { .. } => Some(Role::Controller),
+            | Message::Identify { .. }
+            | Message::Split { .. } => Some(Role::Controller),
             Message::Ready { .. }
             | Message::Presented { .. }
             | Message::Pong { .. }
@@ -323,7 +338,8 @@ impl Message {
             | Message::BrickLoaded { .. }
             | Message::BrickFailed { .. }
             | Message::StepLate { .. }
-            | Message::NodeInfo(_) => Some(Role::Daemon),
+            | Message::NodeInfo(_)
+            | Message::RectCosts { .. } => Some(Role::Daemon),
         }
     }
 }

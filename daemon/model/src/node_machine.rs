@@ -62,6 +62,10 @@ pub enum NodeOutput {
     Bricks { from_frame: u64, holders: Vec<Option<String>> },
     /// Load this brick beside the node's own, then send `BrickLoaded` (or `BrickFailed`).
     LoadBrick { brick: u64 },
+    // load-balanced screen space (`crate::balance`)
+    /// Render, send and place frames from `from_frame` on by this split (validate it with
+    /// `crate::balance::share::split_from_wire`).
+    Split { from_frame: u64, split: crate::wire::WireSplit },
     /// The controller (the one holding the node's seat: no other gets this far) asked the node
     /// to restart: log `reason`, close the connection and exit with
     /// [`crate::messages::RESTART_EXIT_CODE`] for its supervisor to start it again.
@@ -205,6 +209,7 @@ impl NodeMachine {
             Message::Hello { .. } => err("a second Hello: the handshake is done".into()),
             Message::Bricks { from_frame, holders } => Ok(vec![NodeOutput::Bricks { from_frame, holders }]),
             Message::LoadBrick { brick } => Ok(vec![NodeOutput::LoadBrick { brick }]),
+            Message::Split { from_frame, split } => Ok(vec![NodeOutput::Split { from_frame, split }]),
             Message::FrameState(state) => {
                 if let Some(last) = self.last_frame_id {
                     if state.frame_id <= last {

@@ -595,7 +595,7 @@ fn canvas_of(config: &WallConfig, guard: Option<u32>, tile: &TileConfig) -> Rect
 }
 
 /// What to do about refused pixels: drop a duplicate, close the link that carried the rest.
-fn refused_output(Refused { link, error: e }: Refused) -> ObjectOutput {
+pub(crate) fn refused_output(Refused { link, error: e }: Refused) -> ObjectOutput {
     let peer = match &e {
         CompositeError::WrongSender { cert, .. } => cert.clone(),
         CompositeError::NotMyTile { peer, .. }

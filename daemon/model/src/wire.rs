@@ -488,6 +488,16 @@ pub struct WireSplit {
     pub rects: Vec<WireWorkRect>,
 }
 
+/// What rendering rows `first_row .. first_row + rows` of tile `tile` (its index in the wall
+/// config) cost a node in one frame, in the unit of `crate::balance::node::rect_cost`.
+#[derive(Serialize, Deserialize, Debug, Clone, Copy, PartialEq, Eq)]
+pub struct WireRectCost {
+    pub tile: u32,
+    pub first_row: u32,
+    pub rows: u32,
+    pub cost: u64,
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

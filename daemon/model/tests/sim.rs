@@ -263,11 +263,12 @@ impl Sim {
                 ControllerOutput::PeerIgnored { node, what, .. } => {
                     self.errors.push(ProtocolError::new(&node, "PeerIgnored", what))
                 }
-                // Object space only; these nodes never send them.
+                // Object space's and a balanced wall's; these nodes never send them.
                 ControllerOutput::BrickLoaded { .. }
                 | ControllerOutput::BrickFailed { .. }
                 | ControllerOutput::PixelsMissing { .. }
-                | ControllerOutput::StepLate { .. } => {}
+                | ControllerOutput::StepLate { .. }
+                | ControllerOutput::RectCosts { .. } => {}
             }
         }
     }
@@ -369,9 +370,11 @@ impl Sim {
                     self.send_up(i, &Message::Snapshot { tiles });
                 }
                 NodeOutput::Closed { reason } => self.close(i, &format!("controller said bye: {reason}")),
-                // Object space's, and the operator's; this controller never sends them.
+                // Object space's, a balanced wall's, and the operator's; this controller never
+                // sends them.
                 NodeOutput::Bricks { .. }
                 | NodeOutput::LoadBrick { .. }
+                | NodeOutput::Split { .. }
                 | NodeOutput::Restart { .. }
                 | NodeOutput::Identify { .. } => {}
             }

@@ -96,6 +96,10 @@ fn a_still_camera_with_temporal_on_is_bit_identical_to_temporal_off() {
             assert!(!on.reprojected());
         }
         assert_eq!(on.frames(), 5);
+        // The positions are summed where a history may need them, and not elsewhere.
+        let with = gpu.read_tile_sums_with_positions(&on).unwrap();
+        assert!(with.pos.iter().zip(&with.color).any(|(p, c)| c[3] >= 0.5 && p[0] != 0.0));
+        assert!(gpu.read_tile_sums_with_positions(&off).is_err());
     }
 }
 
@@ -118,10 +122,14 @@ fn move_once(
     for k in 0..still {
         frame(gpu, &mut tile, &mut ring, gv, view, s, k, (k > 0).then_some((view, s)), temporal);
     }
-    let before = gpu.read_tile_sums_with_positions(&tile).unwrap();
+    // Only a temporal tile sums its samples' positions.
+    let read = |t: &TileTarget| {
+        if temporal { gpu.read_tile_sums_with_positions(t) } else { gpu.read_tile_sums(t) }.unwrap()
+    };
+    let before = read(&tile);
     // The wall's moving frames do not accumulate (the node machine's accumulate_frame is 0).
     frame(gpu, &mut tile, &mut ring, gv, moved, s, still, (still > 0).then_some((view, s)), temporal);
-    let after = gpu.read_tile_sums_with_positions(&tile).unwrap();
+    let after = read(&tile);
     (before, after, tile)
 }
 
@@ -136,8 +144,10 @@ fn the_gpu_reprojection_is_its_cpu_twin_with_the_nearest_pixel() {
 }
 
 #[test]
-fn the_gpu_reprojection_is_its_cpu_twin_carrying_the_accepted_share() {
-    gpu_reprojection_is_its_cpu_twin(Rule { accepted_share: true, ..RULE });
+fn the_gpu_reprojection_is_its_cpu_twin_renormalizing_the_accepted_taps() {
+    // The default carries the accepted share; this is the other form of the blend.
+    assert!(RULE.accepted_share);
+    gpu_reprojection_is_its_cpu_twin(Rule { accepted_share: false, ..RULE });
 }
 
 #[test]

@@ -240,3 +240,70 @@ fn a_tile_composited_on_the_cpu_is_uploaded_into_its_images_without_allocating()
     assert!(e.contains("tile t") && e.contains(&format!("{W}x{H}")), "{e}");
     assert!(shown.images().iter().all(|i| i.frame_id != Some(6)));
 }
+
+/// A balanced wall renders a tile as bands of rows, each its own view and target, on whichever
+/// node the split names: each band must be the tile's own pixels there, bit for bit, filtered or
+/// not (a band renders the filter's guard band as a tile does), on its first frame and as it
+/// accumulates.
+#[test]
+fn a_tile_cut_into_bands_renders_the_tiles_own_pixels_filtered_or_not() {
+    let Some(gpu) = common::gpu() else { return };
+    let (volume, view, mut s) = common::ambient_sphere_scene(W, H);
+    let gv = gpu.upload(&volume).unwrap();
+    for denoise in [isowall_model::Denoise::Off, isowall_model::Denoise::On] {
+        s.denoise = denoise;
+        let guard = if denoise.is_on() { isowall_render::denoise::reach() } else { 0 };
+        let mut ring = ReadbackRing::new(2);
+        let mut whole = TileTarget::with_guard(&gpu, "t", &view, 1, guard).unwrap();
+        // Cuts through the surface, at rows that are no multiple of anything (without the guard
+        // band, the filtered frames differ there by up to 8 levels).
+        let bands: Vec<View> = [(0, 11), (11, 12), (23, 9), (32, H - 32)]
+            .into_iter()
+            .map(|(y, h)| {
+                let mut v = view;
+                v.rect.y = y;
+                v.rect.height = h;
+                v
+            })
+            .collect();
+        let mut targets: Vec<TileTarget> =
+            bands.iter().map(|b| TileTarget::with_guard(&gpu, "band", b, 1, guard).unwrap()).collect();
+        for (k, continuity) in
+            [Continuity::Changed, Continuity::Same, Continuity::Same].into_iter().enumerate()
+        {
+            let mut f = s;
+            f.ao.frame = k as u32;
+            fn tf<'a>(
+                k: usize,
+                gv: &'a GpuVolume,
+                v: &'a View,
+                f: &'a RenderSettings,
+                continuity: Continuity,
+            ) -> TileFrame<'a> {
+                TileFrame {
+                    frame_id: k as u64 + 1,
+                    volume: gv,
+                    view: v,
+                    settings: f,
+                    env: None,
+                    continuity,
+                    temporal: true,
+                    share: Some(PixelForm::Colour),
+                }
+            }
+            let want =
+                common::render_tile_and_read(&gpu, &mut whole, &mut ring, &tf(k, &gv, &view, &f, continuity));
+            let (mut rgb8, mut depth) = (Vec::new(), Vec::new());
+            for (t, b) in targets.iter_mut().zip(&bands) {
+                let got = common::render_tile_and_read(&gpu, t, &mut ring, &tf(k, &gv, b, &f, continuity));
+                rgb8.extend(got.rgb8.unwrap());
+                depth.extend(got.depth.unwrap());
+            }
+            let want_rgb8 = want.rgb8.unwrap();
+            assert_eq!(differences(&rgb8, &want_rgb8), (0, 0), "{denoise:?}, frame {k}: the bands' colour");
+            assert_eq!(depth, want.depth.unwrap(), "{denoise:?}, frame {k}: the bands' depth");
+            // The scene is in view and its occlusion varies: the comparison sees something.
+            assert!(want_rgb8.chunks(3).any(|p| p != &want_rgb8[..3]));
+        }
+    }
+}

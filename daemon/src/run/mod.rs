@@ -30,9 +30,10 @@ mod admission;
 mod session;
 mod space;
 
+use crate::balanced::BalancedNode;
 use admission::{admit, Greeted, Handshakes, LiveConnections};
 use session::serve;
-use space::{ObjectSpace, Space};
+use space::{BalancedSpace, ObjectSpace, Space};
 
 #[derive(Args, Debug, Clone)]
 pub struct RunArgs {
@@ -109,8 +110,8 @@ async fn shown_tiles(node: &Node, divisor: u32) -> Vec<TileImage> {
     let image =
         |t: &TileResult, id: u64| TileImage::downscale(&t.name, t.width, t.height, id, &t.rgb8, divisor);
     match &node.shown {
-        // object space: the composited tiles, on the CPU.
-        Some((id, tiles)) if node.space.object().is_some() => tiles.iter().map(|t| image(t, *id)).collect(),
+        // object space and a balanced wall: the tiles put together on the CPU.
+        Some((id, tiles)) if node.space.composites() => tiles.iter().map(|t| image(t, *id)).collect(),
         // screen space: the images stayed on the GPU; read them now.
         Some((id, _)) => match node.renderer.snapshot(*id).await {
             Ok(tiles) => tiles.iter().map(|t| image(t, *id)).collect(),
@@ -207,7 +208,31 @@ pub fn run(a: &RunArgs) -> Result<()> {
     } else {
         let (volume, _iso) = load_wall_volume(&config, &volume_limit)?;
         steps = time_steps(&config, raw.as_ref(), volume_limit)?;
-        (RenderVolume::Whole(volume), Space::Screen)
+        let space = if config.wall.balance {
+            let balanced = BalancedNode::new(&config, &node.name)?;
+            let (tx, peer_rx) = tokio::sync::mpsc::channel(64);
+            let nodes = config.nodes.iter().map(|n| n.name.clone()).collect();
+            if balanced.max_pixels_bytes() > limit {
+                tracing::warn!(
+                    "balance: the rectangles of this node's tiles one peer sends a frame may take up to {} bytes \
+                     (raw), more than `[wall] message_limit_bytes` {limit}: a frame with that much is placed \
+                     without them; raise the limit where the tiles are large",
+                    balanced.max_pixels_bytes()
+                );
+            }
+            // A peer's stream may be no longer than all of this node's tiles.
+            let inbox = PixelInbox::new(
+                tx,
+                nodes,
+                &node.name,
+                limit.min(balanced.max_pixels_bytes()),
+                balanced.deadline(),
+            );
+            Space::Balanced(Box::new(BalancedSpace { node: balanced, peer_rx, inbox }))
+        } else {
+            Space::Screen
+        };
+        (RenderVolume::Whole(volume), space)
     };
     let env_src: EnvSource = config.env_source().parse().context("[render] env")?;
     let env = Environment::from_source(&env_src).context("cannot load the environment")?;
@@ -280,9 +305,7 @@ fn network(
         .build()
         .context("cannot start the async runtime")?;
     runtime.block_on(async move {
-        if let Some(o) = state.space.object_mut() {
-            o.open_endpoint(&identity)?;
-        }
+        state.space.open_endpoint(&identity)?;
         let endpoint = transport::server(addr, &identity)?;
         tracing::info!(node = %state.name, %addr, "listening for the controller");
         // Systemd (Type=notify) and scripts wait for this line.

@@ -54,9 +54,7 @@ async fn serve_seated(
     node.identify = false;
     node.pending = None;
     node.presenting.clear();
-    if let Some(o) = node.space.object_mut() {
-        o.reset();
-    }
+    node.space.reset();
     if let Err(e) = sender.send(&machine.hello()).await {
         tracing::warn!("{e}");
         return Ok(());
@@ -144,8 +142,8 @@ fn from_controller(
     arrived: Duration,
     msg: Message,
 ) -> Result<Vec<NodeOutput>, ProtocolError> {
-    if let (Some(o), Message::FrameState(s)) = (node.space.object_mut(), &msg) {
-        o.announce(s.frame_id);
+    if let Message::FrameState(s) = &msg {
+        node.space.announce(s.frame_id);
     }
     if matches!(msg, Message::Ping { .. }) {
         machine.set_resident_bytes(process_resident_bytes());
@@ -164,13 +162,15 @@ async fn rendered(
     if !node.slow.is_zero() {
         tokio::time::sleep(node.slow).await;
     }
-    match node.space.object_mut() {
-        Some(o) => {
-            let done = o.local_done(done);
-            composited(node, machine, sender, done).await
-        }
-        None => frame_done(node, machine, sender, done, None).await,
+    if let Some(o) = node.space.object_mut() {
+        let done = o.local_done(done);
+        return composited(node, machine, sender, done).await;
     }
+    if let Some(b) = node.space.balanced_mut() {
+        let done = b.local_done(done);
+        return composited(node, machine, sender, done).await;
+    }
+    frame_done(node, machine, sender, done, Vec::new()).await
 }
 
 /// Another controller came while one holds the seat: refused with the seat's reason, the
@@ -223,13 +223,21 @@ fn presented(node: &mut Node, machine: &mut NodeMachine, shown: Shown) -> Vec<No
     machine.presented(since(at), frame_id, since(waiting_from))
 }
 
-/// object space: what it waited for came (`Space::next`).
+/// object space or a balanced wall: what it waited for came (`Space::next`).
 async fn space_event(
     node: &mut Node,
     machine: &mut NodeMachine,
     sender: &mut transport::ChannelSender,
     event: SpaceEvent,
 ) -> Vec<NodeOutput> {
+    if let Some(b) = node.space.balanced_mut() {
+        let done = match event {
+            SpaceEvent::Peer(item) => b.peer(item),
+            SpaceEvent::Deadline => b.handle_timeout(),
+            SpaceEvent::Loaded(_) => Vec::new(),
+        };
+        return composited(node, machine, sender, done).await;
+    }
     let Some(o) = node.space.object_mut() else { return Vec::new() };
     let done = match event {
         SpaceEvent::Peer(item) => o.peer(item),
@@ -274,6 +282,7 @@ async fn composited(
                                 rgb8: vec![0; 3 * n],
                                 depth: vec![f32::INFINITY; n],
                                 shading: Vec::new(),
+                                fetches: 0,
                             }
                         })
                         .collect();
@@ -294,13 +303,14 @@ async fn composited(
                     rgb8: t.rgb8.clone(),
                     depth: Vec::new(),
                     shading: Vec::new(),
+                    fetches: 0,
                 })
                 .collect();
             if let Err(e) = node.renderer.show(d.job.frame_id, images) {
                 tracing::error!(frame_id = d.job.frame_id, node = %node.name, "{e:#}");
             }
         }
-        out.extend(frame_done(node, machine, sender, d.job, Some(d.report)).await);
+        out.extend(frame_done(node, machine, sender, d.job, d.reports).await);
     }
     out
 }
@@ -312,14 +322,14 @@ async fn frame_done(
     machine: &mut NodeMachine,
     sender: &mut transport::ChannelSender,
     done: JobResult,
-    report: Option<Message>,
+    reports: Vec<Message>,
 ) -> Vec<NodeOutput> {
     let (id, t) = (done.frame_id, done.render_time);
     if machine.rendering() != Some(id) {
         // A frame the frame machine no longer waits for (superseded, or of an older session).
         return Vec::new();
     }
-    if let Some(msg) = report {
+    for msg in reports {
         tracing::debug!(frame_id = id, ?msg, "composited");
         if let Err(e) = sender.send(&msg).await {
             tracing::warn!("{e}");
@@ -387,6 +397,17 @@ async fn execute(
                 },
                 None => tracing::warn!("ignoring a brick map: this wall is not in object mode"),
             },
+            // A balanced wall: the split from a frame on (`balanced.rs`).
+            NodeOutput::Split { from_frame, split } => match node.space.balanced_mut() {
+                Some(b) => {
+                    if let Err(e) = b.set_split(from_frame, &split) {
+                        let reason = format!("protocol violation by `controller` (Split): {e}");
+                        tracing::warn!("closing the controller connection: {reason}");
+                        return Err(NetError::Connection { peer: "controller".into(), reason });
+                    }
+                }
+                None => tracing::warn!("ignoring a split: this wall does not balance (`[wall] balance`)"),
+            },
             NodeOutput::LoadBrick { brick } => match node.space.object_mut() {
                 Some(o) => {
                     if let Some(answer) = o.load(brick, &node.renderer) {
@@ -404,8 +425,8 @@ async fn execute(
                     "identify: the tiles {} their names",
                     if on { "show" } else { "no longer show" }
                 );
-                if on && node.space.object().is_some() {
-                    tracing::warn!("identify: object space tiles are composited elsewhere; only screen space shows names");
+                if on && node.space.composites() {
+                    tracing::warn!("identify: tiles put together from other nodes' pixels do not show names; only plain screen space does");
                 }
                 node.identify = on;
             }

@@ -30,6 +30,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::config::WallConfig;
 
+pub mod node;
 pub mod share;
 
 /// Bands per tile by default: 32 bands of a 1080-row tile are about 34 rows each.
@@ -251,7 +252,8 @@ impl Balancer {
     }
 
     /// The split for the next frame: a fresh [`cut`] where the one in use names a node that no
-    /// longer takes part or shows a tile nobody shows, or predicts a slowest/mean more than
+    /// longer takes part, shows a tile nobody shows or leaves out one of a node that is back,
+    /// or predicts a slowest/mean more than
     /// [`Balancer::hysteresis`] above the fresh cut's; else the one in use, and always, unless
     /// stale, after [`STILL_SETTLE_FRAMES`] frames of the same image (`still`: the frame shows
     /// the same image as the one before).
@@ -262,7 +264,10 @@ impl Balancer {
         let stale = self.split.rects.iter().any(|r| {
             !self.nodes.contains(&r.renderer)
                 || self.tiles.iter().any(|t| t.tile == r.tile && !self.nodes.contains(&t.owner))
-        });
+        }) || self
+            .tiles
+            .iter()
+            .any(|t| self.nodes.contains(&t.owner) && !self.split.rects.iter().any(|r| r.tile == t.tile));
         let worse =
             slowest_over_mean(&self.loads(&self.split)) > slowest_over_mean(&self.loads(&fresh)) + margin;
         if stale || worse {

@@ -135,7 +135,8 @@ pub const MAX_WALL_EXTENT: u64 = 1 << 20;
 pub const SPARSE_WALL_PIXELS: u64 = 1 << 24;
 pub const MAX_WALL_SPARSENESS: u64 = 64;
 /// The GPU bytes a node's tile takes per pixel, at most: six AOV buffers (84 bytes a pixel of
-/// its work rectangle, the denoiser's guard band included), the depth buffer (4) and six RGBA8
+/// its work rectangle, the denoiser's guard band included; the sample positions' 16 only in a
+/// temporal tile), the depth buffer (4) and six RGBA8
 /// images (24) (`TileTarget` and `ShownImages` in daemon/render/src/gpu/tile.rs), rounded up.
 pub const GPU_BYTES_PER_TILE_PIXEL: u64 = 116;
 /// The most GPU memory a node's tiles may take together ([`GPU_BYTES_PER_TILE_PIXEL`] times their
@@ -197,6 +198,12 @@ pub struct WallSection {
     /// (the default: each frame as soon as it is ready).
     #[serde(default)]
     pub frame_rate: Option<WordOrNumber>,
+    /// Screen space: share the work of busy tiles with idle nodes (`crate::balance`): each
+    /// frame the controller cuts the wall into work rectangles of equal expected cost, and a
+    /// node sends the rectangles of other nodes' tiles it rendered to their owners. `false` (the
+    /// default): every node renders its own tiles.
+    #[serde(default)]
+    pub balance: bool,
 }
 
 /// A config value that is a word or a number (`swap_margin_ms = "auto"` or `= 1.5`).

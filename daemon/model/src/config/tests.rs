@@ -70,6 +70,19 @@ fn with(from: &str, to: &str) -> String {
 }
 
 #[test]
+fn balance_is_off_by_default_and_only_for_screen_space() {
+    let plain = WallConfig::parse(GOOD, Path::new("w.toml")).unwrap();
+    assert!(!plain.wall.balance);
+    let on =
+        WallConfig::parse(&with("name = \"test\"", "name = \"test\"\nbalance = true"), Path::new("w.toml"))
+            .unwrap();
+    assert!(on.wall.balance);
+    let object = with("name = \"test\"", "name = \"test\"\nmode = \"object\"\nbalance = true");
+    expect(&object, Some(4), "object space splits the volume instead");
+    expect(&with("name = \"test\"", "name = \"test\"\nbalance = \"yes\""), Some(3), "invalid type");
+}
+
+#[test]
 fn object_mode_parses_and_refuses_an_unbounded_radius_or_the_seed_method() {
     let c = WallConfig::parse(
         &with("name = \"test\"", "name = \"test\"\nmode = \"object\""),

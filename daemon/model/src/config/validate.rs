@@ -35,6 +35,13 @@ pub(crate) fn validate_wall(doc: &mut Doc<'_>, w: &WallSection) {
     if let Err(e) = w.frame_rate() {
         doc.at(&at("frame_rate"), format!("wall: `frame_rate`: {e}"));
     }
+    if w.balance && w.mode == WallMode::Object {
+        doc.at(
+            &at("balance"),
+            "wall: `balance` shares screen space's tiles between nodes; object space splits the volume \
+             instead (set `mode = \"screen\"` or leave `balance` out)",
+        );
+    }
 }
 
 /// A node's snapshot (one message with all its tiles) must fit the wall's message limit.

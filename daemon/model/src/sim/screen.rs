@@ -248,7 +248,8 @@ impl Sim {
                 | ControllerOutput::BrickLoaded { .. }
                 | ControllerOutput::BrickFailed { .. }
                 | ControllerOutput::PixelsMissing { .. }
-                | ControllerOutput::StepLate { .. } => {}
+                | ControllerOutput::StepLate { .. }
+                | ControllerOutput::RectCosts { .. } => {}
             }
         }
     }

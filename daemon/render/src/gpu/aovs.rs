@@ -21,12 +21,16 @@ pub struct Aovs {
     pub ibl_sum: wgpu::Buffer,
     /// Summed hit position (xyz, world) the samples were taken at, weighted as the other sums
     /// (w: 0): divided by the weight, where a reprojected history stands on the surface
-    /// ([`crate::reproject::Rule::drift`]).
+    /// ([`crate::reproject::Rule::drift`]). Only a temporal tile needs it: elsewhere it is one
+    /// pixel's placeholder, bound and never written ([`Aovs::with_positions`]).
     pub pos_sum: wgpu::Buffer,
+    /// Whether `pos_sum` holds every pixel.
+    pub positions: bool,
 }
 
 impl Aovs {
-    /// The buffers of an `n`-pixel rectangle with `usage` (beside STORAGE).
+    /// The buffers of an `n`-pixel rectangle with `usage` (beside STORAGE), the positions'
+    /// a placeholder.
     pub(crate) fn new(ctx: &GpuContext, n: u64, usage: wgpu::BufferUsages) -> Aovs {
         let usage = usage | wgpu::BufferUsages::STORAGE;
         Aovs {
@@ -35,8 +39,20 @@ impl Aovs {
             fetches: ctx.buffer("fetches", n * 4, usage),
             ao_sum: ctx.buffer("acc ao", n * VEC4_BYTES, usage),
             ibl_sum: ctx.buffer("acc ibl", n * VEC4_BYTES, usage),
-            pos_sum: ctx.buffer("acc pos", n * VEC4_BYTES, usage),
+            pos_sum: ctx.buffer("acc pos placeholder", VEC4_BYTES, usage),
+            positions: false,
         }
+    }
+
+    /// The positions' buffer for all `n` pixels, made on a temporal tile's first frame (the
+    /// buffers' bind groups must be made again). Returns whether it was made now.
+    pub(crate) fn with_positions(&mut self, ctx: &GpuContext, n: u64) -> bool {
+        if self.positions {
+            return false;
+        }
+        self.pos_sum = ctx.buffer("acc pos", n * VEC4_BYTES, self.pos_sum.usage());
+        self.positions = true;
+        true
     }
 
     /// The four planes of a pixel's shading, in the order a shading share, a canvas and

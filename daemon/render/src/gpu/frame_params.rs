@@ -57,7 +57,9 @@ pub struct FrameParams {
     pub ao_exact: u32,
     /// Ours' 2D set: [`AoSequence::code`].
     pub ao_sequence: u32,
-    pub _pad2: u32,
+    /// 1: the AO kernel sums the positions its samples were taken at (`acc_pos`): a temporal
+    /// tile's drift test needs them; elsewhere the buffer is a placeholder and is not written.
+    pub positions: u32,
     pub sh: [[f32; 4]; 9],
     // object space
     /// xyz: global sample index of the volume buffer's first sample; w: 1 in object space
@@ -176,7 +178,7 @@ impl FrameParams {
             env_height: env.height,
             ao_exact: u32::from(s.ao.exact),
             ao_sequence: gpu_code(s.ao.sequence.code()),
-            _pad2: 0,
+            positions: 0,
             sh,
             data_offset: match &volume.object {
                 Some(o) => [o.data_offset[0] as f32, o.data_offset[1] as f32, o.data_offset[2] as f32, 1.0],
@@ -301,7 +303,7 @@ mod tests {
                     ("env_height", offset_of!(FrameParams, env_height)),
                     ("ao_exact", offset_of!(FrameParams, ao_exact)),
                     ("ao_sequence", offset_of!(FrameParams, ao_sequence)),
-                    ("_pad2", offset_of!(FrameParams, _pad2)),
+                    ("positions", offset_of!(FrameParams, positions)),
                     ("sh", offset_of!(FrameParams, sh)),
                     ("data_offset", offset_of!(FrameParams, data_offset)),
                     ("owned_min", offset_of!(FrameParams, owned_min)),

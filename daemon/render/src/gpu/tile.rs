@@ -550,6 +550,15 @@ impl GpuRenderer {
         let with_ao = s.ao.samples > 0 || s.ao.ibl != IblMethod::None;
         let mut params = FrameParams::new(frame.volume, &low, s, env);
         params.perf[0] = self.perf.flags();
+        let n = low.rect.width as u64 * low.rect.height as u64;
+        if frame.temporal && tile.aovs.with_positions(ctx, n) {
+            // Every bind group holding the placeholder is made again below.
+            tile.bound = None;
+            tile.history = None;
+            // Sums taken without their positions start over.
+            tile.previous = None;
+        }
+        params.positions = u32::from(tile.aovs.positions);
         let dispatches = super::ao::AoDispatches::split(&mut params, ctx.loop_budget());
         // The tile's own knowledge: without a last frame, with other resources bound, or over other
         // pixels, the sums belong to something else.
@@ -913,6 +922,12 @@ impl GpuRenderer {
     fn read_sums(&self, tile: &TileTarget, positions: bool) -> Result<TileSums, GpuError> {
         let ctx = &self.ctx;
         let mut picked = tile.aovs.shading().to_vec();
+        if positions && !tile.aovs.positions {
+            return Err(GpuError::View(format!(
+                "tile {}: no sample positions are summed where frames are not temporal",
+                tile.name
+            )));
+        }
         if positions {
             picked.push(&tile.aovs.pos_sum);
         }
