@@ -20,9 +20,13 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 #[derive(Args)]
+#[command(args_conflicts_with_subcommands = true, subcommand_negates_reqs = true)]
 pub struct BenchArgs {
+    #[command(subcommand)]
+    pub what: Option<BenchCommand>,
     /// The wall config (TOML); its nodes must be on loopback (each column starts local daemons)
-    pub config: PathBuf,
+    #[arg(required = true)]
+    pub config: Option<PathBuf>,
     /// Print the report's table (AO samples x nodes, fps and render time, 2008 beside ours)
     #[arg(long)]
     pub table: bool,
@@ -56,6 +60,160 @@ pub struct BenchArgs {
     /// With --swap: the frame rate of the paced run
     #[arg(long, default_value_t = 30.0)]
     pub paced_fps: f64,
+}
+
+#[derive(clap::Subcommand)]
+pub enum BenchCommand {
+    /// Load balancing: the config's nodes started here (as `up` does) orbit unbalanced (every
+    /// node renders its own tiles), then the same orbit balanced (`[wall] balance`, on for the
+    /// run whatever the config says); per run and node its work (the costs its rectangles
+    /// reported: fetches and pixels) and bytes sent per frame, the fps, and a last line
+    /// `balance: slowest/mean X unbalanced, Y balanced` (the slowest node's work over the mean,
+    /// averaged over each orbit's frames from the third on)
+    Balance(BalanceArgs),
+}
+
+#[derive(Args)]
+pub struct BalanceArgs {
+    /// The wall config (TOML); its nodes must be on loopback
+    pub config: PathBuf,
+    /// Frames of each orbit
+    #[arg(long, default_value_t = 30)]
+    pub frames: u64,
+    /// Orbit step per frame, degrees
+    #[arg(long, default_value_t = 1.0)]
+    pub degrees_per_frame: f64,
+    /// How long to wait for the nodes, seconds
+    #[arg(long, default_value_t = 120)]
+    pub start_timeout: u64,
+}
+
+/// Frames of each orbit left out of the averages: the first (the split starts from the nodes'
+/// own tiles and learns from what it reports) and the one after.
+const BALANCE_SETTLE_FRAMES: usize = 2;
+
+/// `bench balance`: one wall, the same orbit unbalanced then balanced.
+fn bench_balance(a: &BalanceArgs) -> Result<()> {
+    use crate::drive::{drive, OrbitOptions};
+    if a.frames as usize <= BALANCE_SETTLE_FRAMES {
+        bail!("--frames must be more than {BALANCE_SETTLE_FRAMES} (the first frames of each orbit are left out)");
+    }
+    let base_config = load(&a.config)?;
+    if let Some(n) = base_config.nodes.iter().find(|n| !is_loopback(&n.address)) {
+        bail!(
+            "{}: node {} at {} is not on loopback: `bench balance` starts the wall's nodes here",
+            base_config.path.display(),
+            n.name,
+            n.address
+        );
+    }
+    if base_config.wall.mode == WallMode::Object {
+        bail!(
+            "{}: an object-space wall splits the volume, not the tiles: `bench balance` is for screen space",
+            base_config.path.display()
+        );
+    }
+    // The config as it is, balanced, its paths made absolute: the nodes read this copy.
+    let mut c = base_config.clone();
+    c.wall.balance = true;
+    c.volume.source = base_config.volume_source();
+    c.render.env = base_config.env_source();
+    c.certificates.dir = std::path::absolute(base_config.cert_dir())?.to_string_lossy().into_owned();
+    let dir = tempfile_dir()?;
+    let file = dir.join(format!("{}.balanced.toml", c.wall.name));
+    std::fs::write(&file, toml::to_string(&c)?)
+        .with_context(|| format!("cannot write {}", file.display()))?;
+    let config = load(&file)?;
+    let (base, settings) = scene(&config)?;
+    let daemons = LocalDaemons::start(&config, &dir.join("logs"), "offscreen", false)?;
+    println!(
+        "isowall bench balance: wall '{}' ({} nodes, {} tiles), {} frames of an orbit ({} degrees/frame) per run, \
+         offscreen; work = the costs a node's rectangles reported (fetches + {} per pixel)",
+        config.wall.name,
+        config.nodes.len(),
+        config.tiles.len(),
+        a.frames,
+        a.degrees_per_frame,
+        isowall_model::balance::node::PIXEL_FETCHES
+    );
+    let rt = runtime()?;
+    let ratios = rt.block_on(async {
+        let mut wall =
+            Wall::connect(config, Duration::from_secs(a.start_timeout), Duration::from_secs(a.start_timeout))
+                .await?;
+        let mut ratios = Vec::new();
+        for (name, on) in [("unbalanced", false), ("balanced", true)] {
+            wall.set_balance(on);
+            let first = wall.last_frame_id() + 1;
+            let o = OrbitOptions {
+                frames: a.frames,
+                degrees_per_frame: a.degrees_per_frame,
+                fps: 0.0,
+                target_frame_ms: None,
+                still_frames: 0,
+                record_frames: None,
+                step: 0,
+                play: false,
+            };
+            let (elapsed, _, _) = drive(&mut wall, &base, &settings, &o, None, &mut |_, _| {}).await?;
+            wall.settle().await;
+            let ids = first + BALANCE_SETTLE_FRAMES as u64..=wall.last_frame_id();
+            let fps = a.frames as f64 / elapsed.as_secs_f64().max(1e-9);
+            ratios.push(print_balance_run(&wall, name, ids, fps));
+        }
+        wall.close("the bench is done").await;
+        Ok::<Vec<f64>, anyhow::Error>(ratios)
+    });
+    drop(daemons);
+    let ratios = ratios?;
+    println!("balance: slowest/mean {:.3} unbalanced, {:.3} balanced", ratios[0], ratios[1]);
+    Ok(())
+}
+
+/// Prints one run of `bench balance`: per node its work and bytes sent per frame over the frames
+/// `ids`, the split's rows moved, the fps. Returns the slowest node's work over the mean,
+/// averaged over those frames.
+fn print_balance_run(wall: &Wall, name: &str, ids: std::ops::RangeInclusive<u64>, fps: f64) -> f64 {
+    let mut per_node: std::collections::BTreeMap<&str, (Vec<u64>, Vec<u64>)> =
+        wall.config.nodes.iter().map(|n| (n.name.as_str(), (Vec::new(), Vec::new()))).collect();
+    let mut ratios = Vec::new();
+    for id in ids.clone() {
+        let Some(work) = wall.work(id) else { continue };
+        let n = per_node.len().max(1) as f64;
+        let mean = per_node.keys().map(|k| work.get(*k).copied().unwrap_or(0) as f64).sum::<f64>() / n;
+        let max = per_node.keys().map(|k| work.get(*k).copied().unwrap_or(0)).max().unwrap_or(0) as f64;
+        if mean > 0.0 {
+            ratios.push(max / mean);
+        }
+        for (node, (w, _)) in per_node.iter_mut() {
+            w.push(work.get(*node).copied().unwrap_or(0));
+        }
+    }
+    for f in wall.finished.iter().filter(|f| ids.contains(&f.frame_id)) {
+        for s in &f.per_node {
+            if let (Some(b), Some(e)) = (s.bytes_sent, per_node.get_mut(s.node.as_str())) {
+                e.1.push(b);
+            }
+        }
+    }
+    let ratio = ratios.iter().sum::<f64>() / ratios.len().max(1) as f64;
+    let moved = wall.split().map_or(0, |(_, rows)| rows);
+    println!(
+        "\n== {name}: {fps:.2} fps; slowest/mean work {ratio:.3} (mean of {} frames); rows rendered away from their tile's node in the last split: {moved}",
+        ratios.len()
+    );
+    let median = |mut v: Vec<u64>| {
+        v.sort_unstable();
+        v.get(v.len().saturating_sub(1) / 2).copied().unwrap_or(0)
+    };
+    for (node, (work, bytes)) in per_node {
+        println!(
+            "  {node}: work p50 {:.2} M per frame; sent p50 {} B per frame",
+            median(work) as f64 / 1e6,
+            median(bytes)
+        );
+    }
+    ratio
 }
 
 fn parse_size(s: &str) -> Result<(u32, u32), String> {
@@ -285,6 +443,10 @@ fn measure_column(a: &BenchArgs, config: &WallConfig, dir: &Path) -> Result<Vec<
 }
 
 pub fn bench(a: &BenchArgs) -> Result<()> {
+    if let Some(BenchCommand::Balance(b)) = &a.what {
+        return bench_balance(b);
+    }
+    let Some(config_path) = &a.config else { bail!("say which wall config to measure") };
     if !a.table && !a.swap {
         bail!(
             "say what to measure: `isowall bench CONFIG --table` (the report's table) or `--swap` (the swap's \
@@ -294,7 +456,7 @@ pub fn bench(a: &BenchArgs) -> Result<()> {
     if a.frames == 0 {
         bail!("--frames must be at least 1");
     }
-    let config = load(&a.config)?;
+    let config = load(config_path)?;
     if a.swap {
         return bench_swap(a, config);
     }

@@ -178,6 +178,8 @@ struct WallBalance {
     last: Option<FrameState>,
     /// Rows of the split sent last that another node than the tile's owner renders.
     moved_rows: u64,
+    /// Per frame (the last [`HISTORY`] or so), each node's work: the costs it reported.
+    work: BTreeMap<u64, BTreeMap<String, u64>>,
 }
 
 impl Wall {
@@ -334,6 +336,7 @@ impl Wall {
                 sent_to: Vec::new(),
                 last: None,
                 moved_rows: 0,
+                work: BTreeMap::new(),
             });
         }
         if wall.config.wall.mode == isowall_model::WallMode::Object {
@@ -456,8 +459,13 @@ impl Wall {
 
     /// A balanced wall: what each rectangle `node` rendered cost, for the split's rule. Entries
     /// that name no tile of the wall are left out.
-    fn observe_costs(&mut self, node: &str, costs: &[WireRectCost]) {
+    fn observe_costs(&mut self, node: &str, frame_id: u64, costs: &[WireRectCost]) {
         let Some(b) = self.balance.as_mut() else { return };
+        let work = b.work.entry(frame_id).or_default().entry(node.to_string()).or_default();
+        *work = costs.iter().fold(*work, |w, c| w.saturating_add(c.cost));
+        while b.work.len() > 2 * HISTORY {
+            b.work.pop_first();
+        }
         for c in costs {
             let Some(tile) = self.config.tiles.get(c.tile as usize) else { continue };
             let rect = WorkRect {
@@ -476,6 +484,12 @@ impl Wall {
         if let Some(b) = self.balance.as_mut() {
             b.on = on;
         }
+    }
+
+    /// A balanced wall: each node's work in frame `frame_id` (the costs it reported; the nodes
+    /// that reported nothing are absent).
+    pub fn work(&self, frame_id: u64) -> Option<&BTreeMap<String, u64>> {
+        self.balance.as_ref()?.work.get(&frame_id)
     }
 
     /// A balanced wall: the split sent last, and the rows of it that travel to another node.
@@ -620,7 +634,9 @@ impl Wall {
                 ControllerOutput::PeerIgnored { node, what, held_back } => {
                     eprintln!("isowall: node {node}: {what}{}", self.held_back(&node, held_back));
                 }
-                ControllerOutput::RectCosts { node, costs, .. } => self.observe_costs(&node, &costs),
+                ControllerOutput::RectCosts { node, frame_id, costs } => {
+                    self.observe_costs(&node, frame_id, &costs)
+                }
                 ControllerOutput::PixelsMissing { node, frame_id, peers } => {
                     if peers.is_empty() {
                         eprintln!(
