@@ -64,7 +64,8 @@ pub struct BenchArgs {
 
 #[derive(clap::Subcommand)]
 pub enum BenchCommand {
-    /// Load balancing: the config's nodes started here (as `up` does) orbit unbalanced (every
+    /// Load balancing: the config's nodes started here (as `up` does; nodes of other machines on
+    /// free loopback ports) orbit unbalanced (every
     /// node renders its own tiles), then the same orbit balanced (`[wall] balance`, on for the
     /// run whatever the config says); per run and node its work (the costs its rectangles
     /// reported: fetches and pixels) and bytes sent per frame, the fps, and a last line
@@ -75,7 +76,7 @@ pub enum BenchCommand {
 
 #[derive(Args)]
 pub struct BalanceArgs {
-    /// The wall config (TOML); its nodes must be on loopback
+    /// The wall config (TOML); every node runs on this machine
     pub config: PathBuf,
     /// Frames of each orbit
     #[arg(long, default_value_t = 30)]
@@ -86,6 +87,16 @@ pub struct BalanceArgs {
     /// How long to wait for the nodes, seconds
     #[arg(long, default_value_t = 120)]
     pub start_timeout: u64,
+    /// The internal resolution divisor of every frame (1: full resolution; up to 4): a wall of
+    /// large tiles measured on a slow machine
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=isowall_model::governor::MAX_SCALE as i64))]
+    pub scale: u32,
+    /// AO samples per pixel per frame (default: the config's)
+    #[arg(long)]
+    pub samples: Option<u32>,
+    /// The wall's deadline for the run, ms (default: the config's; a slow machine wants more)
+    #[arg(long)]
+    pub deadline_ms: Option<u64>,
 }
 
 /// Frames of each orbit left out of the averages: the first (the split starts from the nodes'
@@ -94,19 +105,10 @@ const BALANCE_SETTLE_FRAMES: usize = 2;
 
 /// `bench balance`: one wall, the same orbit unbalanced then balanced.
 fn bench_balance(a: &BalanceArgs) -> Result<()> {
-    use crate::drive::{drive, OrbitOptions};
     if a.frames as usize <= BALANCE_SETTLE_FRAMES {
         bail!("--frames must be more than {BALANCE_SETTLE_FRAMES} (the first frames of each orbit are left out)");
     }
     let base_config = load(&a.config)?;
-    if let Some(n) = base_config.nodes.iter().find(|n| !is_loopback(&n.address)) {
-        bail!(
-            "{}: node {} at {} is not on loopback: `bench balance` starts the wall's nodes here",
-            base_config.path.display(),
-            n.name,
-            n.address
-        );
-    }
     if base_config.wall.mode == WallMode::Object {
         bail!(
             "{}: an object-space wall splits the volume, not the tiles: `bench balance` is for screen space",
@@ -119,21 +121,43 @@ fn bench_balance(a: &BalanceArgs) -> Result<()> {
     c.volume.source = base_config.volume_source();
     c.render.env = base_config.env_source();
     c.certificates.dir = std::path::absolute(base_config.cert_dir())?.to_string_lossy().into_owned();
+    if let Some(ms) = a.deadline_ms {
+        c.wall.deadline_ms = ms;
+    }
+    // A wall of other machines (e.g. sva-4) is measured here: its nodes on free loopback ports.
+    for n in c.nodes.iter_mut().filter(|n| !is_loopback(&n.address)) {
+        let port = std::net::UdpSocket::bind("127.0.0.1:0")
+            .and_then(|s| s.local_addr())
+            .context("cannot find a free loopback port")?
+            .port();
+        println!("isowall bench balance: node {} ({}) runs here on 127.0.0.1:{port}", n.name, n.address);
+        n.address = format!("127.0.0.1:{port}");
+    }
     let dir = tempfile_dir()?;
     let file = dir.join(format!("{}.balanced.toml", c.wall.name));
     std::fs::write(&file, toml::to_string(&c)?)
         .with_context(|| format!("cannot write {}", file.display()))?;
     let config = load(&file)?;
-    let (base, settings) = scene(&config)?;
+    let (base, mut settings) = scene(&config)?;
+    if let Some(k) = a.samples {
+        if k > isowall_model::render_state::MAX_AO_SAMPLES {
+            bail!("--samples {k} is over the limit of {}", isowall_model::render_state::MAX_AO_SAMPLES);
+        }
+        settings.ao.samples = k;
+    }
     let daemons = LocalDaemons::start(&config, &dir.join("logs"), "offscreen", false)?;
     println!(
-        "isowall bench balance: wall '{}' ({} nodes, {} tiles), {} frames of an orbit ({} degrees/frame) per run, \
-         offscreen; work = the costs a node's rectangles reported (fetches + {} per pixel)",
+        "isowall bench balance: wall '{}' ({} nodes, {} tiles), {} frames of an orbit ({} degrees/frame) per run \
+         at 1/{} scale, {} AO samples, deadline {} ms, offscreen; work = the costs a node's rectangles reported \
+         (fetches + {} per pixel)",
         config.wall.name,
         config.nodes.len(),
         config.tiles.len(),
         a.frames,
         a.degrees_per_frame,
+        a.scale,
+        settings.ao.samples,
+        config.wall.deadline_ms,
         isowall_model::balance::node::PIXEL_FETCHES
     );
     let rt = runtime()?;
@@ -145,17 +169,13 @@ fn bench_balance(a: &BalanceArgs) -> Result<()> {
         for (name, on) in [("unbalanced", false), ("balanced", true)] {
             wall.set_balance(on);
             let first = wall.last_frame_id() + 1;
-            let o = OrbitOptions {
-                frames: a.frames,
-                degrees_per_frame: a.degrees_per_frame,
-                fps: 0.0,
-                target_frame_ms: None,
-                still_frames: 0,
-                record_frames: None,
-                step: 0,
-                play: false,
-            };
-            let (elapsed, _, _) = drive(&mut wall, &base, &settings, &o, None, &mut |_, _| {}).await?;
+            wall.sync_clocks(3).await;
+            let start = Instant::now();
+            for k in 0..a.frames {
+                let camera = orbit_camera(&base, k, a.degrees_per_frame);
+                wall.frame(&FrameRequest { scale: a.scale, ..FrameRequest::new(camera, settings) }).await?;
+            }
+            let elapsed = start.elapsed();
             wall.settle().await;
             let ids = first + BALANCE_SETTLE_FRAMES as u64..=wall.last_frame_id();
             let fps = a.frames as f64 / elapsed.as_secs_f64().max(1e-9);

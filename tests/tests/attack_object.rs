@@ -9,6 +9,10 @@
 //! (d) on a wall that filters its composited tiles (`denoise = "on"`: pixels in the shading form),
 //!     sends `node0` a shading pixel holding NaN, which would spread through the filter to its
 //!     neighbours.
+//! and on a balanced screen-space wall (`[wall] balance = true`, the torus in `t0` so that `node1`
+//! renders rows of it), where a rectangle is accepted only as the controller's split gives it:
+//! (e) `node1` sends `node0` the first row of `t0` with hits, a row the split did not give it;
+//! (f) the LZ4 bomb of (a).
 //! Each must leave `node0` serving: its peak resident memory (VmHWM) stays within
 //! [`HWM_GROWTH_LIMIT_KIB`] of what it was before the attack, the wall keeps swapping with
 //! `node0` ready in at least half the frames, and the refusal (the close reason the attacker reads, or the logs)
@@ -40,12 +44,27 @@ const ATTACK_AFTER: Duration = Duration::from_secs(3);
 /// is 200 x 1.2 MB = 242 MB).
 const HWM_GROWTH_LIMIT_KIB: u64 = 100 * 1024;
 
-fn wall_config(dir: &Path, ports: &[u16], filtered: bool) -> PathBuf {
+/// How the attacked wall shares its work.
+#[derive(Clone, Copy, PartialEq)]
+enum Mode {
+    Object,
+    /// Object space, filtering its composited tiles (pixels in the shading form).
+    ObjectFiltered,
+    /// Balanced screen space, the torus in `t0`.
+    Balanced,
+}
+
+fn wall_config(dir: &Path, ports: &[u16], mode: Mode) -> PathBuf {
     let (w, h) = TILE;
-    let render = if filtered { "ao_samples = 1\ndenoise = \"on\"" } else { "ao_samples = 0" };
+    let render =
+        if mode == Mode::ObjectFiltered { "ao_samples = 1\ndenoise = \"on\"" } else { "ao_samples = 0" };
+    let (space, target) = match mode {
+        Mode::Balanced => ("balance = true", "[70.0, 23.5, 23.5]"),
+        _ => ("mode = \"object\"", "[23.5, 23.5, 23.5]"),
+    };
     let mut s = format!(
-        "[wall]\nname = \"attack-object\"\nmode = \"object\"\ndeadline_ms = {DEADLINE_MS}\n\n\
-         [camera]\neye = [60.0, -70.0, 45.0]\ntarget = [23.5, 23.5, 23.5]\nup = [0, 0, 1]\nfov_y = 40.0\n\n\
+        "[wall]\nname = \"attack-object\"\n{space}\ndeadline_ms = {DEADLINE_MS}\n\n\
+         [camera]\neye = [60.0, -70.0, 45.0]\ntarget = {target}\nup = [0, 0, 1]\nfov_y = 40.0\n\n\
          [volume]\nsource = \"procedural:torus:48\"\n\n[render]\n{render}\n\n\
          [certificates]\ndir = \"keys\"\n"
     );
@@ -77,14 +96,14 @@ struct Wall {
 }
 
 fn wall() -> Option<Wall> {
-    wall_with(false)
+    wall_with(Mode::Object)
 }
 
-/// The wall; `filtered`: it filters its composited tiles (shading form).
-fn wall_with(filtered: bool) -> Option<Wall> {
+/// The wall, sharing its work by `mode`.
+fn wall_with(mode: Mode) -> Option<Wall> {
     let dir = tempfile::tempdir().unwrap();
     let ports = free_udp_ports(2);
-    let config = wall_config(dir.path(), &ports, filtered);
+    let config = wall_config(dir.path(), &ports, mode);
     let out = run_in(dir.path(), "isowall", &["keygen", "--config", config.to_str().unwrap()]);
     assert!(out.status.success(), "keygen: {}", String::from_utf8_lossy(&out.stderr));
     let addr = |p: u16| SocketAddr::from(([127, 0, 0, 1], p));
@@ -320,7 +339,7 @@ fn an_lz4_bomb_of_200_rectangles_is_refused_before_it_is_decompressed() {
 
 #[test]
 fn a_shading_pixel_of_nan_is_refused_before_it_reaches_the_filter() {
-    let Some(w) = wall_with(true) else { return };
+    let Some(w) = wall_with(Mode::ObjectFiltered) else { return };
     let Some(mut daemons) = start_both(&w) else { return };
     // One pixel near the image's centre (t0's right edge), where both bricks' footprints lie
     // whatever the orbit's angle (the cut runs through the torus's middle), with a hit and NaN in
@@ -414,7 +433,9 @@ async fn silent_node(identity: Identity, addr: SocketAddr, stop: Arc<AtomicBool>
                             let reason = "a silent test peer".to_string();
                             sender.send(&Message::BrickFailed { brick, reason }).await
                         }
-                        NodeOutput::Bricks { .. } | NodeOutput::Identify { .. } => Ok(()),
+                        NodeOutput::Bricks { .. }
+                        | NodeOutput::Split { .. }
+                        | NodeOutput::Identify { .. } => Ok(()),
                         NodeOutput::Closed { .. } | NodeOutput::Restart { .. } => return,
                     };
                     if sent.is_err() {
@@ -453,4 +474,43 @@ fn a_silent_peer_does_not_freeze_the_wall() {
         "the controller does not name node1's missing pixels:\n{}",
         run.stderr
     );
+}
+
+#[test]
+fn on_a_balanced_wall_rows_the_split_did_not_give_a_node_are_refused() {
+    let Some(w) = wall_with(Mode::Balanced) else { return };
+    let Some(mut daemons) = start_both(&w) else { return };
+    let (tw, _) = TILE;
+    // t0's first row, every pixel a hit: node0 keeps its tile's first rows (the split gives away
+    // its last ones), so these are node0's own, and no more bytes than node1's share.
+    let mut l = Layer::empty(0, 0, tw, 1, PixelForm::Colour);
+    l.depth.iter_mut().for_each(|d| *d = 1.0);
+    l.rgb8.iter_mut().for_each(|c| *c = 255);
+    let rects = vec![l.encode("t0", true)];
+    let (run, reasons) =
+        under_attack("rows not given", &w, &mut daemons[0], |stop| around_the_wall(&w, stop, rects.clone()));
+    let log = daemons[0].log_text();
+    assert_named(
+        "rows not given",
+        &reasons,
+        &["outside what the frame gives it", "bytes", "rectangles"],
+        &log,
+    );
+    assert!(run.stderr.lines().all(|l| !l.contains("node node1 is down")), "{}", run.stderr);
+    // The wall balanced: node1 rendered rows of t0 and sent them.
+    assert!(run.stdout.contains("balance (bytes of rectangles"), "{}", run.stdout);
+}
+
+#[test]
+fn on_a_balanced_wall_an_lz4_bomb_is_refused_before_it_is_decompressed() {
+    let Some(w) = wall_with(Mode::Balanced) else { return };
+    let Some(mut daemons) = start_both(&w) else { return };
+    let (tw, th) = TILE;
+    let rect = Layer::empty(0, 0, tw, th, PixelForm::Colour).encode("t0", true);
+    let rects: Vec<_> = (0..200).map(|_| rect.clone()).collect();
+    let (_run, reasons) = under_attack("balanced LZ4 bomb", &w, &mut daemons[0], |stop| {
+        around_the_wall(&w, stop, rects.clone())
+    });
+    let log = daemons[0].log_text();
+    assert_named("balanced LZ4 bomb", &reasons, &["rectangles", "bytes"], &log);
 }

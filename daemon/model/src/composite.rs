@@ -156,11 +156,11 @@ pub enum CompositeError {
     Twice { peer: String, frame_id: u64 },
     #[error("node `{peer}` sent pixels for frame {frame_id}, more than {FRAMES_AHEAD} frames ahead of frame {latest}, the latest this node was told of")]
     FarAhead { peer: String, frame_id: u64, latest: u64 },
-    #[error("node `{peer}` sent {got} rectangles for frame {frame_id}; its bricks may cover at most {max} rectangles of this node's tiles")]
+    #[error("node `{peer}` sent {got} rectangles for frame {frame_id}; the frame gives it at most {max} rectangles of this node's tiles (its bricks' footprints, or its rows of a balanced split)")]
     TooManyRects { peer: String, frame_id: u64, got: usize, max: usize },
-    #[error("node `{peer}` sent rectangles of {got} decoded bytes for frame {frame_id}; its bricks' footprint on this node's tiles is {max} bytes")]
+    #[error("node `{peer}` sent rectangles of {got} decoded bytes for frame {frame_id}; what the frame gives it of this node's tiles is {max} bytes")]
     TooManyBytes { peer: String, frame_id: u64, got: u64, max: u64 },
-    #[error("node `{peer}` sent a {w}x{h} rectangle at ({x}, {y}) of tile `{tile}` for frame {frame_id}, outside the footprint of its bricks there")]
+    #[error("node `{peer}` sent a {w}x{h} rectangle at ({x}, {y}) of tile `{tile}` for frame {frame_id}, outside what the frame gives it there")]
     OutsideFootprint { peer: String, tile: String, frame_id: u64, x: u32, y: u32, w: u32, h: u32 },
 }
 
