@@ -47,7 +47,8 @@ const SPLITS_KEPT: usize = 4;
 /// Frames whose rectangles are remembered until they are rendered.
 const FRAMES_KEPT: u64 = 16;
 
-/// A rendered rectangle's cost, the balancer's unit: its fetches and [`PIXEL_FETCHES`] per pixel.
+/// A rendered rectangle's cost, the balancer's unit: its fetches and [`PIXEL_FETCHES`] per pixel
+/// rendered (at the frame's internal scale).
 pub fn rect_cost(fetches: u64, pixels: u64) -> u64 {
     fetches.saturating_add(pixels.saturating_mul(PIXEL_FETCHES))
 }
@@ -74,6 +75,8 @@ pub struct RenderedRect {
 #[derive(Debug, Clone, Default)]
 struct Started {
     share: NodeShare,
+    /// The frame's internal resolution divisor: a rectangle renders 1/scale^2 of its pixels.
+    scale: u32,
     local_at: Option<Duration>,
     sent: u64,
     work: Duration,
@@ -193,7 +196,7 @@ impl BalanceMachine {
         // The GPU's background is f32.
         self.background = spec.settings.background.map(|c| srgb8(f64::from(c as f32)));
         let refused = self.compositor.expect(now, spec.frame_id, share.expects.clone());
-        self.started.insert(spec.frame_id, Started { share, ..Default::default() });
+        self.started.insert(spec.frame_id, Started { share, scale: spec.scale.max(1), ..Default::default() });
         self.started.retain(|&k, _| k.saturating_add(FRAMES_KEPT) > spec.frame_id);
         let plan = RenderPlan {
             frame_id: spec.frame_id,
@@ -237,11 +240,13 @@ impl BalanceMachine {
             if !fits {
                 continue;
             }
+            // The pixels its kernels ran for (at the frame's scale), not those shown.
+            let rendered = u64::from(r.width.div_ceil(st.scale)) * u64::from(r.height.div_ceil(st.scale));
             costs.push(WireRectCost {
                 tile: tile as u32,
                 first_row: rect.first_row,
                 rows: rect.rows,
-                cost: rect_cost(r.fetches, n as u64),
+                cost: rect_cost(r.fetches, rendered),
             });
             // Placed whatever it shows: a miss gets a depth that wins over an empty canvas.
             let depth = r.depth.iter().map(|&d| if d.is_finite() { d } else { f32::MAX }).collect();
@@ -487,6 +492,20 @@ mod tests {
         let last_row = &c.tiles[0].rgb8[3 * 32 * 23..];
         assert_eq!(last_row[0], bg, "a row n1 held shows the background");
         assert_eq!(&c.tiles[0].rgb8[..3 * 32], &whole(0)[..3 * 32], "n0's own rows are placed");
+    }
+
+    #[test]
+    fn a_rectangle_costs_the_pixels_it_rendered_at_the_frames_scale() {
+        let config = wall();
+        let mut m = BalanceMachine::new(&config, "n1", Duration::from_secs(1));
+        m.announce(1);
+        let spec = FrameSpec { scale: 4, ..spec(1) };
+        let (plan, _) = m.plan(Duration::ZERO, &spec, 0, Continuity::ViewMoved);
+        assert_eq!(plan.scale, 4);
+        let out = m.local_done(Duration::ZERO, 1, render(&plan));
+        let ObjectOutput::Send(Message::RectCosts { costs, .. }) = &out[0] else { panic!("{out:?}") };
+        // A 32x24 tile at 1/4 scale: 8x6 pixels rendered, and its 24 rows' fetches.
+        assert_eq!(costs[0].cost, rect_cost(24, 8 * 6));
     }
 
     #[test]
