@@ -1,6 +1,8 @@
 //! Faults on a running wall (screen space):
 //! a node killed with SIGKILL is reported by name within two deadlines while the others go on, and
-//! rejoins when restarted; the controller killed with SIGKILL leaves the daemons serving, and a new
+//! rejoins when restarted, on a plain wall and on a balanced one (`[wall] balance = true`: the
+//! dead node's rows of other tiles are placed without it, the next split leaves it out, and it
+//! gets its tiles back when it rejoins); the controller killed with SIGKILL leaves the daemons serving, and a new
 //! controller drives them without a restart of theirs.
 
 use isowall_e2e::{bin, free_udp_ports, run_in, start_nodes, wall_config, Daemon};
@@ -37,9 +39,22 @@ fn wait_for(file: &Path, needle: &str, timeout: Duration) -> Option<Duration> {
 
 #[test]
 fn a_killed_node_is_reported_and_rejoins_when_restarted() {
+    killed_node_is_reported_and_rejoins(false);
+}
+
+#[test]
+fn on_a_balanced_wall_a_killed_node_loses_only_its_rows_and_rejoins_when_restarted() {
+    killed_node_is_reported_and_rejoins(true);
+}
+
+fn killed_node_is_reported_and_rejoins(balance: bool) {
     let dir = tempfile::tempdir().unwrap();
     let deadline_ms = 2000;
     let config = wall_config(dir.path(), "kill", &free_udp_ports(4), 8, 6, 1, deadline_ms, "keys");
+    if balance {
+        let text = std::fs::read_to_string(&config).unwrap();
+        std::fs::write(&config, text.replacen("[wall]\n", "[wall]\nbalance = true\n", 1)).unwrap();
+    }
     assert!(run_in(dir.path(), "isowall", &["keygen", "--config", config.to_str().unwrap()])
         .status
         .success());
@@ -92,6 +107,9 @@ fn a_killed_node_is_reported_and_rejoins_when_restarted() {
     eprintln!("node1 missed {missed} swaps; rejoined at frame {rejoin} and made every swap from then on");
     assert!(status.success(), "the controller failed:\n{out}\n{log}");
     assert!(out.contains("frames: 120"), "the wall did not go on:\n{out}\n{log}");
+    if balance {
+        assert!(out.contains("balance (bytes of rectangles"), "the wall did not balance:\n{out}");
+    }
     // The others were never reported.
     for other in ["node0", "node2", "node3"] {
         assert!(!log.contains(&format!("node {other} is down")), "{other} reported down:\n{log}");

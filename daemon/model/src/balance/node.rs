@@ -27,7 +27,7 @@ use std::time::Duration;
 use super::share::{split_from_wire, NodeShare, SplitError};
 use super::{Split, WorkRect};
 use crate::codec;
-use crate::composite::{Compositor, Layer, PeerPixels, PixelForm};
+use crate::composite::{composite_deadline, Compositor, Layer, PeerPixels, PixelForm};
 use crate::config::WallConfig;
 use crate::links::Link;
 use crate::messages::Message;
@@ -96,8 +96,11 @@ pub struct BalanceMachine {
 }
 
 impl BalanceMachine {
-    /// Node `name` of `config`, each frame waiting `deadline` for its peers' rectangles.
-    pub fn new(config: &WallConfig, name: &str, deadline: Duration) -> BalanceMachine {
+    /// Node `name` of `config` on a wall whose swap barrier waits `barrier_deadline`: each frame
+    /// waits for its peers' rectangles until [`composite_deadline`] of it from the frame's start,
+    /// so that it is still ready for the barrier.
+    pub fn new(config: &WallConfig, name: &str, barrier_deadline: Duration) -> BalanceMachine {
+        let deadline = composite_deadline(barrier_deadline);
         let tiles = config.tiles_of(name).iter().map(|t| (t.name.clone(), t.width, t.height)).collect();
         let peers = config.nodes.iter().map(|n| n.name.clone());
         BalanceMachine {
@@ -482,8 +485,11 @@ mod tests {
         let out = owner.peer(Duration::ZERO, "n1", 5, bad);
         assert!(matches!(&out[..], [ObjectOutput::ClosePeer { link: 5, .. }]), "{out:?}");
         // The deadline passes: the tile is placed without n1's rows, which show the background.
-        assert_eq!(owner.poll_timeout(), Some(d));
-        let done = owner.handle_timeout(d);
+        let at = composite_deadline(d);
+        assert!(at < d);
+        assert_eq!(owner.poll_timeout(), Some(at));
+        assert!(owner.handle_timeout(at - Duration::from_millis(1)).is_empty());
+        let done = owner.handle_timeout(at);
         let [ObjectOutput::Composited(c)] = &done[..] else { panic!("{done:?}") };
         assert_eq!(c.missing, vec!["n1".to_string()]);
         let given = plan.views.iter().map(|(_, v)| v.rect.height).sum::<u32>();
