@@ -51,6 +51,19 @@ impl RenderPlan {
     ) -> RenderPlan {
         let views =
             tiles.iter().filter_map(|t| config.tile_view(spec.camera, t).map(|v| (t.clone(), v))).collect();
+        RenderPlan::of_views(spec, views, accumulate_frame, continuity, None)
+    }
+
+    /// The frame `spec` over `views` of the wall's own pixels (no bricks), at the frame's scale
+    /// and settings, read back in `share`'s form where given: screen space's plan, and a balanced
+    /// wall's (`crate::balance::node`), whose views are rows of tiles.
+    pub fn of_views(
+        spec: &FrameSpec,
+        views: Vec<(String, View)>,
+        accumulate_frame: u32,
+        continuity: Continuity,
+        share: Option<PixelForm>,
+    ) -> RenderPlan {
         RenderPlan {
             frame_id: spec.frame_id,
             views,
@@ -60,7 +73,7 @@ impl RenderPlan {
             accumulate_frame,
             continuity,
             time_step: spec.time_step,
-            share: None,
+            share,
         }
     }
 

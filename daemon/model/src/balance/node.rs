@@ -201,17 +201,7 @@ impl BalanceMachine {
         let refused = self.compositor.expect(now, spec.frame_id, share.expects.clone());
         self.started.insert(spec.frame_id, Started { share, scale: spec.scale.max(1), ..Default::default() });
         self.started.retain(|&k, _| k.saturating_add(FRAMES_KEPT) > spec.frame_id);
-        let plan = RenderPlan {
-            frame_id: spec.frame_id,
-            views,
-            bricks: Vec::new(),
-            settings: spec.settings,
-            scale: spec.scale,
-            accumulate_frame,
-            continuity,
-            time_step: spec.time_step,
-            share: Some(PixelForm::Colour),
-        };
+        let plan = RenderPlan::of_views(spec, views, accumulate_frame, continuity, Some(PixelForm::Colour));
         (plan, refused.into_iter().map(refused_output).collect())
     }
 
