@@ -457,8 +457,8 @@ impl Wall {
         Box::pin(self.execute(sends)).await;
     }
 
-    /// A balanced wall: what each rectangle `node` rendered cost, for the split's rule. Entries
-    /// that name no tile of the wall are left out.
+    /// A balanced wall: what each rectangle `node` rendered cost, for the split's rule and the
+    /// node's work in the frame.
     fn observe_costs(&mut self, node: &str, frame_id: u64, costs: &[WireRectCost]) {
         let Some(b) = self.balance.as_mut() else { return };
         let work = b.work.entry(frame_id).or_default().entry(node.to_string()).or_default();
@@ -474,7 +474,11 @@ impl Wall {
                 rows: c.rows,
                 renderer: node.into(),
             };
-            b.balancer.observe(&rect, c.cost as f64);
+            // Only a rectangle the split gave this node counts (a stale or made-up one is left
+            // out); a frame's costs come before its Ready, so before the next frame's split.
+            if b.sent.as_ref().is_some_and(|s| s.rects.contains(&rect)) {
+                b.balancer.observe(&rect, c.cost as f64);
+            }
         }
     }
 

@@ -108,7 +108,7 @@ impl BalancedNode {
     pub fn local_done(&mut self, done: JobResult) -> Vec<Done> {
         let (id, t0) = (done.frame_id, Instant::now());
         self.rendered.insert(id, (done.render_time, done.step_late));
-        self.rendered.retain(|&f, _| f + 16 > id);
+        self.rendered.retain(|&f, _| f.saturating_add(16) > id);
         let rects = done
             .tiles
             .into_iter()
