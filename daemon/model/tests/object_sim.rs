@@ -774,7 +774,7 @@ fn a_guard_band_grows_views_footprints_and_canvases_and_the_shading_form_travels
             let msg = PeerPixels { frame_id: 1, node: peer.clone(), rects: vec![from_tile] };
             let out = m.peer(ms(1), &peer, 1, msg);
             assert!(
-                matches!(&out[..], [ObjectOutput::ClosePeer { reason, .. }] if reason.contains("outside the footprint")),
+                matches!(&out[..], [ObjectOutput::ClosePeer { reason, .. }] if reason.contains("outside what the frame gives it")),
                 "{peer}: {out:?}"
             );
         }
