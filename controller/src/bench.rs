@@ -169,6 +169,7 @@ fn bench_balance(a: &BalanceArgs) -> Result<()> {
         for (name, on) in [("unbalanced", false), ("balanced", true)] {
             wall.set_balance(on);
             let first = wall.last_frame_id() + 1;
+            let changes_before = wall.split().map_or(0, |s| s.2);
             wall.sync_clocks(3).await;
             let start = Instant::now();
             for k in 0..a.frames {
@@ -179,7 +180,8 @@ fn bench_balance(a: &BalanceArgs) -> Result<()> {
             wall.settle().await;
             let ids = first + BALANCE_SETTLE_FRAMES as u64..=wall.last_frame_id();
             let fps = a.frames as f64 / elapsed.as_secs_f64().max(1e-9);
-            ratios.push(print_balance_run(&wall, name, ids, fps));
+            let changes = wall.split().map_or(0, |s| s.2) - changes_before;
+            ratios.push(print_balance_run(&wall, name, ids, fps, changes));
         }
         wall.close("the bench is done").await;
         Ok::<Vec<f64>, anyhow::Error>(ratios)
@@ -193,7 +195,13 @@ fn bench_balance(a: &BalanceArgs) -> Result<()> {
 /// Prints one run of `bench balance`: per node its work and bytes sent per frame over the frames
 /// `ids`, the split's rows moved, the fps. Returns the slowest node's work over the mean,
 /// averaged over those frames.
-fn print_balance_run(wall: &Wall, name: &str, ids: std::ops::RangeInclusive<u64>, fps: f64) -> f64 {
+fn print_balance_run(
+    wall: &Wall,
+    name: &str,
+    ids: std::ops::RangeInclusive<u64>,
+    fps: f64,
+    changes: u64,
+) -> f64 {
     let mut per_node: std::collections::BTreeMap<&str, (Vec<u64>, Vec<u64>)> =
         wall.config.nodes.iter().map(|n| (n.name.as_str(), (Vec::new(), Vec::new()))).collect();
     let mut ratios = Vec::new();
@@ -217,10 +225,11 @@ fn print_balance_run(wall: &Wall, name: &str, ids: std::ops::RangeInclusive<u64>
         }
     }
     let ratio = ratios.iter().sum::<f64>() / ratios.len().max(1) as f64;
-    let moved = wall.split().map_or(0, |(_, rows)| rows);
+    let moved = wall.split().map_or(0, |(_, rows, _)| rows);
     println!(
-        "\n== {name}: {fps:.2} fps; slowest/mean work {ratio:.3} (mean of {} frames); rows rendered away from their tile's node in the last split: {moved}",
-        ratios.len()
+        "\n== {name}: {fps:.2} fps; slowest/mean work {ratio:.3} (mean of {} frames); rows rendered away from their tile's node in the last split: {moved}; the split changed {changes} times in the run's {} frames",
+        ratios.len(),
+        ids.end().saturating_sub(*ids.start()) + 1 + BALANCE_SETTLE_FRAMES as u64
     );
     let median = |mut v: Vec<u64>| {
         v.sort_unstable();

@@ -178,6 +178,9 @@ struct WallBalance {
     last: Option<FrameState>,
     /// Rows of the split sent last that another node than the tile's owner renders.
     moved_rows: u64,
+    /// Splits sent that differ from the one before, since the wall came up (each makes the
+    /// moved rectangles' render targets again on their nodes).
+    changes: u64,
     /// Per frame (the last [`HISTORY`] or so), each node's work: the costs it reported.
     work: BTreeMap<u64, BTreeMap<String, u64>>,
 }
@@ -336,6 +339,7 @@ impl Wall {
                 sent_to: Vec::new(),
                 last: None,
                 moved_rows: 0,
+                changes: 0,
                 work: BTreeMap::new(),
             });
         }
@@ -436,6 +440,9 @@ impl Wall {
         if b.sent.as_ref() == Some(&split) && b.sent_to == up {
             return;
         }
+        if b.sent.as_ref() != Some(&split) {
+            b.changes += 1;
+        }
         b.sent_to = up.clone();
         let wire = match split_to_wire(&split, &self.config) {
             Ok(w) => w,
@@ -496,10 +503,11 @@ impl Wall {
         self.balance.as_ref()?.work.get(&frame_id)
     }
 
-    /// A balanced wall: the split sent last, and the rows of it that travel to another node.
-    pub fn split(&self) -> Option<(&Split, u64)> {
+    /// A balanced wall: the split sent last, the rows of it that travel to another node, and how
+    /// many times the split changed since the wall came up.
+    pub fn split(&self) -> Option<(&Split, u64, u64)> {
         let b = self.balance.as_ref()?;
-        Some((b.sent.as_ref()?, b.moved_rows))
+        Some((b.sent.as_ref()?, b.moved_rows, b.changes))
     }
 
     /// object space: the brick map from the next frame on, to `only` or every up node.
