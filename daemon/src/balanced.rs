@@ -163,19 +163,8 @@ impl BalancedNode {
                     self.costs.retain(|&f, _| f > id);
                     reports.push(self.machine.report(self.now(), &c));
                     let (render_time, step_late) = self.rendered.remove(&id).unwrap_or_default();
-                    let tiles = c
-                        .tiles
-                        .into_iter()
-                        .map(|t| TileResult {
-                            name: t.name,
-                            width: t.width,
-                            height: t.height,
-                            rgb8: t.rgb8,
-                            depth: t.depth,
-                            shading: Vec::new(),
-                            fetches: 0,
-                        })
-                        .collect();
+                    // Placed in the colour form: `object.rs`'s conversion of a canvas.
+                    let tiles = c.tiles.into_iter().map(TileResult::from).collect();
                     let job = JobResult { frame_id: id, tiles, render_time, step_late };
                     done.push(Done { job, reports, canvas: None });
                 }

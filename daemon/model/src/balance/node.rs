@@ -211,7 +211,7 @@ impl BalanceMachine {
         &mut self,
         now: Duration,
         frame_id: u64,
-        rendered: Vec<RenderedRect>,
+        mut rendered: Vec<RenderedRect>,
     ) -> Vec<ObjectOutput> {
         let Some(st) = self.started.get_mut(&frame_id) else { return Vec::new() };
         let mut costs = Vec::new();
@@ -220,7 +220,7 @@ impl BalanceMachine {
             st.share.sends.keys().map(|o| (o.clone(), Vec::new())).collect();
         for rect in &st.share.renders {
             let name = rect_view_name(rect);
-            let Some(r) = rendered.iter().find(|r| r.name == name) else { continue };
+            let Some(r) = rendered.iter_mut().find(|r| r.name == name) else { continue };
             let (Some(tile), Some(owner)) = (
                 self.config.tiles.iter().position(|t| t.name == rect.tile),
                 self.config.node_of_tile(&rect.tile),
@@ -242,7 +242,9 @@ impl BalanceMachine {
                 cost: rect_cost(r.fetches, rendered),
             });
             // Placed whatever it shows: a miss gets a depth that wins over an empty canvas.
-            let depth = r.depth.iter().map(|&d| if d.is_finite() { d } else { f32::MAX }).collect();
+            // Moved, not copied: the render's own buffers become the layer's (a frame's pixels).
+            let mut depth = std::mem::take(&mut r.depth);
+            depth.iter_mut().filter(|d| !d.is_finite()).for_each(|d| *d = f32::MAX);
             let layer = Layer {
                 x: 0,
                 y: rect.first_row,
@@ -250,7 +252,7 @@ impl BalanceMachine {
                 height: r.height,
                 form: PixelForm::Colour,
                 depth,
-                rgb8: r.rgb8.clone(),
+                rgb8: std::mem::take(&mut r.rgb8),
                 shading: Vec::new(),
             };
             if owner.name == self.name {
