@@ -1,6 +1,9 @@
 // Kernel::Ao (daemon/render/src/gpu/ao.rs): ambient occlusion, bent normal and the IBL term of one
 // frame at every hit of the isosurface kernel's output, added into accumulators (progressive
-// accumulation: frame k of K adds its estimate; the host divides by K).
+// accumulation: frame k of K adds its estimate; the host divides by K). On a reprojected frame
+// whose samples are spent by history (`ao_pass.z` not 0) each pixel takes its own number of
+// samples, written by reproject.wgsl, and adds its estimate weighted by that number over the
+// frame's `ao_samples`.
 //
 // Ours (DESIGN.md "AO"; the CPU twin is the reference's `AoSurface` and `ambient_at`):
 // cosine-weighted directions around N as it is (the central-difference normal, NOT turned to the
@@ -450,8 +453,13 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let p = params.eye.xyz + g.w * dir;
     let ns = select(-g.xyz, g.xyz, dot(g.xyz, -dir) >= 0.0);
     let basis = onb(ns);
-    let n_samples = params.ao_samples;
-    // This dispatch's samples [first, last) of the frame's n_samples.
+    // The pixel's samples this frame: the frame's, or where a reprojection spent them by history
+    // (`ao_pass.z`, the most a pixel takes, not 0), the number it wrote into the position sum's w.
+    var n_samples = params.ao_samples;
+    if params.ao_pass.z != 0u {
+        n_samples = u32(acc_pos[idx].w);
+    }
+    // This dispatch's samples [first, last) of the pixel's n_samples.
     let first = min(ao_dispatch.x * params.ao_pass.x, n_samples);
     let last = min(first + params.ao_pass.x, n_samples);
     if n_samples > 0u && first >= last {
@@ -551,14 +559,15 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             }
         }
     }
-    // This dispatch's A over its own samples; its share of the frame (the dispatches' shares
-    // add up to 1; a single dispatch has share 1 exactly).
+    // This dispatch's A over its own samples; its share of the frame (its samples over the
+    // frame's: the dispatches' shares add up to 1, a single dispatch has share 1 exactly; a pixel
+    // whose samples were spent by history adds n_samples / ao_samples in all).
     let taken = last - first;
     var a = 0.0;
     var share = 1.0;
     if n_samples > 0u {
         a = f32(occluded) / f32(taken);
-        share = f32(taken) / f32(n_samples);
+        share = f32(taken) / f32(params.ao_samples);
     }
     let bl = length(bent);
     let bent_n = select(axis, bent / bl, bl > 0.0);

@@ -51,7 +51,8 @@ struct FrameParams {
                              // y, z: offsets of the AO and coarse levels in block_minmax
     voxel_range: vec4<f32>,  // xy: the value range the unorm voxel formats span (lo, hi); zw: 0
     ao_pass: vec4<u32>,      // x: AO samples per dispatch (ao.wgsl); y: the exact AO walk's
-                             // iteration cap per ray; zw: 0
+                             // iteration cap per ray; z: 0, or the most samples a pixel takes
+                             // where the reprojection spent them by history; w: 0
 }
 
 const FLAG_EMPTY_SPACE_SKIPPING: u32 = 1u;

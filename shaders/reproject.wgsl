@@ -17,9 +17,13 @@
 //   (`drift_tolerance`): the carried position sum over the weight is where the history's samples
 //   were taken, on average; at a distance d of more than the tolerance (in footprints of p) the
 //   sums are multiplied by (tolerance / d)^2;
-// - every other pixel (no hit, no tap counting) starts at 0.
+// - every other pixel (no hit, no tap counting) starts at 0;
+// - at every hit the position sum's w is the number of AO samples the pixel takes this frame
+//   (`Spending` in reproject.rs): S, or by history S * clamp(target - weight, least, most) plus a
+//   draw in [0, 1) per pixel and frame, rounded down, at least 1; the AO kernel reads it.
 //
 //#include camera.wgsl
+//#include sampling.wgsl
 
 struct ReprojectParams {
     eye: vec4<f32>,              // this frame's camera
@@ -42,8 +46,16 @@ struct ReprojectParams {
     nearest: u32,                // 1: the previous pixel the projection falls in, not bilinear
     accepted_share: u32,         // 1: the blend not renormalized (rejected taps' share dropped)
     drift_tolerance: f32,        // footprints the history's samples may stand from p, unscaled
+    samples: u32,                // the frame's AO samples a pixel (S, FrameParams' ao_samples)
+    frame: u32,                  // the frame's index in the sample sequence (FrameParams' frame)
+    seed: u32,
+    spending: u32,               // 0 uniform (S everywhere), 1 by history
+    spend_target: f32,           // by history: S * clamp(target - weight, least, most) samples
+    spend_least: f32,
+    spend_most: f32,
     _pad1: u32,
     _pad2: u32,
+    _pad3: u32,
 }
 
 // A read-only storage buffer, not a uniform: see frame.wgsl (lavapipe's uniform inlining).
@@ -176,7 +188,29 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             }
         }
     }
+    pos.w = 0.0;
+    if in_color[i].w >= 0.5 {
+        let px = params.rect_origin + gid.xy;
+        pos.w = f32(samples_taken(ibl.w, spend_key(px.x, px.y)));
+    }
     acc_ao[i] = ao;
     acc_ibl[i] = ibl;
     acc_pos[i] = pos;
+}
+
+// `spend_key` in reproject.rs.
+const SPEND_SALT: u32 = 0x5bd1e995u;
+
+fn spend_key(px: u32, py: u32) -> u32 {
+    return hash(pixel_key(px, py, params.frame, params.seed) ^ SPEND_SALT);
+}
+
+// The AO samples a pixel carrying `weight` frames' worth of history takes (`Spending::samples`).
+fn samples_taken(weight: f32, key: u32) -> u32 {
+    if params.spending == 0u {
+        return params.samples;
+    }
+    let x = clamp(params.spend_target - weight, params.spend_least, params.spend_most) * f32(params.samples);
+    let u = f32(key >> 8u) * (1.0 / 16777216.0);
+    return max(u32(floor(x + u)), 1u);
 }

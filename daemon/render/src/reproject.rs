@@ -33,7 +33,11 @@
 //!   by (tolerance / d)^2. Where taps are rejected a history is carried from one side only and
 //!   creeps away from the point it stands for, a little each frame: near a crease or a
 //!   silhouette that drift, not noise, was the moving error (docs/bench/orbit-drift-lavapipe.md);
-//! - every other pixel starts at 0 (its weight restarts).
+//! - every other pixel starts at 0 (its weight restarts);
+//! - the frame's AO samples are then spent by history ([`Rule::spending`]): a pixel newly seen or
+//!   restarted takes more than the frame's S, one with a long history fewer, each adding its
+//!   samples over S frames' worth to its weight. The reprojection writes the number into the
+//!   position sum's w; the AO kernel takes it.
 //!
 //! A tile whose history was reprojected divides its sums by the per-pixel weight (compose and the
 //! filter) instead of the uniform frame count; a still camera never reprojects and keeps the
@@ -61,7 +65,57 @@ pub struct Rule {
     /// How far the carried history's samples may stand from the new hit before the history is
     /// scaled down by (tolerance / distance)^2.
     pub drift: DriftTolerance,
+    /// How a reprojected frame's AO samples are spent over its pixels.
+    pub spending: Spending,
 }
+
+/// [`Rule::spending`]: how many AO samples each pixel of a reprojected frame takes, from the
+/// history it carries. The frame's nominal samples S (the governor's) stay the unit of weight: a
+/// pixel taking n samples adds n / S frames' worth to its history.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Spending {
+    /// Every pixel takes S.
+    Uniform,
+    /// A pixel carrying a history of weight h (frames' worth) takes S * clamp(target - h, least,
+    /// most) samples, rounded down after adding a number in [0, 1) drawn per pixel and frame
+    /// ([`spend_key`]), and at least one: a pixel newly seen takes `most` frames' worth, one
+    /// whose history is `target - least` frames or older `least`. The variance of a history of h
+    /// frames' worth falls as 1 / (h + n / S): a sample lowers it most where h is small.
+    ByHistory { target: f32, least: f32, most: f32 },
+}
+
+impl Spending {
+    /// The samples a pixel carrying `weight` frames' worth of history takes in a frame of
+    /// `samples` (S), its draw in [0, 1) being `(spend_key(..) >> 8) / 2^24`.
+    pub fn samples(self, weight: f32, samples: u32, key: u32) -> u32 {
+        match self {
+            Spending::Uniform => samples,
+            Spending::ByHistory { target, least, most } => {
+                let x = (target - weight).clamp(least, most) * samples as f32;
+                let u = (key >> 8) as f32 * (1.0 / 16_777_216.0);
+                ((x + u).floor() as u32).max(1)
+            }
+        }
+    }
+
+    /// The most samples a pixel takes in a frame of `samples`.
+    pub fn most(self, samples: u32) -> u32 {
+        match self {
+            Spending::Uniform => samples,
+            Spending::ByHistory { most, .. } => ((most * samples as f32).ceil() as u32).max(1),
+        }
+    }
+}
+
+/// The per-pixel, per-frame draw of [`Spending::ByHistory`]'s rounding: the sample pattern's key
+/// (full-image pixel, the frame's sample index, the seed) hashed once more, so that it is the same
+/// on every node and independent of the pattern.
+pub fn spend_key(px: u32, py: u32, frame: u32, seed: u32) -> u32 {
+    crate::sampling::hash(crate::sampling::pixel_key(px, py, frame, seed) ^ SPEND_SALT)
+}
+
+/// Separates [`spend_key`] from the AO pattern's key (shaders/reproject.wgsl has the same).
+pub const SPEND_SALT: u32 = 0x5bd1_e995;
 
 /// [`Rule::drift`]: a distance in footprints of the new hit.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -95,7 +149,15 @@ pub const RULE: Rule = Rule {
     nearest: false,
     accepted_share: true,
     drift: DriftTolerance::OverSqrtSamples(DRIFT_SCALE),
+    spending: SPENDING,
 };
+
+/// The renderer's spending of a reprojected frame's samples.
+/// At 4 samples a frame a pixel newly seen takes 16, one with 9.75 frames' worth of history or
+/// more takes 1. The target is the one whose mean over an orbit of 1 degree a frame is about the
+/// frame's samples (`isowalld bench orbit`: 3.4 a pixel on the engine, 4.3 on the MRI; 6 and 14
+/// are the bench's `spend-target` variants).
+pub const SPENDING: Spending = Spending::ByHistory { target: 10.0, least: 0.25, most: 4.0 };
 
 /// The renderer's drift tolerance times the square root of the AO samples a frame: 1 footprint
 /// at 4 samples (docs/bench/orbit-drift-lavapipe.md).
@@ -209,7 +271,8 @@ pub fn keep(weight: f32, rule: &Rule) -> f32 {
     }
 }
 
-/// A rectangle's running sums, per pixel: bent + A, E rgb + weight, position (xyz) + 0.
+/// A rectangle's running sums, per pixel: bent + A, E rgb + weight, position (xyz) + the samples
+/// a reprojected frame takes there.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Sums {
     pub ao: Vec<[f32; 4]>,
@@ -228,10 +291,22 @@ pub fn drift_keep(distance: f32, tolerance: f32) -> f32 {
     }
 }
 
+/// The frame a reprojection prepares: its nominal AO samples a pixel (S), its index in the sample
+/// sequence and its seed (`FrameParams`' `ao_samples`, `frame`, `seed`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Pattern {
+    pub samples: u32,
+    pub frame: u32,
+    pub seed: u32,
+}
+
 /// The CPU twin of `Kernel::Reproject`: `next`'s running sums carried from `prev`'s under
-/// `rule`, before the AO kernel adds the new frame of `samples` AO samples.
-pub fn reproject(prev: &Geometry, prev_sums: &Sums, next: &Geometry, rule: &Rule, samples: u32) -> Sums {
+/// `rule`, before the AO kernel adds the new frame `pattern`. The position sum's w is the number of
+/// AO samples the pixel takes in that frame ([`Rule::spending`]; 0 where it has no hit).
+pub fn reproject(prev: &Geometry, prev_sums: &Sums, next: &Geometry, rule: &Rule, pattern: Pattern) -> Sums {
+    let samples = pattern.samples;
     let tolerance = rule.drift.footprints(samples);
+    let width = next.view.rect.width as usize;
     let nc = Camera32::new(next.view);
     let pixel_size = 2.0 * nc.rays.tan_half / nc.rays.full.1;
     let mut out = Sums::default();
@@ -258,6 +333,12 @@ pub fn reproject(prev: &Geometry, prev_sums: &Sums, next: &Geometry, rule: &Rule
             ao = ao.map(|x| x * k);
             ibl = ibl.map(|x| x * k);
             pos = pos.map(|x| x * k);
+        }
+        pos[3] = 0.0;
+        if next.hit[i] {
+            let (px, py) = (next.view.rect.x + (i % width) as u32, next.view.rect.y + (i / width) as u32);
+            let key = spend_key(px, py, pattern.frame, pattern.seed);
+            pos[3] = rule.spending.samples(ibl[3], samples, key) as f32;
         }
         out.ao.push(ao);
         out.ibl.push(ibl);
@@ -376,12 +457,38 @@ mod tests {
         };
         let centre = 12 * 32 + 16;
         for (offset, want) in [(0.0, 4.0), (2.0 * RULE.drift.footprints(4), 1.0)] {
-            let out = reproject(&g, &sums(offset), &g, &RULE, 4);
+            let out = reproject(&g, &sums(offset), &g, &RULE, Pattern { samples: 4, frame: 0, seed: 0 });
             let weight = out.ibl[centre][3];
             assert!((weight - want).abs() < 1e-3 * want, "offset {offset}: weight {weight}");
             // Every sum is scaled alike: the occlusion estimate (A / weight) is unchanged.
             assert!((out.ao[centre][3] / weight - 0.5).abs() < 1e-5);
         }
+    }
+
+    #[test]
+    fn samples_are_spent_by_history_unbiased_and_within_their_bounds() {
+        let s = 4;
+        assert_eq!(Spending::Uniform.samples(0.0, s, 123), 4);
+        assert_eq!(Spending::Uniform.most(s), 4);
+        let by = Spending::ByHistory { target: 6.0, least: 0.25, most: 4.0 };
+        assert_eq!(by.most(s), 16);
+        // A draw of 0 rounds down, the largest draw up: the mean over draws is the fraction.
+        for (weight, want) in [(0.0, 16.0), (3.0, 12.0), (5.5, 2.0), (5.9, 1.0), (16.0, 1.0)] {
+            let keys = (0..4096u32).map(|k| spend_key(k % 64, k / 64, 7, 1));
+            let taken: Vec<u32> = keys.map(|k| by.samples(weight, s, k)).collect();
+            let mean = taken.iter().sum::<u32>() as f64 / taken.len() as f64;
+            assert!((mean - want).abs() < 0.05 * want, "weight {weight}: mean {mean}, want {want}");
+            assert!(taken.iter().all(|&n| n >= 1 && n <= by.most(s)), "weight {weight}");
+        }
+        // Between two integers, both are taken: 5.5 frames' worth leaves 0.5 * 4 = 2 exactly; 5.75
+        // leaves 1 (the least, 0.25 frames' worth); 5.2 leaves 3.2, so 3 or 4.
+        let draws: std::collections::BTreeSet<u32> =
+            (0..256).map(|k| by.samples(5.2, s, spend_key(k, 0, 0, 0))).collect();
+        assert_eq!(draws.into_iter().collect::<Vec<_>>(), vec![3, 4]);
+        // The draw is the pixel's and the frame's: another frame draws afresh.
+        let a: Vec<u32> = (0..64).map(|k| by.samples(5.2, s, spend_key(k, 0, 0, 0))).collect();
+        let b: Vec<u32> = (0..64).map(|k| by.samples(5.2, s, spend_key(k, 0, 1, 0))).collect();
+        assert_ne!(a, b);
     }
 
     #[test]

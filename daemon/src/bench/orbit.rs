@@ -20,7 +20,11 @@
 //!   edge keeps its whole weight),
 //!   a history cap of 8, 32 and 64 frames instead of 16 (32 and 64 differ only in an orbit of
 //!   more than 33 frames), the drift test off and at other tolerances (`Rule::drift`: 1 and 3
-//!   footprints over the square root of the samples a frame instead of 2);
+//!   footprints over the square root of the samples a frame instead of 2), the frame's samples
+//!   spent uniformly (`uniform`: every pixel takes `--samples`) instead of by history, and by
+//!   history with another target (`spend-target6`, `spend-target14`; `Rule::spending`);
+//! - per variant, the mean AO samples a pixel with a hit took a frame (`spp`): a reprojected frame
+//!   spends the frame's samples by history, so its total is not exactly `--samples`;
 //! - the reprojected orbit repeated `--repeats` times with disjoint sample patterns (each repeat's
 //!   `settings.ao.frame` offset by [`REPEAT_STRIDE`]), its error per frame split into RMS bias and
 //!   RMS std over the repeats ([`history::split`] says how); and where the bias sits: the RMS
@@ -42,7 +46,7 @@ use clap::Args;
 use history::{blurred, split, Buckets, Split, BLUR_SIGMAS};
 use isowall_model::{Camera, Denoise, FrameState, RenderSettings, View};
 use isowall_render::gpu::{FrameRead, GpuRenderer, GpuVolume, ReadbackRing, TileFrame, TileSums, TileTarget};
-use isowall_render::reproject::{DriftTolerance, Rule, RULE};
+use isowall_render::reproject::{DriftTolerance, Rule, Spending, RULE, SPENDING};
 use isowall_render::Frame;
 use std::path::PathBuf;
 use std::time::Instant;
@@ -101,7 +105,7 @@ pub const BUCKETS_HEADER: &str = "scene,variant,history_frames,pixel_fraction,rm
 const REPEAT_STRIDE: u32 = 10_000;
 
 /// The CSV header of `--out`.
-pub const HEADER: &str = "scene,variant,frame,ms,occlusion_rmse,occlusion_p99,flicker";
+pub const HEADER: &str = "scene,variant,frame,ms,occlusion_rmse,occlusion_p99,flicker,spp";
 
 /// A way of rendering the orbit.
 #[derive(Clone, Debug)]
@@ -121,6 +125,14 @@ impl Variant {
     /// `reprojected` under another rule.
     fn ablation(name: &str, samples: u32, rule: Rule) -> Variant {
         Variant { rule, ..Variant::new(&format!("reprojected/{name}"), samples, true, false) }
+    }
+}
+
+/// The renderer's spending by history ([`SPENDING`]) with another target.
+fn spend_target(target: f32) -> Spending {
+    match SPENDING {
+        Spending::ByHistory { least, most, .. } => Spending::ByHistory { target, least, most },
+        Spending::Uniform => Spending::Uniform,
     }
 }
 
@@ -149,6 +161,9 @@ fn variants(samples: u32, compare: u32) -> Vec<Variant> {
         ("no-drift-test", Rule { drift: DriftTolerance::Off, ..RULE }),
         ("drift-scale1", Rule { drift: DriftTolerance::OverSqrtSamples(1.0), ..RULE }),
         ("drift-scale3", Rule { drift: DriftTolerance::OverSqrtSamples(3.0), ..RULE }),
+        ("uniform", Rule { spending: Spending::Uniform, ..RULE }),
+        ("spend-target6", Rule { spending: spend_target(6.0), ..RULE }),
+        ("spend-target14", Rule { spending: spend_target(14.0), ..RULE }),
     ];
     v.extend(ablations.into_iter().map(|(name, rule)| Variant::ablation(name, samples, rule)));
     v
@@ -259,6 +274,19 @@ fn shown_occlusion(sums: &TileSums, frames: u32) -> Vec<f32> {
         .collect()
 }
 
+/// The mean AO samples a pixel with a hit took in the frame whose sums are `sums` (read with their
+/// positions where a reprojection may have spent them by history), the frame's being `samples`.
+fn samples_taken(sums: &TileSums, samples: u32) -> f64 {
+    let hits = sums.color.iter().enumerate().filter(|(_, c)| c[3] >= 0.5);
+    let taken: Vec<f64> = hits
+        .map(|(i, _)| match sums.pos.get(i) {
+            Some(p) if p[3] > 0.0 => f64::from(p[3]),
+            _ => f64::from(samples),
+        })
+        .collect();
+    mean(&taken)
+}
+
 /// Per pixel, the weight of a tile's history (frames' worth of samples).
 fn history_weight(sums: &TileSums) -> Vec<f32> {
     sums.ibl.iter().map(|e| e[3]).collect()
@@ -273,6 +301,8 @@ struct Shown {
 /// A variant's numbers over the orbit.
 struct Row {
     ms: Vec<f64>,
+    /// The mean AO samples a pixel with a hit took in the frame.
+    spp: Vec<f64>,
     rmse: Vec<f64>,
     p99: Vec<f64>,
     flicker: Vec<f64>,
@@ -303,8 +333,14 @@ fn run_variant(o: &Orbit, s: &RenderSettings, v: &Variant) -> Result<Row> {
     let mut tile = TileTarget::new(gpu, "orbit", &views[0], 1)?;
     tile.set_reproject_rule(v.rule);
     let mut ring = ReadbackRing::<FrameRead>::new(2);
-    let mut row =
-        Row { ms: Vec::new(), rmse: Vec::new(), p99: Vec::new(), flicker: Vec::new(), shown: Vec::new() };
+    let mut row = Row {
+        ms: Vec::new(),
+        spp: Vec::new(),
+        rmse: Vec::new(),
+        p99: Vec::new(),
+        flicker: Vec::new(),
+        shown: Vec::new(),
+    };
     let mut last: Option<Vec<f32>> = None;
     let mut previous: Option<FrameState> = None;
     for (k, view) in views.iter().enumerate() {
@@ -331,7 +367,11 @@ fn run_variant(o: &Orbit, s: &RenderSettings, v: &Variant) -> Result<Row> {
             }
         }
         row.ms.push(start.elapsed().as_secs_f64() * 1e3);
-        let sums = gpu.read_tile_sums(&tile)?;
+        // A temporal tile's position sums hold, in w, the samples each pixel took on a reprojected
+        // frame (0 on a frame that restarted: the frame's samples everywhere).
+        let sums =
+            if temporal { gpu.read_tile_sums_with_positions(&tile)? } else { gpu.read_tile_sums(&tile)? };
+        row.spp.push(samples_taken(&sums, v.samples));
         let a = shown_occlusion(&sums, tile.frames());
         let (seen, truth) = &refs[k];
         let both: Vec<bool> = (0..a.len()).map(|i| seen.hit[i] && a[i].is_finite()).collect();
@@ -369,7 +409,8 @@ pub fn run(a: &OrbitArgs) -> Result<()> {
         a.reference_frames * 32
     );
     println!("# per variant: mean over frames 1.. of the occlusion RMSE and p99 |error| against each frame's reference, mean flicker, median ms; rmse_from: the mean RMSE over frames {}..", a.from_frame);
-    println!("scene,variant,rmse,p99,flicker,ms,rmse_from");
+    println!("# spp_from: the mean AO samples a pixel with a hit took a frame over frames {}.. (the reprojected variants spend them by history)", a.from_frame);
+    println!("scene,variant,rmse,p99,flicker,ms,rmse_from,spp_from");
     let mut t = Tables {
         frames: format!("{HEADER}\n"),
         split: format!("{SPLIT_HEADER}\n"),
@@ -443,7 +484,7 @@ fn run_scene(gpu: &GpuRenderer, a: &OrbitArgs, scene: &str, t: &mut Tables) -> R
     let floor: Vec<f64> =
         (1..refs.len()).map(|k| flicker(&refs[k - 1].0, &refs[k].0, &refs[k - 1].1, &refs[k].1)).collect();
     for (k, f) in floor.iter().enumerate() {
-        t.frames.push_str(&format!("{name},reference,{},,,,{f:.5}\n", k + 1));
+        t.frames.push_str(&format!("{name},reference,{},,,,{f:.5},\n", k + 1));
     }
     println!("{name},reference,,,{:.4},,", mean(&floor));
     let o = Orbit { gpu, gv: &gv, views: &views, refs: &refs };
@@ -454,13 +495,14 @@ fn run_scene(gpu: &GpuRenderer, a: &OrbitArgs, scene: &str, t: &mut Tables) -> R
         let row = run_variant(&o, &s, &v)?;
         push_frames(&mut t.frames, name, &v.name, &row);
         println!(
-            "{name},{},{:.4},{:.4},{:.4},{:.1},{:.4}",
+            "{name},{},{:.4},{:.4},{:.4},{:.1},{:.4},{:.2}",
             v.name,
             mean(&row.rmse[1..]),
             mean(&row.p99[1..]),
             mean(&row.flicker),
             median(row.ms.clone()),
-            mean(&row.rmse[from..])
+            mean(&row.rmse[from..]),
+            mean(&row.spp[from..])
         );
         if v.temporal && !v.denoise {
             for b in history_buckets(&row, &refs, from).errors() {
@@ -488,8 +530,8 @@ fn push_frames(csv: &mut String, scene: &str, variant: &str, row: &Row) {
     for k in 0..row.rmse.len() {
         let fl = if k == 0 { String::new() } else { format!("{:.5}", row.flicker[k - 1]) };
         csv.push_str(&format!(
-            "{scene},{variant},{k},{:.2},{:.5},{:.5},{fl}\n",
-            row.ms[k], row.rmse[k], row.p99[k]
+            "{scene},{variant},{k},{:.2},{:.5},{:.5},{fl},{:.3}\n",
+            row.ms[k], row.rmse[k], row.p99[k], row.spp[k]
         ));
     }
 }

@@ -70,10 +70,12 @@ impl AoPath {
 }
 
 impl AoDispatches {
-    /// Splits `params`' samples for a device whose invocations may iterate `budget` times in all
-    /// (`None`: no limit, one dispatch), and writes the samples per dispatch into `params`.
+    /// Splits `params`' samples (the most a pixel takes: `ao_samples`, or `ao_pass[2]` where it is
+    /// larger) for a device whose invocations may iterate `budget` times in all (`None`: no
+    /// limit, one dispatch), and writes the samples per dispatch into `params`.
     pub fn split(params: &mut FrameParams, budget: Option<u32>) -> AoDispatches {
-        let total = params.ao_samples.max(1);
+        // The most samples a pixel takes: the frame's, or more where they are spent by history.
+        let total = params.ao_samples.max(params.ao_pass[2]).max(1);
         let per_ray = if params.ao_method == gpu_code(AoMethod::Seed.code()) {
             SEED_STEPS
         } else if params.ao_exact == 1 {
@@ -319,5 +321,10 @@ mod tests {
         // The default radius on a unit-spacing volume fits 256 samples in one dispatch.
         let mut p = params(256, AoMethod::Ours, true, 172);
         assert_eq!(AoDispatches::split(&mut p, Some(65535)).count, 1);
+        // Samples spent by history: the dispatches cover the most a pixel takes.
+        let mut p = params(4, AoMethod::Ours, true, 2496);
+        p.ao_pass[2] = 64;
+        let d = AoDispatches::split(&mut p, Some(65535));
+        assert_eq!(d, AoDispatches { samples: 25, count: 3, path: exact });
     }
 }

@@ -79,7 +79,9 @@ pub struct FrameParams {
     pub voxel_range: [f32; 4],
     /// AO dispatches ([`super::ao::AoDispatches`]): x: samples per dispatch (the frame's
     /// `ao_samples` are split over `ceil(ao_samples / x)` dispatches); y: the exact walk's
-    /// iteration cap per ray; zw: 0.
+    /// iteration cap per ray; z: 0, or where a reprojected frame's samples are spent by history
+    /// ([`crate::reproject::Spending`]) the most a pixel takes, each pixel taking the number the
+    /// reprojection wrote into its position sum's w; w: 0.
     pub ao_pass: [u32; 4],
 }
 

@@ -3,7 +3,7 @@
 //! are [`crate::reproject`]; [`ReprojectParams`] is the twin of the WGSL struct.
 
 use super::{buffer_entries, storage_entry, Aovs, FrameParams, GpuContext, GpuError};
-use crate::reproject::Rule;
+use crate::reproject::{Rule, Spending};
 use crate::shaders::Kernel;
 use bytemuck::{Pod, Zeroable};
 
@@ -36,14 +36,28 @@ pub struct ReprojectParams {
     pub accepted_share: u32,
     /// [`Rule::drift`] at the frame's AO samples, in footprints (infinite: no test).
     pub drift_tolerance: f32,
+    /// The frame's AO samples a pixel (S), its index in the sample sequence and seed.
+    pub samples: u32,
+    pub frame: u32,
+    pub seed: u32,
+    /// [`Rule::spending`]: 0 uniform, 1 by history with the three numbers below.
+    pub spending: u32,
+    pub spend_target: f32,
+    pub spend_least: f32,
+    pub spend_most: f32,
     pub _pad1: u32,
     pub _pad2: u32,
+    pub _pad3: u32,
 }
 
 impl ReprojectParams {
     /// From the frame `next` to be rendered and the previous frame `prev` (the kernels'
     /// parameters of each), under `rule`.
     pub fn new(next: &FrameParams, prev: &FrameParams, rule: &Rule) -> ReprojectParams {
+        let (spending, target, least, most) = match rule.spending {
+            Spending::Uniform => (0, 0.0, 0.0, 0.0),
+            Spending::ByHistory { target, least, most } => (1, target, least, most),
+        };
         ReprojectParams {
             eye: next.eye,
             forward: next.forward,
@@ -65,8 +79,16 @@ impl ReprojectParams {
             nearest: u32::from(rule.nearest),
             accepted_share: u32::from(rule.accepted_share),
             drift_tolerance: rule.drift.footprints(next.ao_samples),
+            samples: next.ao_samples,
+            frame: next.frame,
+            seed: next.seed,
+            spending,
+            spend_target: target,
+            spend_least: least,
+            spend_most: most,
             _pad1: 0,
             _pad2: 0,
+            _pad3: 0,
         }
     }
 }
@@ -171,8 +193,16 @@ mod tests {
                 ("nearest", offset_of!(ReprojectParams, nearest)),
                 ("accepted_share", offset_of!(ReprojectParams, accepted_share)),
                 ("drift_tolerance", offset_of!(ReprojectParams, drift_tolerance)),
+                ("samples", offset_of!(ReprojectParams, samples)),
+                ("frame", offset_of!(ReprojectParams, frame)),
+                ("seed", offset_of!(ReprojectParams, seed)),
+                ("spending", offset_of!(ReprojectParams, spending)),
+                ("spend_target", offset_of!(ReprojectParams, spend_target)),
+                ("spend_least", offset_of!(ReprojectParams, spend_least)),
+                ("spend_most", offset_of!(ReprojectParams, spend_most)),
                 ("_pad1", offset_of!(ReprojectParams, _pad1)),
                 ("_pad2", offset_of!(ReprojectParams, _pad2)),
+                ("_pad3", offset_of!(ReprojectParams, _pad3)),
             ],
         );
     }

@@ -25,7 +25,7 @@ use super::readback::{Read, ReadbackRing, Source};
 use super::reproject::ReprojectParams;
 use super::{Aovs, FrameParams, GpuEnvironment, GpuError, GpuRenderer, GpuVolume};
 use crate::frame_plan::{Continuity, FramePlan, Start, Sums};
-use crate::reproject::{Rule, RULE};
+use crate::reproject::{Rule, Spending, RULE};
 use isowall_model::composite::PixelForm;
 use isowall_model::{lowres, IblMethod, RenderSettings, View};
 
@@ -559,7 +559,6 @@ impl GpuRenderer {
             tile.previous = None;
         }
         params.positions = u32::from(tile.aovs.positions);
-        let dispatches = super::ao::AoDispatches::split(&mut params, ctx.loop_budget());
         // The tile's own knowledge: without a last frame, with other resources bound, or over other
         // pixels, the sums belong to something else.
         let resources_held =
@@ -572,6 +571,13 @@ impl GpuRenderer {
         let plan = FramePlan::new(continuity, tile.sums, frame.temporal, with_ao);
         let (restart, reproject) = (plan.start == Start::Restart, plan.start == Start::Reproject);
         params.frame = plan.sample_index(s.ao.frame, frame.frame_id);
+        // A reprojected frame of ours spends its samples by history where the rule says so: the
+        // reprojection writes each pixel's number, the AO kernel takes it.
+        let ours = params.ao_method == super::frame_params::gpu_code(isowall_model::AoMethod::Ours.code());
+        if reproject && ours && params.ao_samples > 0 && tile.rule.spending != Spending::Uniform {
+            params.ao_pass[2] = tile.rule.spending.most(params.ao_samples);
+        }
+        let dispatches = super::ao::AoDispatches::split(&mut params, ctx.loop_budget());
         let prev = tile.previous.replace(params);
         if reproject {
             self.make_history(tile, &low)?;
