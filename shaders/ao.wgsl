@@ -454,10 +454,11 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let ns = select(-g.xyz, g.xyz, dot(g.xyz, -dir) >= 0.0);
     let basis = onb(ns);
     // The pixel's samples this frame: the frame's, or where a reprojection spent them by history
-    // (`ao_pass.z`, the most a pixel takes, not 0), the number it wrote into the position sum's w.
+    // (`ao_pass.z`, the most a pixel takes, not 0), the number it wrote into the position sum's w
+    // (held to [1, ao_pass.z], which the dispatches cover).
     var n_samples = params.ao_samples;
     if params.ao_pass.z != 0u {
-        n_samples = u32(acc_pos[idx].w);
+        n_samples = clamp(u32(acc_pos[idx].w), 1u, params.ao_pass.z);
     }
     // This dispatch's samples [first, last) of the pixel's n_samples.
     let first = min(ao_dispatch.x * params.ao_pass.x, n_samples);
