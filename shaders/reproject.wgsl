@@ -49,7 +49,7 @@ struct ReprojectParams {
     samples: u32,                // the frame's AO samples a pixel (S, FrameParams' ao_samples)
     frame: u32,                  // the frame's index in the sample sequence (FrameParams' frame)
     seed: u32,
-    spending: u32,               // 0 uniform (S everywhere), 1 by history
+    spending: u32,               // SPENDING_UNIFORM (S everywhere) or SPENDING_BY_HISTORY
     spend_target: f32,           // by history: S * clamp(target - weight, least, most) samples
     spend_least: f32,
     spend_most: f32,
@@ -198,7 +198,11 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     acc_pos[i] = pos;
 }
 
-// `spend_key` in reproject.rs.
+// `Spending::code()` in reproject.rs (checked by a test).
+const SPENDING_UNIFORM: u32 = 0u;
+const SPENDING_BY_HISTORY: u32 = 1u;
+
+// `spend_key` in reproject.rs (the same constant, checked by a test).
 const SPEND_SALT: u32 = 0x5bd1e995u;
 
 fn spend_key(px: u32, py: u32) -> u32 {
@@ -207,7 +211,7 @@ fn spend_key(px: u32, py: u32) -> u32 {
 
 // The AO samples a pixel carrying `weight` frames' worth of history takes (`Spending::samples`).
 fn samples_taken(weight: f32, key: u32) -> u32 {
-    if params.spending == 0u {
+    if params.spending != SPENDING_BY_HISTORY {
         return params.samples;
     }
     let x = clamp(params.spend_target - weight, params.spend_least, params.spend_most) * f32(params.samples);

@@ -181,7 +181,7 @@ fn bench_balance(a: &BalanceArgs) -> Result<()> {
             let ids = first + BALANCE_SETTLE_FRAMES as u64..=wall.last_frame_id();
             let fps = a.frames as f64 / elapsed.as_secs_f64().max(1e-9);
             let changes = wall.split().map_or(0, |s| s.2) - changes_before;
-            ratios.push(print_balance_run(&wall, name, ids, fps, changes));
+            ratios.push(print_balance_run(&wall, name, ids, fps, (changes, a.frames)));
         }
         wall.close("the bench is done").await;
         Ok::<Vec<f64>, anyhow::Error>(ratios)
@@ -193,14 +193,15 @@ fn bench_balance(a: &BalanceArgs) -> Result<()> {
 }
 
 /// Prints one run of `bench balance`: per node its work and bytes sent per frame over the frames
-/// `ids`, the split's rows moved, the fps. Returns the slowest node's work over the mean,
+/// `ids`, the split's rows moved, the fps, how many of the run's `frames` changed the split.
+/// Returns the slowest node's work over the mean,
 /// averaged over those frames.
 fn print_balance_run(
     wall: &Wall,
     name: &str,
     ids: std::ops::RangeInclusive<u64>,
     fps: f64,
-    changes: u64,
+    (changes, frames): (u64, u64),
 ) -> f64 {
     let mut per_node: std::collections::BTreeMap<&str, (Vec<u64>, Vec<u64>)> =
         wall.config.nodes.iter().map(|n| (n.name.as_str(), (Vec::new(), Vec::new()))).collect();
@@ -227,9 +228,8 @@ fn print_balance_run(
     let ratio = ratios.iter().sum::<f64>() / ratios.len().max(1) as f64;
     let moved = wall.split().map_or(0, |(_, rows, _)| rows);
     println!(
-        "\n== {name}: {fps:.2} fps; slowest/mean work {ratio:.3} (mean of {} frames); rows rendered away from their tile's node in the last split: {moved}; the split changed {changes} times in the run's {} frames",
+        "\n== {name}: {fps:.2} fps; slowest/mean work {ratio:.3} (mean of {} frames); rows rendered away from their tile's node in the last split: {moved}; the split changed {changes} times in the run's {frames} frames",
         ratios.len(),
-        ids.end().saturating_sub(*ids.start()) + 1 + BALANCE_SETTLE_FRAMES as u64
     );
     let median = |mut v: Vec<u64>| {
         v.sort_unstable();

@@ -98,6 +98,14 @@ impl Spending {
         }
     }
 
+    /// The kernel's code (shaders/reproject.wgsl: `SPENDING_*`).
+    pub fn code(self) -> u32 {
+        match self {
+            Spending::Uniform => 0,
+            Spending::ByHistory { .. } => 1,
+        }
+    }
+
     /// The most samples a pixel takes in a frame of `samples`.
     pub fn most(self, samples: u32) -> u32 {
         match self {
@@ -114,7 +122,8 @@ pub fn spend_key(px: u32, py: u32, frame: u32, seed: u32) -> u32 {
     crate::sampling::hash(crate::sampling::pixel_key(px, py, frame, seed) ^ SPEND_SALT)
 }
 
-/// Separates [`spend_key`] from the AO pattern's key (shaders/reproject.wgsl has the same).
+/// Separates [`spend_key`] from the AO pattern's key (shaders/reproject.wgsl has the same,
+/// checked by a test).
 pub const SPEND_SALT: u32 = 0x5bd1_e995;
 
 /// [`Rule::drift`]: a distance in footprints of the new hit.

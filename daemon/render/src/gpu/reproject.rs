@@ -40,7 +40,7 @@ pub struct ReprojectParams {
     pub samples: u32,
     pub frame: u32,
     pub seed: u32,
-    /// [`Rule::spending`]: 0 uniform, 1 by history with the three numbers below.
+    /// [`Rule::spending`]'s code ([`Spending::code`]), and by history its three numbers.
     pub spending: u32,
     pub spend_target: f32,
     pub spend_least: f32,
@@ -54,9 +54,9 @@ impl ReprojectParams {
     /// From the frame `next` to be rendered and the previous frame `prev` (the kernels'
     /// parameters of each), under `rule`.
     pub fn new(next: &FrameParams, prev: &FrameParams, rule: &Rule) -> ReprojectParams {
-        let (spending, target, least, most) = match rule.spending {
-            Spending::Uniform => (0, 0.0, 0.0, 0.0),
-            Spending::ByHistory { target, least, most } => (1, target, least, most),
+        let (target, least, most) = match rule.spending {
+            Spending::Uniform => (0.0, 0.0, 0.0),
+            Spending::ByHistory { target, least, most } => (target, least, most),
         };
         ReprojectParams {
             eye: next.eye,
@@ -82,7 +82,7 @@ impl ReprojectParams {
             samples: next.ao_samples,
             frame: next.frame,
             seed: next.seed,
-            spending,
+            spending: rule.spending.code(),
             spend_target: target,
             spend_least: least,
             spend_most: most,
@@ -165,6 +165,17 @@ impl ReprojectKernel {
 mod tests {
     use super::*;
     use std::mem::offset_of;
+
+    #[test]
+    fn spending_codes_and_the_draws_salt_are_the_wgsls() {
+        let constants = crate::shaders::tests::wgsl_constants(Kernel::Reproject);
+        let rule = crate::reproject::SPENDING;
+        let Spending::ByHistory { .. } = rule else { panic!("the renderer spends by history") };
+        for (name, spending) in [("SPENDING_UNIFORM", Spending::Uniform), ("SPENDING_BY_HISTORY", rule)] {
+            assert_eq!(constants.get(name), Some(&spending.code()), "{name}");
+        }
+        assert_eq!(constants.get("SPEND_SALT"), Some(&crate::reproject::SPEND_SALT));
+    }
 
     #[test]
     fn reproject_params_layout_matches_the_wgsl() {

@@ -573,7 +573,7 @@ impl GpuRenderer {
         params.frame = plan.sample_index(s.ao.frame, frame.frame_id);
         // A reprojected frame of ours spends its samples by history where the rule says so: the
         // reprojection writes each pixel's number, the AO kernel takes it.
-        let ours = params.ao_method == super::frame_params::gpu_code(isowall_model::AoMethod::Ours.code());
+        let ours = s.ao.method == isowall_model::AoMethod::Ours;
         if reproject && ours && params.ao_samples > 0 && tile.rule.spending != Spending::Uniform {
             params.ao_pass[2] = tile.rule.spending.most(params.ao_samples);
         }
