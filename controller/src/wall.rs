@@ -64,7 +64,11 @@ async fn establish(endpoint: quinn::Endpoint, name: String, address: String, lim
             Ok(quinn::ConnectionError::ApplicationClosed(c)) => {
                 bail!("the node closed the connection: {}", printable(&String::from_utf8_lossy(&c.reason)))
             }
-            _ => return Err(e),
+            // Closed here, not only dropped: the node, which may have seated it, frees the seat now.
+            _ => {
+                transport::close(&conn, &e.to_string());
+                return Err(e);
+            }
         },
     };
     let said =
@@ -75,6 +79,9 @@ async fn establish(endpoint: quinn::Endpoint, name: String, address: String, lim
     }
     Ok(Link { connection, sender, receiver })
 }
+
+/// How long a leaving controller waits for the nodes to close their side after its Bye, at most.
+pub const GOODBYE_WAIT: Duration = Duration::from_secs(1);
 
 /// A node that dies is reported down within this many deadlines.
 pub const SILENT_DEADLINES: u32 = 3;
@@ -833,9 +840,13 @@ impl Wall {
         self.next_frame - 1
     }
 
-    /// Waits until every begun frame is finished (presented everywhere, or its present deadline).
+    /// Waits until every begun frame is finished (presented everywhere, or its present deadline);
+    /// at once when this controller has begun none (a snapshot right after connecting).
     pub async fn settle(&mut self) {
         let last = self.next_frame - 1;
+        if last == 0 {
+            return;
+        }
         let give_up = Instant::now() + Duration::from_millis(self.config.wall.deadline_ms) * 2;
         while self.finished.last().map(|f| f.frame_id) != Some(last) && Instant::now() < give_up {
             self.step().await;
@@ -957,14 +968,21 @@ impl Wall {
         }
     }
 
-    /// Says goodbye to every node.
+    /// Says goodbye to every node and waits, at most [`GOODBYE_WAIT`], for each to close its side
+    /// (a node does on Bye). QUIC sends a Bye again where the network lost it, so no node is left
+    /// holding this controller's connection, with its seat, for the idle timeout after it has gone.
     pub async fn close(mut self, reason: &str) {
         for (node, s) in self.senders.iter_mut() {
             if let Err(e) = s.send(&Message::Bye { reason: reason.to_string() }).await {
                 tracing::debug!(%node, "bye: {e}");
             }
         }
-        tokio::time::sleep(Duration::from_millis(50)).await;
+        let until = tokio::time::Instant::now() + GOODBYE_WAIT;
+        for (node, c) in &self.connections {
+            if tokio::time::timeout_at(until, c.closed()).await.is_err() {
+                tracing::debug!(%node, "the node did not close its side within {GOODBYE_WAIT:?} of the Bye");
+            }
+        }
         for c in self.connections.values() {
             transport::close(c, reason);
         }

@@ -8,7 +8,8 @@
 //!   pass for `node1`;
 //! - take-over: a node's certificate, retrying, never knocks the running controller off, nor
 //!   does a controller's connection that sends no Hello, nor a second controller (refused with
-//!   the reason while the first drives; the next one is served once the first has left); a reconnect flood is refused before its
+//!   the reason while the first drives; the next one is served once the first has left); a
+//!   controller that says Bye is closed by the node at once, so a lost close holds nothing; a reconnect flood is refused before its
 //!   TLS handshakes (per source address) and the wall keeps its frame rate;
 //! - bincode limits: messages of every size around 4, 16 and 64 KiB reach the daemon;
 //! - limits: connections per identity, streams and flow-control limits, snapshot tiles checked
@@ -847,6 +848,42 @@ fn a_second_controller_is_refused_with_the_reason_and_the_first_keeps_its_nodes(
     let third_err = String::from_utf8_lossy(&third.stderr);
     assert!(third.status.success(), "after the first left, a new controller was refused:\n{third_err}");
     assert!(String::from_utf8_lossy(&third.stdout).contains("frames: 5 "), "{third_err}");
+}
+
+#[test]
+fn a_controller_that_says_bye_is_closed_by_the_node_and_leaves_nothing_held() {
+    let dir = tempfile::tempdir().unwrap();
+    let ports = free_udp_ports(1);
+    let config = wall_config(dir.path(), "bye", &ports, 16, 12, 2, 5000, "keys");
+    keygen(dir.path(), &config);
+    let Some(_daemons) = nodes(dir.path(), &config, 1) else { return };
+    let keys = dir.path().join("keys");
+    runtime().block_on(async {
+        let endpoint = transport::client(&Identity::load(&keys, "controller").unwrap()).unwrap();
+        // Each controller says Bye and never closes its side, as when the network loses its
+        // close: the node closes at once, so the next is seated, and none counts against the
+        // controller's connections, though all of them stay open here.
+        let mut left = Vec::new();
+        for i in 0..4 {
+            let mut ch = hello_as_controller(&endpoint, addr(ports[0]), "node0")
+                .await
+                .unwrap_or_else(|e| panic!("controller {i} was not served: {e}"));
+            let first = tokio::time::timeout(Duration::from_secs(5), ch.receiver.recv()).await;
+            let Ok(Ok(Some(hello))) = first else {
+                panic!("controller {i}: no Hello from the node: {first:?}")
+            };
+            codec::check_hello(&hello, Role::Daemon).unwrap();
+            let t = Instant::now();
+            ch.sender.send(&Message::Bye { reason: "leaving".into() }).await.unwrap();
+            let reason = closed(&ch.connection, Duration::from_secs(2)).await;
+            eprintln!(
+                "controller {i}: closed by the node {:.3} s after its Bye: \"{reason}\"",
+                t.elapsed().as_secs_f64()
+            );
+            assert_eq!(reason, "the controller said goodbye", "controller {i}");
+            left.push(ch);
+        }
+    });
 }
 
 /// The console's status, from its address in `out` (`isowall console` prints it).

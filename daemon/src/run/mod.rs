@@ -78,8 +78,6 @@ struct Node {
     limit: usize,
     /// The render thread is gone: the node must exit (and be restarted).
     render_dead: bool,
-    /// The controller asked the node to restart (`Message::Restart`), and why.
-    restart: Option<String>,
     /// The operator asked the tiles to show their names (`Message::Identify`).
     identify: bool,
     /// What the node tells the controller after its Hello: its version and GPU.
@@ -260,7 +258,6 @@ pub fn run(a: &RunArgs) -> Result<()> {
         limit,
         slow: std::time::Duration::from_millis(a.slow_ms),
         render_dead: false,
-        restart: None,
         identify: false,
         info: isowall_model::messages::NodeInfo {
             version: env!("CARGO_PKG_VERSION").to_string(),

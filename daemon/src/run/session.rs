@@ -118,12 +118,21 @@ async fn serve_seated(
                 Vec::new()
             }
         };
-        if let Err(e) = execute(node, &mut machine, &mut sender, outputs).await {
-            if let Some(reason) = node.restart.take() {
-                restart(&connection, &reason).await;
+        match execute(node, &mut machine, &mut sender, outputs).await {
+            Ok(()) => {}
+            Err(Ended::Restart(reason)) => restart(&connection, &reason).await,
+            // The node closes its side at once: it waits for nothing from a controller that is
+            // leaving, so a close the network loses does not hold the seat, or count against the
+            // controller's connections, for the idle timeout.
+            Err(Ended::Goodbye) => {
+                transport::close(&connection, "the controller said goodbye");
+                break Ok(());
             }
-            tracing::warn!("controller connection ended: {e}");
-            break Ok(());
+            Err(Ended::Failed(e)) => {
+                tracing::warn!("controller connection ended: {e}");
+                transport::close(&connection, &e.to_string());
+                break Ok(());
+            }
         }
         if node.render_dead {
             transport::close(&connection, "the node's render thread has stopped");
@@ -350,12 +359,28 @@ async fn frame_done(
 }
 
 /// Carries out the machine's outputs (and those they lead to).
+/// Why the session ends after [`execute`].
+enum Ended {
+    /// The controller said Bye.
+    Goodbye,
+    /// The controller asked the node to restart (the reason).
+    Restart(String),
+    /// Its connection failed, or what it asked cannot be carried out.
+    Failed(NetError),
+}
+
+impl From<NetError> for Ended {
+    fn from(e: NetError) -> Ended {
+        Ended::Failed(e)
+    }
+}
+
 async fn execute(
     node: &mut Node,
     machine: &mut NodeMachine,
     sender: &mut transport::ChannelSender,
     outputs: Vec<NodeOutput>,
-) -> Result<(), NetError> {
+) -> Result<(), Ended> {
     let mut queue: std::collections::VecDeque<NodeOutput> = outputs.into();
     while let Some(out) = queue.pop_front() {
         match out {
@@ -392,7 +417,7 @@ async fn execute(
                     Err(e) => {
                         let reason = format!("protocol violation by `controller` (Bricks): {e}");
                         tracing::warn!("closing the controller connection: {reason}");
-                        return Err(NetError::Connection { peer: "controller".into(), reason });
+                        return Err(NetError::Connection { peer: "controller".into(), reason }.into());
                     }
                 },
                 None => tracing::warn!("ignoring a brick map: this wall is not in object mode"),
@@ -403,7 +428,7 @@ async fn execute(
                     if let Err(e) = b.set_split(from_frame, &split) {
                         let reason = format!("protocol violation by `controller` (Split): {e}");
                         tracing::warn!("closing the controller connection: {reason}");
-                        return Err(NetError::Connection { peer: "controller".into(), reason });
+                        return Err(NetError::Connection { peer: "controller".into(), reason }.into());
                     }
                 }
                 None => tracing::warn!("ignoring a split: this wall does not balance (`[wall] balance`)"),
@@ -430,16 +455,13 @@ async fn execute(
                 }
                 node.identify = on;
             }
-            NodeOutput::Restart { reason } => {
-                node.restart = Some(reason.clone());
-                return Err(NetError::Connection { peer: "controller".into(), reason });
-            }
+            NodeOutput::Restart { reason } => return Err(Ended::Restart(reason)),
             NodeOutput::Closed { reason } => {
                 tracing::info!(
                     "the controller said goodbye: {}",
                     isowall_model::messages::printable(&reason)
                 );
-                return Err(NetError::Connection { peer: "controller".into(), reason });
+                return Err(Ended::Goodbye);
             }
         }
     }
