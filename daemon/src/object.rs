@@ -403,7 +403,8 @@ impl ObjectNode {
                 // The links carried them out.
                 ObjectOutput::SendPixels { .. }
                 | ObjectOutput::ClosePeer { .. }
-                | ObjectOutput::Dropped { .. } => {}
+                | ObjectOutput::Dropped { .. }
+                | ObjectOutput::Reconnect { .. } => {}
             }
         }
         done

@@ -79,6 +79,11 @@ impl PixelLinks {
                 ObjectOutput::Dropped { peer, reason } => {
                     tracing::warn!(%peer, "dropped the peer's pixels, its connection kept: {reason}")
                 }
+                ObjectOutput::Reconnect { peer } => {
+                    if let Some(o) = &self.outbox {
+                        o.forget(&peer, "the peer is back: connecting to it afresh");
+                    }
+                }
                 other => rest.push(other),
             }
         }

@@ -296,17 +296,34 @@ fn the_api_refuses_missing_tokens_and_bad_input_and_changes_nothing() {
     // The wall is its 32x24 tile and the tile's 2-pixel bezels on the right and at the bottom:
     // 34x26. A thumbnail is the wall over the smallest divisor whose width fits.
     for (width, size, why) in [(17, (17, 13), "34x26 over 2"), (16, (12, 9), "34 / 2 > 16: over 3")] {
-        let r = con.get(&format!("/api/snapshot.png?width={width}"));
-        assert_eq!(r.status, 200);
-        assert_eq!(r.header("content-type"), Some("image/png"));
-        let img = image::load_from_memory(&r.body).unwrap();
-        assert_eq!((img.width(), img.height()), size, "?width={width}: {why}");
-        // The tile's own pixels, not the grey placeholder of a tile that did not fit.
-        let rgb = img.to_rgb8();
-        let placeholder = rgb.pixels().filter(|p| p.0 == [96, 96, 96] || p.0 == [40, 40, 40]).count();
-        assert!(placeholder < rgb.pixels().len() / 4, "?width={width}: {placeholder} placeholder pixels");
-        assert_eq!(r.header("x-isowall-size"), Some(format!("{}x{}", size.0, size.1).as_str()));
-        assert!(r.header("x-isowall-frame").is_some() && r.header("x-isowall-frame-age-ms").is_some());
+        // The tile's own pixels, not the grey placeholder of a tile that did not fit. A node
+        // that misses the thumbnail's give-up (2 s, on a loaded machine) is a placeholder once;
+        // a tile that does not fit is one every time: asked again, after the 250 ms a picture is
+        // served again, up to 3 times.
+        let mut placeholders = Vec::new();
+        for _ in 0..3 {
+            let r = con.get(&format!("/api/snapshot.png?width={width}"));
+            assert_eq!(r.status, 200);
+            assert_eq!(r.header("content-type"), Some("image/png"));
+            let img = image::load_from_memory(&r.body).unwrap();
+            assert_eq!((img.width(), img.height()), size, "?width={width}: {why}");
+            assert_eq!(r.header("x-isowall-size"), Some(format!("{}x{}", size.0, size.1).as_str()));
+            assert!(r.header("x-isowall-frame").is_some() && r.header("x-isowall-frame-age-ms").is_some());
+            let rgb = img.to_rgb8();
+            let placeholder = rgb.pixels().filter(|p| p.0 == [96, 96, 96] || p.0 == [40, 40, 40]).count();
+            placeholders.push(placeholder);
+            if placeholder < rgb.pixels().len() / 4 {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(300));
+        }
+        assert!(
+            placeholders.len() < 3 || placeholders[2] < size.0 as usize * size.1 as usize / 4,
+            "?width={width}: placeholder pixels in each of 3 pictures: {placeholders:?}"
+        );
+        if placeholders.len() > 1 {
+            eprintln!("?width={width}: placeholder pixels {placeholders:?} (asked again)");
+        }
     }
     let full = con.get("/api/snapshot.png?download=1");
     let img = image::load_from_memory(&full.body).unwrap();

@@ -22,7 +22,8 @@
 //!   (a peer broke the rules: close the connection that carried it with the reason, nothing
 //!   else stops), [`ObjectOutput::Dropped`] (a duplicate: log it, close nothing),
 //!   [`ObjectOutput::Send`], [`ObjectOutput::Load`] (read a brick adopted from a dead node, then
-//!   [`ObjectMachine::load_done`]).
+//!   [`ObjectMachine::load_done`]), [`ObjectOutput::Reconnect`] (a node back from the dead:
+//!   send to it on a new connection).
 //!
 //! A wall whose composited tiles are filtered (built with a guard band, `filter_guard`) sends
 //! its pixels in the shading form ([`PixelForm::Shading`], `crate::composite`) and handles every
@@ -117,6 +118,10 @@ pub enum ObjectOutput {
     /// Read brick `index` (wire number `brick`) and its halo, upload it beside the node's own,
     /// then call [`ObjectMachine::load_done`].
     Load { brick: u64, index: usize },
+    /// `peer` holds bricks again after a map without it: it is back from the dead, a new process.
+    /// Send to it on a new connection: one to the process before may not have timed out yet,
+    /// and what is sent on it is lost.
+    Reconnect { peer: String },
 }
 
 /// Per frame: when this node's render finished, the bytes it sent its peers, its render time.
@@ -417,7 +422,12 @@ impl ObjectMachine {
         self.compositor.wait_again(&back);
         let gone = self.maps.set(map.clone());
         let done = self.compositor.forget(now, &gone);
-        Ok((map, done.into_iter().map(ObjectOutput::Composited).collect()))
+        let reconnect = back.into_iter().filter(|peer| *peer != self.name);
+        let out = reconnect
+            .map(|peer| ObjectOutput::Reconnect { peer })
+            .chain(done.into_iter().map(ObjectOutput::Composited))
+            .collect();
+        Ok((map, out))
     }
 
     /// `LoadBrick`: load the brick beside this node's own ([`ObjectOutput::Load`], answered by

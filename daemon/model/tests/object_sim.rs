@@ -171,6 +171,8 @@ struct Sim {
     records: BTreeMap<(usize, u64), Record>,
     /// Connections closed: (node, peer, reason).
     closed: Vec<(usize, String, String)>,
+    /// Peers to send to on a new connection: (node, peer).
+    reconnected: Vec<(usize, String)>,
     assigner: BrickAssigner,
     /// (time, what) of the adoption.
     adoption: Vec<(Duration, AdoptionOutput)>,
@@ -226,6 +228,7 @@ impl Sim {
             down: BTreeSet::new(),
             records: BTreeMap::new(),
             closed: Vec::new(),
+            reconnected: Vec::new(),
             assigner: BrickAssigner::new(names),
             adoption: Vec::new(),
             load_time: ms(300),
@@ -453,6 +456,7 @@ impl Sim {
                 ObjectOutput::ClosePeer { peer, reason, .. } | ObjectOutput::Dropped { peer, reason } => {
                     self.closed.push((n, peer, reason))
                 }
+                ObjectOutput::Reconnect { peer } => self.reconnected.push((n, peer)),
                 ObjectOutput::Load { brick, .. } => {
                     let d = self.load_time;
                     self.after(d, Ev::LoadDone { node: n, brick });
@@ -630,6 +634,39 @@ fn a_dead_nodes_brick_is_adopted_and_frames_never_wait_for_the_dead() {
     let named: BTreeSet<String> = sim.records.values().flat_map(|r| r.missing.clone()).collect();
     assert_eq!(named, BTreeSet::from(["node2".to_string()]));
     assert!(sim.closed.is_empty(), "{:?}", sim.closed);
+    assert!(sim.reconnected.is_empty(), "nobody came back: {:?}", sim.reconnected);
+}
+
+/// A node that holds bricks again after a map without it is a new process (restarted): its
+/// peers send to it on a new connection, since one to the process before may not have timed out
+/// and would lose what is sent on it. Once, when it comes back; not for itself.
+#[test]
+fn a_node_back_from_the_dead_is_sent_to_on_a_new_connection() {
+    let config = config();
+    let geometry =
+        |own| BrickGeometry { owned: owned(), own, own_bytes: 1000, spacing: DVec3::ONE, halo: [3; 3] };
+    let map = |names: [&str; 4]| names.iter().map(|n| Some(n.to_string())).collect::<Vec<_>>();
+    let reconnects = |out: &[ObjectOutput]| -> Vec<String> {
+        out.iter()
+            .filter_map(|o| match o {
+                ObjectOutput::Reconnect { peer } => Some(peer.clone()),
+                _ => None,
+            })
+            .collect()
+    };
+    let mut m = ObjectMachine::new(&config, "node0", geometry(0), None);
+    // node1 dies: node3 renders its brick.
+    let (_, out) = m.set_map(ms(0), 5, map(["node0", "node3", "node2", "node3"])).unwrap();
+    assert!(reconnects(&out).is_empty(), "{out:?}");
+    // node1 is back from frame 9.
+    let (_, out) = m.set_map(ms(10), 9, map(["node0", "node1", "node2", "node3"])).unwrap();
+    assert_eq!(reconnects(&out), ["node1"]);
+    let (_, out) = m.set_map(ms(20), 12, map(["node0", "node1", "node2", "node3"])).unwrap();
+    assert!(reconnects(&out).is_empty(), "the same nodes again: {out:?}");
+    // The node that came back does not reconnect to itself, nor to peers that never left.
+    let mut back = ObjectMachine::new(&config, "node1", geometry(1), None);
+    let (_, out) = back.set_map(ms(10), 9, map(["node0", "node1", "node2", "node3"])).unwrap();
+    assert!(reconnects(&out).is_empty(), "{out:?}");
 }
 
 /// A peer's second message for a frame is dropped with a reason naming the peer, its connection

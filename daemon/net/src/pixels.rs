@@ -93,6 +93,15 @@ impl PixelOutbox {
         })
     }
 
+    /// Closes the connection to `peer`, if there is one, with `reason`: the next send connects
+    /// afresh (the peer is a new process; the connection to the one before may not have timed out).
+    pub fn forget(&self, peer: &str, reason: &str) {
+        if let Some(c) = self.conns.lock().expect("not poisoned").remove(peer) {
+            tracing::info!(%peer, "closing the connection to the peer: {reason}");
+            transport::close(&c, reason);
+        }
+    }
+
     /// Sends `bytes` (a frame's pixels) to `peer` in a task of its own.
     pub fn send(&self, peer: &str, frame_id: u64, bytes: Vec<u8>) {
         let (Some(&addr), Some(count)) = (self.addrs.get(peer), self.in_flight.get(peer)) else {

@@ -358,7 +358,6 @@ async fn frame_done(
     machine.render_done(node.epoch.elapsed(), id, t)
 }
 
-/// Carries out the machine's outputs (and those they lead to).
 /// Why the session ends after [`execute`].
 enum Ended {
     /// The controller said Bye.
@@ -375,6 +374,7 @@ impl From<NetError> for Ended {
     }
 }
 
+/// Carries out the machine's outputs (and those they lead to).
 async fn execute(
     node: &mut Node,
     machine: &mut NodeMachine,

@@ -388,6 +388,8 @@ impl Sim {
                 ObjectOutput::ClosePeer { peer, reason, .. } | ObjectOutput::Dropped { peer, reason } => {
                     self.errors.push(format!("{} closed {peer}: {reason}", self.names[n]))
                 }
+                // The simulated links have no connections to renew.
+                ObjectOutput::Reconnect { .. } => {}
                 other => self.errors.push(format!("{}: unexpected {other:?}", self.names[n])),
             }
         }
