@@ -91,8 +91,10 @@ impl BalancedNode {
 
     /// The controller's split from `from_frame` on.
     pub fn set_split(&mut self, from_frame: u64, split: &WireSplit) -> Result<(), SplitError> {
-        self.machine.set_split(from_frame, split)?;
+        let back = self.machine.set_split(from_frame, split)?;
         tracing::debug!(from_frame, rects = split.rects.len(), "balance: split");
+        let rest = self.links.execute(back);
+        debug_assert!(rest.is_empty(), "a split only renews connections");
         Ok(())
     }
 

@@ -21,7 +21,7 @@
 //! - What each rectangle cost ([`rect_cost`]: its fetches and pixels, hardware-free) goes to the
 //!   controller in `RectCosts`, and the bytes sent in `Composited`, before Ready.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::time::Duration;
 
 use super::share::{split_from_wire, NodeShare, SplitError};
@@ -143,13 +143,29 @@ impl BalanceMachine {
 
     /// The controller's split from `from_frame` on, checked whole; an error is the controller's
     /// protocol violation (nothing of it is used).
-    pub fn set_split(&mut self, from_frame: u64, wire: &WireSplit) -> Result<(), SplitError> {
+    ///
+    /// A node whose tiles the split before left out (it was down) and this one has again is back
+    /// from the dead, a new process: [`ObjectOutput::Reconnect`] it, as object space does, since
+    /// the connection to the process before may not have timed out and loses what is sent on it.
+    pub fn set_split(&mut self, from_frame: u64, wire: &WireSplit) -> Result<Vec<ObjectOutput>, SplitError> {
         let split = split_from_wire(wire, &self.config)?;
+        let before = self.owners(&self.split_for(from_frame.saturating_sub(1)));
+        let back: Vec<ObjectOutput> = self
+            .owners(&split)
+            .difference(&before)
+            .filter(|peer| **peer != self.name)
+            .map(|peer| ObjectOutput::Reconnect { peer: peer.clone() })
+            .collect();
         self.splits.insert(from_frame, split);
         while self.splits.len() > SPLITS_KEPT {
             self.splits.pop_first();
         }
-        Ok(())
+        Ok(back)
+    }
+
+    /// The nodes whose tiles `split` shows.
+    fn owners(&self, split: &Split) -> BTreeSet<String> {
+        split.rects.iter().filter_map(|r| self.config.node_of_tile(&r.tile)).map(|n| n.name.clone()).collect()
     }
 
     /// The split of `frame_id`: the controller's latest from that frame or before, else every
@@ -490,6 +506,34 @@ mod tests {
         let last_row = &c.tiles[0].rgb8[3 * 32 * 23..];
         assert_eq!(last_row[0], bg, "a row n1 held shows the background");
         assert_eq!(&c.tiles[0].rgb8[..3 * 32], &whole(0)[..3 * 32], "n0's own rows are placed");
+    }
+
+    /// A node the split before left out (down) and this one has again is back, a new process:
+    /// its peers send to it on a new connection. Once, when it comes back; not for itself.
+    #[test]
+    fn a_node_back_from_the_dead_is_sent_to_on_a_new_connection() {
+        let config = wall();
+        let reconnects = |out: Vec<ObjectOutput>| -> Vec<String> {
+            out.into_iter()
+                .filter_map(|o| match o {
+                    ObjectOutput::Reconnect { peer } => Some(peer),
+                    _ => None,
+                })
+                .collect()
+        };
+        let mut b = Balancer::for_wall(&config);
+        b.set_nodes(["n0".to_string()]);
+        let without = split_to_wire(b.next_split(false), &config).unwrap();
+        b.set_nodes(["n0".to_string(), "n1".to_string()]);
+        let with = split_to_wire(b.next_split(false), &config).unwrap();
+        let mut m = BalanceMachine::new(&config, "n0", Duration::from_secs(1));
+        assert!(reconnects(m.set_split(3, &with).unwrap()).is_empty(), "n1 never left");
+        assert!(reconnects(m.set_split(5, &without).unwrap()).is_empty(), "n1 is down");
+        assert_eq!(reconnects(m.set_split(9, &with).unwrap()), ["n1"]);
+        assert!(reconnects(m.set_split(12, &with).unwrap()).is_empty(), "the same nodes again");
+        let mut back = BalanceMachine::new(&config, "n1", Duration::from_secs(1));
+        assert!(reconnects(back.set_split(5, &without).unwrap()).is_empty());
+        assert!(reconnects(back.set_split(9, &with).unwrap()).is_empty(), "not to itself");
     }
 
     #[test]
