@@ -417,16 +417,13 @@ impl ObjectMachine {
     ) -> Result<(BrickMap, Vec<ObjectOutput>), AdoptionError> {
         let map = BrickMap::from_wire(from_frame, holders, self.maps.nodes())?;
         // Nodes that hold bricks again (back from the dead) are waited for again.
-        let before = self.maps.latest().participants();
-        let back: Vec<String> = map.participants().difference(&before).cloned().collect();
+        let (before, after) = (self.maps.latest().participants(), map.participants());
+        let back: Vec<String> = after.difference(&before).cloned().collect();
         self.compositor.wait_again(&back);
+        let mut out = reconnect_back(&before, &after, &self.name);
         let gone = self.maps.set(map.clone());
         let done = self.compositor.forget(now, &gone);
-        let reconnect = back.into_iter().filter(|peer| *peer != self.name);
-        let out = reconnect
-            .map(|peer| ObjectOutput::Reconnect { peer })
-            .chain(done.into_iter().map(ObjectOutput::Composited))
-            .collect();
+        out.extend(done.into_iter().map(ObjectOutput::Composited));
         Ok((map, out))
     }
 
@@ -602,6 +599,21 @@ fn canvas_of(config: &WallConfig, guard: Option<u32>, tile: &TileConfig) -> Rect
         Some(g) => tile.rect().grown(g, config.wall_size()),
         None => tile.rect(),
     }
+}
+
+/// The peers that take part in `after` and did not in `before`, each back from the dead (a new
+/// process): [`ObjectOutput::Reconnect`] each, `own` excepted. The rule object space's brick maps
+/// and the balanced screen space's splits share.
+pub(crate) fn reconnect_back(
+    before: &BTreeSet<String>,
+    after: &BTreeSet<String>,
+    own: &str,
+) -> Vec<ObjectOutput> {
+    after
+        .difference(before)
+        .filter(|peer| *peer != own)
+        .map(|peer| ObjectOutput::Reconnect { peer: peer.clone() })
+        .collect()
 }
 
 /// What to do about refused pixels: drop a duplicate, close the link that carried the rest.

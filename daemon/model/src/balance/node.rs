@@ -31,7 +31,7 @@ use crate::composite::{composite_deadline, Compositor, Layer, PeerPixels, PixelF
 use crate::config::WallConfig;
 use crate::links::Link;
 use crate::messages::Message;
-use crate::object_machine::{refused_output, ObjectOutput};
+use crate::object_machine::{reconnect_back, refused_output, ObjectOutput};
 use crate::render_plan::RenderPlan;
 use crate::render_state::srgb8;
 use crate::wire::{Continuity, FrameSpec, WireRectCost, WireSplit};
@@ -150,12 +150,7 @@ impl BalanceMachine {
     pub fn set_split(&mut self, from_frame: u64, wire: &WireSplit) -> Result<Vec<ObjectOutput>, SplitError> {
         let split = split_from_wire(wire, &self.config)?;
         let before = self.owners(&self.split_for(from_frame.saturating_sub(1)));
-        let back: Vec<ObjectOutput> = self
-            .owners(&split)
-            .difference(&before)
-            .filter(|peer| **peer != self.name)
-            .map(|peer| ObjectOutput::Reconnect { peer: peer.clone() })
-            .collect();
+        let back = reconnect_back(&before, &self.owners(&split), &self.name);
         self.splits.insert(from_frame, split);
         while self.splits.len() > SPLITS_KEPT {
             self.splits.pop_first();
