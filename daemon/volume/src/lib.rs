@@ -34,7 +34,7 @@ use std::path::PathBuf;
 pub use blocks::BlockMinMax;
 pub use format::VoxelFormat;
 pub use iso::{check_iso, IsoError};
-pub use orientation::{Orientation, PatientDir, PatientFrame};
+pub use orientation::{Orientation, PatientAxes, PatientDir, PatientFrame};
 pub use region::{Pass, Progress, VolumeInfo, VolumeStream};
 pub use source::VolumeSource;
 pub use steps::{StepCache, StepState};
@@ -67,6 +67,9 @@ pub struct Volume {
     pub name: String,
     /// Which patient direction each world axis points to, where the file says so.
     orientation: Option<Orientation>,
+    /// The exact patient directions of the world axes, where the file gives more than the
+    /// [`Orientation`] keeps (an oblique DICOM grid).
+    patient_axes: Option<PatientAxes>,
 }
 
 impl Volume {
@@ -104,7 +107,7 @@ impl Volume {
             let (i, j, k) = (first % dims[0], (first / dims[0]) % dims[1], first / (dims[0] * dims[1]));
             return Err(VolumeError::NonFinite { path: PathBuf::from(&name), count, i, j, k });
         }
-        Ok(Volume { dims, spacing, origin, data, name, orientation: None })
+        Ok(Volume { dims, spacing, origin, data, name, orientation: None, patient_axes: None })
     }
 
     pub fn dims(&self) -> [usize; 3] {
@@ -126,6 +129,15 @@ impl Volume {
     /// The volume with `orientation` as its patient orientation.
     pub fn with_orientation(self, orientation: Option<Orientation>) -> Volume {
         Volume { orientation, ..self }
+    }
+    /// The exact patient directions of the world axes: the file's where it gave them
+    /// ([`Volume::with_patient_axes`]), else the orientation's axes, else none.
+    pub fn patient_axes(&self) -> Option<PatientAxes> {
+        self.patient_axes.or(self.orientation.map(PatientAxes::of))
+    }
+    /// The volume with `axes` as the exact patient directions of its world axes.
+    pub fn with_patient_axes(self, axes: Option<PatientAxes>) -> Volume {
+        Volume { patient_axes: axes, ..self }
     }
     /// Bytes the voxel buffer holds in memory: as allocated (capacity, not length).
     pub fn resident_bytes(&self) -> usize {

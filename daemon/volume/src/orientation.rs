@@ -42,6 +42,20 @@ impl PatientDir {
         }
     }
 
+    /// The unit vector of this direction in DICOM's patient frame (LPS: +x left, +y posterior,
+    /// +z superior).
+    pub fn lps(self) -> DVec3 {
+        use PatientDir::*;
+        match self {
+            Left => DVec3::X,
+            Right => -DVec3::X,
+            Posterior => DVec3::Y,
+            Anterior => -DVec3::Y,
+            Superior => DVec3::Z,
+            Inferior => -DVec3::Z,
+        }
+    }
+
     /// 0 for left-right, 1 for anterior-posterior, 2 for superior-inferior.
     fn anatomical_axis(self) -> usize {
         use PatientDir::*;
@@ -68,6 +82,12 @@ impl PatientFrame {
             PatientFrame::Lps => [PatientDir::Left, PatientDir::Posterior, PatientDir::Superior],
             PatientFrame::Ras => [PatientDir::Right, PatientDir::Anterior, PatientDir::Superior],
         }
+    }
+
+    /// A vector given in this frame, in LPS.
+    fn to_lps(self, v: DVec3) -> DVec3 {
+        let [x, y, z] = self.axes().map(PatientDir::lps);
+        v.x * x + v.y * y + v.z * z
     }
 }
 
@@ -144,6 +164,53 @@ impl Orientation {
     }
 }
 
+/// The exact directions of a volume's world axes on the patient, as LPS unit vectors: what the
+/// file said, an oblique grid's included, where [`Orientation`] keeps only the nearest patient
+/// axis of each. A writer puts the grid back where the file had it from these (DICOM's
+/// ImageOrientationPatient); views are still named by the [`Orientation`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PatientAxes {
+    lps: [DVec3; 3],
+}
+
+impl PatientAxes {
+    /// The axes whose directions in `frame` are `columns` (each the world direction of one grid
+    /// axis, any length). `None` where one is zero or not finite, or two are not orthogonal (a
+    /// cosine above 1e-3): a sheared grid has no patient axes.
+    pub fn new(columns: [DVec3; 3], frame: PatientFrame) -> Option<PatientAxes> {
+        let mut lps = [DVec3::ZERO; 3];
+        for (a, c) in columns.iter().enumerate() {
+            let len = c.length();
+            if !c.is_finite() || len == 0.0 || !len.is_finite() {
+                return None;
+            }
+            lps[a] = frame.to_lps(*c / len);
+        }
+        let orthogonal = [(0, 1), (0, 2), (1, 2)].iter().all(|&(p, q)| lps[p].dot(lps[q]).abs() <= 1e-3);
+        orthogonal.then_some(PatientAxes { lps })
+    }
+
+    /// The axes of an orientation, each exactly along its patient direction.
+    pub fn of(orientation: Orientation) -> PatientAxes {
+        PatientAxes { lps: orientation.axes.map(PatientDir::lps) }
+    }
+
+    /// The LPS unit vectors of +x, +y, +z.
+    pub fn lps(&self) -> [DVec3; 3] {
+        self.lps
+    }
+
+    /// Whether +x, +y, +z make a right-handed frame on the patient (a mirrored grid does not).
+    pub fn right_handed(&self) -> bool {
+        self.lps[0].cross(self.lps[1]).dot(self.lps[2]) > 0.0
+    }
+
+    /// The nearest patient direction of each axis ([`Orientation::from_directions`]).
+    pub fn orientation(&self) -> Option<Orientation> {
+        Orientation::from_directions(self.lps, PatientFrame::Lps)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -179,5 +246,25 @@ mod tests {
         for bad in [DVec3::ZERO, DVec3::NAN, DVec3::new(f64::INFINITY, 0.0, 0.0)] {
             assert!(Orientation::from_directions([bad, DVec3::Y, DVec3::Z], PatientFrame::Lps).is_none());
         }
+    }
+
+    #[test]
+    fn patient_axes_are_the_files_directions_in_lps() {
+        // RAS's axes are LPS's first two turned over.
+        let ras = PatientAxes::new([DVec3::X, 2.0 * DVec3::Y, DVec3::Z], PatientFrame::Ras).unwrap();
+        assert_eq!(ras.lps(), [-DVec3::X, -DVec3::Y, DVec3::Z]);
+        assert_eq!(ras, PatientAxes::of(Orientation::new([Right, Anterior, Superior]).unwrap()));
+        assert_eq!(ras.orientation().unwrap().code(), "RAS");
+        assert!(ras.right_handed());
+        // An oblique sagittal grid keeps its exact directions, and is named by the nearest axes.
+        let oblique = [DVec3::new(0.0, 0.8, 0.6), DVec3::new(0.0, -0.6, 0.8), DVec3::X];
+        let axes = PatientAxes::new(oblique, PatientFrame::Lps).unwrap();
+        assert_eq!(axes.lps(), oblique);
+        assert_eq!(axes.orientation().unwrap().code(), "PSL");
+        // A mirrored grid is left-handed; a sheared one has no axes.
+        let mirrored = PatientAxes::of(Orientation::new([Left, Posterior, Inferior]).unwrap());
+        assert!(!mirrored.right_handed());
+        assert!(PatientAxes::new([DVec3::X, DVec3::new(0.1, 1.0, 0.0), DVec3::Z], PatientFrame::Lps).is_none());
+        assert!(PatientAxes::new([DVec3::ZERO, DVec3::Y, DVec3::Z], PatientFrame::Lps).is_none());
     }
 }

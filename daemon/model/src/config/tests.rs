@@ -800,7 +800,7 @@ fn the_default_camera_frames_the_volume_over_the_whole_wall() {
     let cam = sva.camera_for(lo, hi);
     assert_eq!(
         (cam.eye, cam.target, cam.fov_y_deg),
-        (DVec3::new(122.0, -420.0, 190.0), DVec3::new(122.0, 122.0, 80.0), 32.0)
+        (DVec3::new(122.0, 664.0, 190.0), DVec3::new(122.0, 122.0, 80.0), 32.0)
     );
 }
 

@@ -39,7 +39,7 @@
 //! the slice's bytes. Partial reads ([`crate::region`]) decode only the slices of a region.
 
 use super::{format_err, Layout, VolumeLimit, VoxelType};
-use crate::{Orientation, PatientFrame, Volume, VolumeError};
+use crate::{Orientation, PatientAxes, PatientFrame, Volume, VolumeError};
 use dicom_core::Tag;
 use dicom_dictionary_std::tags;
 use dicom_object::{InMemDicomObject, OpenFileOptions};
@@ -112,6 +112,8 @@ pub struct Series {
     pub origin: DVec3,
     /// The patient directions of x, y, z, where the files give ImageOrientationPatient.
     pub orientation: Option<Orientation>,
+    /// Their exact directions (the row, the column and the normal), an oblique grid's included.
+    pub patient_axes: Option<PatientAxes>,
     slices: Vec<Slice>,
 }
 
@@ -475,6 +477,8 @@ impl Series {
         let spacing = DVec3::new(shape.pixel_spacing[1], shape.pixel_spacing[0], dz);
         let origin = DVec3::new(p0.dot(shape.row_dir), p0.dot(shape.col_dir), p0.dot(normal));
         // x along the rows, y down the columns, z along the normal (slices in increasing depth).
+        let patient_axes =
+            first.oriented.then(|| PatientAxes::new([shape.row_dir, shape.col_dir, normal], PatientFrame::Lps)).flatten();
         let orientation = if first.oriented {
             let o = Orientation::from_directions([shape.row_dir, shape.col_dir, normal], PatientFrame::Lps);
             if o.is_none() {
@@ -488,7 +492,16 @@ impl Series {
         } else {
             None
         };
-        Ok(Series { name: path.to_path_buf(), uid, dims: [nx, ny, nz], spacing, origin, orientation, slices })
+        Ok(Series {
+            name: path.to_path_buf(),
+            uid,
+            dims: [nx, ny, nz],
+            spacing,
+            origin,
+            orientation,
+            patient_axes,
+            slices,
+        })
     }
 
     /// The files of the slices, in z order.
@@ -536,7 +549,8 @@ impl Series {
             self.read_slice(k, &mut data)?;
         }
         Ok(super::make_volume(&self.name, self.dims, self.spacing, self.origin, data)?
-            .with_orientation(self.orientation))
+            .with_orientation(self.orientation)
+            .with_patient_axes(self.patient_axes))
     }
 }
 
@@ -822,12 +836,84 @@ mod tests {
             ([0.5f64.sqrt(), 0.5f64.sqrt(), 0.0, -(0.5f64.sqrt()), 0.5f64.sqrt(), 0.0], None),
         ] {
             let dir = tempfile::tempdir().unwrap();
-            let writer = SeriesWriter { orientation, ..SeriesWriter::new("1.2.826.0.1.3680043.10.9") };
+            let writer = SeriesWriter::new("1.2.826.0.1.3680043.10.9").with_image_orientation(orientation).unwrap();
             writer.write(&v, dir.path()).unwrap();
             let read = read(dir.path(), None, &VolumeLimit::default()).unwrap();
             assert_eq!(read.orientation().map(|o| o.code()).as_deref(), want, "{orientation:?}");
             assert_eq!(read.data(), v.data(), "{orientation:?}: the grid is the written one");
         }
+    }
+
+    /// ImageOrientationPatient and ImagePositionPatient of each file, as written.
+    fn geometry_of(files: &[PathBuf]) -> Vec<Vec<f64>> {
+        files
+            .iter()
+            .map(|f| {
+                let obj = read_header(f).unwrap();
+                let mut g = floats(f, &obj, tags::IMAGE_ORIENTATION_PATIENT, "IOP", 6).unwrap().unwrap();
+                g.extend(floats(f, &obj, tags::IMAGE_POSITION_PATIENT, "IPP", 3).unwrap().unwrap());
+                g
+            })
+            .collect()
+    }
+
+    #[test]
+    fn an_oriented_volume_is_written_where_its_patient_is_and_reads_back_the_same() {
+        use crate::PatientDir::*;
+        let v = ct_like([4, 3, 5]);
+        let (o, s) = (v.origin(), v.spacing());
+        // RAS (a NRRD's or a NIfTI's world): +x right and +y anterior are LPS's -x and -y.
+        let ras = v.clone().with_orientation(Orientation::new([Right, Anterior, Superior]));
+        let dir = tempfile::tempdir().unwrap();
+        let files = SeriesWriter::new("1.2.826.0.1.3680043.10.30").write(&ras, dir.path()).unwrap();
+        for (k, g) in geometry_of(&files).iter().enumerate() {
+            assert_eq!(g[..6], [-1.0, 0.0, 0.0, 0.0, -1.0, 0.0], "slice {k}: rows right, columns anterior");
+            let want = [-o.x, -o.y, o.z + k as f64 * s.z];
+            assert!(g[6..].iter().zip(want).all(|(a, b)| (a - b).abs() < 1e-9), "slice {k}: {g:?}");
+        }
+        let r = read(dir.path(), None, &VolumeLimit::default()).unwrap();
+        assert_eq!(r.orientation().map(|o| o.code()).as_deref(), Some("RAS"));
+        assert!((r.origin() - o).abs().max_element() < 1e-9, "{}", r.origin());
+        assert_eq!((r.dims(), r.data()), (v.dims(), v.data()));
+
+        // An oblique series (sagittal, 37 degrees): read, written again from the volume alone,
+        // it is the same files' geometry and reads back the same volume.
+        let dir = tempfile::tempdir().unwrap();
+        let first = SeriesWriter::new("1.2.826.0.1.3680043.10.31")
+            .with_image_orientation([0.0, 0.8, 0.6, 0.0, -0.6, 0.8])
+            .unwrap()
+            .write(&v, &dir.path().join("a"))
+            .unwrap();
+        let oblique = read(&dir.path().join("a"), None, &VolumeLimit::default()).unwrap();
+        assert_eq!(oblique.orientation().map(|o| o.code()).as_deref(), Some("PSL"));
+        let again =
+            SeriesWriter::new("1.2.826.0.1.3680043.10.32").write(&oblique, &dir.path().join("b")).unwrap();
+        let (g1, g2) = (geometry_of(&first), geometry_of(&again));
+        for (k, (a, b)) in g1.iter().zip(&g2).enumerate() {
+            assert!(a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-9), "slice {k}: {a:?} then {b:?}");
+        }
+        let back = read(&dir.path().join("b"), None, &VolumeLimit::default()).unwrap();
+        assert_eq!(back.patient_axes(), oblique.patient_axes());
+        assert!((back.origin() - oblique.origin()).abs().max_element() < 1e-9);
+        assert_eq!(back.data(), v.data());
+
+        // A mirrored grid (+z inferior): the same patient, its slices in the normal's order.
+        let lpi = v.clone().with_orientation(Orientation::new([Left, Posterior, Inferior]));
+        assert!(!lpi.patient_axes().unwrap().right_handed());
+        let dir = tempfile::tempdir().unwrap();
+        SeriesWriter::new("1.2.826.0.1.3680043.10.33").write(&lpi, dir.path()).unwrap();
+        let r = read(dir.path(), None, &VolumeLimit::default()).unwrap();
+        assert_eq!(r.orientation().map(|o| o.code()).as_deref(), Some("LPS"));
+        let [nx, ny, nz] = v.dims();
+        for k in 0..nz {
+            for j in 0..ny {
+                for i in 0..nx {
+                    assert_eq!(r.at(i, j, nz - 1 - k), v.at(i, j, k), "voxel {i} {j} {k}");
+                }
+            }
+        }
+        // Voxel k at z = o.z + k s.z inferior is at -(o.z + k s.z) superior.
+        assert!((r.origin().z + o.z + (nz - 1) as f64 * s.z).abs() < 1e-9, "{}", r.origin());
     }
 
     #[test]
@@ -990,6 +1076,7 @@ mod tests {
         assert_eq!(series.dims(), ct.dims());
         assert!((series.spacing() - ct.spacing()).abs().max_element() < 1e-9, "{}", series.spacing());
         assert!((series.origin() - ct.origin()).abs().max_element() < 1e-9, "{}", series.origin());
+        assert_eq!(series.orientation(), ct.orientation(), "the series is the patient the NRRD's header says");
         assert_eq!(series.data(), ct.data());
     }
 

@@ -3,8 +3,16 @@
 //! from the volume's grid. For tests and benchmarks (a real-looking series from any volume,
 //! checked voxel for voxel against its source) and `examples/dicom_series.rs`; not a clinical
 //! export.
+//!
+//! The patient stays where the volume's file put it: ImageOrientationPatient holds the patient
+//! directions of the volume's +x and +y ([`Volume::patient_axes`]: an oblique DICOM grid's exact
+//! directions, or the orientation's axes; LPS axial for a volume without one, which is how views
+//! read such a volume), and slice k's ImagePositionPatient is voxel (0, 0, k)'s world position
+//! turned onto those directions, so the DICOM reader gives back the volume's origin, grid and
+//! orientation. A mirrored (left-handed) grid, whose +z is against the slice normal (row x
+//! column), reads back with its slices in the normal's order: the same patient, z reversed.
 
-use crate::{Volume, VolumeError};
+use crate::{Orientation, PatientAxes, Volume, VolumeError};
 use dicom_core::{DataElement, PrimitiveValue, VR};
 use dicom_dictionary_std::{tags, uids};
 use dicom_object::{FileMetaTableBuilder, InMemDicomObject};
@@ -23,9 +31,10 @@ pub struct SeriesWriter {
     pub shift_per_slice: [f64; 2],
     /// First file name number (`slice_NNNN.dcm`).
     pub first_number: usize,
-    /// ImageOrientationPatient: the row and column directions (LPS); the volume's x, y and z
-    /// (their cross product) lie along them, so positions are `x row + y column + z normal`.
-    pub orientation: [f64; 6],
+    /// The patient directions of the volume's x, y and z (LPS); x and y are written as
+    /// ImageOrientationPatient's row and column, and positions are `x a0 + y a1 + z a2`. `None`
+    /// (the default): the volume's own ([`Volume::patient_axes`]), else LPS axial.
+    pub axes: Option<PatientAxes>,
 }
 
 impl SeriesWriter {
@@ -37,8 +46,19 @@ impl SeriesWriter {
             z_positions: None,
             shift_per_slice: [0.0; 2],
             first_number: 0,
-            orientation: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0],
+            axes: None,
         }
+    }
+
+    /// A writer whose grid lies along ImageOrientationPatient `iop` (the row's and the
+    /// column's LPS directions; z along their cross product), whatever the volume says.
+    pub fn with_image_orientation(self, iop: [f64; 6]) -> Result<SeriesWriter, VolumeError> {
+        let [rx, ry, rz, cx, cy, cz] = iop;
+        let (row, col) = (glam::DVec3::new(rx, ry, rz), glam::DVec3::new(cx, cy, cz));
+        let axes = PatientAxes::new([row, col, row.cross(col)], crate::PatientFrame::Lps).ok_or_else(|| {
+            VolumeError::Invalid(format!("ImageOrientationPatient {iop:?}: not two orthogonal directions"))
+        })?;
+        Ok(SeriesWriter { axes: Some(axes), ..self })
     }
 
     /// Writes every z-slice of `v` to `dir` (created if absent); returns the files in z order.
@@ -47,9 +67,9 @@ impl SeriesWriter {
         let [nx, ny, nz] = v.dims();
         let (s, o) = (v.spacing(), v.origin());
         let mut files = Vec::with_capacity(nz);
-        let [rx, ry, rz, cx, cy, cz] = self.orientation;
-        let (row, col) = (glam::DVec3::new(rx, ry, rz), glam::DVec3::new(cx, cy, cz));
-        let normal = row.cross(col);
+        let axes = self.axes.or(v.patient_axes()).unwrap_or(PatientAxes::of(Orientation::ASSUMED));
+        let [row, col, along_z] = axes.lps();
+        let iop = [row.x, row.y, row.z, col.x, col.y, col.z];
         for k in 0..nz {
             let z = self.z_positions.as_ref().map_or(o.z + k as f64 * s.z, |p| p[k]);
             let shift = self.shift_per_slice.map(|d| d * k as f64);
@@ -80,14 +100,14 @@ impl SeriesWriter {
                     tags::IMAGE_POSITION_PATIENT,
                     VR::DS,
                     PrimitiveValue::Strs({
-                        let p = (o.x + shift[0]) * row + (o.y + shift[1]) * col + z * normal;
+                        let p = (o.x + shift[0]) * row + (o.y + shift[1]) * col + z * along_z;
                         [ds(p.x), ds(p.y), ds(p.z)].into_iter().collect()
                     }),
                 ),
                 el(
                     tags::IMAGE_ORIENTATION_PATIENT,
                     VR::DS,
-                    PrimitiveValue::Strs(self.orientation.map(ds).into_iter().collect()),
+                    PrimitiveValue::Strs(iop.map(ds).into_iter().collect()),
                 ),
                 el(tags::SLICE_THICKNESS, VR::DS, str_(&ds(s.z))),
                 el(tags::SAMPLES_PER_PIXEL, VR::US, PrimitiveValue::from(1u16)),

@@ -986,6 +986,8 @@ mod tests {
             assert_eq!(v.dims(), [256, 256, 108]);
             assert!((v.spacing() - DVec3::new(0.9570312, 0.9570312, 1.5)).abs().max_element() < 1e-9);
             assert_eq!(v.origin(), DVec3::ZERO);
+            // The header's space: it opens on the face.
+            assert_eq!(v.orientation().map(|o| o.code()).as_deref(), Some("RAS"));
             // The header's comment: Hounsfield units, -1024..2986.
             let (lo, hi) = v.value_range();
             assert!(lo >= -1024.0 && hi <= 2986.0 && hi > 300.0, "{lo}..{hi}");
