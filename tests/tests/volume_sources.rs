@@ -41,7 +41,8 @@ fn the_ct_as_a_dicom_series_renders_exactly_as_its_nrrd() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && err.contains("holds 2 series"), "{err}");
     assert!(err.contains("1.2.826.0.1.3680043.10.20 (CT, 'isowall', 108 files)"), "{err}");
-    let got = render(dir.path(), "ct", "300", "dicom.png", &["--series", "1.2.826.0.1.3680043.10.20"]).unwrap();
+    let got =
+        render(dir.path(), "ct", "300", "dicom.png", &["--series", "1.2.826.0.1.3680043.10.20"]).unwrap();
     assert!(got == want, "the DICOM series renders differently from the NRRD");
     // One file of the series names the series by itself.
     let got = render(dir.path(), "ct/slice_0050.dcm", "300", "file.png", &[]).unwrap();

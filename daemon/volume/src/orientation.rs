@@ -264,7 +264,9 @@ mod tests {
         // A mirrored grid is left-handed; a sheared one has no axes.
         let mirrored = PatientAxes::of(Orientation::new([Left, Posterior, Inferior]).unwrap());
         assert!(!mirrored.right_handed());
-        assert!(PatientAxes::new([DVec3::X, DVec3::new(0.1, 1.0, 0.0), DVec3::Z], PatientFrame::Lps).is_none());
+        assert!(
+            PatientAxes::new([DVec3::X, DVec3::new(0.1, 1.0, 0.0), DVec3::Z], PatientFrame::Lps).is_none()
+        );
         assert!(PatientAxes::new([DVec3::ZERO, DVec3::Y, DVec3::Z], PatientFrame::Lps).is_none());
     }
 }

@@ -477,8 +477,10 @@ impl Series {
         let spacing = DVec3::new(shape.pixel_spacing[1], shape.pixel_spacing[0], dz);
         let origin = DVec3::new(p0.dot(shape.row_dir), p0.dot(shape.col_dir), p0.dot(normal));
         // x along the rows, y down the columns, z along the normal (slices in increasing depth).
-        let patient_axes =
-            first.oriented.then(|| PatientAxes::new([shape.row_dir, shape.col_dir, normal], PatientFrame::Lps)).flatten();
+        let patient_axes = first
+            .oriented
+            .then(|| PatientAxes::new([shape.row_dir, shape.col_dir, normal], PatientFrame::Lps))
+            .flatten();
         let orientation = if first.oriented {
             let o = Orientation::from_directions([shape.row_dir, shape.col_dir, normal], PatientFrame::Lps);
             if o.is_none() {
@@ -836,7 +838,8 @@ mod tests {
             ([0.5f64.sqrt(), 0.5f64.sqrt(), 0.0, -(0.5f64.sqrt()), 0.5f64.sqrt(), 0.0], None),
         ] {
             let dir = tempfile::tempdir().unwrap();
-            let writer = SeriesWriter::new("1.2.826.0.1.3680043.10.9").with_image_orientation(orientation).unwrap();
+            let writer =
+                SeriesWriter::new("1.2.826.0.1.3680043.10.9").with_image_orientation(orientation).unwrap();
             writer.write(&v, dir.path()).unwrap();
             let read = read(dir.path(), None, &VolumeLimit::default()).unwrap();
             assert_eq!(read.orientation().map(|o| o.code()).as_deref(), want, "{orientation:?}");
@@ -1076,7 +1079,11 @@ mod tests {
         assert_eq!(series.dims(), ct.dims());
         assert!((series.spacing() - ct.spacing()).abs().max_element() < 1e-9, "{}", series.spacing());
         assert!((series.origin() - ct.origin()).abs().max_element() < 1e-9, "{}", series.origin());
-        assert_eq!(series.orientation(), ct.orientation(), "the series is the patient the NRRD's header says");
+        assert_eq!(
+            series.orientation(),
+            ct.orientation(),
+            "the series is the patient the NRRD's header says"
+        );
         assert_eq!(series.data(), ct.data());
     }
 

@@ -55,9 +55,12 @@ impl SeriesWriter {
     pub fn with_image_orientation(self, iop: [f64; 6]) -> Result<SeriesWriter, VolumeError> {
         let [rx, ry, rz, cx, cy, cz] = iop;
         let (row, col) = (glam::DVec3::new(rx, ry, rz), glam::DVec3::new(cx, cy, cz));
-        let axes = PatientAxes::new([row, col, row.cross(col)], crate::PatientFrame::Lps).ok_or_else(|| {
-            VolumeError::Invalid(format!("ImageOrientationPatient {iop:?}: not two orthogonal directions"))
-        })?;
+        let axes =
+            PatientAxes::new([row, col, row.cross(col)], crate::PatientFrame::Lps).ok_or_else(|| {
+                VolumeError::Invalid(format!(
+                    "ImageOrientationPatient {iop:?}: not two orthogonal directions"
+                ))
+            })?;
         Ok(SeriesWriter { axes: Some(axes), ..self })
     }
 
