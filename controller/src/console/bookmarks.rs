@@ -99,9 +99,12 @@ pub fn load(path: &Path) -> Result<Vec<Bookmark>, BookmarkError> {
         },
         message,
     };
-    let f = match std::fs::File::open(path) {
-        Ok(f) => f,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+    // A regular file only, never through a link: a FIFO would hold the request, a link would
+    // read a file outside the config's folder.
+    use isowall_volume::io::regular::{open_regular_no_link, RegularError};
+    let f = match open_regular_no_link(path) {
+        Ok((f, _)) => f,
+        Err(RegularError::Io(e)) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
         Err(e) => return Err(malformed(None, e.to_string())),
     };
     let mut bytes = Vec::new();
@@ -234,5 +237,26 @@ mod tests {
         assert!(e.contains(":9: ") && e.contains("letters, digits"), "{e}");
         std::fs::write(&path, vec![b'#'; MAX_FILE_BYTES as usize + 1]).unwrap();
         assert!(load(&path).unwrap_err().to_string().contains("larger than"));
+    }
+
+    #[test]
+    fn a_fifo_or_a_link_is_refused_at_once_and_not_written_over() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("w.bookmarks.toml");
+        // A FIFO nobody writes: a plain open would wait for a writer forever.
+        assert!(std::process::Command::new("mkfifo").arg(&path).status().unwrap().success());
+        let e = load(&path).unwrap_err().to_string();
+        assert!(e.contains("a FIFO (named pipe), not a regular file"), "{e}");
+        assert!(save(&path, mark("b", 0.0)).is_err(), "not replaced by a save");
+        std::fs::remove_file(&path).unwrap();
+        // A link to a file outside the folder.
+        let outside = tempfile::tempdir().unwrap();
+        let target = outside.path().join("other.toml");
+        std::fs::write(&target, "[[bookmark]]\nname = \"x\"\n").unwrap();
+        std::os::unix::fs::symlink(&target, &path).unwrap();
+        let e = load(&path).unwrap_err().to_string();
+        assert!(e.contains("symbolic link") && !e.contains("\"x\""), "{e}");
+        assert!(save(&path, mark("b", 0.0)).is_err());
+        assert!(std::fs::symlink_metadata(&path).unwrap().file_type().is_symlink(), "left as it was");
     }
 }

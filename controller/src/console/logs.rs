@@ -15,10 +15,14 @@ pub const DEFAULT_LINES: usize = 50;
 pub const MAX_TAIL_BYTES: u64 = 64 * 1024;
 
 /// The last `n` lines (at most [`MAX_LINES`]) of the file at `path`, from at most the last
-/// [`MAX_TAIL_BYTES`] bytes; a first partial line of that window is dropped.
+/// [`MAX_TAIL_BYTES`] bytes; a first partial line of that window is dropped. Only a regular file
+/// is read, never through a symbolic link (a link in `logs/` must not show a file outside it).
 pub fn tail(path: &Path, n: usize) -> std::io::Result<Vec<String>> {
-    let mut f = std::fs::File::open(path)?;
-    let len = f.metadata()?.len();
+    use isowall_volume::io::regular::{open_regular_no_link, RegularError};
+    let (mut f, len) = open_regular_no_link(path).map_err(|e| match e {
+        RegularError::Io(e) => e,
+        other => std::io::Error::new(std::io::ErrorKind::InvalidInput, other.to_string()),
+    })?;
     let start = len.saturating_sub(MAX_TAIL_BYTES);
     f.seek(SeekFrom::Start(start))?;
     let mut bytes = Vec::with_capacity((len - start) as usize);
@@ -80,5 +84,15 @@ mod tests {
         drop(f);
         assert_eq!(tail(&path, 2).unwrap(), vec!["last <script>alert(1)</script>\\u{7}".to_string()]);
         assert!(tail(&dir.path().join("none.log"), 5).is_err());
+        // A link out of the folder is not followed, a FIFO not waited on.
+        let outside = tempfile::tempdir().unwrap();
+        std::fs::write(outside.path().join("secret"), "secret\n").unwrap();
+        std::os::unix::fs::symlink(outside.path().join("secret"), dir.path().join("node1.log")).unwrap();
+        let e = tail(&dir.path().join("node1.log"), 5).unwrap_err();
+        assert!(e.to_string().contains("symbolic link"), "{e}");
+        let fifo = dir.path().join("node2.log");
+        assert!(std::process::Command::new("mkfifo").arg(&fifo).status().unwrap().success());
+        let e = tail(&fifo, 5).unwrap_err();
+        assert!(e.to_string().contains("FIFO"), "{e}");
     }
 }

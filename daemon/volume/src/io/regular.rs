@@ -29,6 +29,8 @@ pub fn kind_of(t: std::fs::FileType) -> &'static str {
 pub enum RegularError {
     #[error("it is {0}, not a regular file")]
     NotRegular(&'static str),
+    #[error("it is a symbolic link, which is not followed here")]
+    Link,
     #[error("it is {size} bytes or more, over the limit of {limit}")]
     TooLarge { size: u64, limit: u64 },
     #[error(transparent)]
@@ -44,6 +46,31 @@ pub fn open_regular(path: &Path) -> Result<(File, u64), RegularError> {
         return Err(RegularError::NotRegular(kind_of(kind)));
     }
     let file = std::fs::OpenOptions::new().read(true).custom_flags(libc::O_NONBLOCK).open(path)?;
+    let meta = file.metadata()?;
+    if !meta.file_type().is_file() {
+        return Err(RegularError::NotRegular(kind_of(meta.file_type())));
+    }
+    Ok((file, meta.len()))
+}
+
+/// Opens `path` if it is a regular file and not a symbolic link: for files a server reads on a
+/// client's behalf from a folder of its own (the console's logs and bookmarks), which a link must
+/// not lead out of. The link is refused by its type before opening and by `O_NOFOLLOW` while
+/// opening (a link swapped in meanwhile fails the open). Returns the file and its length.
+pub fn open_regular_no_link(path: &Path) -> Result<(File, u64), RegularError> {
+    use std::os::unix::fs::OpenOptionsExt;
+    let kind = std::fs::symlink_metadata(path)?.file_type();
+    if kind.is_symlink() {
+        return Err(RegularError::Link);
+    }
+    if !kind.is_file() {
+        return Err(RegularError::NotRegular(kind_of(kind)));
+    }
+    let file = std::fs::OpenOptions::new()
+        .read(true)
+        .custom_flags(libc::O_NONBLOCK | libc::O_NOFOLLOW)
+        .open(path)
+        .map_err(|e| if e.raw_os_error() == Some(libc::ELOOP) { RegularError::Link } else { e.into() })?;
     let meta = file.metadata()?;
     if !meta.file_type().is_file() {
         return Err(RegularError::NotRegular(kind_of(meta.file_type())));
@@ -87,5 +114,22 @@ mod tests {
         assert!(e.to_string().contains("a FIFO (named pipe), not a regular file"), "{e}");
         let e = read_regular_text(dir.path(), 1 << 20).unwrap_err();
         assert!(e.to_string().contains("a directory"), "{e}");
+    }
+
+    #[test]
+    fn a_link_is_not_followed_where_links_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let ok = dir.path().join("ok.log");
+        std::fs::write(&ok, "a\n").unwrap();
+        assert_eq!(open_regular_no_link(&ok).unwrap().1, 2);
+        let link = dir.path().join("link.log");
+        std::os::unix::fs::symlink(&ok, &link).unwrap();
+        let e = open_regular_no_link(&link).unwrap_err();
+        assert!(matches!(e, RegularError::Link), "{e}");
+        assert!(open_regular(&link).is_ok(), "elsewhere a link is followed");
+        let fifo = dir.path().join("fifo");
+        crate::io::testutil::mkfifo(&fifo);
+        let e = open_regular_no_link(&fifo).unwrap_err();
+        assert!(e.to_string().contains("a FIFO (named pipe), not a regular file"), "{e}");
     }
 }
