@@ -922,7 +922,8 @@ fn a_controller_that_says_bye_is_closed_by_the_node_and_leaves_nothing_held() {
     });
 }
 
-/// The console's status, from its address in `out` (`isowall console` prints it).
+/// The console's status, from its address in `out` (`isowall console` prints it); `None` before
+/// it serves one (until the wall's first frame it answers 503).
 fn console_status(out: &Path) -> Option<serde_json::Value> {
     let base =
         text(out).lines().find_map(|l| l.strip_prefix("isowall console: serving "))?.trim().to_string();
@@ -933,6 +934,9 @@ fn console_status(out: &Path) -> Option<serde_json::Value> {
             .build(),
     );
     let mut r = agent.get(format!("{base}api/status")).call().ok()?;
+    if r.status() != 200 {
+        return None;
+    }
     serde_json::from_slice(&r.body_mut().read_to_vec().ok()?).ok()
 }
 
