@@ -8,6 +8,7 @@ pub mod x11;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::OnceLock;
+use std::time::{Duration, Instant};
 
 /// The repository root.
 pub fn repo_root() -> PathBuf {
@@ -94,6 +95,22 @@ pub fn free_udp_ports(n: usize) -> Vec<u16> {
     let sockets: Vec<std::net::UdpSocket> =
         (0..n).map(|_| std::net::UdpSocket::bind("127.0.0.1:0").expect("bind a loopback UDP port")).collect();
     sockets.iter().map(|s| s.local_addr().expect("local address").port()).collect()
+}
+
+/// Asks `poll` every 100 ms until it answers `Ok`, and returns that answer: how a test waits for
+/// what follows a moment after its cause (a log line, a status, a closed connection), however
+/// loaded the machine. After `timeout` it panics saying that `what` did not happen, with the
+/// last `Err` (what there was instead).
+pub fn wait_until<T>(what: &str, timeout: Duration, mut poll: impl FnMut() -> Result<T, String>) -> T {
+    let give_up = Instant::now() + timeout;
+    loop {
+        let last = match poll() {
+            Ok(done) => return done,
+            Err(last) => last,
+        };
+        assert!(Instant::now() < give_up, "not within {timeout:?}: {what}\n{last}");
+        std::thread::sleep(Duration::from_millis(100));
+    }
 }
 
 /// A child process killed when dropped (a daemon under test).

@@ -265,6 +265,7 @@ mod tests {
         });
         for i in 0..n {
             client.send_to(&i.to_le_bytes(), relay.addr).unwrap();
+            // A breath every 64 datagrams (the sender's pace): no socket buffer on the way overflows.
             if i % 64 == 63 {
                 std::thread::sleep(Duration::from_millis(1));
             }

@@ -199,6 +199,7 @@ async fn attack(
             Ok(c) => c,
             Err(e) => {
                 reasons.push(format!("cannot connect: {e}"));
+                // The attack's own pace: tried again a round later.
                 tokio::time::sleep(every).await;
                 continue;
             }
@@ -261,7 +262,8 @@ where
     let pid = node0.child.id();
     let stop = Arc::new(AtomicBool::new(false));
     let orbit = orbit(w);
-    // The wall's first frames before the attack, so the baseline includes a rendering node.
+    // The wall's first frames before the attack, so the baseline includes a rendering node. A
+    // fixed time on the orbit's paced clock: `around_the_wall` counts the wall's frames from it.
     std::thread::sleep(ATTACK_AFTER);
     let (rss0, hwm0) = (status_kib(pid, "VmRSS:"), status_kib(pid, "VmHWM:"));
     let started = Instant::now();

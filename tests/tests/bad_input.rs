@@ -291,6 +291,8 @@ fn bad_input_closes_that_connection_with_a_reason_and_the_wall_goes_on() {
         let n = garbage_datagrams(addr, 0x5eed_0000 + i as u64);
         eprintln!("sent {n} garbage datagrams to node{i} ({addr})");
     }
+    // A moment for a daemon the garbage crashed to be gone; the connections and the orbit below
+    // show that they still serve.
     std::thread::sleep(Duration::from_millis(300));
     alive(&mut daemons[0], "node0");
     alive(&mut daemons[1], "node1");
@@ -325,6 +327,8 @@ fn bad_input_closes_that_connection_with_a_reason_and_the_wall_goes_on() {
                 assert!(reason.contains(&bad.expected()[0]), "{bad:?} (connection {i}): \"{reason}\"");
             }
             if i + 1 == 20 {
+                // The same pause before both readings, for the daemon to let go of the last
+                // connection: the two readings compare like with like.
                 tokio::time::sleep(Duration::from_millis(200)).await;
                 rss_20 = rss_kib(pid);
             }

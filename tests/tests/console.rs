@@ -25,7 +25,8 @@
 //! or chromedriver fails the test instead of skipping it.
 
 use isowall_e2e::{
-    bin, free_udp_ports, in_ci, run_in, set_ball_steps_source, wall_config, write_ball_steps, Daemon,
+    bin, free_udp_ports, in_ci, run_in, set_ball_steps_source, wait_until, wall_config, write_ball_steps,
+    Daemon,
 };
 use serde_json::Value;
 use std::io::{Read, Write};
@@ -274,8 +275,7 @@ fn the_api_refuses_missing_tokens_and_bad_input_and_changes_nothing() {
     assert_eq!(r.status, 400);
     assert!(r.json()["error"].as_str().unwrap().contains("is a WebSocket"));
     // Nothing changed.
-    std::thread::sleep(Duration::from_millis(300));
-    let after = con.status();
+    let after = settled(&con);
     assert_eq!(after["render"], before["render"]);
     assert_eq!((after["time"]["steps"].as_u64(), after["time"]["playing"].as_bool()), (Some(1), Some(false)));
     // A valid change is applied, and the thumbnail is the wall's size over the divisor.
@@ -476,15 +476,32 @@ fn changed_pixels(a: &image::RgbImage, b: &image::RgbImage) -> usize {
 
 /// Polls the status until `done` holds of its `time` block (30 s at most).
 fn wait_time(con: &Console, what: &str, done: impl Fn(&Value) -> bool) -> Value {
-    let give_up = Instant::now() + Duration::from_secs(30);
-    loop {
+    wait_until(what, Duration::from_secs(30), || {
         let t = con.status()["time"].clone();
         if done(&t) {
-            return t;
+            Ok(t)
+        } else {
+            Err(format!("the status says {t}"))
         }
-        assert!(Instant::now() < give_up, "{what}: the status says {t}");
-        std::thread::sleep(Duration::from_millis(100));
-    }
+    })
+}
+
+/// Asks for a change that moves nothing on the wall, the paused orbit's rate, and returns the
+/// first status that shows it: the console carries out changes in order, so what any change
+/// asked before it did shows there too.
+fn settled(con: &Console) -> Value {
+    let rate = con.status()["orbit"]["degrees_per_second"].as_f64().expect("the orbit's rate");
+    let next = if rate < 180.0 { rate + 1.0 } else { rate - 1.0 };
+    let r = con.post("/api/camera", &format!("{{\"orbit_degrees_per_second\": {next}}}"));
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    wait_until("the orbit's new rate in the status", Duration::from_secs(30), || {
+        let s = con.status();
+        if s["orbit"]["degrees_per_second"] == next {
+            Ok(s)
+        } else {
+            Err(s["orbit"].to_string())
+        }
+    })
 }
 
 #[test]
@@ -518,8 +535,7 @@ fn the_api_shows_and_sets_the_time_step_of_a_time_varying_volume() {
     }
     let r = con.post("/api/time", "{\"step\": -1}");
     assert_eq!(r.status, 422, "{}", String::from_utf8_lossy(&r.body));
-    std::thread::sleep(Duration::from_millis(300));
-    let t = con.status()["time"].clone();
+    let t = settled(&con)["time"].clone();
     assert_eq!(
         (t["step"].as_u64(), t["playing"].as_bool(), t["rate"].as_f64()),
         (Some(0), Some(false), Some(4.0))
@@ -543,6 +559,7 @@ fn the_api_shows_and_sets_the_time_step_of_a_time_varying_volume() {
     wait_time(&con, "playing from step 2", |t| t["playing"] == true && t["rate"] == 8.0 && t["step"] != 2);
     assert_eq!(con.post("/api/time", "{\"play\": \"pause\", \"step\": 1}").status, 200);
     let t = wait_time(&con, "paused at step 1", |t| t["playing"] == false && t["step"] == 1);
+    // A fixed time: playing at 8 steps a second, the step would have moved in it.
     std::thread::sleep(Duration::from_millis(500));
     assert_eq!(con.status()["time"]["step"], t["step"], "paused, the step stays");
 }
@@ -973,8 +990,21 @@ async fn the_page_shows_each_nodes_gpu_and_log_and_drives_bookmarks_the_lock_and
     )
     .await;
 
-    // Version, GPU and driver: what the node told, in the status and on its card.
-    let s = status(&con).await;
+    // Version, GPU and driver: what the node told, in the status and on its card (in a message
+    // of its own, after its Hello: a node is up a moment before they are known).
+    let con2 = con.clone();
+    let s = tokio::task::spawn_blocking(move || {
+        wait_until("node0's version in the status", Duration::from_secs(30), || {
+            let s = con2.status();
+            if s["nodes"][0]["version"].is_string() {
+                Ok(s)
+            } else {
+                Err(s["nodes"][0].to_string())
+            }
+        })
+    })
+    .await
+    .unwrap();
     let n = &s["nodes"][0];
     let (version, adapter, backend) =
         (n["version"].as_str().unwrap(), n["adapter"].as_str().unwrap(), n["backend"].as_str().unwrap());
@@ -1038,13 +1068,19 @@ async fn the_page_shows_each_nodes_gpu_and_log_and_drives_bookmarks_the_lock_and
     .await;
     assert!(std::fs::read_to_string(&file).unwrap().contains("name = \"front view\""));
     assert_eq!(con.post("/api/camera", "{\"yaw_deg\": 50}").status, 200);
-    let moved = loop {
-        let s = status(&con).await;
-        if s["camera"]["eye"] != eye0 {
-            break s["camera"]["eye"].clone();
-        }
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    };
+    let (con2, saved) = (con.clone(), eye0.clone());
+    let moved = tokio::task::spawn_blocking(move || {
+        wait_until("the camera moved off the bookmark", Duration::from_secs(30), || {
+            let eye = con2.status()["camera"]["eye"].clone();
+            if eye != saved {
+                Ok(eye)
+            } else {
+                Err(format!("the eye is still {eye}"))
+            }
+        })
+    })
+    .await
+    .unwrap();
     assert_ne!(moved, eye0);
     page.find(fantoccini::Locator::Id("bookmark-recall")).await.unwrap().click().await.unwrap();
     let give_up = Instant::now() + Duration::from_secs(20);
@@ -1097,8 +1133,16 @@ async fn the_page_shows_each_nodes_gpu_and_log_and_drives_bookmarks_the_lock_and
         "{}",
         String::from_utf8_lossy(&r.body)
     );
+    // The page writes the answer to its change there: nothing when it went ahead, the reason
+    // when it was refused. Marked first, to tell the answer from what was there before.
+    js(&page, "(document.getElementById('control-error').textContent = 'asking', true)").await;
     page.find(fantoccini::Locator::Id("home")).await.unwrap().click().await.unwrap();
-    tokio::time::sleep(Duration::from_millis(500)).await;
+    until(
+        &page,
+        "document.getElementById('control-error').textContent !== 'asking'",
+        Duration::from_secs(20),
+    )
+    .await;
     assert_eq!(
         js(&page, "document.getElementById('control-error').textContent").await,
         "",

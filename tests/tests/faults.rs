@@ -61,7 +61,11 @@ fn killed_node_is_reported_and_rejoins(balance: bool) {
     let Some(mut daemons) = start_nodes(dir.path(), &config, 4) else { return };
     let mut controller = orbit(dir.path(), &config, "orbit", 120, 10);
     let err = dir.path().join("orbit.err");
-    std::thread::sleep(Duration::from_secs(3));
+    if wait_for(&err, "up (4/4)", Duration::from_secs(60)).is_none() {
+        panic!("the wall never had its 4 nodes up:\n{}", std::fs::read_to_string(&err).unwrap_or_default());
+    }
+    // Frames with all four nodes for a while, so that node1 dies in the middle of a running wall.
+    std::thread::sleep(Duration::from_secs(2));
     // SIGKILL node1: it is named (as a straggler at the next deadline) within two deadlines, and
     // reported down once silent for 3 deadlines (or at the QUIC idle timeout, if sooner).
     daemons[1].child.kill().unwrap();
@@ -135,7 +139,14 @@ fn a_killed_controller_leaves_the_daemons_serving_a_new_one() {
         .success());
     let Some(mut daemons) = start_nodes(dir.path(), &config, 4) else { return };
     let mut first = orbit(dir.path(), &config, "first", 1000, 10);
-    std::thread::sleep(Duration::from_secs(2));
+    // Killed once it holds the nodes, so that their connections to it are what it leaves behind.
+    let first_err = dir.path().join("first.err");
+    if wait_for(&first_err, "up (4/4)", Duration::from_secs(60)).is_none() {
+        panic!(
+            "the first controller never had its 4 nodes up:\n{}",
+            std::fs::read_to_string(&first_err).unwrap_or_default()
+        );
+    }
     first.kill().unwrap();
     let _ = first.wait();
     // A new controller at once: the daemons refuse it while the killed one's connection lives
