@@ -17,6 +17,26 @@ if [ -n "$rust_version" ] && ! printf '1.85.0\n%s\n' "$rust_version" | sort -V -
     exit 1
 fi
 
+# The test suite checks the house's lints and formatting (clippy and rustfmt, rustup's components
+# of the same toolchain). Lints change between toolchains: they were last checked clean on this
+# one, and on another its new lints are reported without failing the run.
+lints_checked_on=1.95.0
+if [ "${isowall_tests:-}" = yes ]; then
+    for tool in clippy fmt; do
+        if ! cargo "$tool" --version >/dev/null 2>&1; then
+            comp=$([ "$tool" = fmt ] && echo rustfmt || echo clippy)
+            echo "isowall: cargo $tool is missing (the tests check the lints and formatting with it): rustup component add $comp" >&2
+            exit 1
+        fi
+    done
+    if [ "$rust_version" = "$lints_checked_on" ]; then
+        clippy_strict=yes
+    else
+        clippy_strict=no
+        echo "isowall: the lints were checked on Rust $lints_checked_on; this is $rust_version, so clippy's findings are shown without failing the run" >&2
+    fi
+fi
+
 # The Vulkan loader.
 if ! ldconfig -p 2>/dev/null | grep -q 'libvulkan\.so\.1'; then
     need_pkgs+=(libvulkan1)

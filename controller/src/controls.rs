@@ -269,7 +269,7 @@ impl Playback {
 
     /// Moves on by `dt` seconds of play (nothing while paused), wrapping at the last step.
     pub fn advance(&mut self, dt: f64) {
-        if !self.playing || !(dt.is_finite() && dt > 0.0) {
+        if !(self.playing && dt.is_finite() && dt > 0.0) {
             return;
         }
         let total = self.phase + dt * self.rate;

@@ -34,6 +34,7 @@ struct Cli {
 }
 
 #[derive(Subcommand)]
+#[expect(clippy::large_enum_variant, reason = "parsed once, at start")]
 enum Command {
     /// Render one frame of a volume, headless, to a file (PNG for colour, PFM for other AOVs).
     Render(render::RenderArgs),

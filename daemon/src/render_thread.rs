@@ -60,13 +60,16 @@ pub struct TileResult {
     pub fetches: u64,
 }
 
+/// A tile's canvas: its shading, rows top to bottom.
+pub type Canvas = Vec<[[f32; 4]; 4]>;
+
 /// object space, where the wall filters the composited tile: the canvases of a frame's tiles
 /// (each tile's rectangle grown by `guard`), filtered and composed on the GPU.
 pub struct CanvasJob {
     pub frame_id: u64,
     /// Per tile: its name, its view (its own rectangle) and its canvas (shading, rows top to
     /// bottom, of the rectangle grown by `guard`).
-    pub tiles: Vec<(String, View, Vec<[[f32; 4]; 4]>)>,
+    pub tiles: Vec<(String, View, Canvas)>,
     pub settings: RenderSettings,
     pub guard: u32,
 }

@@ -258,8 +258,8 @@ pub fn compare_tiles(
         }
         let a = wall.get_pixel(x, y).0;
         compared += 1;
-        for c in 0..3 {
-            let d = a[c].abs_diff(b.0[c]);
+        for (&p, &q) in a.iter().zip(&b.0) {
+            let d = p.abs_diff(q);
             max_diff = max_diff.max(d);
             sum_diff += d as u64;
         }
@@ -278,6 +278,7 @@ pub fn in_bezel_2x2(x: u32, y: u32, w: u32, h: u32, bezel: u32) -> bool {
 /// Writes `dir/NAME.toml`: a 2x2 wall of `w`x`h` tiles with `bezel`-pixel mullions, nodes
 /// `node0..3` on the given loopback ports, the torus at 48^3 with 4 AO samples and sky light, a
 /// fixed camera, and the certificates in `dir/CERTS`.
+#[expect(clippy::too_many_arguments, reason = "each call names the wall it tests, field by field")]
 pub fn wall_config(
     dir: &Path,
     name: &str,

@@ -116,6 +116,7 @@ impl Console {
             Ok(b) => b,
             Err(_) => {
                 let _ = child.kill();
+                let _ = child.wait();
                 let log = logs();
                 if log.contains("no Vulkan adapter") && !in_ci() {
                     eprintln!("skipping: no Vulkan adapter");

@@ -75,11 +75,8 @@ fn subcommands(help: &str) -> Vec<String> {
             inside = true;
         } else if inside {
             match line.strip_prefix("  ").and_then(|l| l.split_whitespace().next()) {
-                Some(name) if !line.starts_with("   ") => {
-                    if name != "help" {
-                        subs.push(name.to_string());
-                    }
-                }
+                Some(name) if !line.starts_with("   ") && name != "help" => subs.push(name.to_string()),
+                Some(_) if !line.starts_with("   ") => {}
                 _ if line.trim().is_empty() => inside = false,
                 _ => {}
             }

@@ -638,7 +638,8 @@ mod tests {
         let mut turned = next;
         turned.settings.light.direction = [1.0, 0.0, 0.0];
         assert_eq!(turned.continuity(Some(&a)), Continuity::ViewMoved, "the light's direction only");
-        let changes: [(&str, fn(&mut FrameState)); 6] = [
+        type Change = (&'static str, fn(&mut FrameState));
+        let changes: [Change; 6] = [
             ("iso", |f| f.settings.iso += 1.0),
             ("AO samples", |f| f.settings.ao.samples += 1),
             ("light colour", |f| f.settings.light.color[0] += 0.1),

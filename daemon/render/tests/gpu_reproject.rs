@@ -153,7 +153,7 @@ fn the_gpu_reprojection_is_its_cpu_twin_with_the_nearest_pixel() {
 #[test]
 fn the_gpu_reprojection_is_its_cpu_twin_renormalizing_the_accepted_taps() {
     // The default carries the accepted share; this is the other form of the blend.
-    assert!(RULE.accepted_share);
+    const { assert!(RULE.accepted_share) };
     gpu_reprojection_is_its_cpu_twin(Rule { accepted_share: false, ..RULE });
 }
 

@@ -75,12 +75,10 @@ fn the_compose_kernel_is_the_host_compose_and_follows_the_reference() {
         assert!(max <= 1 && n * 200 <= host.pixel_count() * 3, "{n} values differ, by up to {max} levels");
         // Depth: the frame's where it hits, +inf elsewhere.
         let depth = out.depth.as_ref().unwrap();
-        for i in 0..host.pixel_count() {
-            if host.hit[i] {
-                assert_eq!(depth[i], host.depth[i], "pixel {i}");
-            } else {
-                assert_eq!(depth[i], f32::INFINITY, "pixel {i}");
-            }
+        assert_eq!(depth.len(), host.pixel_count());
+        for (i, &d) in depth.iter().enumerate() {
+            let want = if host.hit[i] { host.depth[i] } else { f32::INFINITY };
+            assert_eq!(d, want, "pixel {i}");
         }
         assert_eq!(out.counters.hits, host.hit_count() as u64);
         assert_eq!(out.counters.fetches, host.fetches);

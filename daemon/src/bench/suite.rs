@@ -295,7 +295,9 @@ pub fn run(a: &SuiteArgs) -> Result<()> {
         gpu.set_perf(PerfOptions::default())?;
         let gv = gpu.upload(&volume)?;
         // The volume as each variant's block levels and voxel format need it.
-        let mut uploads: Vec<((u32, u32, u32, VoxelFormat, bool), GpuVolume)> = Vec::new();
+        // Keyed by (block, AO block, coarse, format, texture).
+        type UploadKey = (u32, u32, u32, VoxelFormat, bool);
+        let mut uploads: Vec<(UploadKey, GpuVolume)> = Vec::new();
         for (variant, o, _, _, _) in &variants {
             let key = (o.block, o.ao_block, o.coarse, o.format, o.texture);
             if !uploads.iter().any(|(k, _)| *k == key) {

@@ -246,7 +246,7 @@ mod tests {
         for (name, value) in
             [("step_0010.nrrd", 3u8), ("step_0002.nrrd", 1), ("step_0003.nrrd", 2), ("other.nrrd", 9)]
         {
-            let text = format!("NRRD0004\ntype: uchar\ndimension: 3\nsizes: 2 1 1\nencoding: raw\n\n");
+            let text = "NRRD0004\ntype: uchar\ndimension: 3\nsizes: 2 1 1\nencoding: raw\n\n".to_string();
             let mut bytes = text.into_bytes();
             bytes.extend([value, value]);
             std::fs::write(dir.path().join(name), bytes).unwrap();

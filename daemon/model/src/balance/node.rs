@@ -452,9 +452,9 @@ mod tests {
             m.set_split(2, &wire).unwrap();
         }
         let (done, sent) = frame(&mut ms, 2);
-        for k in 0..2 {
-            assert_eq!(done[k].len(), 1, "node {k}");
-            assert_eq!(done[k][0].tiles[0].rgb8, whole(k as u32), "node {k}: the same picture");
+        for (k, done) in done.iter().enumerate() {
+            assert_eq!(done.len(), 1, "node {k}");
+            assert_eq!(done[0].tiles[0].rgb8, whole(k as u32), "node {k}: the same picture");
         }
         // n1 reports its own tile and its rectangle of t0; what it reports is what it rendered.
         let Message::RectCosts { costs, .. } = &sent[1][0] else { panic!() };

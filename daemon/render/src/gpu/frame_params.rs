@@ -218,7 +218,8 @@ mod tests {
         let sampling = &ao; // sampling.wgsl is included by the AO kernel
                             // (WGSL constant, the kernel's constants, the variant's code, its code on the wire, its
                             // code in the kernels' parameters).
-        let mut rows: Vec<(&str, &std::collections::BTreeMap<String, u32>, u8, u8, u32)> = Vec::new();
+        type Row<'a> = (&'a str, &'a std::collections::BTreeMap<String, u32>, u8, u8, u32);
+        let mut rows: Vec<Row> = Vec::new();
         let settings = |f: &dyn Fn(&mut RenderSettings)| {
             let mut s = RenderSettings::new(0.0);
             f(&mut s);

@@ -719,6 +719,7 @@ impl GpuRenderer {
     /// Records compose into image `back` (reading the filter's output where `filtered`) and the
     /// frame's read into `ring` as `tag` says (counters, timestamps where `tag.timed`, the share);
     /// returns the ring's slot.
+    #[expect(clippy::too_many_arguments, reason = "the frame's choices for one encoder, each used once")]
     fn compose_and_read(
         &self,
         tile: &TileTarget,
