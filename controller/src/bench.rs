@@ -227,9 +227,11 @@ fn print_balance_run(
     }
     let ratio = ratios.iter().sum::<f64>() / ratios.len().max(1) as f64;
     let moved = wall.split().map_or(0, |(_, rows, _)| rows);
+    let (misses, held) = wall.held_out().unwrap_or_default();
     println!(
-        "\n== {name}: {fps:.2} fps; slowest/mean work {ratio:.3} (mean of {} frames); rows rendered away from their tile's node in the last split: {moved}; the split changed {changes} times in the run's {frames} frames",
+        "\n== {name}: {fps:.2} fps; slowest/mean work {ratio:.3} (mean of {} frames); rows rendered away from their tile's node in the last split: {moved}; the split changed {changes} times in the run's {frames} frames; nodes held out of the split since the wall came up: {misses} times{}",
         ratios.len(),
+        if held.is_empty() { String::new() } else { format!(" ({} now)", held.join(", ")) },
     );
     let median = |mut v: Vec<u64>| {
         v.sort_unstable();

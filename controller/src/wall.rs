@@ -5,9 +5,10 @@
 use crate::report::micros;
 use anyhow::{anyhow, bail, Context, Result};
 use isowall_model::adoption::{AdoptionOutput, BrickAssigner};
-use isowall_model::balance::share::split_to_wire;
+use isowall_model::balance::claims::{cost_floor, Claims, Miss};
+use isowall_model::balance::share::{split_to_wire, MAX_RECTS_PER_TILE};
 use isowall_model::balance::{Balancer, Split, WorkRect};
-use isowall_model::codec;
+use isowall_model::codec::{self, KindLimit};
 use isowall_model::config::WallConfig;
 use isowall_model::frame_controller::{ControllerOutput, FrameController, FrameStats};
 use isowall_model::links::{Link as LinkId, Links};
@@ -190,6 +191,10 @@ struct WallBalance {
     changes: u64,
     /// Per frame (the last [`HISTORY`] or so), each node's work: the costs it reported.
     work: BTreeMap<u64, BTreeMap<String, u64>>,
+    /// What the nodes' reports are held to: who delivered what the split gave it.
+    claims: Claims,
+    /// Nodes held out of the split so far, each time (a node that missed).
+    misses: u64,
 }
 
 impl Wall {
@@ -348,6 +353,8 @@ impl Wall {
                 moved_rows: 0,
                 changes: 0,
                 work: BTreeMap::new(),
+                claims: Claims::new(),
+                misses: 0,
             });
         }
         if wall.config.wall.mode == isowall_model::WallMode::Object {
@@ -363,6 +370,14 @@ impl Wall {
     /// Starts reading a greeted link and tells the machine the node is up.
     async fn attach(&mut self, name: &str, link: Link) -> Result<()> {
         let Link { connection, sender, mut receiver } = link;
+        // A balanced wall's cost reports are bounded before they are decoded: a split gives a
+        // node at most MAX_RECTS_PER_TILE rectangles of each of the wall's tiles.
+        if self.balance.is_some() {
+            let most = self.config.tiles.len().saturating_mul(MAX_RECTS_PER_TILE);
+            let sample = Message::RectCosts { frame_id: 0, costs: Vec::new() };
+            let why = format!("a split gives at most {most} rectangles");
+            receiver.limit_kind(KindLimit::of(&sample, codec::rect_costs_limit(most), why));
+        }
         let tx = self.events_tx.clone();
         let node = name.to_string();
         let id = self.links.attach(name);
@@ -443,7 +458,10 @@ impl Wall {
         let still = state.continuity(b.last.as_ref()) == Continuity::Same;
         b.last = Some(*state);
         b.balancer.set_nodes(up.iter().cloned());
+        b.balancer.set_held(b.claims.held(state.frame_id));
         let split = if b.on { b.balancer.next_split(still).clone() } else { b.balancer.own_tiles() };
+        let config = &self.config;
+        b.claims.given(state.frame_id, &split, |t| config.node_of_tile(t).map(|n| n.name.as_str()));
         if b.sent.as_ref() == Some(&split) && b.sent_to == up {
             return;
         }
@@ -480,6 +498,7 @@ impl Wall {
         while b.work.len() > 2 * HISTORY {
             b.work.pop_first();
         }
+        b.claims.costs(node, frame_id);
         for c in costs {
             let Some(tile) = self.config.tiles.get(c.tile as usize) else { continue };
             let rect = WorkRect {
@@ -489,11 +508,28 @@ impl Wall {
                 renderer: node.into(),
             };
             // Only a rectangle the split gave this node counts (a stale or made-up one is left
-            // out); a frame's costs come before its Ready, so before the next frame's split.
+            // out); a frame's costs come before its Ready, so before the next frame's split. The
+            // cost is a claim, held to what the rectangle's pixels and its prediction allow.
             if b.sent.as_ref().is_some_and(|s| s.rects.contains(&rect)) {
-                b.balancer.observe(&rect, c.cost as f64);
+                b.balancer.observe_claim(&rect, c.cost as f64, cost_floor(tile.width, c.rows));
             }
         }
+    }
+
+    /// A balanced wall: `miss` holds a node out of the split; said once per hold.
+    fn report_miss(&mut self, miss: Miss) {
+        let Some(b) = self.balance.as_mut() else { return };
+        b.misses += 1;
+        eprintln!(
+            "isowall: balance: node {} {} in frame {}: it renders only its own tiles until frame {} (miss {})",
+            miss.node, miss.why, miss.frame_id, miss.held_until, miss.misses
+        );
+    }
+
+    /// A balanced wall: how many times a node was held out of the split, and who is held now.
+    pub fn held_out(&self) -> Option<(u64, Vec<String>)> {
+        let b = self.balance.as_ref()?;
+        Some((b.misses, b.balancer.held().iter().cloned().collect()))
     }
 
     /// A balanced wall: whether the split follows the costs (`true`, the config's default) or
@@ -580,7 +616,12 @@ impl Wall {
                         Box::pin(self.execute(more)).await;
                     }
                 }
-                ControllerOutput::Released { frame_id, ready: _, stragglers, barrier } => {
+                ControllerOutput::Released { frame_id, ready, stragglers, barrier } => {
+                    let misses: Vec<Miss> = match self.balance.as_mut() {
+                        Some(b) => ready.iter().filter_map(|n| b.claims.ready(n, frame_id)).collect(),
+                        None => Vec::new(),
+                    };
+                    misses.into_iter().for_each(|m| self.report_miss(m));
                     if !stragglers.is_empty() {
                         eprintln!(
                             "isowall: frame {frame_id}: swap released without {} (missed the deadline)",
@@ -657,6 +698,11 @@ impl Wall {
                     self.observe_costs(&node, frame_id, &costs)
                 }
                 ControllerOutput::PixelsMissing { node, frame_id, peers } => {
+                    let misses = match self.balance.as_mut() {
+                        Some(b) => b.claims.missing(&node, frame_id, &peers),
+                        None => Vec::new(),
+                    };
+                    misses.into_iter().for_each(|m| self.report_miss(m));
                     if peers.is_empty() {
                         eprintln!(
                             "isowall: node {node} composites every peer's pixels again from frame {frame_id}"

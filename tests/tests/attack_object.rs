@@ -12,7 +12,12 @@
 //! and on a balanced screen-space wall (`[wall] balance = true`, the torus in `t0` so that `node1`
 //! renders rows of it), where a rectangle is accepted only as the controller's split gives it:
 //! (e) `node1` sends `node0` the first row of `t0` with hits, a row the split did not give it;
-//! (f) the LZ4 bomb of (a).
+//! (f) the LZ4 bomb of (a);
+//! (g) `node1` played by a client that says every rectangle costs nothing (or reports no costs at
+//!     all) and never sends the rows of `t0` the split gives it: the controller holds it out of
+//!     the split after each miss, longer each time, so over 200 frames `node0` shows a hole in
+//!     at most 2% of them (counted by the attacker itself: the frames whose split gave it rows
+//!     of `t0`).
 //! Each must leave `node0` serving: its peak resident memory (VmHWM) stays within
 //! [`HWM_GROWTH_LIMIT_KIB`] of what it was before the attack, the wall keeps swapping with
 //! `node0` ready in at least half the frames, and the refusal (the close reason the attacker reads, or the logs)
@@ -376,9 +381,32 @@ fn far_future_frame_ids_are_refused_and_not_kept_pending() {
     assert_named("far-future frames", &reasons, &["ahead"], &log);
 }
 
+/// What a fake `node1` says of its work on a balanced wall.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Lie {
+    /// Nothing: object space, no costs.
+    None,
+    /// Every rectangle the split gives it cost 0.
+    FreeRows,
+    /// No costs at all.
+    NoCosts,
+}
+
 /// Plays `node1` for the controller (Ready at once for every frame) and takes its peers'
-/// connections without ever reading them or sending pixels, until `stop`.
+/// connections without ever reading them or sending pixels, until `stop`. On a balanced wall it
+/// reports its rectangles' costs as `lie` says, and counts in `holes` the frames whose split gave
+/// it rows of `t0` (which it never sends).
 async fn silent_node(identity: Identity, addr: SocketAddr, stop: Arc<AtomicBool>) {
+    fake_node1(identity, addr, stop, Lie::None, Arc::new(std::sync::atomic::AtomicU64::new(0))).await
+}
+
+async fn fake_node1(
+    identity: Identity,
+    addr: SocketAddr,
+    stop: Arc<AtomicBool>,
+    lie: Lie,
+    holes: Arc<std::sync::atomic::AtomicU64>,
+) {
     let endpoint = transport::server(addr, &identity).expect("listen as node1");
     let mut held = Vec::new();
     while !stop.load(Ordering::Relaxed) {
@@ -393,7 +421,10 @@ async fn silent_node(identity: Identity, addr: SocketAddr, stop: Arc<AtomicBool>
             continue;
         }
         let stop = stop.clone();
+        let holes = holes.clone();
         tokio::spawn(async move {
+            // The splits it was sent: (from frame, rectangles).
+            let mut splits: Vec<(u64, Vec<isowall_model::wire::WireWorkRect>)> = Vec::new();
             let Ok(Channel { mut sender, mut receiver, .. }) =
                 Channel::accept(conn, "controller", 1 << 20).await
             else {
@@ -413,6 +444,28 @@ async fn silent_node(identity: Identity, addr: SocketAddr, stop: Arc<AtomicBool>
                 while let Some(o) = queue.pop_front() {
                     let sent = match o {
                         NodeOutput::Render { state, .. } => {
+                            let id = state.frame_id;
+                            let split = splits.iter().rev().find(|(from, _)| *from <= id);
+                            let mine: Vec<_> = split
+                                .map(|(_, r)| r.iter().filter(|r| r.renderer == 1).collect())
+                                .unwrap_or_default();
+                            if mine.iter().any(|r| r.tile == 0) {
+                                holes.fetch_add(1, Ordering::Relaxed);
+                            }
+                            if lie == Lie::FreeRows && !mine.is_empty() {
+                                let costs = mine
+                                    .iter()
+                                    .map(|r| isowall_model::wire::WireRectCost {
+                                        tile: r.tile,
+                                        first_row: r.first_row,
+                                        rows: r.rows,
+                                        cost: 0,
+                                    })
+                                    .collect();
+                                if sender.send(&Message::RectCosts { frame_id: id, costs }).await.is_err() {
+                                    return;
+                                }
+                            }
                             queue.extend(m.render_done(
                                 epoch.elapsed(),
                                 state.frame_id,
@@ -435,9 +488,11 @@ async fn silent_node(identity: Identity, addr: SocketAddr, stop: Arc<AtomicBool>
                             let reason = "a silent test peer".to_string();
                             sender.send(&Message::BrickFailed { brick, reason }).await
                         }
-                        NodeOutput::Bricks { .. }
-                        | NodeOutput::Split { .. }
-                        | NodeOutput::Identify { .. } => Ok(()),
+                        NodeOutput::Split { from_frame, split } => {
+                            splits.push((from_frame, split.rects));
+                            Ok(())
+                        }
+                        NodeOutput::Bricks { .. } | NodeOutput::Identify { .. } => Ok(()),
                         NodeOutput::Closed { .. } | NodeOutput::Restart { .. } => return,
                     };
                     if sent.is_err() {
@@ -515,4 +570,67 @@ fn on_a_balanced_wall_an_lz4_bomb_is_refused_before_it_is_decompressed() {
     });
     let log = daemons[0].log_text();
     assert_named("balanced LZ4 bomb", &reasons, &["rectangles", "bytes"], &log);
+}
+
+/// (g): a balanced wall's `node1` lies about its work whenever it is let into the split.
+fn lying_node_holes(lie: Lie) {
+    let what = format!("lying node ({lie:?})");
+    let Some(w) = wall_with(Mode::Balanced) else { return };
+    let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
+    let stop = Arc::new(AtomicBool::new(false));
+    let holes = Arc::new(std::sync::atomic::AtomicU64::new(0));
+    let fake = runtime.spawn(fake_node1(node1_identity(&w), w.node1, stop.clone(), lie, holes.clone()));
+    let mut node0 = Daemon::start(w.dir.path(), &w.config, "node0", &[]);
+    if !node0.wait_ready(Duration::from_secs(120)) {
+        let log = node0.log_text();
+        if log.contains("no Vulkan adapter") && !in_ci() {
+            eprintln!("skipping: no Vulkan adapter");
+            return;
+        }
+        panic!("node0 did not start:\n{log}");
+    }
+    const LIE_FRAMES: u64 = 200;
+    let out = run_in(
+        w.dir.path(),
+        "isowall",
+        &[
+            "orbit",
+            w.config.to_str().unwrap(),
+            "--frames",
+            &LIE_FRAMES.to_string(),
+            "--degrees-per-frame",
+            "1",
+        ],
+    );
+    stop.store(true, Ordering::Relaxed);
+    let _ = runtime.block_on(fake);
+    let (stdout, stderr) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "{what}: the orbit failed:\n{stdout}\n{stderr}");
+    let held: Vec<&str> = stderr.lines().filter(|l| l.contains("isowall: balance: node node1")).collect();
+    let holes = holes.load(Ordering::Relaxed);
+    eprintln!(
+        "{what}: node0 showed a hole in {holes} of {LIE_FRAMES} frames; node1 held out {} times",
+        held.len()
+    );
+    for l in &held {
+        eprintln!("{what}: {l}");
+    }
+    assert!(!held.is_empty(), "{what}: node1 was never held out of the split:\n{stderr}");
+    assert!(held.len() <= 8, "{what}: held out {} times in {LIE_FRAMES} frames: once a hold", held.len());
+    assert!(holes >= 1, "{what}: the split never gave node1 rows of t0: the attack did nothing");
+    assert!(
+        holes * 50 <= LIE_FRAMES,
+        "{what}: {holes} of {LIE_FRAMES} frames of node0 had a hole (more than 2%)"
+    );
+    assert!(node0.child.try_wait().unwrap().is_none(), "{what}: node0 exited:\n{}", node0.log_text());
+}
+
+#[test]
+fn on_a_balanced_wall_a_node_that_says_its_rows_cost_nothing_takes_no_screen() {
+    lying_node_holes(Lie::FreeRows);
+}
+
+#[test]
+fn on_a_balanced_wall_a_node_that_never_reports_its_costs_takes_no_screen() {
+    lying_node_holes(Lie::NoCosts);
 }

@@ -15,6 +15,10 @@
 //!   of two >= that ([`claim_limit`]): at most 16 x the frame, never more than 16 x the decoder's
 //!   limit.
 //!
+//! - a kind of message may have a smaller limit of its own ([`Decoder::limit_kind`], e.g. a
+//!   node's cost report, whose entries the split bounds): the kind is read from the frame's
+//!   first bytes, and a frame over its kind's limit is refused before its body is buffered.
+//!
 //! Errors never panic; after one, a [`Decoder`] refuses everything (the stream has lost its
 //! framing) and the caller closes the connection with the error as the reason.
 
@@ -40,6 +44,8 @@ pub enum CodecError {
     Encode { kind: &'static str, reason: String },
     #[error("a frame of {len} bytes is over the limit of {limit} bytes")]
     TooLong { len: usize, limit: usize },
+    #[error("a {kind} of {len} bytes is over its limit of {limit} bytes ({why})")]
+    KindTooLong { kind: &'static str, len: usize, limit: usize, why: String },
     #[error("malformed message in a frame of {len} bytes: {reason}")]
     Malformed { len: usize, reason: String },
     #[error("{extra} bytes of garbage after a {kind} message inside its frame")]
@@ -176,11 +182,54 @@ pub fn decode_pixels(body: &[u8]) -> Result<crate::composite::PeerPixels, CodecE
     Ok(p)
 }
 
+/// The code bincode writes first for a message of this kind (its variant's index, a varint).
+pub fn kind_code(msg: &Message) -> u32 {
+    let bytes = encode(msg).expect("a message encodes");
+    read_kind(&bytes).expect("an encoded message starts with its kind").0
+}
+
+/// The kind code at the start of `body` and its length in bytes (bincode's varint: a byte under
+/// 251 is the value; 251 and 252 announce a `u16` and a `u32`); `None` until enough has arrived.
+fn read_kind(body: &[u8]) -> Option<(u32, usize)> {
+    match *body.first()? {
+        b @ 0..=250 => Some((u32::from(b), 1)),
+        251 => Some((u32::from(u16::from_le_bytes(body.get(1..3)?.try_into().ok()?)), 3)),
+        252 => Some((u32::from_le_bytes(body.get(1..5)?.try_into().ok()?), 5)),
+        // A kind beyond u32 is no message: decoding refuses it.
+        _ => Some((u32::MAX, 1)),
+    }
+}
+
+/// A limit on one kind of message, below the decoder's ([`Decoder::limit_kind`]).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct KindLimit {
+    pub code: u32,
+    pub kind: &'static str,
+    pub limit: usize,
+    /// Why, for the error (e.g. "at most 512 rectangles").
+    pub why: String,
+}
+
+impl KindLimit {
+    /// A limit of `limit` bytes on the kind of `sample`.
+    pub fn of(sample: &Message, limit: usize, why: impl Into<String>) -> KindLimit {
+        KindLimit { code: kind_code(sample), kind: sample.kind(), limit, why: why.into() }
+    }
+}
+
+/// The most bytes a [`Message::RectCosts`] of `entries` rectangles takes: its kind, frame id and
+/// count (varints of at most 5, 9 and 9 bytes) and each entry's three `u32` and one `u64`
+/// (5, 5, 5 and 9 bytes at most).
+pub fn rect_costs_limit(entries: usize) -> usize {
+    5 + 9 + 9 + entries.saturating_mul(24)
+}
+
 /// Splits a byte stream into messages. Feed it what arrives with [`Decoder::push`], then call
 /// [`Decoder::next`] until it returns `Ok(None)`.
 #[derive(Debug)]
 pub struct Decoder {
     limit: usize,
+    kinds: Vec<KindLimit>,
     buf: Vec<u8>,
     /// Bytes of `buf` before this are consumed.
     start: usize,
@@ -193,7 +242,21 @@ pub struct Decoder {
 impl Decoder {
     /// A decoder that accepts frames of at most `limit` bytes (clamped to [`MAX_FRAME_LEN`]).
     pub fn new(limit: usize) -> Self {
-        Decoder { limit: limit.min(MAX_FRAME_LEN), buf: Vec::new(), start: 0, broken: None, reported: false }
+        Decoder {
+            limit: limit.min(MAX_FRAME_LEN),
+            kinds: Vec::new(),
+            buf: Vec::new(),
+            start: 0,
+            broken: None,
+            reported: false,
+        }
+    }
+
+    /// Frames of `k.kind` are refused over `k.limit` bytes (one limit per kind: a later one
+    /// replaces it).
+    pub fn limit_kind(&mut self, k: KindLimit) {
+        self.kinds.retain(|o| o.code != k.code);
+        self.kinds.push(k);
     }
 
     pub fn limit(&self) -> usize {
@@ -235,6 +298,17 @@ impl Decoder {
         let len = u32::from_le_bytes([avail[0], avail[1], avail[2], avail[3]]) as usize;
         if len > self.limit {
             return Err(CodecError::TooLong { len, limit: self.limit });
+        }
+        let body = &avail[HEADER_LEN..avail.len().min(HEADER_LEN + len)];
+        if let Some((code, _)) = read_kind(body) {
+            if let Some(k) = self.kinds.iter().find(|k| k.code == code && len > k.limit) {
+                return Err(CodecError::KindTooLong {
+                    kind: k.kind,
+                    len,
+                    limit: k.limit,
+                    why: k.why.clone(),
+                });
+            }
         }
         Ok(Some(len))
     }
@@ -323,6 +397,35 @@ impl Decoder {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_kind_over_its_own_limit_is_refused_before_its_body_is_buffered() {
+        use crate::wire::WireRectCost;
+        let costs = |n: usize| Message::RectCosts {
+            frame_id: 7,
+            costs: vec![
+                WireRectCost { tile: u32::MAX, first_row: u32::MAX, rows: u32::MAX, cost: u64::MAX };
+                n
+            ],
+        };
+        let mut d = Decoder::new(CONTROLLER_LIMIT);
+        d.limit_kind(KindLimit::of(&costs(0), rect_costs_limit(4), "at most 4 rectangles"));
+        // Four fit, and other kinds are untouched by the limit.
+        d.push(&frame(&costs(4)).unwrap());
+        assert_eq!(d.next().unwrap(), Some(costs(4)));
+        let ping = Message::Ping { id: 1, t0_us: 2 };
+        d.push(&frame(&ping).unwrap());
+        assert_eq!(d.next().unwrap(), Some(ping));
+        // Five: refused from the header and the kind's first byte, the rest never buffered.
+        let big = frame(&costs(5)).unwrap();
+        d.push(&big[..HEADER_LEN + 1]);
+        assert!(d.is_broken() && d.buffered() == 0);
+        let e = d.next().unwrap_err().to_string();
+        assert!(e.contains("a RectCosts of") && e.contains("at most 4 rectangles"), "{e}");
+        // The kind code is the variant's, whatever the fields.
+        assert_eq!(kind_code(&costs(0)), kind_code(&costs(9)));
+        assert_ne!(kind_code(&costs(0)), kind_code(&Message::Ping { id: 1, t0_us: 2 }));
+    }
     use crate::camera::Camera;
     use crate::messages::TileImage;
     use crate::render_state::RenderSettings;

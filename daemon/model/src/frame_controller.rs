@@ -237,6 +237,8 @@ struct NodeState {
     info: Option<crate::messages::NodeInfo>,
     /// Whether it sent its NodeInfo on this connection (once per connection).
     info_told: bool,
+    /// load-balanced screen space: the last frame it reported costs for (once a frame).
+    costs_told: Option<u64>,
 }
 
 impl NodeState {
@@ -255,6 +257,7 @@ impl NodeState {
         self.resident_bytes = None;
         self.loads_owed.clear();
         self.info_told = false;
+        self.costs_told = None;
     }
 }
 
@@ -980,6 +983,23 @@ impl FrameController {
                         st.first_sent, st.last_sent, st.last_ready
                     )));
                 }
+                // No more entries than the split can give rectangles (where the wall's tiles are
+                // known): each of the wall's tiles is cut in at most MAX_RECTS_PER_TILE.
+                let tiles: usize = self.nodes.values().filter_map(|n| n.tiles.as_ref()).map(Vec::len).sum();
+                let most = tiles.saturating_mul(crate::balance::share::MAX_RECTS_PER_TILE);
+                if tiles > 0 && costs.len() > most {
+                    return Err(err(format!(
+                        "RectCosts for frame {frame_id} with {} entries; a split gives at most {most} rectangles",
+                        costs.len()
+                    )));
+                }
+                // Once a frame, in order: a node's reports cannot pile up.
+                if let Some(told) = st.costs_told.filter(|&t| frame_id <= t) {
+                    return Err(err(format!(
+                        "RectCosts for frame {frame_id} after its costs for frame {told}: once a frame, in order"
+                    )));
+                }
+                self.nodes.get_mut(node).expect("checked").costs_told = Some(frame_id);
                 Ok(vec![ControllerOutput::RectCosts { node: node.to_string(), frame_id, costs }])
             }
             Message::NodeInfo(info) => {
@@ -1385,6 +1405,9 @@ mod tests {
             out,
             vec![ControllerOutput::RectCosts { node: "a".into(), frame_id: 1, costs: costs.clone() }]
         );
+        // A second report of the same frame breaks the protocol: once a frame.
+        let e = c.handle(ms(5), "a", msg(1)).unwrap_err().to_string();
+        assert!(e.contains("once a frame"), "{e}");
         // For a frame never sent, or after its Ready, RectCosts breaks the protocol.
         assert!(c.handle(ms(6), "b", msg(2)).is_err());
         c.handle(ms(7), "a", Message::Ready { frame_id: 1, render_us: 0 }).unwrap();

@@ -267,6 +267,12 @@ impl ChannelSender {
 }
 
 impl ChannelReceiver {
+    /// Frames of one kind of message are refused over a limit of their own, before their bodies
+    /// are buffered ([`isowall_model::codec::Decoder::limit_kind`]).
+    pub fn limit_kind(&mut self, k: codec::KindLimit) {
+        self.decoder.limit_kind(k);
+    }
+
     /// The next message; `None` when the peer finished the stream cleanly, between two frames (a
     /// stream that ends inside a frame is a [`CodecError::Truncated`] error).
     pub async fn recv(&mut self) -> Result<Option<Message>, NetError> {

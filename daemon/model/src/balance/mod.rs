@@ -19,6 +19,13 @@
 //!   renderers, so their running sums stay where they are.
 //! - Nodes that take part ([`Balancer::set_nodes`]): a node that is down renders nothing, and its
 //!   tiles (which nobody shows) are left out.
+//! - Nodes held out of the split ([`Balancer::set_held`]): a node whose claims did not hold
+//!   ([`claims::Claims`]: it did not deliver the rows it was given, or did not report what they
+//!   cost) renders its own tiles, all of them, and nothing else, and the others balance among
+//!   themselves.
+//! - A node's costs are claims ([`Balancer::observe_claim`]): each is held between the pixels'
+//!   own floor and 16 times either side of what the rows were predicted to cost (an honest
+//!   restarted row costs up to 16 times a settled one under spending by history).
 //! - What a node makes of a split ([`share::NodeShare`]): the rectangles it renders, those it
 //!   sends to each tile's owner, and those each peer sends it (the compositor's expectation); and
 //!   the split on the wire ([`crate::wire::WireSplit`]: tiles and nodes by their index in the
@@ -30,6 +37,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::config::WallConfig;
 
+pub mod claims;
 pub mod node;
 pub mod share;
 
@@ -43,6 +51,10 @@ pub const DEFAULT_HYSTERESIS: f64 = 0.02;
 pub const STILL_SETTLE_FRAMES: u32 = 8;
 /// The weight of the newest cost in each band's estimate.
 pub const DEFAULT_SMOOTHING: f64 = 1.0;
+/// How far a claimed cost may stand from the rows' predicted cost, either way: an honest row
+/// restarted by a move spends up to 16 times the samples of a settled one
+/// (`Rule::spending`: `clamp(10 - h, 0.25, 4)` a pixel, 4 / 0.25).
+pub const CLAIM_RATIO: f64 = 16.0;
 
 /// Rows `first_row ..first_row + rows` of tile `tile` (its full width), rendered by `renderer`.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
@@ -118,6 +130,8 @@ pub struct Balancer {
     hysteresis: f64,
     smoothing: f64,
     nodes: BTreeSet<String>,
+    /// Nodes held out of the split (module docs).
+    held: BTreeSet<String>,
     split: Split,
     /// Frames of the same image so far.
     still_frames: u32,
@@ -155,6 +169,7 @@ impl Balancer {
             hysteresis,
             smoothing,
             nodes,
+            held: BTreeSet::new(),
             split: Split::default(),
             still_frames: 0,
         };
@@ -213,6 +228,38 @@ impl Balancer {
         self.nodes = nodes.into_iter().collect();
     }
 
+    /// The nodes held out of the split from now on (module docs): each renders its own tiles
+    /// and nothing else. The next split follows at once.
+    pub fn set_held(&mut self, held: impl IntoIterator<Item = String>) {
+        self.held = held.into_iter().collect();
+    }
+
+    /// The nodes held out of the split.
+    pub fn held(&self) -> &BTreeSet<String> {
+        &self.held
+    }
+
+    /// The cost `rect`'s renderer claims, held to what it can be: at least `floor` (what the
+    /// rectangle's pixels cost whatever their rays do) and, once the tile has been measured,
+    /// within [`CLAIM_RATIO`] of the rows' predicted cost either way. Returns the cost observed,
+    /// `None` where it is not a number or the rectangle is not of this wall.
+    pub fn observe_claim(&mut self, rect: &WorkRect, claimed: f64, floor: f64) -> Option<f64> {
+        let t = self.tiles.iter().find(|t| t.tile == rect.tile)?;
+        let range = t.covered(rect.first_row, rect.rows);
+        if range.is_empty() || claimed.is_nan() || !(floor.is_finite() && floor >= 0.0) {
+            return None;
+        }
+        let predicted: f64 = t.cost[range].iter().sum();
+        let (lo, hi) = if t.measured && predicted > 0.0 {
+            (floor.max(predicted / CLAIM_RATIO), (predicted * CLAIM_RATIO).max(floor))
+        } else {
+            (floor, f64::MAX)
+        };
+        let cost = claimed.clamp(lo, hi);
+        self.observe(rect, cost);
+        Some(cost)
+    }
+
     /// A rectangle of the split in use took `cost` to render (module docs). Rectangles of tiles
     /// the wall lacks, and costs that are not finite or negative, are ignored.
     pub fn observe(&mut self, rect: &WorkRect, cost: f64) {
@@ -260,10 +307,15 @@ impl Balancer {
     pub fn next_split(&mut self, still: bool) -> &Split {
         self.still_frames = if still { self.still_frames.saturating_add(1) } else { 0 };
         let margin = if self.still_frames > STILL_SETTLE_FRAMES { f64::INFINITY } else { self.hysteresis };
-        let fresh = cut(&self.tiles, &self.nodes, self.transfer_per_row);
+        let fresh = cut(&self.tiles, &self.nodes, &self.held, self.transfer_per_row);
         let stale = self.split.rects.iter().any(|r| {
             !self.nodes.contains(&r.renderer)
-                || self.tiles.iter().any(|t| t.tile == r.tile && !self.nodes.contains(&t.owner))
+                || self.tiles.iter().any(|t| {
+                    t.tile == r.tile
+                        && (!self.nodes.contains(&t.owner)
+                            || (t.owner != r.renderer
+                                && (self.held.contains(&r.renderer) || self.held.contains(&t.owner))))
+                })
         }) || self
             .tiles
             .iter()
@@ -291,12 +343,13 @@ pub fn slowest_over_mean(loads: &BTreeMap<String, f64>) -> f64 {
 
 /// The cut (module docs): each node keeps its own tiles' bands while they bring it closer to
 /// the target; the rest go to the nodes below it, most room first. The target is the wall's
-/// cost over the nodes, with the transfer of the rows a first cut at that target moves.
-fn cut(tiles: &[Bands], nodes: &BTreeSet<String>, transfer_per_row: f64) -> Split {
+/// cost over the nodes, with the transfer of the rows a first cut at that target moves. Held
+/// nodes keep their own tiles whole and take nothing: the target is the others' cost over them.
+fn cut(tiles: &[Bands], nodes: &BTreeSet<String>, held: &BTreeSet<String>, transfer_per_row: f64) -> Split {
     let shown: Vec<&Bands> = tiles.iter().filter(|t| nodes.contains(&t.owner)).collect();
-    let total: f64 = shown.iter().flat_map(|t| t.cost.iter()).sum();
-    let n = nodes.len().max(1) as f64;
-    let first = cut_at(&shown, nodes, total / n, transfer_per_row);
+    let total: f64 = shown.iter().filter(|t| !held.contains(&t.owner)).flat_map(|t| t.cost.iter()).sum();
+    let n = nodes.iter().filter(|n| !held.contains(*n)).count().max(1) as f64;
+    let first = cut_at(&shown, nodes, held, total / n, transfer_per_row);
     if transfer_per_row == 0.0 {
         return first;
     }
@@ -306,11 +359,17 @@ fn cut(tiles: &[Bands], nodes: &BTreeSet<String>, transfer_per_row: f64) -> Spli
         .filter(|r| shown.iter().any(|t| t.tile == r.tile && t.owner != r.renderer))
         .map(|r| r.rows)
         .sum();
-    cut_at(&shown, nodes, (total + transfer_per_row * f64::from(moved)) / n, transfer_per_row)
+    cut_at(&shown, nodes, held, (total + transfer_per_row * f64::from(moved)) / n, transfer_per_row)
 }
 
 /// [`cut`] at a given target.
-fn cut_at(shown: &[&Bands], nodes: &BTreeSet<String>, target: f64, transfer_per_row: f64) -> Split {
+fn cut_at(
+    shown: &[&Bands],
+    nodes: &BTreeSet<String>,
+    held: &BTreeSet<String>,
+    target: f64,
+    transfer_per_row: f64,
+) -> Split {
     // Per band: who renders it.
     let mut renderer: Vec<Vec<&str>> = shown.iter().map(|t| vec![t.owner.as_str(); t.cost.len()]).collect();
     let mut load: BTreeMap<&str, f64> = nodes.iter().map(|n| (n.as_str(), 0.0)).collect();
@@ -319,7 +378,7 @@ fn cut_at(shown: &[&Bands], nodes: &BTreeSet<String>, target: f64, transfer_per_
         let mut kept = 0.0;
         for (i, t) in shown.iter().enumerate().filter(|(_, t)| &t.owner == node) {
             for (k, &c) in t.cost.iter().enumerate() {
-                if kept + c / 2.0 <= target || kept == 0.0 {
+                if kept + c / 2.0 <= target || kept == 0.0 || held.contains(node) {
                     kept += c;
                 } else {
                     given.push((i, k));
@@ -329,8 +388,11 @@ fn cut_at(shown: &[&Bands], nodes: &BTreeSet<String>, target: f64, transfer_per_
         load.insert(node.as_str(), kept);
     }
     // Receivers by room, most first (names break ties, so the cut is the same on every run).
-    let mut receivers: Vec<(&str, f64)> =
-        load.iter().filter(|(_, &l)| l < target).map(|(&n, &l)| (n, target - l)).collect();
+    let mut receivers: Vec<(&str, f64)> = load
+        .iter()
+        .filter(|(&n, &l)| l < target && !held.contains(n))
+        .map(|(&n, &l)| (n, target - l))
+        .collect();
     receivers.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(b.0)));
     let mut r = 0;
     for (i, k) in given {
@@ -466,6 +528,47 @@ mod tests {
         assert!(b.split().of("n2").next().is_none());
         assert!(b.split().rects.iter().all(|r| r.tile != "t2"));
         assert!(ratio(&b) < 1.15, "{:?}", b.loads(b.split()));
+    }
+
+    #[test]
+    fn a_held_node_renders_its_own_tiles_whole_and_the_others_balance_among_themselves() {
+        let mut b = wall(4, 20);
+        for (i, c) in [200.0, 10.0, 10.0, 10.0].iter().enumerate() {
+            let r = b.split().rects[i].clone();
+            b.observe(&r, *c);
+        }
+        b.next_split(false);
+        assert!(b.split().of("n1").any(|r| r.tile == "t0"), "n1 takes rows of t0");
+        b.set_held(["n1".to_string()]);
+        b.next_split(false);
+        let n1: Vec<&WorkRect> = b.split().of("n1").collect();
+        assert_eq!(n1.len(), 1);
+        assert_eq!((n1[0].tile.as_str(), n1[0].first_row, n1[0].rows), ("t1", 0, 100));
+        assert!(b.split().rects.iter().filter(|r| r.tile == "t1").all(|r| r.renderer == "n1"));
+        let loads = b.loads(b.split());
+        let others: BTreeMap<String, f64> = loads.into_iter().filter(|(n, _)| n != "n1").collect();
+        assert!(slowest_over_mean(&others) < 1.15, "{others:?}");
+        // Readmitted, it takes part again.
+        b.set_held([]);
+        b.next_split(false);
+        assert!(b.split().of("n1").any(|r| r.tile == "t0"));
+    }
+
+    #[test]
+    fn a_claimed_cost_is_held_to_the_pixels_floor_and_to_its_prediction() {
+        let mut b = wall(2, 10);
+        let r0 = b.split().rects[0].clone();
+        // Unmeasured: the floor only.
+        assert_eq!(b.clone().observe_claim(&r0, 1e6, 300.0), Some(1e6));
+        assert_eq!(b.observe_claim(&r0, 0.0, 300.0), Some(300.0));
+        // Measured (300): within 16x of the prediction either way.
+        assert_eq!(b.observe_claim(&r0, 1e6, 300.0), Some(4800.0));
+        assert_eq!(b.observe_claim(&r0, 1.0, 30.0), Some(300.0));
+        assert_eq!(b.observe_claim(&r0, f64::INFINITY, 30.0), Some(4800.0));
+        assert_eq!(b.observe_claim(&r0, f64::NAN, 30.0), None);
+        assert_eq!(b.observe_claim(&WorkRect { tile: "zz".into(), ..r0.clone() }, 5.0, 1.0), None);
+        // The floor stands under a prediction that has fallen below it.
+        assert_eq!(b.observe_claim(&r0, 0.0, 1e6), Some(1e6));
     }
 
     #[test]
