@@ -15,6 +15,7 @@ use crate::report::quantile;
 use crate::wall::{FrameRequest, Wall};
 use anyhow::{bail, Context, Result};
 use clap::Args;
+use isowall_model::cli_args;
 use isowall_model::config::{TileConfig, WallConfig, WallMode};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -31,13 +32,13 @@ pub struct BenchArgs {
     #[arg(long)]
     pub table: bool,
     /// Timed frames of the orbit per cell (after one untimed warm-up frame)
-    #[arg(long, default_value_t = 3)]
+    #[arg(long, value_parser = cli_args::bench_frames_u64, default_value_t = 3)]
     pub frames: u64,
     /// The whole wall image, WIDTHxHEIGHT, split into one strip per node
-    #[arg(long, default_value = "96x64", value_parser = parse_size)]
+    #[arg(long, default_value = "96x64", value_parser = cli_args::size)]
     pub size: (u32, u32),
     /// The rows: AO samples per pixel per frame
-    #[arg(long, value_delimiter = ',', default_value = "32,64,128,256")]
+    #[arg(long, value_parser = cli_args::ao_samples, value_delimiter = ',', default_value = "32,64,128,256")]
     pub samples: Vec<u32>,
     /// The columns: node counts (default 1..N)
     #[arg(long, value_delimiter = ',')]
@@ -46,10 +47,10 @@ pub struct BenchArgs {
     #[arg(long, value_delimiter = ',', default_value = "screen,object", value_parser = ["screen", "object"])]
     pub modes: Vec<String>,
     /// Orbit step per frame, degrees
-    #[arg(long, default_value_t = 4.0)]
+    #[arg(long, value_parser = cli_args::degrees, default_value_t = 4.0)]
     pub degrees_per_frame: f64,
     /// How long to wait for each column's nodes, seconds
-    #[arg(long, default_value_t = 120)]
+    #[arg(long, value_parser = cli_args::start_timeout, default_value_t = 120)]
     pub start_timeout: u64,
     /// Measure the swap instead: the config's nodes started here (as `up` does) orbit --frames
     /// frames untimed (each node presents when its Swap arrives), then timed (`swap_margin_ms =
@@ -58,7 +59,7 @@ pub struct BenchArgs {
     #[arg(long, conflicts_with = "table")]
     pub swap: bool,
     /// With --swap: the frame rate of the paced run
-    #[arg(long, default_value_t = 30.0)]
+    #[arg(long, default_value_t = 30.0, value_parser = crate::drive::parse_fps)]
     pub paced_fps: f64,
 }
 
@@ -79,23 +80,23 @@ pub struct BalanceArgs {
     /// The wall config (TOML); every node runs on this machine
     pub config: PathBuf,
     /// Frames of each orbit
-    #[arg(long, default_value_t = 30)]
+    #[arg(long, value_parser = cli_args::bench_frames_u64, default_value_t = 30)]
     pub frames: u64,
     /// Orbit step per frame, degrees
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, value_parser = cli_args::degrees, default_value_t = 1.0)]
     pub degrees_per_frame: f64,
     /// How long to wait for the nodes, seconds
-    #[arg(long, default_value_t = 120)]
+    #[arg(long, value_parser = cli_args::start_timeout, default_value_t = 120)]
     pub start_timeout: u64,
     /// The internal resolution divisor of every frame (1: full resolution; up to 4): a wall of
     /// large tiles measured on a slow machine
-    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=isowall_model::governor::MAX_SCALE as i64))]
+    #[arg(long, default_value_t = 1, value_parser = cli_args::scale)]
     pub scale: u32,
     /// AO samples per pixel per frame (default: the config's)
-    #[arg(long)]
+    #[arg(long, value_parser = cli_args::ao_samples)]
     pub samples: Option<u32>,
     /// The wall's deadline for the run, ms (default: the config's; a slow machine wants more)
-    #[arg(long)]
+    #[arg(long, value_parser = cli_args::deadline_ms)]
     pub deadline_ms: Option<u64>,
 }
 
@@ -245,14 +246,6 @@ fn print_balance_run(
         );
     }
     ratio
-}
-
-fn parse_size(s: &str) -> Result<(u32, u32), String> {
-    let (w, h) = s.split_once('x').ok_or_else(|| format!("`{s}` is not WIDTHxHEIGHT"))?;
-    let p = |v: &str| {
-        v.parse::<u32>().ok().filter(|&n| n > 0).ok_or_else(|| format!("`{s}` is not WIDTHxHEIGHT"))
-    };
-    Ok((p(w)?, p(h)?))
 }
 
 /// `bench --swap`: one wall, three runs of the same orbit: untimed, timed, timed and paced.

@@ -40,7 +40,7 @@ pub struct OrbitOptions {
     #[arg(long, default_value_t = 90)]
     pub frames: u64,
     /// Orbit step per frame, degrees about the world's up axis through the target
-    #[arg(long, default_value_t = 4.0)]
+    #[arg(long, default_value_t = 4.0, value_parser = isowall_model::cli_args::degrees, allow_negative_numbers = true)]
     pub degrees_per_frame: f64,
     /// Frames per second at most (0: as fast as the wall swaps; else one frame a day to 1000)
     #[arg(long, default_value_t = 0.0, value_parser = parse_fps)]

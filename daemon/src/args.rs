@@ -15,15 +15,44 @@ pub fn vec3(s: &str) -> Result<DVec3, String> {
     }
 }
 
-/// `WxH` image size, each 1..=16384.
-pub fn size(s: &str) -> Result<(u32, u32), String> {
-    let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| format!("expected WxH, e.g. 512x512, got '{s}'"))?;
-    let p = |t: &str| t.trim().parse::<u32>().map_err(|_| format!("'{t}' is not a whole number"));
-    let (w, h) = (p(w)?, p(h)?);
-    if !(1..=16384).contains(&w) || !(1..=16384).contains(&h) {
-        return Err(format!("{w}x{h}: each side must be 1..=16384"));
+pub use isowall_model::cli_args::size;
+
+/// Frames accumulated into one picture (a bench's reference, the look's frames): 1..= the
+/// renderer's most, as `render --frames`.
+pub fn accumulated_frames(s: &str) -> Result<u32, String> {
+    let max = isowall_render::gpu::MAX_FRAMES;
+    let n: u32 = s.trim().parse().map_err(|_| format!("'{s}' is not a whole number"))?;
+    if (1..=max).contains(&n) {
+        Ok(n)
+    } else {
+        Err(format!("frames {n} is outside 1..={max}"))
     }
-    Ok((w, h))
+}
+
+/// Repeats of a measurement as a `u32` ([`isowall_model::cli_args::repeats`]'s range).
+pub fn repeats_u32(s: &str) -> Result<u32, String> {
+    isowall_model::cli_args::repeats(s).map(|n| n as u32)
+}
+
+/// Surface pixels sampled by a bench's independent truth: 1..=100000 (each is traced by the
+/// brute-force estimator).
+pub fn truth_pixels(s: &str) -> Result<usize, String> {
+    let n: usize = s.trim().parse().map_err(|_| format!("'{s}' is not a whole number"))?;
+    if (1..=100_000).contains(&n) {
+        Ok(n)
+    } else {
+        Err(format!("{n} pixels is outside 1..=100000"))
+    }
+}
+
+/// Directions per truth pixel of the brute-force estimator: 1..=4096.
+pub fn truth_directions(s: &str) -> Result<u32, String> {
+    let n: u32 = s.trim().parse().map_err(|_| format!("'{s}' is not a whole number"))?;
+    if (1..=4096).contains(&n) {
+        Ok(n)
+    } else {
+        Err(format!("{n} directions is outside 1..=4096"))
+    }
 }
 
 /// `NX,NY,NZ` raw-volume dimensions.

@@ -476,6 +476,14 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         }
     };
     output::write_aov(&frame, aov, &out).with_context(|| format!("cannot write {}", out.display()))?;
+    if frame.hit_count() == 0 {
+        // The data reaches the iso (checked above), so the surface exists: it is out of the
+        // view, or thinner than a pixel of it (a sheet edge-on, a far or tiny object).
+        eprintln!(
+            "isowalld: warning: no pixel of the {w}x{h} picture hit the surface at iso {iso}: it is out of \
+             the view or thinner than a pixel here (try a larger --size, a closer --eye, or the default camera)"
+        );
+    }
     let hits = frame.hit_count() as f64 / frame.pixel_count() as f64 * 100.0;
     println!(
         "wrote {} ({} {w}x{h}, {}, iso {iso}; {label}, {:.0} ms in all; {:.1} trilinear fetches/pixel, {hits:.1}% of pixels hit)",

@@ -815,6 +815,29 @@ fn restarts_logs_bookmarks_and_node_info_refuse_what_is_not_theirs() {
     std::fs::write(&file, vec![b'#'; 1 << 20]).unwrap();
     let error = con.get(&a, "/api/bookmarks", &[]).unwrap().json()["error"].as_str().unwrap().to_string();
     assert!(error.contains("larger than"), "{error}");
+    // A FIFO nobody writes, twice: each answer comes at once (nothing waits for a writer, no
+    // thread is left blocked); a link out of the folder is not followed.
+    std::fs::remove_file(&file).unwrap();
+    assert!(std::process::Command::new("mkfifo").arg(&file).status().unwrap().success());
+    for _ in 0..2 {
+        let asked = Instant::now();
+        let r =
+            con.get(&agent(Duration::from_secs(10)), "/api/bookmarks", &[]).expect("an answer, not a hang");
+        let error = r.json()["error"].as_str().unwrap_or_default().to_string();
+        assert!(error.contains("FIFO"), "{error}");
+        assert!(asked.elapsed() < Duration::from_secs(5), "{:?} for a FIFO", asked.elapsed());
+    }
+    std::fs::remove_file(&file).unwrap();
+    let outside = w.dir.path().join("outside.toml");
+    std::fs::write(
+        &outside,
+        "[[bookmark]]\nname = \"secret\"\neye = [1, 2, 3]\ntarget = [0, 0, 0]\nup = [0, 0, 1]\nfov_y = 40\n",
+    )
+    .unwrap();
+    std::os::unix::fs::symlink(&outside, &file).unwrap();
+    let r = con.get(&a, "/api/bookmarks", &[]).unwrap();
+    assert!(!r.text().contains("secret"), "a link was followed: {}", r.text());
+    assert!(r.json()["error"].as_str().unwrap_or_default().contains("symbolic link"), "{}", r.text());
     // The console runs on.
     let released = con.released();
     let give_up = Instant::now() + Duration::from_secs(20);

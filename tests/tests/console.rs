@@ -336,6 +336,12 @@ fn the_api_refuses_missing_tokens_and_bad_input_and_changes_nothing() {
     let img = image::load_from_memory(&full.body).unwrap();
     assert_eq!((img.width(), img.height()), (34, 26), "the whole wall, bezels included");
     assert!(full.header("content-disposition").is_some_and(|d| d.contains("attachment")));
+    // Every answer, the page's included: no type sniffing, the page's own script only, no framing.
+    for r in [&full, &con.get("/")] {
+        assert_eq!(r.header("x-content-type-options"), Some("nosniff"));
+        let csp = r.header("content-security-policy").unwrap_or_default();
+        assert!(csp.contains("script-src 'self'") && csp.contains("frame-ancestors 'none'"), "{csp}");
+    }
 
     // The frame statistics the charts and cards show: rolling series, ordered quantiles, and the
     // node's own render and ready times (ready: the frame began -> its Ready arrived, so never less

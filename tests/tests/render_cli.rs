@@ -66,6 +66,33 @@ fn an_iso_outside_the_datas_range_is_refused_before_rendering() {
 }
 
 #[test]
+fn a_picture_where_no_pixel_hits_the_surface_says_so() {
+    let dir = tempfile::tempdir().unwrap();
+    // The sphere far behind the camera, and a sphere smaller than a pixel: written, with a word.
+    for (case, args) in [
+        ("out of view", ["--eye", "0,0,1000", "--target", "0,0,2000", "--size", "8x8"]),
+        ("far away", ["--eye", "0,0,1e5", "--target", "8,8,8", "--size", "4x4"]),
+    ] {
+        let mut all = vec!["render", "--volume", "procedural:sphere:16", "--iso", "0", "--out", "x.png"];
+        all.extend(args);
+        let out = run_in(dir.path(), "isowalld", &all);
+        let err = String::from_utf8_lossy(&out.stderr);
+        if !gpu_ok("isowalld render", &out) {
+            return;
+        }
+        assert!(out.status.success(), "{case}: {err}");
+        assert!(err.contains("no pixel of the") && err.contains("thinner than a pixel"), "{case}: {err}");
+    }
+    // A picture that hits it says nothing of the kind.
+    let out = run_in(
+        dir.path(),
+        "isowalld",
+        &["render", "--volume", "procedural:sphere:16", "--iso", "0", "--size", "8x8"],
+    );
+    assert!(!String::from_utf8_lossy(&out.stderr).contains("no pixel of the"));
+}
+
+#[test]
 fn an_output_file_of_an_unsupported_format_is_refused_before_rendering() {
     let dir = tempfile::tempdir().unwrap();
     for (aov, out, wanted) in

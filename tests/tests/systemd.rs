@@ -48,6 +48,31 @@ fn systemd_analyze_verify_accepts_both_units() {
     );
 }
 
+/// `systemd-analyze security` rates the node's unit's exposure (0 safest, 10 most exposed).
+#[test]
+fn the_node_units_exposure_stays_low() {
+    let Ok(out) = Command::new("systemd-analyze").arg("--version").output() else {
+        assert!(!in_ci(), "systemd-analyze is not installed (it comes with the `systemd` package)");
+        eprintln!("skipping: systemd-analyze is not installed (it comes with the `systemd` package)");
+        return;
+    };
+    assert!(out.status.success());
+    let unit = repo_root().join("wall-configs/systemd/isowalld.service");
+    let out = Command::new("systemd-analyze")
+        .args(["security", "--offline=yes", "--no-pager"])
+        .arg(&unit)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    let level = text
+        .lines()
+        .find_map(|l| l.split("Overall exposure level for isowalld.service:").nth(1))
+        .and_then(|rest| rest.split_whitespace().next()?.parse::<f64>().ok())
+        .unwrap_or_else(|| panic!("no exposure level in:\n{text}{}", String::from_utf8_lossy(&out.stderr)));
+    eprintln!("isowalld.service: exposure {level}");
+    assert!(level <= 2.0, "isowalld.service's exposure is {level} (it was 1.9)");
+}
+
 #[test]
 fn the_units_keep_gpu_devices_reachable_and_notify_readiness() {
     // The choices the README documents, held here so a later edit cannot drop them silently.
@@ -61,6 +86,11 @@ fn the_units_keep_gpu_devices_reachable_and_notify_readiness() {
         "ProtectSystem=strict",
         "PrivateTmp=yes",
         "NoNewPrivileges=yes",
+        "SystemCallFilter=@system-service",
+        "SystemCallFilter=~@privileged",
+        "ProtectProc=invisible",
+        "PrivateMounts=yes",
+        "RemoveIPC=yes",
     ] {
         assert!(has(line), "isowalld.service lacks `{line}`");
     }

@@ -33,6 +33,8 @@ pub mod bricks;
 pub mod camera;
 #[cfg(feature = "cli")]
 pub mod check_config;
+#[cfg(feature = "cli")]
+pub mod cli_args;
 pub mod clock;
 pub mod codec;
 pub mod composite;

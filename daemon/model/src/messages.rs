@@ -359,8 +359,16 @@ pub struct ProtocolError {
 /// Most characters of a peer's text shown: a reason is a line, not a document.
 pub const PRINTABLE_CHARS: usize = 300;
 
-/// A peer's text (a reason, a name) made safe to print on a terminal or in a log line: control
-/// characters (escape sequences, newlines, carriage returns) written as escapes, at most
+/// Whether `c` reorders the text around it (Unicode's bidirectional formatting characters: the
+/// embeddings, overrides and isolates, and the direction marks), which would make a peer's text
+/// read as something else on a terminal or a page.
+pub fn is_bidi_control(c: char) -> bool {
+    matches!(c, '\u{200E}' | '\u{200F}' | '\u{061C}' | '\u{202A}'..='\u{202E}' | '\u{2066}'..='\u{2069}')
+}
+
+/// A peer's text (a reason, a name) made safe to print on a terminal, in a log line or on the
+/// console's page: control characters (escape sequences, newlines, carriage returns) and
+/// bidirectional formatting characters ([`is_bidi_control`]) written as escapes, at most
 /// [`PRINTABLE_CHARS`] characters kept.
 pub fn printable(text: &str) -> String {
     let mut out = String::new();
@@ -369,7 +377,7 @@ pub fn printable(text: &str) -> String {
             out.push_str("...");
             break;
         }
-        if c.is_control() {
+        if c.is_control() || is_bidi_control(c) {
             out.extend(c.escape_default());
         } else {
             out.push(c);
@@ -451,6 +459,9 @@ mod tests {
         assert_eq!(i.validate(), Ok(()));
         i.driver_info = "\u{1b}[31mred\n".into();
         assert_eq!(i.printable().driver_info, "\\u{1b}[31mred\\n");
+        // A right-to-left override would make the text read as something else.
+        i.driver_info = "Mesa \u{202E}42\u{2066}x\u{200F}".into();
+        assert_eq!(i.printable().driver_info, "Mesa \\u{202e}42\\u{2066}x\\u{200f}");
         i.adapter = "é".repeat(MAX_NODE_INFO_CHARS);
         assert_eq!(i.validate(), Ok(()), "characters, not bytes");
         i.adapter.push('x');

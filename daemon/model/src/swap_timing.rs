@@ -10,6 +10,10 @@
 //! [`SwapTiming::QUANTILE`] (a lone retransmitted Swap does not hold the wall's latency up for a
 //! window; a node slow every frame does set it), with a quarter of headroom and
 //! [`SwapTiming::HEADROOM`] more, within [`SwapTiming::FLOOR`] and [`SwapTiming::CEILING`].
+//! A node's report is a claim: one node alone can hold a frame's delay at most
+//! [`SwapTiming::ONE_NODE_SHARE`] above the next slowest node's (above zero on a wall of one), so
+//! a node that says it was ready late every frame raises the wall's latency by that much, not to
+//! the ceiling.
 //! A node whose Swap comes after its `T` presents at once: a late swap, which the learning takes
 //! in too.
 //!
@@ -90,8 +94,9 @@ pub struct SwapTiming {
     margin: Duration,
     /// The largest release-to-ready delay of each of the last frames, newest last.
     frames: VecDeque<Duration>,
-    /// The largest delay of the frame being observed (folded into `frames` at `frame_done`).
-    current: Option<Duration>,
+    /// The two largest delays of the frame being observed, largest first (folded into `frames`
+    /// at `frame_done`).
+    current: Option<(Duration, Option<Duration>)>,
     last_present: Option<Duration>,
     grid_origin: Option<Duration>,
 }
@@ -109,6 +114,9 @@ impl SwapTiming {
     pub const QUANTILE: f64 = 0.99;
     /// Added to the learned margin beyond its quarter of headroom.
     pub const HEADROOM: Duration = Duration::from_micros(100);
+    /// How far one node's delay may stand above the next slowest node's in a frame: a busy
+    /// node's wake-up (3.6-5.3 ms late at p99 where its cores are full, docs/swap.md) fits.
+    pub const ONE_NODE_SHARE: Duration = Duration::from_millis(5);
 
     /// Timing by `setting`, paced at `frame_rate` frames a second (`None`: unpaced, a frame is
     /// presented as soon as its margin allows). The rate must be positive and finite (the
@@ -169,12 +177,17 @@ impl SwapTiming {
     /// A node's report for the frame being presented: `delay` from the release to the moment
     /// it was ready to wait for the present time (through its clock offset).
     pub fn observe(&mut self, delay: Duration) {
-        self.current = Some(self.current.map_or(delay, |c| c.max(delay)));
+        self.current = Some(match self.current {
+            None => (delay, None),
+            Some((a, _)) if delay > a => (delay, Some(a)),
+            Some((a, b)) => (a, Some(b.map_or(delay, |b| b.max(delay)))),
+        });
     }
 
     /// The frame's reports are all in: the learned margin follows them.
     pub fn frame_done(&mut self) {
-        let Some(d) = self.current.take() else { return };
+        let Some((slowest, next)) = self.current.take() else { return };
+        let d = slowest.min(next.unwrap_or(Duration::ZERO) + Self::ONE_NODE_SHARE);
         self.frames.push_back(d);
         if self.frames.len() > Self::WINDOW {
             self.frames.pop_front();
@@ -249,6 +262,30 @@ mod tests {
         assert_eq!(t.margin(), SwapTiming::FLOOR);
         for _ in 0..SwapTiming::WINDOW {
             t.observe(Duration::from_secs(3));
+            t.observe(Duration::from_secs(3));
+            t.frame_done();
+        }
+        assert_eq!(t.margin(), SwapTiming::CEILING);
+    }
+
+    #[test]
+    fn one_node_that_says_it_is_late_every_frame_raises_the_margin_by_its_share_only() {
+        let mut t = SwapTiming::new(MarginSetting::Auto, None);
+        for _ in 0..SwapTiming::WINDOW {
+            // Three honest nodes ready 300..500 us after the release; a fourth claims 25 ms.
+            for d in [300, 500, 400, 25_000] {
+                t.observe(us(d));
+            }
+            t.frame_done();
+        }
+        let want = us(500) + SwapTiming::ONE_NODE_SHARE;
+        assert_eq!(t.margin(), want + want / 4 + SwapTiming::HEADROOM);
+        assert!(t.margin() < SwapTiming::CEILING / 3, "{:?}", t.margin());
+        // Two nodes late together are waited for, up to the ceiling.
+        for _ in 0..SwapTiming::WINDOW {
+            for d in [300, 20_000, 400, 20_000] {
+                t.observe(us(d));
+            }
             t.frame_done();
         }
         assert_eq!(t.margin(), SwapTiming::CEILING);

@@ -7,6 +7,7 @@ use crate::args;
 use crate::render::load_volume;
 use anyhow::{Context, Result};
 use clap::Args;
+use isowall_model::cli_args;
 use isowall_model::{AoMethod, Camera, IblMethod, RenderSettings, View};
 use isowall_render::environment::Environment;
 use isowall_render::gpu::{GpuRenderer, PerfOptions};
@@ -29,13 +30,13 @@ pub struct AccuracyArgs {
     pub size: (u32, u32),
     /// Timed frames per point (the median is reported; one untimed warm-up before) [default: 3, or
     /// 1 with --quick]
-    #[arg(long)]
+    #[arg(long, value_parser = cli_args::repeats)]
     pub repeats: Option<usize>,
     /// Output directory for accuracy.csv, chart.png, chart.svg and summary.txt (created)
     #[arg(long, default_value = "accuracy")]
     pub out: std::path::PathBuf,
     /// Frames of 256 samples accumulated for the converged reference [default: 16, or 4 with --quick]
-    #[arg(long)]
+    #[arg(long, value_parser = args::accumulated_frames)]
     pub reference_frames: Option<u32>,
     /// A small sweep (samples 4, 16, 64; fewer variants) for smoke tests
     #[arg(long)]

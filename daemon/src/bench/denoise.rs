@@ -20,6 +20,7 @@ use crate::render::load_volume;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use glam::DVec3;
+use isowall_model::cli_args;
 use isowall_model::{Camera, Denoise, RenderSettings, View};
 use isowall_render::denoise::{filter_with, Input, Stops};
 use isowall_render::gpu::GpuRenderer;
@@ -45,7 +46,7 @@ pub struct DenoiseArgs {
     #[arg(long, default_value = "512x512", value_parser = args::size)]
     pub size: (u32, u32),
     /// Hit pixels compared per scene (chosen by a hash of their index and --seed)
-    #[arg(long, default_value_t = 300)]
+    #[arg(long, value_parser = args::truth_pixels, default_value_t = 300)]
     pub pixels: usize,
     /// Seed of the pixels' choice
     #[arg(long, default_value_t = 1)]
@@ -55,11 +56,11 @@ pub struct DenoiseArgs {
     pub samples: String,
     /// Frames per configuration, each with its own frame index: the time is their median, the
     /// errors pool their pixels
-    #[arg(long, default_value_t = 3)]
+    #[arg(long, value_parser = cli_args::repeats, default_value_t = 3)]
     pub repeats: usize,
     /// Directions of the estimate per pixel: M x M jittered strata (its standard error per pixel is
     /// at most sqrt(A (1 - A)) / M, printed per scene)
-    #[arg(long, default_value_t = 48)]
+    #[arg(long, value_parser = args::truth_directions, default_value_t = 48)]
     pub truth_directions: u32,
     /// The outside answers of the scans: their cameras are used for the scans they name, and the
     /// estimate is compared with them at their 128x128 pixels (a sanity line); skipped if absent

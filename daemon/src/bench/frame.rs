@@ -17,6 +17,7 @@ use crate::args;
 use crate::render::load_volume;
 use anyhow::{bail, Context, Result};
 use clap::Args;
+use isowall_model::cli_args;
 use isowall_model::composite::PixelForm;
 use isowall_model::wire::Continuity;
 use isowall_model::{Camera, RenderSettings, View};
@@ -42,7 +43,7 @@ pub struct FrameArgs {
     #[arg(long, default_value = "32,256")]
     pub samples: String,
     /// Timed frames per row (medians reported), after one untimed frame that makes the resources
-    #[arg(long, default_value_t = 3)]
+    #[arg(long, value_parser = cli_args::repeats, default_value_t = 3)]
     pub repeats: usize,
     /// Paths measured, comma-separated: `screen` (presented offscreen, accumulating, then a
     /// snapshot), `object` (the share read back every frame), `moving` (presented offscreen, every

@@ -14,6 +14,7 @@ use super::stats::process_cpu_ms;
 use crate::render::{load_wall_volume, object_box, volume_limit};
 use anyhow::{anyhow, bail, Context, Result};
 use clap::Args;
+use isowall_model::cli_args;
 use isowall_model::config::WallConfig;
 use isowall_model::wire::{Continuity, FrameSequence};
 use isowall_model::{lowres, Camera, FrameState, RenderSettings, View};
@@ -29,20 +30,20 @@ pub struct ImbalanceArgs {
     #[arg(long, value_name = "FILE")]
     pub config: PathBuf,
     /// Frames of the orbit after the still frames
-    #[arg(long, default_value_t = 8)]
+    #[arg(long, value_parser = cli_args::bench_frames, default_value_t = 8)]
     pub frames: u32,
     /// Degrees the camera turns each orbit frame (about the world's z axis through the target)
-    #[arg(long, default_value_t = 3.0)]
+    #[arg(long, value_parser = cli_args::degrees, default_value_t = 3.0)]
     pub degrees: f64,
     /// Still frames after the first (the camera unchanged: each accumulates, AO only)
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, value_parser = cli_args::still_frames, default_value_t = 2)]
     pub still: u32,
     /// Render each tile at 1/S of its resolution per axis (the whole wall image scaled): fetches
     /// are counted at that size, a full-resolution frame does about S^2 times as many
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, value_parser = cli_args::scale, default_value_t = 1)]
     pub scale: u32,
     /// AO samples per pixel per frame (default: the config's `[render] ao_samples`)
-    #[arg(long)]
+    #[arg(long, value_parser = cli_args::ao_samples)]
     pub samples: Option<u32>,
     /// Also render every tile as this many bands of rows, each its own view (as a balanced node
     /// renders a work rectangle), and write each band's fetches and pixels per frame to

@@ -13,6 +13,7 @@ use crate::args;
 use crate::render::{load_volume, IblArg};
 use anyhow::{anyhow, Result};
 use clap::Args;
+use isowall_model::cli_args;
 use isowall_model::render_state::linear_to_srgb;
 use isowall_model::{AoRadius, Camera, IblMethod, RenderSettings, View};
 use isowall_render::environment::Environment;
@@ -44,11 +45,11 @@ pub struct LookArgs {
     #[arg(long, default_value = "256x256", value_parser = args::size)]
     pub size: (u32, u32),
     /// AO samples per pixel per frame
-    #[arg(long, default_value_t = 32)]
+    #[arg(long, value_parser = cli_args::ao_samples, default_value_t = 32)]
     pub samples: u32,
     /// Frames accumulated (samples x frames rays per pixel: the occlusion must be near converged
     /// for the bins to hold the pixels they should)
-    #[arg(long, default_value_t = 8)]
+    #[arg(long, value_parser = args::accumulated_frames, default_value_t = 8)]
     pub frames: u32,
     /// IBL methods to measure, comma-separated
     #[arg(long, value_enum, value_delimiter = ',', default_value = "none,bent")]
@@ -62,16 +63,16 @@ pub struct LookArgs {
     #[arg(long, value_name = "R")]
     pub ao_radius: Option<String>,
     /// Override the key light's radiance (grey)
-    #[arg(long, value_name = "K")]
+    #[arg(long, value_parser = cli_args::non_negative, value_name = "K")]
     pub key: Option<f64>,
     /// Override the constant ambient light (grey)
-    #[arg(long, value_name = "A")]
+    #[arg(long, value_parser = cli_args::non_negative, value_name = "A")]
     pub ambient: Option<f64>,
     /// Override the exposure
-    #[arg(long, value_name = "X")]
+    #[arg(long, value_parser = cli_args::non_negative, value_name = "X")]
     pub exposure: Option<f64>,
     /// Turn the default camera (`isowalld render`'s) by this many degrees about the world's up axis through its target
-    #[arg(long, value_name = "DEG", default_value_t = 0.0, allow_negative_numbers = true)]
+    #[arg(long, value_parser = cli_args::degrees, value_name = "DEG", default_value_t = 0.0, allow_negative_numbers = true)]
     pub yaw: f64,
     /// Write each render as DIR/look-SCENE-IBL[-before].png
     #[arg(long, value_name = "DIR")]

@@ -16,6 +16,7 @@ use crate::render::load_volume;
 use accuracy::AccuracyArgs;
 use anyhow::Result;
 use clap::{Args, Subcommand};
+use isowall_model::cli_args;
 use isowall_model::{AoMethod, Camera, RenderSettings, View};
 use isowall_render::gpu::GpuRenderer;
 use stats::{error_stats, median, sample_list, scene_spec};
@@ -89,12 +90,12 @@ pub struct AoArgs {
     #[arg(long, default_value = "8,32,64,128,256")]
     pub samples: String,
     /// Frames per configuration (the median is reported)
-    #[arg(long, default_value_t = 3)]
+    #[arg(long, value_parser = cli_args::repeats, default_value_t = 3)]
     pub repeats: usize,
     /// The converged reference: ours with this many frames of 256 samples accumulated on the GPU
     /// (the exact CPU renderer agrees with the GPU's AO to within a ray or two per pixel, and is too
     /// slow at this size)
-    #[arg(long, default_value_t = 16)]
+    #[arg(long, value_parser = args::accumulated_frames, default_value_t = 16)]
     pub reference_frames: u32,
 }
 
@@ -107,7 +108,7 @@ pub struct PrimaryArgs {
     #[arg(long, default_value = "512x512", value_parser = args::size)]
     pub size: (u32, u32),
     /// Frames per configuration (the median is reported)
-    #[arg(long, default_value_t = 7)]
+    #[arg(long, value_parser = cli_args::repeats, default_value_t = 7)]
     pub repeats: usize,
 }
 

@@ -44,6 +44,7 @@ use crate::render::load_volume;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use history::{blurred, split, Buckets, Split, BLUR_SIGMAS};
+use isowall_model::cli_args;
 use isowall_model::{Camera, Denoise, FrameState, RenderSettings, View};
 use isowall_render::gpu::{FrameRead, GpuRenderer, GpuVolume, ReadbackRing, TileFrame, TileSums, TileTarget};
 use isowall_render::reproject::{DriftTolerance, Rule, Spending, RULE, SPENDING};
@@ -60,29 +61,29 @@ pub struct OrbitArgs {
     #[arg(long, default_value = "256x256", value_parser = args::size)]
     pub size: (u32, u32),
     /// AO samples per pixel per frame
-    #[arg(long, default_value_t = 4)]
+    #[arg(long, value_parser = cli_args::ao_samples, default_value_t = 4)]
     pub samples: u32,
     /// Frames of the orbit
-    #[arg(long, default_value_t = 30)]
+    #[arg(long, value_parser = cli_args::bench_frames, default_value_t = 30)]
     pub frames: u32,
     /// Degrees the camera turns each frame
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, value_parser = cli_args::degrees, default_value_t = 1.0)]
     pub degrees: f64,
     /// The converged reference of each frame: this many frames of 32 samples accumulated on the
     /// GPU (8: 256 samples per pixel)
-    #[arg(long, default_value_t = 8)]
+    #[arg(long, value_parser = args::accumulated_frames, default_value_t = 8)]
     pub reference_frames: u32,
     /// Write every frame's numbers to this CSV
     #[arg(long, value_name = "FILE")]
     pub out: Option<PathBuf>,
     /// AO samples a frame of the `raw` comparison variant (its name: raw followed by this)
-    #[arg(long, default_value_t = 32)]
+    #[arg(long, value_parser = cli_args::ao_samples, default_value_t = 32)]
     pub compare_samples: u32,
     /// The first frame of the second means (and of the history buckets)
-    #[arg(long, default_value_t = 8)]
+    #[arg(long, value_parser = cli_args::still_frames, default_value_t = 8)]
     pub from_frame: u32,
     /// Runs of the reprojected orbit with disjoint sample patterns, for its bias and std (0 or 1: none)
-    #[arg(long, default_value_t = 4)]
+    #[arg(long, value_parser = args::repeats_u32, default_value_t = 4)]
     pub repeats: u32,
     /// Write the reprojected orbit's bias and std per frame to this CSV
     #[arg(long, value_name = "FILE")]

@@ -181,13 +181,9 @@ pub fn error_stats(a: &[f32], b: &[f32], hit: &[bool]) -> (f64, f64) {
     (rmse, d[(d.len() - 1) * 99 / 100])
 }
 
-/// A `--samples` list: whole numbers, comma-separated.
+/// A `--samples` list: AO sample counts, comma-separated, each in `render --ao-samples`'s range.
 pub fn sample_list(list: &str) -> Result<Vec<u32>> {
-    list.split(',')
-        .map(|s| {
-            s.trim().parse::<u32>().map_err(|_| anyhow::anyhow!("--samples: '{s}' is not a whole number"))
-        })
-        .collect()
+    isowall_model::cli_args::sample_list(list).map_err(|e| anyhow::anyhow!("--samples: {e}"))
 }
 
 #[cfg(test)]

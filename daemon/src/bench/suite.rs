@@ -16,6 +16,7 @@ use crate::args;
 use crate::render::load_volume;
 use anyhow::{Context, Result};
 use clap::Args;
+use isowall_model::cli_args;
 use isowall_model::{AoSequence, Camera, Denoise, RenderSettings, View};
 use isowall_render::gpu::{GpuRenderer, GpuVolume, PerfOptions};
 use isowall_render::Frame;
@@ -38,10 +39,10 @@ pub struct SuiteArgs {
     #[arg(long, default_value = "32,256")]
     pub samples: String,
     /// Timed frames per row (the median is reported; one untimed warm-up before)
-    #[arg(long, default_value_t = 3)]
+    #[arg(long, value_parser = cli_args::repeats, default_value_t = 3)]
     pub repeats: usize,
     /// Frames of 256 samples accumulated for the converged reference of each scene and size
-    #[arg(long, default_value_t = 4)]
+    #[arg(long, value_parser = args::accumulated_frames, default_value_t = 4)]
     pub reference_frames: u32,
     /// Compare with the rows of this CSV (an earlier `--save`): ratios new / baseline
     #[arg(long, value_name = "FILE")]

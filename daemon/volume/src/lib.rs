@@ -56,6 +56,42 @@ pub enum VolumeError {
     Source(String),
 }
 
+/// The voxel sizes a volume may have, in world units on each axis: from a nanometre to a
+/// kilometre when the unit is the millimetre. Beyond them no camera can frame it (its box would
+/// be a point, or reach past the camera's coordinates).
+pub const SPACING_RANGE: (f64, f64) = (1e-6, 1e6);
+/// How far from the world's origin any point of a volume's box may lie, on each axis.
+pub const MAX_WORLD_COORD: f64 = 1e6;
+
+/// Checks that a grid of `dims` samples `spacing` apart from `origin` can be framed: its spacing
+/// within [`SPACING_RANGE`] and its box within [`MAX_WORLD_COORD`] of the origin. (Finite and
+/// positive spacing and a finite origin are the caller's checks.)
+pub fn check_geometry(
+    name: &str,
+    dims: [usize; 3],
+    spacing: DVec3,
+    origin: DVec3,
+) -> Result<(), VolumeError> {
+    let (lo, hi) = SPACING_RANGE;
+    if spacing.min_element() < lo || spacing.max_element() > hi {
+        return Err(VolumeError::Invalid(format!(
+            "{name}: spacing {:?} {:?} {:?} is outside {lo:e}..={hi:e} world units on some axis",
+            spacing.x, spacing.y, spacing.z
+        )));
+    }
+    let far = origin.abs() + DVec3::new(dims[0] as f64, dims[1] as f64, dims[2] as f64) * spacing;
+    if far.max_element() > MAX_WORLD_COORD {
+        return Err(VolumeError::Invalid(format!(
+            "{name}: its box reaches {:e} world units from the origin (origin {} {} {}), beyond {MAX_WORLD_COORD:e}",
+            far.max_element(),
+            origin.x,
+            origin.y,
+            origin.z
+        )));
+    }
+    Ok(())
+}
+
 /// A scalar volume on a regular grid, voxels as `f32` in the data's units.
 #[derive(Clone, Debug)]
 pub struct Volume {
@@ -102,6 +138,7 @@ impl Volume {
         if !origin.is_finite() {
             return Err(VolumeError::Invalid(format!("{name}: origin {origin:?} is not finite")));
         }
+        check_geometry(&name, dims, spacing, origin)?;
         if let Some(first) = data.iter().position(|v| !v.is_finite()) {
             let count = data.iter().filter(|v| !v.is_finite()).count();
             let (i, j, k) = (first % dims[0], (first / dims[0]) % dims[1], first / (dims[0] * dims[1]));
@@ -321,6 +358,16 @@ mod tests {
         assert!(e.to_string().starts_with("v.raw:"));
         assert!(Volume::new("v", [2, 2, 2], DVec3::new(1.0, 0.0, 1.0), DVec3::ZERO, vec![0.0; 8]).is_err());
         assert!(Volume::new("v", [0, 2, 2], DVec3::ONE, DVec3::ZERO, vec![]).is_err());
+        // A grid no camera can frame: a voxel of 1e300 or 1e-40, or a box past 1e6.
+        for (s, o) in [(1e300, 0.0), (1e-40, 0.0), (1.0, 2e6)] {
+            let e =
+                Volume::new("v.nrrd", [2, 2, 2], DVec3::splat(s), DVec3::splat(o), vec![0.0; 8]).unwrap_err();
+            let e = e.to_string();
+            assert!(
+                (e.contains("v.nrrd: spacing") || e.contains("v.nrrd: its box")) && !e.contains("camera"),
+                "{e}"
+            );
+        }
     }
 
     #[test]

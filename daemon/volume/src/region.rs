@@ -115,6 +115,14 @@ impl VolumeSource {
     /// `step`; a 4-D NRRD's step is read from its own slices of the file (a raw one by seeking);
     /// a 4-D NIfTI's step is read whole, alone (as [`VolumeSource::load_step`] does).
     pub fn stream_step(&self, raw: Option<&RawSpec>, step: usize) -> Result<VolumeStream, VolumeError> {
+        let stream = self.open_step(raw, step)?;
+        let i = &stream.info;
+        crate::check_geometry(&i.name, i.dims, i.spacing, i.origin)?;
+        Ok(stream)
+    }
+
+    /// [`VolumeSource::stream_step`] before its geometry is checked.
+    fn open_step(&self, raw: Option<&RawSpec>, step: usize) -> Result<VolumeStream, VolumeError> {
         match self {
             VolumeSource::Procedural { kind, size } => {
                 self.only_step_0(step)?;
@@ -136,7 +144,7 @@ impl VolumeSource {
                 self.only_step_0(step)?;
                 Ok(VolumeStream::dicom(crate::io::dicom::Series::open(path, Some(series))?, path))
             }
-            VolumeSource::Steps(_) => VolumeSource::File(self.step_file(step)?).stream_step(raw, 0),
+            VolumeSource::Steps(_) => VolumeSource::File(self.step_file(step)?).open_step(raw, 0),
             VolumeSource::File(path) if crate::io::dicom::is_dicom(path) => {
                 self.only_step_0(step)?;
                 Ok(VolumeStream::dicom(crate::io::dicom::Series::open(path, None)?, path))

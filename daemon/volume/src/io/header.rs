@@ -101,7 +101,20 @@ pub(crate) fn spacing3(field: &str, value: &str) -> Result<DVec3, String> {
     if s.min_element() <= 0.0 {
         return Err(format!("{field}: spacings must be positive, got {} {} {}", s.x, s.y, s.z));
     }
+    spacing_in_range(field, s)?;
     Ok(s)
+}
+
+/// A spacing within [`crate::SPACING_RANGE`] on every axis, or the field named.
+pub(crate) fn spacing_in_range(field: &str, s: DVec3) -> Result<(), String> {
+    let (lo, hi) = crate::SPACING_RANGE;
+    if s.min_element() < lo || s.max_element() > hi {
+        return Err(format!(
+            "{field}: a voxel of {:?} x {:?} x {:?} world units is outside {lo:e}..={hi:e} on some axis",
+            s.x, s.y, s.z
+        ));
+    }
+    Ok(())
 }
 
 /// An axis-aligned grid made from per-axis steps in world space (a NRRD `space directions`, a
@@ -128,6 +141,7 @@ impl AxisSteps {
                 ));
             }
         }
+        spacing_in_range(field, DVec3::new(steps[0].length(), steps[1].length(), steps[2].length()))?;
         Ok(AxisSteps { steps })
     }
 

@@ -753,6 +753,15 @@ mod tests {
             m.contains("bogus.nrrd") && m.contains("line 4: space: 'sideways' is not a NRRD space"),
             "{m}"
         );
+        // A voxel no camera can frame is refused by the field that gives it.
+        for (geometry, field) in [
+            ("space directions: (1e300,0,0) (0,1,0) (0,0,2)", "line 6: space directions: a voxel of 1e300"),
+            ("space directions: (1e-40,0,0) (0,1,0) (0,0,2)", "line 6: space directions: a voxel of 1e-40"),
+            ("spacings: 1 1e300 1", "line 6: spacings: a voxel of 1.0 x 1e300"),
+        ] {
+            let m = error_of(dir.path(), "far.nrrd", &with("RAS", geometry), &raw);
+            assert!(m.contains("far.nrrd") && m.contains(field) && !m.contains("camera"), "{m}");
+        }
     }
 
     #[test]
