@@ -70,7 +70,7 @@ fn a_picture_where_no_pixel_hits_the_surface_says_so() {
     let dir = tempfile::tempdir().unwrap();
     // The sphere far behind the camera, and a sphere smaller than a pixel: written, with a word.
     for (case, args) in [
-        ("out of view", ["--eye", "0,0,1000", "--target", "0,0,2000", "--size", "8x8"]),
+        ("out of view", ["--eye", "0,1000,0", "--target", "0,2000,0", "--size", "8x8"]),
         ("far away", ["--eye", "0,0,1e5", "--target", "8,8,8", "--size", "4x4"]),
     ] {
         let mut all = vec!["render", "--volume", "procedural:sphere:16", "--iso", "0", "--out", "x.png"];

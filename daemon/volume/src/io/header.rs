@@ -141,7 +141,7 @@ impl AxisSteps {
                 ));
             }
         }
-        spacing_in_range(field, DVec3::new(steps[0].length(), steps[1].length(), steps[2].length()))?;
+        spacing_in_range(field, DVec3::new(steps[0].x.abs(), steps[1].y.abs(), steps[2].z.abs()))?;
         Ok(AxisSteps { steps })
     }
 
