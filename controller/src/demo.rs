@@ -61,6 +61,8 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
         let started = Instant::now();
         let period = Duration::from_secs_f64(1.0 / a.fps);
         let mut i = 0u64;
+        // Ctrl-C ends this command cleanly (its local nodes stop when it drops them).
+        crate::local::interrupt_handled_by_command();
         let stop = tokio::signal::ctrl_c();
         tokio::pin!(stop);
         loop {

@@ -1,10 +1,107 @@
 //! Local daemons for `isowall up`: one `isowalld run` per node whose address is on loopback,
-//! stopped when the controller exits (also on Ctrl-C or an error: they are killed on drop).
+//! stopped when the controller exits: on an error or its end (they are killed on drop), and on
+//! SIGTERM, SIGHUP or SIGINT (what `kill`, `timeout`, a service manager or a closed terminal
+//! send), which the controller that started them catches to stop them first
+//! ([`watch_signals`]). Not through a parent-death signal: a daemon outlives a controller
+//! killed with SIGKILL, which a standby may take over from.
 
 use anyhow::{Context, Result};
 use isowall_model::config::WallConfig;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+/// The local daemons this process runs, by pid: what a signal that ends it stops first.
+static RUNNING: Mutex<Vec<u32>> = Mutex::new(Vec::new());
+/// A command that stops on Ctrl-C by itself (and then drops its daemons) says so: SIGINT is then
+/// left to it.
+static INTERRUPT_HANDLED: AtomicBool = AtomicBool::new(false);
+/// How long a daemon has to stop after SIGTERM before it is killed.
+const STOP_GRACE: Duration = Duration::from_secs(3);
+
+/// A command that ends itself cleanly on Ctrl-C (SIGINT) calls this: the signal watcher then
+/// leaves SIGINT to it, and its daemons stop when it drops them.
+pub fn interrupt_handled_by_command() {
+    INTERRUPT_HANDLED.store(true, Ordering::Relaxed);
+}
+
+/// Catches SIGTERM, SIGHUP and SIGINT (once per process): each stops the local daemons (SIGTERM,
+/// then SIGKILL after [`STOP_GRACE`]) and ends the process with 128 + the signal's number, as
+/// the signal would have. SIGINT is left to a command that handles it
+/// ([`interrupt_handled_by_command`]).
+fn watch_signals() -> Result<()> {
+    use tokio::signal::unix::{signal, SignalKind};
+    static WATCHING: Mutex<bool> = Mutex::new(false);
+    let mut watching = WATCHING.lock().unwrap_or_else(|e| e.into_inner());
+    if *watching {
+        return Ok(());
+    }
+    let rt = tokio::runtime::Builder::new_current_thread().enable_io().build()?;
+    // Registered here, before the first daemon starts: no window in which a signal kills the
+    // controller alone.
+    let (mut term, mut hup, mut int) = {
+        let _in = rt.enter();
+        (signal(SignalKind::terminate())?, signal(SignalKind::hangup())?, signal(SignalKind::interrupt())?)
+    };
+    std::thread::Builder::new().name("isowall-signals".into()).spawn(move || {
+        rt.block_on(async move {
+            loop {
+                let (name, code) = tokio::select! {
+                    _ = term.recv() => ("SIGTERM", 15),
+                    _ = hup.recv() => ("SIGHUP", 1),
+                    _ = int.recv() => ("SIGINT", 2),
+                };
+                if name == "SIGINT" && INTERRUPT_HANDLED.load(Ordering::Relaxed) {
+                    continue;
+                }
+                let n = stop_running();
+                eprintln!("isowall: {name}: stopped {n} local node(s)");
+                std::process::exit(128 + code);
+            }
+        })
+    })?;
+    *watching = true;
+    Ok(())
+}
+
+/// Stops every running local daemon: SIGTERM, then SIGKILL for those still there after
+/// [`STOP_GRACE`]. Returns how many there were.
+fn stop_running() -> usize {
+    use rustix::process::{kill_process, Pid, Signal};
+    let pids: Vec<u32> = RUNNING.lock().unwrap_or_else(|e| e.into_inner()).clone();
+    let pid = |p: u32| i32::try_from(p).ok().and_then(Pid::from_raw);
+    for p in pids.iter().filter_map(|&p| pid(p)) {
+        let _ = kill_process(p, Signal::TERM);
+    }
+    let deadline = Instant::now() + STOP_GRACE;
+    while Instant::now() < deadline && pids.iter().any(|&p| alive(p)) {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    for p in pids.iter().filter(|&&p| alive(p)).filter_map(|&p| pid(p)) {
+        let _ = kill_process(p, Signal::KILL);
+    }
+    pids.len()
+}
+
+/// Whether child `pid` still runs (not gone, not a zombie waiting to be reaped).
+fn alive(pid: u32) -> bool {
+    std::fs::read_to_string(format!("/proc/{pid}/stat"))
+        .ok()
+        .and_then(|s| {
+            s.rsplit_once(')').and_then(|(_, rest)| rest.split_whitespace().next().map(str::to_owned))
+        })
+        .is_some_and(|state| state != "Z")
+}
+
+fn register(pid: u32) {
+    RUNNING.lock().unwrap_or_else(|e| e.into_inner()).push(pid);
+}
+
+fn unregister(pid: u32) {
+    RUNNING.lock().unwrap_or_else(|e| e.into_inner()).retain(|&p| p != pid);
+}
 
 /// The `isowalld` binary: beside this executable, else on PATH.
 pub fn daemon_binary() -> PathBuf {
@@ -25,8 +122,9 @@ pub fn is_loopback(address: &str) -> bool {
 /// Running local daemons; killed when dropped.
 pub struct LocalDaemons {
     children: Vec<(String, Child)>,
-    /// Each daemon's log, in the order of `children`.
+    /// Each daemon's log, in the order of `children`, and where this run's lines begin in it.
     logs: Vec<PathBuf>,
+    log_starts: Vec<u64>,
     /// How they were started, to start one again ([`LocalDaemons::restart`]).
     config_path: PathBuf,
     display: String,
@@ -38,22 +136,30 @@ impl LocalDaemons {
     /// `--display` (and `--windowed` if asked). Their logs go to `log_dir/NODE.log`.
     pub fn start(config: &WallConfig, log_dir: &Path, display: &str, windowed: bool) -> Result<LocalDaemons> {
         let bin = daemon_binary();
+        watch_signals().context("cannot watch for the signals that must stop the local nodes")?;
         std::fs::create_dir_all(log_dir).with_context(|| format!("cannot create {}", log_dir.display()))?;
         let mut me = LocalDaemons {
             children: Vec::new(),
             logs: Vec::new(),
+            log_starts: Vec::new(),
             config_path: config.path.clone(),
             display: display.to_string(),
             windowed,
         };
         for node in config.nodes.iter().filter(|n| is_loopback(&n.address)) {
+            // Appended to, never truncated: a second `up` of a running wall fails at the nodes'
+            // ports, and the running nodes' logs must keep what they said.
             let log_path = log_dir.join(format!("{}.log", node.name));
-            std::fs::File::create(&log_path)
-                .with_context(|| format!("cannot create {}", log_path.display()))?;
+            append_line(
+                &log_path,
+                &format!("--- isowall (pid {}) starts node {}", std::process::id(), node.name),
+            )?;
+            let start = std::fs::metadata(&log_path).map_or(0, |m| m.len());
             let child = me.spawn(&bin, &node.name, &log_path)?;
             eprintln!("isowall: started node {} (pid {}, log {})", node.name, child.id(), log_path.display());
             me.children.push((node.name.clone(), child));
             me.logs.push(log_path);
+            me.log_starts.push(start);
         }
         Ok(me)
     }
@@ -66,7 +172,7 @@ impl LocalDaemons {
             .create(true)
             .open(log)
             .with_context(|| format!("cannot open {}", log.display()))?;
-        Command::new(bin)
+        let child = Command::new(bin)
             .arg("run")
             .arg("--config")
             .arg(&self.config_path)
@@ -78,7 +184,9 @@ impl LocalDaemons {
             .stdout(file.try_clone()?)
             .stderr(file)
             .spawn()
-            .with_context(|| format!("cannot start {} for node {node}", bin.display()))
+            .with_context(|| format!("cannot start {} for node {node}", bin.display()))?;
+        register(child.id());
+        Ok(child)
     }
 
     /// Whether `node` is one of these daemons.
@@ -105,6 +213,7 @@ impl LocalDaemons {
                 let _ = child.kill();
             }
             let _ = child.wait();
+            unregister(child.id());
         }
         let log = self.logs[i].clone();
         let child = self.spawn(&daemon_binary(), node, &log)?;
@@ -123,10 +232,12 @@ impl LocalDaemons {
             if !self.exited().is_empty() {
                 return;
             }
-            let starting = self
-                .logs
-                .iter()
-                .any(|log| !std::fs::read_to_string(log).is_ok_and(|t| t.contains("ready on")));
+            // This run's lines only: an earlier run's "ready on" stays in the log above them.
+            let starting = self.logs.iter().zip(&self.log_starts).any(|(log, &start)| {
+                !std::fs::read(log).is_ok_and(|t| {
+                    String::from_utf8_lossy(t.get(start as usize..).unwrap_or_default()).contains("ready on")
+                })
+            });
             if !starting {
                 return;
             }
@@ -191,9 +302,21 @@ impl Drop for LocalDaemons {
                 let _ = child.kill();
             }
             let _ = child.wait();
+            unregister(child.id());
             tracing::debug!(node = %name, "local daemon stopped");
         }
     }
+}
+
+/// Appends `line` to the file at `path` (created if absent).
+fn append_line(path: &Path, line: &str) -> Result<()> {
+    use std::io::Write;
+    let mut f = std::fs::OpenOptions::new()
+        .append(true)
+        .create(true)
+        .open(path)
+        .with_context(|| format!("cannot open {}", path.display()))?;
+    writeln!(f, "{line}").with_context(|| format!("cannot write {}", path.display()))
 }
 
 /// What a process holds: resident memory and open file descriptors (Linux `/proc`).

@@ -201,6 +201,8 @@ pub fn session(a: &SessionArgs) -> Result<()> {
         let mut shots = 0u32;
         let mut last = Instant::now();
         let mut times: std::collections::VecDeque<Instant> = Default::default();
+        // Ctrl-C ends this command cleanly (its local nodes stop when it drops them).
+        crate::local::interrupt_handled_by_command();
         let ctrl_c = tokio::signal::ctrl_c();
         tokio::pin!(ctrl_c);
         'frames: loop {

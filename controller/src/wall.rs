@@ -3,7 +3,7 @@
 //! snapshots; report statistics. The network code only moves bytes and calls the state machine.
 
 use crate::report::micros;
-use anyhow::{anyhow, bail, Context, Result};
+use anyhow::{anyhow, bail, Result};
 use isowall_model::adoption::{AdoptionOutput, BrickAssigner};
 use isowall_model::balance::claims::{cost_floor, Claims, Miss};
 use isowall_model::balance::share::{split_to_wire, MAX_RECTS_PER_TILE};
@@ -295,9 +295,11 @@ impl Wall {
     /// The wall of `config`, no node connected yet: its frame machine set for the wall's
     /// deadline, pings and swap timing.
     fn new(config: WallConfig) -> Result<Wall> {
+        let name = isowall_net::tls::CONTROLLER;
         let identity =
-            Identity::load(&config.cert_dir(), isowall_net::tls::CONTROLLER).with_context(|| {
-                format!("no controller certificate: run `isowall keygen --config {}`", config.path.display())
+            Identity::load(&config.cert_dir(), name).map_err(|e| match e.remedy(name, &config.path) {
+                Some(fix) => anyhow!("the controller's certificate: {e}: {fix}"),
+                None => anyhow!("the controller's certificate: {e}"),
             })?;
         let endpoint = transport::client(&identity)?;
         let deadline = Duration::from_millis(config.wall.deadline_ms);

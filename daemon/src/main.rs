@@ -6,6 +6,7 @@ mod balanced;
 mod bench;
 mod display;
 mod identify;
+mod info;
 mod notify;
 mod object;
 mod peer_addr;
@@ -46,6 +47,9 @@ enum Command {
     Bench(bench::BenchCommand),
     /// Check a wall config: print every problem as FILE:LINE:COL (exit 1), or a summary.
     CheckConfig(isowall_model::check_config::CheckConfigArgs),
+    /// What a volume holds: format, grid, orientation, value range, percentiles, a histogram,
+    /// and suggested iso values with how they were found.
+    Info(info::InfoArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -62,6 +66,7 @@ fn main() -> std::process::ExitCode {
     let result = match cli.command {
         None => render::run(&render::RenderArgs::default()),
         Some(Command::Render(args)) => render::run(&args),
+        Some(Command::Info(args)) => info::run(&args),
         Some(Command::Run(args)) => run::run(&args),
         Some(Command::Bench(cmd)) => bench::run(&cmd),
         Some(Command::CheckConfig(args)) => isowall_model::check_config::run(

@@ -473,7 +473,19 @@ fn a_key_open_to_others_is_refused_naming_the_file() {
             "{}",
             r.stderr
         );
+        // The fix is chmod, not keygen (which on a deployed wall would replace its CA).
+        assert!(!r.stderr.contains("keygen"), "{}", r.stderr);
     }
+    // A node missing its certificate: copy the files keygen made; the OS's reason said once.
+    std::fs::set_permissions(&key, std::fs::Permissions::from_mode(0o600)).unwrap();
+    std::fs::rename(d.join("keys/node0.pem"), d.join("node0.pem.away")).unwrap();
+    let args = ["run", "--config", "wall.toml", "--node", "node0", "--display", "offscreen"];
+    let r = run_bounded(d, "isowalld", &args, 0, Duration::from_secs(60));
+    assert_eq!(r.code, Some(1), "{}", r.stderr);
+    assert!(r.stderr.contains("node0.pem: No such file or directory"), "{}", r.stderr);
+    assert!(r.stderr.contains("copy ca.pem, node0.pem and node0.key"), "{}", r.stderr);
+    assert_eq!(r.stderr.matches("No such file or directory").count(), 1, "said twice: {}", r.stderr);
+    std::fs::rename(d.join("node0.pem.away"), d.join("keys/node0.pem")).unwrap();
     // The controller's own key, the same.
     std::fs::set_permissions(&key, std::fs::Permissions::from_mode(0o600)).unwrap();
     let ckey = d.join("keys/controller.key");

@@ -106,3 +106,34 @@ fn check_config_reads_a_dicom_folders_headers() {
         "{err}"
     );
 }
+
+#[test]
+fn info_tells_a_volumes_grid_range_and_suggested_isos() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = run_in(dir.path(), "isowalld", &["info", "procedural:sphere:16", "--bars", "4"]);
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(out.contains("dims: 16 x 16 x 16 (4096 voxels)"), "{out}");
+    assert!(out.contains("orientation: none in the file"), "{out}");
+    assert!(out.contains("0            the procedural volume's own surface"), "{out}");
+    assert!(out.contains("two-class threshold (Otsu"), "{out}");
+    assert_eq!(out.lines().filter(|l| l.starts_with("   ") && l.contains("..")).count(), 4, "{out}");
+    let Some(shared) = shared_dir() else { return };
+    let ct = shared.join("data/ct-cranium.nrrd");
+    let o = run_in(dir.path(), "isowalld", &["info", ct.to_str().unwrap()]);
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(out.contains("format: NRRD") && out.contains("dims: 256 x 256 x 108"), "{out}");
+    assert!(out.contains("orientation: RAS (+x right, +y anterior, +z superior)"), "{out}");
+    assert!(out.contains("values: -1024 .. 2986"), "{out}");
+    // The skin of a head CT lies between air (-1000) and soft tissue (0-100); its bone above 200.
+    let suggested = |what: &str| -> f64 {
+        let line = out.lines().find(|l| l.contains(what)).unwrap_or_else(|| panic!("no {what}: {out}"));
+        line.split_whitespace().next().unwrap().parse().unwrap()
+    };
+    let skin = suggested("two-class threshold");
+    let bone = suggested("the upper one");
+    assert!((-800.0..-100.0).contains(&skin) && (200.0..1000.0).contains(&bone), "{skin} {bone}");
+    let o = run_in(dir.path(), "isowalld", &["info", "missing.nrrd"]);
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("missing.nrrd"));
+}

@@ -53,8 +53,8 @@ pub enum BookmarkError {
     Unknown(String),
     #[error("{MAX_BOOKMARKS} bookmarks are kept at most: delete one first")]
     Full,
-    #[error("cannot write {path}: {source}")]
-    Write { path: String, source: std::io::Error },
+    #[error("cannot write {path}: {error}")]
+    Write { path: String, error: std::io::Error },
 }
 
 /// The bookmarks file of the wall config at `config`.
@@ -138,7 +138,7 @@ pub fn load(path: &Path) -> Result<Vec<Bookmark>, BookmarkError> {
 
 /// Writes `bookmarks` to `path` atomically: a temporary file beside it, synced, renamed over it.
 pub fn store(path: &Path, bookmarks: &[Bookmark]) -> Result<(), BookmarkError> {
-    let err = |source| BookmarkError::Write { path: path.display().to_string(), source };
+    let err = |error| BookmarkError::Write { path: path.display().to_string(), error };
     let file = File { bookmark: bookmarks.to_vec() };
     let text = toml::to_string_pretty(&file)
         .map_err(|e| err(std::io::Error::new(std::io::ErrorKind::InvalidData, e.to_string())))?;

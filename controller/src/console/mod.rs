@@ -118,6 +118,8 @@ pub fn console(a: &ConsoleArgs) -> Result<()> {
         let looper = tokio::spawn(frame_loop::run(wall, daemons, scene, shared.clone(), commands));
         // Printed for scripts and tests: the page's address, once it serves.
         println!("isowall console: serving http://{local}/");
+        // Ctrl-C ends this command cleanly (its local nodes stop when it drops them).
+        crate::local::interrupt_handled_by_command();
         let server = server::serve(listener, api::router(shared.clone()), limits, async {
             let _ = tokio::signal::ctrl_c().await;
         });

@@ -59,6 +59,8 @@ pub fn run(a: &CheckConfigArgs, on: CheckedOn, certificates: CertificateCheck) -
             let problem = |p: String| CheckFailed(format!("{}: [volume] source: {p}", a.file.display()));
             let checked = check_volume_files(&config, on).map_err(problem).and_then(|volume_warnings| {
                 let series = check_dicom(&config).map_err(problem)?;
+                check_iso_range(&config)
+                    .map_err(|p| CheckFailed(format!("{}: [volume] iso: {p}", a.file.display())))?;
                 check_environment(&config, on)
                     .map_err(|p| CheckFailed(format!("{}: [render] env: {p}", a.file.display())))?;
                 Ok((volume_warnings, series))
@@ -124,6 +126,32 @@ fn check_volume_files(config: &WallConfig, on: CheckedOn) -> Result<Vec<String>,
         check_header(path, &limit).map_err(|e| e.to_string())?;
     }
     Ok(Vec::new())
+}
+
+/// `[volume] iso` within the volume's value range, where the volume is on this machine: it is
+/// read (within `[volume] max_bytes`) for its range, and the iso held to the rule `up` and the
+/// nodes apply ([`isowall_volume::check_iso`]). A volume not here, or no iso set: nothing to check.
+fn check_iso_range(config: &WallConfig) -> Result<(), String> {
+    use isowall_volume::io::VolumeLimit;
+    use isowall_volume::VolumeSource;
+    let Some(iso) = config.volume.iso else { return Ok(()) };
+    let Ok(source) = config.volume_source().parse::<VolumeSource>() else { return Ok(()) };
+    let here = match &source {
+        VolumeSource::File(p) | VolumeSource::DicomSeries { path: p, .. } => p.exists(),
+        VolumeSource::Steps(_) => source.step_files().is_ok(),
+        VolumeSource::Procedural { .. } => true,
+    };
+    if !here {
+        return Ok(());
+    }
+    let limit = config
+        .volume
+        .max_bytes
+        .map_or_else(VolumeLimit::default, |b| VolumeLimit::new(b, "[volume] max_bytes"));
+    let raw = config.raw_spec().map_err(|e| e.to_string())?;
+    let volume = source.load_step_within(raw.as_ref(), 0, &limit).map_err(|e| e.to_string())?;
+    let (lo, hi) = volume.value_range();
+    isowall_volume::check_iso(iso, (f64::from(lo), f64::from(hi))).map_err(|e| format!("{e} ({source})"))
 }
 
 /// A volume `path` that is not on this machine (`why`: no such file, no file matching a glob): a
@@ -296,6 +324,23 @@ mod tests {
             assert!(on_controller.is_ok(), "{elsewhere}: {on_controller:?}");
         }
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn an_iso_outside_the_volumes_range_fails_the_check_where_the_volume_is_here() {
+        let config = |source: &str, iso: &str| {
+            let text = format!(
+                "[wall]\nname = \"w\"\n[volume]\nsource = \"{source}\"\niso = {iso}\n[[tiles]]\nname = \"t\"\nx = 0\ny = 0\n\
+                 width = 64\nheight = 48\n[[nodes]]\nname = \"n\"\naddress = \"127.0.0.1:7999\"\ntiles = [\"t\"]\n"
+            );
+            WallConfig::parse(&text, Path::new("w.toml")).unwrap()
+        };
+        // procedural:sphere:16 holds values from about -7.7 to 4.4.
+        let e = check_iso_range(&config("procedural:sphere:16", "100")).unwrap_err();
+        assert!(e.contains("100") && e.contains("outside") && e.contains("procedural:sphere:16"), "{e}");
+        assert_eq!(check_iso_range(&config("procedural:sphere:16", "0")), Ok(()));
+        // A file not on this machine: the node checks it.
+        assert_eq!(check_iso_range(&config("/nowhere/scan.nrrd", "100")), Ok(()));
     }
 
     #[test]

@@ -154,7 +154,7 @@ fn write_atomically(path: &Path, contents: &[u8], mode: u32) -> Result<(), TlsEr
         .tempfile_in(dir)
         .map_err(io(dir))?;
     tmp.write_all(contents).and_then(|()| tmp.as_file().sync_all()).map_err(io(path))?;
-    tmp.persist(path).map_err(|e| TlsError::Io { path: path.to_owned(), source: e.error })?;
+    tmp.persist(path).map_err(|e| TlsError::Io { path: path.to_owned(), error: e.error })?;
     Ok(())
 }
 

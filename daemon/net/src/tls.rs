@@ -35,8 +35,8 @@ pub const CONTROLLER_URI: &str = "urn:isowall:controller";
 
 #[derive(Debug, thiserror::Error)]
 pub enum TlsError {
-    #[error("{path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    #[error("{path}: {error}")]
+    Io { path: PathBuf, error: std::io::Error },
     #[error("{path}: not a usable PEM {what}: {reason}")]
     Pem { path: PathBuf, what: &'static str, reason: String },
     #[error("certificate generation failed for '{name}': {reason}")]
@@ -70,6 +70,23 @@ pub enum TlsError {
         "{}: {what} is not valid before {from} (UTC): is this machine's clock right?", path.display()
     )]
     NotYetValid { path: PathBuf, what: &'static str, from: String },
+}
+
+impl TlsError {
+    /// What fixes this error where `name`'s certificate was loaded for the wall config at
+    /// `config`, where the error itself does not say it: a missing file is copied from where
+    /// `keygen` made it (running `keygen` again on a deployed wall would replace its CA).
+    pub fn remedy(&self, name: &str, config: &Path) -> Option<String> {
+        match self {
+            TlsError::Io { error, .. } if error.kind() == std::io::ErrorKind::NotFound => Some(format!(
+                "copy ca.pem, {name}.pem and {name}.key into the config's certificate folder from the \
+                 machine where `isowall keygen` made them (its keys folder); only for a new wall, \
+                 `isowall keygen --config {}` makes them",
+                config.display()
+            )),
+            _ => None,
+        }
+    }
 }
 
 /// A certificate that ends within this many days is warned about.
@@ -154,7 +171,7 @@ pub fn certificate_report(dir: &Path, names: &[String], now: i64) -> Result<Vec<
 }
 
 pub(crate) fn io(path: &Path) -> impl FnOnce(std::io::Error) -> TlsError + '_ {
-    move |source| TlsError::Io { path: path.to_owned(), source }
+    move |error| TlsError::Io { path: path.to_owned(), error }
 }
 
 /// A certificate name: a node's name or `controller`, by the config's rule

@@ -8,8 +8,8 @@ use std::path::{Path, PathBuf};
 
 #[derive(Debug, thiserror::Error)]
 pub enum OutputError {
-    #[error("{path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    #[error("{path}: {error}")]
+    Io { path: PathBuf, error: std::io::Error },
     #[error("{path}: {source}")]
     Png { path: PathBuf, source: image::ImageError },
     #[error("{path}: not a PFM file: {what}")]
@@ -64,7 +64,7 @@ pub fn write_atomically(
     let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
     let tmp = path.with_file_name(format!(".{name}.{}.tmp", std::process::id()));
     let result = write(&tmp).and_then(|()| {
-        std::fs::rename(&tmp, path).map_err(|source| OutputError::Io { path: path.to_owned(), source })
+        std::fs::rename(&tmp, path).map_err(|error| OutputError::Io { path: path.to_owned(), error })
     });
     if result.is_err() {
         let _ = std::fs::remove_file(&tmp);
@@ -105,7 +105,7 @@ pub fn write_aov(frame: &Frame, aov: Aov, path: &Path) -> Result<(), OutputError
     })
     .map_err(|e| match e {
         // Name the file asked for, not the temporary one.
-        OutputError::Io { source, .. } => OutputError::Io { path: path.to_owned(), source },
+        OutputError::Io { error, .. } => OutputError::Io { path: path.to_owned(), error },
         OutputError::Png { source, .. } => OutputError::Png { path: path.to_owned(), source },
         e => e,
     })
@@ -136,7 +136,7 @@ pub fn write_pfm(
     data: &[f32],
 ) -> Result<(), OutputError> {
     std::fs::write(path, encode_pfm(width, height, channels, data))
-        .map_err(|source| OutputError::Io { path: path.to_owned(), source })
+        .map_err(|error| OutputError::Io { path: path.to_owned(), error })
 }
 
 /// A decoded PFM: rows top to bottom.
@@ -150,7 +150,7 @@ pub struct Pfm {
 
 /// Reads a PFM file (either endianness), returning rows top to bottom.
 pub fn read_pfm(path: &Path) -> Result<Pfm, OutputError> {
-    let bytes = std::fs::read(path).map_err(|source| OutputError::Io { path: path.to_owned(), source })?;
+    let bytes = std::fs::read(path).map_err(|error| OutputError::Io { path: path.to_owned(), error })?;
     decode_pfm(&bytes).map_err(|what| OutputError::BadPfm { path: path.to_owned(), what })
 }
 

@@ -160,12 +160,11 @@ pub fn run(a: &RunArgs) -> Result<()> {
         })?
         .clone();
     crate::peer_addr::apply(&mut config, &node.name, &a.peer_addr)?;
-    let identity = Identity::load(&config.cert_dir(), &node.name).with_context(|| {
-        format!(
-            "no certificate for node '{}': run `isowall keygen --config {}`",
-            node.name,
-            a.config.display()
-        )
+    let identity = Identity::load(&config.cert_dir(), &node.name).map_err(|e| {
+        match e.remedy(&node.name, &a.config) {
+            Some(fix) => anyhow!("node '{}': {e}: {fix}", node.name),
+            None => anyhow!("node '{}': {e}", node.name),
+        }
     })?;
     // Before the slow set-up, so that `--display window` without a display, or a port another
     // process holds, fails at once.

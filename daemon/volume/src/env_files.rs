@@ -36,8 +36,8 @@ pub const FACES: [&str; 6] = ["px", "nx", "py", "ny", "pz", "nz"];
 /// wrong with it.
 #[derive(Debug, thiserror::Error)]
 pub enum EnvironmentError {
-    #[error("{}: {source}", .path.display())]
-    Io { path: PathBuf, source: std::io::Error },
+    #[error("{}: {error}", .path.display())]
+    Io { path: PathBuf, error: std::io::Error },
     #[error("{}: it is {kind}, not a regular file: environment images are read from regular files only", .path.display())]
     NotRegular { path: PathBuf, kind: &'static str },
     #[error("{}: cannot decode image: {source}", .path.display())]
@@ -189,8 +189,8 @@ impl EnvImage {
     ) -> Result<EnvImage, EnvironmentError> {
         let file = open_regular(path).map(|(file, _)| file).map_err(|e| match e {
             RegularError::NotRegular(kind) => EnvironmentError::NotRegular { path: path.to_owned(), kind },
-            RegularError::Io(source) => EnvironmentError::Io { path: path.to_owned(), source },
-            other => EnvironmentError::Io { path: path.to_owned(), source: std::io::Error::other(other) },
+            RegularError::Io(error) => EnvironmentError::Io { path: path.to_owned(), error },
+            other => EnvironmentError::Io { path: path.to_owned(), error: std::io::Error::other(other) },
         })?;
         let mut reader = image::ImageReader::with_format(BufReader::new(file), format);
         let mut limits = image::Limits::default();

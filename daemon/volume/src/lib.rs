@@ -26,6 +26,7 @@ pub mod procedural;
 pub mod region;
 pub mod source;
 pub mod steps;
+pub mod value_stats;
 mod voxel_range;
 
 use glam::DVec3;
@@ -43,8 +44,8 @@ pub use voxel_range::VoxelRange;
 /// Everything that can go wrong making or reading a volume. File errors carry the path.
 #[derive(Debug, thiserror::Error)]
 pub enum VolumeError {
-    #[error("{path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    #[error("{path}: {error}")]
+    Io { path: PathBuf, error: std::io::Error },
     /// A malformed header or an inconsistent file: `what` says which field and why.
     #[error("{path}: {what}")]
     Format { path: PathBuf, what: String },

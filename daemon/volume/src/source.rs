@@ -162,7 +162,7 @@ impl VolumeSource {
             .map_err(|e| VolumeError::Source(format!("{pattern}: not a valid file pattern: {e}")))?;
         let mut files = Vec::new();
         for p in paths {
-            let p = p.map_err(|e| VolumeError::Io { path: e.path().to_path_buf(), source: e.into() })?;
+            let p = p.map_err(|e| VolumeError::Io { path: e.path().to_path_buf(), error: e.into() })?;
             if p.is_file() {
                 files.push(p);
             }

@@ -80,6 +80,17 @@ enum FileFormat {
     Dicom,
 }
 
+/// The name of the format a file is read as ("NRRD", "MetaImage", "NIfTI", "DICOM", "raw").
+pub fn format_name(path: &Path) -> &'static str {
+    match FileFormat::of(path) {
+        FileFormat::Raw => "raw",
+        FileFormat::Nrrd => "NRRD",
+        FileFormat::MetaImage => "MetaImage",
+        FileFormat::Nifti => "NIfTI",
+        FileFormat::Dicom => "DICOM",
+    }
+}
+
 impl FileFormat {
     /// The format a file name says (case-insensitive); a folder or a file with DICOM's magic is
     /// DICOM; anything else unknown is raw.
@@ -268,7 +279,7 @@ pub(crate) fn format_err(path: &Path, what: impl Into<String>) -> VolumeError {
 
 /// A [`VolumeError::Io`] for `path`.
 pub(crate) fn io_err(path: &Path, source: io::Error) -> VolumeError {
-    VolumeError::Io { path: path.to_path_buf(), source }
+    VolumeError::Io { path: path.to_path_buf(), error: source }
 }
 
 /// Opens a regular file for buffered reading and returns it with its length. Anything else (a

@@ -1,0 +1,133 @@
+//! `isowalld info VOLUME`: what a volume is and which iso values show its surfaces, before a
+//! render or a wall config: its format, grid, patient orientation, value range, percentiles, a
+//! histogram, and suggested iso values with how each was found (Otsu's thresholds of the
+//! histogram, `isowall_volume::value_stats`). The volume is read whole, within the same limit as
+//! `render` (`--max-volume-bytes`).
+
+use crate::args;
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use glam::DVec3;
+use isowall_volume::io::{RawSpec, VolumeLimit, VoxelType};
+use isowall_volume::value_stats::ValueStats;
+use isowall_volume::{PatientDir, VolumeSource};
+
+#[derive(Args, Debug)]
+pub struct InfoArgs {
+    /// The volume: a file (.nrrd .nhdr .mhd .mha .nii .nii.gz, a DICOM folder or one file of the
+    /// series, or raw with --dims/--type/--spacing) or procedural:NAME[:N]
+    #[arg(value_name = "VOLUME")]
+    pub volume: String,
+    /// DICOM: the SeriesInstanceUID where the folder holds several
+    #[arg(long, value_name = "UID")]
+    pub series: Option<String>,
+    /// Time-varying volumes: the time step, from 0
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    pub step: usize,
+    /// Raw volumes: dimensions
+    #[arg(long, value_name = "NX,NY,NZ", value_parser = args::dims)]
+    pub dims: Option<[usize; 3]>,
+    /// Raw volumes: voxel type (uint8, int8, uint16, int16, uint32, int32, float32, float64),
+    /// little endian
+    #[arg(long = "type", value_name = "TYPE")]
+    pub voxel_type: Option<VoxelType>,
+    /// Raw volumes: voxel spacing [default: 1,1,1]
+    #[arg(long, value_name = "SX,SY,SZ", value_parser = args::vec3)]
+    pub spacing: Option<DVec3>,
+    /// The most bytes the volume may take as float32 (4 a voxel), checked from the header before
+    /// it is read [default: 2 GiB]
+    #[arg(long, value_name = "BYTES")]
+    pub max_volume_bytes: Option<u64>,
+    /// Bars of the histogram
+    #[arg(long, value_name = "N", default_value_t = 16, value_parser = clap::value_parser!(u16).range(1..=256))]
+    pub bars: u16,
+}
+
+impl InfoArgs {
+    fn raw_spec(&self) -> Result<Option<RawSpec>> {
+        match (self.dims, self.voxel_type) {
+            (None, None) if self.spacing.is_none() => Ok(None),
+            (Some(dims), Some(voxel)) => Ok(Some(RawSpec {
+                dims,
+                voxel,
+                spacing: self.spacing.unwrap_or(DVec3::ONE),
+                big_endian: false,
+                header_bytes: 0,
+            })),
+            _ => bail!("a raw volume needs both --dims and --type (and optionally --spacing)"),
+        }
+    }
+}
+
+fn direction_name(d: PatientDir) -> &'static str {
+    match d {
+        PatientDir::Left => "left",
+        PatientDir::Right => "right",
+        PatientDir::Anterior => "anterior",
+        PatientDir::Posterior => "posterior",
+        PatientDir::Superior => "superior",
+        PatientDir::Inferior => "inferior",
+    }
+}
+
+pub fn run(a: &InfoArgs) -> Result<()> {
+    let source: VolumeSource = a.volume.parse()?;
+    let source = source.with_series(a.series.as_deref())?;
+    let raw = a.raw_spec()?;
+    let limit = match a.max_volume_bytes {
+        Some(b) => VolumeLimit::new(b, "--max-volume-bytes"),
+        None => VolumeLimit::default(),
+    };
+    let bar = crate::progress::spinner(format!("reading {source}"));
+    let volume = source.load_step_within(raw.as_ref(), a.step, &limit);
+    bar.finish_and_clear();
+    let volume = volume.with_context(|| format!("cannot read {source}"))?;
+    let [nx, ny, nz] = volume.dims();
+    let (s, o) = (volume.spacing(), volume.origin());
+    let format = match &source {
+        VolumeSource::File(p) => isowall_volume::io::format_name(p),
+        VolumeSource::DicomSeries { .. } => "DICOM",
+        VolumeSource::Steps(_) => "time steps (a glob of files)",
+        VolumeSource::Procedural { .. } => "procedural (built in)",
+    };
+    println!("volume: {source}");
+    println!("format: {format}; voxels read as 32-bit float in the data's units");
+    println!("dims: {nx} x {ny} x {nz} ({} voxels)", nx * ny * nz);
+    println!("spacing: {} {} {} world units per voxel; origin {} {} {}", s.x, s.y, s.z, o.x, o.y, o.z);
+    let top = volume.box_max();
+    println!("box: {} {} {} .. {} {} {}", o.x, o.y, o.z, top.x, top.y, top.z);
+    match volume.orientation() {
+        Some(orient) => {
+            let [x, y, z] = orient.axes().map(direction_name);
+            println!(
+                "orientation: {} (+x {x}, +y {y}, +z {z}): it opens on the face (anterior)",
+                orient.code()
+            );
+        }
+        None => println!("orientation: none in the file (views read the world axes as LPS)"),
+    }
+    let stats = ValueStats::of(volume.data()).context("the volume holds no values")?;
+    println!("values: {} .. {}", stats.min, stats.max);
+    let pct: Vec<String> = stats.percentiles.iter().map(|(p, v)| format!("{p}% {v}")).collect();
+    println!("percentiles: {}", pct.join(", "));
+    println!("histogram ({} bars, counts on a log scale):", a.bars);
+    for line in stats.bars(usize::from(a.bars), 40) {
+        println!("  {line}");
+    }
+    println!("suggested iso values (render with --iso V; a wall's [volume] iso):");
+    if let Some(natural) = source.natural_iso() {
+        println!("  {natural:<12} the procedural volume's own surface");
+    }
+    let (lo, hi) = stats.three_class;
+    let round = |v: f64| format!("{:.4}", v).trim_end_matches('0').trim_end_matches('.').to_string();
+    println!(
+        "  {:<12} two-class threshold (Otsu's method on the histogram): between the background and the object (air and skin in a scan)",
+        round(stats.two_class)
+    );
+    println!(
+        "  {:<12} three-class thresholds (Otsu's method, two thresholds), the upper one: the densest class's surface (bone in a CT)",
+        round(hi)
+    );
+    println!("  {:<12} three-class thresholds, the lower one", round(lo));
+    Ok(())
+}
