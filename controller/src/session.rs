@@ -12,6 +12,7 @@ use crate::wall::FrameRequest;
 use anyhow::{Context, Result};
 use clap::Args;
 use isowall_model::joystick::{JoystickConfig, PadAxis, PadButton};
+use std::io::IsTerminal;
 use std::io::Write;
 use std::path::PathBuf;
 use std::sync::mpsc;
@@ -192,10 +193,16 @@ pub fn session(a: &SessionArgs) -> Result<()> {
         };
         if !a.no_joystick {
             let tx = tx.clone();
-            std::thread::Builder::new().name("gamepad".into()).spawn(move || gamepad(tx, joystick.clone()))?;
+            std::thread::Builder::new()
+                .name("gamepad".into())
+                .spawn(move || gamepad(tx, joystick.clone()))?;
         }
         drop(tx);
-        print!("isowall session: {KEY_HELP}\r\n");
+        // On a terminal the status is one line redrawn in place; into a pipe or a file, a plain
+        // line a second (no carriage returns or terminal codes in a log).
+        let tty = std::io::stdout().is_terminal();
+        let mut last_line: Option<Instant> = None;
+        print!("isowall session: {KEY_HELP}{}", if tty { "\r\n" } else { "\n" });
         let mut axes = Axes::default();
         let mut note = String::new();
         let mut shots = 0u32;
@@ -256,7 +263,11 @@ pub fn session(a: &SessionArgs) -> Result<()> {
                         .max_by_key(|x| x.1)
                         .map_or("-".into(), |(n, r)| format!("{n} {:.0} ms", r.as_secs_f64() * 1e3)),
                     f.swap_skew.map_or("-".into(), |s| {
-                        let late = if f.late_swaps > 0 { format!(" ({} late)", f.late_swaps) } else { String::new() };
+                        let late = if f.late_swaps > 0 {
+                            format!(" ({} late)", f.late_swaps)
+                        } else {
+                            String::new()
+                        };
                         format!("{:.2} ms{late}", s.as_secs_f64() * 1e3)
                     }),
                 ),
@@ -274,14 +285,22 @@ pub fn session(a: &SessionArgs) -> Result<()> {
             } else {
                 String::new()
             };
-            print!(
-                "\r\x1b[2K{fps:.1} fps | slowest {slowest} | skew {skew} | iso {:.4} | AO {} | IBL {:?}{step} {note}",
+            let line = format!(
+                "{fps:.1} fps | slowest {slowest} | skew {skew} | iso {:.4} | AO {} | IBL {:?}{step} {note}",
                 s.iso, s.ao.samples, s.ao.ibl
             );
+            if tty {
+                print!("\r\x1b[2K{line}");
+            } else if last_line.is_none_or(|t| now.duration_since(t) >= Duration::from_secs(1)) {
+                println!("{}", line.trim_end());
+                last_line = Some(now);
+            }
             let _ = std::io::stdout().flush();
         }
         drop(raw);
-        print!("\r\n");
+        if tty {
+            print!("\r\n");
+        }
         wall.close("the session is over").await;
         drop(daemons);
         Ok(())

@@ -260,6 +260,11 @@ fn the_api_refuses_missing_tokens_and_bad_input_and_changes_nothing() {
         assert_eq!(r.status, status, "{path} {body}: {text}");
         assert!(text.contains(says), "{path} {body}: {text}");
     }
+    // A refused key is named in `field`, as the docs promise.
+    for (body, field) in [("{\"isovalue\": 1}", "isovalue"), ("{\"ao_samples\": \"many\"}", "ao_samples")] {
+        let r = con.post("/api/render", body);
+        assert_eq!((r.status, r.json()["field"].as_str()), (422, Some(field)), "{body}");
+    }
     let r = con.post("/api/render", &format!("{{\"iso\": {}, \"ao_samples\": 2}}", hi + (hi - lo) + 1.0));
     assert_eq!(
         (r.status, r.json()["field"].as_str()),

@@ -34,17 +34,22 @@ fn long_up(dir: &Path, config: &Path) -> Child {
 /// Waits until `up`'s wall is up and returns its nodes' pids (from its `started node` lines);
 /// `None` (skip) without a Vulkan adapter outside CI.
 fn wait_up(dir: &Path, up: &mut Child) -> Option<Vec<u32>> {
+    wait_said(dir, up, "wall up in")
+}
+
+/// [`wait_up`] for a command that says `marker` on its stderr once its wall is up.
+fn wait_said(dir: &Path, up: &mut Child, marker: &str) -> Option<Vec<u32>> {
     let err = || std::fs::read_to_string(dir.join("up.err")).unwrap_or_default();
     // Up, or `up` ended (it says why in its stderr).
     wait_until("the wall up", Duration::from_secs(180), || {
         let text = err();
-        if text.contains("wall up in") || up.try_wait().unwrap().is_some() {
+        if text.contains(marker) || up.try_wait().unwrap().is_some() {
             return Ok(());
         }
         Err(text.lines().last().unwrap_or_default().to_string())
     });
     let text = err();
-    if !text.contains("wall up in") {
+    if !text.contains(marker) {
         if text.contains("no Vulkan adapter") && !in_ci() {
             eprintln!("skipping: no Vulkan adapter");
             return None;
@@ -111,4 +116,39 @@ fn a_second_up_of_a_running_wall_fails_and_keeps_its_nodes_logs() {
         up.try_wait().unwrap().ok_or_else(|| "running".to_string())
     });
     assert!(nodes.iter().all(|&p| !running(p)));
+}
+
+#[test]
+fn a_session_into_a_pipe_writes_plain_lines_and_its_interrupt_stops_its_nodes() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = small_wall(dir.path());
+    let err = std::fs::File::create(dir.path().join("up.err")).unwrap();
+    let mut session = Command::new(bin("isowall"))
+        .current_dir(dir.path())
+        .args(["session", config.to_str().unwrap(), "--local", "--no-joystick"])
+        .env_remove("DISPLAY")
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(err)
+        .spawn()
+        .expect("start isowall session");
+    // Said once the wall is connected, the keyboard looked for.
+    let Some(nodes) = wait_said(dir.path(), &mut session, "no terminal keyboard") else { return };
+    // A few status lines' worth of frames, then the operator's interrupt.
+    let mut stdout = session.stdout.take().unwrap();
+    let reader = std::thread::spawn(move || {
+        let mut text = String::new();
+        std::io::Read::read_to_string(&mut stdout, &mut text).unwrap();
+        text
+    });
+    std::thread::sleep(Duration::from_secs(3)); // the session's own pace: a status line a second
+    signal(session.id(), "INT");
+    wait_until("the session to end on SIGINT", Duration::from_secs(30), || {
+        session.try_wait().unwrap().ok_or_else(|| "running".to_string())
+    });
+    let text = reader.join().unwrap();
+    assert!(!text.contains('\r') && !text.contains('\u{1b}'), "terminal codes in a pipe: {text:?}");
+    assert!(text.lines().any(|l| l.contains(" fps | slowest ")), "no status line: {text:?}");
+    let left: Vec<u32> = nodes.iter().copied().filter(|&p| running(p)).collect();
+    assert!(left.is_empty(), "isowalld {left:?} still run after the session ended");
 }

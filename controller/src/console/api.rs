@@ -351,7 +351,7 @@ async fn snapshot(
         if !(1..=MAX_THUMBNAIL_WIDTH).contains(&w) {
             return Err(ApiError {
                 status: StatusCode::BAD_REQUEST,
-                field: Some("width"),
+                field: Some("width".into()),
                 message: format!("width {w} is not in 1..={MAX_THUMBNAIL_WIDTH}"),
             });
         }
@@ -401,7 +401,23 @@ fn bad_json(e: JsonRejection) -> ApiError {
         StatusCode::UNPROCESSABLE_ENTITY => StatusCode::UNPROCESSABLE_ENTITY,
         _ => StatusCode::BAD_REQUEST,
     };
-    ApiError::new(status, e.body_text())
+    let text = e.body_text();
+    let field = (status == StatusCode::UNPROCESSABLE_ENTITY).then(|| rejected_field(&text)).flatten();
+    ApiError { status, field: field.map(Into::into), message: text }
+}
+
+/// The field a JSON body's rejection is about: the unknown key (serde's "unknown field `K`"),
+/// else the path axum puts before the reason ("...target type: K: invalid type ...").
+fn rejected_field(text: &str) -> Option<String> {
+    let name_ok =
+        |k: &str| !k.is_empty() && k.chars().all(|c| c.is_ascii_alphanumeric() || "_.[]".contains(c));
+    if let Some(rest) = text.split("unknown field `").nth(1) {
+        let key = rest.split('`').next()?;
+        return name_ok(key).then(|| key.to_string());
+    }
+    let rest = text.split("target type: ").nth(1)?;
+    let (key, _) = rest.split_once(": ")?;
+    name_ok(key).then(|| key.to_string())
 }
 
 async fn render(
@@ -450,7 +466,7 @@ async fn live(
     if !(hz.is_finite() && (0.1..=LIVE_MAX_HZ).contains(&hz)) {
         return Err(ApiError {
             status: StatusCode::BAD_REQUEST,
-            field: Some("hz"),
+            field: Some("hz".into()),
             message: format!("hz {hz} is not in 0.1..={LIVE_MAX_HZ}"),
         });
     }
@@ -604,7 +620,7 @@ fn known_node(shared: &Shared, name: &str) -> Result<(), ApiError> {
     }
     Err(ApiError {
         status: StatusCode::NOT_FOUND,
-        field: Some("name"),
+        field: Some("name".into()),
         message: format!("no node `{}` in this wall", isowall_model::messages::printable(name)),
     })
 }
@@ -646,7 +662,7 @@ async fn node_log(
     if !(1..=super::logs::MAX_LINES).contains(&n) {
         return Err(ApiError {
             status: StatusCode::BAD_REQUEST,
-            field: Some("lines"),
+            field: Some("lines".into()),
             message: format!("lines {n} is not in 1..={}", super::logs::MAX_LINES),
         });
     }
@@ -679,7 +695,7 @@ fn bookmark_error(e: BookmarkError) -> ApiError {
         BookmarkError::Write { .. } => StatusCode::INTERNAL_SERVER_ERROR,
     };
     let field = matches!(e, BookmarkError::Name(_) | BookmarkError::Unknown(_)).then_some("name");
-    ApiError { status, field, message: e.to_string() }
+    ApiError { status, field: field.map(Into::into), message: e.to_string() }
 }
 
 /// Runs a bookmarks file operation off the runtime's threads, one writer at a time.
@@ -794,6 +810,17 @@ mod tests {
     use super::*;
     use std::pin::Pin;
     use std::task::{Context, Poll};
+
+    #[test]
+    fn a_rejected_bodys_field_is_named() {
+        let unknown = "Failed to deserialize the JSON body into the target type: unknown field `isovalue`, \
+                       expected one of `iso`, `ao_samples` at line 1 column 11";
+        assert_eq!(rejected_field(unknown).as_deref(), Some("isovalue"));
+        let typed = "Failed to deserialize the JSON body into the target type: ao_samples: invalid type: \
+                     string \"many\", expected u32 at line 1 column 21";
+        assert_eq!(rejected_field(typed).as_deref(), Some("ao_samples"));
+        assert_eq!(rejected_field("EOF while parsing a value at line 1 column 8"), None);
+    }
 
     /// A page's WebSocket that reads nothing (every send waits for room forever) and says nothing;
     /// or, `open`, one that takes every message into `sent`.

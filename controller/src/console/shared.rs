@@ -100,7 +100,8 @@ pub struct Picture {
 #[derive(Clone, Debug)]
 pub struct ApiError {
     pub status: StatusCode,
-    pub field: Option<&'static str>,
+    /// The request's field the refusal is about, where there is one (a JSON body's key).
+    pub field: Option<std::borrow::Cow<'static, str>>,
     pub message: String,
 }
 
@@ -110,7 +111,7 @@ impl ApiError {
     }
 
     pub fn refused(r: Refusal) -> ApiError {
-        ApiError { status: StatusCode::UNPROCESSABLE_ENTITY, field: Some(r.field), message: r.message }
+        ApiError { status: StatusCode::UNPROCESSABLE_ENTITY, field: Some(r.field.into()), message: r.message }
     }
 
     pub fn internal(message: impl Into<String>) -> ApiError {

@@ -203,13 +203,20 @@ function showNodes(s) {
 let busy = {}; // control id -> time of the operator's last touch (the status does not overwrite it)
 const touched = (id) => busy[id] && performance.now() - busy[id] < 1500;
 
+// The iso slider's step: a power of ten at most a thousandth of the data's span, so a whole
+// value of an 8-bit scan (50 of 0..255) or of a CT in Hounsfield units (300) can be set exactly.
+function isoStep(span) {
+  if (!(span > 0)) return 0.001;
+  return Math.pow(10, Math.floor(Math.log10(span / 1000)));
+}
+
 function showControls(s) {
   const r = s.render;
   const iso = $("iso");
   const span = s.volume.max - s.volume.min;
   setProp(iso, "min", String(s.volume.min));
   setProp(iso, "max", String(s.volume.max));
-  setProp(iso, "step", String(span > 0 ? span / 200 : 0.001));
+  setProp(iso, "step", String(isoStep(span)));
   setText($("iso-min"), fmt(s.volume.min, 3));
   setText($("iso-max"), fmt(s.volume.max, 3));
   if (!touched("iso")) { setProp(iso, "value", String(r.iso)); setText($("iso-value"), fmt(r.iso, 4)); }
