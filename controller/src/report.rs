@@ -94,6 +94,16 @@ pub fn swap_report(wall: &Wall) -> String {
                 .join(", ")
         );
     }
+    // Whether each node's presenting thread wakes ahead of the renders.
+    let presenting: Vec<String> = wall
+        .config
+        .nodes
+        .iter()
+        .filter_map(|n| wall.node_info(&n.name).map(|i| format!("{} {}", n.name, i.present)))
+        .collect();
+    if !presenting.is_empty() {
+        s += &format!("presenting threads: {}\n", presenting.join(", "));
+    }
     if let Some((period, jitter)) = interval_jitter(wall) {
         s += &format!(
             "frame pacing: {:.2} fps; {}",

@@ -13,6 +13,7 @@ mod peer_addr;
 mod pixel_links;
 mod presenter;
 mod progress;
+mod realtime;
 mod render;
 mod render_thread;
 mod run;

@@ -8,7 +8,16 @@
 //! thread, which owns the surfaces (`render_thread.rs`), with the same wait before it. Either way
 //! the outcome comes back to the session loop as a [`Shown`], with the moment the presenting
 //! thread took the swap up (its wait began: after the present time, the swap was late).
+//!
+//! The presenting thread runs real-time (`crate::realtime`) where `present_priority` asks and
+//! the process may: the offscreen [`Presenter`] thread for its whole life (it does nothing but
+//! wait and take the moment), the render thread only from the start of a swap's wait to its
+//! present's return ([`PreciseWait::present_at`]), lowered before it renders again. What runs
+//! real-time is bounded: a sleep, a spin of at most [`PreciseWait::MAX_SPIN`], the present
+//! (which blocks in the driver asleep, not spinning, where a display is slow), no allocation
+//! and no lock another thread holds.
 
+use crate::realtime::{self, PresentScheduling};
 use std::time::{Duration, Instant};
 
 /// The precise wait of one presenting thread (see the module docs).
@@ -17,11 +26,18 @@ pub struct PreciseWait {
     /// How late the last sleeps woke, newest last.
     overshoots: std::collections::VecDeque<Duration>,
     spin: Duration,
+    /// The render thread's windows: raised to SCHED_FIFO at this priority for each wait and
+    /// present (`None`: not raised, or refused once already).
+    realtime: Option<u8>,
 }
 
 impl Default for PreciseWait {
     fn default() -> Self {
-        PreciseWait { overshoots: Default::default(), spin: Self::MIN_SPIN }
+        PreciseWait {
+            overshoots: std::collections::VecDeque::with_capacity(Self::WINDOW + 1),
+            spin: Self::MIN_SPIN,
+            realtime: None,
+        }
     }
 }
 
@@ -42,6 +58,44 @@ impl PreciseWait {
         self.spin
     }
 
+    /// The render thread's wait: raised to SCHED_FIFO at `priority` for each wait and present
+    /// (0: never). Tries once now, on the calling thread, and says what it runs as.
+    pub fn raised_for_presents(priority: u8) -> (PreciseWait, PresentScheduling) {
+        let mut w = PreciseWait::default();
+        if priority == 0 {
+            return (w, PresentScheduling::Off);
+        }
+        let nice = realtime::nice();
+        match realtime::raise(priority).and_then(|()| realtime::lower(nice)) {
+            Ok(()) => {
+                w.realtime = Some(priority);
+                (w, PresentScheduling::RealTime { priority, cpu: None })
+            }
+            Err(e) => (w, PresentScheduling::Refused(e)),
+        }
+    }
+
+    /// Waits until `at` (if given) and runs `present`, real-time from the wait's start to the
+    /// present's return where [`PreciseWait::raised_for_presents`] allowed it, then lowered to
+    /// the thread's own scheduling again.
+    pub fn present_at<T>(&mut self, at: Option<Instant>, present: impl FnOnce() -> T) -> T {
+        let raised = self.realtime.map(|p| (realtime::nice(), realtime::raise(p)));
+        if let Some((_, Err(e))) = &raised {
+            tracing::warn!("the render thread's presents stay at normal scheduling: {e}");
+            self.realtime = None;
+        }
+        if let Some(at) = at {
+            self.wait_until(at);
+        }
+        let out = present();
+        if let Some((nice, Ok(()))) = raised {
+            if let Err(e) = realtime::lower(nice) {
+                tracing::error!("the render thread could not return to normal scheduling: {e}");
+            }
+        }
+        out
+    }
+
     /// Waits until `deadline` (at once if it has passed): asleep until [`PreciseWait::spin`]
     /// before it, then spinning.
     pub fn wait_until(&mut self, deadline: Instant) {
@@ -56,13 +110,20 @@ impl PreciseWait {
     }
 
     fn learn(&mut self, overshoot: Duration) {
-        self.overshoots.push_back(overshoot);
-        if self.overshoots.len() > Self::WINDOW {
+        if self.overshoots.len() == Self::WINDOW {
             self.overshoots.pop_front();
         }
-        let mut sorted: Vec<Duration> = self.overshoots.iter().copied().collect();
-        sorted.sort_unstable();
-        let second = sorted[sorted.len().saturating_sub(2)];
+        self.overshoots.push_back(overshoot);
+        // The two largest, without sorting a copy (no allocation while real-time).
+        let (mut first, mut second) = (Duration::ZERO, Duration::ZERO);
+        for &o in &self.overshoots {
+            if o > first {
+                (first, second) = (o, first);
+            } else if o > second {
+                second = o;
+            }
+        }
+        let second = if self.overshoots.len() == 1 { first } else { second };
         self.spin = (second + second / 2).clamp(Self::MIN_SPIN, Self::MAX_SPIN);
     }
 }
@@ -84,11 +145,32 @@ pub struct Presenter {
 }
 
 impl Presenter {
-    /// Starts the thread; each swap's [`Shown`] goes to `shown`. It ends when the presenter is
-    /// dropped.
-    pub fn start(shown: tokio::sync::mpsc::UnboundedSender<Shown>) -> std::io::Result<Presenter> {
+    /// Starts the thread, real-time at `priority` (0: normal scheduling) and on core `cpu` where
+    /// given; each swap's [`Shown`] goes to `shown`. Returns it with what it runs as. It ends
+    /// when the presenter is dropped.
+    pub fn start(
+        shown: tokio::sync::mpsc::UnboundedSender<Shown>,
+        priority: u8,
+        cpu: Option<usize>,
+    ) -> std::io::Result<(Presenter, PresentScheduling)> {
         let (jobs, rx) = std::sync::mpsc::channel::<(u64, Option<Instant>, Instant)>();
+        let (told, scheduling) = std::sync::mpsc::channel::<PresentScheduling>();
         std::thread::Builder::new().name("presenter".into()).spawn(move || {
+            let pinned = cpu.map(|c| realtime::pin_to(c).map(|()| c));
+            let s = if priority == 0 {
+                PresentScheduling::Off
+            } else {
+                match realtime::raise(priority) {
+                    Err(e) => PresentScheduling::Refused(e),
+                    Ok(()) => {
+                        PresentScheduling::RealTime { priority, cpu: pinned.clone().and_then(Result::ok) }
+                    }
+                }
+            };
+            if let Some(Err(e)) = pinned {
+                tracing::warn!("the presenting thread has no core of its own: {e}");
+            }
+            let _ = told.send(s);
             let mut wait = PreciseWait::default();
             let mut last_done: Option<Instant> = None;
             while let Ok((frame_id, at, handed)) = rx.recv() {
@@ -108,7 +190,9 @@ impl Presenter {
                 }
             }
         })?;
-        Ok(Presenter { jobs })
+        let s =
+            scheduling.recv().map_err(|_| std::io::Error::other("the presenting thread ended at start"))?;
+        Ok((Presenter { jobs }, s))
     }
 
     /// Presents `frame_id` at `at` (`None`: now).
@@ -147,7 +231,7 @@ mod tests {
     #[test]
     fn a_presenter_presents_at_the_time_and_a_past_time_at_once() {
         let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
-        let p = Presenter::start(tx).unwrap();
+        let (p, _) = Presenter::start(tx, 0, None).unwrap();
         let at = Instant::now() + Duration::from_millis(20);
         p.present(7, Some(at));
         p.present(8, None);

@@ -270,6 +270,8 @@ pub struct TileRenderer {
     thread: Option<std::thread::JoinHandle<()>>,
     /// The GPU the render thread opened, as the node tells the controller.
     pub gpu: GpuInfo,
+    /// What the render thread's presents to windows run as (`present_priority`).
+    pub window_presents: crate::realtime::PresentScheduling,
 }
 
 /// The GPU adapter the render thread opened (from wgpu's `AdapterInfo`, as text: no wgpu type
@@ -303,15 +305,18 @@ pub struct RenderHandle {
 impl TileRenderer {
     /// Starts the render thread: opens the GPU, uploads the volume (step 0 where `steps` is
     /// given) and environment, then renders jobs in order. Returns once the GPU is up (or with
-    /// its error). Results go to `results`.
+    /// its error). Results go to `results`. Its presents to windows run real-time at
+    /// `present_priority` (0: normal) from each wait's start to the present's return.
     pub fn start(
         volume: RenderVolume,
         env: Option<Environment>,
         results: tokio::sync::mpsc::UnboundedSender<Result<JobResult, String>>,
         steps: Option<TimeSteps>,
+        present_priority: u8,
     ) -> Result<TileRenderer> {
         let (jobs, rx) = mpsc::channel::<Job>();
-        let (ready_tx, ready_rx) = mpsc::channel::<Result<GpuInfo, String>>();
+        type Ready = Result<(GpuInfo, crate::realtime::PresentScheduling), String>;
+        let (ready_tx, ready_rx) = mpsc::channel::<Ready>();
         let thread = std::thread::Builder::new()
             .name("render".into())
             .spawn(move || {
@@ -332,9 +337,10 @@ impl TileRenderer {
                         .map_err(|e| e.to_string())?;
                     Ok((gpu, gv, genv))
                 })();
+                let (wait, presents) = crate::presenter::PreciseWait::raised_for_presents(present_priority);
                 let (gpu, first, genv) = match setup {
                     Ok(s) => {
-                        let _ = ready_tx.send(Ok(GpuInfo::of(s.0.adapter_info())));
+                        let _ = ready_tx.send(Ok((GpuInfo::of(s.0.adapter_info()), presents)));
                         s
                     }
                     Err(e) => {
@@ -357,7 +363,7 @@ impl TileRenderer {
                     shown: Vec::new(),
                     object_space,
                     surfaces: Vec::new(),
-                    wait: Default::default(),
+                    wait,
                     ring: ReadbackRing::new(READ_SLOTS),
                     frames: VecDeque::new(),
                     snapshots: Vec::new(),
@@ -421,9 +427,9 @@ impl TileRenderer {
             })
             .context("cannot start the render thread")?;
         match ready_rx.recv() {
-            Ok(Ok(gpu)) => {
+            Ok(Ok((gpu, window_presents))) => {
                 tracing::info!(adapter = %gpu.adapter, backend = %gpu.backend, driver = %gpu.driver, "render thread ready");
-                Ok(TileRenderer { handle: RenderHandle { jobs }, thread: Some(thread), gpu })
+                Ok(TileRenderer { handle: RenderHandle { jobs }, thread: Some(thread), gpu, window_presents })
             }
             Ok(Err(e)) => anyhow::bail!("GPU set-up failed: {e}"),
             Err(_) => anyhow::bail!("the render thread ended during set-up"),
@@ -587,17 +593,17 @@ fn window_job(
         }
         WindowJob::Present(frame_id, at, reply) => {
             let waiting_from = Instant::now();
-            if let Some(at) = at {
-                wait.wait_until(at);
-            }
-            let mut result = Ok(());
-            for s in surfaces.iter_mut() {
-                match s.present(&gpu.ctx, target(&s.name), frame_id) {
-                    Ok(Presented::Frame) => {}
-                    Ok(p) => tracing::debug!(tile = %s.name, frame_id, ?p, "presented without the frame"),
-                    Err(e) => result = Err(e.to_string()),
+            let result = wait.present_at(at, || {
+                let mut result = Ok(());
+                for s in surfaces.iter_mut() {
+                    match s.present(&gpu.ctx, target(&s.name), frame_id) {
+                        Ok(Presented::Frame) => {}
+                        Ok(p) => tracing::debug!(tile = %s.name, frame_id, ?p, "presented without the frame"),
+                        Err(e) => result = Err(e.to_string()),
+                    }
                 }
-            }
+                result
+            });
             let _ = reply.send(Shown { frame_id, waiting_from, result: result.map(|()| Instant::now()) });
         }
         WindowJob::Resize(tile, width, height) => {
@@ -1002,7 +1008,7 @@ mod tests {
         let src: isowall_volume::VolumeSource = "procedural:sphere-over-plane:48".parse().unwrap();
         let volume = src.load(None).unwrap();
         let (tx, rx) = tokio::sync::mpsc::unbounded_channel();
-        Some((TileRenderer::start(RenderVolume::Whole(volume), None, tx, None).unwrap(), rx))
+        Some((TileRenderer::start(RenderVolume::Whole(volume), None, tx, None, 0).unwrap(), rx))
     }
 
     fn camera() -> Camera {

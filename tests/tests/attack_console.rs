@@ -84,6 +84,7 @@ async fn fake_node(keys: PathBuf, name: String, port: u16, tile: (String, u32, u
             backend: "Vulkan".into(),
             driver: "none".into(),
             driver_info: "played by the test".into(),
+            present: "SCHED_FIFO 10".into(),
         };
         if sender.send(&Message::NodeInfo(info)).await.is_err() {
             continue;

@@ -418,6 +418,7 @@ fn message_seeds() -> Vec<(String, Vec<u8>)> {
             backend: "Vulkan".into(),
             driver: "llvmpipe".into(),
             driver_info: "Mesa 25.0.7".into(),
+            present: "SCHED_FIFO 10".into(),
         }),
         Message::Restart { reason: "the operator's console asked".into() },
         Message::Identify { on: true },

@@ -70,7 +70,8 @@ fn the_node_units_exposure_stays_low() {
         .and_then(|rest| rest.split_whitespace().next()?.parse::<f64>().ok())
         .unwrap_or_else(|| panic!("no exposure level in:\n{text}{}", String::from_utf8_lossy(&out.stderr)));
     eprintln!("isowalld.service: exposure {level}");
-    assert!(level <= 2.0, "isowalld.service's exposure is {level} (it was 1.9)");
+    // 1.9 with the tightened filters, 2.0 with the presenting thread's real-time (RestrictRealtime=no).
+    assert!(level <= 2.0, "isowalld.service's exposure is {level} (it was 2.0)");
 }
 
 #[test]

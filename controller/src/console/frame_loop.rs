@@ -542,6 +542,7 @@ impl Loop {
                     backend: wall.node_info(&n.name).map(|i| i.backend.clone()),
                     driver: wall.node_info(&n.name).map(|i| i.driver.clone()),
                     driver_info: wall.node_info(&n.name).map(|i| i.driver_info.clone()),
+                    present: wall.node_info(&n.name).map(|i| i.present.clone()),
                     local_log: self.local_logs.contains(&n.name),
                 }
             })

@@ -209,6 +209,8 @@ pub struct NodeCard {
     pub backend: Option<String>,
     pub driver: Option<String>,
     pub driver_info: Option<String>,
+    /// What its presenting thread runs as (`SCHED_FIFO 10`, or normal and why).
+    pub present: Option<String>,
     /// Whether the console started its daemon and reads its log (`/api/nodes/NAME/log`).
     pub local_log: bool,
 }

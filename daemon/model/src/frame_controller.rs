@@ -1250,6 +1250,7 @@ mod tests {
             backend: "Vulkan".into(),
             driver: "llvmpipe".into(),
             driver_info: "Mesa".into(),
+            present: "SCHED_FIFO 10".into(),
         };
         assert!(c.handle(ms(1), "a", Message::NodeInfo(info.clone())).unwrap().is_empty());
         let kept = c.node_info("a").unwrap();

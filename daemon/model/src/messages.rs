@@ -40,7 +40,7 @@ use serde::{Deserialize, Serialize};
 use crate::wire::{FrameState, WireRectCost, WireSplit};
 
 /// The protocol version of this build; a peer's [`Message::Hello`] must carry the same.
-pub const PROTOCOL_VERSION: u16 = 10;
+pub const PROTOCOL_VERSION: u16 = 11;
 
 /// The furthest ahead a Swap's present time may be: a node never waits longer for one.
 pub const MAX_SWAP_WAIT: std::time::Duration = std::time::Duration::from_secs(1);
@@ -68,6 +68,9 @@ pub struct NodeInfo {
     /// The driver's name and its own description of itself (`driver_info`).
     pub driver: String,
     pub driver_info: String,
+    /// What its presenting thread runs as (`SCHED_FIFO 10`, `normal (...)`): the reports show it
+    /// beside the wake-up lateness.
+    pub present: String,
 }
 
 impl NodeInfo {
@@ -79,6 +82,7 @@ impl NodeInfo {
             ("backend", &self.backend),
             ("driver", &self.driver),
             ("driver_info", &self.driver_info),
+            ("present", &self.present),
         ] {
             let n = text.chars().count();
             if n > MAX_NODE_INFO_CHARS {
@@ -98,6 +102,7 @@ impl NodeInfo {
             backend: printable(&self.backend),
             driver: printable(&self.driver),
             driver_info: printable(&self.driver_info),
+            present: printable(&self.present),
         }
     }
 }
@@ -455,6 +460,7 @@ mod tests {
             backend: "Vulkan".into(),
             driver: "llvmpipe".into(),
             driver_info: "Mesa 24".into(),
+            present: "SCHED_FIFO 10".into(),
         };
         assert_eq!(i.validate(), Ok(()));
         i.driver_info = "\u{1b}[31mred\n".into();

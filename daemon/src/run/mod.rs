@@ -234,8 +234,33 @@ pub fn run(a: &RunArgs) -> Result<()> {
     let env_src: EnvSource = config.env_source().parse().context("[render] env")?;
     let env = Environment::from_source(&env_src).context("cannot load the environment")?;
     let (tx, results) = tokio::sync::mpsc::unbounded_channel();
+    // The presenting thread ahead of the renders: real-time, and a core of its own where given
+    // (the render thread, started next, and its workers are kept off that core).
+    let present_priority = node.present_priority(&config.wall);
+    if let Some(cpu) = node.present_cpu {
+        if let Err(e) = crate::realtime::keep_off(cpu) {
+            tracing::warn!("present_cpu {cpu}: {e}: the render threads may use it too");
+        }
+    }
     crate::notify::status("opening the GPU device");
-    let renderer = TileRenderer::start(volume, Some(env), tx, steps)?;
+    let windows = matches!(display, Display::Windows(_));
+    let renderer =
+        TileRenderer::start(volume, Some(env), tx, steps, if windows { present_priority } else { 0 })?;
+    let (shown_tx, shown_rx) = tokio::sync::mpsc::unbounded_channel();
+    let (presenter, offscreen_presents) = Presenter::start(
+        shown_tx.clone(),
+        if windows { 0 } else { present_priority },
+        node.present_cpu.filter(|_| !windows),
+    )
+    .context("cannot start the presenting thread")?;
+    let presenting = if windows { renderer.window_presents.clone() } else { offscreen_presents };
+    match &presenting {
+        crate::realtime::PresentScheduling::Refused(why) => tracing::warn!(
+            "the presenting thread runs at normal scheduling: real-time (SCHED_FIFO {present_priority}) was refused ({why}): {}",
+            crate::realtime::refused_advice(present_priority)
+        ),
+        other => tracing::info!("the presenting thread runs {}", other.describe()),
+    }
     let addr = transport::resolve(&node.address)?;
     let setup = WindowSetup {
         mode: a.display,
@@ -244,7 +269,6 @@ pub fn run(a: &RunArgs) -> Result<()> {
         node: node.name.clone(),
         tiles: config.tiles_of(&node.name).into_iter().cloned().collect(),
     };
-    let (shown_tx, shown_rx) = tokio::sync::mpsc::unbounded_channel();
     let mut state = Node {
         name: node.name.clone(),
         tiles: node.tiles.clone(),
@@ -264,12 +288,13 @@ pub fn run(a: &RunArgs) -> Result<()> {
             backend: renderer.gpu.backend.clone(),
             driver: renderer.gpu.driver.clone(),
             driver_info: renderer.gpu.driver_info.clone(),
+            present: presenting.describe(),
         },
         seat: isowall_model::seat::Seat::new(&node.name, transport::IDLE_TIMEOUT),
         next_link: 0,
         pending: None,
         presenting: std::collections::VecDeque::new(),
-        presenter: Presenter::start(shown_tx.clone()).context("cannot start the presenting thread")?,
+        presenter,
         shown_tx,
         shown_rx,
         shown: None,

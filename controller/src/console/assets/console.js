@@ -102,7 +102,7 @@ function swapLine(f) {
 
 // A node's card: made once, then only its fields' text changes. Everything a node or its log says
 // goes in as text (textContent), never as HTML.
-const FIELDS = ["since", "render", "ready", "memory", "clock", "shows", "address", "version", "gpu", "driver"];
+const FIELDS = ["since", "render", "ready", "memory", "clock", "present", "shows", "address", "version", "gpu", "driver"];
 function card(box, name) {
   let c = box.querySelector('.node-card[data-node="' + CSS.escape(name) + '"]');
   if (c) return c;
@@ -188,6 +188,7 @@ function showNodes(s) {
         (n.resident_volume_bytes === null ? "" : ", volume " + (n.resident_volume_bytes / 1048576).toFixed(1) + " MiB"),
       clock: (n.clock_error_us === null ? "–" : "±" + n.clock_error_us + " µs") +
         (n.late_swaps ? ", " + n.late_swaps + " late swaps" : ""),
+      present: n.present === null ? "–" : n.present,
       shows: what,
       address: n.address,
       version: n.version === null ? "–" : n.version,

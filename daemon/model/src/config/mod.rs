@@ -204,6 +204,21 @@ pub struct WallSection {
     /// default): every node renders its own tiles.
     #[serde(default)]
     pub balance: bool,
+    /// The real-time priority (`SCHED_FIFO`, 1..=99) of each node's presenting thread, the one
+    /// thread that waits for a swap's present time and presents; 0: normal scheduling. A node's
+    /// `[[nodes]] present_priority` overrides it.
+    #[serde(default = "default_present_priority")]
+    pub present_priority: u8,
+}
+
+/// The presenting thread's real-time priority by default: modest (audio servers run at 70-90;
+/// any real-time priority wakes before every normal thread).
+pub const DEFAULT_PRESENT_PRIORITY: u8 = 10;
+/// The highest `SCHED_FIFO` priority.
+pub const MAX_PRESENT_PRIORITY: u8 = 99;
+
+fn default_present_priority() -> u8 {
+    DEFAULT_PRESENT_PRIORITY
 }
 
 /// A config value that is a word or a number (`swap_margin_ms = "auto"` or `= 1.5`).
@@ -511,6 +526,23 @@ pub struct NodeConfig {
     pub address: String,
     #[serde(default)]
     pub tiles: Vec<String>,
+    /// This node's presenting thread's real-time priority, over `[wall] present_priority`.
+    #[serde(default)]
+    pub present_priority: Option<u8>,
+    /// A core of its own for the presenting thread (its number, from 0); the render threads are
+    /// kept off it.
+    #[serde(default)]
+    pub present_cpu: Option<usize>,
+}
+
+/// The most cores a `present_cpu` may name.
+pub const MAX_PRESENT_CPU: usize = 4095;
+
+impl NodeConfig {
+    /// Its presenting thread's priority: its own, else the wall's (0: normal scheduling).
+    pub fn present_priority(&self, wall: &WallSection) -> u8 {
+        self.present_priority.unwrap_or(wall.present_priority)
+    }
 }
 
 const SECTIONS: [&str; 8] =

@@ -35,6 +35,15 @@ pub(crate) fn validate_wall(doc: &mut Doc<'_>, w: &WallSection) {
     if let Err(e) = w.frame_rate() {
         doc.at(&at("frame_rate"), format!("wall: `frame_rate`: {e}"));
     }
+    if w.present_priority > MAX_PRESENT_PRIORITY {
+        doc.at(
+            &at("present_priority"),
+            format!(
+                "wall: `present_priority` {} is outside 0..={MAX_PRESENT_PRIORITY} (0: normal scheduling; 1..=99: SCHED_FIFO)",
+                w.present_priority
+            ),
+        );
+    }
     if w.balance && w.mode == WallMode::Object {
         doc.at(
             &at("balance"),
@@ -443,6 +452,18 @@ pub(crate) fn validate_nodes(doc: &mut Doc<'_>, nodes: &Parsed<NodeConfig>, tile
         }
         if let Err(e) = check_address(&n.address) {
             doc.at(&at(i, "address"), format!("node '{}': address {e}", n.name));
+        }
+        if let Some(p) = n.present_priority.filter(|&p| p > MAX_PRESENT_PRIORITY) {
+            doc.at(
+                &at(i, "present_priority"),
+                format!("node '{}': `present_priority` {p} is outside 0..={MAX_PRESENT_PRIORITY}", n.name),
+            );
+        }
+        if let Some(c) = n.present_cpu.filter(|&c| c > MAX_PRESENT_CPU) {
+            doc.at(
+                &at(i, "present_cpu"),
+                format!("node '{}': `present_cpu` {c} is outside 0..={MAX_PRESENT_CPU}", n.name),
+            );
         }
     }
     // TLS compares names without regard to case: `NODE0` beside `node0` could pose as it. Names and
