@@ -49,6 +49,10 @@ pub struct ConsoleArgs {
     /// The operator lock lapses after this many seconds without a change from its holder
     #[arg(long, value_name = "S", default_value_t = lock::DEFAULT_IDLE.as_secs(), value_parser = clap::value_parser!(u64).range(1..=86400))]
     pub lock_idle_s: u64,
+    /// The camera bookmarks file (default: beside the config, CONFIG.bookmarks.toml); its folder
+    /// must be writable (a service whose config folder is read-only keeps them elsewhere)
+    #[arg(long, value_name = "FILE")]
+    pub bookmarks: Option<PathBuf>,
     #[command(flatten)]
     pub start: StartArgs,
 }
@@ -111,7 +115,7 @@ pub fn console(a: &ConsoleArgs) -> Result<()> {
         let scene = frame_loop::Scene { camera, settings, range, framing, steps, demo };
         let limits = server::Limits::default();
         let options = shared::Options {
-            bookmarks: bookmarks::path_for(&a.config),
+            bookmarks: a.bookmarks.clone().unwrap_or_else(|| bookmarks::path_for(&a.config)),
             lock_idle: std::time::Duration::from_secs(a.lock_idle_s),
         };
         let (shared, commands) = shared::Shared::new(access.clone(), limits, options);
