@@ -147,6 +147,14 @@ pub(crate) fn scene_and_range(config: &WallConfig) -> Result<(Camera, RenderSett
 pub(crate) fn scene_range_and_framing(
     config: &WallConfig,
 ) -> Result<(Camera, RenderSettings, (f64, f64), ViewFraming)> {
+    scene_with_box(config).map(|(c, s, r, f, _)| (c, s, r, f))
+}
+
+/// [`scene_range_and_framing`] and the volume's box (world units), which a camera path is
+/// checked against.
+pub(crate) fn scene_with_box(
+    config: &WallConfig,
+) -> Result<(Camera, RenderSettings, (f64, f64), ViewFraming, (glam::DVec3, glam::DVec3))> {
     let source: VolumeSource = config.volume_source().parse()?;
     let raw = config.raw_spec().map_err(|e| anyhow!("{e}"))?;
     let bar = crate::progress::spinner(format!("reading volume {source}"));
@@ -188,6 +196,7 @@ pub(crate) fn scene_range_and_framing(
         config.render_settings(iso),
         (lo as f64, hi as f64),
         ViewFraming { fit, orientation, size: config.wall_size() },
+        volume_box,
     ))
 }
 

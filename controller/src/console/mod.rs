@@ -22,7 +22,7 @@ mod server;
 mod shared;
 mod status;
 
-use crate::drive::{load, runtime, scene_range_and_framing, time_steps};
+use crate::drive::{load, runtime, scene_with_box, time_steps};
 use crate::start::{self, StartArgs};
 use anyhow::{bail, Context, Result};
 use clap::Args;
@@ -90,7 +90,7 @@ pub fn access(listen: &str, token: Option<&str>, read_only: bool) -> Result<Acce
 pub fn console(a: &ConsoleArgs) -> Result<()> {
     let access = access(&a.listen, a.token.as_deref(), a.read_only)?;
     let config = load(&a.config)?;
-    let (camera, settings, range, framing) = scene_range_and_framing(&config)?;
+    let (camera, settings, range, framing, volume_box) = scene_with_box(&config)?;
     let steps = time_steps(&config)?;
     let demo = match &a.demo_path {
         Some(p) => {
@@ -101,6 +101,7 @@ pub fn console(a: &ConsoleArgs) -> Result<()> {
             };
             let path =
                 crate::path::CameraPath::load(p, defaults, isowall_model::render_state::MAX_AO_SAMPLES)?;
+            crate::demo::warn_misfits(&path, p, volume_box, framing.fit);
             Some((p.clone(), path))
         }
         None => None,
