@@ -68,7 +68,7 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
         bail!("--fps must be a positive number, not {}", a.fps);
     }
     let config = load(&a.config)?;
-    let (base, settings, _, framing, volume_box) = scene_with_box(&config)?;
+    let ((base, settings, _, framing), volume_box) = scene_with_box(&config)?;
     let defaults = Defaults { fov_y_deg: base.fov_y_deg, iso: settings.iso, ao_samples: settings.ao.samples };
     let path = CameraPath::load(&a.path, defaults, MAX_AO_SAMPLES)?;
     warn_misfits(&path, &a.path, volume_box, framing.fit);

@@ -90,7 +90,7 @@ pub fn access(listen: &str, token: Option<&str>, read_only: bool) -> Result<Acce
 pub fn console(a: &ConsoleArgs) -> Result<()> {
     let access = access(&a.listen, a.token.as_deref(), a.read_only)?;
     let config = load(&a.config)?;
-    let (camera, settings, range, framing, volume_box) = scene_with_box(&config)?;
+    let ((camera, settings, range, framing), volume_box) = scene_with_box(&config)?;
     let steps = time_steps(&config)?;
     let demo = match &a.demo_path {
         Some(p) => {
