@@ -72,6 +72,8 @@ if [ "${isowall_tests:-}" = yes ]; then
     command -v chromedriver >/dev/null 2>&1 || { need_pkgs+=(chromium-driver); missing_why+=("chromedriver (for the console's browser test)"); }
     # The packaged units are checked with systemd-analyze verify.
     command -v systemd-analyze >/dev/null 2>&1 || { need_pkgs+=(systemd); missing_why+=("systemd-analyze (for the units' test)"); }
+    # The Debian package's test checks the package with lintian (dpkg-deb comes with dpkg).
+    command -v lintian >/dev/null 2>&1 || { need_pkgs+=(lintian); missing_why+=("lintian (for the package's test)"); }
     for lib in libX11-xcb.so.1:libx11-xcb1 libXcursor.so.1:libxcursor1 libXi.so.6:libxi6 \
                libxkbcommon-x11.so.0:libxkbcommon-x11-0; do
         if ! ldconfig -p 2>/dev/null | grep -q "${lib%%:*}"; then
@@ -95,6 +97,17 @@ if [ ${#need_pkgs[@]} -gt 0 ]; then
         echo "    sudo apt-get install ${need_pkgs[*]}" >&2
         exit 1
     fi
+fi
+
+# The Debian package's test makes the package with cargo-deb (a cargo subcommand, from crates.io,
+# built here: about 3 minutes on 2 cores, so only where it is missing; the version the test was
+# written against, with its own lock file).
+if [ "${isowall_tests:-}" = yes ] && ! cargo deb --version >/dev/null 2>&1; then
+    echo "isowall: installing cargo-deb (for the package's test): cargo install cargo-deb@3.8.0 --locked" >&2
+    cargo install --quiet cargo-deb@3.8.0 --locked >&2 || {
+        echo "isowall: cargo install cargo-deb failed; install it (cargo install cargo-deb --locked) and run this again" >&2
+        exit 1
+    }
 fi
 
 # Mesa's window-system code warns without a runtime dir; headless runs do not need a real one.

@@ -4,7 +4,7 @@
 //! DIR` writes every frame's whole-wall image (bezels dark) as DIR/frame-NNNNNN.png, so a
 //! recorded run is the same, file for file, every time.
 
-use crate::drive::{load, runtime, scene};
+use crate::drive::{load, runtime, scene_with_box};
 use crate::path::{frame_time, CameraPath, Defaults};
 use crate::picture::compose;
 use crate::report::report;
@@ -12,8 +12,9 @@ use crate::start::{self, StartArgs};
 use crate::wall::FrameRequest;
 use anyhow::{bail, Context, Result};
 use clap::Args;
+use glam::DVec3;
 use isowall_model::render_state::MAX_AO_SAMPLES;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 #[derive(Args)]
@@ -43,14 +44,34 @@ pub struct DemoArgs {
     pub start: StartArgs,
 }
 
+/// Says, before the wall starts, where a camera path looks away from this wall's volume (a path
+/// written for another volume plays with the surface in a corner or out of view), and how to
+/// write one for it; the path plays anyway.
+pub(crate) fn warn_misfits(path: &CameraPath, file: &Path, volume: (DVec3, DVec3), object: (DVec3, DVec3)) {
+    let misfits = path.misfits(file, volume, object);
+    if misfits.is_empty() {
+        return;
+    }
+    for m in &misfits {
+        tracing::warn!("camera path: {m}");
+    }
+    let c = ((object.0 + object.1) * 0.5).to_array();
+    tracing::warn!(
+        "camera path {}: it was written for another volume? Aim its targets at the object's centre \
+         {c:?} and set its eyes around it (docs/operating.md, \"A camera path for your volume\")",
+        file.display()
+    );
+}
+
 pub fn demo(a: &DemoArgs) -> Result<()> {
     if !(a.fps.is_finite() && a.fps > 0.0) {
         bail!("--fps must be a positive number, not {}", a.fps);
     }
     let config = load(&a.config)?;
-    let (base, settings) = scene(&config)?;
+    let ((base, settings, _, framing), volume_box) = scene_with_box(&config)?;
     let defaults = Defaults { fov_y_deg: base.fov_y_deg, iso: settings.iso, ao_samples: settings.ao.samples };
     let path = CameraPath::load(&a.path, defaults, MAX_AO_SAMPLES)?;
+    warn_misfits(&path, &a.path, volume_box, framing.fit);
     if let Some(dir) = &a.record {
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
     }

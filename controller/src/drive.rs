@@ -147,6 +147,17 @@ pub(crate) fn scene_and_range(config: &WallConfig) -> Result<(Camera, RenderSett
 pub(crate) fn scene_range_and_framing(
     config: &WallConfig,
 ) -> Result<(Camera, RenderSettings, (f64, f64), ViewFraming)> {
+    scene_with_box(config).map(|(scene, _)| scene)
+}
+
+/// A box in world units: its least and greatest corners.
+pub(crate) type WorldBox = (glam::DVec3, glam::DVec3);
+
+/// The wall camera, the render settings, the volume's value range and what the named views frame.
+pub(crate) type Scene = (Camera, RenderSettings, (f64, f64), ViewFraming);
+
+/// [`scene_range_and_framing`] and the volume's box, which a camera path is checked against.
+pub(crate) fn scene_with_box(config: &WallConfig) -> Result<(Scene, WorldBox)> {
     let source: VolumeSource = config.volume_source().parse()?;
     let raw = config.raw_spec().map_err(|e| anyhow!("{e}"))?;
     let bar = crate::progress::spinner(format!("reading volume {source}"));
@@ -184,10 +195,13 @@ pub(crate) fn scene_range_and_framing(
     let volume_box = (info.box_min(), info.box_max());
     let fit = blocks.object_box(iso, info.dims, info.origin, info.spacing).unwrap_or(volume_box);
     Ok((
-        config.camera_framing(volume_box, fit, orientation),
-        config.render_settings(iso),
-        (lo as f64, hi as f64),
-        ViewFraming { fit, orientation, size: config.wall_size() },
+        (
+            config.camera_framing(volume_box, fit, orientation),
+            config.render_settings(iso),
+            (lo as f64, hi as f64),
+            ViewFraming { fit, orientation, size: config.wall_size() },
+        ),
+        volume_box,
     ))
 }
 

@@ -91,6 +91,8 @@ pub struct CameraPath {
     pub keys: Vec<Key>,
     /// The last key repeats the first (camera, iso, samples): a loop closes smoothly.
     pub closed: bool,
+    /// Each key's line in the file (for the warnings of [`CameraPath::misfits`]).
+    pub lines: Vec<usize>,
 }
 
 impl CameraPath {
@@ -123,8 +125,10 @@ impl CameraPath {
             ));
         }
         let mut keys: Vec<Key> = Vec::with_capacity(file.key.len());
+        let mut lines = Vec::with_capacity(file.key.len());
         for (i, spanned) in file.key.iter().enumerate() {
             let offset = spanned.span().start;
+            lines.push(line_column(text, offset).0);
             let k = spanned.get_ref();
             let err = |m: String| at(offset, format!("key {} (time {}): {m}", i + 1, k.time));
             let finite = |name: &str, v: &[f64]| {
@@ -176,7 +180,7 @@ impl CameraPath {
             && first.iso == last.iso
             && first.ao_samples == last.ao_samples
             && first.step == last.step;
-        Ok(CameraPath { keys, closed })
+        Ok(CameraPath { keys, closed, lines })
     }
 
     /// The time of the last key (seconds).
@@ -227,6 +231,80 @@ impl CameraPath {
             ao_samples,
             step: lerp(k0.step as f64, k1.step as f64).floor().max(0.0) as u32,
         }
+    }
+}
+
+/// Keys whose target lies further outside the volume's box than this fraction of its diagonal.
+const TARGET_SLACK: f64 = 0.05;
+/// The object's centre this far from the view's centre (a fraction of the half height) sits off
+/// to a side or a corner.
+const OFF_CENTRE: f64 = 0.5;
+/// An object whose bounding sphere spans less than this fraction of the view's height is lost in it.
+const SMALL: f64 = 0.15;
+/// Problems named per kind at most (the count says the rest).
+const NAMED: usize = 4;
+
+impl CameraPath {
+    /// Where the path looks away from the volume it plays on: keys whose target lies outside the
+    /// volume's box (`volume`, world units), and keys whose view has the object (`object`: the
+    /// box of what reaches the iso value, as the wall's default camera frames it) off its centre
+    /// or small in it. A path written for another volume (the engine's, played on an MRI) shows
+    /// the surface in a corner or not at all; `isowall demo` says so at start, with each key's
+    /// FILE:LINE, and plays it anyway. Empty when the path fits.
+    pub fn misfits(&self, file: &Path, volume: (DVec3, DVec3), object: (DVec3, DVec3)) -> Vec<String> {
+        let slack = (volume.1 - volume.0).length() * TARGET_SLACK;
+        let (centre, radius) = ((object.0 + object.1) * 0.5, (object.1 - object.0).length() * 0.5);
+        let name = |i: usize| {
+            format!("{}:{}: key {} (time {} s)", file.display(), self.lines[i], i + 1, self.keys[i].time)
+        };
+        let mut outside = Vec::new();
+        let mut off = Vec::new();
+        let mut small = Vec::new();
+        // The last key of a closed path repeats the first.
+        let keys = if self.closed { self.keys.len() - 1 } else { self.keys.len() };
+        for (i, k) in self.keys.iter().enumerate().take(keys) {
+            let beyond = (volume.0 - k.target).max(k.target - volume.1).max(DVec3::ZERO);
+            if beyond.length() > slack {
+                outside.push(format!("{}: target {:?}", name(i), k.target.to_array()));
+            }
+            let axis = (k.target - k.eye).normalize_or_zero();
+            let to_centre = centre - k.eye;
+            let along = to_centre.dot(axis);
+            let half = (k.fov_y_deg.to_radians() * 0.5).tan();
+            if along <= radius.max(f64::EPSILON) {
+                off.push(format!("{}: the object is beside or behind the eye", name(i)));
+                continue;
+            }
+            let offset = (to_centre - axis * along).length() / along / half;
+            let size = radius / along / half;
+            if offset > OFF_CENTRE {
+                off.push(format!(
+                    "{}: {:.0}% of the half height off the view's centre",
+                    name(i),
+                    offset * 100.0
+                ));
+            } else if size < SMALL {
+                small.push(format!("{}: {:.0}% of the view's height", name(i), size * 100.0));
+            }
+        }
+        let mut said = Vec::new();
+        let mut say = |list: Vec<String>, what: String| {
+            if list.is_empty() {
+                return;
+            }
+            let more = list.len().saturating_sub(NAMED);
+            let mut text = format!("{what}: {}", list.into_iter().take(NAMED).collect::<Vec<_>>().join("; "));
+            if more > 0 {
+                text.push_str(&format!("; and {more} more"));
+            }
+            said.push(text);
+        };
+        let [a, b] = [volume.0.to_array(), volume.1.to_array()];
+        say(outside, format!("camera targets outside the volume's box {a:?}..{b:?}"));
+        let c = centre.to_array();
+        say(off, format!("views with the object (centre {c:?}) far off their centre"));
+        say(small, format!("views the object (radius {radius:.1}) fills little of"));
+        said
     }
 }
 
@@ -379,5 +457,54 @@ mod tests {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../wall-configs/demos/engine.toml");
         let p = CameraPath::load(&path, D, 1024).unwrap();
         assert!(p.keys.len() >= 4 && p.duration() > 5.0);
+    }
+
+    #[test]
+    fn a_path_is_checked_against_the_volume_it_plays_on() {
+        let file = Path::new(env!("CARGO_MANIFEST_DIR")).join("../wall-configs/demos/engine.toml");
+        let p = CameraPath::load(&file, D, 1024).unwrap();
+        // The engine (256x256x118 voxels, unit spacing): the path was written for it.
+        let engine = (DVec3::ZERO, DVec3::new(255.0, 255.0, 117.0));
+        assert_eq!(p.misfits(&file, engine, engine), Vec::<String>::new());
+        // The MRI (128x128x84): the targets lie on its box's edge, the head off the views' centres.
+        let mri = (DVec3::ZERO, DVec3::new(127.0, 127.0, 83.0));
+        let said = p.misfits(&file, mri, mri);
+        assert_eq!(said.len(), 1, "{said:#?}");
+        assert!(
+            said[0].starts_with("views with the object (centre [63.5, 63.5, 41.5]) far off"),
+            "{said:#?}"
+        );
+        // A small head at the origin (what the engine's path shows of an MRI): its targets lie
+        // outside, the head sits off the views' centres; each key named with its line.
+        let head = (DVec3::ZERO, DVec3::new(47.0, 47.0, 29.0));
+        let said = p.misfits(&file, head, head);
+        assert_eq!(said.len(), 2, "{said:#?}");
+        assert!(said[0].starts_with("camera targets outside the volume's box"), "{said:#?}");
+        assert!(said[0].contains(&format!("engine.toml:{}: key 1 (time 0 s)", p.lines[0])), "{said:#?}");
+        assert!(said[0].ends_with("; and 4 more"), "{said:#?}");
+        assert!(said[1].starts_with("views with the object"), "{said:#?}");
+        // Far away and narrow is small, not off-centre.
+        let far = parse(
+            "[[key]]\ntime = 0\neye = [0, -2000, 0]\ntarget = [0, 0, 0]\n\n\
+             [[key]]\ntime = 1\neye = [2000, 0, 0]\ntarget = [0, 0, 0]\n",
+        )
+        .unwrap();
+        let cube = (DVec3::splat(-20.0), DVec3::splat(20.0));
+        let said = far.misfits(Path::new("p.toml"), cube, cube);
+        assert_eq!(said.len(), 1, "{said:#?}");
+        assert!(
+            said[0].starts_with("views the object (radius 34.6) fills little of: p.toml:1: key 1"),
+            "{said:#?}"
+        );
+        // The object behind the eye.
+        let behind = parse(
+            "[[key]]\ntime = 0\neye = [0, -100, 0]\ntarget = [0, -200, 0]\n\n\
+             [[key]]\ntime = 1\neye = [0, -100, 0]\ntarget = [0, -200, 1]\n",
+        )
+        .unwrap();
+        let big = (DVec3::splat(-300.0), DVec3::splat(300.0));
+        let said = behind.misfits(Path::new("p.toml"), big, cube);
+        assert_eq!(said.len(), 1, "{said:#?}");
+        assert!(said[0].contains("beside or behind the eye"), "{said:#?}");
     }
 }

@@ -1,7 +1,8 @@
 //! The systemd units and readiness:
-//! (a) `systemd-analyze verify` accepts both units in `wall-configs/systemd/` without a single
+//! (a) `systemd-analyze verify` accepts the three units in `wall-configs/systemd/` without a single
 //!     warning (their ExecStart paths pointed at the built binaries in a temporary copy, since
-//!     verify wants the executables to exist);
+//!     verify wants the executables to exist), and the from-source set docs/operating.md makes
+//!     of them (paths under /usr/local) differs in ExecStart= and Documentation= alone;
 //! (b) `isowalld run` with `NOTIFY_SOCKET` set to a unix datagram socket this test bound sends
 //!     `READY=1` only when its QUIC port already accepts a controller: the moment READY=1
 //!     arrives, one connection attempt (no retry) must complete the handshake and the Hello.
@@ -15,8 +16,15 @@ use std::os::unix::net::UnixDatagram;
 use std::process::Command;
 use std::time::{Duration, Instant};
 
+/// The units: the package installs them as they are (tests/tests/package.rs).
+const UNITS: [(&str, &str); 3] = [
+    ("isowalld.service", "isowalld"),
+    ("isowall-demo.service", "isowall"),
+    ("isowall-console.service", "isowall"),
+];
+
 #[test]
-fn systemd_analyze_verify_accepts_both_units() {
+fn systemd_analyze_verify_accepts_the_units() {
     let Ok(out) = Command::new("systemd-analyze").arg("--version").output() else {
         // scripts/setup.sh installs it for the test suite: in CI its absence is a failure.
         assert!(!in_ci(), "systemd-analyze is not installed (it comes with the `systemd` package)");
@@ -28,14 +36,14 @@ fn systemd_analyze_verify_accepts_both_units() {
     let units = repo_root().join("wall-configs/systemd");
     let (isowalld, isowall) = (bin("isowalld"), bin("isowall"));
     let mut paths = Vec::new();
-    for (unit, from, to) in [
-        ("isowalld.service", "/usr/local/bin/isowalld ", isowalld.display().to_string() + " "),
-        ("isowall-demo.service", "/usr/local/bin/isowall ", isowall.display().to_string() + " "),
-    ] {
+    for (unit, binary) in UNITS {
+        let from = format!("/usr/bin/{binary} ");
+        let built = if binary == "isowalld" { &isowalld } else { &isowall };
+        let to = built.display().to_string() + " ";
         let text = std::fs::read_to_string(units.join(unit)).unwrap();
         assert!(text.contains(&format!("ExecStart={from}")), "{unit}: ExecStart is not {from}");
         let path = dir.path().join(unit);
-        std::fs::write(&path, text.replace(from, &to)).unwrap();
+        std::fs::write(&path, text.replace(&from, &to)).unwrap();
         paths.push(path);
     }
     let out = Command::new("systemd-analyze").arg("verify").args(&paths).output().unwrap();
@@ -46,6 +54,51 @@ fn systemd_analyze_verify_accepts_both_units() {
         stdout.trim().is_empty() && stderr.trim().is_empty(),
         "systemd-analyze verify warned:\n{stdout}{stderr}"
     );
+}
+
+/// The from-source install's units are docs/operating.md's sed line applied to these: it must
+/// move every path a unit names under /usr/local and touch nothing else.
+#[test]
+fn the_from_source_units_differ_from_the_packaged_ones_in_their_paths_alone() {
+    let doc = std::fs::read_to_string(repo_root().join("docs/operating.md")).unwrap();
+    let sed = "sed -e 's|^ExecStart=/usr/bin/|ExecStart=/usr/local/bin/|' \\\n    \
+               -e 's|^Documentation=file:/usr/share/|Documentation=file:/usr/local/share/|' \\\n    \
+               wall-configs/systemd/isowalld.service > /etc/systemd/system/isowalld.service";
+    assert!(doc.contains(sed), "docs/operating.md no longer has the from-source sed line:\n{sed}");
+    let from_source = |line: &str| {
+        if let Some(rest) = line.strip_prefix("ExecStart=/usr/bin/") {
+            format!("ExecStart=/usr/local/bin/{rest}")
+        } else if let Some(rest) = line.strip_prefix("Documentation=file:/usr/share/") {
+            format!("Documentation=file:/usr/local/share/{rest}")
+        } else {
+            line.to_string()
+        }
+    };
+    for (unit, binary) in UNITS {
+        let text = std::fs::read_to_string(repo_root().join("wall-configs/systemd").join(unit)).unwrap();
+        let mut moved = 0;
+        for line in text.lines() {
+            let local = from_source(line);
+            if line.starts_with("ExecStart=") {
+                assert!(local.starts_with(&format!("ExecStart=/usr/local/bin/{binary} ")), "{unit}: {line}");
+            } else if line.starts_with("Documentation=") {
+                assert!(
+                    local.starts_with("Documentation=file:/usr/local/share/doc/isowall/"),
+                    "{unit}: {line}"
+                );
+            } else {
+                assert_eq!(local, line);
+                // A setting naming another path under /usr would stay the package's.
+                assert!(
+                    line.starts_with('#') || !line.contains("/usr/"),
+                    "{unit}: {line} is not moved by the sed"
+                );
+                continue;
+            }
+            moved += 1;
+        }
+        assert_eq!(moved, 2, "{unit}: one ExecStart= and one Documentation=");
+    }
 }
 
 /// `systemd-analyze security` rates the node's unit's exposure (0 safest, 10 most exposed).
@@ -113,6 +166,23 @@ fn the_units_keep_gpu_devices_reachable_and_notify_readiness() {
     assert!(demo
         .lines()
         .any(|l| l.starts_with("ExecStart=") && l.contains(" demo ") && l.contains("--loop")));
+    // The console: loopback by default, bookmarks in its state folder (the config's is read-only),
+    // and never beside the demo (one controller drives a wall).
+    let console =
+        std::fs::read_to_string(repo_root().join("wall-configs/systemd/isowall-console.service")).unwrap();
+    let has = |line: &str| console.lines().any(|l| l.trim() == line);
+    for line in [
+        "Environment=ISOWALL_CONSOLE_LISTEN=127.0.0.1:8080",
+        "StateDirectory=isowall/console",
+        "Conflicts=isowall-demo.service",
+        "ProtectSystem=strict",
+        "User=isowall",
+    ] {
+        assert!(has(line), "isowall-console.service lacks `{line}`");
+    }
+    assert!(console.lines().any(|l| l.starts_with("ExecStart=")
+        && l.contains(" console ")
+        && l.contains("--bookmarks /var/lib/isowall/console/")));
 }
 
 #[test]

@@ -22,7 +22,7 @@ mod server;
 mod shared;
 mod status;
 
-use crate::drive::{load, runtime, scene_range_and_framing, time_steps};
+use crate::drive::{load, runtime, scene_with_box, time_steps};
 use crate::start::{self, StartArgs};
 use anyhow::{bail, Context, Result};
 use clap::Args;
@@ -49,6 +49,10 @@ pub struct ConsoleArgs {
     /// The operator lock lapses after this many seconds without a change from its holder
     #[arg(long, value_name = "S", default_value_t = lock::DEFAULT_IDLE.as_secs(), value_parser = clap::value_parser!(u64).range(1..=86400))]
     pub lock_idle_s: u64,
+    /// The camera bookmarks file (default: beside the config, CONFIG.bookmarks.toml); its folder
+    /// must be writable (a service whose config folder is read-only keeps them elsewhere)
+    #[arg(long, value_name = "FILE")]
+    pub bookmarks: Option<PathBuf>,
     #[command(flatten)]
     pub start: StartArgs,
 }
@@ -86,7 +90,7 @@ pub fn access(listen: &str, token: Option<&str>, read_only: bool) -> Result<Acce
 pub fn console(a: &ConsoleArgs) -> Result<()> {
     let access = access(&a.listen, a.token.as_deref(), a.read_only)?;
     let config = load(&a.config)?;
-    let (camera, settings, range, framing) = scene_range_and_framing(&config)?;
+    let ((camera, settings, range, framing), volume_box) = scene_with_box(&config)?;
     let steps = time_steps(&config)?;
     let demo = match &a.demo_path {
         Some(p) => {
@@ -97,6 +101,7 @@ pub fn console(a: &ConsoleArgs) -> Result<()> {
             };
             let path =
                 crate::path::CameraPath::load(p, defaults, isowall_model::render_state::MAX_AO_SAMPLES)?;
+            crate::demo::warn_misfits(&path, p, volume_box, framing.fit);
             Some((p.clone(), path))
         }
         None => None,
@@ -111,7 +116,7 @@ pub fn console(a: &ConsoleArgs) -> Result<()> {
         let scene = frame_loop::Scene { camera, settings, range, framing, steps, demo };
         let limits = server::Limits::default();
         let options = shared::Options {
-            bookmarks: bookmarks::path_for(&a.config),
+            bookmarks: a.bookmarks.clone().unwrap_or_else(|| bookmarks::path_for(&a.config)),
             lock_idle: std::time::Duration::from_secs(a.lock_idle_s),
         };
         let (shared, commands) = shared::Shared::new(access.clone(), limits, options);
