@@ -63,13 +63,16 @@ fi
 
 # The test suite (scripts/test.sh sets isowall_tests=yes) also shows a node's tiles in a window:
 # a virtual X server (Xvfb), X screenshots (xwd, in x11-apps) and the X11 libraries that winit
-# loads at run time; and a browser with its WebDriver for the console's page.
+# loads at run time; a browser with its WebDriver for the console's page; and Prometheus's
+# promtool and server for the metrics.
 if [ "${isowall_tests:-}" = yes ]; then
     command -v Xvfb >/dev/null 2>&1 || { need_pkgs+=(xvfb); missing_why+=("Xvfb (for the window test)"); }
     command -v xwd >/dev/null 2>&1 || { need_pkgs+=(x11-apps); missing_why+=("xwd (for the window test)"); }
     # The operator console's browser test drives Debian's chromium through chromedriver.
     command -v chromium >/dev/null 2>&1 || { need_pkgs+=(chromium); missing_why+=("chromium (for the console's browser test)"); }
     command -v chromedriver >/dev/null 2>&1 || { need_pkgs+=(chromium-driver); missing_why+=("chromedriver (for the console's browser test)"); }
+    # The metrics' test checks /metrics with promtool and has a real prometheus scrape it.
+    { command -v promtool && command -v prometheus; } >/dev/null 2>&1 || { need_pkgs+=(prometheus); missing_why+=("promtool and prometheus (for the metrics' test)"); }
     # The packaged units are checked with systemd-analyze verify.
     command -v systemd-analyze >/dev/null 2>&1 || { need_pkgs+=(systemd); missing_why+=("systemd-analyze (for the units' test)"); }
     # The Debian package's test checks the package with lintian (dpkg-deb comes with dpkg).

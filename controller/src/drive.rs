@@ -86,6 +86,16 @@ pub struct UpArgs {
     /// tried out on one desktop)
     #[arg(long)]
     pub windowed: bool,
+    /// Serve the wall's metrics for Prometheus at http://ADDR/metrics while the run lasts (text
+    /// format 0.0.4). ADDR must be a loopback address, e.g. 127.0.0.1:9184 (port 0: any free
+    /// port, printed): there is no token here; a Prometheus on another machine scrapes
+    /// `isowall console --token T`
+    #[arg(long, value_name = "ADDR", value_parser = crate::metrics::loopback_addr)]
+    pub metrics: Option<std::net::SocketAddr>,
+    /// With --metrics: after the run (its nodes stopped), go on serving its final counts this
+    /// many seconds, so that a scrape sees them (Prometheus scrapes every 15 s by default)
+    #[arg(long, value_name = "S", default_value_t = 0, requires = "metrics", value_parser = clap::value_parser!(u64).range(0..=86400))]
+    pub metrics_hold: u64,
 }
 
 #[derive(Args)]
@@ -472,6 +482,17 @@ pub fn up(a: &UpArgs) -> Result<()> {
     let config = load(&a.config)?;
     let (base, mut settings) = scene(&config)?;
     let gov = governor(&config, &mut settings, &a.orbit)?;
+    // Bound before any node starts: a taken port fails first.
+    let mut metrics_listener = match a.metrics {
+        Some(addr) => {
+            let l = std::net::TcpListener::bind(addr)
+                .with_context(|| format!("--metrics: cannot listen on {addr}"))?;
+            l.set_nonblocking(true).context("--metrics: a non-blocking listener")?;
+            Some(l)
+        }
+        None => None,
+    };
+    let mut metrics_at = None;
     let log_dir = config.resolve("logs");
     let mut daemons = LocalDaemons::start(&config, &log_dir, &a.display, a.windowed)?;
     eprintln!("isowall: starting wall '{}': {} local node(s)", config.wall.name, daemons.len());
@@ -481,6 +502,14 @@ pub fn up(a: &UpArgs) -> Result<()> {
         let mut wall =
             crate::start::connect_local(&mut daemons, config, Duration::from_secs(a.start_timeout)).await?;
         eprintln!("isowall: wall up in {:.2} s", started.elapsed().as_secs_f64());
+        if let Some(l) = metrics_listener.take() {
+            let listener = tokio::net::TcpListener::from_std(l).context("--metrics")?;
+            let at = format!("http://{}/metrics", listener.local_addr().context("--metrics")?);
+            // Served until the runtime ends, after the run and --metrics-hold.
+            tokio::spawn(crate::console::serve_metrics(listener, wall.metrics(), std::future::pending()));
+            eprintln!("isowall: metrics at {at}");
+            metrics_at = Some(at);
+        }
         let mut pids = vec![("controller".to_string(), std::process::id())];
         pids.extend(daemons.pids());
         let mut watch = ResourceWatch::new(a.orbit.frames + a.orbit.still_frames, pids);
@@ -500,6 +529,10 @@ pub fn up(a: &UpArgs) -> Result<()> {
         Ok::<(), anyhow::Error>(())
     });
     drop(daemons);
+    if let (Ok(()), Some(at), 1..) = (&result, &metrics_at, a.metrics_hold) {
+        eprintln!("isowall: the run is done; its final metrics stay at {at} for {} s", a.metrics_hold);
+        rt.block_on(async { tokio::time::sleep(Duration::from_secs(a.metrics_hold)).await });
+    }
     result
 }
 

@@ -8,6 +8,7 @@ mod controls;
 mod demo;
 mod drive;
 mod local;
+mod metrics;
 mod path;
 mod picture;
 mod progress;

@@ -252,18 +252,18 @@ pub fn report(wall: &Wall, elapsed: Duration) -> String {
         }
     }
     if !object.is_empty() && wall.config.wall.balance {
-        s += "balance (bytes of rectangles sent to their tiles' owners per frame; placing: own render done -> \
-              tiles placed, of which work: encode, decode, place):\n";
+        s += "balance (bytes of rectangles sent to their tiles' owners per frame and in all; placing: own render \
+              done -> tiles placed, of which work: encode, decode, place):\n";
     } else if !object.is_empty() {
-        s +=
-            "object space (bytes sent to peers per frame; compositing: own render done -> tiles composited, \
-              of which work: encode, decode, merge):\n";
+        s += "object space (bytes sent to peers per frame and in all; compositing: own render done -> tiles \
+              composited, of which work: encode, decode, merge):\n";
     }
     for (node, (mut bytes, composite, resident, merge)) in object {
         bytes.sort_unstable();
         let median = bytes[(bytes.len() - 1) / 2];
+        let total: u64 = bytes.iter().sum();
         s += &format!(
-            "  {node}: sent p50 {median} B ({:.2} MB) max {} B; composite p50 {} max {}; work p50 {} max {}; resident volume {resident} B\n",
+            "  {node}: sent p50 {median} B ({:.2} MB) max {} B total {total} B; composite p50 {} max {}; work p50 {} max {}; resident volume {resident} B\n",
             median as f64 / 1e6,
             bytes.last().copied().unwrap_or(0),
             ms(quantile(composite.clone(), 0.5)),

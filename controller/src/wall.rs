@@ -2,6 +2,7 @@
 //! [`FrameController`] with what arrives and carry out what it asks, frame after frame; gather
 //! snapshots; report statistics. The network code only moves bytes and calls the state machine.
 
+use crate::metrics::WallMetrics;
 use crate::report::micros;
 use anyhow::{anyhow, bail, Result};
 use isowall_model::adoption::{AdoptionOutput, BrickAssigner};
@@ -18,6 +19,7 @@ use isowall_model::{Camera, Governor, RenderSettings};
 use isowall_net::transport::{self, Channel, ChannelSender};
 use isowall_net::Identity;
 use std::collections::{BTreeMap, HashMap};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tokio::sync::mpsc;
 
@@ -172,6 +174,9 @@ pub struct Wall {
     identify: bool,
     /// A balanced screen-space wall (`[wall] balance = true`): the split's state.
     balance: Option<WallBalance>,
+    /// The metrics for Prometheus, fed from the same events as `finished`, `releases` and
+    /// `snapshot_bytes` (shared with whatever serves `/metrics`).
+    metrics: Arc<WallMetrics>,
 }
 
 /// A balanced wall's split on the controller: the model's rule, the split the nodes were sent
@@ -321,6 +326,7 @@ impl Wall {
         machine.set_ping_interval(Some(ping));
         machine.set_swap_timing(config.wall.swap_timing());
         machine.set_silence_limit(Some(deadline * SILENT_DEADLINES - ping));
+        let metrics = Arc::new(WallMetrics::new(&names, crate::report::one_machine(&config)));
         let mut wall = Wall {
             machine,
             config,
@@ -344,6 +350,7 @@ impl Wall {
             bricks: None,
             identify: false,
             balance: None,
+            metrics,
         };
         if wall.config.wall.balance {
             wall.balance = Some(WallBalance {
@@ -407,6 +414,7 @@ impl Wall {
         let outputs = self.machine.node_up(now, name).map_err(|e| anyhow!("{e}"))?;
         self.senders.insert(name.to_string(), sender);
         self.connections.insert(name.to_string(), connection);
+        self.metrics.set_up(name, true);
         self.execute(outputs).await;
         if self.identify {
             let message = Message::Identify { on: true };
@@ -630,12 +638,14 @@ impl Wall {
                             stragglers.join(", ")
                         );
                     }
+                    self.metrics.released(barrier, &stragglers);
                     self.releases.push((frame_id, barrier, stragglers));
                     self.released += 1;
                     trim_history(&mut self.releases);
                 }
                 ControllerOutput::NodeDown { node, reason } => {
                     eprintln!("isowall: node {node} is down: {}", printable(&reason));
+                    self.metrics.node_down(&node);
                     self.drop_node(&node, &reason);
                     let now = self.now();
                     if let Some(a) = self.bricks.as_mut() {
@@ -672,11 +682,14 @@ impl Wall {
                             }
                         }
                     }
+                    self.metrics.finished(&stats);
                     self.finished.push(stats);
                     trim_history(&mut self.finished);
                 }
                 ControllerOutput::Snapshot { node, tiles } => {
-                    self.snapshot_bytes += tiles.iter().map(|t| t.rgb8.len() as u64).sum::<u64>();
+                    let bytes = tiles.iter().map(|t| t.rgb8.len() as u64).sum::<u64>();
+                    self.snapshot_bytes += bytes;
+                    self.metrics.tile_images(&node, bytes);
                     self.snapshots.insert(node, tiles);
                 }
                 // Kept with the frame's statistics in any case; told within the node's budget.
@@ -736,6 +749,7 @@ impl Wall {
 
     fn drop_node(&mut self, node: &str, reason: &str) {
         self.senders.remove(node);
+        self.metrics.set_up(node, false);
         self.links.detach(node);
         if let Some(c) = self.connections.remove(node) {
             transport::close(&c, reason);
@@ -833,6 +847,20 @@ impl Wall {
                 }
             }
         }
+        self.clock_metrics();
+    }
+
+    /// The nodes' clock error bounds now, as the metrics' gauges.
+    fn clock_metrics(&self) {
+        for n in &self.config.nodes {
+            let bound = self.clock_error_us(&n.name).map(|us| us.max(0) as f64 * 1e-6);
+            self.metrics.set_clock_error(&n.name, bound);
+        }
+    }
+
+    /// The wall's metrics, to serve (`/metrics`).
+    pub fn metrics(&self) -> Arc<WallMetrics> {
+        self.metrics.clone()
     }
 
     /// Runs one frame: begins it (on a paced wall, once the previous frame's present time has
@@ -856,6 +884,7 @@ impl Wall {
             }
             self.step().await;
         }
+        self.clock_metrics();
         Ok(())
     }
 
@@ -1037,5 +1066,6 @@ impl Wall {
         // Reconnections still under way or queued hold connections too: close them all.
         self.endpoint.close(quinn::VarInt::from_u32(0), reason.as_bytes());
         self.endpoint.wait_idle().await;
+        self.metrics.closed();
     }
 }

@@ -15,9 +15,11 @@
 //!   `POST /api/bookmarks/recall`, `POST /api/bookmarks/delete`: camera bookmarks (`bookmarks.rs`);
 //! - `POST /api/identify`: `{"on": bool}` each screen shows its node's and tile's name;
 //! - `POST /api/lock`, `POST /api/lock/release`: the operator lock (`lock.rs`): while one client
-//!   holds it, every other client's change is refused with 423 (reads stay open).
+//!   holds it, every other client's change is refused with 423 (reads stay open);
+//! - `GET /metrics`: the wall's metrics for Prometheus (`crate::metrics`), text format 0.0.4.
 //!
 //! Refusals are JSON `{"error": REASON, "field": FIELD}` with a 4xx status, and change nothing.
+//! `/metrics` is under the same rules as `/api`: the token, the origin, a loopback Host.
 //! Every `/api` request from a browser must come from this console's own page: one whose
 //! `Origin` is another site's, or that the browser marks as sent by another site
 //! (`Sec-Fetch-Site: cross-site` or `same-site`: an `<img>`, a form, a script of another page),
@@ -89,6 +91,7 @@ pub fn router(shared: Arc<Shared>) -> Router {
         .route("/api/identify", post(identify))
         .route("/api/lock", post(take_lock))
         .route("/api/lock/release", post(release_lock))
+        .route("/metrics", get(metrics))
         .layer(axum::middleware::from_fn_with_state(shared.clone(), operator_lock))
         .layer(axum::middleware::from_fn_with_state(shared.clone(), authorize))
         .layer(axum::middleware::from_fn(same_origin_only));
@@ -132,23 +135,57 @@ pub fn is_loopback_host(host: &str) -> bool {
     crate::local::is_loopback(&format!("{name}:0"))
 }
 
+/// The refusal of a request whose Host is not a loopback name (a server without a token: no DNS
+/// rebinding from a web page), if it is not; `serves` says what serves loopback only.
+fn not_loopback(req: &Request, serves: &str) -> Option<Response> {
+    let host = req.headers().get(header::HOST).and_then(|h| h.to_str().ok()).unwrap_or("");
+    (!is_loopback_host(host)).then(|| {
+        ApiError::new(StatusCode::FORBIDDEN, format!("Host `{host}` is not a loopback name: {serves}"))
+            .into_response()
+    })
+}
+
 /// Every request: without a token, the Host must be loopback; counts the bytes answered.
 async fn count_and_check_host(State(shared): State<Arc<Shared>>, req: Request, next: Next) -> Response {
     if shared.access.token.is_none() {
-        let host = req.headers().get(header::HOST).and_then(|h| h.to_str().ok()).unwrap_or("");
-        if !is_loopback_host(host) {
-            return ApiError::new(
-                StatusCode::FORBIDDEN,
-                format!("Host `{host}` is not a loopback name: this console serves loopback only (give --token to serve others)"),
-            )
-            .into_response();
+        let serves = "this console serves loopback only (give --token to serve others)";
+        if let Some(refused) = not_loopback(&req, serves) {
+            return refused;
         }
     }
     let response = next.run(req).await;
     if let Some(n) = axum::body::HttpBody::size_hint(response.body()).exact() {
-        shared.served_bytes.fetch_add(n, Ordering::Relaxed);
+        shared.served_bytes.inc_by(n);
     }
     response
+}
+
+/// `/metrics`: the Prometheus text of the wall's metrics and the console's.
+async fn metrics(State(shared): State<Arc<Shared>>) -> Response {
+    metrics_answer(shared.metrics.text(Some(&shared.console_metrics)))
+}
+
+fn metrics_answer(text: String) -> Response {
+    ([(header::CONTENT_TYPE, crate::metrics::CONTENT_TYPE), (header::CACHE_CONTROL, "no-store")], text)
+        .into_response()
+}
+
+/// `isowall up --metrics ADDR`: `/metrics` alone, under the rules of a console without a token
+/// (its address is loopback, `metrics::loopback_addr`): a loopback Host, no page of another
+/// site, the same answer headers.
+pub fn metrics_router(metrics: Arc<crate::metrics::WallMetrics>) -> Router {
+    Router::new()
+        .route("/metrics", get(|State(m): State<Arc<crate::metrics::WallMetrics>>| async move { metrics_answer(m.text(None)) }))
+        .fallback(|| async { ApiError::new(StatusCode::NOT_FOUND, "no such page: this server has /metrics only") })
+        .layer(axum::middleware::from_fn(same_origin_only))
+        .layer(axum::middleware::from_fn(|req: Request, next: Next| async move {
+            match not_loopback(&req, "`isowall up --metrics` serves loopback only") {
+                Some(refused) => refused,
+                None => next.run(req).await,
+            }
+        }))
+        .layer(axum::middleware::from_fn(security_headers))
+        .with_state(metrics)
 }
 
 /// A request's body, read whole within the body timeout ([`Limits::body_timeout`]) and at most
@@ -487,7 +524,7 @@ async fn live(
 /// Pushes the status at most `hz` times a second, when it changed; stops when the page goes, or
 /// reads nothing for [`LIVE_SEND_DEADLINE`].
 async fn push_status(socket: WebSocket, shared: Arc<Shared>, hz: f64) {
-    push_changes(socket, shared.status.subscribe(), &shared.served_bytes, hz, LIVE_SEND_DEADLINE).await
+    push_changes(socket, shared.status.subscribe(), shared.served_bytes.inner(), hz, LIVE_SEND_DEADLINE).await
 }
 
 /// [`push_status`]'s loop over any WebSocket (`socket`) and status type: each change of `rx`, at

@@ -21,7 +21,6 @@ use anyhow::Result;
 use isowall_model::{Camera, Governor, Motion, RenderSettings, ViewFraming, WallConfig};
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::path::PathBuf;
-use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tokio::sync::mpsc;
@@ -441,7 +440,7 @@ impl Loop {
                 uptime_s: self.started.elapsed().as_secs_f64(),
                 node_image_bytes: wall.snapshot_bytes,
                 thumbnails: self.thumbnails,
-                served_bytes: self.shared.served_bytes.load(Ordering::Relaxed),
+                served_bytes: self.shared.served_bytes.get(),
                 lock,
                 lock_changes,
             },

@@ -57,6 +57,16 @@ pub struct ConsoleArgs {
     pub start: StartArgs,
 }
 
+/// Serves `/metrics` of `metrics` on `listener` (`isowall up --metrics`, a loopback address)
+/// under the console's server limits, until `shutdown` resolves.
+pub async fn serve_metrics(
+    listener: tokio::net::TcpListener,
+    metrics: std::sync::Arc<crate::metrics::WallMetrics>,
+    shutdown: impl std::future::Future<Output = ()>,
+) {
+    server::serve(listener, api::metrics_router(metrics), server::Limits::default(), shutdown).await
+}
+
 /// The shortest token accepted.
 pub const MIN_TOKEN_CHARS: usize = 16;
 
@@ -118,6 +128,7 @@ pub fn console(a: &ConsoleArgs) -> Result<()> {
         let options = shared::Options {
             bookmarks: a.bookmarks.clone().unwrap_or_else(|| bookmarks::path_for(&a.config)),
             lock_idle: std::time::Duration::from_secs(a.lock_idle_s),
+            metrics: wall.metrics(),
         };
         let (shared, commands) = shared::Shared::new(access.clone(), limits, options);
         let looper = tokio::spawn(frame_loop::run(wall, daemons, scene, shared.clone(), commands));

@@ -9,13 +9,14 @@ use super::pictures::Pictures;
 use super::server::Limits;
 use super::status::Status;
 use super::Access;
+use crate::metrics::{ConsoleMetrics, WallMetrics};
 use axum::http::{header, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::Json;
 use isowall_model::messages::{TileImage, MAX_THUMBNAIL_DIVISOR};
 use isowall_model::{Camera, WallConfig};
+use prometheus_client::metrics::counter::Counter;
 use std::collections::BTreeMap;
-use std::sync::atomic::AtomicU64;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tokio::sync::{mpsc, oneshot, watch};
@@ -29,8 +30,12 @@ pub struct Shared {
     /// The latest status (`None` until the first frame).
     pub status: watch::Sender<Option<Arc<Status>>>,
     pub commands: mpsc::Sender<Command>,
-    /// Bytes of response bodies and WebSocket messages sent.
-    pub served_bytes: AtomicU64,
+    /// Bytes of response bodies and WebSocket messages sent (a counter of the console's
+    /// metrics too).
+    pub served_bytes: Counter,
+    /// The wall's metrics (fed by the frame loop's wall) and the console's own, for `/metrics`.
+    pub metrics: Arc<WallMetrics>,
+    pub console_metrics: ConsoleMetrics,
     /// Snapshots and thumbnails: asked of the nodes, shared and bounded.
     pub pictures: Arc<Pictures>,
     pub limits: Limits,
@@ -50,6 +55,8 @@ pub struct Shared {
 pub struct Options {
     pub bookmarks: std::path::PathBuf,
     pub lock_idle: Duration,
+    /// The wall's metrics (`Wall::metrics`).
+    pub metrics: Arc<WallMetrics>,
 }
 
 impl Shared {
@@ -57,13 +64,16 @@ impl Shared {
         let (commands, rx) = mpsc::channel(64);
         let (status, _) = watch::channel(None);
         let pictures = Arc::new(Pictures::default());
-        let served_bytes = AtomicU64::new(0);
+        let served_bytes = Counter::default();
+        let console_metrics = ConsoleMetrics::new(&served_bytes);
         let live_slots = Arc::new(tokio::sync::Semaphore::new(MAX_LIVE));
         let shared = Shared {
             access,
             status,
             commands,
             served_bytes,
+            metrics: options.metrics,
+            console_metrics,
             pictures,
             limits,
             live_slots,
