@@ -17,16 +17,30 @@ pub fn vec3(s: &str) -> Result<DVec3, String> {
 
 pub use isowall_model::cli_args::size;
 
+/// A raw volume's layout from `--dims`, `--type` and `--spacing` (`None` for a file that says
+/// its own): both of the first two or neither.
+pub fn raw_spec(
+    dims: Option<[usize; 3]>,
+    voxel: Option<isowall_volume::io::VoxelType>,
+    spacing: Option<DVec3>,
+) -> anyhow::Result<Option<isowall_volume::io::RawSpec>> {
+    match (dims, voxel) {
+        (None, None) if spacing.is_none() => Ok(None),
+        (Some(dims), Some(voxel)) => Ok(Some(isowall_volume::io::RawSpec {
+            dims,
+            voxel,
+            spacing: spacing.unwrap_or(DVec3::ONE),
+            big_endian: false,
+            header_bytes: 0,
+        })),
+        _ => anyhow::bail!("a raw volume needs both --dims and --type (and optionally --spacing)"),
+    }
+}
+
 /// Frames accumulated into one picture (a bench's reference, the look's frames): 1..= the
 /// renderer's most, as `render --frames`.
 pub fn accumulated_frames(s: &str) -> Result<u32, String> {
-    let max = isowall_render::gpu::MAX_FRAMES;
-    let n: u32 = s.trim().parse().map_err(|_| format!("'{s}' is not a whole number"))?;
-    if (1..=max).contains(&n) {
-        Ok(n)
-    } else {
-        Err(format!("frames {n} is outside 1..={max}"))
-    }
+    isowall_model::cli_args::whole_within(s, 1, isowall_render::gpu::MAX_FRAMES, "frames")
 }
 
 /// Repeats of a measurement as a `u32` ([`isowall_model::cli_args::repeats`]'s range).
@@ -37,22 +51,12 @@ pub fn repeats_u32(s: &str) -> Result<u32, String> {
 /// Surface pixels sampled by a bench's independent truth: 1..=100000 (each is traced by the
 /// brute-force estimator).
 pub fn truth_pixels(s: &str) -> Result<usize, String> {
-    let n: usize = s.trim().parse().map_err(|_| format!("'{s}' is not a whole number"))?;
-    if (1..=100_000).contains(&n) {
-        Ok(n)
-    } else {
-        Err(format!("{n} pixels is outside 1..=100000"))
-    }
+    isowall_model::cli_args::whole_within(s, 1, 100_000, "pixels")
 }
 
 /// Directions per truth pixel of the brute-force estimator: 1..=4096.
 pub fn truth_directions(s: &str) -> Result<u32, String> {
-    let n: u32 = s.trim().parse().map_err(|_| format!("'{s}' is not a whole number"))?;
-    if (1..=4096).contains(&n) {
-        Ok(n)
-    } else {
-        Err(format!("{n} directions is outside 1..=4096"))
-    }
+    isowall_model::cli_args::whole_within(s, 1, 4096, "directions")
 }
 
 /// `NX,NY,NZ` raw-volume dimensions.

@@ -5,7 +5,7 @@
 //! `render` (`--max-volume-bytes`).
 
 use crate::args;
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use clap::Args;
 use glam::DVec3;
 use isowall_volume::io::{RawSpec, VolumeLimit, VoxelType};
@@ -45,17 +45,7 @@ pub struct InfoArgs {
 
 impl InfoArgs {
     fn raw_spec(&self) -> Result<Option<RawSpec>> {
-        match (self.dims, self.voxel_type) {
-            (None, None) if self.spacing.is_none() => Ok(None),
-            (Some(dims), Some(voxel)) => Ok(Some(RawSpec {
-                dims,
-                voxel,
-                spacing: self.spacing.unwrap_or(DVec3::ONE),
-                big_endian: false,
-                header_bytes: 0,
-            })),
-            _ => bail!("a raw volume needs both --dims and --type (and optionally --spacing)"),
-        }
+        args::raw_spec(self.dims, self.voxel_type, self.spacing)
     }
 }
 

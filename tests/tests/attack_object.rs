@@ -23,7 +23,7 @@
 //! `node0` ready in at least half the frames, and the refusal (the close reason the attacker reads, or the logs)
 //! names the peer. Each test prints its numbers (`cargo test ... -- --nocapture`).
 
-use isowall_e2e::{free_udp_ports, in_ci, run_in, start_nodes_with, Daemon};
+use isowall_e2e::{free_udp_ports, run_in, start_nodes, start_nodes_with, Daemon};
 use isowall_model::codec;
 use isowall_model::composite::{Layer, PeerPixels, PixelForm, PixelRect};
 use isowall_model::messages::Message;
@@ -511,15 +511,8 @@ fn a_silent_peer_does_not_freeze_the_wall() {
     let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
     let stop = Arc::new(AtomicBool::new(false));
     let fake = runtime.spawn(silent_node(node1_identity(&w), w.node1, stop.clone()));
-    let mut node0 = Daemon::start(w.dir.path(), &w.config, "node0", &[]);
-    if !node0.wait_ready(Duration::from_secs(120)) {
-        let log = node0.log_text();
-        if log.contains("no Vulkan adapter") && !in_ci() {
-            eprintln!("skipping: no Vulkan adapter");
-            return;
-        }
-        panic!("node0 did not start:\n{log}");
-    }
+    let Some(mut nodes) = start_nodes(w.dir.path(), &w.config, 1) else { return };
+    let mut node0 = nodes.remove(0);
     let (run, _) = under_attack("silent peer", &w, &mut node0, |_| async { (Vec::new(), 0) });
     stop.store(true, Ordering::Relaxed);
     let _ = runtime.block_on(fake);
@@ -580,15 +573,8 @@ fn lying_node_holes(lie: Lie) {
     let stop = Arc::new(AtomicBool::new(false));
     let holes = Arc::new(std::sync::atomic::AtomicU64::new(0));
     let fake = runtime.spawn(fake_node1(node1_identity(&w), w.node1, stop.clone(), lie, holes.clone()));
-    let mut node0 = Daemon::start(w.dir.path(), &w.config, "node0", &[]);
-    if !node0.wait_ready(Duration::from_secs(120)) {
-        let log = node0.log_text();
-        if log.contains("no Vulkan adapter") && !in_ci() {
-            eprintln!("skipping: no Vulkan adapter");
-            return;
-        }
-        panic!("node0 did not start:\n{log}");
-    }
+    let Some(mut nodes) = start_nodes(w.dir.path(), &w.config, 1) else { return };
+    let mut node0 = nodes.remove(0);
     const LIE_FRAMES: u64 = 200;
     let out = run_in(
         w.dir.path(),

@@ -4,7 +4,7 @@
 //! spin outside a swap's last half millisecond); `present_priority = 0` leaves every thread
 //! normal; and the node tells the controller which it is (the report's `presenting threads`).
 
-use isowall_e2e::{free_udp_ports, in_ci, run_in, wait_until, Daemon};
+use isowall_e2e::{free_udp_ports, in_ci, run_in, start_nodes, wait_until};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
@@ -46,25 +46,11 @@ fn real_time(policy: u32) -> bool {
     matches!(policy, 1 | 2 | 6)
 }
 
-/// Starts node0 of `config`; `None` (skip) without a Vulkan adapter outside CI.
-fn start(dir: &Path, config: &Path) -> Option<Daemon> {
-    let mut d = Daemon::start(dir, config, "node0", &[]);
-    if !d.wait_ready(Duration::from_secs(120)) {
-        let log = d.log_text();
-        if log.contains("no Vulkan adapter") && !in_ci() {
-            eprintln!("skipping: no Vulkan adapter");
-            return None;
-        }
-        panic!("node0 did not start:\n{log}");
-    }
-    Some(d)
-}
-
 #[test]
 fn only_the_presenting_thread_runs_real_time_and_it_does_not_spin_while_it_waits() {
     let dir = tempfile::tempdir().unwrap();
     let config = wall(dir.path(), free_udp_ports(1)[0], "present_priority = 7");
-    let Some(node) = start(dir.path(), &config) else { return };
+    let Some(node) = start_nodes(dir.path(), &config, 1).and_then(|mut n| n.pop()) else { return };
     let pid = node.child.id();
     let log = node.log_text();
     if log.contains("real-time (SCHED_FIFO 7) was refused") {
@@ -99,7 +85,7 @@ fn only_the_presenting_thread_runs_real_time_and_it_does_not_spin_while_it_waits
 fn present_priority_0_leaves_every_thread_normal() {
     let dir = tempfile::tempdir().unwrap();
     let config = wall(dir.path(), free_udp_ports(1)[0], "present_priority = 0");
-    let Some(node) = start(dir.path(), &config) else { return };
+    let Some(node) = start_nodes(dir.path(), &config, 1).and_then(|mut n| n.pop()) else { return };
     let ts = threads(node.child.id());
     assert!(ts.iter().all(|t| !real_time(t.1)), "{ts:?}");
     wait_until("the node's log", Duration::from_secs(10), || {

@@ -21,6 +21,16 @@ fn whole<T: std::str::FromStr>(s: &str) -> Result<T, String> {
     s.trim().parse::<T>().map_err(|_| format!("'{s}' is not a whole number"))
 }
 
+/// A whole number in `lo..=hi`, or why not (`what` names it).
+pub fn whole_within<T: std::str::FromStr + PartialOrd + std::fmt::Display + Copy>(
+    s: &str,
+    lo: T,
+    hi: T,
+    what: &str,
+) -> Result<T, String> {
+    within(whole(s)?, lo, hi, what)
+}
+
 fn within<T: PartialOrd + std::fmt::Display + Copy>(v: T, lo: T, hi: T, what: &str) -> Result<T, String> {
     if lo <= v && v <= hi {
         Ok(v)
