@@ -390,7 +390,7 @@ fn the_api_refuses_missing_tokens_and_bad_input_and_changes_nothing() {
     // A camera change through the API: the status's camera moves and the next picture differs;
     // the orbit plays and pauses; reset brings back the config's camera.
     let eye0 = s["camera"]["eye"].clone();
-    let picture0 = snapshot(&con);
+    let picture0 = fresh_snapshot(&con);
     let r = con.post("/api/camera", "{\"yaw_deg\": 40, \"zoom\": 0.8}");
     assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
     let give_up = Instant::now() + Duration::from_secs(30);
@@ -480,6 +480,22 @@ fn snapshot(con: &Console) -> image::RgbImage {
     image::load_from_memory(&r.body).expect("a PNG").to_rgb8()
 }
 
+/// A picture of the wall drawn after every change asked before this call: the console has
+/// carried the changes out (`settled`), and the picture's frame was begun after that.
+fn fresh_snapshot(con: &Console) -> image::RgbImage {
+    let released = settled(con)["frame"]["id"].as_u64().expect("the last released frame's id");
+    wait_until("a picture of a frame begun after the changes", Duration::from_secs(30), || {
+        let r = con.get("/api/snapshot.png");
+        assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+        match r.header("x-isowall-frame").and_then(|f| f.parse::<u64>().ok()) {
+            // Frames already broadcast when the change was carried out may still be drawn
+            // with the state before it: two frames of margin.
+            Some(f) if f > released + 2 => Ok(image::load_from_memory(&r.body).expect("a PNG").to_rgb8()),
+            f => Err(format!("the picture's frame is {f:?}, the change came at {released}")),
+        }
+    })
+}
+
 /// Pixels of two images of the same size whose channels differ by more than 32 levels.
 fn changed_pixels(a: &image::RgbImage, b: &image::RgbImage) -> usize {
     assert_eq!(a.dimensions(), b.dimensions());
@@ -530,9 +546,8 @@ fn the_api_shows_and_sets_the_time_step_of_a_time_varying_volume() {
         "{t}"
     );
     // Two pictures of step 0: how much a still frame changes by itself (AO refining).
-    let still_a = snapshot(&con);
-    std::thread::sleep(Duration::from_millis(300));
-    let still_b = snapshot(&con);
+    let still_a = fresh_snapshot(&con);
+    let still_b = fresh_snapshot(&con);
     let noise = changed_pixels(&still_a, &still_b);
     // Refusals name the field and change nothing.
     for (body, field, says) in [
@@ -1182,7 +1197,11 @@ async fn the_page_shows_each_nodes_gpu_and_log_and_drives_bookmarks_the_lock_and
         let con = con.clone();
         async move { tokio::task::spawn_blocking(move || snapshot(&con)).await.unwrap() }
     };
-    let before = shot(&con).await;
+    // The picture with the exposure just asked: one drawn after it, not the last one shown.
+    let before = {
+        let con = con.clone();
+        tokio::task::spawn_blocking(move || fresh_snapshot(&con)).await.unwrap()
+    };
     page.find(fantoccini::Locator::Id("identify")).await.unwrap().click().await.unwrap();
     until(
         &page,
@@ -1211,11 +1230,17 @@ async fn the_page_shows_each_nodes_gpu_and_log_and_drives_bookmarks_the_lock_and
     page.find(fantoccini::Locator::Id("identify")).await.unwrap().click().await.unwrap();
     let give_up = Instant::now() + Duration::from_secs(20);
     loop {
-        let img = shot(&con).await;
-        if mean_diff(&corner(&img), &corner(&before)) < 3.0 {
+        let c = corner(&shot(&con).await);
+        let diff = mean_diff(&c, &corner(&before));
+        if diff < 3.0 {
             break;
         }
-        assert!(Instant::now() < give_up, "the label stayed after identify was turned off");
+        assert!(
+            Instant::now() < give_up,
+            "the label stayed after identify was turned off (difference {diff:.1} from before, \
+             labelled: {})",
+            labelled(&c)
+        );
         tokio::time::sleep(Duration::from_millis(200)).await;
     }
 
