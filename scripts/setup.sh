@@ -8,12 +8,12 @@ missing_why=()
 if ! command -v cargo >/dev/null 2>&1; then
     echo "isowall: cargo (Rust) is not installed. Install a Rust toolchain first, e.g.:" >&2
     echo "    curl --proto '=https' --tlsv1.2 -sSf https://sh.rustup.rs | sh   (then: . \"\$HOME/.cargo/env\")" >&2
-    echo "or: apt-get install cargo   (Rust 1.85 or newer is needed)" >&2
+    echo "or: apt-get install cargo   (Rust 1.91 or newer is needed: zarrs, the OME-Zarr reader, needs it)" >&2
     exit 1
 fi
 rust_version=$(rustc --version 2>/dev/null | awk '{print $2}')
-if [ -n "$rust_version" ] && ! printf '1.85.0\n%s\n' "$rust_version" | sort -V -C; then
-    echo "isowall: Rust $rust_version is too old: 1.85 or newer is needed (rustup update, or a newer cargo package)" >&2
+if [ -n "$rust_version" ] && ! printf '1.91.0\n%s\n' "$rust_version" | sort -V -C; then
+    echo "isowall: Rust $rust_version is too old: 1.91 or newer is needed, for zarrs (rustup update, or a newer cargo package)" >&2
     exit 1
 fi
 
@@ -59,6 +59,13 @@ if ! { command -v pkg-config >/dev/null 2>&1 && pkg-config --exists libudev; }; 
     command -v pkg-config >/dev/null 2>&1 || { need_pkgs+=(pkg-config); missing_why+=("pkg-config (build)"); }
     need_pkgs+=(libudev-dev)
     missing_why+=("libudev's headers (libudev-dev, to build gamepad input)")
+fi
+
+# C and C++ compilers: zarrs' blosc, zstd, lz4 and snappy codecs (OME-Zarr stores) build their
+# C libraries.
+if ! { command -v cc && command -v c++; } >/dev/null 2>&1; then
+    need_pkgs+=(gcc g++)
+    missing_why+=("C and C++ compilers (to build the OME-Zarr codecs' libraries)")
 fi
 
 # The test suite (scripts/test.sh sets isowall_tests=yes) also shows a node's tiles in a window:

@@ -15,7 +15,7 @@ use isowall_volume::{PatientDir, VolumeSource};
 #[derive(Args, Debug)]
 pub struct InfoArgs {
     /// The volume: a file (.nrrd .nhdr .mhd .mha .nii .nii.gz, a DICOM folder or one file of the
-    /// series, or raw with --dims/--type/--spacing) or procedural:NAME[:N]
+    /// series, an OME-Zarr store, or raw with --dims/--type/--spacing) or procedural:NAME[:N]
     #[arg(value_name = "VOLUME")]
     pub volume: String,
     /// DICOM: the SeriesInstanceUID where the folder holds several
@@ -95,6 +95,20 @@ pub fn run(a: &InfoArgs) -> Result<()> {
             );
         }
         None => println!("orientation: none in the file (views read the world axes as LPS)"),
+    }
+    if let VolumeSource::File(p) = &source {
+        if isowall_volume::io::ome_zarr::is_zarr(p) {
+            let store = isowall_volume::io::ome_zarr::OmeZarr::open(p)?;
+            println!("levels ({} time steps; the values below are of the finest read):", store.steps());
+            for (l, level) in store.levels().iter().enumerate() {
+                let [x, y, z] = level.dims;
+                let [cx, cy, cz] = level.chunk;
+                println!(
+                    "  {l}: `{}` {x} x {y} x {z}, spacing {} {} {}, {} in chunks of {cx} x {cy} x {cz}",
+                    level.path, level.spacing.x, level.spacing.y, level.spacing.z, level.data_type
+                );
+            }
+        }
     }
     let stats = ValueStats::of(volume.data()).context("the volume holds no values")?;
     println!("values: {} .. {}", stats.min, stats.max);

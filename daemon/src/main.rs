@@ -4,6 +4,7 @@
 mod args;
 mod balanced;
 mod bench;
+mod convert;
 mod display;
 mod identify;
 mod info;
@@ -51,6 +52,9 @@ enum Command {
     /// What a volume holds: format, grid, orientation, value range, percentiles, a histogram,
     /// and suggested iso values with how they were found.
     Info(info::InfoArgs),
+    /// Write any volume Isowall reads as an OME-Zarr pyramid (NGFF 0.5, Zarr v3): levels of 2x2x2
+    /// means, chunks of 64^3, orientation and per-brick min/max kept.
+    Convert(convert::ConvertArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -68,6 +72,7 @@ fn main() -> std::process::ExitCode {
         None => render::run(&render::RenderArgs::default()),
         Some(Command::Render(args)) => render::run(&args),
         Some(Command::Info(args)) => info::run(&args),
+        Some(Command::Convert(args)) => convert::run(&args),
         Some(Command::Run(args)) => run::run(&args),
         Some(Command::Bench(cmd)) => bench::run(&cmd),
         Some(Command::CheckConfig(args)) => isowall_model::check_config::run(

@@ -7,8 +7,8 @@
 //! changes, and, where there is no bar, a `tracing` line at every quarter (the node's log, which
 //! `isowall up` keeps in `wall-configs/logs/` for local walls).
 //!
-//! [`Frames`]: the frames of a long `isowalld render --frames K`, a bar on a terminal, else a
-//! plain line at every quarter.
+//! [`Counted`]: the frames of a long `isowalld render --frames K` or the chunks of an
+//! `isowalld convert`, a bar on a terminal, else a plain line at every quarter.
 
 use indicatif::{ProgressBar, ProgressStyle};
 use isowall_volume::{Pass, Progress};
@@ -95,45 +95,63 @@ impl Drop for Bricking {
     }
 }
 
-/// Progress of a render's accumulated frames: a bar on stderr where it is a terminal, else a plain
-/// line (`isowalld render: frame K of N (P%), T s`) at every quarter of them.
-pub struct Frames {
+/// Progress of work counted in units (a render's accumulated frames, a conversion's chunks): a
+/// bar on stderr where it is a terminal, else a plain line (`COMMAND: UNIT K of N (P%), T s`) at
+/// every quarter of them.
+pub struct Counted {
     bar: ProgressBar,
-    total: u32,
-    quarter: u32,
+    command: &'static str,
+    unit: &'static str,
+    total: u64,
+    quarter: u64,
     start: Instant,
 }
 
-impl Frames {
-    pub fn new(total: u32, what: &str) -> Frames {
-        let bar = ProgressBar::new(u64::from(total)).with_message(what.to_string());
-        bar.set_style(
-            ProgressStyle::with_template("{bar:24} frame {pos}/{len} {msg} ({elapsed}, {eta} left)")
-                .unwrap_or_else(|_| ProgressStyle::default_bar()),
-        );
-        Frames { bar, total, quarter: 0, start: Instant::now() }
+impl Counted {
+    /// A render's `total` frames of `what`: `isowalld render: frame K of N (P%), T s`.
+    pub fn frames(total: u32, what: &str) -> Counted {
+        Counted::of("isowalld render", "frame", u64::from(total), what)
     }
 
-    /// Frame `k` (from 1) is done.
+    /// `total` units of `command`'s work on `what`.
+    pub fn of(command: &'static str, unit: &'static str, total: u64, what: &str) -> Counted {
+        let bar = ProgressBar::new(total).with_message(what.to_string());
+        bar.set_style(
+            ProgressStyle::with_template(&format!(
+                "{{bar:24}} {unit} {{pos}}/{{len}} {{msg}} ({{elapsed}}, {{eta}} left)"
+            ))
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+        Counted { bar, command, unit, total, quarter: 0, start: Instant::now() }
+    }
+
+    /// Unit `k` (from 1) is done.
     pub fn done(&mut self, k: u32) {
-        self.bar.set_position(u64::from(k));
+        self.done_of(u64::from(k));
+    }
+
+    /// Unit `k` (from 1) is done.
+    pub fn done_of(&mut self, k: u64) {
+        self.bar.set_position(k);
         if !self.bar.is_hidden() {
             return;
         }
-        let quarter = (u64::from(k) * 4 / u64::from(self.total.max(1))) as u32;
+        let quarter = k * 4 / self.total.max(1);
         if quarter > self.quarter {
             self.quarter = quarter;
             eprintln!(
-                "isowalld render: frame {k} of {} ({}%), {:.1} s",
+                "{}: {} {k} of {} ({}%), {:.1} s",
+                self.command,
+                self.unit,
                 self.total,
-                u64::from(k) * 100 / u64::from(self.total.max(1)),
+                k * 100 / self.total.max(1),
                 self.start.elapsed().as_secs_f64()
             );
         }
     }
 }
 
-impl Drop for Frames {
+impl Drop for Counted {
     fn drop(&mut self) {
         self.bar.finish_and_clear();
     }

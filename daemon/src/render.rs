@@ -1,7 +1,7 @@
 //! `isowalld render`: one headless frame to a file.
 
 use crate::args;
-use crate::progress::Frames;
+use crate::progress::Counted;
 use anyhow::{anyhow, bail, Context, Result};
 use clap::{Args, ValueEnum};
 use glam::DVec3;
@@ -435,7 +435,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             let genv = env.as_ref().map(|e| gpu.upload_environment(e)).transpose()?;
             // Frames accumulate only with AO or image-based light: then each is reported.
             let accumulates = settings.ao.samples > 0 || settings.ao.ibl != IblMethod::None;
-            let mut progress = (frames > 1 && accumulates).then(|| Frames::new(frames, &volume.name));
+            let mut progress = (frames > 1 && accumulates).then(|| Counted::frames(frames, &volume.name));
             let mut report = progress.as_mut().map(|p| move |k: u32| p.done(k));
             let on_frame = report.as_mut().map(|r| r as &mut dyn FnMut(u32));
             let r =
@@ -447,7 +447,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             )
         }
         RendererKind::Reference => {
-            let mut progress = (frames > 1).then(|| Frames::new(frames, &volume.name));
+            let mut progress = (frames > 1).then(|| Counted::frames(frames, &volume.name));
             let mut report = progress.as_mut().map(|p| move |k: u32| p.done(k));
             let on_frame = report.as_mut().map(|r| r as &mut dyn FnMut(u32));
             let mut frame = reference::render_accumulated_reporting(

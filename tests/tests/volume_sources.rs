@@ -49,6 +49,64 @@ fn the_ct_as_a_dicom_series_renders_exactly_as_its_nrrd() {
     assert!(got == want, "one file of the series renders differently from the NRRD");
 }
 
+#[test]
+fn the_ct_converted_to_ome_zarr_renders_exactly_as_its_nrrd_and_its_levels_within_a_limit() {
+    let Some(shared) = shared_dir() else { return };
+    let nrrd = shared.join("data/ct-cranium.nrrd");
+    let dir = tempfile::tempdir().unwrap();
+    let o =
+        run_in(dir.path(), "isowalld", &["convert", nrrd.to_str().unwrap(), "ct.ome.zarr", "--chunk", "32"]);
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        out.contains("4 levels (256x256x108, 128x128x54, 64x64x27, 32x32x14)")
+            && out.contains("orientation RAS"),
+        "{out}"
+    );
+    // Progress without a terminal: a line at every quarter.
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("isowalld convert: chunk") && err.contains("(100%)"), "{err}");
+    // Level 0 is the NRRD, its orientation and placement kept: the same pixels, colour and depth.
+    let Some(want) = render(dir.path(), nrrd.to_str().unwrap(), "300", "nrrd.png", &[]) else { return };
+    let got = render(dir.path(), "ct.ome.zarr", "300", "zarr.png", &[]).unwrap();
+    assert!(got == want, "the converted store renders differently from the NRRD");
+    let depth = |volume: &str, out: &str| {
+        let o = run_in(
+            dir.path(),
+            "isowalld",
+            &[
+                "render", "--volume", volume, "--iso", "300", "--size", "48x36", "--aov", "depth", "--out",
+                out,
+            ],
+        );
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        std::fs::read(dir.path().join(out)).unwrap()
+    };
+    assert!(depth(nrrd.to_str().unwrap(), "n.pfm") == depth("ct.ome.zarr", "z.pfm"), "depth differs");
+    // Under a limit below level 0, the finest level within it is read, and said.
+    let o = run_in(
+        dir.path(),
+        "isowalld",
+        &[
+            "render",
+            "--volume",
+            "ct.ome.zarr",
+            "--iso",
+            "300",
+            "--size",
+            "48x36",
+            "--max-volume-bytes",
+            "4000000",
+        ],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success() && err.contains("reading level 1 (128x128x54"), "{err}");
+    // Nothing is overwritten.
+    let o = run_in(dir.path(), "isowalld", &["convert", nrrd.to_str().unwrap(), "ct.ome.zarr"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("nothing is overwritten"), "{err}");
+}
+
 /// A NRRD of a sphere of `radius` voxels in a 16^3 box.
 fn sphere_nrrd(path: &Path, radius: f64) {
     let mut bytes =

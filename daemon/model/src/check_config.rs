@@ -122,7 +122,7 @@ fn check_volume_files(config: &WallConfig, on: CheckedOn) -> Result<Vec<String>,
         },
         _ => Vec::new(),
     };
-    for path in files.iter().filter(|p| p.is_file()) {
+    for path in files.iter().filter(|p| p.is_file() || isowall_volume::io::ome_zarr::is_zarr(p)) {
         check_header(path, &limit).map_err(|e| e.to_string())?;
     }
     Ok(Vec::new())

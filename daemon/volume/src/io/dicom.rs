@@ -55,11 +55,11 @@ type Header = dicom_object::FileDicomObject<InMemDicomObject>;
 /// Relative tolerance for slice steps: steps within 1% of the median are even.
 const STEP_TOLERANCE: f64 = 0.01;
 
-/// Whether `path` names DICOM data: a folder, a `.dcm`/`.dicom`/`.ima` file, or a file with the
+/// Whether `path` names DICOM data: a folder (not a Zarr store), a `.dcm`/`.dicom`/`.ima` file, or a file with the
 /// `DICM` magic at byte 128.
 pub fn is_dicom(path: &Path) -> bool {
     if path.is_dir() {
-        return true;
+        return !super::ome_zarr::is_zarr(path);
     }
     let name = path.file_name().map(|n| n.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
     if [".dcm", ".dicom", ".ima"].iter().any(|e| name.ends_with(e)) {

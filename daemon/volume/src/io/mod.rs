@@ -1,6 +1,7 @@
 //! Volume file readers. The format is chosen by the file name: `.nrrd`/`.nhdr` (NRRD), `.mhd`/`.mha`
 //! (MetaImage), `.nii`/`.nii.gz`/`.hdr` (NIfTI-1 and NIfTI-2), a folder, `.dcm`/`.dicom`/`.ima` or a file with
-//! DICOM's magic (a DICOM series, [`dicom`]); anything else is raw and needs a [`RawSpec`].
+//! DICOM's magic (a DICOM series, [`dicom`]), a Zarr store (`*.zarr`, or a folder with `zarr.json` or
+//! `.zattrs`: an OME-Zarr pyramid, [`ome_zarr`]); anything else is raw and needs a [`RawSpec`].
 //! Every error names the file and what is wrong with it; nothing here panics on bad input.
 //! Voxel values are kept in the data's own units (no rescaling except NIfTI's scl_slope/inter),
 //! converted to `f32`: 32-bit integers beyond 2^24 and doubles lose precision, doubles beyond the
@@ -38,11 +39,14 @@ mod limit;
 pub mod metaimage;
 pub mod nifti;
 pub mod nrrd;
+pub mod ome_zarr;
+pub mod ome_zarr_write;
 mod plan;
 pub mod raw;
 pub mod regular;
 #[cfg(test)]
 pub(crate) mod testutil;
+pub mod zarr_codecs;
 
 pub use decode::VoxelType;
 pub(crate) use decode::{
@@ -78,6 +82,7 @@ enum FileFormat {
     MetaImage,
     Nifti,
     Dicom,
+    OmeZarr,
 }
 
 /// The name of the format a file is read as ("NRRD", "MetaImage", "NIfTI", "DICOM", "raw").
@@ -88,6 +93,7 @@ pub fn format_name(path: &Path) -> &'static str {
         FileFormat::MetaImage => "MetaImage",
         FileFormat::Nifti => "NIfTI",
         FileFormat::Dicom => "DICOM",
+        FileFormat::OmeZarr => "OME-Zarr",
     }
 }
 
@@ -95,6 +101,9 @@ impl FileFormat {
     /// The format a file name says (case-insensitive); a folder or a file with DICOM's magic is
     /// DICOM; anything else unknown is raw.
     fn of(path: &Path) -> FileFormat {
+        if ome_zarr::is_zarr(path) {
+            return FileFormat::OmeZarr;
+        }
         match FileFormat::by_name(path) {
             FileFormat::Raw if dicom::is_dicom(path) => FileFormat::Dicom,
             f => f,
@@ -155,6 +164,7 @@ pub fn load_step_within(
         return steps.read(step);
     }
     let (volume, steps) = match format {
+        FileFormat::OmeZarr => return ome_zarr::read(path, step, limit),
         FileFormat::Nrrd => nrrd::read(path, limit)?,
         FileFormat::MetaImage => (metaimage::read(path, limit)?, 1),
         FileFormat::Nifti => nifti::read(path, limit)?,
@@ -178,6 +188,14 @@ pub fn load_step_within(
 /// uncompressed data that does not fill its file. Other formats pass here (a DICOM series has
 /// [`dicom::Series`]'s checks; the rest are checked when read).
 pub fn check_header(path: &Path, limit: &VolumeLimit) -> Result<(), VolumeError> {
+    if FileFormat::of(path) == FileFormat::OmeZarr {
+        let store = ome_zarr::OmeZarr::open(path)?;
+        if store.finest_within(limit).is_none() {
+            let l = &store.levels()[store.levels().len() - 1];
+            return Err(format_err(path, limit.check(l.voxels(), "even its coarsest level").unwrap_err()));
+        }
+        return Ok(());
+    }
     step_file(path, limit).map(|_| ())
 }
 
@@ -187,6 +205,7 @@ pub fn time_steps(path: &Path) -> Result<usize, VolumeError> {
     match FileFormat::of(path) {
         FileFormat::Nrrd => nrrd::time_steps(path),
         FileFormat::Nifti => nifti::time_steps(path),
+        FileFormat::OmeZarr => Ok(ome_zarr::OmeZarr::open(path)?.steps()),
         _ => Ok(1),
     }
 }
@@ -262,7 +281,7 @@ pub(crate) fn plan(
             };
             Ok(Some((plan, spec.spacing, DVec3::ZERO)))
         }
-        FileFormat::MetaImage | FileFormat::Nifti => Ok(None),
+        FileFormat::MetaImage | FileFormat::Nifti | FileFormat::OmeZarr => Ok(None),
         // Read slice by slice through `Series` (crate::region), not through a file plan.
         FileFormat::Dicom => Ok(None),
     }

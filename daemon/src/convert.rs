@@ -1,0 +1,117 @@
+//! `isowalld convert IN OUT.ome.zarr`: any volume Isowall reads, written as an OME-Zarr pyramid
+//! (NGFF 0.5 on Zarr v3) that Isowall and other viewers (napari, neuroglancer, Fiji) open. The
+//! levels, chunks, placement and Isowall's own keys are `isowall_volume::io::ome_zarr_write`'s.
+
+use crate::args;
+use anyhow::{Context, Result};
+use clap::Args;
+use glam::DVec3;
+use isowall_volume::io::ome_zarr_write::{self, PyramidOptions};
+use isowall_volume::io::{RawSpec, VolumeLimit, VoxelType};
+use isowall_volume::VolumeSource;
+use std::path::PathBuf;
+
+#[derive(Args, Debug)]
+#[command(after_help = "The input is read whole (in memory as float32, 4 bytes a voxel, within \
+--max-volume-bytes), then written level by level: level 0 is the volume, each next level the \
+2x2x2 mean of the one before, until a level fits one chunk. The store keeps the input's patient \
+orientation, and per-brick min/max of every level (isowall_minmax/<level>), which other readers \
+ignore. Nothing is overwritten: OUT must not exist, or be an empty folder.")]
+pub struct ConvertArgs {
+    /// The volume: a file (.nrrd .nhdr .mhd .mha .nii .nii.gz, a DICOM folder or one file of the
+    /// series, an OME-Zarr store, or raw with --dims/--type/--spacing) or procedural:NAME[:N]
+    #[arg(value_name = "IN")]
+    pub input: String,
+    /// The store to write, a folder (e.g. ct.ome.zarr)
+    #[arg(value_name = "OUT")]
+    pub output: PathBuf,
+    /// Samples per chunk side (a brick of the pyramid)
+    #[arg(long, value_name = "N", default_value_t = 64, value_parser = clap::value_parser!(u16).range(8..=512))]
+    pub chunk: u16,
+    /// zstd's compression level (1 fast .. 19 small)
+    #[arg(long, value_name = "L", default_value_t = 3, value_parser = clap::value_parser!(i32).range(1..=19))]
+    pub zstd_level: i32,
+    /// DICOM: the SeriesInstanceUID where the folder holds several
+    #[arg(long, value_name = "UID")]
+    pub series: Option<String>,
+    /// Also measure what the pyramid's first coarse level does to the surface at this iso value:
+    /// the share of level 0's surface samples its field puts on the other side (and the same for
+    /// a level of every other sample, the rule not used)
+    #[arg(long, value_name = "V", allow_negative_numbers = true)]
+    pub iso: Option<f32>,
+    /// Time-varying volumes: the time step to convert, from 0
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    pub step: usize,
+    /// Raw volumes: dimensions
+    #[arg(long, value_name = "NX,NY,NZ", value_parser = args::dims)]
+    pub dims: Option<[usize; 3]>,
+    /// Raw volumes: voxel type (uint8, int8, uint16, int16, uint32, int32, float32, float64),
+    /// little endian
+    #[arg(long = "type", value_name = "TYPE")]
+    pub voxel_type: Option<VoxelType>,
+    /// Raw volumes: voxel spacing [default: 1,1,1]
+    #[arg(long, value_name = "SX,SY,SZ", value_parser = args::vec3)]
+    pub spacing: Option<DVec3>,
+    /// The most bytes the input may take as float32 (4 a voxel), checked from its header before
+    /// it is read [default: 2 GiB]
+    #[arg(long, value_name = "BYTES")]
+    pub max_volume_bytes: Option<u64>,
+}
+
+impl ConvertArgs {
+    fn raw_spec(&self) -> Result<Option<RawSpec>> {
+        args::raw_spec(self.dims, self.voxel_type, self.spacing)
+    }
+}
+
+pub fn run(a: &ConvertArgs) -> Result<()> {
+    let source: VolumeSource = a.input.parse()?;
+    let source = source.with_series(a.series.as_deref())?;
+    let raw = a.raw_spec()?;
+    let limit = match a.max_volume_bytes {
+        Some(b) => VolumeLimit::new(b, "--max-volume-bytes"),
+        None => VolumeLimit::default(),
+    };
+    let bar = crate::progress::spinner(format!("reading {source}"));
+    let volume = source.load_step_within(raw.as_ref(), a.step, &limit);
+    bar.finish_and_clear();
+    let volume = volume.with_context(|| format!("cannot read {source}"))?;
+    let opts = PyramidOptions { chunk: usize::from(a.chunk), zstd_level: a.zstd_level };
+    let mut progress: Option<crate::progress::Counted> = None;
+    let what = a.output.display().to_string();
+    let summary = ome_zarr_write::write(&volume, &a.output, &opts, &mut |done, total| {
+        progress
+            .get_or_insert_with(|| {
+                crate::progress::Counted::of("isowalld convert", "chunk", total as u64, &what)
+            })
+            .done_of(done as u64);
+    });
+    drop(progress);
+    let summary = summary.with_context(|| format!("cannot convert {source}"))?;
+    let levels: Vec<String> = summary.levels.iter().map(|d| format!("{}x{}x{}", d[0], d[1], d[2])).collect();
+    println!(
+        "converted {source} to {}: {} levels ({}), {} chunks of {}^3, orientation {}",
+        a.output.display(),
+        levels.len(),
+        levels.join(", "),
+        summary.chunks,
+        a.chunk,
+        match volume.patient_axes() {
+            Some(p) => p.orientation().map_or_else(|| "oblique".to_string(), |o| o.code()),
+            None => "none given".to_string(),
+        }
+    );
+    if let Some(iso) = a.iso {
+        let (mean, surface) =
+            ome_zarr_write::surface_disagreement(&volume, &ome_zarr_write::mean_level(&volume), iso);
+        let (every, _) =
+            ome_zarr_write::surface_disagreement(&volume, &ome_zarr_write::subsampled_level(&volume), iso);
+        println!(
+            "iso {iso}: level 1 puts {:.2}% of level 0's {surface} surface samples on the other side (2x2x2 mean; \
+             every other sample would put {:.2}%)",
+            mean * 100.0,
+            every * 100.0
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,245 @@
+//! OME-Zarr stores: Isowall's own pyramids read back, stores written by other programs
+//! (ome-zarr-py and zarr-python, tests/data/ome_zarr/write_foreign.py), and hostile stores:
+//! a compression bomb for each codec, a chunk file larger than any chunk, bad metadata.
+
+use glam::DVec3;
+use isowall_volume::io::ome_zarr::{is_zarr, OmeZarr};
+use isowall_volume::io::ome_zarr_write::{mean_level, write, PyramidOptions};
+use isowall_volume::io::{load, load_within, VolumeLimit};
+use isowall_volume::orientation::{PatientAxes, PatientFrame};
+use isowall_volume::Volume;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use zarrs::array::codec::api::BytesToBytesCodecTraits;
+use zarrs::array::codec::{BloscCodec, BloscCompressor, BloscShuffleMode, GzipCodec, ZstdCodec};
+use zarrs::array::ArrayBuilder;
+use zarrs::filesystem::FilesystemStore;
+
+fn data(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/ome_zarr").join(name)
+}
+
+/// A 37 x 22 x 19 grid (odd and even sides) of a smooth field, anisotropic, off the origin,
+/// oriented RAS.
+fn grid() -> Volume {
+    let dims = [37, 22, 19];
+    let mut v = Vec::new();
+    for k in 0..dims[2] {
+        for j in 0..dims[1] {
+            for i in 0..dims[0] {
+                let (x, y, z) = (i as f32, j as f32, k as f32);
+                v.push((x * 0.37).sin() * 40.0 + y * 1.5 - z * 0.75 + (x * y * 0.01));
+            }
+        }
+    }
+    let axes = PatientAxes::new([DVec3::X, DVec3::Y, DVec3::Z], PatientFrame::Ras).unwrap();
+    Volume::new("grid", dims, DVec3::new(0.5, 0.8, 1.25), DVec3::new(-3.0, 7.5, 100.0), v)
+        .unwrap()
+        .with_patient_axes(Some(axes))
+}
+
+#[test]
+fn a_pyramid_isowall_writes_reads_back_level_by_level_where_design_places_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("grid.ome.zarr");
+    let v = grid();
+    let mut calls = Vec::new();
+    let summary =
+        write(&v, &out, &PyramidOptions { chunk: 8, zstd_level: 3 }, &mut |d, t| calls.push((d, t))).unwrap();
+    // 37x22x19 -> 19x11x10 -> 10x6x5 -> 5x3x3 (fits one chunk of 8).
+    assert_eq!(summary.levels, vec![[37, 22, 19], [19, 11, 10], [10, 6, 5], [5, 3, 3]]);
+    assert_eq!(calls.last(), Some(&(summary.chunks, summary.chunks)), "the progress ends at its total");
+    assert!(calls.windows(2).all(|w| w[1].0 == w[0].0 + 1), "the progress moves one chunk at a time");
+    assert!(is_zarr(&out));
+
+    let store = OmeZarr::open(&out).unwrap();
+    assert_eq!(store.levels().len(), 4);
+    assert_eq!(store.patient_axes(), v.patient_axes(), "the orientation is kept");
+    let mut expect = v.clone();
+    for (l, level) in store.levels().iter().enumerate() {
+        let f = f64::from(1u32 << l);
+        assert!(
+            (level.spacing - v.spacing() * f).abs().max_element() < 1e-12,
+            "level {l}: {:?}",
+            level.spacing
+        );
+        // Sample 0 of level l sits at origin + (2^l - 1)/2 * s0.
+        let at = v.origin() + v.spacing() * (f - 1.0) / 2.0;
+        assert!((level.origin - at).abs().max_element() < 1e-9, "level {l}: {:?} != {at:?}", level.origin);
+        let got = store.read_level(l, 0, &VolumeLimit::default()).unwrap();
+        assert_eq!(got.dims(), expect.dims(), "level {l}");
+        assert_eq!(got.data(), expect.data(), "level {l}: the samples written are read back exactly");
+        expect = mean_level(&expect);
+    }
+    // Through the common loader: level 0 whole; with a limit under level 0, the finest that fits.
+    let whole = load(&out, None).unwrap();
+    assert_eq!((whole.dims(), whole.data()), (v.dims(), v.data()));
+    assert_eq!(
+        (whole.patient_axes(), whole.orientation()),
+        (v.patient_axes(), v.patient_axes().unwrap().orientation())
+    );
+    let level1_bytes = 19 * 11 * 10 * 4;
+    let coarse = load_within(&out, None, &VolumeLimit::new(level1_bytes, "a test's budget")).unwrap();
+    assert_eq!(coarse.dims(), [19, 11, 10], "the finest level within the limit");
+    let e = load_within(&out, None, &VolumeLimit::new(16, "a test's budget")).unwrap_err().to_string();
+    assert!(e.contains("coarsest level") && e.contains("a test's budget"), "{e}");
+    // Nothing is overwritten.
+    let e = write(&v, &out, &PyramidOptions::default(), &mut |_, _| {}).unwrap_err().to_string();
+    assert!(e.contains("nothing is overwritten"), "{e}");
+}
+
+#[test]
+fn the_per_brick_min_max_bound_every_sample_of_their_brick() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("g.ome.zarr");
+    let v = grid();
+    write(&v, &out, &PyramidOptions { chunk: 8, zstd_level: 1 }, &mut |_, _| {}).unwrap();
+    let store = Arc::new(FilesystemStore::new(&out).unwrap());
+    let a = zarrs::array::Array::open(store, "/isowall_minmax/0").unwrap();
+    let mm: Vec<f32> = a.retrieve_array_subset::<Vec<f32>>(&a.subset_all()).unwrap();
+    let counts = [a.shape()[2] as usize, a.shape()[1] as usize, a.shape()[0] as usize];
+    assert_eq!(counts, [5, 3, 3], "bricks of 8 cells over 36x21x18 cells");
+    let d = v.dims();
+    for k in 0..d[2] {
+        for j in 0..d[1] {
+            for i in 0..d[0] {
+                // Every brick holding this sample (a shared face is in both).
+                for bz in [k / 8, k.saturating_sub(1) / 8] {
+                    for by in [j / 8, j.saturating_sub(1) / 8] {
+                        for bx in [i / 8, i.saturating_sub(1) / 8] {
+                            let (bx, by, bz) =
+                                (bx.min(counts[0] - 1), by.min(counts[1] - 1), bz.min(counts[2] - 1));
+                            let b = 2 * (bx + counts[0] * (by + counts[1] * bz));
+                            let x = v.at(i, j, k);
+                            assert!(mm[b] <= x && x <= mm[b + 1], "({i},{j},{k}) in brick ({bx},{by},{bz})");
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Level 0 of the foreign stores: v(x, y, z) = x + 3y + 7z - 50 on 13 x 17 x 20, scale (x, y, z)
+/// (0.5, 0.75, 2.0), translation (3, -4, 10); level 1 is every other sample.
+fn check_foreign(name: &str) {
+    let path = data(name);
+    assert!(is_zarr(&path), "{name}");
+    let store = OmeZarr::open(&path).unwrap_or_else(|e| panic!("{name}: {e}"));
+    assert_eq!(store.levels().len(), 2, "{name}");
+    let l0 = &store.levels()[0];
+    assert_eq!(
+        (l0.dims, l0.spacing, l0.origin),
+        ([13, 17, 20], DVec3::new(0.5, 0.75, 2.0), DVec3::new(3.0, -4.0, 10.0))
+    );
+    let v = load(&path, None).unwrap_or_else(|e| panic!("{name}: {e}"));
+    assert_eq!(v.dims(), [13, 17, 20]);
+    for (k, j, i) in [(0, 0, 0), (19, 16, 12), (7, 3, 11), (10, 9, 0)] {
+        assert_eq!(v.at(i, j, k), (i + 3 * j + 7 * k) as f32 - 50.0, "{name}: sample ({i}, {j}, {k})");
+    }
+    let v1 = store.read_level(1, 0, &VolumeLimit::default()).unwrap();
+    assert_eq!(v1.dims(), [7, 9, 10]);
+    assert_eq!(v1.at(3, 4, 5), (6 + 3 * 8 + 7 * 10) as f32 - 50.0, "{name}: level 1 is every other sample");
+    assert_eq!(store.levels()[1].spacing, DVec3::new(1.0, 1.5, 4.0));
+}
+
+#[test]
+fn a_store_written_by_ome_zarr_py_on_zarr_v2_with_blosc_opens() {
+    check_foreign("foreign_v04.ome.zarr");
+}
+
+#[test]
+fn a_sharded_store_written_by_zarr_python_on_zarr_v3_opens() {
+    check_foreign("foreign_v05.ome.zarr");
+}
+
+/// A v3 array of 4x4x4 `float32` (256 bytes a chunk) compressed by `codec`, with its chunk
+/// (0,0,0) replaced by `codec`'s encoding of 64 MiB of zeros.
+fn bomb_store(dir: &Path, name: &str, codec: Arc<dyn BytesToBytesCodecTraits>) -> PathBuf {
+    let out = dir.join(format!("{name}.ome.zarr"));
+    let v = Volume::new("b", [4, 4, 4], DVec3::ONE, DVec3::ZERO, vec![1.0; 64]).unwrap();
+    write(&v, &out, &PyramidOptions { chunk: 4, zstd_level: 1 }, &mut |_, _| {}).unwrap();
+    // Level 0 again, with `codec`.
+    std::fs::remove_dir_all(out.join("0")).unwrap();
+    let store = Arc::new(FilesystemStore::new(&out).unwrap());
+    let array =
+        ArrayBuilder::new(vec![4u64, 4, 4], vec![4u64, 4, 4], zarrs::array::data_type::float32(), 0.0f32)
+            .bytes_to_bytes_codecs(vec![codec.clone()])
+            .build(store, "/0")
+            .unwrap();
+    array.store_metadata().unwrap();
+    let bomb = codec.encode(vec![0u8; 64 << 20].into(), &Default::default()).unwrap().into_owned();
+    assert!(bomb.len() < 1 << 20, "{name}: the bomb is small");
+    let chunk = out.join("0/c/0/0/0");
+    std::fs::create_dir_all(chunk.parent().unwrap()).unwrap();
+    std::fs::write(&chunk, bomb).unwrap();
+    out
+}
+
+#[test]
+fn a_bomb_chunk_of_each_codec_is_refused_at_its_shapes_size() {
+    let dir = tempfile::tempdir().unwrap();
+    let codecs: [(&str, Arc<dyn BytesToBytesCodecTraits>); 3] = [
+        ("gzip", Arc::new(GzipCodec::new(6).unwrap())),
+        ("zstd", Arc::new(ZstdCodec::new(3, false))),
+        (
+            "blosc",
+            Arc::new(
+                BloscCodec::new(
+                    BloscCompressor::LZ4,
+                    5.try_into().unwrap(),
+                    None,
+                    BloscShuffleMode::NoShuffle,
+                    Some(1),
+                )
+                .unwrap(),
+            ),
+        ),
+    ];
+    for (name, codec) in codecs {
+        let path = bomb_store(dir.path(), name, codec);
+        let e = load(&path, None).unwrap_err().to_string();
+        assert!(
+            e.contains(&format!("a {name} chunk")) && e.contains("256 bytes its shape holds"),
+            "{name}: {e}"
+        );
+        assert!(e.contains("array `0`"), "{name}: the error names the array: {e}");
+    }
+}
+
+#[test]
+fn a_chunk_file_larger_than_any_chunk_is_refused_before_it_is_read() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("big.ome.zarr");
+    let v = Volume::new("b", [4, 4, 4], DVec3::ONE, DVec3::ZERO, vec![1.0; 64]).unwrap();
+    write(&v, &out, &PyramidOptions { chunk: 4, zstd_level: 1 }, &mut |_, _| {}).unwrap();
+    // A sparse 64 GiB file where a 256-byte chunk belongs: reading it would take all memory.
+    let f = std::fs::OpenOptions::new().write(true).open(out.join("0/c/0/0/0")).unwrap();
+    f.set_len(64 << 30).unwrap();
+    let e = load(&out, None).unwrap_err().to_string();
+    assert!(e.contains("larger than any chunk of this store may be"), "{e}");
+}
+
+#[test]
+fn bad_metadata_is_refused_with_what_is_wrong() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("m.ome.zarr");
+    write(&grid(), &out, &PyramidOptions { chunk: 16, zstd_level: 1 }, &mut |_, _| {}).unwrap();
+    let meta = out.join("zarr.json");
+    let good = std::fs::read_to_string(&meta).unwrap();
+    for (from, to, says) in [
+        ("\"name\": \"x\"", "\"name\": \"w\"", "last three axes are z, y, x"),
+        ("\"path\": \"1\"", "\"path\": \"9\"", "array `9` does not open"),
+        ("\"version\": \"0.5\"", "\"version\": \"7\"", "not OME-Zarr 0.4 or 0.5"),
+    ] {
+        assert!(good.contains(from), "{from}");
+        std::fs::write(&meta, good.replacen(from, to, 1)).unwrap();
+        let e = OmeZarr::open(&out).err().map(|e| e.to_string()).unwrap_or_default();
+        assert!(e.contains(says) && e.contains("m.ome.zarr"), "{from} -> {to}: {e}");
+    }
+    // A metadata document over the limit is not read.
+    let f = std::fs::OpenOptions::new().write(true).open(&meta).unwrap();
+    f.set_len(1 << 30).unwrap();
+    let e = OmeZarr::open(&out).err().map(|e| e.to_string()).unwrap_or_default();
+    assert!(e.contains("larger than any chunk of this store may be") || e.contains("refused"), "{e}");
+}
