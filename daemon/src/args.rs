@@ -17,23 +17,77 @@ pub fn vec3(s: &str) -> Result<DVec3, String> {
 
 pub use isowall_model::cli_args::size;
 
-/// A raw volume's layout from `--dims`, `--type` and `--spacing` (`None` for a file that says
-/// its own): both of the first two or neither.
-pub fn raw_spec(
-    dims: Option<[usize; 3]>,
-    voxel: Option<isowall_volume::io::VoxelType>,
-    spacing: Option<DVec3>,
-) -> anyhow::Result<Option<isowall_volume::io::RawSpec>> {
-    match (dims, voxel) {
-        (None, None) if spacing.is_none() => Ok(None),
-        (Some(dims), Some(voxel)) => Ok(Some(isowall_volume::io::RawSpec {
-            dims,
-            voxel,
-            spacing: spacing.unwrap_or(DVec3::ONE),
-            big_endian: false,
-            header_bytes: 0,
-        })),
-        _ => anyhow::bail!("a raw volume needs both --dims and --type (and optionally --spacing)"),
+/// What a raw volume (a file with no header) needs said: `--dims`, `--type`, `--spacing`; the
+/// same options for every command that reads a volume.
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct RawVolumeArgs {
+    /// Raw volumes: dimensions
+    #[arg(long, value_name = "NX,NY,NZ", value_parser = dims)]
+    pub dims: Option<[usize; 3]>,
+    /// Raw volumes: voxel type (uint8, int8, uint16, int16, uint32, int32, float32, float64),
+    /// little endian
+    #[arg(long = "type", value_name = "TYPE")]
+    pub voxel_type: Option<isowall_volume::io::VoxelType>,
+    /// Raw volumes: voxel spacing [default: 1,1,1]
+    #[arg(long, value_name = "SX,SY,SZ", value_parser = vec3)]
+    pub spacing: Option<DVec3>,
+}
+
+impl RawVolumeArgs {
+    /// The raw layout (`None` for a file that says its own): both `--dims` and `--type`, or
+    /// neither.
+    pub fn spec(&self) -> anyhow::Result<Option<isowall_volume::io::RawSpec>> {
+        match (self.dims, self.voxel_type) {
+            (None, None) if self.spacing.is_none() => Ok(None),
+            (Some(dims), Some(voxel)) => Ok(Some(isowall_volume::io::RawSpec {
+                dims,
+                voxel,
+                spacing: self.spacing.unwrap_or(DVec3::ONE),
+                big_endian: false,
+                header_bytes: 0,
+            })),
+            _ => anyhow::bail!("a raw volume needs both --dims and --type (and optionally --spacing)"),
+        }
+    }
+}
+
+/// How a command that reads one volume whole reads it (`info`, `convert`): the DICOM series, the
+/// time step, a raw file's layout and the size limit.
+#[derive(clap::Args, Clone, Debug)]
+pub struct VolumeInputArgs {
+    /// DICOM: the SeriesInstanceUID where the folder holds several
+    #[arg(long, value_name = "UID")]
+    pub series: Option<String>,
+    /// Time-varying volumes: the time step, from 0
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    pub step: usize,
+    #[command(flatten)]
+    pub raw: RawVolumeArgs,
+    /// The most bytes the volume may take as float32 (4 a voxel), checked from its header before
+    /// it is read [default: 2 GiB]
+    #[arg(long, value_name = "BYTES")]
+    pub max_volume_bytes: Option<u64>,
+}
+
+impl VolumeInputArgs {
+    /// Reads `volume` (a source as given on the command line) whole, with a spinner meanwhile.
+    pub fn read(
+        &self,
+        volume: &str,
+    ) -> anyhow::Result<(isowall_volume::VolumeSource, isowall_volume::Volume)> {
+        use anyhow::Context;
+        let source: isowall_volume::VolumeSource = volume.parse()?;
+        let source = source.with_series(self.series.as_deref())?;
+        let raw = self.raw.spec()?;
+        let limit = match self.max_volume_bytes {
+            Some(b) => isowall_volume::io::VolumeLimit::new(b, "--max-volume-bytes"),
+            None => isowall_volume::io::VolumeLimit::default(),
+        };
+        let bar = crate::progress::spinner(format!("reading {source}"));
+        let read = source.load_step_within(raw.as_ref(), self.step, &limit);
+        bar.finish_and_clear();
+        let volume = read.with_context(|| format!("cannot read {source}"))?;
+        Ok((source, volume))
     }
 }
 

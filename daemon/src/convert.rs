@@ -5,10 +5,7 @@
 use crate::args;
 use anyhow::{Context, Result};
 use clap::Args;
-use glam::DVec3;
 use isowall_volume::io::ome_zarr_write::{self, PyramidOptions};
-use isowall_volume::io::{RawSpec, VolumeLimit, VoxelType};
-use isowall_volume::VolumeSource;
 use std::path::PathBuf;
 
 #[derive(Args, Debug)]
@@ -31,51 +28,17 @@ pub struct ConvertArgs {
     /// zstd's compression level (1 fast .. 19 small)
     #[arg(long, value_name = "L", default_value_t = 3, value_parser = clap::value_parser!(i32).range(1..=19))]
     pub zstd_level: i32,
-    /// DICOM: the SeriesInstanceUID where the folder holds several
-    #[arg(long, value_name = "UID")]
-    pub series: Option<String>,
     /// Also measure what the pyramid's first coarse level does to the surface at this iso value:
     /// the share of level 0's surface samples its field puts on the other side (and the same for
     /// a level of every other sample, the rule not used)
     #[arg(long, value_name = "V", allow_negative_numbers = true)]
     pub iso: Option<f32>,
-    /// Time-varying volumes: the time step to convert, from 0
-    #[arg(long, value_name = "N", default_value_t = 0)]
-    pub step: usize,
-    /// Raw volumes: dimensions
-    #[arg(long, value_name = "NX,NY,NZ", value_parser = args::dims)]
-    pub dims: Option<[usize; 3]>,
-    /// Raw volumes: voxel type (uint8, int8, uint16, int16, uint32, int32, float32, float64),
-    /// little endian
-    #[arg(long = "type", value_name = "TYPE")]
-    pub voxel_type: Option<VoxelType>,
-    /// Raw volumes: voxel spacing [default: 1,1,1]
-    #[arg(long, value_name = "SX,SY,SZ", value_parser = args::vec3)]
-    pub spacing: Option<DVec3>,
-    /// The most bytes the input may take as float32 (4 a voxel), checked from its header before
-    /// it is read [default: 2 GiB]
-    #[arg(long, value_name = "BYTES")]
-    pub max_volume_bytes: Option<u64>,
-}
-
-impl ConvertArgs {
-    fn raw_spec(&self) -> Result<Option<RawSpec>> {
-        args::raw_spec(self.dims, self.voxel_type, self.spacing)
-    }
+    #[command(flatten)]
+    pub source: args::VolumeInputArgs,
 }
 
 pub fn run(a: &ConvertArgs) -> Result<()> {
-    let source: VolumeSource = a.input.parse()?;
-    let source = source.with_series(a.series.as_deref())?;
-    let raw = a.raw_spec()?;
-    let limit = match a.max_volume_bytes {
-        Some(b) => VolumeLimit::new(b, "--max-volume-bytes"),
-        None => VolumeLimit::default(),
-    };
-    let bar = crate::progress::spinner(format!("reading {source}"));
-    let volume = source.load_step_within(raw.as_ref(), a.step, &limit);
-    bar.finish_and_clear();
-    let volume = volume.with_context(|| format!("cannot read {source}"))?;
+    let (source, volume) = a.source.read(&a.input)?;
     let opts = PyramidOptions { chunk: usize::from(a.chunk), zstd_level: a.zstd_level };
     let mut progress: Option<crate::progress::Counted> = None;
     let what = a.output.display().to_string();

@@ -7,8 +7,6 @@
 use crate::args;
 use anyhow::{Context, Result};
 use clap::Args;
-use glam::DVec3;
-use isowall_volume::io::{RawSpec, VolumeLimit, VoxelType};
 use isowall_volume::value_stats::ValueStats;
 use isowall_volume::{PatientDir, VolumeSource};
 
@@ -18,36 +16,14 @@ pub struct InfoArgs {
     /// series, an OME-Zarr store, or raw with --dims/--type/--spacing) or procedural:NAME[:N]
     #[arg(value_name = "VOLUME")]
     pub volume: String,
-    /// DICOM: the SeriesInstanceUID where the folder holds several
-    #[arg(long, value_name = "UID")]
-    pub series: Option<String>,
-    /// Time-varying volumes: the time step, from 0
-    #[arg(long, value_name = "N", default_value_t = 0)]
-    pub step: usize,
-    /// Raw volumes: dimensions
-    #[arg(long, value_name = "NX,NY,NZ", value_parser = args::dims)]
-    pub dims: Option<[usize; 3]>,
-    /// Raw volumes: voxel type (uint8, int8, uint16, int16, uint32, int32, float32, float64),
-    /// little endian
-    #[arg(long = "type", value_name = "TYPE")]
-    pub voxel_type: Option<VoxelType>,
-    /// Raw volumes: voxel spacing [default: 1,1,1]
-    #[arg(long, value_name = "SX,SY,SZ", value_parser = args::vec3)]
-    pub spacing: Option<DVec3>,
-    /// The most bytes the volume may take as float32 (4 a voxel), checked from the header before
-    /// it is read [default: 2 GiB]
-    #[arg(long, value_name = "BYTES")]
-    pub max_volume_bytes: Option<u64>,
+    #[command(flatten)]
+    pub input: args::VolumeInputArgs,
     /// Bars of the histogram
     #[arg(long, value_name = "N", default_value_t = 16, value_parser = clap::value_parser!(u16).range(1..=256))]
     pub bars: u16,
 }
 
-impl InfoArgs {
-    fn raw_spec(&self) -> Result<Option<RawSpec>> {
-        args::raw_spec(self.dims, self.voxel_type, self.spacing)
-    }
-}
+impl InfoArgs {}
 
 fn direction_name(d: PatientDir) -> &'static str {
     match d {
@@ -61,17 +37,7 @@ fn direction_name(d: PatientDir) -> &'static str {
 }
 
 pub fn run(a: &InfoArgs) -> Result<()> {
-    let source: VolumeSource = a.volume.parse()?;
-    let source = source.with_series(a.series.as_deref())?;
-    let raw = a.raw_spec()?;
-    let limit = match a.max_volume_bytes {
-        Some(b) => VolumeLimit::new(b, "--max-volume-bytes"),
-        None => VolumeLimit::default(),
-    };
-    let bar = crate::progress::spinner(format!("reading {source}"));
-    let volume = source.load_step_within(raw.as_ref(), a.step, &limit);
-    bar.finish_and_clear();
-    let volume = volume.with_context(|| format!("cannot read {source}"))?;
+    let (source, volume) = a.input.read(&a.volume)?;
     let [nx, ny, nz] = volume.dims();
     let (s, o) = (volume.spacing(), volume.origin());
     let format = match &source {

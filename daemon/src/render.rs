@@ -13,7 +13,7 @@ use isowall_model::{
 use isowall_render::environment::{EnvSource, Environment};
 use isowall_render::gpu::GpuRenderer;
 use isowall_render::{output, reference, Frame};
-use isowall_volume::io::{RawSpec, VolumeLimit, VoxelType};
+use isowall_volume::io::{RawSpec, VolumeLimit};
 use isowall_volume::{BlockMinMax, Volume, VolumeSource};
 use std::path::PathBuf;
 use std::time::Instant;
@@ -204,16 +204,8 @@ pub struct RenderArgs {
     /// storage binding]
     #[arg(long, value_name = "BYTES")]
     pub max_volume_bytes: Option<u64>,
-    /// Raw volumes: dimensions
-    #[arg(long, value_name = "NX,NY,NZ", value_parser = args::dims)]
-    pub dims: Option<[usize; 3]>,
-    /// Raw volumes: voxel type (uint8, int8, uint16, int16, uint32, int32, float32, float64),
-    /// little endian
-    #[arg(long = "type", value_name = "TYPE")]
-    pub voxel_type: Option<VoxelType>,
-    /// Raw volumes: voxel spacing [default: 1,1,1]
-    #[arg(long, value_name = "SX,SY,SZ", value_parser = args::vec3)]
-    pub spacing: Option<DVec3>,
+    #[command(flatten)]
+    pub raw: args::RawVolumeArgs,
     /// Ambient-occlusion rays per pixel per frame, 0..=1024; 0 turns AO off [default: 0]
     #[arg(long = "ao-samples", value_name = "N", value_parser = clap::value_parser!(u32).range(0..=1024))]
     pub ao_samples: Option<u32>,
@@ -249,11 +241,7 @@ pub struct RenderArgs {
     pub denoise: Option<DenoiseArg>,
 }
 
-impl RenderArgs {
-    fn raw_spec(&self) -> Result<Option<RawSpec>> {
-        args::raw_spec(self.dims, self.voxel_type, self.spacing)
-    }
-}
+impl RenderArgs {}
 
 /// Loads the volume named by `--volume` (or the default) and the iso value to use, within the
 /// default [`VolumeLimit`].
@@ -342,7 +330,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     if let Some(folder) = out.parent().filter(|p| !p.as_os_str().is_empty() && !p.is_dir()) {
         bail!("--out {}: the folder {} does not exist", out.display(), folder.display());
     }
-    let raw = a.raw_spec()?;
+    let raw = a.raw.spec()?;
     let spec = match (&a.volume, &a.series) {
         (v, None) => v.clone(),
         (Some(v), Some(uid)) => Some(v.parse::<VolumeSource>()?.with_series(Some(uid))?.to_string()),

@@ -61,53 +61,46 @@ fn write_err(out: &Path, what: impl std::fmt::Display) -> VolumeError {
     VolumeError::Format { path: out.to_path_buf(), what: format!("writing the OME-Zarr store: {what}") }
 }
 
-/// The 2x2x2 mean of `v` (a far edge of odd length averages the samples it has), placed as
-/// DESIGN.md's pyramid places level l+1 from level l.
-pub fn mean_level(v: &Volume) -> Volume {
-    let d = v.dims();
-    let n = d.map(|x| x.div_ceil(2));
+/// A level of half `v`'s samples on each axis (rounded up), twice its spacing, sample 0 at
+/// `origin`, sample (i, j, k) `value(i, j, k)`.
+fn half_level(v: &Volume, origin: DVec3, value: impl Fn(usize, usize, usize) -> f32) -> Volume {
+    let n = v.dims().map(|x| x.div_ceil(2));
     let mut data = Vec::with_capacity(n[0] * n[1] * n[2]);
     for k in 0..n[2] {
         for j in 0..n[1] {
             for i in 0..n[0] {
-                let (mut sum, mut count) = (0.0f64, 0u32);
-                for kk in 2 * k..(2 * k + 2).min(d[2]) {
-                    for jj in 2 * j..(2 * j + 2).min(d[1]) {
-                        for ii in 2 * i..(2 * i + 2).min(d[0]) {
-                            sum += f64::from(v.at(ii, jj, kk));
-                            count += 1;
-                        }
-                    }
-                }
-                data.push((sum / f64::from(count)) as f32);
+                data.push(value(i, j, k));
             }
         }
     }
-    let spacing = v.spacing() * 2.0;
-    let origin = v.origin() + v.spacing() * 0.5;
-    Volume::new(v.name.clone(), n, spacing, origin, data)
-        .expect("a mean of finite voxels on a grid inside the source's box")
+    Volume::new(v.name.clone(), n, v.spacing() * 2.0, origin, data)
+        .expect("values of finite voxels on a grid inside the source's box")
         .with_orientation(v.orientation())
         .with_patient_axes(v.patient_axes())
+}
+
+/// The 2x2x2 mean of `v` (a far edge of odd length averages the samples it has), placed as
+/// DESIGN.md's pyramid places level l+1 from level l.
+pub fn mean_level(v: &Volume) -> Volume {
+    let d = v.dims();
+    half_level(v, v.origin() + v.spacing() * 0.5, |i, j, k| {
+        let (mut sum, mut count) = (0.0f64, 0u32);
+        for kk in 2 * k..(2 * k + 2).min(d[2]) {
+            for jj in 2 * j..(2 * j + 2).min(d[1]) {
+                for ii in 2 * i..(2 * i + 2).min(d[0]) {
+                    sum += f64::from(v.at(ii, jj, kk));
+                    count += 1;
+                }
+            }
+        }
+        (sum / f64::from(count)) as f32
+    })
 }
 
 /// Every other sample of `v` (no averaging), placed where those samples are: the other common
 /// pyramid rule, for comparison with [`mean_level`].
 pub fn subsampled_level(v: &Volume) -> Volume {
-    let d = v.dims();
-    let n = d.map(|x| x.div_ceil(2));
-    let mut data = Vec::with_capacity(n[0] * n[1] * n[2]);
-    for k in 0..n[2] {
-        for j in 0..n[1] {
-            for i in 0..n[0] {
-                data.push(v.at(2 * i, 2 * j, 2 * k));
-            }
-        }
-    }
-    Volume::new(v.name.clone(), n, v.spacing() * 2.0, v.origin(), data)
-        .expect("samples of a valid volume")
-        .with_orientation(v.orientation())
-        .with_patient_axes(v.patient_axes())
+    half_level(v, v.origin(), |i, j, k| v.at(2 * i, 2 * j, 2 * k))
 }
 
 /// How far a coarser level moves the surface `iso` of `fine`: of `fine`'s surface samples (those
