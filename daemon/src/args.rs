@@ -70,15 +70,23 @@ pub struct VolumeInputArgs {
 }
 
 impl VolumeInputArgs {
+    /// The source `volume` names (as given on the command line), its series chosen, and a raw
+    /// file's layout.
+    pub fn source(
+        &self,
+        volume: &str,
+    ) -> anyhow::Result<(isowall_volume::VolumeSource, Option<isowall_volume::io::RawSpec>)> {
+        let source: isowall_volume::VolumeSource = volume.parse()?;
+        Ok((source.with_series(self.series.as_deref())?, self.raw.spec()?))
+    }
+
     /// Reads `volume` (a source as given on the command line) whole, with a spinner meanwhile.
     pub fn read(
         &self,
         volume: &str,
     ) -> anyhow::Result<(isowall_volume::VolumeSource, isowall_volume::Volume)> {
         use anyhow::Context;
-        let source: isowall_volume::VolumeSource = volume.parse()?;
-        let source = source.with_series(self.series.as_deref())?;
-        let raw = self.raw.spec()?;
+        let (source, raw) = self.source(volume)?;
         let limit = match self.max_volume_bytes {
             Some(b) => isowall_volume::io::VolumeLimit::new(b, "--max-volume-bytes"),
             None => isowall_volume::io::VolumeLimit::default(),

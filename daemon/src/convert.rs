@@ -9,11 +9,15 @@ use isowall_volume::io::ome_zarr_write::{self, PyramidOptions};
 use std::path::PathBuf;
 
 #[derive(Args, Debug)]
-#[command(after_help = "The input is read whole (in memory as float32, 4 bytes a voxel, within \
---max-volume-bytes), then written level by level: level 0 is the volume, each next level the \
-2x2x2 mean of the one before, until a level fits one chunk. The store keeps the input's patient \
-orientation, and per-brick min/max of every level (isowall_minmax/<level>), which other readers \
-ignore. Nothing is overwritten: OUT must not exist, or be an empty folder.")]
+#[command(after_help = "The input is read one z-slice at a time and written as it comes: level 0 \
+is the volume, each next level the 2x2x2 mean of the one before, until a level fits one chunk. \
+Memory holds a chunk's depth of slices of each level (about chunk x NX x NY x 4.6 bytes), so a \
+volume larger than memory converts from raw files, NRRD (raw or gzip), DICOM series and \
+procedural volumes; MetaImage, NIfTI, mirrored NRRD and OME-Zarr are read whole first (as \
+float32, within 2 GiB), and --iso reads the input whole again (within --max-volume-bytes). The \
+store keeps the input's patient orientation, and per-brick min/max of every level \
+(isowall_minmax/<level>), which other readers ignore. Nothing is overwritten: OUT must not \
+exist, or be an empty folder.")]
 pub struct ConvertArgs {
     /// The volume: a file (.nrrd .nhdr .mhd .mha .nii .nii.gz, a DICOM folder or one file of the
     /// series, an OME-Zarr store, or raw with --dims/--type/--spacing) or procedural:NAME[:N]
@@ -38,11 +42,14 @@ pub struct ConvertArgs {
 }
 
 pub fn run(a: &ConvertArgs) -> Result<()> {
-    let (source, volume) = a.source.read(&a.input)?;
+    let (source, raw) = a.source.source(&a.input)?;
+    let stream =
+        source.stream_step(raw.as_ref(), a.source.step).with_context(|| format!("cannot read {source}"))?;
+    let orientation = stream.orientation();
     let opts = PyramidOptions { chunk: usize::from(a.chunk), zstd_level: a.zstd_level };
     let mut progress: Option<crate::progress::Counted> = None;
     let what = a.output.display().to_string();
-    let summary = ome_zarr_write::write(&volume, &a.output, &opts, &mut |done, total| {
+    let summary = ome_zarr_write::write_stream(&stream, None, &a.output, &opts, &mut |done, total| {
         progress
             .get_or_insert_with(|| {
                 crate::progress::Counted::of("isowalld convert", "chunk", total as u64, &what)
@@ -59,12 +66,10 @@ pub fn run(a: &ConvertArgs) -> Result<()> {
         levels.join(", "),
         summary.chunks,
         a.chunk,
-        match volume.patient_axes() {
-            Some(p) => p.orientation().map_or_else(|| "oblique".to_string(), |o| o.code()),
-            None => "none given".to_string(),
-        }
+        orientation.map_or_else(|| "none given".to_string(), |o| o.code())
     );
     if let Some(iso) = a.iso {
+        let (_, volume) = a.source.read(&a.input)?;
         let (mean, surface) =
             ome_zarr_write::surface_disagreement(&volume, &ome_zarr_write::mean_level(&volume), iso);
         let (every, _) =

@@ -427,6 +427,20 @@ impl VolumeStream {
         }
     }
 
+    /// Calls `f(k, slice)` for every whole z-slice of the volume, in order, one resident at a
+    /// time for the sources that read partially ([`VolumeStream::partial`]), reporting each as
+    /// [`Pass::Read`].
+    pub fn for_each_z_slice(&self, f: &mut dyn FnMut(usize, &[f32])) -> Result<(), VolumeError> {
+        self.for_each_slice(Pass::Read, &VoxelRange::whole(self.info.dims), f)
+    }
+
+    /// A volume already in memory as a stream (read whole).
+    pub fn of_volume(v: Volume) -> VolumeStream {
+        let info =
+            VolumeInfo { name: v.name.clone(), dims: v.dims(), spacing: v.spacing(), origin: v.origin() };
+        VolumeStream { info, orientation: v.orientation(), kind: Kind::Whole(Box::new(v)), progress: None }
+    }
+
     /// Calls `f(k, rows)` for every z-slice k of `range` in order, with the slice's rows of the
     /// y-range, whole along x (`nx * (hi.y - lo.y + 1)` values), reporting each as `pass`.
     fn for_each_slice(
@@ -477,7 +491,7 @@ impl VolumeStream {
 
 /// The block min/max of a volume accumulated z-slice by z-slice (whole slices, in order), and
 /// its non-finite voxels (the first and the count).
-struct BlockScan {
+pub(crate) struct BlockScan {
     dims: [usize; 3],
     block: usize,
     counts: [usize; 3],
@@ -486,7 +500,7 @@ struct BlockScan {
 }
 
 impl BlockScan {
-    fn new(dims: [usize; 3], block: usize) -> BlockScan {
+    pub(crate) fn new(dims: [usize; 3], block: usize) -> BlockScan {
         assert!(block >= 1);
         let cells = dims.map(|n| n.max(2) - 1);
         let counts = cells.map(|c| c.div_ceil(block));
@@ -503,7 +517,7 @@ impl BlockScan {
     }
 
     /// Adds z-slice `k` (`nx * ny` samples).
-    fn add_slice(&mut self, k: usize, slice: &[f32]) {
+    pub(crate) fn add_slice(&mut self, k: usize, slice: &[f32]) {
         let [nx, ny, _] = self.dims;
         let counts = self.counts;
         // Min/max of this slice per (bx, by) block column, shared edges in both.
@@ -535,7 +549,7 @@ impl BlockScan {
         }
     }
 
-    fn finish(self, name: &str) -> Result<BlockMinMax, VolumeError> {
+    pub(crate) fn finish(self, name: &str) -> Result<BlockMinMax, VolumeError> {
         if let Some((count, [i, j, k])) = self.bad {
             return Err(VolumeError::NonFinite { path: PathBuf::from(name), count, i, j, k });
         }

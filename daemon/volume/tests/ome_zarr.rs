@@ -243,3 +243,42 @@ fn bad_metadata_is_refused_with_what_is_wrong() {
     let e = OmeZarr::open(&out).err().map(|e| e.to_string()).unwrap_or_default();
     assert!(e.contains("larger than any chunk of this store may be") || e.contains("refused"), "{e}");
 }
+
+#[test]
+fn a_pyramid_streamed_slice_by_slice_from_a_raw_file_equals_the_one_written_whole() {
+    use isowall_volume::io::{RawSpec, VoxelType};
+    use isowall_volume::VolumeSource;
+    let dir = tempfile::tempdir().unwrap();
+    let v = grid();
+    let raw = dir.path().join("grid.raw");
+    std::fs::write(&raw, v.data().iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>()).unwrap();
+    let spec = RawSpec {
+        dims: v.dims(),
+        voxel: VoxelType::F32,
+        spacing: v.spacing(),
+        big_endian: false,
+        header_bytes: 0,
+    };
+    let stream = VolumeSource::File(raw.clone()).stream(Some(&spec)).unwrap();
+    assert!(stream.partial(), "a raw file is read a slice at a time");
+    let streamed = dir.path().join("streamed.ome.zarr");
+    let opts = PyramidOptions { chunk: 8, zstd_level: 1 };
+    isowall_volume::io::ome_zarr_write::write_stream(&stream, None, &streamed, &opts, &mut |_, _| {})
+        .unwrap();
+    let whole = dir.path().join("whole.ome.zarr");
+    let placed = Volume::new("w", v.dims(), v.spacing(), DVec3::ZERO, v.data().to_vec()).unwrap();
+    write(&placed, &whole, &opts, &mut |_, _| {}).unwrap();
+    let (a, b) = (OmeZarr::open(&streamed).unwrap(), OmeZarr::open(&whole).unwrap());
+    assert_eq!(a.levels().len(), b.levels().len());
+    for l in 0..a.levels().len() {
+        assert_eq!(
+            (a.levels()[l].dims, a.levels()[l].spacing, a.levels()[l].origin),
+            (b.levels()[l].dims, b.levels()[l].spacing, b.levels()[l].origin)
+        );
+        let (x, y) = (
+            a.read_level(l, 0, &VolumeLimit::default()).unwrap(),
+            b.read_level(l, 0, &VolumeLimit::default()).unwrap(),
+        );
+        assert_eq!(x.data(), y.data(), "level {l}: streamed and whole differ");
+    }
+}

@@ -25,7 +25,9 @@
 
 use super::ome_zarr::ISOWALL_KEY;
 use super::zarr_codecs::register_bounded_codecs;
-use crate::{BlockMinMax, Volume, VolumeError};
+use crate::orientation::PatientAxes;
+use crate::region::BlockScan;
+use crate::{Volume, VolumeError, VolumeStream};
 use glam::DVec3;
 use serde_json::json;
 use std::path::Path;
@@ -131,44 +133,145 @@ pub fn surface_disagreement(fine: &Volume, coarse: &Volume, iso: f32) -> (f64, u
     (wrong as f64 / surface.max(1) as f64, surface)
 }
 
-/// Writes `volume` as a pyramid at `out` (a folder that must not exist yet, or be empty);
-/// `progress(done, total)` after each chunk.
+type LevelArray = zarrs::array::Array<FilesystemStore>;
+
+/// Stores one chunk: (the level's array, the level, the chunk's indices z, y, x, its samples).
+type StoreChunk<'a> = dyn FnMut(&LevelArray, usize, [u64; 3], &[f32]) -> Result<(), VolumeError> + 'a;
+
+/// One level being written: its slices arrive in z order; every `chunk` of them (or the last
+/// ones) are written as a row of chunks, and pairs of them make the next level's slices.
+struct LevelWriter {
+    level: usize,
+    dims: [usize; 3],
+    array: LevelArray,
+    scan: BlockScan,
+    /// Slices not yet written (at most `chunk`), from slice `first`.
+    pending: Vec<f32>,
+    first: usize,
+    /// An even slice waiting for its odd partner, for the next level.
+    held: Option<Vec<f32>>,
+    next: Option<Box<LevelWriter>>,
+}
+
+impl LevelWriter {
+    /// Takes slice `k` of this level (`nx * ny` samples).
+    fn push(&mut self, k: usize, slice: Vec<f32>, c: usize, io: &mut StoreChunk) -> Result<(), VolumeError> {
+        let [nx, ny, nz] = self.dims;
+        self.scan.add_slice(k, &slice);
+        self.pending.extend_from_slice(&slice);
+        if k + 1 - self.first == c || k + 1 == nz {
+            self.flush(c, io)?;
+        }
+        if self.next.is_some() {
+            match self.held.take() {
+                None if k + 1 < nz => self.held = Some(slice),
+                held => {
+                    let pair: Vec<&[f32]> = held.as_deref().into_iter().chain([slice.as_slice()]).collect();
+                    let coarse = half_slice(&pair, nx, ny);
+                    if let Some(next) = self.next.as_mut() {
+                        next.push(k / 2, coarse, c, io)?;
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Writes the pending slices as one row of chunks.
+    fn flush(&mut self, c: usize, io: &mut StoreChunk) -> Result<(), VolumeError> {
+        let [nx, ny, _] = self.dims;
+        let depth = self.pending.len() / (nx * ny);
+        let cz = self.first / c;
+        let mut buf = vec![0.0f32; c * c * c];
+        for cy in 0..ny.div_ceil(c) {
+            for cx in 0..nx.div_ceil(c) {
+                buf.fill(0.0);
+                let w = c.min(nx - cx * c);
+                for z in 0..depth {
+                    for y in 0..c.min(ny - cy * c) {
+                        let row = cx * c + nx * (cy * c + y + ny * z);
+                        buf[c * (y + c * z)..][..w].copy_from_slice(&self.pending[row..row + w]);
+                    }
+                }
+                io(&self.array, self.level, [cz as u64, cy as u64, cx as u64], &buf)?;
+            }
+        }
+        self.first += depth;
+        self.pending.clear();
+        Ok(())
+    }
+}
+
+/// The 2x2 mean in x and y over `slices` (one or two z-slices of `nx * ny`), a far edge of odd
+/// length averaging what it has: summed in the order [`mean_level`] sums, so a pyramid written
+/// from slices equals one made of a whole volume, bit for bit.
+fn half_slice(slices: &[&[f32]], nx: usize, ny: usize) -> Vec<f32> {
+    let (mx, my) = (nx.div_ceil(2), ny.div_ceil(2));
+    let mut out = Vec::with_capacity(mx * my);
+    for j in 0..my {
+        for i in 0..mx {
+            let (mut sum, mut count) = (0.0f64, 0u32);
+            for s in slices {
+                for jj in 2 * j..(2 * j + 2).min(ny) {
+                    for ii in 2 * i..(2 * i + 2).min(nx) {
+                        sum += f64::from(s[ii + nx * jj]);
+                        count += 1;
+                    }
+                }
+            }
+            out.push((sum / f64::from(count)) as f32);
+        }
+    }
+    out
+}
+
+/// Writes `volume` as a pyramid at `out` ([`write_stream`] of a volume in memory).
 pub fn write(
     volume: &Volume,
     out: &Path,
     opts: &PyramidOptions,
     progress: &mut dyn FnMut(usize, usize),
 ) -> Result<PyramidSummary, VolumeError> {
+    let axes = volume.patient_axes();
+    write_stream(&VolumeStream::of_volume(volume.clone()), axes, out, opts, progress)
+}
+
+/// Writes the volume `stream` reads as a pyramid at `out` (a folder that must not exist yet, or
+/// be empty), reading it one z-slice at a time: memory holds a chunk's depth of slices of each
+/// level (about `chunk * nx * ny * 4 * 8/7` bytes) besides what the stream itself keeps (nothing
+/// for the sources that read partially, [`VolumeStream::partial`]); `progress(done, total)`
+/// after each chunk. `patient_axes` are written as the volume's orientation.
+pub fn write_stream(
+    stream: &VolumeStream,
+    patient_axes: Option<PatientAxes>,
+    out: &Path,
+    opts: &PyramidOptions,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<PyramidSummary, VolumeError> {
     register_bounded_codecs();
-    if opts.chunk < 2 {
-        return Err(write_err(out, format!("chunk {} must be at least 2 samples", opts.chunk)));
+    let c = opts.chunk;
+    if c < 2 || !c.is_multiple_of(2) {
+        return Err(write_err(out, format!("chunk {c} must be an even number of samples, at least 2")));
     }
     if out.exists() && std::fs::read_dir(out).map(|mut d| d.next().is_some()).unwrap_or(true) {
         return Err(write_err(out, "it exists and is not an empty folder: nothing is overwritten"));
     }
+    let info = stream.info().clone();
     std::fs::create_dir_all(out).map_err(|e| write_err(out, e))?;
     let store = Arc::new(FilesystemStore::new(out).map_err(|e| write_err(out, e))?);
 
     // The levels' shapes first: the total for the progress.
-    let mut shapes = vec![volume.dims()];
-    while shapes.last().is_some_and(|d| d.iter().any(|&n| n > opts.chunk)) {
+    let mut shapes = vec![info.dims];
+    while shapes.last().is_some_and(|d| d.iter().any(|&n| n > c)) {
         let d = shapes[shapes.len() - 1];
         shapes.push(d.map(|n| n.div_ceil(2)));
     }
-    let c = opts.chunk;
     let chunks_of = |d: &[usize; 3]| d.iter().map(|n| n.div_ceil(c)).product::<usize>();
     let total: usize = shapes.iter().map(chunks_of).sum();
-    let mut done = 0;
 
-    let mut datasets = Vec::new();
-    let mut minmax_paths = Vec::new();
-    let mut level: Option<Volume> = None;
-    for l in 0..shapes.len() {
-        let v = match level.take() {
-            None => volume.clone(),
-            Some(prev) => mean_level(&prev),
-        };
-        let d = v.dims();
+    // The writers, coarsest first so each holds the next.
+    let mut chain: Option<Box<LevelWriter>> = None;
+    for (l, d) in shapes.iter().enumerate().rev() {
         let shape: Vec<u64> = vec![d[2] as u64, d[1] as u64, d[0] as u64];
         let array = ArrayBuilder::new(shape, vec![c as u64; 3], zarrs::array::data_type::float32(), 0.0f32)
             .bytes_to_bytes_codecs(vec![Arc::new(ZstdCodec::new(opts.zstd_level, false))])
@@ -176,30 +279,47 @@ pub fn write(
             .build(store.clone(), &format!("/{l}"))
             .map_err(|e| write_err(out, format!("level {l}: {e}")))?;
         array.store_metadata().map_err(|e| write_err(out, format!("level {l}: {e}")))?;
-        let counts = d.map(|n| n.div_ceil(c));
-        let mut buf = vec![0.0f32; c * c * c];
-        for cz in 0..counts[2] {
-            for cy in 0..counts[1] {
-                for cx in 0..counts[0] {
-                    buf.fill(0.0);
-                    for z in 0..c.min(d[2] - cz * c) {
-                        for y in 0..c.min(d[1] - cy * c) {
-                            let (k, j, i0) = (cz * c + z, cy * c + y, cx * c);
-                            let w = c.min(d[0] - i0);
-                            let row = i0 + d[0] * (j + d[1] * k);
-                            buf[c * (y + c * z)..][..w].copy_from_slice(&v.data()[row..row + w]);
-                        }
-                    }
-                    array
-                        .store_chunk(&[cz as u64, cy as u64, cx as u64], buf.as_slice())
-                        .map_err(|e| write_err(out, format!("level {l}, chunk ({cx}, {cy}, {cz}): {e}")))?;
-                    done += 1;
-                    progress(done, total);
-                }
+        chain = Some(Box::new(LevelWriter {
+            level: l,
+            dims: *d,
+            array,
+            scan: BlockScan::new(*d, c),
+            pending: Vec::new(),
+            first: 0,
+            held: None,
+            next: chain,
+        }));
+    }
+    let mut level0 = chain.expect("at least one level");
+
+    let mut done = 0;
+    let mut io = |array: &LevelArray, l: usize, at: [u64; 3], buf: &[f32]| -> Result<(), VolumeError> {
+        array.store_chunk(&at, buf).map_err(|e| {
+            write_err(out, format!("level {l}, chunk (z {}, y {}, x {}): {e}", at[0], at[1], at[2]))
+        })?;
+        done += 1;
+        progress(done, total);
+        Ok(())
+    };
+    let mut failed = None;
+    stream.for_each_z_slice(&mut |k, slice| {
+        if failed.is_none() {
+            if let Err(e) = level0.push(k, slice.to_vec(), c, &mut io) {
+                failed = Some(e);
             }
         }
-        // Per-brick min/max of this level.
-        let mm = BlockMinMax::new(&v, c);
+    })?;
+    if let Some(e) = failed {
+        return Err(e);
+    }
+
+    // Per-brick min/max of every level, and the placement of each.
+    let mut datasets = Vec::new();
+    let mut minmax_paths = Vec::new();
+    let mut writer = Some(level0);
+    while let Some(w) = writer {
+        let l = w.level;
+        let mm = w.scan.finish(&info.name)?;
         let mm_path = format!("isowall_minmax/{l}");
         let mm_shape = vec![mm.counts[2] as u64, mm.counts[1] as u64, mm.counts[0] as u64, 2];
         let mm_array =
@@ -213,8 +333,9 @@ pub fn write(
             .store_chunk(&[0, 0, 0, 0], flat.as_slice())
             .map_err(|e| write_err(out, format!("{mm_path}: {e}")))?;
         minmax_paths.push(mm_path);
-
-        let (s, o) = (v.spacing(), v.origin());
+        // Level l: 2^l times the spacing, sample 0 at origin + (2^l - 1)/2 * spacing.
+        let f = f64::from(1u32 << l);
+        let (s, o) = (info.spacing * f, info.origin + info.spacing * (f - 1.0) / 2.0);
         datasets.push(json!({
             "path": l.to_string(),
             "coordinateTransformations": [
@@ -222,18 +343,18 @@ pub fn write(
                 {"type": "translation", "translation": [o.z, o.y, o.x]},
             ],
         }));
-        level = Some(v);
+        writer = w.next;
     }
 
     let mut isowall = json!({
         "minmax": {"brick": c, "arrays": minmax_paths},
         "written_by": format!("isowalld convert {}", env!("CARGO_PKG_VERSION")),
     });
-    if let Some(axes) = volume.patient_axes() {
+    if let Some(axes) = patient_axes.or(stream.orientation().map(PatientAxes::of)) {
         isowall["patient_axes_lps"] = json!(axes.lps().map(|a| [a.x, a.y, a.z]));
     }
     let name =
-        Path::new(&volume.name).file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        Path::new(&info.name).file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
     let attrs = json!({
         "ome": {
             "version": "0.5",
