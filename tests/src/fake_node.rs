@@ -17,13 +17,17 @@ pub const RENDER_TIME: Duration = Duration::from_micros(50);
 
 /// The runtime the played nodes and the tests' own clients run on: two worker threads.
 pub fn runtime() -> tokio::runtime::Runtime {
-    tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().expect("a tokio runtime")
+    tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .expect("a tokio runtime")
 }
 
 /// A QUIC server on `addr` presenting `keys/NAME.*`, the certificate of node `name`.
 pub fn listen(keys: &Path, name: &str, addr: SocketAddr) -> quinn::Endpoint {
-    let identity =
-        Identity::load(keys, name).unwrap_or_else(|e| panic!("{name}'s certificate in {}: {e}", keys.display()));
+    let identity = Identity::load(keys, name)
+        .unwrap_or_else(|e| panic!("{name}'s certificate in {}: {e}", keys.display()));
     transport::server(addr, &identity).unwrap_or_else(|e| panic!("listen as {name} on {addr}: {e}"))
 }
 
@@ -45,7 +49,14 @@ impl FakeNode {
             Channel::accept(conn, "controller", 1 << 20).await.ok()?;
         let machine = NodeMachine::new(name, tiles);
         sender.send(&machine.hello()).await.ok()?;
-        Some(FakeNode { connection, sender, receiver, machine, epoch: Instant::now(), queue: VecDeque::new() })
+        Some(FakeNode {
+            connection,
+            sender,
+            receiver,
+            machine,
+            epoch: Instant::now(),
+            queue: VecDeque::new(),
+        })
     }
 
     /// Time since the greeting: the machine's clock.

@@ -628,7 +628,13 @@ async fn fake_node(keys: PathBuf, name: String, port: u16, tiles: Vec<(String, u
                         {
                             vec![
                                 Message::Presented { frame_id: 1 << 40, node_time_us: 0, waiting_from_us: 0 },
-                                Message::Pong { id: 1 << 40, t0_us: 0, t1_us: 0, sent_us: 0, resident_bytes: 0 },
+                                Message::Pong {
+                                    id: 1 << 40,
+                                    t0_us: 0,
+                                    t1_us: 0,
+                                    sent_us: 0,
+                                    resident_bytes: 0,
+                                },
                             ]
                         }
                         _ => vec![],
