@@ -50,7 +50,7 @@ step 60 "$bin/isowall" up "$cfg" --frames $((frames + 40))
 # The 1080p object-space wall over 200 frames; both daemons' VmRSS every second.
 # (A copy of its config, so that its certificates are made outside the checkout.)
 cfg=$(mktemp -d)/object-1080p-wall.toml
-cp docs/bench/object-1080p-wall.toml "$cfg"
+cp scripts/data/object-1080p-wall.toml "$cfg"
 "$bin/isowall" keygen --config "$cfg" >/dev/null
 (
     while sleep 1; do

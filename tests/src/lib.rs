@@ -1,6 +1,7 @@
 //! Helpers for the end-to-end tests in `tests/tests/`: they run the real `isowalld` and `isowall`
 //! binaries as separate processes (and, with the wall, over the network on loopback).
 
+pub mod fake_node;
 pub mod orbit;
 pub mod relay;
 pub mod x11;

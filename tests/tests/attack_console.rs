@@ -20,11 +20,10 @@
 //!   names and a malformed bookmarks file are refused without touching the file, and what a node
 //!   says of itself is bounded and escaped.
 
+use isowall_e2e::fake_node::{self, runtime, FakeNode};
 use isowall_e2e::{bin, free_udp_ports, run_in, wait_until, wall_config_2x1};
 use isowall_model::messages::{Message, NodeInfo, TileImage};
-use isowall_model::node_machine::{NodeMachine, NodeOutput};
-use isowall_net::transport::{self, Channel};
-use isowall_net::Identity;
+use isowall_model::node_machine::NodeOutput;
 use serde_json::Value;
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream};
@@ -33,10 +32,6 @@ use std::process::{Child, Command, Stdio};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
-
-fn runtime() -> tokio::runtime::Runtime {
-    tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap()
-}
 
 /// What a node played by the test does and counts.
 #[derive(Default)]
@@ -53,9 +48,7 @@ struct NodeCtl {
 
 /// A node played by the test on `port` with `keys/NAME.*`: its tile `(name, w, h)` blue.
 async fn fake_node(keys: PathBuf, name: String, port: u16, tile: (String, u32, u32), ctl: Arc<NodeCtl>) {
-    let identity = Identity::load(&keys, &name).unwrap();
-    let addr: SocketAddr = format!("127.0.0.1:{port}").parse().unwrap();
-    let endpoint = transport::server(addr, &identity).unwrap();
+    let endpoint = fake_node::listen(&keys, &name, format!("127.0.0.1:{port}").parse().unwrap());
     let (tname, w, h) = tile;
     let image = TileImage {
         name: tname.clone(),
@@ -66,16 +59,7 @@ async fn fake_node(keys: PathBuf, name: String, port: u16, tile: (String, u32, u
     };
     while let Some(incoming) = endpoint.accept().await {
         let Ok(conn) = incoming.await else { continue };
-        let Ok(Channel { connection, mut sender, mut receiver }) =
-            Channel::accept(conn, "controller", 1 << 20).await
-        else {
-            continue;
-        };
-        let mut m = NodeMachine::new(name.clone(), vec![tname.clone()]);
-        let epoch = Instant::now();
-        if sender.send(&m.hello()).await.is_err() {
-            continue;
-        }
+        let Some(mut node) = FakeNode::greet(conn, &name, vec![tname.clone()]).await else { continue };
         ctl.connections.fetch_add(1, Ordering::Relaxed);
         // What it says of itself: markup and a terminal escape, for the console to show as text.
         let info = NodeInfo {
@@ -86,49 +70,29 @@ async fn fake_node(keys: PathBuf, name: String, port: u16, tile: (String, u32, u
             driver_info: "played by the test".into(),
             present: "SCHED_FIFO 10".into(),
         };
-        if sender.send(&Message::NodeInfo(info)).await.is_err() {
+        if !node.send(&Message::NodeInfo(info)).await {
             continue;
         }
-        'conn: while let Ok(Some(msg)) = receiver.recv().await {
-            let Ok(out) = m.handle(epoch.elapsed(), msg) else { break };
-            let mut queue: std::collections::VecDeque<NodeOutput> = out.into();
-            while let Some(out) = queue.pop_front() {
-                let answer = match out {
-                    NodeOutput::Send(msg) => Some(msg),
-                    NodeOutput::Render { state, .. } => {
-                        queue.extend(m.render_done(
-                            epoch.elapsed(),
-                            state.frame_id,
-                            Duration::from_micros(50),
-                        ));
-                        None
-                    }
-                    NodeOutput::Present { frame_id, .. } => {
-                        queue.extend(m.presented(epoch.elapsed(), frame_id, epoch.elapsed()));
-                        None
-                    }
-                    NodeOutput::SnapshotWanted | NodeOutput::ThumbnailWanted { .. } => {
-                        ctl.asked.fetch_add(1, Ordering::Relaxed);
-                        let divisor = match out {
-                            NodeOutput::ThumbnailWanted { divisor } => divisor,
-                            _ => 1,
-                        };
-                        (!ctl.silent.load(Ordering::Relaxed))
-                            .then(|| Message::Snapshot { tiles: vec![image.downscaled(divisor)] })
-                    }
-                    NodeOutput::Closed { .. } => break 'conn,
-                    NodeOutput::Restart { reason } => {
-                        ctl.restarts.lock().unwrap().push(reason);
-                        connection.close(75u32.into(), b"restarting");
-                        break 'conn;
-                    }
-                    _ => None,
-                };
-                if let Some(msg) = answer {
-                    if sender.send(&msg).await.is_err() {
-                        break 'conn;
-                    }
+        while let Some(out) = node.next().await {
+            let open = match out {
+                NodeOutput::SnapshotWanted | NodeOutput::ThumbnailWanted { .. } => {
+                    ctl.asked.fetch_add(1, Ordering::Relaxed);
+                    let divisor = match out {
+                        NodeOutput::ThumbnailWanted { divisor } => divisor,
+                        _ => 1,
+                    };
+                    ctl.silent.load(Ordering::Relaxed)
+                        || node.send(&Message::Snapshot { tiles: vec![image.downscaled(divisor)] }).await
                 }
+                NodeOutput::Restart { reason } => {
+                    ctl.restarts.lock().unwrap().push(reason);
+                    node.connection.close(75u32.into(), b"restarting");
+                    false
+                }
+                other => node.answer(other).await,
+            };
+            if !open {
+                break;
             }
         }
     }

@@ -18,23 +18,20 @@
 //! - start: a wall with one of four nodes down starts (`orbit`, `up`) and the node joins when it
 //!   comes up; in either space a killed node is down within 3 deadlines.
 
+use isowall_e2e::fake_node::{self, runtime, FakeNode};
 use isowall_e2e::{
     bin, free_udp_ports, in_ci, run_in, set_object_mode, start_nodes, wait_until, wall_config,
     wall_config_2x1, Daemon,
 };
 use isowall_model::codec;
 use isowall_model::messages::{Message, Role, TileImage};
-use isowall_model::node_machine::{NodeMachine, NodeOutput};
+use isowall_model::node_machine::NodeOutput;
 use isowall_net::transport::{self, Channel};
 use isowall_net::Identity;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
-
-fn runtime() -> tokio::runtime::Runtime {
-    tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap()
-}
 
 fn keygen(dir: &Path, config: &Path) {
     let out = run_in(dir, "isowall", &["keygen", "--config", config.to_str().unwrap()]);
@@ -588,11 +585,10 @@ enum Act {
 /// 46 days in microseconds: the lie of the flood.
 const DAYS_46_US: i64 = 46 * 86_400 * 1_000_000;
 
-/// A node played by the test: a QUIC server with `keys/NAME.*` on `port` that speaks the protocol
-/// through the model's [`NodeMachine`] (renders nothing, answers at once; its tiles blue).
+/// A node played by the test on `port` with `keys/NAME.*` ([`FakeNode`]; its tiles blue), doing
+/// what `act` says besides.
 async fn fake_node(keys: PathBuf, name: String, port: u16, tiles: Vec<(String, u32, u32)>, act: Act) {
-    let identity = Identity::load(&keys, &name).unwrap();
-    let endpoint = transport::server(addr(port), &identity).unwrap();
+    let endpoint = fake_node::listen(&keys, &name, addr(port));
     let image = |name: &str, w: u32, h: u32, rgb: [u8; 3]| TileImage {
         name: name.into(),
         width: w,
@@ -602,112 +598,91 @@ async fn fake_node(keys: PathBuf, name: String, port: u16, tiles: Vec<(String, u
     };
     while let Some(incoming) = endpoint.accept().await {
         let Ok(conn) = incoming.await else { continue };
-        let Ok(Channel { mut sender, mut receiver, .. }) = Channel::accept(conn, "controller", 1 << 20).await
-        else {
-            continue;
-        };
-        let mut m = NodeMachine::new(name.clone(), tiles.iter().map(|t| t.0.clone()).collect());
-        let epoch = Instant::now();
+        let names = tiles.iter().map(|t| t.0.clone()).collect();
+        let Some(mut node) = FakeNode::greet(conn, &name, names).await else { continue };
         let mut pongs = 0;
-        if sender.send(&m.hello()).await.is_err() {
-            continue;
-        }
-        'conn: while let Ok(Some(msg)) = receiver.recv().await {
-            let Ok(out) = m.handle(epoch.elapsed(), msg) else { break };
-            let mut queue: std::collections::VecDeque<NodeOutput> = out.into();
-            while let Some(out) = queue.pop_front() {
-                match out {
-                    NodeOutput::Send(mut msg) => {
-                        if let Act::Flood { .. } = &act {
-                            match &mut msg {
-                                Message::Presented { frame_id, node_time_us, waiting_from_us }
-                                    if *frame_id % 2 == 0 =>
-                                {
-                                    *node_time_us += DAYS_46_US;
-                                    // The time it took the swap up too: it would teach the margin.
-                                    *waiting_from_us += DAYS_46_US;
-                                }
-                                Message::Pong { t1_us, .. } => {
-                                    pongs += 1;
-                                    if pongs > 2 {
-                                        *t1_us += DAYS_46_US;
-                                    }
-                                }
-                                _ => {}
-                            }
-                        }
-                        let unasked = match (&act, &msg) {
-                            (Act::Flood { unasked_from, .. }, Message::Presented { frame_id, .. })
-                                if frame_id >= unasked_from =>
+        'conn: while let Some(out) = node.next().await {
+            match out {
+                NodeOutput::Send(mut msg) => {
+                    if let Act::Flood { .. } = &act {
+                        match &mut msg {
+                            Message::Presented { frame_id, node_time_us, waiting_from_us }
+                                if *frame_id % 2 == 0 =>
                             {
-                                vec![
-                                    Message::Presented {
-                                        frame_id: 1 << 40,
-                                        node_time_us: 0,
-                                        waiting_from_us: 0,
-                                    },
-                                    Message::Pong {
-                                        id: 1 << 40,
-                                        t0_us: 0,
-                                        t1_us: 0,
-                                        sent_us: 0,
-                                        resident_bytes: 0,
-                                    },
-                                ]
+                                *node_time_us += DAYS_46_US;
+                                // The time it took the swap up too: it would teach the margin.
+                                *waiting_from_us += DAYS_46_US;
                             }
-                            _ => vec![],
-                        };
-                        for msg in std::iter::once(msg).chain(unasked) {
-                            if sender.send(&msg).await.is_err() {
+                            Message::Pong { t1_us, .. } => {
+                                pongs += 1;
+                                if pongs > 2 {
+                                    *t1_us += DAYS_46_US;
+                                }
+                            }
+                            _ => {}
+                        }
+                    }
+                    let unasked = match (&act, &msg) {
+                        (Act::Flood { unasked_from, .. }, Message::Presented { frame_id, .. })
+                            if frame_id >= unasked_from =>
+                        {
+                            vec![
+                                Message::Presented { frame_id: 1 << 40, node_time_us: 0, waiting_from_us: 0 },
+                                Message::Pong {
+                                    id: 1 << 40,
+                                    t0_us: 0,
+                                    t1_us: 0,
+                                    sent_us: 0,
+                                    resident_bytes: 0,
+                                },
+                            ]
+                        }
+                        _ => vec![],
+                    };
+                    for msg in std::iter::once(msg).chain(unasked) {
+                        if !node.send(&msg).await {
+                            break 'conn;
+                        }
+                    }
+                }
+                NodeOutput::Render { state, .. } if matches!(act, Act::Flood { .. }) => {
+                    let Act::Flood { per_frame: n, .. } = &act else { unreachable!() };
+                    let evil = "\u{1b}[2J\u{1b}[31mowned\r\nisowall: frame 9: all good";
+                    for i in 0..*n {
+                        let lies = [
+                            Message::BrickFailed { brick: i as u64, reason: evil.into() },
+                            Message::StepLate {
+                                frame_id: state.frame_id,
+                                shown_step: state.time_step + 1,
+                                waited_us: 1,
+                            },
+                        ];
+                        for lie in lies {
+                            if !node.send(&lie).await {
                                 break 'conn;
                             }
                         }
                     }
-                    NodeOutput::Render { state, .. } if matches!(act, Act::Flood { .. }) => {
-                        let Act::Flood { per_frame: n, .. } = &act else { unreachable!() };
-                        let evil = "\u{1b}[2J\u{1b}[31mowned\r\nisowall: frame 9: all good";
-                        for i in 0..*n {
-                            let lies = [
-                                Message::BrickFailed { brick: i as u64, reason: evil.into() },
-                                Message::StepLate {
-                                    frame_id: state.frame_id,
-                                    shown_step: state.time_step + 1,
-                                    waited_us: 1,
-                                },
-                            ];
-                            for lie in lies {
-                                if sender.send(&lie).await.is_err() {
-                                    break 'conn;
-                                }
-                            }
-                        }
-                        queue.extend(m.render_done(
-                            epoch.elapsed(),
-                            state.frame_id,
-                            Duration::from_micros(50),
-                        ))
+                    node.rendered(state.frame_id, fake_node::RENDER_TIME);
+                }
+                NodeOutput::Present { frame_id, .. } => {
+                    node.presented(frame_id);
+                    if let Act::Bye(reason) = &act {
+                        let _ = node.send(&Message::Bye { reason: reason.clone() }).await;
                     }
-                    NodeOutput::Render { state, .. } => queue.extend(m.render_done(
-                        epoch.elapsed(),
-                        state.frame_id,
-                        Duration::from_micros(50),
-                    )),
-                    NodeOutput::Present { frame_id, .. } => {
-                        queue.extend(m.presented(epoch.elapsed(), frame_id, epoch.elapsed()));
-                        if let Act::Bye(reason) = &act {
-                            let _ = sender.send(&Message::Bye { reason: reason.clone() }).await;
-                        }
+                }
+                NodeOutput::SnapshotWanted => {
+                    let mut shown: Vec<TileImage> =
+                        tiles.iter().map(|(n, w, h)| image(n, *w, *h, [0, 0, 255])).collect();
+                    if let Act::ForeignTile(n, w, h) = &act {
+                        shown.push(image(n, *w, *h, [255, 0, 0]));
                     }
-                    NodeOutput::SnapshotWanted => {
-                        let mut shown: Vec<TileImage> =
-                            tiles.iter().map(|(n, w, h)| image(n, *w, *h, [0, 0, 255])).collect();
-                        if let Act::ForeignTile(n, w, h) = &act {
-                            shown.push(image(n, *w, *h, [255, 0, 0]));
-                        }
-                        let _ = sender.send(&Message::Snapshot { tiles: shown }).await;
+                    let _ = node.send(&Message::Snapshot { tiles: shown }).await;
+                }
+                other => {
+                    if !node.answer(other).await {
+                        break;
                     }
-                    NodeOutput::Closed { .. } => break 'conn,
-                    _ => {}
                 }
             }
         }

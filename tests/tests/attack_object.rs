@@ -23,14 +23,14 @@
 //! `node0` ready in at least half the frames, and the refusal (the close reason the attacker reads, or the logs)
 //! names the peer. Each test prints its numbers (`cargo test ... -- --nocapture`).
 
+use isowall_e2e::fake_node::{runtime, FakeNode};
 use isowall_e2e::{free_udp_ports, run_in, start_nodes, start_nodes_with, Daemon};
 use isowall_model::codec;
 use isowall_model::composite::{Layer, PeerPixels, PixelForm, PixelRect};
 use isowall_model::messages::Message;
-use isowall_model::node_machine::{NodeMachine, NodeOutput};
-use isowall_net::transport::{self, Channel};
+use isowall_model::node_machine::NodeOutput;
+use isowall_net::transport;
 use isowall_net::Identity;
-use std::collections::VecDeque;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -275,8 +275,7 @@ where
     let (run, (reasons, sent)) = std::thread::scope(|s| {
         let flag = stop.clone();
         let attack = s.spawn(move || {
-            let runtime =
-                tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
+            let runtime = runtime();
             runtime.block_on(run_attack(flag))
         });
         let run = orbit.join().unwrap();
@@ -425,79 +424,55 @@ async fn fake_node1(
         tokio::spawn(async move {
             // The splits it was sent: (from frame, rectangles).
             let mut splits: Vec<(u64, Vec<isowall_model::wire::WireWorkRect>)> = Vec::new();
-            let Ok(Channel { mut sender, mut receiver, .. }) =
-                Channel::accept(conn, "controller", 1 << 20).await
-            else {
-                return;
-            };
-            let mut m = NodeMachine::new("node1", vec!["t1".into()]);
-            let epoch = Instant::now();
-            if sender.send(&m.hello()).await.is_err() {
-                return;
-            }
-            while let Ok(Some(msg)) = receiver.recv().await {
+            let Some(mut node) = FakeNode::greet(conn, "node1", vec!["t1".into()]).await else { return };
+            while let Some(o) = node.next().await {
                 if stop.load(Ordering::Relaxed) {
                     return;
                 }
-                let Ok(out) = m.handle(epoch.elapsed(), msg) else { return };
-                let mut queue: VecDeque<NodeOutput> = out.into();
-                while let Some(o) = queue.pop_front() {
-                    let sent = match o {
-                        NodeOutput::Render { state, .. } => {
-                            let id = state.frame_id;
-                            let split = splits.iter().rev().find(|(from, _)| *from <= id);
-                            let mine: Vec<_> = split
-                                .map(|(_, r)| r.iter().filter(|r| r.renderer == 1).collect())
-                                .unwrap_or_default();
-                            if mine.iter().any(|r| r.tile == 0) {
-                                holes.fetch_add(1, Ordering::Relaxed);
+                let open = match o {
+                    NodeOutput::Render { state, .. } => {
+                        let id = state.frame_id;
+                        let split = splits.iter().rev().find(|(from, _)| *from <= id);
+                        let mine: Vec<_> = split
+                            .map(|(_, r)| r.iter().filter(|r| r.renderer == 1).collect())
+                            .unwrap_or_default();
+                        if mine.iter().any(|r| r.tile == 0) {
+                            holes.fetch_add(1, Ordering::Relaxed);
+                        }
+                        if lie == Lie::FreeRows && !mine.is_empty() {
+                            let costs = mine
+                                .iter()
+                                .map(|r| isowall_model::wire::WireRectCost {
+                                    tile: r.tile,
+                                    first_row: r.first_row,
+                                    rows: r.rows,
+                                    cost: 0,
+                                })
+                                .collect();
+                            if !node.send(&Message::RectCosts { frame_id: id, costs }).await {
+                                return;
                             }
-                            if lie == Lie::FreeRows && !mine.is_empty() {
-                                let costs = mine
-                                    .iter()
-                                    .map(|r| isowall_model::wire::WireRectCost {
-                                        tile: r.tile,
-                                        first_row: r.first_row,
-                                        rows: r.rows,
-                                        cost: 0,
-                                    })
-                                    .collect();
-                                if sender.send(&Message::RectCosts { frame_id: id, costs }).await.is_err() {
-                                    return;
-                                }
-                            }
-                            queue.extend(m.render_done(
-                                epoch.elapsed(),
-                                state.frame_id,
-                                Duration::from_millis(1),
-                            ));
-                            Ok(())
                         }
-                        NodeOutput::Send(msg) => sender.send(&msg).await,
-                        // Presented at once, whatever the present time.
-                        NodeOutput::Present { frame_id, .. } => {
-                            queue.extend(m.presented(epoch.elapsed(), frame_id, epoch.elapsed()));
-                            Ok(())
-                        }
-                        NodeOutput::LateSwap { .. } => Ok(()),
-                        NodeOutput::SnapshotWanted => sender.send(&Message::Snapshot { tiles: vec![] }).await,
-                        NodeOutput::ThumbnailWanted { .. } => {
-                            sender.send(&Message::Snapshot { tiles: vec![] }).await
-                        }
-                        NodeOutput::LoadBrick { brick } => {
-                            let reason = "a silent test peer".to_string();
-                            sender.send(&Message::BrickFailed { brick, reason }).await
-                        }
-                        NodeOutput::Split { from_frame, split } => {
-                            splits.push((from_frame, split.rects));
-                            Ok(())
-                        }
-                        NodeOutput::Bricks { .. } | NodeOutput::Identify { .. } => Ok(()),
-                        NodeOutput::Closed { .. } | NodeOutput::Restart { .. } => return,
-                    };
-                    if sent.is_err() {
-                        return;
+                        node.rendered(id, Duration::from_millis(1));
+                        true
                     }
+                    NodeOutput::SnapshotWanted | NodeOutput::ThumbnailWanted { .. } => {
+                        node.send(&Message::Snapshot { tiles: vec![] }).await
+                    }
+                    NodeOutput::LoadBrick { brick } => {
+                        let reason = "a silent test peer".to_string();
+                        node.send(&Message::BrickFailed { brick, reason }).await
+                    }
+                    NodeOutput::Split { from_frame, split } => {
+                        splits.push((from_frame, split.rects));
+                        true
+                    }
+                    NodeOutput::Restart { .. } => return,
+                    // Sent as the machine says, presented at once whatever the present time.
+                    other => node.answer(other).await,
+                };
+                if !open {
+                    return;
                 }
             }
         });
@@ -508,7 +483,7 @@ async fn fake_node1(
 #[test]
 fn a_silent_peer_does_not_freeze_the_wall() {
     let Some(w) = wall() else { return };
-    let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
+    let runtime = runtime();
     let stop = Arc::new(AtomicBool::new(false));
     let fake = runtime.spawn(silent_node(node1_identity(&w), w.node1, stop.clone()));
     let Some(mut nodes) = start_nodes(w.dir.path(), &w.config, 1) else { return };
@@ -569,7 +544,7 @@ fn on_a_balanced_wall_an_lz4_bomb_is_refused_before_it_is_decompressed() {
 fn lying_node_holes(lie: Lie) {
     let what = format!("lying node ({lie:?})");
     let Some(w) = wall_with(Mode::Balanced) else { return };
-    let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
+    let runtime = runtime();
     let stop = Arc::new(AtomicBool::new(false));
     let holes = Arc::new(std::sync::atomic::AtomicU64::new(0));
     let fake = runtime.spawn(fake_node1(node1_identity(&w), w.node1, stop.clone(), lie, holes.clone()));

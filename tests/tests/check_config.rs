@@ -2,6 +2,7 @@
 //! exits 1 naming FILE:LINE:COL for every problem; the example configs exit 0 with a summary.
 
 use isowall_e2e::{free_udp_ports, repo_root, run_in, set_object_mode, shared_dir, wall_config_2x1};
+use isowall_test_support::{lying_hdr, lying_png};
 
 const BROKEN: &str = r#"[wall]
 name = "broken"
@@ -144,31 +145,6 @@ fn a_config_that_is_a_fifo_or_a_device_is_refused_at_once() {
     }
 }
 
-/// A valid 4x4 PNG whose header is rewritten to say `size`x`size` (its CRC fixed): a few dozen
-/// bytes of data behind a header that claims megapixels.
-fn lying_png(path: &std::path::Path, size: u32) {
-    let crc32 = |bytes: &[u8]| {
-        let mut c = !0u32;
-        for &b in bytes {
-            c ^= u32::from(b);
-            for _ in 0..8 {
-                c = if c & 1 != 0 { 0xEDB8_8320 ^ (c >> 1) } else { c >> 1 };
-            }
-        }
-        !c
-    };
-    let mut bytes = Vec::new();
-    image::RgbImage::from_pixel(4, 4, image::Rgb([200, 100, 50]))
-        .write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)
-        .unwrap();
-    assert_eq!(&bytes[12..16], b"IHDR");
-    bytes[16..20].copy_from_slice(&size.to_be_bytes());
-    bytes[20..24].copy_from_slice(&size.to_be_bytes());
-    let crc = crc32(&bytes[12..29]);
-    bytes[29..33].copy_from_slice(&crc.to_be_bytes());
-    std::fs::write(path, bytes).unwrap();
-}
-
 /// `[render] env` images whose own headers say a size over the limits fail the check of both
 /// binaries, naming the file and the size, as a node refuses them at start: six PNG faces of
 /// 4x4 pixels whose headers say 8192x8192, and a 56-byte `.hdr` whose header says 16384x8192
@@ -187,13 +163,9 @@ fn an_environment_whose_headers_say_a_size_over_the_limits_fails_the_check() {
     };
     std::fs::create_dir(d.join("faces")).unwrap();
     for face in ["px", "nx", "py", "ny", "pz", "nz"] {
-        lying_png(&d.join(format!("faces/{face}.png")), 8192);
+        lying_png(&d.join(format!("faces/{face}.png")), 8192, 8192);
     }
-    std::fs::write(
-        d.join("big.hdr"),
-        b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 8192 +X 16384\n\x02\x02\x40\x00",
-    )
-    .unwrap();
+    lying_hdr(&d.join("big.hdr"), 16384, 8192);
     for (env, want) in [
         ("faces", "faces/px.png: the PNG header says 8192x8192, over the largest cube face of 2048x2048"),
         ("big.hdr", "big.hdr: the HDR header says 16384x8192 (134217728 pixels), over the limit of 33554432"),

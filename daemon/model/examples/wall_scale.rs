@@ -424,10 +424,10 @@ fn balance_table(out: &std::path::Path) -> Result<(), Box<dyn std::error::Error>
 }
 
 /// The same over the costs measured on lavapipe (`isowalld bench imbalance --bands 32`,
-/// docs/bench/imbalance-bands-*.csv), orbit frames only, at GPU-like rates (module docs of
-/// docs/balance.md): 0.3 ns a fetch, 1 ns a pixel, 3-byte pixels over 10 Gbit/s.
+/// daemon/model/tests/data/imbalance-bands-*.csv), orbit frames only, at GPU-like rates (module
+/// docs of docs/balance.md): 0.3 ns a fetch, 1 ns a pixel, 3-byte pixels over 10 Gbit/s.
 fn measured_balance_table() -> Result<(), Box<dyn std::error::Error>> {
-    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../docs/bench");
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/data");
     let transfer = Transfer { bytes_per_pixel: 3.0, bandwidth: 1.25e9, noise: 0.05, seed: SEED };
     println!("\nload-balanced screen space over measured costs (orbit frames, 1 degree each; means from the 8th on)");
     println!("| wall | nodes | slowest/mean unbalanced | balanced | frame ms unbalanced | balanced | ideal | balanced / ideal | Mpixels moved |");

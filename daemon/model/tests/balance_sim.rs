@@ -52,13 +52,13 @@ fn a_still_wall_keeps_its_split() {
 
 /// The same over costs measured by rendering every band of the walls people have
 /// (`isowalld bench imbalance --scale 8 --frames 30 --degrees 1 --still 2 --bands 32`, on lavapipe:
-/// docs/bench/imbalance-bands-*.csv): sva-4, a 4x2 and a 6x4 wall of 1080p screens with the CT in
+/// tests/data/imbalance-bands-*.csv): sva-4, a 4x2 and a 6x4 wall of 1080p screens with the CT in
 /// the middle, orbiting at 1 degree a frame; at 0.3 ns a fetch and 1 ns a pixel, 3-byte pixels
 /// over 10 Gbit/s.
 #[test]
 fn the_split_balances_the_measured_walls_within_15_percent() {
     use isowall_model::sim::{measured_costs, run_balance_on, Transfer};
-    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../docs/bench");
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data");
     let transfer = Transfer { bytes_per_pixel: 3.0, bandwidth: 1.25e9, noise: 0.05, seed: 7 };
     for wall in ["sva-4", "bench-4x2-1080p", "bench-6x4-1080p"] {
         let path = dir.join(format!("imbalance-bands-{wall}.csv"));

@@ -488,33 +488,8 @@ fn srgb_to_linear(x: f64) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use isowall_test_support::{lying_hdr, lying_png};
     use isowall_volume::env_files::FACES;
-
-    fn crc32(bytes: &[u8]) -> u32 {
-        let mut c = !0u32;
-        for &b in bytes {
-            c ^= u32::from(b);
-            for _ in 0..8 {
-                c = if c & 1 != 0 { 0xEDB8_8320 ^ (c >> 1) } else { c >> 1 };
-            }
-        }
-        !c
-    }
-
-    /// A valid 4x4 PNG whose header is rewritten to say `size`x`size`: a few dozen bytes of data
-    /// behind a header that claims megapixels.
-    fn lying_png(path: &Path, size: u32) {
-        let mut bytes = Vec::new();
-        image::RgbImage::from_pixel(4, 4, image::Rgb([200, 100, 50]))
-            .write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)
-            .unwrap();
-        assert_eq!(&bytes[12..16], b"IHDR");
-        bytes[16..20].copy_from_slice(&size.to_be_bytes());
-        bytes[20..24].copy_from_slice(&size.to_be_bytes());
-        let crc = crc32(&bytes[12..29]);
-        bytes[29..33].copy_from_slice(&crc.to_be_bytes());
-        std::fs::write(path, bytes).unwrap();
-    }
 
     #[test]
     fn environment_images_whose_header_says_a_huge_size_are_refused_before_decoding() {
@@ -522,7 +497,7 @@ mod tests {
         // the image crate's default allocation limit; as float texels and resampled, gigabytes).
         let dir = tempfile::tempdir().unwrap();
         for face in FACES {
-            lying_png(&dir.path().join(format!("{face}.png")), 8192);
+            lying_png(&dir.path().join(format!("{face}.png")), 8192, 8192);
         }
         let start = std::time::Instant::now();
         let e = Environment::load_cube_dir(dir.path()).unwrap_err();
@@ -537,14 +512,13 @@ mod tests {
         );
         // At the limit a face passes the size check: its data, too short, is a decode error.
         for face in FACES {
-            lying_png(&dir.path().join(format!("{face}.png")), MAX_FACE);
+            lying_png(&dir.path().join(format!("{face}.png")), MAX_FACE, MAX_FACE);
         }
         let e = Environment::load_cube_dir(dir.path()).unwrap_err();
         assert!(matches!(e, EnvironmentError::Decode { .. }), "{e}");
         // An equirectangular .hdr whose header says 16384x8192 (2^27 pixels).
         let hdr = dir.path().join("big.hdr");
-        std::fs::write(&hdr, b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 8192 +X 16384\n\x02\x02\x40\x00")
-            .unwrap();
+        lying_hdr(&hdr, 16384, 8192);
         let e = Environment::load_hdr(&hdr).unwrap_err().to_string();
         assert!(
             e.contains(

@@ -16,7 +16,7 @@
 //!   keeps only its accepted share, weight included, so fresh samples count more there. Renormalized
 //!   to 1, an edge pixel's history kept its whole weight while drifting a little each frame: that
 //!   bias was 95% of the engine's squared history error, and dropping the rejected share lowered
-//!   the moving error by 16% on the engine and 18% on the MRI (docs/bench/orbit-history-lavapipe.md).
+//!   the moving error by 16% on the engine and 18% on the MRI (docs/bench/history/orbit-history-lavapipe.md).
 //!   Bilinear, not the nearest pixel: with the nearest pixel a history moving less than half a
 //!   pixel a frame stays where it is on the screen while the surface moves on (measured with
 //!   `isowalld bench orbit`: on the engine at 1 degree a frame the occlusion error grew over the
@@ -32,7 +32,7 @@
 //!   distance d of more than the tolerance (in footprints of the new hit) the sums are multiplied
 //!   by (tolerance / d)^2. Where taps are rejected a history is carried from one side only and
 //!   creeps away from the point it stands for, a little each frame: near a crease or a
-//!   silhouette that drift, not noise, was the moving error (docs/bench/orbit-drift-lavapipe.md);
+//!   silhouette that drift, not noise, was the moving error (docs/bench/history/orbit-drift-lavapipe.md);
 //! - every other pixel starts at 0 (its weight restarts);
 //! - the frame's AO samples are then spent by history ([`Rule::spending`]): a pixel newly seen or
 //!   restarted takes more than the frame's S, one with a long history fewer, each adding its
@@ -169,7 +169,7 @@ pub const RULE: Rule = Rule {
 pub const SPENDING: Spending = Spending::ByHistory { target: 10.0, least: 0.25, most: 4.0 };
 
 /// The renderer's drift tolerance times the square root of the AO samples a frame: 1 footprint
-/// at 4 samples (docs/bench/orbit-drift-lavapipe.md).
+/// at 4 samples (docs/bench/history/orbit-drift-lavapipe.md).
 pub const DRIFT_SCALE: f32 = 2.0;
 
 /// A frame's geometry over its (low) rectangle: per pixel, rows top to bottom.

@@ -305,3 +305,69 @@ fn a_tile_cut_into_bands_renders_the_tiles_own_pixels_filtered_or_not() {
         }
     }
 }
+
+/// The GPU bytes a tile holds per pixel once every resource a frame may make is made (its AOVs,
+/// the sample positions of a temporal tile, the history of a reprojected frame, the filter's
+/// buffers, depth and its presentable images), counted from the allocations the renderer makes
+/// (`GpuTraffic`), are the model's `GPU_BYTES_PER_TILE_PIXEL`, by which `check-config` refuses a
+/// node given more tiles than its GPU holds. A buffer added to the tile, or one made larger,
+/// fails here until the bound says so.
+#[test]
+fn a_tiles_gpu_bytes_per_pixel_are_the_models_bound() {
+    use isowall_model::config::GPU_BYTES_PER_TILE_PIXEL;
+    use isowall_model::Denoise;
+    let Some(gpu) = common::gpu() else { return };
+    let (volume, _, mut s) = scene();
+    s.ao.samples = 2;
+    s.denoise = Denoise::On;
+    let gv = gpu.upload(&volume).unwrap();
+    // The bytes allocated for a tile of `w`x`h` and its frames: a still one, then the camera
+    // panning (reprojected, denoised). What does not grow with the tile (parameters, counters,
+    // the ring's staging, whatever the renderer makes once) cancels in the difference of two sizes.
+    let bytes = |w: u32, h: u32| {
+        let view = View::whole(Camera::framing(volume.box_min(), volume.box_max(), w, h), w, h);
+        let mut ring = ReadbackRing::new(4);
+        let before = gpu.ctx.traffic.now();
+        let mut tile = TileTarget::new(&gpu, "t", &view, 1).unwrap();
+        let mut previous: Option<View> = None;
+        for k in 0..4u32 {
+            let c = view.camera;
+            let by = glam::DVec3::new(0.05 * k as f64, 0.0, 0.0);
+            let moved = View { camera: Camera { eye: c.eye + by, target: c.target + by, ..c }, ..view };
+            let mut f = s;
+            f.ao.frame = k;
+            let tf = TileFrame {
+                frame_id: k as u64,
+                volume: &gv,
+                view: &moved,
+                settings: &f,
+                env: None,
+                continuity: common::continuity(previous.as_ref().map(|p| (p, &s)), &moved, &s),
+                temporal: true,
+                share: None,
+            };
+            if !ring.has_free_slot() {
+                ring.wait_oldest(&gpu.ctx).unwrap();
+            }
+            gpu.render_tile(&mut tile, &tf, &mut ring).unwrap();
+            previous = Some(moved);
+        }
+        while ring.in_flight() > 0 {
+            ring.wait_oldest(&gpu.ctx).unwrap();
+        }
+        (gpu.ctx.traffic.now() - before).allocated_bytes
+    };
+    // The renderer's own first-use objects are made before the sizes are compared.
+    bytes(8, 6);
+    let (small, large) = ((W, H), (2 * W, 2 * H));
+    let (a, b) = (bytes(small.0, small.1), bytes(large.0, large.1));
+    let pixels = |(w, h): (u32, u32)| u64::from(w) * u64::from(h);
+    let grown = pixels(large) - pixels(small);
+    eprintln!("tile {}x{}: {a} bytes; {}x{}: {b} bytes", small.0, small.1, large.0, large.1);
+    assert_eq!((b - a) % grown, 0, "{} bytes more for {grown} pixels more", b - a);
+    assert_eq!(
+        (b - a) / grown,
+        GPU_BYTES_PER_TILE_PIXEL,
+        "the bytes a tile pixel takes on the GPU (left) against the model's GPU_BYTES_PER_TILE_PIXEL"
+    );
+}

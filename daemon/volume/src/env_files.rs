@@ -292,30 +292,7 @@ impl CubeFaces {
 mod tests {
     use super::*;
 
-    fn crc32(bytes: &[u8]) -> u32 {
-        let mut c = !0u32;
-        for &b in bytes {
-            c ^= u32::from(b);
-            for _ in 0..8 {
-                c = if c & 1 != 0 { 0xEDB8_8320 ^ (c >> 1) } else { c >> 1 };
-            }
-        }
-        !c
-    }
-
-    /// A valid 4x4 PNG whose header is rewritten to say `w`x`h`.
-    fn lying_png(path: &Path, w: u32, h: u32) {
-        let mut bytes = Vec::new();
-        image::RgbImage::from_pixel(4, 4, image::Rgb([200, 100, 50]))
-            .write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)
-            .unwrap();
-        assert_eq!(&bytes[12..16], b"IHDR");
-        bytes[16..20].copy_from_slice(&w.to_be_bytes());
-        bytes[20..24].copy_from_slice(&h.to_be_bytes());
-        let crc = crc32(&bytes[12..29]);
-        bytes[29..33].copy_from_slice(&crc.to_be_bytes());
-        std::fs::write(path, bytes).unwrap();
-    }
+    use isowall_test_support::{lying_hdr, lying_png};
 
     fn faces(dir: &Path, size: impl Fn(&str) -> (u32, u32)) {
         for face in FACES {
@@ -351,8 +328,7 @@ mod tests {
         assert!(matches!(px.decode(), Err(EnvironmentError::Decode { .. })));
 
         let hdr = dir.path().join("big.hdr");
-        std::fs::write(&hdr, b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 8192 +X 16384\n\x02\x02\x40\x00")
-            .unwrap();
+        lying_hdr(&hdr, 16384, 8192);
         let e = check(&EnvSource::Hdr(hdr.clone()));
         assert!(
             e.contains(
@@ -360,8 +336,7 @@ mod tests {
             ) && e.contains("refused before decoding"),
             "{e}"
         );
-        std::fs::write(&hdr, b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 4096 +X 8192\n\x02\x02\x40\x00")
-            .unwrap();
+        lying_hdr(&hdr, 8192, 4096);
         EnvSource::Hdr(hdr).check_headers().unwrap();
     }
 

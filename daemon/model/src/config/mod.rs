@@ -134,13 +134,15 @@ pub const MAX_WALL_EXTENT: u64 = 1 << 20;
 /// one terabytes.
 pub const SPARSE_WALL_PIXELS: u64 = 1 << 24;
 pub const MAX_WALL_SPARSENESS: u64 = 64;
-/// The GPU bytes a node's tile takes per pixel, at most: six AOV buffers (84 bytes a pixel of
-/// its work rectangle, the denoiser's guard band included; the sample positions' 16 only in a
-/// temporal tile), the depth buffer (4) and six RGBA8
-/// images (24) (`TileTarget` and `ShownImages` in daemon/render/src/gpu/tile.rs), rounded up.
-pub const GPU_BYTES_PER_TILE_PIXEL: u64 = 116;
+/// The GPU bytes a node's tile takes per pixel, at most (a temporal, reprojected, denoised tile:
+/// `TileTarget` in daemon/render/src/gpu/tile.rs): six AOV buffers (84, the sample positions'
+/// 16 included), the reprojection's history (80), the filter's buffers (80), the depth buffer (4)
+/// and three RGBA8 images (12), each a pixel of the work rectangle (the filter's guard band
+/// beyond the tile not counted). The render crate's `gpu_tile.rs` counts them from the
+/// renderer's allocations and holds this to them.
+pub const GPU_BYTES_PER_TILE_PIXEL: u64 = 260;
 /// The most GPU memory a node's tiles may take together ([`GPU_BYTES_PER_TILE_PIXEL`] times their
-/// pixels): 8 GiB, about 74 million pixels (eight 3840x2160 tiles).
+/// pixels): 8 GiB, about 33 million pixels (three 3840x2160 tiles, or fifteen 1920x1080).
 pub const MAX_NODE_GPU_BYTES: u64 = 8 << 30;
 /// Default vertical field of view of the wall camera, degrees (that of [`Camera::framing`]).
 pub const DEFAULT_FOV_Y_DEG: f64 = crate::camera::DEFAULT_FOV_Y_DEG;

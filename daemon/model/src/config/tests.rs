@@ -538,7 +538,7 @@ fn the_message_limit_holds_every_nodes_snapshot() {
     let big = with("width = 100\nheight = 80\n\n[[nodes]]", "width = 16384\nheight = 16384\n\n[[nodes]]");
     let ps =
         expect(&big, Some(30), "`message_limit_bytes` 67108864 is too small for the snapshot of node 'n1'");
-    // And its GPU buffers (31 GB) are more than a node may take.
+    // And its GPU buffers (70 GB) are more than a node may take.
     assert_eq!(ps.len(), 2, "{ps:#?}");
     assert!(
         ps.iter().any(|p| p.message.contains("node 'n1': its 1 tile(s) hold 268435456 pixels")),
@@ -605,9 +605,9 @@ fn a_node_given_more_tiles_than_its_gpu_holds_is_refused() {
     let ps = problems(&wall(40));
     assert_eq!(ps.len(), 1, "{ps:#?}");
     assert!(ps[0].message.contains("node 'n0': its 40 tile(s) hold 167772160 pixels"), "{ps:#?}");
-    // Twenty-one of them (10 GB) do not fit either; ten do.
-    assert!(problems(&wall(21)).iter().any(|p| p.message.contains("GPU buffers")));
-    WallConfig::parse(&wall(10), Path::new("w.toml")).unwrap();
+    // Eight of them (8.7 GB) do not fit either; seven (7.6 GB) do.
+    assert!(problems(&wall(8)).iter().any(|p| p.message.contains("GPU buffers")));
+    WallConfig::parse(&wall(7), Path::new("w.toml")).unwrap();
 }
 
 /// Walls of many tiles and nodes are checked in about n log n: 4,000 tiles in a row and 4,000

@@ -89,12 +89,13 @@ pub struct GpuContext {
 }
 
 /// Running totals of what the renderer asks of the device: GPU objects created (buffers,
-/// textures, bind groups) and bytes uploaded and read back. Every creation and transfer of the
-/// renderer goes through [`GpuContext`]'s helpers, which count it; a benchmark takes the
-/// difference over a frame.
+/// textures, bind groups), the bytes of the buffers and textures among them, and bytes uploaded
+/// and read back. Every creation and transfer of the renderer goes through [`GpuContext`]'s
+/// helpers, which count it; a benchmark takes the difference over a frame.
 #[derive(Debug, Default)]
 pub struct GpuTraffic {
     allocations: AtomicU64,
+    allocated_bytes: AtomicU64,
     uploaded: AtomicU64,
     read_back: AtomicU64,
 }
@@ -103,6 +104,9 @@ pub struct GpuTraffic {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct TrafficCount {
     pub allocations: u64,
+    /// The sizes of the buffers and textures created (a texture's texels at its format's size,
+    /// every mip level and sample: what the device is asked to hold, before any padding of its own).
+    pub allocated_bytes: u64,
     pub uploaded: u64,
     pub read_back: u64,
 }
@@ -111,9 +115,15 @@ impl GpuTraffic {
     pub fn now(&self) -> TrafficCount {
         TrafficCount {
             allocations: self.allocations.load(Ordering::Relaxed),
+            allocated_bytes: self.allocated_bytes.load(Ordering::Relaxed),
             uploaded: self.uploaded.load(Ordering::Relaxed),
             read_back: self.read_back.load(Ordering::Relaxed),
         }
+    }
+
+    fn allocated(&self, bytes: u64) {
+        self.allocations.fetch_add(1, Ordering::Relaxed);
+        self.allocated_bytes.fetch_add(bytes, Ordering::Relaxed);
     }
 
     pub(crate) fn read_back(&self, bytes: u64) {
@@ -126,6 +136,7 @@ impl std::ops::Sub for TrafficCount {
     fn sub(self, o: TrafficCount) -> TrafficCount {
         TrafficCount {
             allocations: self.allocations - o.allocations,
+            allocated_bytes: self.allocated_bytes - o.allocated_bytes,
             uploaded: self.uploaded - o.uploaded,
             read_back: self.read_back - o.read_back,
         }
@@ -187,7 +198,7 @@ impl GpuContext {
 
     /// `device.create_buffer`, counted.
     pub fn create_buffer(&self, desc: &wgpu::BufferDescriptor) -> wgpu::Buffer {
-        self.traffic.allocations.fetch_add(1, Ordering::Relaxed);
+        self.traffic.allocated(desc.size);
         self.device.create_buffer(desc)
     }
 
@@ -203,14 +214,18 @@ impl GpuContext {
 
     /// `device.create_buffer_init`, counted (an allocation and its bytes uploaded).
     pub fn create_buffer_init(&self, desc: &wgpu::util::BufferInitDescriptor) -> wgpu::Buffer {
-        self.traffic.allocations.fetch_add(1, Ordering::Relaxed);
+        self.traffic.allocated(desc.contents.len() as u64);
         self.traffic.uploaded.fetch_add(desc.contents.len() as u64, Ordering::Relaxed);
         self.device.create_buffer_init(desc)
     }
 
     /// `device.create_texture`, counted.
     pub fn create_texture(&self, desc: &wgpu::TextureDescriptor) -> wgpu::Texture {
-        self.traffic.allocations.fetch_add(1, Ordering::Relaxed);
+        let texels: u64 = (0..desc.mip_level_count)
+            .filter_map(|level| desc.mip_level_size(level))
+            .map(|size| desc.format.theoretical_memory_footprint(size))
+            .sum();
+        self.traffic.allocated(texels * u64::from(desc.sample_count));
         self.device.create_texture(desc)
     }
 
