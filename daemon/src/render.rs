@@ -142,7 +142,7 @@ impl From<AovArg> for Aov {
 #[derive(Args, Debug, Default, Clone)]
 pub struct RenderArgs {
     /// Volume: a file (.nrrd .nhdr .mhd .mha .nii .nii.gz, a DICOM folder or one file of the series,
-    /// or raw with --dims/--type/--spacing) or
+    /// an OME-Zarr store, or raw with --dims/--type/--spacing) or
     /// procedural:NAME[:N] with NAME one of sphere, sphere-over-plane, torus, marschner-lobb, gyroid,
     /// engine and N the largest dimension [default: procedural:engine, 256x256x118]
     #[arg(long, value_name = "PATH|procedural:NAME[:N]")]
