@@ -237,6 +237,19 @@ fn bad_metadata_is_refused_with_what_is_wrong() {
         let e = OmeZarr::open(&out).err().map(|e| e.to_string()).unwrap_or_default();
         assert!(e.contains(says) && e.contains("m.ome.zarr"), "{from} -> {to}: {e}");
     }
+    // A chunk too large to decode at once, whatever the array's size.
+    let level0 = out.join("0/zarr.json");
+    let good0 = std::fs::read_to_string(&level0).unwrap();
+    let huge = good0.replacen(
+        "\"chunk_shape\": [\n        16,\n        16,\n        16\n      ]",
+        "\"chunk_shape\": [100000, 100000, 100000]",
+        1,
+    );
+    assert_ne!(huge, good0, "the chunk shape was found in {good0}");
+    std::fs::write(&meta, &good).unwrap();
+    std::fs::write(&level0, huge).unwrap();
+    let e = OmeZarr::open(&out).err().map(|e| e.to_string()).unwrap_or_default();
+    assert!(e.contains("a chunk of 1000000000000000 samples is over"), "{e}");
     // A metadata document over the limit is not read.
     let f = std::fs::OpenOptions::new().write(true).open(&meta).unwrap();
     f.set_len(1 << 30).unwrap();
@@ -280,5 +293,29 @@ fn a_pyramid_streamed_slice_by_slice_from_a_raw_file_equals_the_one_written_whol
             b.read_level(l, 0, &VolumeLimit::default()).unwrap(),
         );
         assert_eq!(x.data(), y.data(), "level {l}: streamed and whole differ");
+    }
+}
+
+#[test]
+fn a_truncated_shard_is_refused_not_read_past_its_end() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("cut.ome.zarr");
+    copy_dir(&data("foreign_v05.ome.zarr"), &store);
+    // The shard's index sits at its end: a shard of 3 bytes cannot hold it.
+    std::fs::write(store.join("s0/c/0/0/0"), [1u8, 2, 3]).unwrap();
+    let e = load(&store, None).unwrap_err().to_string();
+    assert!(e.contains("cut.ome.zarr") && e.contains("array `s0`"), "{e}");
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        let target = to.join(e.file_name());
+        if e.file_type().unwrap().is_dir() {
+            copy_dir(&e.path(), &target);
+        } else {
+            std::fs::copy(e.path(), &target).unwrap();
+        }
     }
 }

@@ -35,6 +35,10 @@ use zarrs::plugin::ExtensionName;
 /// The largest metadata document (`zarr.json`, `.zarray`, `.zattrs`, `.zgroup`) read.
 pub const MAX_METADATA_BYTES: u64 = 16 << 20;
 
+/// The most samples one chunk (or shard) may hold: 2^27 (512 MiB of `float32`). A chunk is
+/// decoded whole, so its shape, not the array's, sets what one read allocates.
+pub const MAX_CHUNK_ELEMENTS: u64 = 1 << 27;
+
 /// The key of Isowall's own attributes in the root group.
 pub const ISOWALL_KEY: &str = "isowall";
 
@@ -226,6 +230,12 @@ impl OmeZarr {
                 .map_err(|e| err(path, format!("array `{}`: no regular chunk grid: {e}", d.path)))?;
             let chunk_elems =
                 chunk.iter().map(|n| n.get()).try_fold(1u64, |a, n| a.checked_mul(n)).unwrap_or(u64::MAX);
+            if chunk_elems > MAX_CHUNK_ELEMENTS {
+                return Err(err(path, format!(
+                    "array `{}`: a chunk of {chunk_elems} samples is over the {MAX_CHUNK_ELEMENTS} Isowall decodes at once",
+                    d.path
+                )));
+            }
             max_chunk_bytes = max_chunk_bytes.max(chunk_elems.saturating_mul(size as u64));
             let chunk = [chunk[ndim - 1].get(), chunk[ndim - 2].get(), chunk[ndim - 3].get()];
             let list = json_of("datasets")

@@ -228,12 +228,20 @@ impl<S: ReadableStorageTraits> ReadableStorageTraits for BoundedStore<S> {
         let Some(size) = self.inner.size_key(key)? else { return Ok(None) };
         let ranges: Vec<ByteRange> = byte_ranges.collect();
         for r in &ranges {
-            if r.end(size) > size || r.start(size) > r.end(size) {
+            // The range's length where it lies inside the value (a truncated or lying file
+            // asks for more than is there).
+            let len = match *r {
+                ByteRange::FromStart(start, None) => size.checked_sub(start),
+                ByteRange::FromStart(start, Some(len)) => {
+                    start.checked_add(len).filter(|&e| e <= size).map(|_| len)
+                }
+                ByteRange::Suffix(len) => (len <= size).then_some(len),
+            };
+            let Some(len) = len else {
                 return Err(StorageError::Other(format!(
                     "{key}: a read of {r} lies outside its {size} bytes"
                 )));
-            }
-            let len = r.length(size);
+            };
             if len > self.max_read {
                 return Err(StorageError::Other(format!(
                     "{key}: a value of {len} bytes is larger than any chunk of this store may be ({} bytes): \
