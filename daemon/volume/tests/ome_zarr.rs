@@ -319,3 +319,24 @@ fn copy_dir(from: &Path, to: &Path) {
         }
     }
 }
+
+#[test]
+fn a_store_whose_level_0_is_too_large_to_read_whole_opens_at_a_coarser_level() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("huge.ome.zarr");
+    write(&grid(), &out, &PyramidOptions { chunk: 16, zstd_level: 1 }, &mut |_, _| {}).unwrap();
+    // Level 0 claims 4096^3 samples (2^36, over the 2^30 read whole); its chunks are absent.
+    let level0 = out.join("0/zarr.json");
+    let meta = std::fs::read_to_string(&level0).unwrap();
+    let claimed =
+        meta.replacen("\"shape\": [\n    19,\n    22,\n    37\n  ]", "\"shape\": [4096, 4096, 4096]", 1);
+    assert_ne!(claimed, meta, "the shape was found in {meta}");
+    std::fs::write(&level0, claimed).unwrap();
+    let store = OmeZarr::open(&out).unwrap();
+    assert_eq!(store.levels()[0].dims, [4096, 4096, 4096]);
+    assert_eq!(store.finest_within(&VolumeLimit::new(u64::MAX, "no limit")), Some(1));
+    let v = load(&out, None).unwrap();
+    assert_eq!(v.dims(), [19, 11, 10], "level 1, the finest that is read whole");
+    let e = store.read_level(0, 0, &VolumeLimit::new(u64::MAX, "no limit")).unwrap_err().to_string();
+    assert!(e.contains("over the 1073741824 voxels read whole"), "{e}");
+}

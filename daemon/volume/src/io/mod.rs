@@ -191,8 +191,7 @@ pub fn check_header(path: &Path, limit: &VolumeLimit) -> Result<(), VolumeError>
     if FileFormat::of(path) == FileFormat::OmeZarr {
         let store = ome_zarr::OmeZarr::open(path)?;
         if store.finest_within(limit).is_none() {
-            let l = &store.levels()[store.levels().len() - 1];
-            return Err(format_err(path, limit.check(l.voxels(), "even its coarsest level").unwrap_err()));
+            return Err(store.none_within(limit));
         }
         return Ok(());
     }

@@ -13,7 +13,7 @@
 //!
 //! What a hostile store can do is bounded ([`super::zarr_codecs`]): no metadata document over
 //! [`MAX_METADATA_BYTES`], no chunk read larger than its shape allows, no chunk decoded past its
-//! shape's bytes, no level over [`MAX_VOXELS`]; errors name the store, the array and the chunk.
+//! shape's bytes, no level read whole over [`MAX_VOXELS`]; errors name the store, the array and the chunk.
 //!
 //! Isowall's own keys live under `isowall` in the root group's attributes (ignored by other
 //! readers): the patient axes of the grid (`patient_axes_lps`, three LPS unit vectors of +x, +y,
@@ -34,6 +34,10 @@ use zarrs::plugin::ExtensionName;
 
 /// The largest metadata document (`zarr.json`, `.zarray`, `.zattrs`, `.zgroup`) read.
 pub const MAX_METADATA_BYTES: u64 = 16 << 20;
+
+/// The most samples a level of a store may have (2^50): a store's level 0 may be far larger
+/// than what is read whole ([`MAX_VOXELS`]); only a level within that and the limit is read.
+pub const MAX_LEVEL_VOXELS: u64 = 1 << 50;
 
 /// The most samples one chunk (or shard) may hold: 2^27 (512 MiB of `float32`). A chunk is
 /// decoded whole, so its shape, not the array's, sets what one read allocates.
@@ -212,11 +216,11 @@ impl OmeZarr {
             }
             let dims = [shape[ndim - 1], shape[ndim - 2], shape[ndim - 3]];
             let voxels = dims.iter().try_fold(1u64, |a, &n| a.checked_mul(n)).unwrap_or(u64::MAX);
-            if dims.contains(&0) || voxels > MAX_VOXELS {
+            if dims.contains(&0) || voxels > MAX_LEVEL_VOXELS {
                 return Err(err(
                     path,
                     format!(
-                        "array `{}`: {}x{}x{} samples, outside 1..={MAX_VOXELS} voxels",
+                        "array `{}`: {}x{}x{} samples, outside 1..={MAX_LEVEL_VOXELS} voxels",
                         d.path, dims[0], dims[1], dims[2]
                     ),
                 ));
@@ -323,7 +327,19 @@ impl OmeZarr {
 
     /// The finest level whose voxels fit `limit` (as `f32`), if any.
     pub fn finest_within(&self, limit: &VolumeLimit) -> Option<usize> {
-        self.levels.iter().position(|l| limit.check(l.voxels(), "").is_ok())
+        self.levels.iter().position(|l| l.voxels() <= MAX_VOXELS && limit.check(l.voxels(), "").is_ok())
+    }
+
+    /// Why no level is read within `limit` (where [`OmeZarr::finest_within`] finds none).
+    pub fn none_within(&self, limit: &VolumeLimit) -> VolumeError {
+        let l = &self.levels[self.levels.len() - 1];
+        let what =
+            format!("even its coarsest level `{}` ({}x{}x{})", l.path, l.dims[0], l.dims[1], l.dims[2]);
+        let why = match limit.check(l.voxels(), &what) {
+            Err(e) => e,
+            Ok(()) => format!("{what} is over the {MAX_VOXELS} voxels read whole"),
+        };
+        err(&self.path, why)
     }
 
     /// Reads time step `step` of level `level` whole, within `limit`.
@@ -337,9 +353,11 @@ impl OmeZarr {
                 format!("time step {step} does not exist (the store has {})", self.steps),
             ));
         }
-        limit
-            .check(l.voxels(), &format!("level `{}` ({}x{}x{})", l.path, l.dims[0], l.dims[1], l.dims[2]))
-            .map_err(|e| err(&self.path, e))?;
+        let what = format!("level `{}` ({}x{}x{})", l.path, l.dims[0], l.dims[1], l.dims[2]);
+        if l.voxels() > MAX_VOXELS {
+            return Err(err(&self.path, format!("{what} is over the {MAX_VOXELS} voxels read whole")));
+        }
+        limit.check(l.voxels(), &what).map_err(|e| err(&self.path, e))?;
         let array = Array::open(self.store.clone(), &format!("/{}", l.path.trim_matches('/')))
             .map_err(|e| err(&self.path, format!("array `{}` does not open: {e}", l.path)))?;
         let mut ranges = Vec::with_capacity(self.leading + 3);
@@ -394,11 +412,7 @@ impl OmeZarr {
 pub fn read(path: &Path, step: usize, limit: &VolumeLimit) -> Result<Volume, VolumeError> {
     let store = OmeZarr::open(path)?;
     let Some(level) = store.finest_within(limit) else {
-        let l = &store.levels[store.levels.len() - 1];
-        return Err(err(
-            path,
-            limit.check(l.voxels(), &format!("even its coarsest level `{}`", l.path)).unwrap_err(),
-        ));
+        return Err(store.none_within(limit));
     };
     if level > 0 {
         let (l, l0) = (&store.levels[level], &store.levels[0]);
