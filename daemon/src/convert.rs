@@ -60,9 +60,10 @@ pub fn run(a: &ConvertArgs) -> Result<()> {
     let summary = summary.with_context(|| format!("cannot convert {source}"))?;
     let levels: Vec<String> = summary.levels.iter().map(|d| format!("{}x{}x{}", d[0], d[1], d[2])).collect();
     println!(
-        "converted {source} to {}: {} levels ({}), {} chunks of {}^3, orientation {}",
+        "converted {source} to {}: {} level{} ({}), {} chunks of {}^3, orientation {}",
         a.output.display(),
         levels.len(),
+        if levels.len() == 1 { "" } else { "s" },
         levels.join(", "),
         summary.chunks,
         a.chunk,
@@ -70,6 +71,8 @@ pub fn run(a: &ConvertArgs) -> Result<()> {
     );
     if let Some(iso) = a.iso {
         let (_, volume) = a.source.read(&a.input)?;
+        let (lo, hi) = volume.value_range();
+        isowall_volume::check_iso(f64::from(iso), (f64::from(lo), f64::from(hi))).context("--iso")?;
         let (mean, surface) =
             ome_zarr_write::surface_disagreement(&volume, &ome_zarr_write::mean_level(&volume), iso);
         let (every, _) =
