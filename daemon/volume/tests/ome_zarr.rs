@@ -230,6 +230,8 @@ fn bad_metadata_is_refused_with_what_is_wrong() {
     for (from, to, says) in [
         ("\"name\": \"x\"", "\"name\": \"w\"", "last three axes are z, y, x"),
         ("\"path\": \"1\"", "\"path\": \"9\"", "array `9` does not open"),
+        ("\"path\": \"1\"", "\"path\": \"../../elsewhere\"", "must name a folder inside the store"),
+        ("\"path\": \"1\"", "\"path\": \"/1\"", "must name a folder inside the store"),
         ("\"version\": \"0.5\"", "\"version\": \"7\"", "not OME-Zarr 0.4 or 0.5"),
     ] {
         assert!(good.contains(from), "{from}");

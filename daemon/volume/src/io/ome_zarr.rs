@@ -191,7 +191,17 @@ impl OmeZarr {
         let mut max_chunk_bytes = 0u64;
         for (index, d) in image.datasets.iter().enumerate() {
             let what = format!("level `{}`", d.path);
-            let array = Array::open(meta.clone(), &format!("/{}", d.path.trim_matches('/')))
+            // A level lives inside the store: a path of names, never `..`, `.` or absolute.
+            if d.path.is_empty()
+                || d.path.starts_with('/')
+                || d.path.split('/').any(|c| c.is_empty() || c == "." || c == "..")
+            {
+                return Err(err(
+                    path,
+                    format!("{what}: a dataset's path must name a folder inside the store"),
+                ));
+            }
+            let array = Array::open(meta.clone(), &format!("/{}", d.path))
                 .map_err(|e| err(path, format!("array `{}` does not open: {e}", d.path)))?;
             let shape = array.shape().to_vec();
             if shape.len() != ndim {
@@ -358,7 +368,7 @@ impl OmeZarr {
             return Err(err(&self.path, format!("{what} is over the {MAX_VOXELS} voxels read whole")));
         }
         limit.check(l.voxels(), &what).map_err(|e| err(&self.path, e))?;
-        let array = Array::open(self.store.clone(), &format!("/{}", l.path.trim_matches('/')))
+        let array = Array::open(self.store.clone(), &format!("/{}", l.path))
             .map_err(|e| err(&self.path, format!("array `{}` does not open: {e}", l.path)))?;
         let mut ranges = Vec::with_capacity(self.leading + 3);
         for a in 0..self.leading {
