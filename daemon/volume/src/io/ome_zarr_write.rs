@@ -64,17 +64,9 @@ fn write_err(out: &Path, what: impl std::fmt::Display) -> VolumeError {
 }
 
 /// A level of half `v`'s samples on each axis (rounded up), twice its spacing, sample 0 at
-/// `origin`, sample (i, j, k) `value(i, j, k)`.
-fn half_level(v: &Volume, origin: DVec3, value: impl Fn(usize, usize, usize) -> f32) -> Volume {
+/// `origin`, holding `data` (x fastest).
+fn half_level(v: &Volume, origin: DVec3, data: Vec<f32>) -> Volume {
     let n = v.dims().map(|x| x.div_ceil(2));
-    let mut data = Vec::with_capacity(n[0] * n[1] * n[2]);
-    for k in 0..n[2] {
-        for j in 0..n[1] {
-            for i in 0..n[0] {
-                data.push(value(i, j, k));
-            }
-        }
-    }
     Volume::new(v.name.clone(), n, v.spacing() * 2.0, origin, data)
         .expect("values of finite voxels on a grid inside the source's box")
         .with_orientation(v.orientation())
@@ -82,27 +74,32 @@ fn half_level(v: &Volume, origin: DVec3, value: impl Fn(usize, usize, usize) -> 
 }
 
 /// The 2x2x2 mean of `v` (a far edge of odd length averages the samples it has), placed as
-/// DESIGN.md's pyramid places level l+1 from level l.
+/// DESIGN.md's pyramid places level l+1 from level l: [`half_slice`] of each pair of z-slices,
+/// as the pyramid writer makes it from slices.
 pub fn mean_level(v: &Volume) -> Volume {
-    let d = v.dims();
-    half_level(v, v.origin() + v.spacing() * 0.5, |i, j, k| {
-        let (mut sum, mut count) = (0.0f64, 0u32);
-        for kk in 2 * k..(2 * k + 2).min(d[2]) {
-            for jj in 2 * j..(2 * j + 2).min(d[1]) {
-                for ii in 2 * i..(2 * i + 2).min(d[0]) {
-                    sum += f64::from(v.at(ii, jj, kk));
-                    count += 1;
-                }
-            }
-        }
-        (sum / f64::from(count)) as f32
-    })
+    let [nx, ny, nz] = v.dims();
+    let slice = |k: usize| &v.data()[nx * ny * k..nx * ny * (k + 1)];
+    let mut data = Vec::with_capacity(nx.div_ceil(2) * ny.div_ceil(2) * nz.div_ceil(2));
+    for k in (0..nz).step_by(2) {
+        let pair: Vec<&[f32]> = (k..(k + 2).min(nz)).map(slice).collect();
+        data.extend(half_slice(&pair, nx, ny));
+    }
+    half_level(v, v.origin() + v.spacing() * 0.5, data)
 }
 
 /// Every other sample of `v` (no averaging), placed where those samples are: the other common
 /// pyramid rule, for comparison with [`mean_level`].
 pub fn subsampled_level(v: &Volume) -> Volume {
-    half_level(v, v.origin(), |i, j, k| v.at(2 * i, 2 * j, 2 * k))
+    let n = v.dims().map(|x| x.div_ceil(2));
+    let mut data = Vec::with_capacity(n[0] * n[1] * n[2]);
+    for k in 0..n[2] {
+        for j in 0..n[1] {
+            for i in 0..n[0] {
+                data.push(v.at(2 * i, 2 * j, 2 * k));
+            }
+        }
+    }
+    half_level(v, v.origin(), data)
 }
 
 /// How far a coarser level moves the surface `iso` of `fine`: of `fine`'s surface samples (those
@@ -203,8 +200,7 @@ impl LevelWriter {
 }
 
 /// The 2x2 mean in x and y over `slices` (one or two z-slices of `nx * ny`), a far edge of odd
-/// length averaging what it has: summed in the order [`mean_level`] sums, so a pyramid written
-/// from slices equals one made of a whole volume, bit for bit.
+/// length averaging what it has: the one mean of the pyramid ([`mean_level`] is made of it).
 fn half_slice(slices: &[&[f32]], nx: usize, ny: usize) -> Vec<f32> {
     let (mx, my) = (nx.div_ceil(2), ny.div_ceil(2));
     let mut out = Vec::with_capacity(mx * my);
