@@ -26,13 +26,27 @@ fn half_to_f32(h: u32) -> f32 {
     return bitcast<f32>(sign | ((e + 112u) << 23u) | (m << 13u));
 }
 
+// Level 0's sample (i, j, k): of the `volume` buffer, or through the page table where bricked.
 fn voxel(i: i32, j: i32, k: i32) -> f32 {
+    if BRICKED {
+        return bricked_sample(vec3<i32>(i, j, k));
+    }
     let n = vec3<i32>(params.dims.xyz);
-    return voxel_at(u32(i + n.x * (j + n.y * k)));
+    return packed_voxel(u32(i + n.x * (j + n.y * k)));
 }
 
-// The voxel at linear index idx (x fastest) of the `volume` buffer.
+// Level 0's sample at linear index idx (x fastest; the index of the volume held whole).
 fn voxel_at(idx: u32) -> f32 {
+    if BRICKED {
+        let n = params.dims.xyz;
+        let c = vec3<u32>(idx % n.x, (idx / n.x) % n.y, idx / (n.x * n.y));
+        return bricked_sample(vec3<i32>(c));
+    }
+    return packed_voxel(idx);
+}
+
+// The voxel at linear index idx (x fastest) of the `volume` buffer held whole.
+fn packed_voxel(idx: u32) -> f32 {
     if VOXEL_FORMAT == 1u {
         return half_to_f32((volume[idx >> 1u] >> (16u * (idx & 1u))) & 0xffffu);
     }
@@ -51,6 +65,9 @@ fn voxel_at(idx: u32) -> f32 {
 // single sample is constant along that axis.
 fn trilinear_voxel(u: vec4<f32>) -> f32 {
     fetches += 1u;
+    if BRICKED {
+        return bricked_trilinear(u.xyz, 0u);
+    }
     let n = vec3<i32>(params.dims.xyz);
     let x = clamp(u.xyz, vec3<f32>(0.0), vec3<f32>(max(n - 1, vec3<i32>(0))));
     let i0 = min(vec3<i32>(floor(x)), max(n - 2, vec3<i32>(0)));
@@ -62,6 +79,98 @@ fn trilinear_voxel(u: vec4<f32>) -> f32 {
     let x01 = mix(voxel(i0.x, i0.y, i1.z), voxel(i1.x, i0.y, i1.z), fr.x);
     let x11 = mix(voxel(i0.x, i1.y, i1.z), voxel(i1.x, i1.y, i1.z), fr.x);
     return mix(mix(x00, x10, fr.y), mix(x01, x11, fr.y), fr.z);
+}
+
+// A bricked volume (DESIGN.md "Large volumes"; the host side is daemon/render/src/gpu/brick_pool.rs,
+// which writes this layout, and daemon/volume/src/brick_cache.rs): the `volume` buffer holds, in
+// words, a header (levels, log2 of the cells per brick edge, samples per brick edge, the pool's
+// first word), each level's directory entry (16 words from word 4), the page tables (one word a
+// brick: 0 where it is not resident, else its pool slot + 1) and the pool (slots of
+// samples^3 f32, x fastest). A pipeline constant, so the whole volume's kernels hold no branch.
+override BRICKED: bool = false;
+
+struct BrickLevel {
+    dims: vec3<i32>,
+    pages: u32,        // the level's page table's first word
+    counts: vec3<u32>, // bricks on x, y, z
+    scale: vec3<f32>,  // level-0 voxel coordinates u map to this level's as u * scale + offset
+    offset: vec3<f32>,
+}
+
+fn brick_level(l: u32) -> BrickLevel {
+    let w = 4u + 16u * l;
+    return BrickLevel(
+        vec3<i32>(i32(volume[w]), i32(volume[w + 1u]), i32(volume[w + 2u])),
+        volume[w + 3u],
+        vec3<u32>(volume[w + 4u], volume[w + 5u], volume[w + 6u]),
+        vec3<f32>(bitcast<f32>(volume[w + 8u]), bitcast<f32>(volume[w + 9u]), bitcast<f32>(volume[w + 10u])),
+        vec3<f32>(bitcast<f32>(volume[w + 12u]), bitcast<f32>(volume[w + 13u]), bitcast<f32>(volume[w + 14u])),
+    );
+}
+
+// The page (pool slot + 1, or 0) of brick b of `lv`.
+fn brick_page(lv: BrickLevel, b: vec3<u32>) -> u32 {
+    return volume[lv.pages + b.x + lv.counts.x * (b.y + lv.counts.y * b.z)];
+}
+
+// Sample `at` (the brick's own indices, 0 ..= cells) of the brick in `page`.
+fn pool_sample(page: u32, at: vec3<i32>) -> f32 {
+    let s = volume[2u];
+    let a = vec3<u32>(at);
+    return bitcast<f32>(volume[volume[3u] + (page - 1u) * s * s * s + a.x + s * (a.y + s * a.z)]);
+}
+
+// The trilinear interpolant, at level-0 voxel coordinates u0, of the finest level from `first` on
+// whose brick there is resident: the field of DESIGN.md "Large volumes". At level 0 it is
+// `trilinear_voxel`'s arithmetic on the same samples, so a resident level 0 is the whole volume's
+// picture bit for bit. The coarsest level is always resident (the pool pins it).
+fn bricked_trilinear(u0: vec3<f32>, first: u32) -> f32 {
+    let levels = volume[0u];
+    let shift = vec3<u32>(volume[1u]);
+    for (var l = first; l < levels; l += 1u) {
+        let lv = brick_level(l);
+        let n = lv.dims;
+        let x = clamp(u0 * lv.scale + lv.offset, vec3<f32>(0.0), vec3<f32>(max(n - 1, vec3<i32>(0))));
+        let i0 = min(vec3<i32>(floor(x)), max(n - 2, vec3<i32>(0)));
+        let b = min(vec3<u32>(i0) >> shift, lv.counts - 1u);
+        let page = brick_page(lv, b);
+        if page == 0u && l + 1u < levels {
+            continue;
+        }
+        if page == 0u {
+            return 0.0;
+        }
+        let fr = x - vec3<f32>(i0);
+        let d = select(vec3<i32>(0), vec3<i32>(1), n > vec3<i32>(1));
+        let a0 = i0 - vec3<i32>(b << shift);
+        let a1 = a0 + d;
+        let x00 = mix(pool_sample(page, a0), pool_sample(page, vec3<i32>(a1.x, a0.y, a0.z)), fr.x);
+        let x10 = mix(pool_sample(page, vec3<i32>(a0.x, a1.y, a0.z)), pool_sample(page, vec3<i32>(a1.x, a1.y, a0.z)), fr.x);
+        let x01 = mix(pool_sample(page, vec3<i32>(a0.x, a0.y, a1.z)), pool_sample(page, vec3<i32>(a1.x, a0.y, a1.z)), fr.x);
+        let x11 = mix(pool_sample(page, vec3<i32>(a0.x, a1.y, a1.z)), pool_sample(page, a1), fr.x);
+        return mix(mix(x00, x10, fr.y), mix(x01, x11, fr.y), fr.z);
+    }
+    return 0.0;
+}
+
+// Level 0's sample c: from its resident brick (a sample on a brick's low face is also the
+// previous brick's far face, which is tried too), else the coarser levels' field there.
+fn bricked_sample(c: vec3<i32>) -> f32 {
+    let lv = brick_level(0u);
+    let cells = volume[1u];
+    let u = vec3<u32>(max(c, vec3<i32>(0)));
+    let b = min(u >> vec3<u32>(cells), lv.counts - 1u);
+    var page = brick_page(lv, b);
+    var at = b;
+    if page == 0u {
+        let on_face = (u & vec3<u32>((1u << cells) - 1u)) == vec3<u32>(0u) & b > vec3<u32>(0u);
+        at = b - select(vec3<u32>(0u), vec3<u32>(1u), on_face);
+        page = brick_page(lv, at);
+    }
+    if page != 0u {
+        return pool_sample(page, vec3<i32>(u - (at << vec3<u32>(cells))));
+    }
+    return bricked_trilinear(vec3<f32>(c), 1u);
 }
 
 // Continuous voxel coordinates of a world point in the whole volume's grid.

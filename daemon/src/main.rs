@@ -4,6 +4,7 @@
 mod args;
 mod balanced;
 mod bench;
+mod bricked;
 mod convert;
 mod display;
 mod identify;

@@ -1,6 +1,7 @@
 //! `isowalld render`: one headless frame to a file.
 
 use crate::args;
+use crate::bricked::{render_converged, BrickedVolume, Budgets};
 use crate::progress::Counted;
 use anyhow::{anyhow, bail, Context, Result};
 use clap::{Args, ValueEnum};
@@ -206,6 +207,18 @@ pub struct RenderArgs {
     pub max_volume_bytes: Option<u64>,
     #[command(flatten)]
     pub raw: args::RawVolumeArgs,
+    /// Render through the brick cache (DESIGN.md "Large volumes") with a pool of this many MiB of
+    /// GPU memory: an OME-Zarr store is read brick by brick (never whole, so it may be larger
+    /// than memory), any other volume is loaded whole and cut into a pyramid. The picture is
+    /// written once every brick the still frame wants is resident at level 0, so it is the whole
+    /// volume's picture; a still frame that wants more bricks than the pool holds is refused with
+    /// the budget that would do [default: off: the volume is uploaded whole]
+    #[arg(long = "gpu-budget-mb", value_name = "MIB")]
+    pub gpu_budget_mb: Option<u64>,
+    /// With --gpu-budget-mb: the most MiB of decoded bricks held in memory (least recently used
+    /// evicted first) [default: twice --gpu-budget-mb]
+    #[arg(long = "host-budget-mb", value_name = "MIB", requires = "gpu_budget_mb")]
+    pub host_budget_mb: Option<u64>,
     /// Ambient-occlusion rays per pixel per frame, 0..=1024; 0 turns AO off [default: 0]
     #[arg(long = "ao-samples", value_name = "N", value_parser = clap::value_parser!(u32).range(0..=1024))]
     pub ao_samples: Option<u32>,
@@ -337,19 +350,46 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         (None, Some(_)) => bail!("--series needs --volume (a DICOM folder or one file of it)"),
     };
     let gpu = a.renderer.unwrap_or_default() == RendererKind::Gpu;
-    let limit = volume_limit(a.max_volume_bytes.map(|b| (b, "--max-volume-bytes")), gpu)?;
-    let (volume, iso) =
-        load_volume_step_within(spec.as_deref(), raw.as_ref(), (a.iso, "--iso"), a.step, &limit)?;
+    let budgets = match a.gpu_budget_mb {
+        Some(_) if !gpu => {
+            bail!("--gpu-budget-mb is the GPU renderer's (the reference renderer reads the volume whole)")
+        }
+        Some(mb) => Some(Budgets::from_mb(mb, a.host_budget_mb)?),
+        None => None,
+    };
+    // Held whole, the volume must fit one storage binding; bricked, only the default limit on
+    // what is loaded whole applies (a store is never loaded whole).
+    let limit =
+        volume_limit(a.max_volume_bytes.map(|b| (b, "--max-volume-bytes")), gpu && budgets.is_none())?;
+    let loaded = match budgets {
+        Some(_) => Loaded::Bricked(BrickedVolume::open(
+            spec.as_deref(),
+            raw.as_ref(),
+            (a.iso, "--iso"),
+            a.step,
+            &limit,
+        )?),
+        None => {
+            let (volume, iso) =
+                load_volume_step_within(spec.as_deref(), raw.as_ref(), (a.iso, "--iso"), a.step, &limit)?;
+            Loaded::Whole(volume, iso)
+        }
+    };
+    let (iso, name, (box_min, box_max), orientation, fit) = match &loaded {
+        Loaded::Whole(v, iso) => {
+            (*iso, v.name.clone(), (v.box_min(), v.box_max()), v.orientation(), object_box(v, *iso))
+        }
+        Loaded::Bricked(b) => (b.iso, b.name.clone(), (b.box_min, b.box_max), b.orientation, b.fit),
+    };
     let (w, h) = a.size.unwrap_or((800, 600));
-    let fit = object_box(&volume, iso);
     tracing::info!(
         framed = ?(fit.0.to_array(), fit.1.to_array()),
-        volume = ?(volume.box_min().to_array(), volume.box_max().to_array()),
-        orientation = volume.orientation().map(|o| o.code()).unwrap_or_else(|| "none".into()),
+        volume = ?(box_min.to_array(), box_max.to_array()),
+        orientation = orientation.map(|o| o.code()).unwrap_or_else(|| "none".into()),
         "the object's box at the iso"
     );
-    let framing = Camera::framing_view(fit, a.view, volume.orientation(), w, h);
-    let centre = 0.5 * (volume.box_min() + volume.box_max());
+    let framing = Camera::framing_view(fit, a.view, orientation, w, h);
+    let centre = 0.5 * (box_min + box_max);
     let camera = match a.eye {
         None => Camera {
             target: a.target.unwrap_or(framing.target),
@@ -417,9 +457,30 @@ pub fn run(a: &RenderArgs) -> Result<()> {
 
     let start = Instant::now();
     let (frame, label): (Frame, String) = match a.renderer.unwrap_or_default() {
-        RendererKind::Gpu => {
+        RendererKind::Gpu if matches!(loaded, Loaded::Bricked(_)) => {
+            let Loaded::Bricked(bricked) = &loaded else { unreachable!("matched above") };
+            let budgets = budgets.expect("bricked with budgets");
             let gpu = GpuRenderer::new()?;
-            let gv = gpu.upload(&volume)?;
+            let genv = env.as_ref().map(|e| gpu.upload_environment(e)).transpose()?;
+            let r = render_converged(&gpu, bricked, budgets, &view, &settings, genv.as_ref(), frames)?;
+            (
+                r.frame,
+                format!(
+                    "gpu '{}', {:.1} ms on the GPU; bricks: {} wanted at level 0, {} uploaded, a pool of {} slots in {:.1} MiB, host cache peak {:.1} MiB",
+                    gpu.adapter_name(),
+                    r.gpu_time.as_secs_f64() * 1e3,
+                    r.wanted,
+                    r.uploads,
+                    r.slots,
+                    r.gpu_bytes as f64 / 1048576.0,
+                    r.host_peak_bytes as f64 / 1048576.0
+                ),
+            )
+        }
+        RendererKind::Gpu => {
+            let Loaded::Whole(volume, _) = &loaded else { unreachable!("bricked is rendered above") };
+            let gpu = GpuRenderer::new()?;
+            let gv = gpu.upload(volume)?;
             let genv = env.as_ref().map(|e| gpu.upload_environment(e)).transpose()?;
             // Frames accumulate only with AO or image-based light: then each is reported.
             let accumulates = settings.ao.samples > 0 || settings.ao.ibl != IblMethod::None;
@@ -435,11 +496,12 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             )
         }
         RendererKind::Reference => {
+            let Loaded::Whole(volume, _) = &loaded else { unreachable!("refused above") };
             let mut progress = (frames > 1).then(|| Counted::frames(frames, &volume.name));
             let mut report = progress.as_mut().map(|p| move |k: u32| p.done(k));
             let on_frame = report.as_mut().map(|r| r as &mut dyn FnMut(u32));
             let mut frame = reference::render_accumulated_reporting(
-                &volume,
+                volume,
                 &view,
                 &settings,
                 env.as_ref(),
@@ -467,7 +529,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         "wrote {} ({} {w}x{h}, {}, iso {iso}; {label}, {:.0} ms in all; {:.1} trilinear fetches/pixel, {hits:.1}% of pixels hit)",
         out.display(),
         aov.name(),
-        volume.name,
+        name,
         start.elapsed().as_secs_f64() * 1e3,
         frame.fetches_per_pixel(),
     );
@@ -476,6 +538,12 @@ pub fn run(a: &RenderArgs) -> Result<()> {
 
 /// The box a default camera frames: the object's at `iso` at block resolution
 /// ([`BlockMinMax::object_box`]), or the volume's where no block reaches `iso`.
+/// The volume `render` draws: held whole (with its iso), or through the brick cache.
+enum Loaded {
+    Whole(Volume, f64),
+    Bricked(BrickedVolume),
+}
+
 pub fn object_box(volume: &Volume, iso: f64) -> (DVec3, DVec3) {
     BlockMinMax::new(volume, BlockMinMax::DEFAULT_BLOCK)
         .object_box(iso, volume.dims(), volume.origin(), volume.spacing())

@@ -17,6 +17,7 @@
 //! (for the renderer's loader and for `check-config`).
 
 pub mod blocks;
+pub mod brick_cache;
 pub mod env_files;
 pub mod format;
 pub mod io;

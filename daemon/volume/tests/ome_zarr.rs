@@ -342,3 +342,42 @@ fn a_store_whose_level_0_is_too_large_to_read_whole_opens_at_a_coarser_level() {
     let e = store.read_level(0, 0, &VolumeLimit::new(u64::MAX, "no limit")).unwrap_err().to_string();
     assert!(e.contains("over the 1073741824 voxels read whole"), "{e}");
 }
+
+/// A store as a source of cache bricks: each brick is its level's samples cut out (the far edges
+/// repeated), for a store `convert` wrote (bricks of its chunks, their min/max read from the
+/// store and equal to the level's own) and for stores other programs wrote (bricks of the
+/// default size, ranges unknown).
+#[test]
+fn a_store_reads_as_bricks_that_are_its_levels_cut_up() {
+    use isowall_volume::brick_cache::{BrickSource, DEFAULT_BRICK_CELLS};
+    use isowall_volume::BlockMinMax;
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("g.ome.zarr");
+    write(&grid(), &out, &PyramidOptions { chunk: 8, zstd_level: 1 }, &mut |_, _| {}).unwrap();
+    let stores = [(out, Some(8)), (data("foreign_v04.ome.zarr"), None), (data("foreign_v05.ome.zarr"), None)];
+    for (path, cells) in stores {
+        let store = OmeZarr::open(&path).unwrap();
+        let levels: Vec<Volume> = (0..store.levels().len())
+            .map(|l| store.read_level(l, 0, &VolumeLimit::default()).unwrap())
+            .collect();
+        let bricks = store.into_bricks(0).unwrap();
+        let layout = bricks.layout().clone();
+        assert_eq!(layout.cells, cells.unwrap_or(DEFAULT_BRICK_CELLS), "{path:?}");
+        for (l, level) in levels.iter().enumerate() {
+            assert_eq!(layout.levels[l].dims, level.dims());
+            for key in layout.keys(l) {
+                let got = bricks.read_brick(key).unwrap();
+                assert_eq!(got, layout.cut(key, level.data()), "{path:?} {key:?}");
+            }
+            match cells {
+                Some(c) => {
+                    let own = BlockMinMax::new(level, c);
+                    assert_eq!(bricks.ranges(l).unwrap(), own.minmax.as_slice(), "level {l}");
+                }
+                None => assert!(bricks.ranges(l).is_none(), "another program's store has no ranges"),
+            }
+        }
+    }
+    let e = OmeZarr::open(&data("foreign_v05.ome.zarr")).unwrap().into_bricks(3).err().unwrap().to_string();
+    assert!(e.contains("time step 3"), "{e}");
+}

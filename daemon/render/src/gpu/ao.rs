@@ -142,12 +142,13 @@ impl AoKernel {
         ]
     }
 
-    /// The kernel compiled for `perf`'s workgroup shape, voxel format and block levels.
-    pub fn new(ctx: &GpuContext, perf: &PerfOptions) -> Result<AoKernel, GpuError> {
+    /// The kernel compiled for `perf`'s workgroup shape, voxel format and block levels, for
+    /// volumes held whole or `bricked`.
+    pub fn new(ctx: &GpuContext, perf: &PerfOptions, bricked: bool) -> Result<AoKernel, GpuError> {
         let entries = Self::entries();
         let workgroup = perf.workgroup;
         let with_path = |path: AoPath| {
-            let mut constants = perf.volume_constants().to_vec();
+            let mut constants = perf.volume_constants(bricked).to_vec();
             constants.push(("AO_PATH", f64::from(path.code())));
             constants
         };

@@ -45,10 +45,12 @@ impl IsosurfaceKernel {
     }
 
     /// The kernel compiled for `perf`'s workgroup shape, voxel format and block levels, its march
-    /// sampling the volume's texture where `perf.texture` (`TEXTURE_MARCH`).
-    pub fn new(ctx: &GpuContext, perf: &PerfOptions) -> Result<IsosurfaceKernel, GpuError> {
-        let [format, pow2] = perf.volume_constants();
-        let constants = [format, pow2, ("TEXTURE_MARCH", f64::from(u8::from(perf.texture)))];
+    /// sampling the volume's texture where `perf.texture` (`TEXTURE_MARCH`), for volumes held
+    /// whole or `bricked`.
+    pub fn new(ctx: &GpuContext, perf: &PerfOptions, bricked: bool) -> Result<IsosurfaceKernel, GpuError> {
+        let [format, pow2, bricks] = perf.volume_constants(bricked);
+        let constants =
+            [format, pow2, bricks, ("TEXTURE_MARCH", f64::from(u8::from(perf.texture && !bricked)))];
         let workgroup = perf.workgroup;
         let (pipeline, layout) = ctx.pipeline(Kernel::Isosurface, &Self::entries(), workgroup, &constants)?;
         Ok(IsosurfaceKernel { pipeline, layout, workgroup })

@@ -19,6 +19,7 @@
 
 pub mod ao;
 pub mod aovs;
+pub mod brick_pool;
 pub mod compose;
 pub mod denoise;
 pub mod frame_params;
@@ -42,6 +43,7 @@ use wgpu::util::DeviceExt;
 
 pub use ao::AoKernel;
 pub use aovs::Aovs;
+pub use brick_pool::{BrickPool, PoolStats, Refinement};
 pub use compose::{ComposeKernel, ComposeParams};
 pub use denoise::{DenoiseKernel, DenoiseParams};
 pub use frame_params::FrameParams;
@@ -425,6 +427,8 @@ pub struct GpuRenderer {
     pub ctx: GpuContext,
     isosurface: IsosurfaceKernel,
     ao: AoKernel,
+    /// The volume kernels compiled for bricked volumes, made at the first one's frame.
+    bricked: std::sync::OnceLock<(IsosurfaceKernel, AoKernel)>,
     compose: ComposeKernel,
     denoise: DenoiseKernel,
     reproject: ReprojectKernel,
@@ -448,13 +452,14 @@ impl GpuRenderer {
     pub fn new() -> Result<GpuRenderer, GpuError> {
         let ctx = GpuContext::new()?;
         let perf = PerfOptions::default();
-        let isosurface = IsosurfaceKernel::new(&ctx, &perf)?;
-        let ao = AoKernel::new(&ctx, &perf)?;
+        let isosurface = IsosurfaceKernel::new(&ctx, &perf, false)?;
+        let ao = AoKernel::new(&ctx, &perf, false)?;
         let compose = ComposeKernel::new(&ctx, perf.workgroup)?;
         let denoise = DenoiseKernel::new(&ctx, perf.workgroup)?;
         let reproject = ReprojectKernel::new(&ctx, perf.workgroup)?;
         let no_env = GpuEnvironment::upload(&ctx, &Environment::constant([0.0; 3]))?;
-        Ok(GpuRenderer { ctx, isosurface, ao, compose, denoise, reproject, perf, no_env })
+        let bricked = std::sync::OnceLock::new();
+        Ok(GpuRenderer { ctx, isosurface, ao, bricked, compose, denoise, reproject, perf, no_env })
     }
 
     /// The performance options in use.
@@ -471,8 +476,9 @@ impl GpuRenderer {
         perf.validate().map_err(GpuError::Settings)?;
         let compiled = |p: &PerfOptions| (p.workgroup, p.format, p.texture, p.pow2_levels());
         if compiled(&perf) != compiled(&self.perf) {
-            self.isosurface = IsosurfaceKernel::new(&self.ctx, &perf)?;
-            self.ao = AoKernel::new(&self.ctx, &perf)?;
+            self.isosurface = IsosurfaceKernel::new(&self.ctx, &perf, false)?;
+            self.ao = AoKernel::new(&self.ctx, &perf, false)?;
+            self.bricked = std::sync::OnceLock::new();
             self.compose = ComposeKernel::new(&self.ctx, perf.workgroup)?;
             self.denoise = DenoiseKernel::new(&self.ctx, perf.workgroup)?;
             self.reproject = ReprojectKernel::new(&self.ctx, perf.workgroup)?;
@@ -488,6 +494,26 @@ impl GpuRenderer {
     /// What wgpu says of the adapter: name, backend, driver and its description.
     pub fn adapter_info(&self) -> &wgpu::AdapterInfo {
         &self.ctx.info
+    }
+
+    /// The isosurface and AO kernels that read `volume`: the bricked ones (compiled at the first
+    /// bricked volume's frame) or the whole volume's.
+    pub(crate) fn volume_kernels(
+        &self,
+        volume: &GpuVolume,
+    ) -> Result<(&IsosurfaceKernel, &AoKernel), GpuError> {
+        if !volume.bricked {
+            return Ok((&self.isosurface, &self.ao));
+        }
+        if self.bricked.get().is_none() {
+            let kernels = (
+                IsosurfaceKernel::new(&self.ctx, &self.perf, true)?,
+                AoKernel::new(&self.ctx, &self.perf, true)?,
+            );
+            let _ = self.bricked.set(kernels);
+        }
+        let (i, a) = self.bricked.get().expect("set above");
+        Ok((i, a))
     }
 
     /// Uploads a volume (voxels packed as the options' format) and its block min/max for rendering.

@@ -92,12 +92,14 @@ impl PerfOptions {
         self.block.is_power_of_two() && pow2(self.ao_block) && pow2(self.coarse)
     }
 
-    /// The pipeline constants of the volume kernels (shaders/volume.wgsl): the voxel format and
-    /// whether the block levels are powers of two.
-    pub fn volume_constants(&self) -> [(&'static str, f64); 2] {
+    /// The pipeline constants of the volume kernels (shaders/volume.wgsl): the voxel format,
+    /// whether the block levels are powers of two, and whether the volume is bricked (read
+    /// through the page table of a [`BrickPool`](super::brick_pool::BrickPool)).
+    pub fn volume_constants(&self, bricked: bool) -> [(&'static str, f64); 3] {
         [
             ("VOXEL_FORMAT", self.format.code() as f64),
             ("POW2_LEVELS", f64::from(u8::from(self.pow2_levels()))),
+            ("BRICKED", f64::from(u8::from(bricked))),
         ]
     }
 

@@ -58,6 +58,9 @@ pub struct GpuVolume {
     // object space
     /// Where the buffer holds a brick and its halo, not the whole volume.
     pub object: Option<ObjectSpace>,
+    /// The buffer is a [`BrickPool`](super::brick_pool::BrickPool)'s: page tables and bricks of a
+    /// pyramid, read by the kernels compiled `BRICKED`.
+    pub bricked: bool,
 }
 
 /// The volume as a `texture_3d` the primary march samples through the hardware's trilinear filter
@@ -77,7 +80,7 @@ pub struct MarchTexture {
 impl MarchTexture {
     /// The texture of `voxels` (x fastest, `dims`) in [`GpuContext::march_format`], or one texel
     /// where `voxels` is `None`.
-    fn new(
+    pub(crate) fn new(
         ctx: &GpuContext,
         name: &str,
         voxels: Option<(&[f32], [usize; 3])>,
@@ -313,6 +316,7 @@ impl GpuVolume {
             box_max: geometry.box_max,
             name: geometry.name.to_string(),
             object,
+            bricked: false,
         })
     }
 

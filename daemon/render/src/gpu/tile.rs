@@ -546,6 +546,7 @@ impl GpuRenderer {
         check_fits(tile, frame)?;
         let low = work_view(frame.view, scale, tile.guard);
         let env = self.check_frame(frame.volume, &low, frame.settings, frame.env, 1)?;
+        let (isosurface, ao) = self.volume_kernels(frame.volume)?;
         let s = frame.settings;
         let with_ao = s.ao.samples > 0 || s.ao.ibl != IblMethod::None;
         let mut params = FrameParams::new(frame.volume, &low, s, env);
@@ -586,8 +587,8 @@ impl GpuRenderer {
             tile.bound = Some(Bound {
                 volume: frame.volume.id,
                 env: env.id,
-                isosurface: self.isosurface.bind(ctx, &tile.params, frame.volume, &tile.aovs),
-                ao: self.ao.bind(ctx, &tile.params, frame.volume, &env.texels, &tile.aovs),
+                isosurface: isosurface.bind(ctx, &tile.params, frame.volume, &tile.aovs),
+                ao: ao.bind(ctx, &tile.params, frame.volume, &env.texels, &tile.aovs),
             });
         }
         let denoised = with_ao && s.denoise.is_on() && super::denoise::applies(&params);
@@ -624,19 +625,19 @@ impl GpuRenderer {
                 enc.copy_buffer_to_buffer(&tile.aovs.pos_sum, 0, &h.prev_pos, 0, None);
                 let rp = ReprojectParams::new(&params, prev, &tile.rule);
                 ctx.write_buffer(&h.params, 0, bytemuck::bytes_of(&rp));
-                self.isosurface.pass(&mut enc, &bound.isosurface, low_size, ts(0));
+                isosurface.pass(&mut enc, &bound.isosurface, low_size, ts(0));
                 self.reproject.pass(&mut enc, &h.bind, low_size);
             } else if restart {
                 for sum in tile.aovs.sums() {
                     enc.clear_buffer(sum, 0, None);
                 }
-                self.isosurface.pass(&mut enc, &bound.isosurface, low_size, ts(0));
+                isosurface.pass(&mut enc, &bound.isosurface, low_size, ts(0));
             } else {
                 // The fetches of this frame only (the isosurface kernel's were counted when it ran).
                 enc.clear_buffer(&tile.aovs.fetches, 0, None);
             }
             if with_ao {
-                self.ao.pass(&mut enc, &bound.ao, low_size, dispatches, ts(1));
+                ao.pass(&mut enc, &bound.ao, low_size, dispatches, ts(1));
             }
             if let (true, Some(d)) = (denoised, &tile.denoise) {
                 self.denoise.encode(ctx, &mut enc, &d.buffers, &params, frames, per_pixel);

@@ -22,6 +22,7 @@
 
 use super::zarr_codecs::{register_bounded_codecs, BoundedStore};
 use super::{format_err, VolumeLimit, MAX_VOXELS};
+use crate::brick_cache::{BrickKey, BrickLayout, BrickSource, DEFAULT_BRICK_CELLS};
 use crate::orientation::{PatientAxes, PatientFrame};
 use crate::{Volume, VolumeError};
 use glam::DVec3;
@@ -368,6 +369,29 @@ impl OmeZarr {
             return Err(err(&self.path, format!("{what} is over the {MAX_VOXELS} voxels read whole")));
         }
         limit.check(l.voxels(), &what).map_err(|e| err(&self.path, e))?;
+        let data = self.read_region(level, step, [0; 3], l.dims)?;
+        let name = format!("{}", self.path.display());
+        let v = Volume::new(name, l.dims, l.spacing, l.origin, data)?;
+        let orientation = self.patient_axes.and_then(|p| p.orientation());
+        Ok(v.with_orientation(orientation).with_patient_axes(self.patient_axes))
+    }
+
+    /// The samples `origin .. origin + size` (x, y, z; inside the level) of time step `step` of
+    /// level `level`, x fastest, as `f32`. Only the chunks the region touches are read.
+    pub fn read_region(
+        &self,
+        level: usize,
+        step: usize,
+        origin: [usize; 3],
+        size: [usize; 3],
+    ) -> Result<Vec<f32>, VolumeError> {
+        let l = &self.levels[level];
+        if (0..3).any(|a| size[a] == 0 || origin[a] + size[a] > l.dims[a]) || step >= self.steps {
+            return Err(err(
+                &self.path,
+                format!("array `{}`: region {origin:?} + {size:?} of step {step} lies outside it", l.path),
+            ));
+        }
         let array = Array::open(self.store.clone(), &format!("/{}", l.path))
             .map_err(|e| err(&self.path, format!("array `{}` does not open: {e}", l.path)))?;
         let mut ranges = Vec::with_capacity(self.leading + 3);
@@ -375,12 +399,12 @@ impl OmeZarr {
             let at = if a == 0 && self.has_t { step as u64 } else { 0 };
             ranges.push(at..at + 1);
         }
-        for n in [l.dims[2], l.dims[1], l.dims[0]] {
-            ranges.push(0..n as u64);
+        for a in [2, 1, 0] {
+            ranges.push(origin[a] as u64..(origin[a] + size[a]) as u64);
         }
         let subset = ArraySubset::new_with_ranges(&ranges);
         let failed = |e: zarrs::array::ArrayError| {
-            err(&self.path, format!("array `{}` ({}): {e}", l.path, l.data_type))
+            err(&self.path, format!("array `{}` ({}) at {origin:?}: {e}", l.path, l.data_type))
         };
         macro_rules! read_as {
             ($t:ty) => {
@@ -401,20 +425,121 @@ impl OmeZarr {
             "int32" => read_as!(i32),
             "float32" => read_as!(f32),
             "float64" => read_as!(f64),
-            other => {
-                return Err(err(
-                    &self.path,
-                    format!(
+            other => return Err(err(
+                &self.path,
+                format!(
                     "array `{}`: data type {other} is not read (uint8/16/32, int8/16/32, float32, float64)",
                     l.path
                 ),
-                ))
-            }
+            )),
         };
-        let name = format!("{}", self.path.display());
-        let v = Volume::new(name, l.dims, l.spacing, l.origin, data)?;
-        let orientation = self.patient_axes.and_then(|p| p.orientation());
-        Ok(v.with_orientation(orientation).with_patient_axes(self.patient_axes))
+        if let Some(i) = data.iter().position(|v| !v.is_finite()) {
+            return Err(err(
+                &self.path,
+                format!("array `{}`: a non-finite sample in the region at {origin:?} (index {i})", l.path),
+            ));
+        }
+        Ok(data)
+    }
+
+    /// The store as a source of cache bricks ([`crate::brick_cache`]) for time step `step`: bricks
+    /// of the per-brick min/max `isowalld convert` wrote (its chunks), whose ranges it reads here
+    /// (small: two numbers a brick); for another program's store, bricks of
+    /// [`DEFAULT_BRICK_CELLS`] cells with ranges unknown until read.
+    pub fn into_bricks(self, step: usize) -> Result<ZarrBricks, VolumeError> {
+        if step >= self.steps {
+            return Err(err(
+                &self.path,
+                format!("time step {step} does not exist (the store has {})", self.steps),
+            ));
+        }
+        let geometry: Vec<_> = self.levels.iter().map(|l| (l.dims, l.spacing, l.origin)).collect();
+        let written = self.minmax_brick().filter(|c| c.is_power_of_two() && (2..=256).contains(c));
+        let cells = written.unwrap_or(DEFAULT_BRICK_CELLS);
+        let layout = BrickLayout::new(cells, &geometry).map_err(|e| err(&self.path, e))?;
+        let ranges = (0..layout.levels.len())
+            .map(|l| match written {
+                Some(_) => self.read_minmax(l, &layout),
+                None => Ok(None),
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        let name = self.path.display().to_string();
+        Ok(ZarrBricks { store: self, step, layout, ranges, name })
+    }
+
+    /// The brick of the `isowall.minmax` arrays, where the store has them.
+    fn minmax_brick(&self) -> Option<usize> {
+        let meta = store(&self.path, MAX_METADATA_BYTES).ok()?;
+        let group = zarrs::group::Group::open(meta, "/").ok()?;
+        let c = group.attributes().get(ISOWALL_KEY)?.get("minmax")?.get("brick")?.as_u64()?;
+        usize::try_from(c).ok()
+    }
+
+    /// Level `l`'s per-brick min/max (`isowall_minmax/<l>`), checked against `layout`'s brick
+    /// counts; `None` where the array is missing.
+    fn read_minmax(&self, l: usize, layout: &BrickLayout) -> Result<Option<Vec<[f32; 2]>>, VolumeError> {
+        let path = format!("isowall_minmax/{l}");
+        let Ok(array) = Array::open(self.store.clone(), &format!("/{path}")) else {
+            return Ok(None);
+        };
+        let c = layout.levels[l].counts;
+        let want = vec![c[2] as u64, c[1] as u64, c[0] as u64, 2];
+        if array.shape() != want.as_slice() {
+            return Err(err(
+                &self.path,
+                format!("array `{path}`: shape {:?}, the level's bricks need {want:?}", array.shape()),
+            ));
+        }
+        let subset = ArraySubset::new_with_shape(want);
+        let flat = array
+            .retrieve_array_subset::<Vec<f32>>(&subset)
+            .map_err(|e| err(&self.path, format!("array `{path}`: {e}")))?;
+        let pairs: Vec<[f32; 2]> = flat.chunks_exact(2).map(|p| [p[0], p[1]]).collect();
+        if pairs.iter().any(|p| !(p[0].is_finite() && p[1].is_finite() && p[0] <= p[1])) {
+            return Err(err(
+                &self.path,
+                format!("array `{path}`: a brick's min/max is not finite min <= max"),
+            ));
+        }
+        Ok(Some(pairs))
+    }
+}
+
+/// An OME-Zarr store's time step as a source of cache bricks ([`OmeZarr::into_bricks`]).
+pub struct ZarrBricks {
+    store: OmeZarr,
+    step: usize,
+    layout: BrickLayout,
+    ranges: Vec<Option<Vec<[f32; 2]>>>,
+    name: String,
+}
+
+impl ZarrBricks {
+    pub fn store(&self) -> &OmeZarr {
+        &self.store
+    }
+}
+
+impl BrickSource for ZarrBricks {
+    fn layout(&self) -> &BrickLayout {
+        &self.layout
+    }
+    fn ranges(&self, l: usize) -> Option<&[[f32; 2]]> {
+        self.ranges[l].as_deref()
+    }
+    fn read_brick(&self, key: BrickKey) -> Result<Vec<f32>, VolumeError> {
+        let l = key.level as usize;
+        let dims = self.layout.levels[l].dims;
+        let origin = key.brick.map(|b| b as usize * self.layout.cells);
+        let size: [usize; 3] = std::array::from_fn(|a| (self.layout.samples()).min(dims[a] - origin[a]));
+        let region = self.store.read_region(l, self.step, origin, size)?;
+        // The region as a level of its own, cut as a brick at its origin (the far edges repeated).
+        let local = BrickLayout::new(self.layout.cells, &[(size, glam::DVec3::ONE, glam::DVec3::ZERO)])
+            .map_err(|e| err(&self.store.path, e))?;
+        Ok(local.cut(BrickKey { level: 0, brick: [0; 3] }, &region))
+    }
+    fn name(&self) -> &str {
+        &self.name
     }
 }
 

@@ -1,0 +1,510 @@
+//! The brick cache's GPU side (DESIGN.md "Large volumes"): a fixed pool of bricks and the page
+//! tables that say which brick of which level each slot holds, in one storage buffer the volume
+//! kernels read through `bricked_trilinear` / `bricked_sample` (shaders/volume.wgsl, compiled
+//! with `BRICKED`). The bricks come from a [`BrickSource`] through a [`HostBrickCache`]
+//! (daemon/volume/src/brick_cache.rs).
+//!
+//! The buffer, in 32-bit words: a header (levels, log2 of the cells per brick edge, samples per
+//! brick edge, the pool's first word), 16 words of directory per level (dims and the page table's
+//! first word; brick counts; and the map from level-0 voxel coordinates to the level's, as scale
+//! and offset), the page tables (one word a brick: 0 where not resident, else its slot + 1), then
+//! the pool's slots. Its size is fixed when the pool is made, from the GPU budget: nothing grows.
+//! The coarsest level is pinned in the first slots, so every lookup finds a level.
+//!
+//! Empty-space skipping reads the block levels a whole volume has (`PerfOptions::block` for every
+//! ray, `PerfOptions::coarse` for AO rays; not the AO rays' own fine level, whose min/max would
+//! take 1/64 of the voxels' bytes), over level 0: a block's range is the union, over the level-0
+//! bricks its samples lie in, of the exact range of those samples where the brick is resident and
+//! of the brick's range where not (the source's, or unbounded where the source does not know it).
+//! Skipping is thus conservative before refinement and, once the bricks a view wants are
+//! resident, decides as the whole volume's levels do (a brick that is not wanted has max < iso,
+//! so its blocks are skipped by both), which keeps the march's steps, and so the picture, the
+//! same.
+
+use super::resources::{next_resource_id, BlockLevel, MarchTexture};
+use super::{GpuContext, GpuError, GpuVolume, PerfOptions};
+use isowall_volume::brick_cache::{BrickKey, BrickLayout, BrickSource, HostBrickCache};
+use isowall_volume::VoxelFormat;
+use std::collections::{HashMap, HashSet};
+
+/// Words before the first level's directory entry.
+const HEADER_WORDS: usize = 4;
+/// Words of one level's directory entry.
+const LEVEL_WORDS: usize = 16;
+
+/// What the pool has done since it was made.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct PoolStats {
+    /// Bricks written into the pool, and their bytes.
+    pub uploads: u64,
+    pub upload_bytes: u64,
+    /// Bricks dropped from the pool to make room.
+    pub evictions: u64,
+    /// Wanted bricks found resident.
+    pub hits: u64,
+}
+
+/// One round of [`BrickPool::refine`].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Refinement {
+    /// Bricks the round was asked for, and how many of them are resident after it.
+    pub wanted: usize,
+    pub resident: usize,
+    /// Bricks uploaded in this round, and their bytes.
+    pub uploaded: usize,
+    pub upload_bytes: u64,
+    /// Wanted bricks left out because the pool holds no slot that this round does not want:
+    /// the view's set is larger than the pool.
+    pub over_pool: usize,
+}
+
+impl Refinement {
+    /// Every wanted brick is resident.
+    pub fn complete(&self) -> bool {
+        self.resident == self.wanted
+    }
+}
+
+/// A fixed pool of bricks on the GPU and its page tables, with the [`GpuVolume`] the kernels bind.
+pub struct BrickPool {
+    layout: BrickLayout,
+    volume: GpuVolume,
+    /// The page tables, as on the GPU (every level's, in order).
+    pages: Vec<u32>,
+    /// Each level's page table's first word within `pages`.
+    page_base: Vec<usize>,
+    /// The buffer's word where `pages` starts, and the pool's first word.
+    pages_word: usize,
+    pool_word: usize,
+    /// Per slot: the brick it holds and when it was last wanted (round number).
+    slots: Vec<Option<(BrickKey, u64)>>,
+    resident: HashMap<BrickKey, usize>,
+    /// Slots `0..pinned` hold the coarsest level.
+    pinned: usize,
+    round: u64,
+    stats: PoolStats,
+    /// Bytes of the buffer and of the block min/max: what the pool holds on the GPU.
+    bytes: u64,
+    bounds: BlockBounds,
+}
+
+impl BrickPool {
+    /// A pool within `budget` bytes of GPU memory (its buffer and the level-0 bricks' min/max)
+    /// for `source`'s pyramid, with the coarsest level uploaded (through `cache`) and pinned.
+    /// Refused where the budget cannot hold the coarsest level and one more brick, or the
+    /// adapter's storage binding cannot.
+    pub fn new(
+        ctx: &GpuContext,
+        perf: &PerfOptions,
+        source: &dyn BrickSource,
+        cache: &mut HostBrickCache,
+        budget: u64,
+    ) -> Result<BrickPool, GpuError> {
+        let layout = source.layout().clone();
+        let mut cells = vec![perf.block as usize];
+        if perf.coarse > 0 {
+            cells.push(perf.coarse as usize);
+        }
+        let bounds = BlockBounds::new(&layout, source, &cells);
+        let name = source.name().to_string();
+        let levels = layout.levels.len();
+        let mut page_base = Vec::with_capacity(levels);
+        let mut n = 0;
+        for l in 0..levels {
+            page_base.push(n);
+            n += layout.bricks(l);
+        }
+        let pages_word = HEADER_WORDS + LEVEL_WORDS * levels;
+        let pool_word = pages_word + n;
+        let brick_words = layout.brick_voxels();
+        let minmax_bytes = 8 * (0..bounds.levels.len()).map(|k| bounds.blocks(k) as u64).sum::<u64>();
+        let fixed = 4 * pool_word as u64 + minmax_bytes;
+        let limit = super::storage_binding_limit(&ctx.device.limits());
+        let by_budget = budget.saturating_sub(fixed) / layout.brick_bytes();
+        let by_binding = (limit / 4).saturating_sub(pool_word as u64) / brick_words as u64;
+        let slots = by_budget.min(by_binding) as usize;
+        let pinned = layout.bricks(layout.coarsest());
+        if slots <= pinned {
+            let why = if by_binding < by_budget { "the adapter's storage binding" } else { "the GPU budget" };
+            return Err(GpuError::Settings(format!(
+                "{name}: {why} holds {slots} bricks of {} bytes ({}^3 samples) after the page tables, but the coarsest level alone is {pinned} (a budget of at least {} bytes is needed)",
+                layout.brick_bytes(),
+                layout.samples(),
+                fixed + (pinned as u64 + 1) * layout.brick_bytes()
+            )));
+        }
+        if by_binding < by_budget {
+            tracing::warn!(
+                "{name}: the brick pool holds {slots} bricks, what one storage binding of {limit} bytes holds, not the {by_budget} of the GPU budget"
+            );
+        }
+        let words = pool_word + slots * brick_words;
+        let mut head = vec![0u32; pool_word];
+        head[0] = levels as u32;
+        head[1] = layout.cells.trailing_zeros();
+        head[2] = layout.samples() as u32;
+        head[3] = pool_word as u32;
+        let l0 = &layout.levels[0];
+        for (l, lv) in layout.levels.iter().enumerate() {
+            let w = HEADER_WORDS + LEVEL_WORDS * l;
+            // Level-0 voxel coordinates u map to the level's as (u * s0 + o0 - o) / s.
+            let scale = l0.spacing / lv.spacing;
+            let offset = (l0.origin - lv.origin) / lv.spacing;
+            head[w..w + 3].copy_from_slice(&lv.dims.map(|d| d as u32));
+            head[w + 3] = (pages_word + page_base[l]) as u32;
+            head[w + 4..w + 7].copy_from_slice(&lv.counts.map(|c| c as u32));
+            for a in 0..3 {
+                head[w + 8 + a] = (scale[a] as f32).to_bits();
+                head[w + 12 + a] = (offset[a] as f32).to_bits();
+            }
+        }
+        let label = format!("brick pool of {name}");
+        let voxels = ctx.validated("upload", || {
+            ctx.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(&label),
+                size: 4 * words as u64,
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            })
+        })?;
+        ctx.write_buffer(&voxels, 0, bytemuck::cast_slice(&head));
+        let minmax = bounds.all();
+        let block_minmax = ctx.storage_init("brick min/max", bytemuck::cast_slice(&minmax))?;
+        let (lo, hi) = source.ranges(0).map_or((0.0, 0.0), |r| {
+            r.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), m| (a.min(m[0]), b.max(m[1])))
+        });
+        let coarse_level = bounds.levels.get(1).map(|l| BlockLevel {
+            counts: l.counts.map(|c| c as u32),
+            cells: l.cells as u32,
+            offset: bounds.blocks(0) as u32,
+        });
+        let box_min = l0.origin;
+        let box_max = l0.origin
+            + l0.spacing * glam::DVec3::new(l0.dims[0] as f64, l0.dims[1] as f64, l0.dims[2] as f64)
+            - l0.spacing;
+        let volume = GpuVolume {
+            id: next_resource_id(),
+            voxels,
+            block_minmax,
+            march: MarchTexture::new(ctx, &name, None)?,
+            format: VoxelFormat::R32F,
+            value_range: (lo, hi),
+            voxel_bytes: 4 * words as u64,
+            minmax_bytes,
+            dims: l0.dims.map(|d| d as u32),
+            block: bounds.levels[0].cells as u32,
+            counts: bounds.levels[0].counts.map(|c| c as u32),
+            ao_level: None,
+            coarse_level,
+            spacing: l0.spacing,
+            box_min,
+            box_max,
+            name,
+            object: None,
+            bricked: true,
+        };
+        let mut pool = BrickPool {
+            pages: vec![0; n],
+            page_base,
+            pages_word,
+            pool_word,
+            slots: vec![None; slots],
+            resident: HashMap::new(),
+            pinned,
+            round: 0,
+            stats: PoolStats::default(),
+            bytes: 4 * words as u64 + minmax_bytes,
+            volume,
+            layout,
+            bounds,
+        };
+        let coarsest: Vec<BrickKey> = pool.layout.keys(pool.layout.coarsest()).collect();
+        for (slot, key) in coarsest.into_iter().enumerate() {
+            pool.upload(ctx, source, cache, key, slot)?;
+        }
+        pool.write_pages(ctx);
+        Ok(pool)
+    }
+
+    /// The volume the kernels bind (its `id` changes whenever what it holds changes, so that a
+    /// tile's accumulated samples start over).
+    pub fn volume(&self) -> &GpuVolume {
+        &self.volume
+    }
+
+    pub fn layout(&self) -> &BrickLayout {
+        &self.layout
+    }
+
+    pub fn stats(&self) -> PoolStats {
+        self.stats
+    }
+
+    /// Slots in the pool, the coarsest level's included.
+    pub fn slots(&self) -> usize {
+        self.slots.len()
+    }
+
+    /// Bytes the pool holds on the GPU: within the budget it was made with.
+    pub fn gpu_bytes(&self) -> u64 {
+        self.bytes
+    }
+
+    /// Whether `key` is resident.
+    pub fn holds(&self, key: BrickKey) -> bool {
+        self.resident.contains_key(&key)
+    }
+
+    /// Makes the bricks of `wanted` (most important first) resident, uploading at most
+    /// `upload_cap` bytes in this round (at least one brick, so that refinement always moves).
+    /// Room is made by evicting the bricks wanted longest ago, never one this round wants nor
+    /// the pinned coarsest level; where none is left, the rest of `wanted` waits
+    /// ([`Refinement::over_pool`]).
+    pub fn refine(
+        &mut self,
+        ctx: &GpuContext,
+        source: &dyn BrickSource,
+        cache: &mut HostBrickCache,
+        wanted: &[BrickKey],
+        upload_cap: u64,
+    ) -> Result<Refinement, GpuError> {
+        self.round += 1;
+        let round = self.round;
+        let mut r = Refinement { wanted: wanted.len(), ..Refinement::default() };
+        let unique: HashSet<BrickKey> = wanted.iter().copied().collect();
+        r.wanted = unique.len();
+        for key in wanted {
+            if let Some(&slot) = self.resident.get(key) {
+                self.slots[slot] = Some((*key, round));
+                self.stats.hits += 1;
+            }
+        }
+        let brick = self.layout.brick_bytes();
+        let mut changed = false;
+        for &key in wanted {
+            if self.resident.contains_key(&key) {
+                continue;
+            }
+            if r.uploaded > 0 && r.upload_bytes + brick > upload_cap {
+                break;
+            }
+            let free = (self.pinned..self.slots.len())
+                .filter(|&s| self.slots[s].is_none_or(|(_, used)| used < round))
+                .min_by_key(|&s| self.slots[s].map_or(0, |(_, used)| used + 1));
+            let Some(slot) = free else {
+                r.over_pool += 1;
+                continue;
+            };
+            if let Some((old, _)) = self.slots[slot].take() {
+                self.resident.remove(&old);
+                let i = self.page_index(old);
+                self.pages[i] = 0;
+                self.stats.evictions += 1;
+                if old.level == 0 {
+                    self.bounds.brick_changed(old.brick, None);
+                }
+            }
+            self.upload(ctx, source, cache, key, slot)?;
+            self.slots[slot] = Some((key, round));
+            r.uploaded += 1;
+            r.upload_bytes += brick;
+            changed = true;
+        }
+        if changed {
+            self.write_pages(ctx);
+        }
+        r.resident = unique.iter().filter(|k| self.resident.contains_key(k)).count();
+        Ok(r)
+    }
+
+    fn page_index(&self, key: BrickKey) -> usize {
+        self.page_base[key.level as usize] + self.layout.index(key)
+    }
+
+    /// Reads `key` (through the host cache) into `slot`, and notes it (the page table is written
+    /// by the caller).
+    fn upload(
+        &mut self,
+        ctx: &GpuContext,
+        source: &dyn BrickSource,
+        cache: &mut HostBrickCache,
+        key: BrickKey,
+        slot: usize,
+    ) -> Result<(), GpuError> {
+        let data = cache
+            .get(source, key)
+            .map_err(|e| GpuError::Settings(format!("brick {key:?} of {}: {e}", source.name())))?;
+        let words = self.layout.brick_voxels();
+        let at = 4 * (self.pool_word + slot * words) as u64;
+        ctx.write_buffer(&self.volume.voxels, at, bytemuck::cast_slice(data.as_slice()));
+        if key.level == 0 {
+            self.bounds.brick_changed(key.brick, Some(data.as_slice()));
+        }
+        self.slots[slot] = Some((key, self.round));
+        self.resident.insert(key, slot);
+        let i = self.page_index(key);
+        self.pages[i] = slot as u32 + 1;
+        self.stats.uploads += 1;
+        self.stats.upload_bytes += self.layout.brick_bytes();
+        Ok(())
+    }
+
+    /// Writes the page tables and the block levels.
+    fn write_pages(&mut self, ctx: &GpuContext) {
+        ctx.write_buffer(&self.volume.voxels, 4 * self.pages_word as u64, bytemuck::cast_slice(&self.pages));
+        ctx.write_buffer(&self.volume.block_minmax, 0, bytemuck::cast_slice(&self.bounds.all()));
+        self.volume.id = next_resource_id();
+    }
+}
+
+/// A block level over level 0 ([`BlockBounds`]).
+struct BoundLevel {
+    cells: usize,
+    counts: [usize; 3],
+    minmax: Vec<[f32; 2]>,
+}
+
+/// The block levels of empty-space skipping over level 0, kept as the module says.
+struct BlockBounds {
+    levels: Vec<BoundLevel>,
+    /// Level 0's samples on each axis, cells per brick and bricks.
+    dims: [usize; 3],
+    brick_cells: usize,
+    brick_counts: [usize; 3],
+    /// Each level-0 brick's range where it is not resident.
+    brick_bound: Vec<[f32; 2]>,
+    /// (brick, level, block) -> the exact range of the block's samples in that resident brick.
+    partial: HashMap<([u32; 3], usize, usize), [f32; 2]>,
+}
+
+/// On one axis: the indices `i` of cells-`c` spans (samples `i*c ..= (i+1)*c`, `count` of them)
+/// whose samples meet the samples `lo ..= hi`.
+fn spans_meeting(c: usize, count: usize, lo: usize, hi: usize) -> std::ops::RangeInclusive<usize> {
+    let first = lo.div_ceil(c).saturating_sub(1);
+    let last = (hi / c).min(count - 1);
+    first..=last
+}
+
+impl BlockBounds {
+    fn new(layout: &BrickLayout, source: &dyn BrickSource, cells: &[usize]) -> BlockBounds {
+        let l0 = &layout.levels[0];
+        let levels = cells
+            .iter()
+            .map(|&c| {
+                let counts = l0.dims.map(|n| (n.max(2) - 1).div_ceil(c));
+                BoundLevel { cells: c, counts, minmax: Vec::new() }
+            })
+            .collect();
+        let brick_bound = match source.ranges(0) {
+            Some(r) => r.to_vec(),
+            None => vec![[f32::MIN, f32::MAX]; layout.bricks(0)],
+        };
+        let mut b = BlockBounds {
+            levels,
+            dims: l0.dims,
+            brick_cells: layout.cells,
+            brick_counts: l0.counts,
+            brick_bound,
+            partial: HashMap::new(),
+        };
+        for k in 0..b.levels.len() {
+            let n: usize = b.levels[k].counts.iter().product();
+            b.levels[k].minmax = vec![[0.0; 2]; n];
+            for j in 0..n {
+                b.recompute(k, j);
+            }
+        }
+        b
+    }
+
+    fn blocks(&self, k: usize) -> usize {
+        self.levels[k].counts.iter().product()
+    }
+
+    /// The blocks of level k a level-0 brick's samples meet, as a box of indices per axis.
+    fn blocks_of_brick(&self, k: usize, brick: [u32; 3]) -> [std::ops::RangeInclusive<usize>; 3] {
+        let (c, bc) = (self.levels[k].cells, self.brick_cells);
+        std::array::from_fn(|a| {
+            let lo = brick[a] as usize * bc;
+            let hi = ((brick[a] as usize + 1) * bc).min(self.dims[a] - 1);
+            spans_meeting(c, self.levels[k].counts[a], lo, hi)
+        })
+    }
+
+    /// Recomputes block j of level k from its bricks.
+    fn recompute(&mut self, k: usize, j: usize) {
+        let l = &self.levels[k];
+        let (cx, cy) = (l.counts[0], l.counts[1]);
+        let b = [j % cx, (j / cx) % cy, j / (cx * cy)];
+        let bricks: [_; 3] = std::array::from_fn(|a| {
+            let lo = b[a] * l.cells;
+            let hi = ((b[a] + 1) * l.cells).min(self.dims[a] - 1);
+            spans_meeting(self.brick_cells, self.brick_counts[a], lo, hi)
+        });
+        let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+        for z in bricks[2].clone() {
+            for y in bricks[1].clone() {
+                for x in bricks[0].clone() {
+                    let key = [x as u32, y as u32, z as u32];
+                    let m = match self.partial.get(&(key, k, j)) {
+                        Some(m) => *m,
+                        None => self.brick_bound[x + self.brick_counts[0] * (y + self.brick_counts[1] * z)],
+                    };
+                    lo = lo.min(m[0]);
+                    hi = hi.max(m[1]);
+                }
+            }
+        }
+        self.levels[k].minmax[j] = [lo, hi];
+    }
+
+    /// A level-0 brick became resident with `data` (its samples), or (`None`) left.
+    fn brick_changed(&mut self, brick: [u32; 3], data: Option<&[f32]>) {
+        let s = self.brick_cells + 1;
+        let origin = brick.map(|b| b as usize * self.brick_cells);
+        for k in 0..self.levels.len() {
+            let [rx, ry, rz] = self.blocks_of_brick(k, brick);
+            let (c, counts) = (self.levels[k].cells, self.levels[k].counts);
+            for bz in rz.clone() {
+                for by in ry.clone() {
+                    for bx in rx.clone() {
+                        let j = bx + counts[0] * (by + counts[1] * bz);
+                        match data {
+                            Some(d) => {
+                                // The block's samples within the brick, in the brick's indices.
+                                let span = |a: usize, b: usize| {
+                                    let lo = (b * c).max(origin[a]);
+                                    let hi =
+                                        ((b + 1) * c).min(origin[a] + self.brick_cells).min(self.dims[a] - 1);
+                                    (lo - origin[a])..=(hi - origin[a])
+                                };
+                                let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+                                for z in span(2, bz) {
+                                    for y in span(1, by) {
+                                        for x in span(0, bx) {
+                                            let v = d[x + s * (y + s * z)];
+                                            lo = lo.min(v);
+                                            hi = hi.max(v);
+                                        }
+                                    }
+                                }
+                                if lo <= hi {
+                                    self.partial.insert((brick, k, j), [lo, hi]);
+                                }
+                            }
+                            None => {
+                                self.partial.remove(&(brick, k, j));
+                            }
+                        }
+                        self.recompute(k, j);
+                    }
+                }
+            }
+        }
+    }
+
+    /// Every level's min/max, in order (the GPU's `block_minmax`).
+    fn all(&self) -> Vec<[f32; 2]> {
+        self.levels.iter().flat_map(|l| l.minmax.iter().copied()).collect()
+    }
+}
