@@ -309,10 +309,28 @@ fn exact_occluded(o: vec3<f32>, w: vec3<f32>, start: vec3<i32>, start_corners: a
         var f2 = 0.0;
         var f3 = 0.0;
         if !same {
-            f0 = voxel_at(far);
-            f1 = voxel_at(far + sp);
-            f2 = voxel_at(far + sq);
-            f3 = voxel_at(far + sp + sq);
+            if BRICKED {
+                // The same four samples by their coordinates (a bricked volume has no linear
+                // index; recovering one is three integer divisions, lane by lane on a CPU driver).
+                let ua = select(select(vec3<i32>(0, 0, 1), vec3<i32>(0, 1, 0), ay), vec3<i32>(1, 0, 0), ax);
+                let up_ = select(vec3<i32>(1, 0, 0), vec3<i32>(0, 1, 0), ax) * d1;
+                let uq = select(vec3<i32>(0, 1, 0), vec3<i32>(0, 0, 1), ax || ay) * d1;
+                let fc = cell + select(vec3<i32>(0), ua * d1, up);
+                // One load site for the four (each site inlines the lookup and its fallback).
+                for (var q = 0u; q < 4u; q += 1u) {
+                    let c = fc + select(vec3<i32>(0), up_, (q & 1u) != 0u) + select(vec3<i32>(0), uq, q >= 2u);
+                    let f = bricked_sample(c);
+                    f0 = select(f0, f, q == 0u);
+                    f1 = select(f1, f, q == 1u);
+                    f2 = select(f2, f, q == 2u);
+                    f3 = select(f3, f, q == 3u);
+                }
+            } else {
+                f0 = voxel_at(far);
+                f1 = voxel_at(far + sp);
+                f2 = voxel_at(far + sq);
+                f3 = voxel_at(far + sp + sq);
+            }
         }
         if !one && !same {
             prev = cell - vec3<i32>(1, 0, 0);
@@ -440,6 +458,7 @@ fn seed_occluded(p: vec3<f32>, w: vec3<f32>, f_p: f32) -> bool {
 @compute @workgroup_size(8, 8, 1)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     params = frame_params;
+    load_bricks();
     if gid.x >= params.rect_size.x || gid.y >= params.rect_size.y {
         return;
     }

@@ -59,6 +59,7 @@ fn march_field(p: vec3<f32>) -> f32 {
 @compute @workgroup_size(8, 8, 1)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     params = frame_params;
+    load_bricks();
     if gid.x >= params.rect_size.x || gid.y >= params.rect_size.y {
         return;
     }

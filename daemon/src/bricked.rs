@@ -177,6 +177,7 @@ pub fn render_converged(
     if !r.complete() {
         bail!("{}: {} of {} wanted bricks are resident ({r:?})", volume.name, r.resident, r.wanted);
     }
+    gpu.prepare(pool.volume())?;
     let rendered = gpu.render_accumulated(pool.volume(), view, settings, env, frames)?;
     Ok(BrickedRender {
         frame: rendered.frame,

@@ -12,8 +12,9 @@
 //! The coarsest level is pinned in the first slots, so every lookup finds a level.
 //!
 //! Empty-space skipping reads the block levels a whole volume has (`PerfOptions::block` for every
-//! ray, `PerfOptions::coarse` for AO rays; not the AO rays' own fine level, whose min/max would
-//! take 1/64 of the voxels' bytes), over level 0: a block's range is the union, over the level-0
+//! ray, `PerfOptions::ao_block` and `PerfOptions::coarse` for AO rays; the AO rays' own level only
+//! where its min/max take at most an eighth of the GPU budget: at blocks of 4 they are 1/64 of
+//! level 0's voxels' bytes), over level 0: a block's range is the union, over the level-0
 //! bricks its samples lie in, of the exact range of those samples where the brick is resident and
 //! of the brick's range where not (the source's, or unbounded where the source does not know it).
 //! Skipping is thus conservative before refinement and, once the bricks a view wants are
@@ -101,10 +102,18 @@ impl BrickPool {
         budget: u64,
     ) -> Result<BrickPool, GpuError> {
         let layout = source.layout().clone();
-        let mut cells = vec![perf.block as usize];
-        if perf.coarse > 0 {
-            cells.push(perf.coarse as usize);
-        }
+        // The block levels a whole volume has: every ray's, the AO rays' own where its min/max
+        // take at most an eighth of the budget (1/64 of level 0's voxels' bytes at blocks of 4),
+        // and the coarse one.
+        let l0_blocks = |c: u32| -> u64 {
+            layout.levels[0].dims.iter().map(|&n| ((n.max(2) - 1) as u64).div_ceil(u64::from(c))).product()
+        };
+        let ao =
+            (perf.ao_block > 0 && perf.ao_block != perf.block && 8 * l0_blocks(perf.ao_block) <= budget / 8)
+                .then_some(perf.ao_block);
+        let coarse = (perf.coarse > 0).then_some(perf.coarse);
+        let cells: Vec<usize> =
+            [Some(perf.block), ao, coarse].into_iter().flatten().map(|c| c as usize).collect();
         let bounds = BlockBounds::new(&layout, source, &cells);
         let name = source.name().to_string();
         let levels = layout.levels.len();
@@ -173,11 +182,13 @@ impl BrickPool {
         let (lo, hi) = source.ranges(0).map_or((0.0, 0.0), |r| {
             r.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), m| (a.min(m[0]), b.max(m[1])))
         });
-        let coarse_level = bounds.levels.get(1).map(|l| BlockLevel {
-            counts: l.counts.map(|c| c as u32),
-            cells: l.cells as u32,
-            offset: bounds.blocks(0) as u32,
-        });
+        let level = |k: usize| BlockLevel {
+            counts: bounds.levels[k].counts.map(|c| c as u32),
+            cells: bounds.levels[k].cells as u32,
+            offset: (0..k).map(|i| bounds.blocks(i)).sum::<usize>() as u32,
+        };
+        let ao_level = ao.map(|_| level(1));
+        let coarse_level = coarse.map(|_| level(cells.len() - 1));
         let box_min = l0.origin;
         let box_max = l0.origin
             + l0.spacing * glam::DVec3::new(l0.dims[0] as f64, l0.dims[1] as f64, l0.dims[2] as f64)
@@ -194,7 +205,7 @@ impl BrickPool {
             dims: l0.dims.map(|d| d as u32),
             block: bounds.levels[0].cells as u32,
             counts: bounds.levels[0].counts.map(|c| c as u32),
-            ao_level: None,
+            ao_level,
             coarse_level,
             spacing: l0.spacing,
             box_min,

@@ -496,6 +496,12 @@ impl GpuRenderer {
         &self.ctx.info
     }
 
+    /// Compiles the kernels `volume` needs, where not done yet (a bricked volume's are compiled at
+    /// its first frame otherwise, and that frame's time would hold their compilation).
+    pub fn prepare(&self, volume: &GpuVolume) -> Result<(), GpuError> {
+        self.volume_kernels(volume).map(|_| ())
+    }
+
     /// The isosurface and AO kernels that read `volume`: the bricked ones (compiled at the first
     /// bricked volume's frame) or the whole volume's.
     pub(crate) fn volume_kernels(

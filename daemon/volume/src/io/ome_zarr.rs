@@ -425,13 +425,15 @@ impl OmeZarr {
             "int32" => read_as!(i32),
             "float32" => read_as!(f32),
             "float64" => read_as!(f64),
-            other => return Err(err(
-                &self.path,
-                format!(
+            other => {
+                return Err(err(
+                    &self.path,
+                    format!(
                     "array `{}`: data type {other} is not read (uint8/16/32, int8/16/32, float32, float64)",
                     l.path
                 ),
-            )),
+                ))
+            }
         };
         if let Some(i) = data.iter().position(|v| !v.is_finite()) {
             return Err(err(
