@@ -2,19 +2,16 @@
 //! brick by brick, or any other volume loaded whole and cut into a pyramid, within a GPU budget
 //! (the pool, `--gpu-budget-mb`) and a host budget (decoded bricks, `--host-budget-mb`).
 //!
-//! `isowalld render` with a GPU budget waits for every brick its still frame wants at level 0
-//! before it renders, so what it writes is the whole volume's picture (tests/gpu_bricks.rs in the
-//! render crate holds the two equal bit for bit).
+//! `isowalld render` with a GPU budget renders its still frame with every brick it reads at level
+//! 0, in screen regions where the pool cannot hold the whole view's bricks, so what it writes is
+//! the whole volume's picture (tests/gpu_bricks.rs in the render crate holds the two equal bit
+//! for bit).
 
-use crate::progress::Counted;
 use anyhow::{anyhow, bail, Context, Result};
 use glam::DVec3;
 use isowall_model::{RenderSettings, View};
-use isowall_render::gpu::{BrickPool, GpuRenderer};
-use isowall_render::Frame;
-use isowall_volume::brick_cache::{
-    wanted_bricks, BrickSource, HostBrickCache, InCorePyramid, ViewFootprint, DEFAULT_BRICK_CELLS,
-};
+use isowall_render::gpu::{BrickPool, Converged, GpuRenderer};
+use isowall_volume::brick_cache::{BrickSource, HostBrickCache, InCorePyramid, DEFAULT_BRICK_CELLS};
 use isowall_volume::io::ome_zarr::{is_zarr, OmeZarr};
 use isowall_volume::io::{RawSpec, VolumeLimit};
 use isowall_volume::{BlockMinMax, Orientation, VolumeSource};
@@ -122,19 +119,15 @@ impl BrickedVolume {
 
 /// What [`render_converged`] did besides the frame.
 pub struct BrickedRender {
-    pub frame: Frame,
-    pub gpu_time: std::time::Duration,
-    /// Bricks the still frame wanted, the pool's slots, bricks uploaded.
-    pub wanted: usize,
+    pub converged: Converged,
     pub slots: usize,
     pub uploads: u64,
     pub gpu_bytes: u64,
     pub host_peak_bytes: u64,
 }
 
-/// Renders the still frame of `view` once every brick it wants is resident at level 0: the
-/// whole volume's picture. Refused, saying what budget would do, where the still frame's set is
-/// larger than the pool (finishing it in passes is not built yet).
+/// Renders the still frame of `view` with every brick it reads at level 0, in as many passes as
+/// the pool needs ([`GpuRenderer::render_converged`]): the whole volume's picture.
 pub fn render_converged(
     gpu: &GpuRenderer,
     volume: &BrickedVolume,
@@ -150,39 +143,9 @@ pub fn render_converged(
         HostBrickCache::new(budgets.host, layout).map_err(|e| anyhow!("--host-budget-mb: {e}"))?;
     let mut pool =
         BrickPool::new(&gpu.ctx, &gpu.perf(), source, &mut cache, budgets.gpu).context("--gpu-budget-mb")?;
-    let c = &view.camera;
-    let pixel_angle = 2.0 * (c.fov_y_deg.to_radians() / 2.0).tan() / f64::from(view.full.1.max(1));
-    let wanted =
-        wanted_bricks(source, volume.iso as f32, &ViewFootprint { eye: c.eye, pixel_angle, still: true });
-    let free = pool.slots() - layout.bricks(layout.coarsest());
-    if wanted.len() > free {
-        let needed = pool.gpu_bytes() + (wanted.len() - free) as u64 * layout.brick_bytes();
-        bail!(
-            "{}: the still frame wants {} bricks at level 0 and the pool holds {free} beside the coarsest level: \
-             a frame larger than the pool is not finished in passes yet; give --gpu-budget-mb {} or more",
-            volume.name,
-            wanted.len(),
-            needed.div_ceil(1 << 20)
-        );
-    }
-    let mut bar = Counted::of("isowalld render", "brick", wanted.len() as u64, &volume.name);
-    let mut done = 0;
-    for chunk in wanted.chunks(64) {
-        let r = pool.refine(&gpu.ctx, source, &mut cache, &wanted[..done + chunk.len()], u64::MAX)?;
-        done += chunk.len();
-        bar.done_of(r.resident as u64);
-    }
-    drop(bar);
-    let r = pool.refine(&gpu.ctx, source, &mut cache, &wanted, u64::MAX)?;
-    if !r.complete() {
-        bail!("{}: {} of {} wanted bricks are resident ({r:?})", volume.name, r.resident, r.wanted);
-    }
-    gpu.prepare(pool.volume())?;
-    let rendered = gpu.render_accumulated(pool.volume(), view, settings, env, frames)?;
+    let converged = gpu.render_converged(&mut pool, source, &mut cache, view, settings, env, frames)?;
     Ok(BrickedRender {
-        frame: rendered.frame,
-        gpu_time: rendered.gpu_time,
-        wanted: wanted.len(),
+        converged,
         slots: pool.slots(),
         uploads: pool.stats().uploads,
         gpu_bytes: pool.gpu_bytes(),

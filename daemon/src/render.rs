@@ -209,10 +209,10 @@ pub struct RenderArgs {
     pub raw: args::RawVolumeArgs,
     /// Render through the brick cache (DESIGN.md "Large volumes") with a pool of this many MiB of
     /// GPU memory: an OME-Zarr store is read brick by brick (never whole, so it may be larger
-    /// than memory), any other volume is loaded whole and cut into a pyramid. The picture is
-    /// written once every brick the still frame wants is resident at level 0, so it is the whole
-    /// volume's picture; a still frame that wants more bricks than the pool holds is refused with
-    /// the budget that would do [default: off: the volume is uploaded whole]
+    /// than memory), any other volume is loaded whole and cut into a pyramid. Every pixel is
+    /// rendered with the bricks it reads resident at level 0, so the picture is the whole
+    /// volume's picture; where the pool cannot hold the bricks of the whole view, the picture is
+    /// finished in passes over screen regions [default: off: the volume is uploaded whole]
     #[arg(long = "gpu-budget-mb", value_name = "MIB")]
     pub gpu_budget_mb: Option<u64>,
     /// With --gpu-budget-mb: the most MiB of decoded bricks held in memory (least recently used
@@ -463,13 +463,15 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             let gpu = GpuRenderer::new()?;
             let genv = env.as_ref().map(|e| gpu.upload_environment(e)).transpose()?;
             let r = render_converged(&gpu, bricked, budgets, &view, &settings, genv.as_ref(), frames)?;
+            let c = r.converged;
             (
-                r.frame,
+                c.frame,
                 format!(
-                    "gpu '{}', {:.1} ms on the GPU; bricks: {} wanted at level 0, {} uploaded, a pool of {} slots in {:.1} MiB, host cache peak {:.1} MiB",
+                    "gpu '{}', {:.1} ms on the GPU; bricks: {} pass(es), at most {} wanted at level 0 in one, {} uploaded, a pool of {} slots in {:.1} MiB, host cache peak {:.1} MiB",
                     gpu.adapter_name(),
-                    r.gpu_time.as_secs_f64() * 1e3,
-                    r.wanted,
+                    c.gpu_time.as_secs_f64() * 1e3,
+                    c.passes,
+                    c.most_wanted,
                     r.uploads,
                     r.slots,
                     r.gpu_bytes as f64 / 1048576.0,

@@ -83,38 +83,36 @@ fn the_ct_converted_to_ome_zarr_renders_exactly_as_its_nrrd_and_its_levels_withi
         std::fs::read(dir.path().join(out)).unwrap()
     };
     assert!(depth(nrrd.to_str().unwrap(), "n.pfm") == depth("ct.ome.zarr", "z.pfm"), "depth differs");
-    // Through the brick cache, the store read brick by brick within a GPU and a host budget: the
-    // picture is written once level 0 is resident where the still frame wants it, and it is the
-    // whole volume's, AO included (the camera is given: the default frames the object's box at
-    // the resolution of the min/max it has, bricks here, blocks of 8 held whole).
+    // Through the brick cache, the store read brick by brick within a GPU and a host budget:
+    // every pixel is rendered with the bricks it reads at level 0, in passes over screen regions
+    // where the pool cannot hold the whole view's, and the picture is the whole volume's, AO
+    // included (the camera is given: the default frames the object's box at the resolution of
+    // the min/max it has, bricks here, blocks of 8 held whole).
     let camera = ["--eye", "122,-300,80", "--target", "122,122,80", "--ao-samples", "4"];
     let whole = render(dir.path(), "ct.ome.zarr", "300", "whole.png", &camera).unwrap();
-    let mut bricked_args = camera.to_vec();
-    bricked_args.extend(["--gpu-budget-mb", "64", "--host-budget-mb", "32"]);
-    let o = run_in(
-        dir.path(),
-        "isowalld",
-        &[
-            &["render", "--volume", "ct.ome.zarr", "--iso", "300", "--size", "48x36", "--out", "b.png"][..],
-            &bricked_args,
-        ]
-        .concat(),
-    );
-    let out = String::from_utf8_lossy(&o.stdout);
-    assert!(
-        o.status.success() && out.contains("wanted at level 0"),
-        "{out}{}",
-        String::from_utf8_lossy(&o.stderr)
-    );
-    assert!(std::fs::read(dir.path().join("b.png")).unwrap() == whole, "the bricked render differs: {out}");
-    // A pool too small for the still frame's bricks is refused with the budget that would do.
-    let o = run_in(
-        dir.path(),
-        "isowalld",
-        &["render", "--volume", "ct.ome.zarr", "--iso", "300", "--size", "48x36", "--gpu-budget-mb", "2"],
-    );
+    let bricked = |gpu_mb: &str, out: &str| {
+        let budgets = ["--gpu-budget-mb", gpu_mb, "--host-budget-mb", "16", "--out", out];
+        let args = [
+            &["render", "--volume", "ct.ome.zarr", "--iso", "300", "--size", "48x36"][..],
+            &camera,
+            &budgets,
+        ];
+        run_in(dir.path(), "isowalld", &args.concat())
+    };
+    for (gpu_mb, passes) in [("64", "bricks: 1 pass(es)"), ("8", "pass(es)")] {
+        let o = bricked(gpu_mb, "b.png");
+        let out = String::from_utf8_lossy(&o.stdout);
+        assert!(o.status.success() && out.contains(passes), "{out}{}", String::from_utf8_lossy(&o.stderr));
+        assert!(gpu_mb == "64" || !out.contains("bricks: 1 pass"), "a pool of 8 MiB needs passes: {out}");
+        assert!(
+            std::fs::read(dir.path().join("b.png")).unwrap() == whole,
+            "{gpu_mb} MiB: the picture differs: {out}"
+        );
+    }
+    // A pool smaller than one pixel's bricks is refused with the budget that would do.
+    let o = bricked("2", "c.png");
     let err = String::from_utf8_lossy(&o.stderr);
-    assert!(!o.status.success() && err.contains("give --gpu-budget-mb"), "{err}");
+    assert!(!o.status.success() && err.contains("raise the GPU budget to at least"), "{err}");
     // Under a limit below level 0, the finest level within it is read, and said.
     let o = run_in(
         dir.path(),

@@ -368,6 +368,30 @@ impl View {
         (basis.forward + sx * basis.right + sy * basis.up).normalize()
     }
 
+    /// The four planes through the eye that bound the rays of the rectangle's pixels (its edges
+    /// in the full image), each as (n, d) with `n . p + d >= 0` on the rays' side: together the
+    /// cone of what the rectangle can see (nothing behind the eye). Call [`Camera::validate`]
+    /// first.
+    pub fn side_planes(&self) -> [(DVec3, f64); 4] {
+        let b = self.camera.basis();
+        let (w, h) = (self.full.0 as f64, self.full.1 as f64);
+        let at = |x: f64, y: f64| {
+            let sx = (x / w * 2.0 - 1.0) * b.tan_half_fov * w / h;
+            let sy = (1.0 - y / h * 2.0) * b.tan_half_fov;
+            b.forward + sx * b.right + sy * b.up
+        };
+        let r = self.rect;
+        let (x0, y0) = (f64::from(r.x), f64::from(r.y));
+        let (x1, y1) = (x0 + f64::from(r.width), y0 + f64::from(r.height));
+        let corners = [at(x0, y0), at(x1, y0), at(x1, y1), at(x0, y1)];
+        let inside = corners.iter().copied().sum::<DVec3>();
+        std::array::from_fn(|i| {
+            let n = corners[i].cross(corners[(i + 1) % 4]).normalize();
+            let n = if n.dot(inside) < 0.0 { -n } else { n };
+            (n, -n.dot(self.camera.eye))
+        })
+    }
+
     /// The unit ray direction through the centre of pixel (x, y) of the *rectangle*.
     pub fn ray_dir(&self, basis: &Basis, x: u32, y: u32) -> DVec3 {
         self.ray_dir_full(basis, self.rect.x + x, self.rect.y + y)
@@ -377,6 +401,29 @@ impl View {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_rectangles_side_planes_hold_its_pixels_rays_and_nothing_behind_the_eye() {
+        let camera = Camera {
+            eye: DVec3::new(3.0, -40.0, 7.0),
+            target: DVec3::new(1.0, 2.0, 3.0),
+            up: DVec3::Z,
+            fov_y_deg: 35.0,
+        };
+        let full = View::whole(camera, 64, 48);
+        let view = View { rect: Rect { x: 10, y: 20, width: 16, height: 8 }, ..full };
+        let planes = view.side_planes();
+        let b = camera.basis();
+        let inside = |p: DVec3| planes.iter().all(|(n, d)| n.dot(p) + d >= -1e-9);
+        for y in 0..48 {
+            for x in 0..64 {
+                let p = camera.eye + 10.0 * full.ray_dir_full(&b, x, y);
+                let mine = (10..26).contains(&x) && (20..28).contains(&y);
+                assert_eq!(inside(p), mine, "pixel ({x}, {y})");
+            }
+        }
+        assert!(!inside(camera.eye - 10.0 * view.ray_dir(&b, 3, 3)), "behind the eye");
+    }
 
     #[test]
     fn a_grown_rect_is_clipped_at_every_edge_of_the_image_and_the_same_at_zero() {

@@ -2,12 +2,13 @@
 //! wanted bricks are all resident at level 0 is the whole volume's frame bit for bit (depth,
 //! normals, shading, AO); before that, every lookup reads the finest resident coarser level, so
 //! the picture is never black; budgets hold; a pool smaller than the view's set evicts and says
-//! that the set is over the pool.
+//! that the set is over the pool, and a still frame through it is finished in passes over screen
+//! regions, still the whole volume's frame bit for bit.
 
 mod common;
 
 use isowall_model::{AoSettings, Camera, RenderSettings, View};
-use isowall_render::gpu::{BrickPool, GpuRenderer, GpuVolume};
+use isowall_render::gpu::{footprint, BrickPool, GpuRenderer, GpuVolume};
 use isowall_render::Frame;
 use isowall_volume::brick_cache::{wanted_bricks, BrickSource, HostBrickCache, InCorePyramid, ViewFootprint};
 use isowall_volume::procedural::Procedural;
@@ -27,13 +28,9 @@ fn scene() -> (InCorePyramid, View, RenderSettings) {
     (InCorePyramid::new(volume, CELLS).unwrap(), view, settings)
 }
 
-fn still(view: &View) -> ViewFootprint {
-    let c = &view.camera;
-    ViewFootprint {
-        eye: c.eye,
-        pixel_angle: 2.0 * (c.fov_y_deg.to_radians() / 2.0).tan() / f64::from(H),
-        still: true,
-    }
+/// What a still view wants: the procedural volumes' voxels are 1 unit.
+fn still(view: &View, s: &RenderSettings) -> ViewFootprint {
+    footprint(view, s, glam::DVec3::ONE, true)
 }
 
 fn render(gpu: &GpuRenderer, v: &GpuVolume, view: &View, s: &RenderSettings) -> Frame {
@@ -65,7 +62,7 @@ fn a_refined_still_frame_is_the_whole_volumes_frame_bit_for_bit() {
     let layout = pyramid.layout().clone();
     let mut cache = HostBrickCache::new(64 << 20, &layout).unwrap();
     let mut pool = BrickPool::new(&gpu.ctx, &gpu.perf(), &pyramid, &mut cache, 64 << 20).unwrap();
-    let wanted = wanted_bricks(&pyramid, s.iso as f32, &still(&view));
+    let wanted = wanted_bricks(&pyramid, s.iso as f32, &still(&view, &s));
     assert!(
         !wanted.is_empty() && wanted.len() < layout.bricks(0),
         "{} of {}",
@@ -125,7 +122,7 @@ fn before_level_0_the_coarser_levels_draw_the_surface_and_a_small_pool_evicts_wi
     assert!(hits(&coarse) * 10 >= hits(&reference) * 7, "{} hits of {}", hits(&coarse), hits(&reference));
     assert!(differing(&reference, &coarse) > 0);
     // The still set is larger than the pool: it fills, says so, and stays within its budget.
-    let wanted = wanted_bricks(&pyramid, s.iso as f32, &still(&view));
+    let wanted = wanted_bricks(&pyramid, s.iso as f32, &still(&view, &s));
     let r = pool.refine(&gpu.ctx, &pyramid, &mut cache, &wanted, u64::MAX).unwrap();
     assert!(!r.complete() && r.over_pool > 0 && r.resident == pool.slots() - 1, "{r:?}");
     let partial = render(&gpu, pool.volume(), &view, &s);
@@ -141,4 +138,42 @@ fn before_level_0_the_coarser_levels_draw_the_surface_and_a_small_pool_evicts_wi
     // A budget that cannot hold the coarsest level and one more brick is refused, saying why.
     let e = BrickPool::new(&gpu.ctx, &gpu.perf(), &pyramid, &mut cache, brick).err().unwrap().to_string();
     assert!(e.contains("GPU budget") && e.contains("coarsest level"), "{e}");
+}
+
+#[test]
+fn a_still_frame_larger_than_the_pool_is_finished_in_passes_and_is_the_whole_volumes_frame() {
+    let Some(gpu) = common::gpu() else { return };
+    let (pyramid, view, mut s) = scene();
+    // A short AO reach (2 voxels): a pixel's rays then read a thin tube of bricks of 8 cells.
+    // (With the filter on, a pass carries the filter's guard band of 62 pixels, the way a wall
+    // tile does: at this size that is the whole view.)
+    s.ao.radius = isowall_model::AoRadius::World(2.0);
+    let layout = pyramid.layout().clone();
+    let whole = gpu.upload(pyramid.level(0)).unwrap();
+    let brick = layout.brick_bytes();
+    let wanted = wanted_bricks(&pyramid, s.iso as f32, &still(&view, &s));
+    for exact in [false, true] {
+        s.ao.exact = exact;
+        let reference = gpu.render_accumulated(&whole, &view, &s, None, 2).unwrap().frame;
+        // Half the view's bricks (and the page tables, min/max and coarsest level): a
+        // pixel's ray reads the bricks along it to the far side of the volume.
+        let mut cache = HostBrickCache::new(16 * brick, &layout).unwrap();
+        let budget = 64 * 1024 + (wanted.len() as u64 / 2 + 1) * brick;
+        let mut pool = BrickPool::new(&gpu.ctx, &gpu.perf(), &pyramid, &mut cache, budget).unwrap();
+        assert!(pool.slots() < wanted.len(), "{} slots for {} bricks", pool.slots(), wanted.len());
+        let c = gpu.render_converged(&mut pool, &pyramid, &mut cache, &view, &s, None, 2).unwrap();
+        eprintln!(
+            "exact AO walk {exact}: {} passes, at most {} of the view's {} bricks in one, {} slots, {} uploads, {} evictions",
+            c.passes,
+            c.most_wanted,
+            wanted.len(),
+            pool.slots(),
+            pool.stats().uploads,
+            pool.stats().evictions
+        );
+        assert!(c.passes > 1 && pool.stats().evictions > 0);
+        let d = differing(&reference, &c.frame);
+        assert_eq!(d, 0, "exact AO walk {exact}: {d} pixels differ from the whole volume's frame");
+        assert!(pool.gpu_bytes() <= budget);
+    }
 }

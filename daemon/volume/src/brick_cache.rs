@@ -298,7 +298,8 @@ impl HostBrickCache {
     }
 }
 
-/// What a view asks of the cache: where the eye is and how large a pixel is there.
+/// What a view asks of the cache: where the eye is, how large a pixel is there, and what the
+/// view's rays (and those that leave its surface) can reach.
 #[derive(Clone, Copy, Debug)]
 pub struct ViewFootprint {
     pub eye: DVec3,
@@ -307,6 +308,28 @@ pub struct ViewFootprint {
     /// Still: every wanted brick at level 0. Moving: the level whose voxel covers at most about
     /// one pixel at the brick's distance.
     pub still: bool,
+    /// The planes (n, d) of the view's cone (`n . p + d >= 0` inside), where it is culled to.
+    pub planes: Option<[(DVec3, f64); 4]>,
+    /// How far outside the cone a ray can read (AO rays' reach and the gradient's stencil),
+    /// world units; infinite for an unbounded AO radius (nothing culled).
+    pub reach: f64,
+}
+
+impl ViewFootprint {
+    /// Whether a box grown by `reach` meets the view's cone.
+    pub fn sees(&self, lo: DVec3, hi: DVec3) -> bool {
+        let Some(planes) = self.planes.filter(|_| self.reach.is_finite()) else { return true };
+        let (lo, hi) = (lo - self.reach, hi + self.reach);
+        planes.iter().all(|(n, d)| {
+            // The box's corner furthest along n.
+            let p = DVec3::new(
+                if n.x >= 0.0 { hi.x } else { lo.x },
+                if n.y >= 0.0 { hi.y } else { lo.y },
+                if n.z >= 0.0 { hi.z } else { lo.z },
+            );
+            n.dot(p) + d >= 0.0
+        })
+    }
 }
 
 /// The level a brick of level 0 at distance `d` from the eye is wanted at while moving: the
@@ -325,9 +348,9 @@ pub fn footprint_level(layout: &BrickLayout, d: f64, pixel_angle: f64) -> usize 
 /// The bricks a view wants, nearest first, each at the level it is wanted at: every level-0 brick
 /// that can hold the surface or lie inside the object (`max >= iso`, where the ranges are known;
 /// every brick where they are not), and its 26 neighbours (the gradient's stencil and the cell
-/// walk of AO rays reach one sample into them), at level 0 when still or at
-/// [`footprint_level`] while moving. The coarsest level, which the pool always holds, is not
-/// listed.
+/// walk of AO rays reach one sample into them), that the view can see
+/// ([`ViewFootprint::sees`]), at level 0 when still or at [`footprint_level`] while moving. The
+/// coarsest level, which the pool always holds, is not listed.
 pub fn wanted_bricks(source: &dyn BrickSource, iso: f32, view: &ViewFootprint) -> Vec<BrickKey> {
     let layout = source.layout();
     let counts = layout.levels[0].counts;
@@ -356,6 +379,9 @@ pub fn wanted_bricks(source: &dyn BrickSource, iso: f32, view: &ViewFootprint) -
     let mut seen = std::collections::HashSet::new();
     for key in layout.keys(0).filter(|k| wanted[layout.index(*k)]) {
         let (lo, hi) = layout.brick_box(key);
+        if !view.sees(lo, hi) {
+            continue;
+        }
         let d = view.eye.clamp(lo, hi).distance(view.eye);
         let level = if view.still { 0 } else { footprint_level(layout, d, view.pixel_angle) };
         if level >= coarsest {
@@ -424,7 +450,11 @@ mod tests {
         let p = InCorePyramid::new(sphere(), 8).unwrap();
         let layout = p.layout();
         let eye = DVec3::new(31.5, 31.5, 100.0);
-        let still = wanted_bricks(&p, ISO, &ViewFootprint { eye, pixel_angle: 1e-3, still: true });
+        let still = wanted_bricks(
+            &p,
+            ISO,
+            &ViewFootprint { eye, pixel_angle: 1e-3, still: true, planes: None, reach: 0.0 },
+        );
         assert!(still.iter().all(|k| k.level == 0));
         // Every brick whose max >= iso is wanted, and none is listed twice.
         let ranges = p.ranges(0).unwrap();
@@ -448,7 +478,11 @@ mod tests {
         // Far away and moving, a coarser level is enough: level 2's voxel (4 units) is under
         // the 5 units a pixel covers 500 units away.
         let eye = DVec3::new(31.5, 31.5, 500.0);
-        let far = wanted_bricks(&p, ISO, &ViewFootprint { eye, pixel_angle: 1e-2, still: false });
+        let far = wanted_bricks(
+            &p,
+            ISO,
+            &ViewFootprint { eye, pixel_angle: 1e-2, still: false, planes: None, reach: 0.0 },
+        );
         assert!(!far.is_empty() && far.iter().all(|k| k.level == 2), "{far:?}");
         assert!(far.len() <= layout.bricks(2));
     }

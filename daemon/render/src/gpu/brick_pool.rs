@@ -23,8 +23,13 @@
 //! same.
 
 use super::resources::{next_resource_id, BlockLevel, MarchTexture};
-use super::{GpuContext, GpuError, GpuVolume, PerfOptions};
-use isowall_volume::brick_cache::{BrickKey, BrickLayout, BrickSource, HostBrickCache};
+use super::{GpuContext, GpuError, GpuRenderer, GpuVolume, PerfOptions};
+use crate::Frame;
+use isowall_model::camera::Rect;
+use isowall_model::{RenderSettings, View};
+use isowall_volume::brick_cache::{
+    wanted_bricks, BrickKey, BrickLayout, BrickSource, HostBrickCache, ViewFootprint,
+};
 use isowall_volume::VoxelFormat;
 use std::collections::{HashMap, HashSet};
 
@@ -517,5 +522,133 @@ impl BlockBounds {
     /// Every level's min/max, in order (the GPU's `block_minmax`).
     fn all(&self) -> Vec<[f32; 2]> {
         self.levels.iter().flat_map(|l| l.minmax.iter().copied()).collect()
+    }
+}
+
+/// What a view of a bricked volume asks of the cache ([`wanted_bricks`]): its eye, pixel size,
+/// cone, and how far its rays can read outside the cone (the AO radius and offset, and two
+/// voxels for the gradient's stencil and the AO walk's cells; unbounded AO: nothing culled).
+pub fn footprint(view: &View, settings: &RenderSettings, spacing: glam::DVec3, still: bool) -> ViewFootprint {
+    let c = &view.camera;
+    let pixel_angle = 2.0 * (c.fov_y_deg.to_radians() / 2.0).tan() / f64::from(view.full.1.max(1));
+    let voxel = spacing.max_element();
+    let reach = settings
+        .ao
+        .radius_world(spacing)
+        .map_or(f64::INFINITY, |r| r + (settings.ao.offset_voxels + settings.ao.step_voxels + 2.0) * voxel);
+    ViewFootprint { eye: c.eye, pixel_angle, still, planes: Some(view.side_planes()), reach }
+}
+
+/// A still frame rendered through a pool ([`GpuRenderer::render_converged`]).
+pub struct Converged {
+    pub frame: Frame,
+    /// GPU time of the passes' frames.
+    pub gpu_time: std::time::Duration,
+    /// Screen regions the frame was finished in (1: the pool held the whole view's bricks).
+    pub passes: usize,
+    /// The most bricks one pass wanted at level 0.
+    pub most_wanted: usize,
+}
+
+impl GpuRenderer {
+    /// The still frame of `view` of `pool`'s volume with every brick it reads at level 0: the
+    /// whole volume's frame (DESIGN.md "Large volumes"). Where the view wants more bricks than
+    /// the pool holds beside its pinned coarsest level, the view is cut into screen regions, each
+    /// halved along its longer side until its bricks fit, and finished one region at a time (a
+    /// pass), each with its own resident set; a pixel is the same whichever rectangle renders it,
+    /// and with the filter on, each region is rendered with the filter's guard band and cut back.
+    /// Refused only where one pixel's bricks exceed the pool.
+    #[allow(clippy::too_many_arguments)]
+    pub fn render_converged(
+        &self,
+        pool: &mut BrickPool,
+        source: &dyn BrickSource,
+        cache: &mut HostBrickCache,
+        view: &View,
+        settings: &RenderSettings,
+        env: Option<&super::GpuEnvironment>,
+        frames: u32,
+    ) -> Result<Converged, GpuError> {
+        self.prepare(pool.volume())?;
+        let spacing = pool.layout().levels[0].spacing;
+        let free = pool.slots() - pool.pinned;
+        let guard = if settings.denoise.is_on() { crate::denoise::reach() } else { 0 };
+        let wanted_in = |rect: Rect| {
+            let grown = View { rect: rect.grown(guard, view.full), ..*view };
+            let fp = footprint(&grown, settings, spacing, true);
+            (grown, wanted_bricks(source, settings.iso as f32, &fp))
+        };
+        let mut regions = vec![view.rect];
+        let mut passes = Vec::new();
+        while let Some(rect) = regions.pop() {
+            let (grown, wanted) = wanted_in(rect);
+            if wanted.len() <= free {
+                passes.push((rect, grown, wanted));
+                continue;
+            }
+            if rect.width <= 1 && rect.height <= 1 {
+                let needed = pool.gpu_bytes() + (wanted.len() - free) as u64 * pool.layout().brick_bytes();
+                return Err(GpuError::Settings(format!(
+                    "{}: one pixel's still frame reads {} bricks and the pool holds {free} beside the coarsest level: raise the GPU budget to at least {} MiB",
+                    source.name(),
+                    wanted.len(),
+                    needed.div_ceil(1 << 20)
+                )));
+            }
+            let (a, b) = if rect.width >= rect.height {
+                let w = rect.width / 2;
+                (Rect { width: w, ..rect }, Rect { x: rect.x + w, width: rect.width - w, ..rect })
+            } else {
+                let h = rect.height / 2;
+                (Rect { height: h, ..rect }, Rect { y: rect.y + h, height: rect.height - h, ..rect })
+            };
+            regions.push(b);
+            regions.push(a);
+        }
+        let mut frame = Frame::new(view.rect.width, view.rect.height);
+        let mut gpu_time = std::time::Duration::ZERO;
+        let mut most_wanted = 0;
+        for (k, (rect, grown, wanted)) in passes.iter().enumerate() {
+            most_wanted = most_wanted.max(wanted.len());
+            tracing::info!(
+                pass = k + 1,
+                of = passes.len(),
+                region = ?(rect.x, rect.y, rect.width, rect.height),
+                bricks = wanted.len(),
+                "a still frame through the brick pool"
+            );
+            let r = pool.refine(&self.ctx, source, cache, wanted, u64::MAX)?;
+            if !r.complete() {
+                return Err(GpuError::Settings(format!(
+                    "{}: {} of {} bricks of a pass are resident",
+                    source.name(),
+                    r.resident,
+                    r.wanted
+                )));
+            }
+            let part = self.render_accumulated(pool.volume(), grown, settings, env, frames)?;
+            gpu_time += part.gpu_time;
+            paste(&mut frame, view.rect, &part.frame, grown.rect, *rect);
+        }
+        Ok(Converged { frame, gpu_time, passes: passes.len(), most_wanted })
+    }
+}
+
+/// Copies the pixels of `region` from `part` (a frame of `part_rect`) into `whole` (a frame of
+/// `whole_rect`); all three rectangles are in the full image.
+fn paste(whole: &mut Frame, whole_rect: Rect, part: &Frame, part_rect: Rect, region: Rect) {
+    whole.fetches += part.fetches;
+    for y in region.y..region.y + region.height {
+        for x in region.x..region.x + region.width {
+            let to = ((y - whole_rect.y) * whole_rect.width + (x - whole_rect.x)) as usize;
+            let from = ((y - part_rect.y) * part_rect.width + (x - part_rect.x)) as usize;
+            whole.color[to] = part.color[from];
+            whole.depth[to] = part.depth[from];
+            whole.normal[to] = part.normal[from];
+            whole.hit[to] = part.hit[from];
+            whole.occlusion[to] = part.occlusion[from];
+            whole.bent_normal[to] = part.bent_normal[from];
+            whole.ibl[to] = part.ibl[from];
+        }
     }
 }
