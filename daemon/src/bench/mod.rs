@@ -9,6 +9,7 @@ mod imbalance;
 mod look;
 mod orbit;
 mod stats;
+mod stream;
 mod suite;
 
 use crate::args;
@@ -76,6 +77,13 @@ pub enum BenchCommand {
     /// each tile at 1/S resolution per axis (fetches then about 1/S^2 of a full frame's). Ends
     /// with one line `imbalance: slowest/mean X still, Y orbiting (by fetches); ...`.
     Imbalance(imbalance::ImbalanceArgs),
+    /// A volume through the brick cache (`render --gpu-budget-mb`) as a viewer meets it: opens
+    /// it, draws the first picture from what is resident, refines the still view to level 0 with
+    /// capped uploads a frame, orbits (each frame's bricks at the level their pixel footprint
+    /// asks), stops and refines again. Prints the time to the first picture and to level 0 after
+    /// the stop, uploads per frame, the pool's hit rate, passes and peak memory; ends with one line
+    /// `stream: first X s, converged Y s after stop, peak gpu G' MB, peak host H' MB`.
+    Stream(stream::StreamArgs),
 }
 
 #[derive(Args)]
@@ -123,6 +131,7 @@ pub fn run(cmd: &BenchCommand) -> Result<()> {
         BenchCommand::Orbit(a) => orbit::run(a),
         BenchCommand::Look(a) => look::run(a),
         BenchCommand::Imbalance(a) => imbalance::run(a),
+        BenchCommand::Stream(a) => stream::run(a),
     }
 }
 

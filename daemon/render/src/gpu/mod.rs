@@ -502,6 +502,11 @@ impl GpuRenderer {
         self.volume_kernels(volume).map(|_| ())
     }
 
+    /// Compiles the kernels of bricked volumes now, before any is opened.
+    pub fn prepare_bricked(&self) -> Result<(), GpuError> {
+        self.bricked_kernels().map(|_| ())
+    }
+
     /// The isosurface and AO kernels that read `volume`: the bricked ones (compiled at the first
     /// bricked volume's frame) or the whole volume's.
     pub(crate) fn volume_kernels(
@@ -511,6 +516,11 @@ impl GpuRenderer {
         if !volume.bricked {
             return Ok((&self.isosurface, &self.ao));
         }
+        self.bricked_kernels()
+    }
+
+    /// The kernels of bricked volumes, compiled at the first call.
+    fn bricked_kernels(&self) -> Result<(&IsosurfaceKernel, &AoKernel), GpuError> {
         if self.bricked.get().is_none() {
             let kernels = (
                 IsosurfaceKernel::new(&self.ctx, &self.perf, true)?,
