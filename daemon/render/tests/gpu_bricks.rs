@@ -28,9 +28,9 @@ fn scene() -> (InCorePyramid, View, RenderSettings) {
     (InCorePyramid::new(volume, CELLS).unwrap(), view, settings)
 }
 
-/// What a still view wants: the procedural volumes' voxels are 1 unit.
+/// What a still view wants (with the default kernels): the procedural volumes' voxels are 1 unit.
 fn still(view: &View, s: &RenderSettings) -> ViewFootprint {
-    footprint(view, s, glam::DVec3::ONE, true)
+    footprint(view, s, &isowall_render::gpu::PerfOptions::default(), glam::DVec3::ONE, true)
 }
 
 fn render(gpu: &GpuRenderer, v: &GpuVolume, view: &View, s: &RenderSettings) -> Frame {
@@ -176,4 +176,36 @@ fn a_still_frame_larger_than_the_pool_is_finished_in_passes_and_is_the_whole_vol
         assert_eq!(d, 0, "exact AO walk {exact}: {d} pixels differ from the whole volume's frame");
         assert!(pool.gpu_bytes() <= budget);
     }
+}
+
+#[test]
+fn bricks_wholly_inside_the_object_are_not_read_and_the_frame_is_still_exact() {
+    let Some(gpu) = common::gpu() else { return };
+    // A solid ball of radius 44 in 128^3: most of its bricks of 8 are wholly inside.
+    let kind = Procedural::Sphere;
+    let volume = VolumeSource::Procedural { kind, size: Some(128) }.load(None).unwrap();
+    let view = View::whole(Camera::framing(volume.box_min(), volume.box_max(), W, H), W, H);
+    let mut s = RenderSettings::new(kind.natural_iso());
+    s.ao = AoSettings { samples: 4, ..s.ao };
+    let pyramid = InCorePyramid::new(volume, CELLS).unwrap();
+    let whole = gpu.upload(pyramid.level(0)).unwrap();
+    let mut fp = still(&view, &s);
+    let inside_too = wanted_bricks(&pyramid, s.iso as f32, &ViewFootprint { interior_exit: false, ..fp });
+    fp.interior_exit = true;
+    let wanted = wanted_bricks(&pyramid, s.iso as f32, &fp);
+    eprintln!("{} bricks wanted, {} with those wholly inside", wanted.len(), inside_too.len());
+    assert!(wanted.len() < inside_too.len(), "{} of {}", wanted.len(), inside_too.len());
+    let layout = pyramid.layout().clone();
+    let mut cache = HostBrickCache::new(64 << 20, &layout).unwrap();
+    let mut pool = BrickPool::new(&gpu.ctx, &gpu.perf(), &pyramid, &mut cache, 64 << 20).unwrap();
+    for exact in [false, true] {
+        s.ao.exact = exact;
+        let reference = render(&gpu, &whole, &view, &s);
+        let c = gpu.render_converged(&mut pool, &pyramid, &mut cache, &view, &s, None, 1).unwrap();
+        assert_eq!(c.passes, 1);
+        let d = differing(&reference, &c.frame);
+        assert_eq!(d, 0, "exact AO walk {exact}: {d} pixels differ");
+    }
+    assert!(wanted.iter().all(|k| pool.holds(*k)));
+    assert!(inside_too.iter().any(|k| !pool.holds(*k)), "some brick inside was never read");
 }

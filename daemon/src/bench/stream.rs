@@ -111,7 +111,7 @@ pub fn run(a: &StreamArgs) -> Result<()> {
 
     // One frame: a capped round of uploads for what the view wants, then the picture.
     let frame = |pool: &mut BrickPool, cache: &mut HostBrickCache, view: &View, still: bool| -> Result<_> {
-        let fp = footprint(view, &settings, spacing, still);
+        let fp = footprint(view, &settings, &gpu.perf(), spacing, still);
         let wanted = wanted_bricks(source, volume.iso as f32, &fp);
         let r = pool.refine(&gpu.ctx, source, cache, &wanted, cap)?;
         let rendered = gpu.render_accumulated(pool.volume(), view, &settings, None, 1)?;

@@ -313,6 +313,10 @@ pub struct ViewFootprint {
     /// How far outside the cone a ray can read (AO rays' reach and the gradient's stencil),
     /// world units; infinite for an unbounded AO radius (nothing culled).
     pub reach: f64,
+    /// The kernels take an AO ray entering a block whose every sample reaches the iso as
+    /// occluded without reading it (`PerfOptions::block_min_exit`): then a brick wholly inside
+    /// the object is read by no ray that does not cross a surface, or its neighbours, first.
+    pub interior_exit: bool,
 }
 
 impl ViewFootprint {
@@ -346,9 +350,12 @@ pub fn footprint_level(layout: &BrickLayout, d: f64, pixel_angle: f64) -> usize 
 }
 
 /// The bricks a view wants, nearest first, each at the level it is wanted at: every level-0 brick
-/// that can hold the surface or lie inside the object (`max >= iso`, where the ranges are known;
-/// every brick where they are not), and its 26 neighbours (the gradient's stencil and the cell
-/// walk of AO rays reach one sample into them), that the view can see
+/// that can hold the surface (`min < iso <= max`, where the ranges are known; every brick where
+/// they are not), a brick wholly inside the object only where a ray may read it without crossing
+/// a surface first (on the volume box's faces, the eye's, or every one where AO rays read inside
+/// the object: not [`ViewFootprint::interior_exit`]), and the 26 neighbours of each (the
+/// gradient's stencil, the march's step into the object and the cell walk of AO rays reach into
+/// them), that the view can see
 /// ([`ViewFootprint::sees`]), at level 0 when still or at [`footprint_level`] while moving. The
 /// coarsest level, which the pool always holds, is not listed.
 pub fn wanted_bricks(source: &dyn BrickSource, iso: f32, view: &ViewFootprint) -> Vec<BrickKey> {
@@ -358,10 +365,19 @@ pub fn wanted_bricks(source: &dyn BrickSource, iso: f32, view: &ViewFootprint) -
     let mut wanted = vec![false; n];
     let ranges = source.ranges(0);
     let index = |b: [usize; 3]| b[0] + counts[0] * (b[1] + counts[1] * b[2]);
+    let eye = view.planes.map(|_| layout.brick_at(0, view.eye));
     for key in layout.keys(0) {
         let i = layout.index(key);
-        if ranges.is_none_or(|r| r[i][1] >= iso) {
-            let b = key.brick.map(|v| v as usize);
+        let b = key.brick.map(|v| v as usize);
+        let on_box_face = (0..3).any(|a| b[a] == 0 || b[a] + 1 == counts[a]);
+        let core = match ranges.map(|r| r[i]) {
+            None => true,
+            // Wholly inside the object: only where a ray can start in it without crossing a
+            // surface first (the box's faces, the eye's brick), or where AO rays sample inside.
+            Some([lo, _]) if lo >= iso => !view.interior_exit || on_box_face || eye == Some(key),
+            Some([_, hi]) => hi >= iso,
+        };
+        if core {
             for dz in 0..3 {
                 for dy in 0..3 {
                     for dx in 0..3 {
@@ -453,7 +469,14 @@ mod tests {
         let still = wanted_bricks(
             &p,
             ISO,
-            &ViewFootprint { eye, pixel_angle: 1e-3, still: true, planes: None, reach: 0.0 },
+            &ViewFootprint {
+                eye,
+                pixel_angle: 1e-3,
+                still: true,
+                planes: None,
+                reach: 0.0,
+                interior_exit: false,
+            },
         );
         assert!(still.iter().all(|k| k.level == 0));
         // Every brick whose max >= iso is wanted, and none is listed twice.
@@ -481,7 +504,14 @@ mod tests {
         let far = wanted_bricks(
             &p,
             ISO,
-            &ViewFootprint { eye, pixel_angle: 1e-2, still: false, planes: None, reach: 0.0 },
+            &ViewFootprint {
+                eye,
+                pixel_angle: 1e-2,
+                still: false,
+                planes: None,
+                reach: 0.0,
+                interior_exit: false,
+            },
         );
         assert!(!far.is_empty() && far.iter().all(|k| k.level == 2), "{far:?}");
         assert!(far.len() <= layout.bricks(2));

@@ -528,7 +528,13 @@ impl BlockBounds {
 /// What a view of a bricked volume asks of the cache ([`wanted_bricks`]): its eye, pixel size,
 /// cone, and how far its rays can read outside the cone (the AO radius and offset, and two
 /// voxels for the gradient's stencil and the AO walk's cells; unbounded AO: nothing culled).
-pub fn footprint(view: &View, settings: &RenderSettings, spacing: glam::DVec3, still: bool) -> ViewFootprint {
+pub fn footprint(
+    view: &View,
+    settings: &RenderSettings,
+    perf: &PerfOptions,
+    spacing: glam::DVec3,
+    still: bool,
+) -> ViewFootprint {
     let c = &view.camera;
     let pixel_angle = 2.0 * (c.fov_y_deg.to_radians() / 2.0).tan() / f64::from(view.full.1.max(1));
     let voxel = spacing.max_element();
@@ -536,7 +542,14 @@ pub fn footprint(view: &View, settings: &RenderSettings, spacing: glam::DVec3, s
         .ao
         .radius_world(spacing)
         .map_or(f64::INFINITY, |r| r + (settings.ao.offset_voxels + settings.ao.step_voxels + 2.0) * voxel);
-    ViewFootprint { eye: c.eye, pixel_angle, still, planes: Some(view.side_planes()), reach }
+    ViewFootprint {
+        eye: c.eye,
+        pixel_angle,
+        still,
+        planes: Some(view.side_planes()),
+        reach,
+        interior_exit: perf.block_min_exit,
+    }
 }
 
 /// A still frame rendered through a pool ([`GpuRenderer::render_converged`]).
@@ -575,7 +588,7 @@ impl GpuRenderer {
         let guard = if settings.denoise.is_on() { crate::denoise::reach() } else { 0 };
         let wanted_in = |rect: Rect| {
             let grown = View { rect: rect.grown(guard, view.full), ..*view };
-            let fp = footprint(&grown, settings, spacing, true);
+            let fp = footprint(&grown, settings, &self.perf, spacing, true);
             (grown, wanted_bricks(source, settings.iso as f32, &fp))
         };
         let mut regions = vec![view.rect];
