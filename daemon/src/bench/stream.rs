@@ -88,6 +88,7 @@ pub fn run(a: &StreamArgs) -> Result<()> {
         HostBrickCache::new(budgets.host, layout).map_err(|e| anyhow!("--host-budget-mb: {e}"))?;
     let mut pool =
         BrickPool::new(&gpu.ctx, &gpu.perf(), source, &mut cache, budgets.gpu).context("--gpu-budget-mb")?;
+    let t_open = opened.elapsed().as_secs_f64();
     let cap = a.upload_mb_per_frame.map_or(budgets.gpu / 16, |m| (m * 1048576.0) as u64);
     let l0 = &layout.levels[0];
     println!(
@@ -118,11 +119,11 @@ pub fn run(a: &StreamArgs) -> Result<()> {
         Ok((r, rendered.gpu_time.as_secs_f64() * 1e3))
     };
 
-    let (first, _) = frame(&mut pool, &mut cache, &view, false)?;
+    let (first, first_ms) = frame(&mut pool, &mut cache, &view, false)?;
     let t_first = opened.elapsed().as_secs_f64();
     println!(
-        "stream: first picture {:.2} s after opening ({} bricks uploaded, {} of the moving view's {} resident)",
-        t_first, first.uploaded, first.resident, first.wanted
+        "stream: first picture {t_first:.2} s after opening (the store and the pool {t_open:.2} s, the frame {first_ms:.0} ms on the GPU; {} bricks uploaded, {} of the moving view's {} resident)",
+        first.uploaded, first.resident, first.wanted
     );
 
     // Refine the still view: a capped round a frame until every brick it wants is resident.
