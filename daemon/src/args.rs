@@ -81,16 +81,21 @@ impl VolumeInputArgs {
     }
 
     /// Reads `volume` (a source as given on the command line) whole, with a spinner meanwhile.
+    /// The size limit of what is read whole (`--max-volume-bytes`).
+    pub fn limit(&self) -> isowall_volume::io::VolumeLimit {
+        match self.max_volume_bytes {
+            Some(b) => isowall_volume::io::VolumeLimit::new(b, "--max-volume-bytes"),
+            None => isowall_volume::io::VolumeLimit::default(),
+        }
+    }
+
     pub fn read(
         &self,
         volume: &str,
     ) -> anyhow::Result<(isowall_volume::VolumeSource, isowall_volume::Volume)> {
         use anyhow::Context;
         let (source, raw) = self.source(volume)?;
-        let limit = match self.max_volume_bytes {
-            Some(b) => isowall_volume::io::VolumeLimit::new(b, "--max-volume-bytes"),
-            None => isowall_volume::io::VolumeLimit::default(),
-        };
+        let limit = self.limit();
         let bar = crate::progress::spinner(format!("reading {source}"));
         let read = source.load_step_within(raw.as_ref(), self.step, &limit);
         bar.finish_and_clear();

@@ -86,9 +86,7 @@ impl BrickedVolume {
         let box_min = l0.origin;
         let last = DVec3::new(l0.dims[0] as f64, l0.dims[1] as f64, l0.dims[2] as f64) - 1.0;
         let box_max = l0.origin + last * l0.spacing;
-        let range = bricks.ranges(0).map(|r| {
-            r.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), m| (a.min(m[0]), b.max(m[1])))
-        });
+        let range = bricks.value_range();
         let iso = match (iso, range) {
             (Some(v), Some(r)) => {
                 source.checked_iso(Some(v), r).map_err(|e| anyhow!("{iso_from} {e} ({source})"))?

@@ -2,11 +2,14 @@
 //! render or a wall config: its format, grid, patient orientation, value range, percentiles, a
 //! histogram, and suggested iso values with how each was found (Otsu's thresholds of the
 //! histogram, `isowall_volume::value_stats`). The volume is read whole, within the same limit as
-//! `render` (`--max-volume-bytes`).
+//! `render` (`--max-volume-bytes`); an OME-Zarr store only by its metadata, its per-brick min/max
+//! and its coarsest level (a store may be larger than memory).
 
 use crate::args;
 use anyhow::{Context, Result};
 use clap::Args;
+use isowall_volume::brick_cache::BrickSource;
+use isowall_volume::io::ome_zarr::{is_zarr, OmeZarr};
 use isowall_volume::value_stats::ValueStats;
 use isowall_volume::{PatientDir, VolumeSource};
 
@@ -37,9 +40,25 @@ fn direction_name(d: PatientDir) -> &'static str {
 }
 
 pub fn run(a: &InfoArgs) -> Result<()> {
-    let (source, volume) = a.input.read(&a.volume)?;
-    let [nx, ny, nz] = volume.dims();
-    let (s, o) = (volume.spacing(), volume.origin());
+    let (source, _) = a.input.source(&a.volume)?;
+    let store = match &source {
+        VolumeSource::File(p) if is_zarr(p) => Some(OmeZarr::open(p)?),
+        _ => None,
+    };
+    // A store: its coarsest level for the values, level 0 for the grid.
+    let volume = match &store {
+        Some(s) => {
+            let coarsest = s.levels().len() - 1;
+            let limit = a.input.limit();
+            s.read_level(coarsest, a.input.step, &limit).with_context(|| format!("cannot read {source}"))?
+        }
+        None => a.input.read(&a.volume)?.1,
+    };
+    let (dims, s, o) = match &store {
+        Some(st) => (st.levels()[0].dims, st.levels()[0].spacing, st.levels()[0].origin),
+        None => (volume.dims(), volume.spacing(), volume.origin()),
+    };
+    let [nx, ny, nz] = dims;
     let format = match &source {
         VolumeSource::File(p) => isowall_volume::io::format_name(p),
         VolumeSource::DicomSeries { .. } => "DICOM",
@@ -50,7 +69,7 @@ pub fn run(a: &InfoArgs) -> Result<()> {
     println!("format: {format}; voxels read as 32-bit float in the data's units");
     println!("dims: {nx} x {ny} x {nz} ({} voxels)", nx * ny * nz);
     println!("spacing: {} {} {} world units per voxel; origin {} {} {}", s.x, s.y, s.z, o.x, o.y, o.z);
-    let top = volume.box_max();
+    let top = o + s * glam::DVec3::new(nx as f64 - 1.0, ny as f64 - 1.0, nz as f64 - 1.0);
     println!("box: {} {} {} .. {} {} {}", o.x, o.y, o.z, top.x, top.y, top.z);
     match volume.orientation() {
         Some(orient) => {
@@ -62,17 +81,26 @@ pub fn run(a: &InfoArgs) -> Result<()> {
         }
         None => println!("orientation: none in the file (views read the world axes as LPS)"),
     }
-    if let VolumeSource::File(p) = &source {
-        if isowall_volume::io::ome_zarr::is_zarr(p) {
-            let store = isowall_volume::io::ome_zarr::OmeZarr::open(p)?;
-            println!("levels ({} time steps; the values below are of the finest read):", store.steps());
-            for (l, level) in store.levels().iter().enumerate() {
-                let [x, y, z] = level.dims;
-                let [cx, cy, cz] = level.chunk;
-                println!(
-                    "  {l}: `{}` {x} x {y} x {z}, spacing {} {} {}, {} in chunks of {cx} x {cy} x {cz}",
-                    level.path, level.spacing.x, level.spacing.y, level.spacing.z, level.data_type
-                );
+    if let Some(store) = store {
+        let coarsest = &store.levels()[store.levels().len() - 1];
+        println!(
+            "levels ({} time steps; the values below are of the coarsest level, `{}`: a store is not read whole here):",
+            store.steps(),
+            coarsest.path
+        );
+        for (l, level) in store.levels().iter().enumerate() {
+            let [x, y, z] = level.dims;
+            let [cx, cy, cz] = level.chunk;
+            println!(
+                "  {l}: `{}` {x} x {y} x {z}, spacing {} {} {}, {} in chunks of {cx} x {cy} x {cz}",
+                level.path, level.spacing.x, level.spacing.y, level.spacing.z, level.data_type
+            );
+        }
+        let bricks = store.into_bricks(a.input.step)?;
+        match bricks.value_range() {
+            Some((lo, hi)) => println!("level 0's values: {lo} .. {hi} (from the store's per-brick min/max)"),
+            None => {
+                println!("level 0's values: unknown without reading it (the store has no per-brick min/max)")
             }
         }
     }

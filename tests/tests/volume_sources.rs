@@ -113,6 +113,37 @@ fn the_ct_converted_to_ome_zarr_renders_exactly_as_its_nrrd_and_its_levels_withi
     let o = bricked("2", "c.png");
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && err.contains("raise the GPU budget to at least"), "{err}");
+    // `info` reads a store's metadata, min/max and coarsest level only: within a limit far
+    // below level 0's 28 MB it still tells level 0's grid and range.
+    let o = run_in(dir.path(), "isowalld", &["info", "ct.ome.zarr", "--max-volume-bytes", "100000"]);
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{out}{}", String::from_utf8_lossy(&o.stderr));
+    assert!(out.contains("dims: 256 x 256 x 108") && out.contains("of the coarsest level, `3`"), "{out}");
+    let ct = isowall_volume::io::load(&nrrd, None).unwrap();
+    let (lo, hi) = ct.value_range();
+    assert!(out.contains(&format!("level 0's values: {lo} .. {hi}")), "{out}");
+    // check-config holds a wall's iso to level 0's range from the store's min/max, even where
+    // `[volume] max_bytes` would let it read only the coarsest level (whose means never reach
+    // level 0's largest sample).
+    let coarsest_max = isowall_volume::io::ome_zarr::OmeZarr::open(&dir.path().join("ct.ome.zarr"))
+        .unwrap()
+        .read_level(3, 0, &isowall_volume::io::VolumeLimit::default())
+        .unwrap()
+        .value_range()
+        .1;
+    assert!(coarsest_max < hi - 1.0, "{coarsest_max} {hi}");
+    for (iso, ok) in [(300.0, true), (hi as f64 - 1.0, true), (hi as f64 + 10.0, false)] {
+        let config = format!(
+            "[wall]\nname = \"z\"\n\n[volume]\nsource = \"ct.ome.zarr\"\niso = {iso}\nmax_bytes = 100000\n\n\
+             [[tiles]]\nname = \"t\"\nx = 0\ny = 0\nwidth = 64\nheight = 48\n\n\
+             [[nodes]]\nname = \"n\"\naddress = \"127.0.0.1:7999\"\ntiles = [\"t\"]\n"
+        );
+        std::fs::write(dir.path().join("z.toml"), config).unwrap();
+        let o = run_in(dir.path(), "isowall", &["check-config", "z.toml"]);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.success(), ok, "iso {iso}: {err}{}", String::from_utf8_lossy(&o.stdout));
+        assert!(ok || err.contains("iso"), "{err}");
+    }
     // Under a limit below level 0, the finest level within it is read, and said.
     let o = run_in(
         dir.path(),

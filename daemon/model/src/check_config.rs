@@ -129,8 +129,9 @@ fn check_volume_files(config: &WallConfig, on: CheckedOn) -> Result<Vec<String>,
 }
 
 /// `[volume] iso` within the volume's value range, where the volume is on this machine: it is
-/// read (within `[volume] max_bytes`) for its range, and the iso held to the rule `up` and the
-/// nodes apply ([`isowall_volume::check_iso`]). A volume not here, or no iso set: nothing to check.
+/// read (within `[volume] max_bytes`) for its range, or for a store `convert` wrote its per-brick
+/// min/max only, and the iso held to the rule `up` and the nodes apply
+/// ([`isowall_volume::check_iso`]). A volume not here, or no iso set: nothing to check.
 fn check_iso_range(config: &WallConfig) -> Result<(), String> {
     use isowall_volume::io::VolumeLimit;
     use isowall_volume::VolumeSource;
@@ -148,9 +149,24 @@ fn check_iso_range(config: &WallConfig) -> Result<(), String> {
         .volume
         .max_bytes
         .map_or_else(VolumeLimit::default, |b| VolumeLimit::new(b, "[volume] max_bytes"));
-    let raw = config.raw_spec().map_err(|e| e.to_string())?;
-    let volume = source.load_step_within(raw.as_ref(), 0, &limit).map_err(|e| e.to_string())?;
-    let (lo, hi) = volume.value_range();
+    // A store `convert` wrote holds level 0's range in its per-brick min/max: nothing is read.
+    let store_range = match &source {
+        VolumeSource::File(p) if isowall_volume::io::ome_zarr::is_zarr(p) => {
+            use isowall_volume::brick_cache::BrickSource;
+            let store = isowall_volume::io::ome_zarr::OmeZarr::open(p).map_err(|e| e.to_string())?;
+            let bricks = store.into_bricks(0).map_err(|e| e.to_string())?;
+            bricks.value_range()
+        }
+        _ => None,
+    };
+    let (lo, hi) = match store_range {
+        Some(range) => range,
+        None => {
+            let raw = config.raw_spec().map_err(|e| e.to_string())?;
+            let volume = source.load_step_within(raw.as_ref(), 0, &limit).map_err(|e| e.to_string())?;
+            volume.value_range()
+        }
+    };
     isowall_volume::check_iso(iso, (f64::from(lo), f64::from(hi))).map_err(|e| format!("{e} ({source})"))
 }
 

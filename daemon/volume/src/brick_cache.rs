@@ -176,6 +176,12 @@ pub trait BrickSource: Send + Sync {
     fn read_brick(&self, key: BrickKey) -> Result<Vec<f32>, VolumeError>;
     /// A name for errors and logs.
     fn name(&self) -> &str;
+    /// Level 0's smallest and largest sample, where the ranges are known.
+    fn value_range(&self) -> Option<(f32, f32)> {
+        self.ranges(0).map(|r| {
+            r.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), m| (lo.min(m[0]), hi.max(m[1])))
+        })
+    }
 }
 
 /// A volume held in core as a bricked pyramid: level 0 is the volume, each next level its

@@ -184,9 +184,7 @@ impl BrickPool {
         ctx.write_buffer(&voxels, 0, bytemuck::cast_slice(&head));
         let minmax = bounds.all();
         let block_minmax = ctx.storage_init("brick min/max", bytemuck::cast_slice(&minmax))?;
-        let (lo, hi) = source.ranges(0).map_or((0.0, 0.0), |r| {
-            r.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), m| (a.min(m[0]), b.max(m[1])))
-        });
+        let (lo, hi) = source.value_range().unwrap_or((0.0, 0.0));
         let level = |k: usize| BlockLevel {
             counts: bounds.levels[k].counts.map(|c| c as u32),
             cells: bounds.levels[k].cells as u32,
