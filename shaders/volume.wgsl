@@ -98,18 +98,27 @@ struct BrickLevel {
 }
 
 // The header (levels, log2 of cells per brick edge, samples per brick edge, the pool's first
-// word) and the directory entries of level 0 and the coarsest level, read once by each invocation (`load_bricks`, at the
+// word) and the levels' directory entries, read once by each invocation (`load_bricks`, at the
 // kernel's entry): on a SIMD CPU driver every storage load costs on every lane.
 var<private> brick_head: vec4<u32>;
 var<private> brick_level0: BrickLevel;
-// The coarsest level's entry (always resident).
+// The coarsest level's entry (always resident), and every level's for the walk over the
+// coarser levels (`coarser_trilinear`): read there at each lookup, they made a frame of the
+// coarse levels several times slower than one of level 0 on lavapipe.
 var<private> brick_coarsest: BrickLevel;
+var<private> brick_levels: array<BrickLevel, MAX_BRICK_LEVELS>;
+// The most levels a bricked volume has (`MAX_CACHE_LEVELS` in daemon/volume/src/brick_cache.rs,
+// which a test holds it to).
+const MAX_BRICK_LEVELS: u32 = 16u;
 
 fn load_bricks() {
     if BRICKED {
         brick_head = vec4<u32>(volume[0u], volume[1u], volume[2u], volume[3u]);
-        brick_level0 = brick_level(0u);
-        brick_coarsest = brick_level(brick_head.x - 1u);
+        for (var l = 0u; l < min(brick_head.x, MAX_BRICK_LEVELS); l += 1u) {
+            brick_levels[l] = brick_level(l);
+        }
+        brick_level0 = brick_levels[0];
+        brick_coarsest = brick_levels[brick_head.x - 1u];
     }
 }
 
@@ -174,7 +183,7 @@ fn brick_trilinear(page: u32, x: vec3<f32>, i0: vec3<i32>, b: vec3<u32>, n: vec3
 fn coarser_trilinear(u0: vec3<f32>, first: u32) -> f32 {
     let levels = brick_head.x;
     for (var l = first; l < levels; l += 1u) {
-        let lv = brick_level(l);
+        let lv = brick_levels[l];
         let n = lv.dims;
         let x = clamp(u0 * lv.scale + lv.offset, vec3<f32>(0.0), vec3<f32>(max(n - 1, vec3<i32>(0))));
         let i0 = min(vec3<i32>(floor(x)), max(n - 2, vec3<i32>(0)));

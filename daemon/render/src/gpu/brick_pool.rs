@@ -663,3 +663,18 @@ fn paste(whole: &mut Frame, whole_rect: Rect, part: &Frame, part_rect: Rect, reg
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use crate::shaders::tests::wgsl_constants;
+    use crate::shaders::Kernel;
+    use isowall_volume::brick_cache::MAX_CACHE_LEVELS;
+
+    #[test]
+    fn the_kernels_hold_as_many_levels_as_the_cache_makes() {
+        for kernel in [Kernel::Isosurface, Kernel::Ao] {
+            let levels = wgsl_constants(kernel).get("MAX_BRICK_LEVELS").copied();
+            assert_eq!(levels, Some(MAX_CACHE_LEVELS as u32), "{kernel:?}");
+        }
+    }
+}
