@@ -341,6 +341,17 @@ fn a_store_whose_level_0_is_too_large_to_read_whole_opens_at_a_coarser_level() {
     assert_eq!(v.dims(), [19, 11, 10], "level 1, the finest that is read whole");
     let e = store.read_level(0, 0, &VolumeLimit::new(u64::MAX, "no limit")).unwrap_err().to_string();
     assert!(e.contains("over the 1073741824 voxels read whole"), "{e}");
+    // As bricks: its min/max array no longer fits the level it claims, which is said.
+    let e = store.into_bricks(0).err().unwrap().to_string();
+    assert!(e.contains("isowall_minmax/0") && e.contains("the level's bricks need"), "{e}");
+    // A level of 32768^3 (2^45 samples) would need 64 GiB of min/max: refused before reading.
+    std::fs::write(
+        &level0,
+        meta.replacen("\"shape\": [\n    19,\n    22,\n    37\n  ]", "\"shape\": [32768, 32768, 32768]", 1),
+    )
+    .unwrap();
+    let e = OmeZarr::open(&out).unwrap().into_bricks(0).err().unwrap().to_string();
+    assert!(e.contains("bytes of per-brick min/max, over the 268435456 read"), "{e}");
 }
 
 /// A store as a source of cache bricks: each brick is its level's samples cut out (the far edges

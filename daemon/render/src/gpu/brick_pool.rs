@@ -119,7 +119,6 @@ impl BrickPool {
         let coarse = (perf.coarse > 0).then_some(perf.coarse);
         let cells: Vec<usize> =
             [Some(perf.block), ao, coarse].into_iter().flatten().map(|c| c as usize).collect();
-        let bounds = BlockBounds::new(&layout, source, &cells);
         let name = source.name().to_string();
         let levels = layout.levels.len();
         let mut page_base = Vec::with_capacity(levels);
@@ -131,7 +130,8 @@ impl BrickPool {
         let pages_word = HEADER_WORDS + LEVEL_WORDS * levels;
         let pool_word = pages_word + n;
         let brick_words = layout.brick_voxels();
-        let minmax_bytes = 8 * (0..bounds.levels.len()).map(|k| bounds.blocks(k) as u64).sum::<u64>();
+        // Counted before anything is allocated: a store's pyramid may be far larger than the budget.
+        let minmax_bytes = 8 * cells.iter().map(|&c| l0_blocks(c as u32)).sum::<u64>();
         let fixed = 4 * pool_word as u64 + minmax_bytes;
         let limit = super::storage_binding_limit(&ctx.device.limits());
         let by_budget = budget.saturating_sub(fixed) / layout.brick_bytes();
@@ -153,6 +153,7 @@ impl BrickPool {
             );
         }
         let words = pool_word + slots * brick_words;
+        let bounds = BlockBounds::new(&layout, source, &cells);
         let mut head = vec![0u32; pool_word];
         head[0] = levels as u32;
         head[1] = layout.cells.trailing_zeros();

@@ -46,6 +46,9 @@ pub const MAX_CHUNK_ELEMENTS: u64 = 1 << 27;
 
 /// The key of Isowall's own attributes in the root group.
 pub const ISOWALL_KEY: &str = "isowall";
+/// The most bytes of one level's per-brick min/max read: two `f32` a brick, so 32M bricks, a level
+/// of 2^43 samples (32 TB as `float32`) in bricks of 64^3.
+pub const MAX_MINMAX_BYTES: u64 = 256 << 20;
 
 type Store = BoundedStore<FilesystemStore>;
 
@@ -485,6 +488,15 @@ impl OmeZarr {
             return Ok(None);
         };
         let c = layout.levels[l].counts;
+        let bytes = c.iter().try_fold(8u64, |a, &n| a.checked_mul(n as u64)).unwrap_or(u64::MAX);
+        if bytes > MAX_MINMAX_BYTES {
+            return Err(err(
+                &self.path,
+                format!(
+                    "array `{path}`: {bytes} bytes of per-brick min/max, over the {MAX_MINMAX_BYTES} read"
+                ),
+            ));
+        }
         let want = vec![c[2] as u64, c[1] as u64, c[0] as u64, 2];
         if array.shape() != want.as_slice() {
             return Err(err(
