@@ -66,7 +66,7 @@ fn packed_voxel(idx: u32) -> f32 {
 fn trilinear_voxel(u: vec4<f32>) -> f32 {
     fetches += 1u;
     if BRICKED {
-        return bricked_trilinear(u.xyz, 0u);
+        return bricked_trilinear(u.xyz);
     }
     let n = vec3<i32>(params.dims.xyz);
     let x = clamp(u.xyz, vec3<f32>(0.0), vec3<f32>(max(n - 1, vec3<i32>(0))));
@@ -145,23 +145,21 @@ fn pool_sample(page: u32, at: vec3<i32>) -> f32 {
     return bitcast<f32>(volume[brick_head.w + (page - 1u) * s * s * s + a.x + s * (a.y + s * a.z)]);
 }
 
-// The trilinear interpolant, at level-0 voxel coordinates u0, of the finest level from `first` on
-// whose brick there is resident: the field of DESIGN.md "Large volumes". At level 0 it is
+// The trilinear interpolant, at level-0 voxel coordinates u0, of the finest level whose brick
+// there is resident: the field of DESIGN.md "Large volumes". At level 0 it is
 // `trilinear_voxel`'s arithmetic on the same samples, so a resident level 0 is the whole volume's
 // picture bit for bit. The coarsest level is always resident (the pool pins it).
-fn bricked_trilinear(u0: vec3<f32>, first: u32) -> f32 {
-    if first == 0u {
-        // Level 0, straight-line: the common case once refined.
-        let n = brick_level0.dims;
-        let x = clamp(u0, vec3<f32>(0.0), vec3<f32>(max(n - 1, vec3<i32>(0))));
-        let i0 = min(vec3<i32>(floor(x)), max(n - 2, vec3<i32>(0)));
-        let b = min(vec3<u32>(i0) >> vec3<u32>(brick_head.y), brick_level0.counts - 1u);
-        let page = brick_page(brick_level0, b);
-        if page != 0u {
-            return brick_trilinear(page, x, i0, b, n);
-        }
+fn bricked_trilinear(u0: vec3<f32>) -> f32 {
+    // Level 0, straight-line: the common case once refined.
+    let n = brick_level0.dims;
+    let x = clamp(u0, vec3<f32>(0.0), vec3<f32>(max(n - 1, vec3<i32>(0))));
+    let i0 = min(vec3<i32>(floor(x)), max(n - 2, vec3<i32>(0)));
+    let b = min(vec3<u32>(i0) >> vec3<u32>(brick_head.y), brick_level0.counts - 1u);
+    let page = brick_page(brick_level0, b);
+    if page != 0u {
+        return brick_trilinear(page, x, i0, b, n);
     }
-    return coarser_trilinear(u0, max(first, 1u));
+    return coarser_trilinear(u0);
 }
 
 // The 8-sample blend of `bricked_trilinear` in the brick in `page` (brick index b of its level),
@@ -178,11 +176,11 @@ fn brick_trilinear(page: u32, x: vec3<f32>, i0: vec3<i32>, b: vec3<u32>, n: vec3
     return mix(mix(x00, x10, fr.y), mix(x01, x11, fr.y), fr.z);
 }
 
-// `bricked_trilinear` from level `first` >= 1 on: the finest resident level's interpolant (the
+// `bricked_trilinear` past level 0: the finest resident coarser level's interpolant (the
 // coarsest is always resident).
-fn coarser_trilinear(u0: vec3<f32>, first: u32) -> f32 {
+fn coarser_trilinear(u0: vec3<f32>) -> f32 {
     let levels = brick_head.x;
-    for (var l = first; l < levels; l += 1u) {
+    for (var l = 1u; l < levels; l += 1u) {
         let lv = brick_levels[l];
         let n = lv.dims;
         let x = clamp(u0 * lv.scale + lv.offset, vec3<f32>(0.0), vec3<f32>(max(n - 1, vec3<i32>(0))));

@@ -83,9 +83,7 @@ impl BrickedVolume {
         };
         let layout = bricks.layout();
         let l0 = &layout.levels[0];
-        let box_min = l0.origin;
-        let last = DVec3::new(l0.dims[0] as f64, l0.dims[1] as f64, l0.dims[2] as f64) - 1.0;
-        let box_max = l0.origin + last * l0.spacing;
+        let (box_min, box_max) = (l0.origin, l0.box_max());
         let range = bricks.value_range();
         let iso = match (iso, range) {
             (Some(v), Some(r)) => {
@@ -124,6 +122,20 @@ pub struct BrickedRender {
     pub host_peak_bytes: u64,
 }
 
+/// The host cache and the GPU pool of `volume` within `budgets`, the coarsest level resident.
+pub fn open_cache(
+    gpu: &GpuRenderer,
+    volume: &BrickedVolume,
+    budgets: Budgets,
+) -> Result<(HostBrickCache, BrickPool)> {
+    let source = volume.source.as_ref();
+    let mut cache =
+        HostBrickCache::new(budgets.host, source.layout()).map_err(|e| anyhow!("--host-budget-mb: {e}"))?;
+    let pool =
+        BrickPool::new(&gpu.ctx, &gpu.perf(), source, &mut cache, budgets.gpu).context("--gpu-budget-mb")?;
+    Ok((cache, pool))
+}
+
 /// Renders the still frame of `view` with every brick it reads at level 0, in as many passes as
 /// the pool needs ([`GpuRenderer::render_converged`]): the whole volume's picture.
 pub fn render_converged(
@@ -136,11 +148,7 @@ pub fn render_converged(
     frames: u32,
 ) -> Result<BrickedRender> {
     let source = volume.source.as_ref();
-    let layout = source.layout();
-    let mut cache =
-        HostBrickCache::new(budgets.host, layout).map_err(|e| anyhow!("--host-budget-mb: {e}"))?;
-    let mut pool =
-        BrickPool::new(&gpu.ctx, &gpu.perf(), source, &mut cache, budgets.gpu).context("--gpu-budget-mb")?;
+    let (mut cache, mut pool) = open_cache(gpu, volume, budgets)?;
     let converged = gpu.render_converged(&mut pool, source, &mut cache, view, settings, env, frames)?;
     Ok(BrickedRender {
         converged,

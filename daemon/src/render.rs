@@ -362,13 +362,10 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     let limit =
         volume_limit(a.max_volume_bytes.map(|b| (b, "--max-volume-bytes")), gpu && budgets.is_none())?;
     let loaded = match budgets {
-        Some(_) => Loaded::Bricked(BrickedVolume::open(
-            spec.as_deref(),
-            raw.as_ref(),
-            (a.iso, "--iso"),
-            a.step,
-            &limit,
-        )?),
+        Some(budgets) => Loaded::Bricked(
+            BrickedVolume::open(spec.as_deref(), raw.as_ref(), (a.iso, "--iso"), a.step, &limit)?,
+            budgets,
+        ),
         None => {
             let (volume, iso) =
                 load_volume_step_within(spec.as_deref(), raw.as_ref(), (a.iso, "--iso"), a.step, &limit)?;
@@ -379,7 +376,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         Loaded::Whole(v, iso) => {
             (*iso, v.name.clone(), (v.box_min(), v.box_max()), v.orientation(), object_box(v, *iso))
         }
-        Loaded::Bricked(b) => (b.iso, b.name.clone(), (b.box_min, b.box_max), b.orientation, b.fit),
+        Loaded::Bricked(b, _) => (b.iso, b.name.clone(), (b.box_min, b.box_max), b.orientation, b.fit),
     };
     let (w, h) = a.size.unwrap_or((800, 600));
     tracing::info!(
@@ -456,13 +453,12 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     };
 
     let start = Instant::now();
-    let (frame, label): (Frame, String) = match a.renderer.unwrap_or_default() {
-        RendererKind::Gpu if matches!(loaded, Loaded::Bricked(_)) => {
-            let Loaded::Bricked(bricked) = &loaded else { unreachable!("matched above") };
-            let budgets = budgets.expect("bricked with budgets");
+    // Bricked volumes are the GPU renderer's only (the reference renderer was refused above).
+    let (frame, label): (Frame, String) = match (&loaded, a.renderer.unwrap_or_default()) {
+        (Loaded::Bricked(bricked, budgets), _) => {
             let gpu = GpuRenderer::new()?;
             let genv = env.as_ref().map(|e| gpu.upload_environment(e)).transpose()?;
-            let r = render_converged(&gpu, bricked, budgets, &view, &settings, genv.as_ref(), frames)?;
+            let r = render_converged(&gpu, bricked, *budgets, &view, &settings, genv.as_ref(), frames)?;
             let c = r.converged;
             (
                 c.frame,
@@ -479,8 +475,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
                 ),
             )
         }
-        RendererKind::Gpu => {
-            let Loaded::Whole(volume, _) = &loaded else { unreachable!("bricked is rendered above") };
+        (Loaded::Whole(volume, _), RendererKind::Gpu) => {
             let gpu = GpuRenderer::new()?;
             let gv = gpu.upload(volume)?;
             let genv = env.as_ref().map(|e| gpu.upload_environment(e)).transpose()?;
@@ -497,8 +492,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
                 format!("gpu '{}', {:.1} ms on the GPU", gpu.adapter_name(), r.gpu_time.as_secs_f64() * 1e3),
             )
         }
-        RendererKind::Reference => {
-            let Loaded::Whole(volume, _) = &loaded else { unreachable!("refused above") };
+        (Loaded::Whole(volume, _), RendererKind::Reference) => {
             let mut progress = (frames > 1).then(|| Counted::frames(frames, &volume.name));
             let mut report = progress.as_mut().map(|p| move |k: u32| p.done(k));
             let on_frame = report.as_mut().map(|r| r as &mut dyn FnMut(u32));
@@ -540,10 +534,11 @@ pub fn run(a: &RenderArgs) -> Result<()> {
 
 /// The box a default camera frames: the object's at `iso` at block resolution
 /// ([`BlockMinMax::object_box`]), or the volume's where no block reaches `iso`.
-/// The volume `render` draws: held whole (with its iso), or through the brick cache.
+/// The volume `render` draws: held whole (with its iso), or through the brick cache (with its
+/// budgets).
 enum Loaded {
     Whole(Volume, f64),
-    Bricked(BrickedVolume),
+    Bricked(BrickedVolume, Budgets),
 }
 
 pub fn object_box(volume: &Volume, iso: f64) -> (DVec3, DVec3) {

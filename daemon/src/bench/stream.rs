@@ -7,8 +7,8 @@
 
 use super::stats::median;
 use crate::args;
-use crate::bricked::{BrickedVolume, Budgets};
-use anyhow::{anyhow, Context, Result};
+use crate::bricked::{open_cache, BrickedVolume, Budgets};
+use anyhow::Result;
 use clap::Args;
 use isowall_model::cli_args;
 use isowall_model::{Camera, RenderSettings, View};
@@ -84,10 +84,7 @@ pub fn run(a: &StreamArgs) -> Result<()> {
         BrickedVolume::open(a.volume.as_deref(), None, (a.iso, "--iso"), 0, &VolumeLimit::default())?;
     let source = volume.source.as_ref();
     let layout = source.layout();
-    let mut cache =
-        HostBrickCache::new(budgets.host, layout).map_err(|e| anyhow!("--host-budget-mb: {e}"))?;
-    let mut pool =
-        BrickPool::new(&gpu.ctx, &gpu.perf(), source, &mut cache, budgets.gpu).context("--gpu-budget-mb")?;
+    let (mut cache, mut pool) = open_cache(&gpu, &volume, budgets)?;
     let t_open = opened.elapsed().as_secs_f64();
     let cap = a.upload_mb_per_frame.map_or(budgets.gpu / 16, |m| (m * 1048576.0) as u64);
     let l0 = &layout.levels[0];

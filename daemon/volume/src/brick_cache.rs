@@ -47,6 +47,15 @@ pub struct PyramidLevel {
     pub counts: [usize; 3],
 }
 
+impl PyramidLevel {
+    /// The far corner of the level's box (the near one is `origin`), by the rule of
+    /// [`crate::VolumeInfo::box_max`].
+    pub fn box_max(&self) -> DVec3 {
+        crate::VolumeInfo { name: String::new(), dims: self.dims, spacing: self.spacing, origin: self.origin }
+            .box_max()
+    }
+}
+
 /// The pyramid's levels (finest first) and how they are cut into bricks.
 #[derive(Clone, Debug, PartialEq)]
 pub struct BrickLayout {

@@ -92,6 +92,8 @@ pub struct BrickPool {
     /// Bytes of the buffer and of the block min/max: what the pool holds on the GPU.
     bytes: u64,
     bounds: BlockBounds,
+    /// A level-0 brick came or went since the block levels were last written.
+    bounds_dirty: bool,
 }
 
 impl BrickPool {
@@ -193,10 +195,7 @@ impl BrickPool {
         };
         let ao_level = ao.map(|_| level(1));
         let coarse_level = coarse.map(|_| level(cells.len() - 1));
-        let box_min = l0.origin;
-        let box_max = l0.origin
-            + l0.spacing * glam::DVec3::new(l0.dims[0] as f64, l0.dims[1] as f64, l0.dims[2] as f64)
-            - l0.spacing;
+        let (box_min, box_max) = (l0.origin, l0.box_max());
         let volume = GpuVolume {
             id: next_resource_id(),
             voxels,
@@ -232,6 +231,7 @@ impl BrickPool {
             volume,
             layout,
             bounds,
+            bounds_dirty: false,
         };
         let coarsest: Vec<BrickKey> = pool.layout.keys(pool.layout.coarsest()).collect();
         for (slot, key) in coarsest.into_iter().enumerate() {
@@ -285,9 +285,8 @@ impl BrickPool {
     ) -> Result<Refinement, GpuError> {
         self.round += 1;
         let round = self.round;
-        let mut r = Refinement { wanted: wanted.len(), ..Refinement::default() };
         let unique: HashSet<BrickKey> = wanted.iter().copied().collect();
-        r.wanted = unique.len();
+        let mut r = Refinement { wanted: unique.len(), ..Refinement::default() };
         for key in wanted {
             if let Some(&slot) = self.resident.get(key) {
                 self.slots[slot] = Some((*key, round));
@@ -317,6 +316,7 @@ impl BrickPool {
                 self.stats.evictions += 1;
                 if old.level == 0 {
                     self.bounds.brick_changed(old.brick, None);
+                    self.bounds_dirty = true;
                 }
             }
             self.upload(ctx, source, cache, key, slot)?;
@@ -354,6 +354,7 @@ impl BrickPool {
         ctx.write_buffer(&self.volume.voxels, at, bytemuck::cast_slice(data.as_slice()));
         if key.level == 0 {
             self.bounds.brick_changed(key.brick, Some(data.as_slice()));
+            self.bounds_dirty = true;
         }
         self.slots[slot] = Some((key, self.round));
         self.resident.insert(key, slot);
@@ -364,10 +365,13 @@ impl BrickPool {
         Ok(())
     }
 
-    /// Writes the page tables and the block levels.
+    /// Writes the page tables, and the block levels where they changed.
     fn write_pages(&mut self, ctx: &GpuContext) {
         ctx.write_buffer(&self.volume.voxels, 4 * self.pages_word as u64, bytemuck::cast_slice(&self.pages));
-        ctx.write_buffer(&self.volume.block_minmax, 0, bytemuck::cast_slice(&self.bounds.all()));
+        // The block levels only where level 0 changed (the whole volume's levels are O(voxels / 512)).
+        if std::mem::take(&mut self.bounds_dirty) {
+            ctx.write_buffer(&self.volume.block_minmax, 0, bytemuck::cast_slice(&self.bounds.all()));
+        }
         self.volume.id = next_resource_id();
     }
 }
