@@ -9,7 +9,9 @@ use clap::Args;
 use isowall_model::config::WallConfig;
 use isowall_model::{Camera, Governor, Motion, RenderSettings, ViewFraming};
 use isowall_net::CaMode;
-use isowall_volume::{BlockMinMax, VolumeInfo, VolumeSource};
+use isowall_volume::brick_cache::BrickSource;
+use isowall_volume::io::ome_zarr::{is_zarr, OmeZarr};
+use isowall_volume::{BlockMinMax, Orientation, VolumeInfo, VolumeSource};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
@@ -186,6 +188,16 @@ pub(crate) fn scene_with_box(config: &WallConfig) -> Result<(Scene, WorldBox)> {
             let blocks = BlockMinMax::new(&v, BlockMinMax::DEFAULT_BLOCK);
             return Ok((info, blocks, v.orientation()));
         }
+        // A store `convert` wrote: its metadata and per-brick min/max, never a voxel (it may be
+        // larger than memory; the nodes read it through their brick caches).
+        if let Some(scene) = store_scene(&source)? {
+            if config.brick_budgets().is_none() {
+                let [x, y, z] = scene.0.dims;
+                let voxels = (x as u64).saturating_mul(y as u64).saturating_mul(z as u64);
+                limit.check(voxels, &format!("{source} ({x}x{y}x{z})")).map_err(|e| anyhow!("{e}"))?;
+            }
+            return Ok(scene);
+        }
         let stream = source.stream(raw.as_ref())?;
         let info = stream.info().clone();
         let [x, y, z] = info.dims;
@@ -213,6 +225,22 @@ pub(crate) fn scene_with_box(config: &WallConfig) -> Result<(Scene, WorldBox)> {
         ),
         volume_box,
     ))
+}
+
+/// An OME-Zarr store's grid, block ranges (its bricks') and orientation, from its metadata and
+/// per-brick min/max; `None` where `source` is not a store or the store has no min/max (another
+/// program wrote it: then it is scanned as any other file).
+fn store_scene(source: &VolumeSource) -> Result<Option<(VolumeInfo, BlockMinMax, Option<Orientation>)>> {
+    let VolumeSource::File(path) = source else {
+        return Ok(None);
+    };
+    if !is_zarr(path) {
+        return Ok(None);
+    }
+    let store = OmeZarr::open(path)?;
+    let orientation = store.patient_axes().and_then(|p| p.orientation());
+    let bricks = store.into_bricks(0)?;
+    Ok(bricks.level0_blocks().map(|blocks| (bricks.level0_info(), blocks, orientation)))
 }
 
 /// The number of time steps of the configured volume (1 for a volume without time steps), from

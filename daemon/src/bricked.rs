@@ -9,33 +9,21 @@
 
 use anyhow::{anyhow, bail, Context, Result};
 use glam::DVec3;
+use isowall_model::config::BrickBudgets;
 use isowall_model::{RenderSettings, View};
-use isowall_render::gpu::{BrickPool, Converged, GpuRenderer};
+use isowall_render::gpu::{wanted_by_views, BrickPool, Converged, GpuRenderer, Refinement};
 use isowall_volume::brick_cache::{BrickSource, HostBrickCache, InCorePyramid, DEFAULT_BRICK_CELLS};
 use isowall_volume::io::ome_zarr::{is_zarr, OmeZarr};
 use isowall_volume::io::{RawSpec, VolumeLimit};
-use isowall_volume::{BlockMinMax, Orientation, VolumeSource};
+use isowall_volume::{Orientation, VolumeSource};
 
-/// The budgets of a bricked volume, in bytes.
-#[derive(Clone, Copy, Debug)]
-pub struct Budgets {
-    pub gpu: u64,
-    pub host: u64,
-}
-
-impl Budgets {
-    /// From the flags' MiB; the host budget defaults to twice the GPU's (a brick evicted from
-    /// the pool is read again from memory, not from the store).
-    pub fn from_mb(gpu_mb: u64, host_mb: Option<u64>) -> Result<Budgets> {
-        let mb = |v: u64, flag: &str| {
-            v.checked_mul(1 << 20)
-                .filter(|&b| b > 0)
-                .ok_or_else(|| anyhow!("{flag} {v}: 1 MiB or more is needed"))
-        };
-        let gpu = mb(gpu_mb, "--gpu-budget-mb")?;
-        let host = mb(host_mb.unwrap_or(gpu_mb.saturating_mul(2)), "--host-budget-mb")?;
-        Ok(Budgets { gpu, host })
-    }
+/// The brick cache's budgets from the flags (`--gpu-budget-mb`, `--host-budget-mb`,
+/// `--upload-mb-per-frame`): the config's rule ([`BrickBudgets::from_mb`]), its errors naming the flag.
+pub fn budgets_from_flags(gpu_mb: u64, host_mb: Option<u64>, upload_mb: Option<f64>) -> Result<BrickBudgets> {
+    BrickBudgets::from_mb(gpu_mb, host_mb, upload_mb).map_err(|e| {
+        let (field, rest) = e.split_once(' ').unwrap_or((&e, ""));
+        anyhow!("--{} {rest}", field.replace('_', "-"))
+    })
 }
 
 /// A volume opened for the brick cache, with what a camera needs to frame it.
@@ -81,9 +69,8 @@ impl BrickedVolume {
                 (Box::new(InCorePyramid::new(volume, DEFAULT_BRICK_CELLS)?), orientation)
             }
         };
-        let layout = bricks.layout();
-        let l0 = &layout.levels[0];
-        let (box_min, box_max) = (l0.origin, l0.box_max());
+        let info = bricks.level0_info();
+        let (box_min, box_max) = (info.box_min(), info.box_max());
         let range = bricks.value_range();
         let iso = match (iso, range) {
             (Some(v), Some(r)) => {
@@ -102,18 +89,15 @@ impl BrickedVolume {
             ),
         };
         let fit = bricks
-            .ranges(0)
-            .and_then(|r| {
-                let blocks = BlockMinMax { block: layout.cells, counts: l0.counts, minmax: r.to_vec() };
-                blocks.object_box(iso, l0.dims, l0.origin, l0.spacing)
-            })
+            .level0_blocks()
+            .and_then(|b| b.object_box(iso, info.dims, info.origin, info.spacing))
             .unwrap_or((box_min, box_max));
         let name = bricks.name().to_string();
         Ok(BrickedVolume { source: bricks, iso, name, box_min, box_max, fit, orientation })
     }
 }
 
-/// What [`render_converged`] did besides the frame.
+/// What [`BrickedOnGpu::render_converged`] did besides the frame.
 pub struct BrickedRender {
     pub converged: Converged,
     pub slots: usize,
@@ -122,39 +106,66 @@ pub struct BrickedRender {
     pub host_peak_bytes: u64,
 }
 
-/// The host cache and the GPU pool of `volume` within `budgets`, the coarsest level resident.
-pub fn open_cache(
-    gpu: &GpuRenderer,
-    volume: &BrickedVolume,
-    budgets: Budgets,
-) -> Result<(HostBrickCache, BrickPool)> {
-    let source = volume.source.as_ref();
-    let mut cache =
-        HostBrickCache::new(budgets.host, source.layout()).map_err(|e| anyhow!("--host-budget-mb: {e}"))?;
-    let pool =
-        BrickPool::new(&gpu.ctx, &gpu.perf(), source, &mut cache, budgets.gpu).context("--gpu-budget-mb")?;
-    Ok((cache, pool))
+/// A bricked volume on the GPU: its host cache and pool within the budgets, the coarsest level
+/// resident. The render thread of a wall node refines it each frame for the frame's views
+/// ([`BrickedOnGpu::refine`]); `isowalld render` and `bench stream` also finish still frames
+/// through it ([`BrickedOnGpu::render_converged`]).
+pub struct BrickedOnGpu {
+    pub volume: BrickedVolume,
+    pub cache: HostBrickCache,
+    pub pool: BrickPool,
+    pub budgets: BrickBudgets,
 }
 
-/// Renders the still frame of `view` with every brick it reads at level 0, in as many passes as
-/// the pool needs ([`GpuRenderer::render_converged`]): the whole volume's picture.
-pub fn render_converged(
-    gpu: &GpuRenderer,
-    volume: &BrickedVolume,
-    budgets: Budgets,
-    view: &View,
-    settings: &RenderSettings,
-    env: Option<&isowall_render::gpu::GpuEnvironment>,
-    frames: u32,
-) -> Result<BrickedRender> {
-    let source = volume.source.as_ref();
-    let (mut cache, mut pool) = open_cache(gpu, volume, budgets)?;
-    let converged = gpu.render_converged(&mut pool, source, &mut cache, view, settings, env, frames)?;
-    Ok(BrickedRender {
-        converged,
-        slots: pool.slots(),
-        uploads: pool.stats().uploads,
-        gpu_bytes: pool.gpu_bytes(),
-        host_peak_bytes: cache.stats().peak_bytes,
-    })
+impl BrickedOnGpu {
+    pub fn new(gpu: &GpuRenderer, volume: BrickedVolume, budgets: BrickBudgets) -> Result<BrickedOnGpu> {
+        let source = volume.source.as_ref();
+        let mut cache = HostBrickCache::new(budgets.host, source.layout())
+            .map_err(|e| anyhow!("the host budget: {e}"))?;
+        let pool = BrickPool::new(&gpu.ctx, &gpu.perf(), source, &mut cache, budgets.gpu)
+            .context("the GPU budget")?;
+        Ok(BrickedOnGpu { volume, cache, pool, budgets })
+    }
+
+    /// One frame's round of uploads, at most the budget's uploads a frame: the bricks `views`
+    /// want (level 0 where `still`, else each brick's footprint level), nearest first.
+    pub fn refine(
+        &mut self,
+        gpu: &GpuRenderer,
+        views: &[View],
+        settings: &RenderSettings,
+        still: bool,
+    ) -> Result<Refinement> {
+        let source = self.volume.source.as_ref();
+        let wanted = wanted_by_views(source, views, settings, &gpu.perf(), still);
+        let cap = self.budgets.upload_per_frame;
+        Ok(self.pool.refine(&gpu.ctx, source, &mut self.cache, &wanted, cap)?)
+    }
+
+    /// The GPU budget the still view that left `over` wanted bricks out needs, in MiB.
+    pub fn needed_mib(&self, over: usize) -> u64 {
+        (self.pool.gpu_bytes() + over as u64 * self.pool.layout().brick_bytes()).div_ceil(1 << 20)
+    }
+
+    /// Renders the still frame of `view` with every brick it reads at level 0, in as many passes
+    /// as the pool needs ([`GpuRenderer::render_converged`]): the whole volume's picture.
+    pub fn render_converged(
+        &mut self,
+        gpu: &GpuRenderer,
+        view: &View,
+        settings: &RenderSettings,
+        env: Option<&isowall_render::gpu::GpuEnvironment>,
+        frames: u32,
+    ) -> Result<BrickedRender> {
+        let source = self.volume.source.as_ref();
+        let converged =
+            gpu.render_converged(&mut self.pool, source, &mut self.cache, view, settings, env, frames)?;
+        Ok(BrickedRender {
+            converged,
+            slots: self.pool.slots(),
+            uploads: self.pool.stats().uploads,
+            gpu_bytes: self.pool.gpu_bytes(),
+            host_peak_bytes: self.cache.stats().peak_bytes,
+        })
+    }
 }

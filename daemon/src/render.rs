@@ -1,11 +1,12 @@
 //! `isowalld render`: one headless frame to a file.
 
 use crate::args;
-use crate::bricked::{render_converged, BrickedVolume, Budgets};
+use crate::bricked::{budgets_from_flags, BrickedOnGpu, BrickedVolume};
 use crate::progress::Counted;
 use anyhow::{anyhow, bail, Context, Result};
 use clap::{Args, ValueEnum};
 use glam::DVec3;
+use isowall_model::config::BrickBudgets;
 use isowall_model::render_state::DEFAULT_EXPOSURE;
 use isowall_model::{
     AoMethod, AoRadius, AoSequence, Aov, Camera, Denoise, IblMethod, RenderSettings, Shading, View,
@@ -354,7 +355,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         Some(_) if !gpu => {
             bail!("--gpu-budget-mb is the GPU renderer's (the reference renderer reads the volume whole)")
         }
-        Some(mb) => Some(Budgets::from_mb(mb, a.host_budget_mb)?),
+        Some(mb) => Some(budgets_from_flags(mb, a.host_budget_mb, None)?),
         None => None,
     };
     // Held whole, the volume must fit one storage binding; bricked, only the default limit on
@@ -454,11 +455,12 @@ pub fn run(a: &RenderArgs) -> Result<()> {
 
     let start = Instant::now();
     // Bricked volumes are the GPU renderer's only (the reference renderer was refused above).
-    let (frame, label): (Frame, String) = match (&loaded, a.renderer.unwrap_or_default()) {
+    let (frame, label): (Frame, String) = match (loaded, a.renderer.unwrap_or_default()) {
         (Loaded::Bricked(bricked, budgets), _) => {
             let gpu = GpuRenderer::new()?;
             let genv = env.as_ref().map(|e| gpu.upload_environment(e)).transpose()?;
-            let r = render_converged(&gpu, bricked, *budgets, &view, &settings, genv.as_ref(), frames)?;
+            let mut bricked = BrickedOnGpu::new(&gpu, bricked, budgets)?;
+            let r = bricked.render_converged(&gpu, &view, &settings, genv.as_ref(), frames)?;
             let c = r.converged;
             (
                 c.frame,
@@ -477,7 +479,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         }
         (Loaded::Whole(volume, _), RendererKind::Gpu) => {
             let gpu = GpuRenderer::new()?;
-            let gv = gpu.upload(volume)?;
+            let gv = gpu.upload(&volume)?;
             let genv = env.as_ref().map(|e| gpu.upload_environment(e)).transpose()?;
             // Frames accumulate only with AO or image-based light: then each is reported.
             let accumulates = settings.ao.samples > 0 || settings.ao.ibl != IblMethod::None;
@@ -497,7 +499,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             let mut report = progress.as_mut().map(|p| move |k: u32| p.done(k));
             let on_frame = report.as_mut().map(|r| r as &mut dyn FnMut(u32));
             let mut frame = reference::render_accumulated_reporting(
-                volume,
+                &volume,
                 &view,
                 &settings,
                 env.as_ref(),
@@ -532,15 +534,15 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     Ok(())
 }
 
-/// The box a default camera frames: the object's at `iso` at block resolution
-/// ([`BlockMinMax::object_box`]), or the volume's where no block reaches `iso`.
 /// The volume `render` draws: held whole (with its iso), or through the brick cache (with its
 /// budgets).
 enum Loaded {
     Whole(Volume, f64),
-    Bricked(BrickedVolume, Budgets),
+    Bricked(BrickedVolume, BrickBudgets),
 }
 
+/// The box a default camera frames: the object's at `iso` at block resolution
+/// ([`BlockMinMax::object_box`]), or the volume's where no block reaches `iso`.
 pub fn object_box(volume: &Volume, iso: f64) -> (DVec3, DVec3) {
     BlockMinMax::new(volume, BlockMinMax::DEFAULT_BLOCK)
         .object_box(iso, volume.dims(), volume.origin(), volume.spacing())

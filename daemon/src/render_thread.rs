@@ -13,9 +13,12 @@
 //! render thread filtered and composed, or the image the node composited on the CPU, uploaded
 //! ([`RenderHandle::show`]).
 
+use crate::bricked::{BrickedOnGpu, BrickedVolume};
 use crate::presenter::Shown;
 use anyhow::{Context, Result};
+use isowall_model::config::BrickBudgets;
 use isowall_model::render_plan::RenderPlan;
+use isowall_model::wire::Continuity;
 use isowall_model::{RenderSettings, View};
 use isowall_render::environment::Environment;
 use isowall_render::gpu::present::{Presented, TileSurface};
@@ -74,11 +77,14 @@ pub struct CanvasJob {
     pub guard: u32,
 }
 
-/// What the render thread uploads: the whole volume (screen space) or a brick and its halo
-/// (object space, `object.rs` reads it).
+/// What the render thread uploads: the whole volume (screen space), a brick and its halo (object
+/// space, `object.rs` reads it), or a bricked volume's coarsest level, the rest refined frame by
+/// frame where the node's views look (screen space with `[volume] gpu_budget_mb`).
 pub enum RenderVolume {
     Whole(Volume),
     Brick(Box<BrickData>),
+    /// Screen space through the brick cache: refined each frame for the views it renders.
+    Bricked(Box<(BrickedVolume, BrickBudgets)>),
 }
 
 /// What the render thread uploads in object space.
@@ -154,6 +160,12 @@ fn fetch<T>(
         StepState::Failed(e) => Err(e),
     };
     Some((state, late))
+}
+
+/// What the render thread holds of its first volume: uploaded whole (or a brick), or bricked.
+enum Held {
+    Volume(Box<isowall_render::gpu::GpuVolume>),
+    Bricked(Box<BrickedOnGpu>),
 }
 
 /// The steps and which one is on the GPU.
@@ -243,8 +255,13 @@ struct RenderLoop {
     gpu: GpuRenderer,
     /// Identify labels drawn, one per tile.
     labels: Vec<Label>,
-    /// By brick index (0: the whole volume in screen space).
+    /// By brick index (0: the whole volume in screen space); empty where the volume is bricked.
     volumes: Vec<(usize, isowall_render::gpu::GpuVolume)>,
+    /// Screen space through the brick cache: its pool and host cache (DESIGN.md "Large volumes").
+    bricked: Option<BrickedOnGpu>,
+    /// The log has said how the still view's refinement ended (every brick it wants at level 0,
+    /// or more than the pool holds); said again after the camera moves.
+    still_said: bool,
     env: Option<isowall_render::gpu::GpuEnvironment>,
     targets: Vec<TileTarget>,
     /// object space: the composited tiles' resources, where the wall filters them.
@@ -321,12 +338,30 @@ impl TileRenderer {
             .name("render".into())
             .spawn(move || {
                 lower_priority();
-                let setup = (|| -> Result<_, String> {
+                let (index, object_space) = match &volume {
+                    RenderVolume::Whole(_) | RenderVolume::Bricked(_) => (0, false),
+                    RenderVolume::Brick(b) => (b.index, true),
+                };
+                let setup = (move || -> Result<_, String> {
                     let gpu = GpuRenderer::new().map_err(|e| e.to_string())?;
-                    let gv = match &volume {
-                        RenderVolume::Whole(v) => gpu.upload(v),
-                        RenderVolume::Brick(b) => {
-                            gpu.upload_brick(&b.region, &b.info, &b.blocks, b.object.clone())
+                    let gv = match volume {
+                        RenderVolume::Whole(v) => gpu.upload(&v).map(|gv| Held::Volume(Box::new(gv))),
+                        RenderVolume::Brick(b) => gpu
+                            .upload_brick(&b.region, &b.info, &b.blocks, b.object.clone())
+                            .map(|gv| Held::Volume(Box::new(gv))),
+                        RenderVolume::Bricked(b) => {
+                            let (volume, budgets) = *b;
+                            let on_gpu =
+                                BrickedOnGpu::new(&gpu, volume, budgets).map_err(|e| format!("{e:#}"))?;
+                            tracing::info!(
+                                volume = %on_gpu.volume.name,
+                                slots = on_gpu.pool.slots(),
+                                gpu_mib = on_gpu.pool.gpu_bytes() >> 20,
+                                host_mib = budgets.host >> 20,
+                                upload_mib_per_frame = budgets.upload_per_frame as f64 / 1048576.0,
+                                "the volume is read through the brick cache"
+                            );
+                            Ok(Held::Bricked(Box::new(on_gpu)))
                         }
                     }
                     .map_err(|e| e.to_string())?;
@@ -348,15 +383,16 @@ impl TileRenderer {
                         return;
                     }
                 };
-                let (index, object_space) = match &volume {
-                    RenderVolume::Whole(_) => (0, false),
-                    RenderVolume::Brick(b) => (b.index, true),
+                let (volumes, bricked) = match first {
+                    Held::Volume(gv) => (vec![(index, *gv)], None),
+                    Held::Bricked(b) => (Vec::new(), Some(*b)),
                 };
-                drop(volume);
                 let mut r = RenderLoop {
                     gpu,
                     labels: Vec::new(),
-                    volumes: vec![(index, first)],
+                    volumes,
+                    bricked,
+                    still_said: false,
                     env: genv,
                     targets: Vec::new(),
                     canvases: Vec::new(),
@@ -737,6 +773,7 @@ impl RenderLoop {
             kept.push(target);
         }
         self.targets = kept;
+        let continuity = self.refine_bricks(plan, &settings, guard)?;
         for k in 0..plan.views.len() {
             while !self.ring.has_free_slot() {
                 self.ring.wait_oldest(&self.gpu.ctx).map_err(|e| e.to_string())?;
@@ -744,7 +781,10 @@ impl RenderLoop {
             }
             let (name, view) = &plan.views[k];
             let gv = match plan.bricks.get(k) {
-                None => Some(&self.volumes[0].1),
+                None => match &self.bricked {
+                    Some(b) => Some(b.pool.volume()),
+                    None => self.volumes.first().map(|v| &v.1),
+                },
                 Some(b) => self.volumes.iter().find(|v| v.0 == *b).map(|v| &v.1),
             };
             let Some(gv) = gv else {
@@ -756,7 +796,7 @@ impl RenderLoop {
                 view,
                 settings: &settings,
                 env: self.env.as_ref(),
-                continuity: plan.continuity,
+                continuity,
                 // A moving camera carries each pixel's history over; object space does not (a
                 // brick's pixels are not the tile's until composited).
                 temporal: plan.views_are_tiles(),
@@ -787,6 +827,63 @@ impl RenderLoop {
             }
         }
         Ok(())
+    }
+
+    /// Screen space through the brick cache: one round of uploads for the bricks the frame's
+    /// views want (their guard bands included), at level 0 unless the camera moves. Where the
+    /// round changed what the pool holds, a still frame's accumulation starts over (its picture
+    /// changed); a moving frame reprojects as always. Returns the frame's continuity.
+    fn refine_bricks(
+        &mut self,
+        plan: &RenderPlan,
+        settings: &isowall_model::RenderSettings,
+        guard: u32,
+    ) -> Result<Continuity, String> {
+        let Some(b) = self.bricked.as_mut() else {
+            return Ok(plan.continuity);
+        };
+        let still = plan.continuity != Continuity::ViewMoved;
+        let views: Vec<View> =
+            plan.views.iter().map(|(_, v)| View { rect: v.rect.grown(guard, v.full), ..*v }).collect();
+        let t0 = Instant::now();
+        let r =
+            b.refine(&self.gpu, &views, settings, still).map_err(|e| format!("the brick cache: {e:#}"))?;
+        tracing::debug!(
+            frame_id = plan.frame_id,
+            still,
+            refine_ms = t0.elapsed().as_secs_f64() * 1e3,
+            wanted = r.wanted,
+            resident = r.resident,
+            uploaded = r.uploaded,
+            upload_bytes = r.upload_bytes,
+            "bricks"
+        );
+        if !still {
+            self.still_said = false;
+        } else if r.complete() && !self.still_said {
+            self.still_said = true;
+            tracing::info!(
+                frame_id = plan.frame_id,
+                "this node's still view has its {} bricks at level 0 (of the volume's {}), {} MiB uploaded so far",
+                r.wanted,
+                b.pool.layout().bricks(0),
+                b.pool.stats().upload_bytes >> 20
+            );
+        } else if r.over_pool > 0 && !self.still_said {
+            self.still_said = true;
+            tracing::warn!(
+                frame_id = plan.frame_id,
+                "this node's still view wants {} bricks at level 0 and its pool holds {} of them: the rest is drawn from coarser levels; raise [volume] gpu_budget_mb to at least {} for level 0 everywhere",
+                r.wanted,
+                r.resident,
+                b.needed_mib(r.over_pool)
+            );
+        }
+        Ok(if r.uploaded > 0 && plan.continuity == Continuity::Same {
+            Continuity::Changed
+        } else {
+            plan.continuity
+        })
     }
 
     /// Uploads a frame's tiles composited on the CPU for the windows (only where the node has

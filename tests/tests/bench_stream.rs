@@ -35,5 +35,5 @@ fn bench_stream_converges_within_its_budgets_and_ends_with_its_line() {
 
     let out = run_in(dir.path(), "isowalld", &[&args[..], &["--gpu-budget-mb", "0"]].concat());
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success() && err.contains("--gpu-budget-mb 0: 1 MiB or more"), "{err}");
+    assert!(!out.status.success() && err.contains("--gpu-budget-mb 0 is outside 1..=1048576 (MiB)"), "{err}");
 }

@@ -7,13 +7,12 @@
 
 use super::stats::median;
 use crate::args;
-use crate::bricked::{open_cache, BrickedVolume, Budgets};
+use crate::bricked::{budgets_from_flags, BrickedOnGpu, BrickedVolume};
 use anyhow::Result;
 use clap::Args;
 use isowall_model::cli_args;
 use isowall_model::{Camera, RenderSettings, View};
-use isowall_render::gpu::{footprint, BrickPool, GpuRenderer};
-use isowall_volume::brick_cache::{wanted_bricks, HostBrickCache};
+use isowall_render::gpu::GpuRenderer;
 use isowall_volume::io::VolumeLimit;
 use std::time::Instant;
 
@@ -65,7 +64,7 @@ fn mib(bytes: u64) -> f64 {
 }
 
 pub fn run(a: &StreamArgs) -> Result<()> {
-    let budgets = Budgets::from_mb(a.gpu_budget_mb, a.host_budget_mb)?;
+    let budgets = budgets_from_flags(a.gpu_budget_mb, a.host_budget_mb, a.upload_mb_per_frame)?;
     let (w, h) = a.size;
     let gpu = GpuRenderer::new()?;
     gpu.prepare_bricked()?;
@@ -82,15 +81,14 @@ pub fn run(a: &StreamArgs) -> Result<()> {
     let opened = Instant::now();
     let volume =
         BrickedVolume::open(a.volume.as_deref(), None, (a.iso, "--iso"), 0, &VolumeLimit::default())?;
-    let source = volume.source.as_ref();
-    let layout = source.layout();
-    let (mut cache, mut pool) = open_cache(&gpu, &volume, budgets)?;
+    let mut b = BrickedOnGpu::new(&gpu, volume, budgets)?;
+    let layout = b.volume.source.layout().clone();
     let t_open = opened.elapsed().as_secs_f64();
-    let cap = a.upload_mb_per_frame.map_or(budgets.gpu / 16, |m| (m * 1048576.0) as u64);
+    let cap = budgets.upload_per_frame;
     let l0 = &layout.levels[0];
     println!(
         "stream: {} {}x{}x{} in {} levels, bricks of {} cells ({:.2} MiB), {} at level 0; a pool of {} slots; uploads capped at {:.1} MiB a frame",
-        volume.name,
+        b.volume.name,
         l0.dims[0],
         l0.dims[1],
         l0.dims[2],
@@ -98,25 +96,22 @@ pub fn run(a: &StreamArgs) -> Result<()> {
         layout.cells,
         mib(layout.brick_bytes()),
         layout.bricks(0),
-        pool.slots(),
+        b.pool.slots(),
         mib(cap)
     );
-    let mut settings = RenderSettings::new(volume.iso);
+    let mut settings = RenderSettings::new(b.volume.iso);
     settings.ao.samples = a.ao_samples;
-    let camera = Camera::framing_view(volume.fit, None, volume.orientation, w, h);
+    let camera = Camera::framing_view(b.volume.fit, None, b.volume.orientation, w, h);
     let mut view = View::whole(camera, w, h);
-    let spacing = l0.spacing;
 
     // One frame: a capped round of uploads for what the view wants, then the picture.
-    let frame = |pool: &mut BrickPool, cache: &mut HostBrickCache, view: &View, still: bool| -> Result<_> {
-        let fp = footprint(view, &settings, &gpu.perf(), spacing, still);
-        let wanted = wanted_bricks(source, volume.iso as f32, &fp);
-        let r = pool.refine(&gpu.ctx, source, cache, &wanted, cap)?;
-        let rendered = gpu.render_accumulated(pool.volume(), view, &settings, None, 1)?;
+    let frame = |b: &mut BrickedOnGpu, view: &View, still: bool| -> Result<_> {
+        let r = b.refine(&gpu, std::slice::from_ref(view), &settings, still)?;
+        let rendered = gpu.render_accumulated(b.pool.volume(), view, &settings, None, 1)?;
         Ok((r, rendered.gpu_time.as_secs_f64() * 1e3))
     };
 
-    let (first, first_ms) = frame(&mut pool, &mut cache, &view, false)?;
+    let (first, first_ms) = frame(&mut b, &view, false)?;
     let t_first = opened.elapsed().as_secs_f64();
     println!(
         "stream: first picture {t_first:.2} s after opening (the store and the pool {t_open:.2} s, the frame {first_ms:.0} ms on the GPU; {} bricks uploaded, {} of the moving view's {} resident)",
@@ -124,15 +119,11 @@ pub fn run(a: &StreamArgs) -> Result<()> {
     );
 
     // Refine the still view: a capped round a frame until every brick it wants is resident.
-    let converge = |pool: &mut BrickPool,
-                    cache: &mut HostBrickCache,
-                    view: &View,
-                    what: &str|
-     -> Result<f64> {
+    let converge = |b: &mut BrickedOnGpu, view: &View, what: &str| -> Result<f64> {
         let start = Instant::now();
         let mut rounds = 0;
         loop {
-            let (r, _) = frame(pool, cache, view, true)?;
+            let (r, _) = frame(b, view, true)?;
             rounds += 1;
             if r.complete() {
                 let t = start.elapsed().as_secs_f64();
@@ -144,7 +135,7 @@ pub fn run(a: &StreamArgs) -> Result<()> {
             }
             if r.over_pool > 0 {
                 // Larger than the pool: finished in passes instead.
-                let c = gpu.render_converged(pool, source, cache, view, &settings, None, 1)?;
+                let c = b.render_converged(&gpu, view, &settings, None, 1)?.converged;
                 let t = start.elapsed().as_secs_f64();
                 println!(
                     "stream: {what}: the view's {} bricks are more than the pool's slots: finished in {} passes in {t:.2} s",
@@ -154,21 +145,21 @@ pub fn run(a: &StreamArgs) -> Result<()> {
             }
         }
     };
-    converge(&mut pool, &mut cache, &view, "still at the start")?;
+    converge(&mut b, &view, "still at the start")?;
 
     // Orbit: each frame's bricks at the level its footprint asks, uploads capped.
-    let before = pool.stats();
+    let before = b.pool.stats();
     let mut uploads = Vec::new();
     let mut ms = Vec::new();
     let mut resident_share = Vec::new();
     for _ in 0..a.frames {
         view.camera = view.camera.yawed(a.degrees);
-        let (r, t) = frame(&mut pool, &mut cache, &view, false)?;
+        let (r, t) = frame(&mut b, &view, false)?;
         uploads.push(mib(r.upload_bytes));
         ms.push(t);
         resident_share.push(r.resident as f64 / r.wanted.max(1) as f64);
     }
-    let after = pool.stats();
+    let after = b.pool.stats();
     let touched = (after.hits - before.hits) + (after.uploads - before.uploads);
     println!(
         "stream: orbit of {} frames at {} degrees: uploads a frame median {:.2} MiB, most {:.2} MiB; GPU ms a frame median {:.1}; the moving views' bricks resident median {:.0}%; pool hit rate {:.1}%",
@@ -181,14 +172,14 @@ pub fn run(a: &StreamArgs) -> Result<()> {
         100.0 * (after.hits - before.hits) as f64 / touched.max(1) as f64
     );
 
-    let t_stop = converge(&mut pool, &mut cache, &view, "stopped")?;
-    let hc = cache.stats();
+    let t_stop = converge(&mut b, &view, "stopped")?;
+    let hc = b.cache.stats();
     let peak_host = peak_rss();
     println!(
         "stream: pool {:.1} MiB ({} uploads, {} evictions); host cache peak {:.1} MiB ({} reads, {} hits, {} evictions); process peak {:.1} MiB, {:.1} MiB over the baseline",
-        mib(pool.gpu_bytes()),
+        mib(b.pool.gpu_bytes()),
         after.uploads,
-        pool.stats().evictions,
+        b.pool.stats().evictions,
         mib(hc.peak_bytes),
         hc.misses,
         hc.hits,
@@ -198,7 +189,7 @@ pub fn run(a: &StreamArgs) -> Result<()> {
     );
     println!(
         "stream: first {t_first:.2} s, converged {t_stop:.2} s after stop, peak gpu {:.1} MB, peak host {:.1} MB",
-        pool.gpu_bytes() as f64 / 1e6,
+        b.pool.gpu_bytes() as f64 / 1e6,
         peak_host as f64 / 1e6
     );
     Ok(())

@@ -14,7 +14,7 @@ use crate::render::load_wall_volume;
 use crate::render_thread::{
     JobResult, RenderHandle, RenderVolume, StepsOf, TileRenderer, TileResult, TimeSteps,
 };
-use anyhow::{anyhow, Context, Result};
+use anyhow::{anyhow, bail, Context, Result};
 use clap::Args;
 use isowall_model::config::{WallConfig, WallMode};
 use isowall_model::messages::TileImage;
@@ -174,8 +174,13 @@ pub fn run(a: &RunArgs) -> Result<()> {
     let raw = config.raw_spec().map_err(|e| anyhow!("{e}"))?;
     let limit = usize::try_from(config.wall.message_limit_bytes).unwrap_or(usize::MAX);
     // What the node's volume (or its brick and halo) may hold.
-    let volume_limit =
-        crate::render::volume_limit(config.volume.max_bytes.map(|b| (b, "[volume] max_bytes")), true)?;
+    // Held whole, the volume must fit one storage binding; through the brick cache only the
+    // limit on what a source that cannot be read by bricks loads whole applies.
+    let budgets = config.brick_budgets();
+    let volume_limit = crate::render::volume_limit(
+        config.volume.max_bytes.map(|b| (b, "[volume] max_bytes")),
+        budgets.is_none(),
+    )?;
     // object space: only the brick and its halo.
     let steps;
     let (volume, space) = if config.wall.mode == WallMode::Object {
@@ -203,8 +208,25 @@ pub fn run(a: &RunArgs) -> Result<()> {
         let space = ObjectSpace { node: object, peer_rx, inbox, load_rx };
         (RenderVolume::Brick(Box::new(setup.data)), Space::Object(Box::new(space)))
     } else {
-        let (volume, _iso) = load_wall_volume(&config, &volume_limit)?;
-        steps = time_steps(&config, raw.as_ref(), volume_limit)?;
+        steps = time_steps(&config, raw.as_ref(), volume_limit.clone())?;
+        let volume = match budgets {
+            None => RenderVolume::Whole(load_wall_volume(&config, &volume_limit)?.0),
+            Some(_) if steps.is_some() => bail!(
+                "{}: [volume] gpu_budget_mb: a time-varying volume is not read through the brick cache yet: its steps load whole (remove gpu_budget_mb)",
+                config.path.display()
+            ),
+            Some(budgets) => {
+                let iso_from = format!("{}: [volume] iso", config.path.display());
+                let bricked = crate::bricked::BrickedVolume::open(
+                    Some(&config.volume_source()),
+                    raw.as_ref(),
+                    (config.volume.iso, &iso_from),
+                    0,
+                    &volume_limit,
+                )?;
+                RenderVolume::Bricked(Box::new((bricked, budgets)))
+            }
+        };
         let space = if config.wall.balance {
             let balanced = BalancedNode::new(&config, &node.name)?;
             let (tx, peer_rx) = tokio::sync::mpsc::channel(64);
@@ -229,7 +251,7 @@ pub fn run(a: &RunArgs) -> Result<()> {
         } else {
             Space::Screen
         };
-        (RenderVolume::Whole(volume), space)
+        (volume, space)
     };
     let env_src: EnvSource = config.env_source().parse().context("[render] env")?;
     let env = Environment::from_source(&env_src).context("cannot load the environment")?;

@@ -14,7 +14,7 @@
 //!   in-core picture once every brick [`wanted_bricks`] lists for it is resident at level 0.
 
 use crate::io::ome_zarr_write::mean_level;
-use crate::{BlockMinMax, Volume, VolumeError};
+use crate::{BlockMinMax, Volume, VolumeError, VolumeInfo};
 use glam::DVec3;
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -190,6 +190,18 @@ pub trait BrickSource: Send + Sync {
         self.ranges(0).map(|r| {
             r.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), m| (lo.min(m[0]), hi.max(m[1])))
         })
+    }
+    /// Level 0's bricks' ranges as a block grid (blocks of a brick's cells), where known: what
+    /// frames a camera on the object at an iso ([`BlockMinMax::object_box`]) without a voxel read.
+    fn level0_blocks(&self) -> Option<BlockMinMax> {
+        let layout = self.layout();
+        let l0 = &layout.levels[0];
+        self.ranges(0).map(|r| BlockMinMax { block: layout.cells, counts: l0.counts, minmax: r.to_vec() })
+    }
+    /// Level 0's grid (the volume's dims, spacing and origin) under the source's name.
+    fn level0_info(&self) -> VolumeInfo {
+        let l0 = &self.layout().levels[0];
+        VolumeInfo { name: self.name().to_string(), dims: l0.dims, spacing: l0.spacing, origin: l0.origin }
     }
 }
 

@@ -37,6 +37,13 @@
 //! cache_bytes = 1073741824        # optional, time steps (`source = "steps/step_*.nrrd"` or a 4-D
 //!                                 # file): what a node keeps loaded ahead of the step it shows
 //!                                 # (default 1 GiB; 0: only the step it shows)
+//! gpu_budget_mb = 256             # optional: read the volume through a brick cache of this
+//!                                 # many MiB on each node's GPU, refined where its tiles look,
+//!                                 # instead of loading it whole (screen space, balanced or not)
+//! host_budget_mb = 512            # optional, with gpu_budget_mb: decoded bricks kept in memory
+//!                                 # (default twice gpu_budget_mb)
+//! upload_mb_per_frame = 16.0      # optional, with gpu_budget_mb: the most uploaded to the pool
+//!                                 # in a frame (default gpu_budget_mb / 16)
 //!
 //! [render]      # render-state defaults, all optional
 //! shading = "blinn-phong"         # lambert | blinn-phong
@@ -94,12 +101,14 @@ use toml::de::{DeTable, DeValue, ValueDeserializer};
 use toml::Spanned;
 
 mod address;
+mod budgets;
 mod diagnostics;
 #[cfg(test)]
 mod tests;
 mod validate;
 
 pub use address::{check_address, parse_address, AddressHost, NodeAddress};
+pub use budgets::{BrickBudgets, MAX_BUDGET_MB};
 use diagnostics::{doc_list, doc_value, Doc, Seg};
 pub use diagnostics::{line_column, ConfigErrors, Problem};
 pub use validate::render_problems;
@@ -349,6 +358,18 @@ pub struct VolumeConfig {
     /// on (prefetch); `None`: [`DEFAULT_CACHE_BYTES`].
     #[serde(default)]
     pub cache_bytes: Option<u64>,
+    /// The brick cache (DESIGN.md "Large volumes"): where given, a node reads the volume through
+    /// a GPU pool of bricks of this many MiB, refined where its tiles look, instead of loading it
+    /// whole (`max_bytes` then bounds only what a source that cannot be read by bricks loads).
+    #[serde(default)]
+    pub gpu_budget_mb: Option<u64>,
+    /// The decoded bricks a node holds in memory, MiB (default twice `gpu_budget_mb`).
+    #[serde(default)]
+    pub host_budget_mb: Option<u64>,
+    /// The most a node uploads to its pool in one frame, MiB (default a sixteenth of
+    /// `gpu_budget_mb`).
+    #[serde(default)]
+    pub upload_mb_per_frame: Option<f64>,
 }
 
 /// `[render]`: the defaults of the render state (the controller may change them per frame).
@@ -652,6 +673,15 @@ impl WallConfig {
                 }
             }
         }
+        // The brick cache serves screen space; object space reads each node's brick whole.
+        if let (Some(w), Some(v)) = (&wall, &volume) {
+            if w.mode == WallMode::Object && v.gpu_budget_mb.is_some() {
+                doc.at(
+                    &[Seg::K("volume"), Seg::K("gpu_budget_mb")],
+                    "volume: `gpu_budget_mb` is for screen space (balanced or not): in object space each node reads its own brick whole, within `max_bytes`",
+                );
+            }
+        }
         if let Some(c) = &certificates {
             if c.dir.trim().is_empty() {
                 doc.at(&[Seg::K("certificates"), Seg::K("dir")], "certificates: `dir` is empty");
@@ -849,6 +879,13 @@ impl WallConfig {
             })),
             _ => Ok(None),
         }
+    }
+
+    /// The brick cache's budgets where `[volume] gpu_budget_mb` is given (validated at load).
+    pub fn brick_budgets(&self) -> Option<BrickBudgets> {
+        let v = &self.volume;
+        let mb = v.gpu_budget_mb?;
+        BrickBudgets::from_mb(mb, v.host_budget_mb, v.upload_mb_per_frame).ok()
     }
 
     /// `[volume] cache_bytes`, or its default.

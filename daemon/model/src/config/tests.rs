@@ -697,6 +697,37 @@ fn the_volume_is_checked() {
 }
 
 #[test]
+fn the_brick_cache_budgets_are_checked_and_only_for_screen_space() {
+    let vol =
+        |body: &str| with("source = \"procedural:sphere\"\n", &format!("source = \"ct.ome.zarr\"\n{body}\n"));
+    let c =
+        WallConfig::parse(&vol("gpu_budget_mb = 64\nupload_mb_per_frame = 2.5"), Path::new("/w/wall.toml"))
+            .unwrap();
+    let b = c.brick_budgets().unwrap();
+    assert_eq!((b.gpu, b.host, b.upload_per_frame), (64 << 20, 128 << 20, 5 << 19));
+    assert!(WallConfig::parse(GOOD, Path::new("w.toml")).unwrap().brick_budgets().is_none());
+    expect(&vol("gpu_budget_mb = 0"), Some(6), "volume: `gpu_budget_mb` 0 is outside 1..=1048576 (MiB)");
+    expect(&vol("gpu_budget_mb = 8\nhost_budget_mb = 0"), Some(7), "volume: `host_budget_mb` 0 is outside");
+    expect(
+        &vol("gpu_budget_mb = 8\nupload_mb_per_frame = -1.0"),
+        Some(7),
+        "volume: `upload_mb_per_frame` -1 is",
+    );
+    expect(
+        &vol("host_budget_mb = 8"),
+        Some(6),
+        "volume: `host_budget_mb` is the brick cache's: it needs `gpu_budget_mb`",
+    );
+    let object = with("name = \"test\"", "name = \"test\"\nmode = \"object\"");
+    let object = object.replacen(
+        "source = \"procedural:sphere\"\n",
+        "source = \"procedural:sphere\"\ngpu_budget_mb = 8\n",
+        1,
+    );
+    expect(&object, Some(7), "`gpu_budget_mb` is for screen space (balanced or not)");
+}
+
+#[test]
 fn render_values_are_checked() {
     let render = |body: &str| format!("[render]\n{body}\n\n{GOOD}");
     expect(&render("ao_radius = 0"), Some(2), "render: `ao_radius` 0 must be > 0 (or \"unbounded\")");

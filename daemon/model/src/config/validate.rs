@@ -221,6 +221,30 @@ pub(crate) fn validate_volume(doc: &mut Doc<'_>, v: &VolumeConfig) {
             doc.at(&at("cache_bytes"), "volume: `cache_bytes` is for time steps, not a procedural volume");
         }
     }
+    match v.gpu_budget_mb {
+        Some(gpu) => {
+            if let Err(e) = BrickBudgets::from_mb(gpu, v.host_budget_mb, v.upload_mb_per_frame) {
+                let field = ["host_budget_mb", "upload_mb_per_frame"]
+                    .into_iter()
+                    .find(|f| e.starts_with(f))
+                    .unwrap_or("gpu_budget_mb");
+                doc.at(&at(field), format!("volume: `{field}`{}", &e[field.len()..]));
+            }
+        }
+        None => {
+            for (field, given) in [
+                ("host_budget_mb", v.host_budget_mb.is_some()),
+                ("upload_mb_per_frame", v.upload_mb_per_frame.is_some()),
+            ] {
+                if given {
+                    doc.at(
+                        &at(field),
+                        format!("volume: `{field}` is the brick cache's: it needs `gpu_budget_mb`"),
+                    );
+                }
+            }
+        }
+    }
     if let Some(b) = v.max_bytes {
         if !(4..=MAX_VOLUME_BYTES).contains(&b) {
             doc.at(

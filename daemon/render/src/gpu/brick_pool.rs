@@ -555,6 +555,29 @@ pub fn footprint(
     }
 }
 
+/// The bricks `views` want together: each view's [`wanted_bricks`] (from its [`footprint`]), the
+/// lists taken in turn so that every view's nearest come first, each brick once. The views of a
+/// node's tiles, so that its pool holds what its tiles see.
+pub fn wanted_by_views(
+    source: &dyn BrickSource,
+    views: &[View],
+    settings: &RenderSettings,
+    perf: &PerfOptions,
+    still: bool,
+) -> Vec<BrickKey> {
+    let spacing = source.layout().levels[0].spacing;
+    let lists: Vec<Vec<BrickKey>> = views
+        .iter()
+        .map(|v| wanted_bricks(source, settings.iso as f32, &footprint(v, settings, perf, spacing, still)))
+        .collect();
+    let mut seen = HashSet::new();
+    let longest = lists.iter().map(Vec::len).max().unwrap_or(0);
+    (0..longest)
+        .flat_map(|k| lists.iter().filter_map(move |l| l.get(k).copied()))
+        .filter(|key| seen.insert(*key))
+        .collect()
+}
+
 /// A still frame rendered through a pool ([`GpuRenderer::render_converged`]).
 pub struct Converged {
     pub frame: Frame,

@@ -43,7 +43,7 @@ use wgpu::util::DeviceExt;
 
 pub use ao::AoKernel;
 pub use aovs::Aovs;
-pub use brick_pool::{footprint, BrickPool, Converged, PoolStats, Refinement};
+pub use brick_pool::{footprint, wanted_by_views, BrickPool, Converged, PoolStats, Refinement};
 pub use compose::{ComposeKernel, ComposeParams};
 pub use denoise::{DenoiseKernel, DenoiseParams};
 pub use frame_params::FrameParams;
