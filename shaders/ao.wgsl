@@ -41,6 +41,7 @@
 //#include volume.wgsl
 //#include sampling.wgsl
 //#include environment.wgsl
+//#include hit.wgsl
 
 // From the isosurface kernel: w = 1 on a hit.
 @group(0) @binding(3) var<storage, read> in_color: array<vec4<f32>>;
@@ -463,7 +464,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let idx = gid.x + gid.y * params.rect_size.x;
-    if in_color[idx].w < 0.5 {
+    if !is_hit(in_color[idx].w) {
         return;
     }
     let px = params.rect_origin + gid.xy;

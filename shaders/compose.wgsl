@@ -35,6 +35,8 @@ struct ComposeParams {
 }
 
 // A read-only storage buffer, not a uniform: see frame.wgsl (lavapipe's uniform inlining).
+//#include hit.wgsl
+
 @group(0) @binding(0) var<storage, read> compose_params: ComposeParams;
 // The parameters as the functions read them: a private copy the entry point fills first (a
 // storage read on lavapipe is a loop over the SIMD lanes; see denoise.wgsl).
@@ -52,7 +54,7 @@ var<private> params: ComposeParams;
 // Depth per pixel of the rectangle, as f32 bits.
 @group(0) @binding(6) var<storage, read_write> out_depth: array<u32>;
 // fetches (low word, high word), hits, pixels counted.
-@group(0) @binding(7) var<storage, read_write> counters: array<atomic<u32>, 4>;
+@group(0) @binding(7) var<storage, read_write> counters: array<atomic<u32>, 5>;
 
 const INFINITY_BITS: u32 = 0x7f800000u;
 
@@ -82,19 +84,23 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         var lo = 0u;
         var hi = 0u;
         var hits = 0u;
+        var level0 = 0u;
         let row = (gid.y + params.counted_origin.y) * params.low_size.x + params.counted_origin.x;
         for (var x = 0u; x < params.counted_size.x; x += 1u) {
             let f = in_fetches[row + x];
             let sum = lo + f;
             hi += select(0u, 1u, sum < lo);
             lo = sum;
-            hits += select(0u, 1u, in_color[row + x].w >= 0.5);
+            let w = in_color[row + x].w;
+            hits += select(0u, 1u, is_hit(w));
+            level0 += select(0u, 1u, is_level0_hit(w));
         }
         let old = atomicAdd(&counters[0], lo);
         hi += select(0u, 1u, old + lo < old); // carry into the high word
         atomicAdd(&counters[1], hi);
         atomicAdd(&counters[2], hits);
         atomicAdd(&counters[3], params.counted_size.x);
+        atomicAdd(&counters[4], level0);
     }
 
     if gid.x >= params.size.x || gid.y >= params.size.y {
@@ -106,7 +112,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let d = in_color[i];
     var rgb = params.background.xyz;
     var depth = INFINITY_BITS;
-    if d.w >= 0.5 {
+    if is_hit(d.w) {
         var e = params.ambient.xyz;
         if params.frames > 0u {
             var k = f32(params.frames);

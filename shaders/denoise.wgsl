@@ -15,6 +15,7 @@
 // running sum of E.
 //
 //#include camera.wgsl
+//#include hit.wgsl
 
 struct DenoiseParams {
     forward: vec4<f32>,     // w: tan(fov_y / 2)
@@ -144,7 +145,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let w = params.rect_size.x;
     let i = gid.x + gid.y * w;
     if params.prepare == 1u {
-        if in_color[i].w < 0.5 {
+        if !is_hit(in_color[i].w) {
             dst_guide[i] = vec4<f32>(0.0, 0.0, 0.0, NO_HIT);
             return;
         }

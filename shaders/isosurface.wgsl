@@ -25,6 +25,7 @@
 //#include frame.wgsl
 //#include volume.wgsl
 //#include shading.wgsl
+//#include hit.wgsl
 
 // Per pixel: direct light (linear, before exposure, no ambient); w: 1 on a hit, else 0.
 @group(0) @binding(3) var<storage, read_write> out_color: array<vec4<f32>>;
@@ -214,7 +215,8 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let v = -dir;
     let ns = select(-n, n, dot(n, v) >= 0.0);
-    out_color[out_index] = vec4<f32>(direct_light(ns, params.light_dir.xyz, v), 1.0);
+    let drawn = select(HIT_COARSER, HIT_LEVEL0, level0_at(to_voxel(p).xyz));
+    out_color[out_index] = vec4<f32>(direct_light(ns, params.light_dir.xyz, v), drawn);
     out_geometry[out_index] = vec4<f32>(n, t_hit);
     out_fetches[out_index] = fetches;
 }

@@ -24,6 +24,7 @@
 //
 //#include camera.wgsl
 //#include sampling.wgsl
+//#include hit.wgsl
 
 struct ReprojectParams {
     eye: vec4<f32>,              // this frame's camera
@@ -107,7 +108,7 @@ fn consistent(q: vec2<i32>, p: vec3<f32>, n: vec3<f32>, dir: vec3<f32>) -> bool 
     }
     let local = vec2<u32>(q - lo);
     let j = local.x + local.y * params.prev_rect_size.x;
-    if prev_color[j].w < 0.5 {
+    if !is_hit(prev_color[j].w) {
         return false;
     }
     let qdir = camera_ray(vec2<u32>(q), params.prev_full_size, params.prev_forward, params.prev_right.xyz, params.prev_up.xyz);
@@ -130,7 +131,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     var ao = vec4<f32>(0.0);
     var ibl = vec4<f32>(0.0);
     var pos = vec4<f32>(0.0);
-    if in_color[i].w >= 0.5 {
+    if is_hit(in_color[i].w) {
         let dir = camera_ray(params.rect_origin + gid.xy, params.full_size, params.forward, params.right.xyz, params.up.xyz);
         let g = in_geometry[i];
         let p = params.eye.xyz + g.w * dir;
@@ -189,7 +190,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         }
     }
     pos.w = 0.0;
-    if in_color[i].w >= 0.5 {
+    if is_hit(in_color[i].w) {
         let px = params.rect_origin + gid.xy;
         pos.w = f32(samples_taken(ibl.w, spend_key(px.x, px.y)));
     }

@@ -151,15 +151,37 @@ fn pool_sample(page: u32, at: vec3<i32>) -> f32 {
 // picture bit for bit. The coarsest level is always resident (the pool pins it).
 fn bricked_trilinear(u0: vec3<f32>) -> f32 {
     // Level 0, straight-line: the common case once refined.
+    let c = level0_cell(u0);
+    let page = brick_page(brick_level0, c.b);
+    if page != 0u {
+        return brick_trilinear(page, c.x, c.i0, c.b, brick_level0.dims);
+    }
+    return coarser_trilinear(u0);
+}
+
+// Where a trilinear lookup at level-0 voxel coordinates u0 reads level 0: the coordinates clamped
+// to the box, the cell and the brick that holds its 8 samples.
+struct Level0Cell {
+    x: vec3<f32>,
+    i0: vec3<i32>,
+    b: vec3<u32>,
+}
+
+fn level0_cell(u0: vec3<f32>) -> Level0Cell {
     let n = brick_level0.dims;
     let x = clamp(u0, vec3<f32>(0.0), vec3<f32>(max(n - 1, vec3<i32>(0))));
     let i0 = min(vec3<i32>(floor(x)), max(n - 2, vec3<i32>(0)));
     let b = min(vec3<u32>(i0) >> vec3<u32>(brick_head.y), brick_level0.counts - 1u);
-    let page = brick_page(brick_level0, b);
-    if page != 0u {
-        return brick_trilinear(page, x, i0, b, n);
+    return Level0Cell(x, i0, b);
+}
+
+// Whether a lookup at level-0 voxel coordinates u0 reads level 0: always for a volume held whole;
+// bricked, where level 0's brick there is resident.
+fn level0_at(u0: vec3<f32>) -> bool {
+    if !BRICKED {
+        return true;
     }
-    return coarser_trilinear(u0);
+    return brick_page(brick_level0, level0_cell(u0).b) != 0u;
 }
 
 // The 8-sample blend of `bricked_trilinear` in the brick in `page` (brick index b of its level),

@@ -334,6 +334,7 @@ mod tests {
             resident_bytes: None,
             merge: None,
             step_late: None,
+            surface: None,
         }
     }
 

@@ -3,7 +3,7 @@
 
 use crate::wall::Wall;
 use isowall_model::config::WallConfig;
-use isowall_model::frame_controller::FrameStats;
+use isowall_model::frame_controller::{FrameStats, SurfaceLevels};
 use isowall_net::transport;
 use std::collections::BTreeMap;
 use std::time::Duration;
@@ -147,7 +147,6 @@ pub fn quantile(mut v: Vec<Duration>, q: f64) -> Option<Duration> {
     Some(v[((v.len() - 1) as f64 * q).round() as usize])
 }
 
-/// Human statistics of a run.
 /// Time-varying volumes: the steps the frames played and the frames whose step was not loaded
 /// on some node when the frame came (it waited, bounded) or that showed another step. Empty
 /// when every frame was at step 0.
@@ -191,6 +190,39 @@ pub fn time_step_report(finished: &[FrameStats]) -> String {
     s
 }
 
+/// Volumes read through the nodes' brick caches: the share of the surface pixels the frames drew
+/// with level 0 (the rest from coarser levels, while the caches refine), from the nodes' Surface
+/// claims. Empty when no node sent one.
+pub fn surface_report(finished: &[FrameStats]) -> String {
+    let frames: Vec<(u64, SurfaceLevels)> = finished
+        .iter()
+        .filter(|f| f.per_node.iter().any(|n| n.surface.is_some()))
+        .map(|f| {
+            (
+                f.frame_id,
+                f.per_node.iter().filter_map(|n| n.surface).fold(SurfaceLevels::default(), |a, b| a + b),
+            )
+        })
+        .collect();
+    let Some(&(last_id, last)) = frames.last() else {
+        return String::new();
+    };
+    let whole = frames.iter().filter(|(_, s)| s.level0 == s.hits).count();
+    let first_whole = frames
+        .iter()
+        .find(|(_, s)| s.level0 == s.hits)
+        .map_or("none".to_string(), |(id, _)| format!("frame {id}"));
+    let (low_id, low) = frames.iter().min_by(|a, b| a.1.share().total_cmp(&b.1.share())).expect("one frame");
+    format!(
+        "level 0 (brick cache): frame {last_id} drew {:.1}% of its {} surface pixels with level 0; {whole} of {} frames at 100% (the first: {first_whole}); the lowest {:.1}% (frame {low_id})\n",
+        100.0 * last.share(),
+        last.hits,
+        frames.len(),
+        100.0 * low.share()
+    )
+}
+
+/// Human statistics of a run.
 pub fn report(wall: &Wall, elapsed: Duration) -> String {
     let frames = wall.released;
     let mut s = format!(
@@ -273,6 +305,7 @@ pub fn report(wall: &Wall, elapsed: Duration) -> String {
         );
     }
     s += &time_step_report(&wall.finished);
+    s += &surface_report(&wall.finished);
     let stragglers: Vec<String> =
         wall.releases.iter().flat_map(|r| r.2.iter().map(|n| format!("{n}@{}", r.0))).collect();
     if !stragglers.is_empty() {

@@ -167,7 +167,7 @@ impl BalancedNode {
                     let (render_time, step_late) = self.rendered.remove(&id).unwrap_or_default();
                     // Placed in the colour form: `object.rs`'s conversion of a canvas.
                     let tiles = c.tiles.into_iter().map(TileResult::from).collect();
-                    let job = JobResult { frame_id: id, tiles, render_time, step_late };
+                    let job = JobResult { frame_id: id, tiles, render_time, step_late, surface: None };
                     done.push(Done { job, reports, canvas: None });
                 }
                 other => tracing::error!("balance: an output it does not make: {other:?}"),

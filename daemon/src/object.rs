@@ -438,7 +438,7 @@ impl ObjectNode {
             }
             (None, _) => (c.tiles.into_iter().map(TileResult::from).collect(), None),
         };
-        (JobResult { frame_id: id, tiles, render_time, step_late }, canvas)
+        (JobResult { frame_id: id, tiles, render_time, step_late, surface: None }, canvas)
     }
 
     /// A brick map from the controller (`Message::Bricks`): the frames it completes, or the

@@ -17,6 +17,7 @@ use crate::bricked::{BrickedOnGpu, BrickedVolume};
 use crate::presenter::Shown;
 use anyhow::{Context, Result};
 use isowall_model::config::BrickBudgets;
+use isowall_model::frame_controller::SurfaceLevels;
 use isowall_model::render_plan::RenderPlan;
 use isowall_model::wire::Continuity;
 use isowall_model::{RenderSettings, View};
@@ -104,6 +105,8 @@ pub struct JobResult {
     /// The frame's time step was not loaded when the job came: the step rendered and how long
     /// the render thread waited for it (bounded by [`TimeSteps::wait`]).
     pub step_late: Option<(u32, Duration)>,
+    /// A bricked volume: the frame's surface pixels and how many level 0 drew.
+    pub surface: Option<SurfaceLevels>,
 }
 
 /// A time-varying volume on the render thread: its steps, loaded ahead by the cache's own loader
@@ -230,6 +233,7 @@ struct InFlight {
     tiles: Vec<Option<TileResult>>,
     fetches: u64,
     hits: u64,
+    level0_hits: u64,
 }
 
 /// A snapshot (or a frame's canvases) whose images have not all arrived.
@@ -679,6 +683,7 @@ impl RenderLoop {
                     tiles: vec![None; n],
                     fetches: 0,
                     hits: 0,
+                    level0_hits: 0,
                 });
                 self.deliver_ready()
             }
@@ -1020,6 +1025,7 @@ impl RenderLoop {
                 ReadKind::Frame => self.frames.iter_mut().find(|f| f.frame_id == tag.frame_id).map(|f| {
                     f.fetches += out.counters.fetches;
                     f.hits += out.counters.hits;
+                    f.level0_hits += out.counters.level0_hits;
                     &mut f.tiles
                 }),
             };
@@ -1055,11 +1061,15 @@ impl RenderLoop {
                 frame_id = f.frame_id,
                 fetches = f.fetches,
                 hits = f.hits,
+                level0_hits = f.level0_hits,
                 render_ms = render_time.as_secs_f64() * 1e3,
                 "frame rendered"
             );
             let tiles = f.tiles.into_iter().flatten().collect();
-            let result = JobResult { frame_id: f.frame_id, tiles, render_time, step_late: f.step_late };
+            let surface =
+                self.bricked.is_some().then_some(SurfaceLevels { hits: f.hits, level0: f.level0_hits });
+            let result =
+                JobResult { frame_id: f.frame_id, tiles, render_time, step_late: f.step_late, surface };
             if self.results.send(Ok(result)).is_err() {
                 return false;
             }

@@ -575,8 +575,9 @@ enum Act {
     /// Says goodbye with this reason after its first presented frame.
     Bye(String),
     /// Lies with its own certificate while it answers every frame: before each Ready this many
-    /// BrickFailed for bricks it was never asked to load (their reason full of terminal escapes)
-    /// and StepLate for its frame; its Presented times 46 days late every other frame, its
+    /// BrickFailed for bricks it was never asked to load (their reason full of terminal escapes),
+    /// StepLate for its frame and Surface claims past its tiles' pixels (or with more hits at
+    /// level 0 than hits); its Presented times 46 days late every other frame, its
     /// Pongs 46 days off after the first two, and from frame `unasked_from` on a Presented and a
     /// Pong nobody asked for after each Presented.
     Flood { per_frame: usize, unasked_from: u64 },
@@ -656,6 +657,8 @@ async fn fake_node(keys: PathBuf, name: String, port: u16, tiles: Vec<(String, u
                                 shown_step: state.time_step + 1,
                                 waited_us: 1,
                             },
+                            Message::Surface { frame_id: state.frame_id, hits: u64::MAX, level0: 0 },
+                            Message::Surface { frame_id: state.frame_id, hits: 1, level0: 2 },
                         ];
                         for lie in lies {
                             if !node.send(&lie).await {
@@ -786,13 +789,16 @@ fn a_node_certificate_flooding_lies_prints_a_few_lines_and_leaves_the_skew_repor
     eprintln!("{shown}\n... {lines} lines on stderr in {:.1} s\n{report}", elapsed.as_secs_f64());
     assert!(out.status.success(), "orbit failed: {shown}");
     // The liar's lines: at most 5 per 10 s (the model's PeerLog), whatever it sends (it sent
-    // about 2 x {per_frame} x {frames} = 60,000 messages to be printed); a few lines of the wall's own.
+    // about 4 x {per_frame} x {frames} = 120,000 messages to be printed); a few lines of the wall's own.
     let windows = elapsed.as_secs() / 10 + 1;
     let bound = 20 + 5 * windows as usize;
     assert!(lines <= bound, "{lines} lines on stderr (at most {bound}): {shown}");
     assert!(!err.contains('\u{1b}') && !err.contains('\r'), "raw control characters reached the terminal");
     assert!(!err.lines().any(|l| l.starts_with("isowall: frame 9")), "a node forged a line of its own");
     assert!(!err.contains("is down"), "the liar was ignored, not dropped: {shown}");
+    // Its Surface claims (more surface pixels than its 32, more at level 0 than surface) never
+    // reach the report: no frame has a brick cache's line.
+    assert!(!report.contains("level 0 (brick cache)"), "{report}");
     // The skew report: the forged times (46 days) kept out; the honest ones measured.
     let skew_line = report.lines().find(|l| l.starts_with("swap skew")).expect("a swap skew line");
     let max_ms: f64 = skew_line

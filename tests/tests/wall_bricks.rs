@@ -25,7 +25,7 @@ fn wall(
     render: &str,
     frames: &str,
     still: &str,
-) -> Option<(image::RgbImage, Vec<String>)> {
+) -> Option<(image::RgbImage, Vec<String>, String)> {
     let (w, h, bezel) = TILE;
     let config = wall_config(dir, name, &free_udp_ports(4), w, h, bezel, 60_000, "keys");
     let text = std::fs::read_to_string(&config).unwrap();
@@ -62,7 +62,7 @@ fn wall(
     let logs = (0..4)
         .map(|i| std::fs::read_to_string(dir.join("logs").join(format!("node{i}.log"))).unwrap_or_default())
         .collect();
-    Some((image::open(dir.join(&png)).unwrap().to_rgb8(), logs))
+    Some((image::open(dir.join(&png)).unwrap().to_rgb8(), logs, stdout.into_owned()))
 }
 
 fn diff(a: &image::RgbImage, b: &image::RgbImage) -> TileDiff {
@@ -84,11 +84,14 @@ fn a_bricked_wall_equals_the_wall_of_the_whole_store() {
     write_store(dir.path());
     // With AO: one still frame whose uploads may take every brick it wants.
     let ao = "ao_samples = 4\nibl = \"bent\"";
-    let Some((whole, _)) = wall(dir.path(), "whole", "", ao, "1", "0") else {
+    let Some((whole, _, report)) = wall(dir.path(), "whole", "", ao, "1", "0") else {
         return;
     };
     let uncapped = "gpu_budget_mb = 1\nupload_mb_per_frame = 1.0";
-    let (bricked, logs) = wall(dir.path(), "bricked", uncapped, ao, "1", "0").unwrap();
+    assert!(!report.contains("level 0 (brick cache)"), "{report}");
+    let (bricked, logs, report) = wall(dir.path(), "bricked", uncapped, ao, "1", "0").unwrap();
+    // The nodes' Surface claims, summed: every surface pixel drawn with level 0.
+    assert!(report.contains("level 0 (brick cache): frame 1 drew 100.0% of its "), "{report}");
     let d = diff(&bricked, &whole);
     assert!(d.lit > 200, "the torus is hardly in view ({} lit pixels)", d.lit);
     assert_eq!(d.max_diff, 0, "the bricked wall differs from the whole store's: {d:?}");
@@ -103,8 +106,9 @@ fn a_bricked_wall_equals_the_wall_of_the_whole_store() {
     // from coarser levels (the surface is there, not exact), the still frames refine it to the
     // whole store's picture. Without AO, so that a restarted accumulation is the same picture.
     let plain = "ao_samples = 0\nibl = \"none\"";
-    let (whole, _) = wall(dir.path(), "plain", "", plain, "1", "0").unwrap();
-    let (first, _) = wall(dir.path(), "first", "gpu_budget_mb = 1", plain, "1", "0").unwrap();
+    let (whole, _, _) = wall(dir.path(), "plain", "", plain, "1", "0").unwrap();
+    let (first, _, report) = wall(dir.path(), "first", "gpu_budget_mb = 1", plain, "1", "0").unwrap();
+    assert!(report.contains("0 of 1 frames at 100% (the first: none)"), "{report}");
     let d = diff(&first, &whole);
     assert!(d.max_diff > 0, "the first frame's uploads were not capped: {d:?}");
     // The surface's pixels: those unlike the background (a corner of the wall's first tile).
@@ -123,7 +127,8 @@ fn a_bricked_wall_equals_the_wall_of_the_whole_store() {
         lit(&first),
         lit(&whole)
     );
-    let (refined, logs) = wall(dir.path(), "refined", "gpu_budget_mb = 1", plain, "1", "12").unwrap();
+    let (refined, logs, report) = wall(dir.path(), "refined", "gpu_budget_mb = 1", plain, "1", "12").unwrap();
+    assert!(report.contains("level 0 (brick cache): frame 13 drew 100.0%"), "{report}");
     let d = diff(&refined, &whole);
     assert_eq!(d.max_diff, 0, "refined over 12 still frames, the wall differs: {d:?}");
     assert!(logs.iter().all(|l| still_bricks(l).is_some()), "a node's still view did not complete");

@@ -136,6 +136,35 @@ pub struct NodeFrameStats {
     /// Its StepLate: the frame's time step was not loaded when the frame came (time-varying
     /// volumes).
     pub step_late: Option<StepLate>,
+    /// Its Surface: of its tiles' surface pixels, how many level 0 drew (a bricked volume).
+    pub surface: Option<SurfaceLevels>,
+}
+
+/// A node's surface pixels in a frame, and how many of them were drawn with level 0 where they
+/// lie (a volume read through a brick cache: DESIGN.md "Large volumes"). A claim, checked to be
+/// no more than the node's tiles' pixels.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct SurfaceLevels {
+    pub hits: u64,
+    pub level0: u64,
+}
+
+impl SurfaceLevels {
+    /// The share of surface pixels at level 0 (1 where there is no surface).
+    pub fn share(self) -> f64 {
+        if self.hits == 0 {
+            1.0
+        } else {
+            self.level0 as f64 / self.hits as f64
+        }
+    }
+}
+
+impl std::ops::Add for SurfaceLevels {
+    type Output = SurfaceLevels;
+    fn add(self, o: SurfaceLevels) -> SurfaceLevels {
+        SurfaceLevels { hits: self.hits.saturating_add(o.hits), level0: self.level0.saturating_add(o.level0) }
+    }
 }
 
 /// A node's time step that was not loaded when its frame came: it waited `waited` (bounded)
@@ -242,6 +271,22 @@ struct NodeState {
 }
 
 impl NodeState {
+    /// Whether the node is rendering `frame_id` (sent it, not yet Ready for it): what it may
+    /// report on before its Ready; else why not.
+    fn rendering(&self, frame_id: u64) -> Result<(), String> {
+        let sent =
+            matches!((self.first_sent, self.last_sent), (Some(a), Some(b)) if (a..=b).contains(&frame_id));
+        if !sent || self.last_ready.is_some_and(|r| frame_id <= r) {
+            return Err(format!(
+                "which it is not rendering (sent {:?}..={:?}, ready {:?})",
+                self.first_sent, self.last_sent, self.last_ready
+            ));
+        }
+        Ok(())
+    }
+}
+
+impl NodeState {
     /// Forgets everything of the previous connection (a restarted daemon has a new clock too).
     fn reset_connection(&mut self) {
         self.clock.clear();
@@ -279,6 +324,7 @@ struct Part {
     resident_bytes: Option<u64>,
     merge: Option<Duration>,
     step_late: Option<StepLate>,
+    surface: Option<SurfaceLevels>,
 }
 
 #[derive(Debug)]
@@ -654,6 +700,7 @@ impl FrameController {
                 resident_bytes: p.resident_bytes,
                 merge: p.merge,
                 step_late: p.step_late,
+                surface: p.surface,
             })
             .collect();
         let spread = |v: Vec<i64>| -> Option<Duration> {
@@ -912,13 +959,8 @@ impl FrameController {
             }
             Message::StepLate { frame_id, shown_step, waited_us } => {
                 let st = self.nodes.get(node).expect("checked");
-                let sent = matches!((st.first_sent, st.last_sent), (Some(a), Some(b)) if (a..=b).contains(&frame_id));
-                if !sent || st.last_ready.is_some_and(|r| frame_id <= r) {
-                    let what = format!(
-                        "StepLate for frame {frame_id}, which it is not rendering (sent {:?}..={:?}, ready {:?})",
-                        st.first_sent, st.last_sent, st.last_ready
-                    );
-                    return Ok(self.ignore(now, node, what));
+                if let Err(why) = st.rendering(frame_id) {
+                    return Ok(self.ignore(now, node, format!("StepLate for frame {frame_id}, {why}")));
                 }
                 let frame = self.collecting.as_mut().filter(|f| f.id == frame_id);
                 let part = frame.and_then(|f| Some(f.time_step).zip(f.parts.get_mut(node)));
@@ -941,12 +983,8 @@ impl FrameController {
             }
             Message::Composited { frame_id, bytes_sent, composite_us, merge_us, resident_bytes, missing } => {
                 let st = self.nodes.get(node).expect("checked");
-                let sent = matches!((st.first_sent, st.last_sent), (Some(a), Some(b)) if (a..=b).contains(&frame_id));
-                if !sent || st.last_ready.is_some_and(|r| frame_id <= r) {
-                    return Err(err(format!(
-                        "Composited for frame {frame_id}, which it is not rendering (sent {:?}..={:?}, ready {:?})",
-                        st.first_sent, st.last_sent, st.last_ready
-                    )));
+                if let Err(why) = st.rendering(frame_id) {
+                    return Err(err(format!("Composited for frame {frame_id}, {why}")));
                 }
                 let part =
                     self.collecting.as_mut().filter(|f| f.id == frame_id).and_then(|f| f.parts.get_mut(node));
@@ -974,14 +1012,34 @@ impl FrameController {
                 st.missing = missing.clone();
                 Ok(vec![ControllerOutput::PixelsMissing { node: node.to_string(), frame_id, peers: missing }])
             }
+            Message::Surface { frame_id, hits, level0 } => {
+                let st = self.nodes.get(node).expect("checked");
+                if let Err(why) = st.rendering(frame_id) {
+                    return Ok(self.ignore(now, node, format!("Surface for frame {frame_id}, {why}")));
+                }
+                // A claim: no more hits than its tiles have pixels, no more at level 0 than hits.
+                let pixels: u64 =
+                    st.tiles.iter().flatten().map(|(_, w, h)| u64::from(*w) * u64::from(*h)).sum();
+                if level0 > hits || (st.tiles.is_some() && hits > pixels) {
+                    let what = format!(
+                        "Surface for frame {frame_id}: {level0} of {hits} hits at level 0, on tiles of {pixels} pixels"
+                    );
+                    return Ok(self.ignore(now, node, what));
+                }
+                let part =
+                    self.collecting.as_mut().filter(|f| f.id == frame_id).and_then(|f| f.parts.get_mut(node));
+                if let Some(p) = part {
+                    if p.surface.is_some() {
+                        return Ok(self.ignore(now, node, format!("a second Surface for frame {frame_id}")));
+                    }
+                    p.surface = Some(SurfaceLevels { hits, level0 });
+                }
+                Ok(Vec::new())
+            }
             Message::RectCosts { frame_id, costs } => {
                 let st = self.nodes.get(node).expect("checked");
-                let sent = matches!((st.first_sent, st.last_sent), (Some(a), Some(b)) if (a..=b).contains(&frame_id));
-                if !sent || st.last_ready.is_some_and(|r| frame_id <= r) {
-                    return Err(err(format!(
-                        "RectCosts for frame {frame_id}, which it is not rendering (sent {:?}..={:?}, ready {:?})",
-                        st.first_sent, st.last_sent, st.last_ready
-                    )));
+                if let Err(why) = st.rendering(frame_id) {
+                    return Err(err(format!("RectCosts for frame {frame_id}, {why}")));
                 }
                 // No more entries than the split can give rectangles (where the wall's tiles are
                 // known): each of the wall's tiles is cut in at most MAX_RECTS_PER_TILE.
@@ -1348,6 +1406,45 @@ mod tests {
         assert_eq!(stats.per_node[1].ready_after, Some(ms(20)));
         assert_eq!(stats.per_node[1].presented_node_time_us, Some(6));
         assert_eq!(c.poll_timeout(), None);
+    }
+
+    #[test]
+    fn a_surface_claim_is_kept_with_its_frame_and_one_past_the_tiles_pixels_is_ignored() {
+        let mut c = controller(&["a", "b"]);
+        c.set_node_tiles("a", vec![("t0".into(), 4, 3)]);
+        c.begin_frame(ms(0), state(1)).unwrap();
+        let claim = |hits, level0| Message::Surface { frame_id: 1, hits, level0 };
+        // More hits than its 12 pixels, or more at level 0 than hits: a lie, ignored and counted.
+        for lie in [claim(13, 0), claim(5, 6)] {
+            let out = c.handle(ms(1), "a", lie).unwrap();
+            assert!(
+                matches!(&out[..], [ControllerOutput::PeerIgnored { what, .. }] if what.contains("hits at level 0")),
+                "{out:?}"
+            );
+        }
+        assert!(c.handle(ms(1), "a", claim(12, 9)).unwrap().is_empty());
+        let out = c.handle(ms(1), "a", claim(12, 12)).unwrap();
+        assert!(
+            matches!(&out[..], [ControllerOutput::PeerIgnored { what, .. }] if what.contains("second Surface"))
+        );
+        for (n, t) in [("a", 2), ("b", 3)] {
+            c.handle(ms(t), n, Message::Ready { frame_id: 1, render_us: 0 }).unwrap();
+        }
+        // After its Ready, or for a frame never sent: ignored.
+        let out = c.handle(ms(4), "a", claim(1, 1)).unwrap();
+        assert!(
+            matches!(&out[..], [ControllerOutput::PeerIgnored { what, .. }] if what.contains("not rendering"))
+        );
+        c.handle(ms(5), "a", Message::Presented { frame_id: 1, node_time_us: 0, waiting_from_us: 0 })
+            .unwrap();
+        let out = c
+            .handle(ms(6), "b", Message::Presented { frame_id: 1, node_time_us: 0, waiting_from_us: 0 })
+            .unwrap();
+        let ControllerOutput::FrameDone { stats, .. } = &out[0] else { panic!("{out:?}") };
+        let kept = stats.per_node[0].surface.unwrap();
+        assert_eq!((kept, stats.per_node[1].surface), (SurfaceLevels { hits: 12, level0: 9 }, None));
+        assert_eq!(kept.share(), 0.75);
+        assert_eq!(c.counters("a").unwrap().ignored, 4);
     }
 
     #[test]

@@ -33,6 +33,9 @@
 //! with; each daemon sends RectCosts (what each rectangle it rendered cost) and Composited (the
 //! bytes it sent its peers, the peers it went without) before Ready.
 //!
+//! A daemon that reads its volume through a brick cache sends Surface (its surface pixels and
+//! how many of them level 0 drew) before Ready.
+//!
 //! The bytes of these messages are [`crate::codec`]'s business; this module knows no encoding.
 
 use serde::{Deserialize, Serialize};
@@ -40,7 +43,7 @@ use serde::{Deserialize, Serialize};
 use crate::wire::{FrameState, WireRectCost, WireSplit};
 
 /// The protocol version of this build; a peer's [`Message::Hello`] must carry the same.
-pub const PROTOCOL_VERSION: u16 = 11;
+pub const PROTOCOL_VERSION: u16 = 12;
 
 /// The furthest ahead a Swap's present time may be: a node never waits longer for one.
 pub const MAX_SWAP_WAIT: std::time::Duration = std::time::Duration::from_secs(1);
@@ -287,6 +290,12 @@ pub enum Message {
     /// Daemon -> controller, before Ready (`[wall] balance = true`): what each rectangle it
     /// rendered of the frame cost (`crate::balance::node::rect_cost`).
     RectCosts { frame_id: u64, costs: Vec<WireRectCost> },
+    // the brick cache
+    /// Daemon -> controller, before Ready, where the node reads its volume through a brick
+    /// cache (`[volume] gpu_budget_mb`): of the frame's surface pixels on its tiles (`hits`), how
+    /// many were drawn with level 0 where they lie (`level0`; the rest from a coarser level).
+    /// Protocol 12.
+    Surface { frame_id: u64, hits: u64, level0: u64 },
 }
 
 /// The largest downscale a [`Message::ThumbnailRequest`] may ask for.
@@ -318,6 +327,7 @@ impl Message {
             Message::Identify { .. } => "Identify",
             Message::Split { .. } => "Split",
             Message::RectCosts { .. } => "RectCosts",
+            Message::Surface { .. } => "Surface",
         }
     }
 
@@ -344,7 +354,8 @@ impl Message {
             | Message::BrickFailed { .. }
             | Message::StepLate { .. }
             | Message::NodeInfo(_)
-            | Message::RectCosts { .. } => Some(Role::Daemon),
+            | Message::RectCosts { .. }
+            | Message::Surface { .. } => Some(Role::Daemon),
         }
     }
 }

@@ -75,6 +75,7 @@ impl Kernel {
 /// Shared include files, by name.
 const INCLUDES: &[(&str, &str)] = &[
     ("camera.wgsl", include_str!("../../../shaders/camera.wgsl")),
+    ("hit.wgsl", include_str!("../../../shaders/hit.wgsl")),
     ("frame.wgsl", include_str!("../../../shaders/frame.wgsl")),
     ("sampling.wgsl", include_str!("../../../shaders/sampling.wgsl")),
     ("environment.wgsl", include_str!("../../../shaders/environment.wgsl")),

@@ -203,7 +203,9 @@ fn a_steady_tile_allocates_nothing_and_reads_back_only_what_leaves_the_node() {
         assert_eq!(t.allocations, 0, "share {share}: {} GPU allocations in {n} steady frames", t.allocations);
         assert_eq!(t.uploaded, n * params, "share {share}: bytes uploaded");
         let pixels = (W * H) as u64;
-        let per_frame = 16 + timestamps + if share { pixels * 4 + pixels * 4 } else { 0 };
+        let per_frame = isowall_render::gpu::tile::COUNTER_BYTES
+            + timestamps
+            + if share { pixels * 4 + pixels * 4 } else { 0 };
         assert_eq!(t.read_back, n * per_frame, "share {share}: bytes read back");
     }
     // A resize (another tile size) needs new resources, which the tile says.

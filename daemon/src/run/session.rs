@@ -354,6 +354,12 @@ async fn frame_done(
             tracing::warn!("{e}");
         }
     }
+    if let Some(s) = done.surface {
+        let msg = Message::Surface { frame_id: id, hits: s.hits, level0: s.level0 };
+        if let Err(e) = sender.send(&msg).await {
+            tracing::warn!("{e}");
+        }
+    }
     node.pending = Some(done);
     machine.render_done(node.epoch.elapsed(), id, t)
 }

@@ -175,8 +175,8 @@ fn oldest_other(images: &[TileImage; IMAGES], latest: usize) -> usize {
         .expect("more than one image")
 }
 
-/// Bytes of the counters buffer: fetches (low, high word), hits, pixels.
-const COUNTER_BYTES: u64 = 16;
+/// Bytes of the counters buffer: fetches (low, high word), hits, pixels, hits at level 0.
+pub const COUNTER_BYTES: u64 = 20;
 
 /// A tile's resources.
 pub struct TileTarget {
@@ -249,6 +249,9 @@ pub struct FrameCounters {
     pub fetches: u64,
     pub hits: u64,
     pub pixels: u64,
+    /// Hits drawn with level 0 where they lie (all of them for a volume held whole; bricked,
+    /// the rest were drawn from a coarser level: DESIGN.md "Large volumes").
+    pub level0_hits: u64,
 }
 
 /// A tile's read, decoded.
@@ -448,6 +451,7 @@ impl FrameRead {
                 fetches: c[0] as u64 | (c[1] as u64) << 32,
                 hits: c[2] as u64,
                 pixels: c[3] as u64,
+                level0_hits: c[4] as u64,
             };
             if let Some(ran) = tag.timed {
                 let t: Vec<u64> = bytemuck::pod_collect_to_vec(next("timestamps")?.as_slice());
