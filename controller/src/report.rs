@@ -190,20 +190,18 @@ pub fn time_step_report(finished: &[FrameStats]) -> String {
     s
 }
 
+/// A frame's surface pixels and those level 0 drew, over the nodes that read their volume through
+/// a brick cache (their Surface claims); `None` where no node sent one.
+pub fn frame_surface(f: &FrameStats) -> Option<SurfaceLevels> {
+    f.per_node.iter().filter_map(|n| n.surface).reduce(|a, b| a + b)
+}
+
 /// Volumes read through the nodes' brick caches: the share of the surface pixels the frames drew
 /// with level 0 (the rest from coarser levels, while the caches refine), from the nodes' Surface
 /// claims. Empty when no node sent one.
 pub fn surface_report(finished: &[FrameStats]) -> String {
-    let frames: Vec<(u64, SurfaceLevels)> = finished
-        .iter()
-        .filter(|f| f.per_node.iter().any(|n| n.surface.is_some()))
-        .map(|f| {
-            (
-                f.frame_id,
-                f.per_node.iter().filter_map(|n| n.surface).fold(SurfaceLevels::default(), |a, b| a + b),
-            )
-        })
-        .collect();
+    let frames: Vec<(u64, SurfaceLevels)> =
+        finished.iter().filter_map(|f| frame_surface(f).map(|s| (f.frame_id, s))).collect();
     let Some(&(last_id, last)) = frames.last() else {
         return String::new();
     };

@@ -500,6 +500,7 @@ impl Loop {
             late_swaps: wall.finished.iter().map(|f| f.late_swaps).sum(),
             frame_rate: wall.swap_timing().period().map(|p| 1.0 / p.as_secs_f64()),
             interval_jitter_ms_p99: crate::report::interval_jitter(wall).and_then(|(_, j)| q(&j, 0.99)),
+            level0_share: wall.finished.last().and_then(crate::report::frame_surface).map(|s| s.share()),
         }
     }
 

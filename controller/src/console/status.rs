@@ -77,6 +77,9 @@ pub struct FrameInfo {
     /// at the 99th percentile over the history, ms.
     pub frame_rate: Option<f64>,
     pub interval_jitter_ms_p99: Option<f64>,
+    /// A volume read through the nodes' brick caches: the share of the last frame's surface
+    /// pixels drawn with level 0, 0 ..= 1 (`null`: no brick cache).
+    pub level0_share: Option<f64>,
 }
 
 #[derive(Clone, Debug, Serialize)]

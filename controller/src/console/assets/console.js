@@ -69,7 +69,9 @@ let wallKey = null; // the wall's tiles and node states last drawn
 function show(s) {
   setText($("wall-name"), s.wall.name + " (" + s.wall.width + "×" + s.wall.height + ", " + s.wall.mode + " space)");
   setText($("fps"), fmt(s.frame.fps, 1) + " fps");
-  setText($("frame"), "frame " + s.frame.id);
+  // A volume read through the nodes' brick caches: how much of the surface level 0 drew.
+  const level0 = s.frame.level0_share === null ? "" : " · level 0 " + fmt(100 * s.frame.level0_share, 1) + "%";
+  setText($("frame"), "frame " + s.frame.id + level0);
   setProp($("ro-badge"), "hidden", !s.console.read_only);
   setProp($("controls"), "hidden", s.console.read_only);
   showNodes(s);
