@@ -263,7 +263,7 @@ fn bench_swap(a: &BenchArgs, config: WallConfig) -> Result<()> {
         "isowall bench --swap: wall '{}' ({} nodes{}), {} frames of an orbit ({} degrees/frame) per run, offscreen",
         config.wall.name,
         config.nodes.len(),
-        if crate::report::one_machine(&config) { ", every one on this machine" } else { "" },
+        if crate::wall::one_machine(&config) { ", every one on this machine" } else { "" },
         a.frames,
         a.degrees_per_frame
     );

@@ -476,8 +476,6 @@ pub fn parse_fps(s: &str) -> Result<f64, String> {
     }
 }
 
-pub const START_GRACE: Duration = Duration::from_secs(3);
-
 pub(crate) fn runtime() -> Result<tokio::runtime::Runtime> {
     tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
@@ -644,7 +642,7 @@ pub fn orbit(a: &OrbitArgs) -> Result<()> {
     let (base, mut settings) = scene(&config)?;
     let gov = governor(&config, &mut settings, &a.orbit)?;
     runtime()?.block_on(async {
-        let mut wall = Wall::connect(config, Duration::from_secs(10), START_GRACE).await?;
+        let mut wall = Wall::connect(config, Duration::from_secs(10), crate::start::START_GRACE).await?;
         let (elapsed, _, governed) =
             drive(&mut wall, &base, &settings, &a.orbit, gov.clone(), &mut |_, _| {}).await?;
         print!("{}", report(&wall, elapsed));
@@ -657,7 +655,7 @@ pub fn orbit(a: &OrbitArgs) -> Result<()> {
 pub fn snapshot(a: &SnapshotArgs) -> Result<()> {
     let config = load(&a.config)?;
     runtime()?.block_on(async {
-        let mut wall = Wall::connect(config, Duration::from_secs(10), START_GRACE).await?;
+        let mut wall = Wall::connect(config, Duration::from_secs(10), crate::start::START_GRACE).await?;
         write_snapshot(&mut wall, &a.out).await?;
         wall.close("snapshot taken").await;
         Ok(())

@@ -74,7 +74,7 @@ pub struct WallMetrics {
 
 impl WallMetrics {
     /// The metrics of a wall of `nodes`; `one_machine`: every node shares this machine's clock
-    /// (`report::one_machine`), so the true swap skew is measured too. Every node's series exist
+    /// (`wall::one_machine`), so the true swap skew is measured too. Every node's series exist
     /// from the start (at 0, down), so a query sees a node that never came up.
     pub fn new(nodes: &[String], one_machine: bool) -> WallMetrics {
         let mut r = Registry::default();

@@ -1,19 +1,10 @@
 //! What a run of frames reports: the frame statistics' text (`up`, `orbit`, `demo`), the timed
 //! swap's line, interval jitter and time steps, and the quantiles they share.
 
-use crate::wall::Wall;
-use isowall_model::config::WallConfig;
+use crate::wall::{micros, one_machine, Wall};
 use isowall_model::frame_controller::{FrameStats, SurfaceLevels};
-use isowall_net::transport;
 use std::collections::BTreeMap;
 use std::time::Duration;
-
-/// Whether every node of the wall is on this machine (its address a loopback one): they and the
-/// controller share one clock (`isowall_net::clock`), so their own present times give the true
-/// swap skew.
-pub fn one_machine(config: &WallConfig) -> bool {
-    config.nodes.iter().all(|n| transport::resolve(&n.address).is_ok_and(|a| a.ip().is_loopback()))
-}
 
 /// The swap's lines of the report: the skew measured (and, on one machine, the true one), the
 /// timed swap's margin and late swaps, the clocks' error bounds, and on a paced wall the
@@ -132,10 +123,6 @@ pub fn interval_jitter(wall: &Wall) -> Option<(Duration, Vec<Duration>)> {
         .map(|w| Duration::from_secs_f64(((w[1] - w[0]) - period.as_secs_f64()).abs()))
         .collect();
     Some((period, jitter))
-}
-
-pub(crate) fn micros(t: Duration) -> i64 {
-    i64::try_from(t.as_micros()).unwrap_or(i64::MAX)
 }
 
 /// p-quantile of durations (nearest rank).

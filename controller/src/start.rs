@@ -8,6 +8,10 @@ use clap::Args;
 use isowall_model::config::WallConfig;
 use std::time::Duration;
 
+/// How long a wall that is starting waits, after its last node connected, for nodes that are
+/// still on their way before it drives the ones it has.
+pub const START_GRACE: Duration = Duration::from_secs(3);
+
 #[derive(Args, Clone, Debug)]
 pub struct StartArgs {
     /// Start a local `isowalld` for every loopback node first (stopped on exit), as `isowall up`
@@ -39,7 +43,7 @@ pub async fn open(config: WallConfig, a: &StartArgs) -> Result<(Option<LocalDaem
     let timeout = Duration::from_secs(a.start_timeout);
     let wall = match daemons.as_mut() {
         Some(d) => connect_local(d, config, timeout).await?,
-        None => Wall::connect(config, timeout, crate::drive::START_GRACE).await?,
+        None => Wall::connect(config, timeout, START_GRACE).await?,
     };
     Ok((daemons, wall))
 }
@@ -57,7 +61,7 @@ pub async fn connect_local(
         bail!("{report}");
     }
     tokio::select! {
-        wall = Wall::connect(config, timeout, crate::drive::START_GRACE) => {
+        wall = Wall::connect(config, timeout, START_GRACE) => {
             wall.map_err(|e| match daemons.exit_report() {
                 Some(report) => anyhow!("{e:#}\n{report}"),
                 None => e,

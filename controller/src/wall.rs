@@ -3,7 +3,6 @@
 //! snapshots; report statistics. The network code only moves bytes and calls the state machine.
 
 use crate::metrics::WallMetrics;
-use crate::report::micros;
 use anyhow::{anyhow, bail, Result};
 use isowall_model::adoption::{AdoptionOutput, BrickAssigner};
 use isowall_model::balance::claims::{cost_floor, Claims, Miss};
@@ -326,7 +325,7 @@ impl Wall {
         machine.set_ping_interval(Some(ping));
         machine.set_swap_timing(config.wall.swap_timing());
         machine.set_silence_limit(Some(deadline * SILENT_DEADLINES - ping));
-        let metrics = Arc::new(WallMetrics::new(&names, crate::report::one_machine(&config)));
+        let metrics = Arc::new(WallMetrics::new(&names, one_machine(&config)));
         let mut wall = Wall {
             machine,
             config,
@@ -1068,4 +1067,16 @@ impl Wall {
         self.endpoint.wait_idle().await;
         self.metrics.closed();
     }
+}
+
+/// Whether every node of the wall is on this machine (its address a loopback one): they and the
+/// controller share one clock (`isowall_net::clock`), so their own present times give the true
+/// swap skew.
+pub fn one_machine(config: &WallConfig) -> bool {
+    config.nodes.iter().all(|n| transport::resolve(&n.address).is_ok_and(|a| a.ip().is_loopback()))
+}
+
+/// A time since the wall's epoch in whole microseconds (saturating), as the wire carries times.
+pub(crate) fn micros(t: Duration) -> i64 {
+    i64::try_from(t.as_micros()).unwrap_or(i64::MAX)
 }

@@ -32,9 +32,10 @@
 //! page), and POSTs must be JSON (so a cross-site form cannot send one).
 
 use super::bookmarks::{self, Bookmark, BookmarkError};
+use super::commands::{ApiError, Command};
 use super::lock;
 use super::patch::{CameraPatch, RenderPatch, TimePatch};
-use super::shared::{divisor_for, unix_ms, ApiError, Command, Shared, MAX_LIVE};
+use super::shared::{divisor_for, unix_ms, Shared, MAX_LIVE};
 use super::status::Status;
 use axum::body::Body;
 use axum::extract::rejection::{JsonRejection, QueryRejection};

@@ -9,8 +9,9 @@
 //! up after [`THUMBNAIL_GIVE_UP`] ([`SNAPSHOT_GIVE_UP`] at full size); a request whose every
 //! asker has left is dropped.
 
+use super::commands::{ApiError, Captured, Command, ImagesReply};
 use super::patch::Controls;
-use super::shared::{unix_ms, ApiError, Captured, Command, ImagesReply, Shared};
+use super::shared::{unix_ms, Shared};
 use super::status::{self, NodeHealth, Status};
 use crate::controls::SessionState;
 use crate::local::LocalDaemons;
@@ -118,7 +119,7 @@ pub async fn run(
         frame_samples: (scene.settings.ao.samples, 1),
         started: now,
         published: None,
-        one_machine: crate::report::one_machine(&wall.config),
+        one_machine: crate::wall::one_machine(&wall.config),
         local_logs: daemons
             .as_ref()
             .map(|d| d.logs().into_iter().map(|(n, _)| n).collect())

@@ -13,6 +13,7 @@
 
 mod api;
 mod bookmarks;
+mod commands;
 mod frame_loop;
 mod lock;
 mod logs;

@@ -15,7 +15,7 @@
 //!   waits for it; when the last one goes (its connection closed), the frame loop drops it. A
 //!   client waits [`WAIT_AT_MOST`] at most.
 
-use super::shared::{ApiError, Captured, Command, Picture};
+use super::commands::{ApiError, Captured, Command, Picture};
 use crate::picture::compose_scaled;
 use axum::http::StatusCode;
 use std::collections::HashMap;
