@@ -144,6 +144,20 @@ fn the_ct_converted_to_ome_zarr_renders_exactly_as_its_nrrd_and_its_levels_withi
         assert_eq!(o.status.success(), ok, "iso {iso}: {err}{}", String::from_utf8_lossy(&o.stdout));
         assert!(ok || err.contains("iso"), "{err}");
     }
+    // `max_bytes` under every level: refused, unless the nodes read the store through their
+    // brick caches (never whole): then its metadata and min/max are what is checked.
+    for (budget, ok) in [("", false), ("gpu_budget_mb = 8\n", true)] {
+        let config = format!(
+            "[wall]\nname = \"z\"\n\n[volume]\nsource = \"ct.ome.zarr\"\niso = 300\nmax_bytes = 4\n{budget}\n\
+             [[tiles]]\nname = \"t\"\nx = 0\ny = 0\nwidth = 64\nheight = 48\n\n\
+             [[nodes]]\nname = \"n\"\naddress = \"127.0.0.1:7999\"\ntiles = [\"t\"]\n"
+        );
+        std::fs::write(dir.path().join("z.toml"), config).unwrap();
+        let o = run_in(dir.path(), "isowall", &["check-config", "z.toml"]);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.success(), ok, "{budget:?}: {err}{}", String::from_utf8_lossy(&o.stdout));
+        assert!(ok || err.contains("max_bytes"), "{err}");
+    }
     // Under a limit below level 0, the finest level within it is read, and said.
     let o = run_in(
         dir.path(),
