@@ -14,7 +14,10 @@ Usage: scripts/measure-time-steps.py [BIN_DIR] [N[:CACHE_MIB] ...]
 Environment: FRAMES (64), TILE_W (160), TILE_H (90), MODE (screen; object: each node plays its
 brick of every step), AO (AO samples, 0), IBL (none; bent with AO), KEEP=1 keeps the work folder.
 """
-import os, re, shutil, socket, subprocess, sys, tempfile, time
+import os, re, shutil, subprocess, sys, tempfile, time
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from local_wall import free_ports  # noqa: E402
 
 args = sys.argv[1:]
 BIN = os.path.abspath(args.pop(0) if args and not re.match(r"^\d", args[0]) else "target/debug")
@@ -39,16 +42,6 @@ for exe in ["isowall", "isowalld", "examples/play_steps"]:
         sys.exit(f"{BIN}/{exe} is missing: cargo build -p isowall -p isowalld && "
                  "cargo build -p isowall-volume --example play_steps")
 work = tempfile.mkdtemp(prefix="isowall-steps-")
-
-
-def free_ports(n):
-    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(n)]
-    for s in socks:
-        s.bind(("127.0.0.1", 0))
-    ports = [s.getsockname()[1] for s in socks]
-    for s in socks:
-        s.close()
-    return ports
 
 
 def config(n, cache_mib):

@@ -17,7 +17,10 @@ Usage: scripts/measure-wall-bricks.py [BIN_DIR] [BUDGET_MIB ...]
 Environment: VOLUME, ISO (480), CHUNK (32), TILE_W (160), TILE_H (120), AO (4), KEEP=1 keeps the
 work folder.
 """
-import os, re, shutil, socket, struct, subprocess, sys, tempfile, zlib
+import os, re, shutil, struct, subprocess, sys, tempfile, zlib
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from local_wall import free_ports  # noqa: E402
 
 args = sys.argv[1:]
 BIN = os.path.abspath(args.pop(0) if args and not re.match(r"^\d", args[0]) else "target/debug")
@@ -30,16 +33,6 @@ AO = int(os.environ.get("AO", "4"))
 for exe in ["isowall", "isowalld"]:
     if not os.path.exists(os.path.join(BIN, exe)):
         sys.exit(f"{BIN}/{exe} is missing: cargo build -p isowall -p isowalld")
-
-
-def free_ports(n):
-    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(n)]
-    for s in socks:
-        s.bind(("127.0.0.1", 0))
-    ports = [s.getsockname()[1] for s in socks]
-    for s in socks:
-        s.close()
-    return ports
 
 
 def config(work, name, volume_lines, render_lines):
