@@ -121,9 +121,9 @@ impl BrickedOnGpu {
     pub fn new(gpu: &GpuRenderer, volume: BrickedVolume, budgets: BrickBudgets) -> Result<BrickedOnGpu> {
         let source = volume.source.as_ref();
         let mut cache = HostBrickCache::new(budgets.host, source.layout())
-            .map_err(|e| anyhow!("the host budget: {e}"))?;
+            .map_err(|e| anyhow!("the host budget (--host-budget-mb, [volume] host_budget_mb): {e}"))?;
         let pool = BrickPool::new(&gpu.ctx, &gpu.perf(), source, &mut cache, budgets.gpu)
-            .context("the GPU budget")?;
+            .context("the GPU budget (--gpu-budget-mb, [volume] gpu_budget_mb)")?;
         Ok(BrickedOnGpu { volume, cache, pool, budgets })
     }
 
