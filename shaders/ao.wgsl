@@ -43,7 +43,7 @@
 //#include environment.wgsl
 //#include hit.wgsl
 
-// From the isosurface kernel: w = 1 on a hit.
+// From the isosurface kernel: w says whether the pixel hit the surface (hit.wgsl).
 @group(0) @binding(3) var<storage, read> in_color: array<vec4<f32>>;
 // From the isosurface kernel: N (outward) and depth.
 @group(0) @binding(4) var<storage, read> in_geometry: array<vec4<f32>>;

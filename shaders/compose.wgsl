@@ -34,14 +34,14 @@ struct ComposeParams {
     counted_size: vec2<u32>,   // band grows the latter): the pixels the counters count
 }
 
-// A read-only storage buffer, not a uniform: see frame.wgsl (lavapipe's uniform inlining).
 //#include hit.wgsl
 
+// A read-only storage buffer, not a uniform: see frame.wgsl (lavapipe's uniform inlining).
 @group(0) @binding(0) var<storage, read> compose_params: ComposeParams;
 // The parameters as the functions read them: a private copy the entry point fills first (a
 // storage read on lavapipe is a loop over the SIMD lanes; see denoise.wgsl).
 var<private> params: ComposeParams;
-// From the isosurface kernel (low rectangle): direct light, w = 1 on a hit.
+// From the isosurface kernel (low rectangle): direct light, w the hit flag (hit.wgsl).
 @group(0) @binding(1) var<storage, read> in_color: array<vec4<f32>>;
 // From the isosurface kernel (low rectangle): N and depth (w).
 @group(0) @binding(2) var<storage, read> in_geometry: array<vec4<f32>>;
@@ -53,7 +53,7 @@ var<private> params: ComposeParams;
 @group(0) @binding(5) var out_image: texture_storage_2d<rgba8unorm, write>;
 // Depth per pixel of the rectangle, as f32 bits.
 @group(0) @binding(6) var<storage, read_write> out_depth: array<u32>;
-// fetches (low word, high word), hits, pixels counted.
+// fetches (low word, high word), hits, pixels counted, hits drawn with level 0 (hit.wgsl).
 @group(0) @binding(7) var<storage, read_write> counters: array<atomic<u32>, 5>;
 
 const INFINITY_BITS: u32 = 0x7f800000u;

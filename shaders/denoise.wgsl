@@ -46,7 +46,7 @@ struct DenoiseParams {
 // so that the 25 taps read registers (on lavapipe a storage read is a loop over the SIMD lanes,
 // with a bounds check per lane and component, wherever it stands).
 var<private> params: DenoiseParams;
-// From the isosurface kernel: w = 1 on a hit.
+// From the isosurface kernel: w the hit flag (hit.wgsl).
 @group(0) @binding(1) var<storage, read> in_color: array<vec4<f32>>;
 // From the isosurface kernel: N (outward) and depth (w).
 @group(0) @binding(2) var<storage, read> in_geometry: array<vec4<f32>>;

@@ -27,7 +27,8 @@
 //#include shading.wgsl
 //#include hit.wgsl
 
-// Per pixel: direct light (linear, before exposure, no ambient); w: 1 on a hit, else 0.
+// Per pixel: direct light (linear, before exposure, no ambient); w: the hit flag (hit.wgsl: 1 on
+// a hit, 0.75 on one drawn from a coarser level, 0 without).
 @group(0) @binding(3) var<storage, read_write> out_color: array<vec4<f32>>;
 // Per pixel: N (xyz, outward, unflipped) and depth (w); all 0 without a hit.
 @group(0) @binding(4) var<storage, read_write> out_geometry: array<vec4<f32>>;

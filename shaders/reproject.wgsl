@@ -64,7 +64,7 @@ struct ReprojectParams {
 // The parameters as the functions read them: a private copy the entry point fills first (a
 // storage read on lavapipe is a loop over the SIMD lanes; see denoise.wgsl).
 var<private> params: ReprojectParams;
-// This frame's isosurface kernel: w = 1 on a hit; N (outward) and depth (w).
+// This frame's isosurface kernel: w the hit flag (hit.wgsl); N (outward) and depth (w).
 @group(0) @binding(1) var<storage, read> in_color: array<vec4<f32>>;
 @group(0) @binding(2) var<storage, read> in_geometry: array<vec4<f32>>;
 // The previous frame's: hit flag, geometry, and its running sums (bent + A; E rgb, weight w).

@@ -9,7 +9,7 @@ pub const VEC4_BYTES: u64 = 16;
 
 /// The AOVs of an `n`-pixel rectangle, rows top to bottom.
 pub struct Aovs {
-    /// Direct light (rgb) and the hit flag (w = 1 on a hit).
+    /// Direct light (rgb) and the hit flag (w, `shaders/hit.wgsl`: at least 0.5 on a hit).
     pub direct: wgpu::Buffer,
     /// N (xyz, outward) and depth (w).
     pub geometry: wgpu::Buffer,

@@ -485,7 +485,7 @@ impl FrameRead {
 /// rectangle ([`work_view`]), rows top to bottom.
 #[derive(Clone, Debug, Default)]
 pub struct TileSums {
-    /// Direct light (rgb) and hit flag (w = 1 on a hit).
+    /// Direct light (rgb) and hit flag (w, `shaders/hit.wgsl`: at least 0.5 on a hit).
     pub color: Vec<[f32; 4]>,
     /// N (outward) and depth (w).
     pub geometry: Vec<[f32; 4]>,
