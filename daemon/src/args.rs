@@ -80,7 +80,6 @@ impl VolumeInputArgs {
         Ok((source.with_series(self.series.as_deref())?, self.raw.spec()?))
     }
 
-    /// Reads `volume` (a source as given on the command line) whole, with a spinner meanwhile.
     /// The size limit of what is read whole (`--max-volume-bytes`).
     pub fn limit(&self) -> isowall_volume::io::VolumeLimit {
         match self.max_volume_bytes {
@@ -89,6 +88,7 @@ impl VolumeInputArgs {
         }
     }
 
+    /// Reads `volume` (a source as given on the command line) whole, with a spinner meanwhile.
     pub fn read(
         &self,
         volume: &str,

@@ -20,10 +20,8 @@ use isowall_volume::{Orientation, VolumeSource};
 /// The brick cache's budgets from the flags (`--gpu-budget-mb`, `--host-budget-mb`,
 /// `--upload-mb-per-frame`): the config's rule ([`BrickBudgets::from_mb`]), its errors naming the flag.
 pub fn budgets_from_flags(gpu_mb: u64, host_mb: Option<u64>, upload_mb: Option<f64>) -> Result<BrickBudgets> {
-    BrickBudgets::from_mb(gpu_mb, host_mb, upload_mb).map_err(|e| {
-        let (field, rest) = e.split_once(' ').unwrap_or((&e, ""));
-        anyhow!("--{} {rest}", field.replace('_', "-"))
-    })
+    BrickBudgets::from_mb(gpu_mb, host_mb, upload_mb)
+        .map_err(|e| anyhow!("--{} {}", e.field.replace('_', "-"), e.problem))
 }
 
 /// A volume opened for the brick cache, with what a camera needs to frame it.

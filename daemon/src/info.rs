@@ -69,7 +69,7 @@ pub fn run(a: &InfoArgs) -> Result<()> {
     println!("format: {format}; voxels read as 32-bit float in the data's units");
     println!("dims: {nx} x {ny} x {nz} ({} voxels)", nx * ny * nz);
     println!("spacing: {} {} {} world units per voxel; origin {} {} {}", s.x, s.y, s.z, o.x, o.y, o.z);
-    let top = o + s * glam::DVec3::new(nx as f64 - 1.0, ny as f64 - 1.0, nz as f64 - 1.0);
+    let top = isowall_volume::VolumeInfo { name: String::new(), dims, spacing: s, origin: o }.box_max();
     println!("box: {} {} {} .. {} {} {}", o.x, o.y, o.z, top.x, top.y, top.z);
     match volume.orientation() {
         Some(orient) => {

@@ -295,8 +295,13 @@ pub fn load_volume_within(
 /// screen-space node loads it; errors name the config.
 pub fn load_wall_volume(config: &WallConfig, limit: &VolumeLimit) -> Result<(Volume, f64)> {
     let raw = config.raw_spec().map_err(|e| anyhow!("{}: {e}", config.path.display()))?;
-    let iso_from = format!("{}: [volume] iso", config.path.display());
+    let iso_from = wall_iso_from(config);
     load_volume_within(Some(&config.volume_source()), raw.as_ref(), (config.volume.iso, &iso_from), limit)
+}
+
+/// Where a wall's iso comes from, as its errors name it (the config file's `[volume] iso`).
+pub fn wall_iso_from(config: &WallConfig) -> String {
+    format!("{}: [volume] iso", config.path.display())
 }
 
 /// [`load_volume_within`] of time step `step`.

@@ -778,7 +778,7 @@ impl RenderLoop {
             kept.push(target);
         }
         self.targets = kept;
-        let continuity = self.refine_bricks(plan, &settings, guard)?;
+        self.refine_bricks(plan, &settings, guard)?;
         for k in 0..plan.views.len() {
             while !self.ring.has_free_slot() {
                 self.ring.wait_oldest(&self.gpu.ctx).map_err(|e| e.to_string())?;
@@ -801,7 +801,7 @@ impl RenderLoop {
                 view,
                 settings: &settings,
                 env: self.env.as_ref(),
-                continuity,
+                continuity: plan.continuity,
                 // A moving camera carries each pixel's history over; object space does not (a
                 // brick's pixels are not the tile's until composited).
                 temporal: plan.views_are_tiles(),
@@ -835,17 +835,18 @@ impl RenderLoop {
     }
 
     /// Screen space through the brick cache: one round of uploads for the bricks the frame's
-    /// views want (their guard bands included), at level 0 unless the camera moves. Where the
-    /// round changed what the pool holds, a still frame's accumulation starts over (its picture
-    /// changed); a moving frame reprojects as always. Returns the frame's continuity.
+    /// views want (their guard bands included), at level 0 unless the camera moves. A round that
+    /// changed what the pool holds gives the pool's volume a new id (`BrickPool::refine`), and a
+    /// tile whose volume changed starts its accumulation and history over (`render_tile`):
+    /// still or moving, its picture changed.
     fn refine_bricks(
         &mut self,
         plan: &RenderPlan,
         settings: &isowall_model::RenderSettings,
         guard: u32,
-    ) -> Result<Continuity, String> {
+    ) -> Result<(), String> {
         let Some(b) = self.bricked.as_mut() else {
-            return Ok(plan.continuity);
+            return Ok(());
         };
         let still = plan.continuity != Continuity::ViewMoved;
         let views: Vec<View> =
@@ -884,11 +885,7 @@ impl RenderLoop {
                 b.needed_mib(r.over_pool)
             );
         }
-        Ok(if r.uploaded > 0 && plan.continuity == Continuity::Same {
-            Continuity::Changed
-        } else {
-            plan.continuity
-        })
+        Ok(())
     }
 
     /// Uploads a frame's tiles composited on the CPU for the windows (only where the node has

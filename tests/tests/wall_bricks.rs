@@ -4,7 +4,9 @@
 //! capped (drawn from coarser levels meanwhile, never holed); each node holds only the bricks its
 //! own tile sees.
 
-use isowall_e2e::{compare_tiles, free_udp_ports, gpu_ok, in_bezel_2x2, run_in, wall_config, TileDiff};
+use isowall_e2e::{
+    compare_tiles, free_udp_ports, gpu_ok, in_bezel_2x2, run_in, wall_config, write_ball_steps, TileDiff,
+};
 use std::path::Path;
 
 const TILE: (u32, u32, u32) = (40, 30, 3);
@@ -132,4 +134,29 @@ fn a_bricked_wall_equals_the_wall_of_the_whole_store() {
     let d = diff(&refined, &whole);
     assert_eq!(d.max_diff, 0, "refined over 12 still frames, the wall differs: {d:?}");
     assert!(logs.iter().all(|l| still_bricks(l).is_some()), "a node's still view did not complete");
+}
+
+/// A time-varying volume is not read through the brick cache yet: a node refuses it at its start,
+/// naming the key, before it loads a step (and without a GPU).
+#[test]
+fn a_node_refuses_time_steps_through_the_brick_cache_before_loading_them() {
+    let dir = tempfile::tempdir().unwrap();
+    write_ball_steps(dir.path(), 2);
+    let (w, h, bezel) = TILE;
+    let config = wall_config(dir.path(), "steps", &free_udp_ports(4), w, h, bezel, 60_000, "keys");
+    let text = std::fs::read_to_string(&config).unwrap().replace(
+        "source = \"procedural:torus:48\"",
+        "source = \"steps/step_*.nrrd\"\niso = 0.5\ngpu_budget_mb = 1",
+    );
+    std::fs::write(&config, text).unwrap();
+    let out = run_in(dir.path(), "isowall", &["keygen", "--config", config.to_str().unwrap()]);
+    assert!(out.status.success(), "keygen: {}", String::from_utf8_lossy(&out.stderr));
+    let out =
+        run_in(dir.path(), "isowalld", &["run", "--config", config.to_str().unwrap(), "--node", "node0"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    assert!(
+        err.contains("gpu_budget_mb: a time-varying volume is not read through the brick cache yet"),
+        "{err}"
+    );
 }

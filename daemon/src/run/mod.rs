@@ -208,19 +208,25 @@ pub fn run(a: &RunArgs) -> Result<()> {
         let space = ObjectSpace { node: object, peer_rx, inbox, load_rx };
         (RenderVolume::Brick(Box::new(setup.data)), Space::Object(Box::new(space)))
     } else {
-        steps = time_steps(&config, raw.as_ref(), volume_limit.clone())?;
         let volume = match budgets {
-            None => RenderVolume::Whole(load_wall_volume(&config, &volume_limit)?.0),
-            Some(_) if steps.is_some() => bail!(
-                "{}: [volume] gpu_budget_mb: a time-varying volume is not read through the brick cache yet: its steps load whole (remove gpu_budget_mb)",
-                config.path.display()
-            ),
+            None => {
+                steps = time_steps(&config, raw.as_ref(), volume_limit.clone())?;
+                RenderVolume::Whole(load_wall_volume(&config, &volume_limit)?.0)
+            }
             Some(budgets) => {
-                let iso_from = format!("{}: [volume] iso", config.path.display());
+                // Refused before any step is loaded: the steps would load whole.
+                let source: isowall_volume::VolumeSource = config.volume_source().parse()?;
+                if source.time_steps().with_context(|| format!("volume {source}"))? > 1 {
+                    bail!(
+                        "{}: [volume] gpu_budget_mb: a time-varying volume is not read through the brick cache yet: its steps load whole (remove gpu_budget_mb)",
+                        config.path.display()
+                    );
+                }
+                steps = None;
                 let bricked = crate::bricked::BrickedVolume::open(
                     Some(&config.volume_source()),
                     raw.as_ref(),
-                    (config.volume.iso, &iso_from),
+                    (config.volume.iso, &crate::render::wall_iso_from(&config)),
                     0,
                     &volume_limit,
                 )?;

@@ -108,7 +108,7 @@ mod tests;
 mod validate;
 
 pub use address::{check_address, parse_address, AddressHost, NodeAddress};
-pub use budgets::{BrickBudgets, MAX_BUDGET_MB};
+pub use budgets::{BrickBudgets, BudgetError, MAX_BUDGET_MB};
 use diagnostics::{doc_list, doc_value, Doc, Seg};
 pub use diagnostics::{line_column, ConfigErrors, Problem};
 pub use validate::render_problems;

@@ -224,11 +224,7 @@ pub(crate) fn validate_volume(doc: &mut Doc<'_>, v: &VolumeConfig) {
     match v.gpu_budget_mb {
         Some(gpu) => {
             if let Err(e) = BrickBudgets::from_mb(gpu, v.host_budget_mb, v.upload_mb_per_frame) {
-                let field = ["host_budget_mb", "upload_mb_per_frame"]
-                    .into_iter()
-                    .find(|f| e.starts_with(f))
-                    .unwrap_or("gpu_budget_mb");
-                doc.at(&at(field), format!("volume: `{field}`{}", &e[field.len()..]));
+                doc.at(&at(e.field), format!("volume: `{}` {}", e.field, e.problem));
             }
         }
         None => {
