@@ -116,6 +116,7 @@ fn ours_occluded(o: vec3<f32>, w: vec3<f32>) -> bool {
                 }
                 continue;
             }
+            mark_block(b, level.cells);
         }
         if field(o + t * w) >= iso {
             return true;
@@ -281,6 +282,8 @@ fn exact_occluded(o: vec3<f32>, w: vec3<f32>, start: vec3<i32>, start_corners: a
             if (params.perf.x & PERF_BLOCK_MIN_EXIT) != 0u && m.x >= iso {
                 return true;
             }
+            // Neither decision was taken on the block's min/max: the whole volume's might have been.
+            mark_block(b, level.cells);
         }
         // The cell's 8 corners, loaded 4 at a time (one face: a storage load costs per lane on a
         // SIMD CPU driver, masked lanes included, so the fewer load sites the pass has, the

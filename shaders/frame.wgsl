@@ -48,7 +48,8 @@ struct FrameParams {
     ao_blocks: vec4<u32>,    // AO rays' block level: counts (xyz), cells per edge (w; 0: the primary level)
     coarse: vec4<u32>,       // coarse block level of AO rays: counts (xyz), cells per edge (w; 0: none)
     perf: vec4<u32>,         // x: flags (bit 0: an AO ray entering a block with min >= iso is occluded);
-                             // y, z: offsets of the AO and coarse levels in block_minmax
+                             // y, z: offsets of the AO and coarse levels in block_minmax;
+                             // w: 1 where the kernels mark the bricks rays read (brick_marks)
     voxel_range: vec4<f32>,  // xy: the value range the unorm voxel formats span (lo, hi); zw: 0
     ao_pass: vec4<u32>,      // x: AO samples per dispatch (ao.wgsl); y: the exact AO walk's
                              // iteration cap per ray; z: 0, or the most samples a pixel takes
@@ -72,6 +73,10 @@ var<private> params: FrameParams;
 // unorm16, or four unorm8 per word, the first voxel in the lowest bits.
 @group(0) @binding(1) var<storage, read> volume: array<u32>;
 @group(0) @binding(2) var<storage, read> block_minmax: array<vec2<f32>>; // primary, AO, coarse levels
+// Ray-guided refinement of a bricked volume (`mark_level0_brick` in volume.wgsl): one bit per
+// level-0 brick, set where a ray read that brick or relied on its min/max; the host clears and
+// reads it (daemon/render/src/gpu/brick_pool.rs). A volume held whole binds one unused word.
+@group(0) @binding(11) var<storage, read_write> brick_marks: array<atomic<u32>>;
 
 // Unit ray through the centre of pixel px of the FULL image (camera.wgsl, which the kernel
 // includes before this file).

@@ -136,6 +136,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
                     known = true;
                     continue;
                 }
+                mark_block(b, params.dims.w);
             }
             let t_next = min(t + step, t_exit);
             if !owns(eye + t * dir) {

@@ -152,6 +152,7 @@ fn pool_sample(page: u32, at: vec3<i32>) -> f32 {
 fn bricked_trilinear(u0: vec3<f32>) -> f32 {
     // Level 0, straight-line: the common case once refined.
     let c = level0_cell(u0);
+    mark_level0_brick(c.b);
     let page = brick_page(brick_level0, c.b);
     if page != 0u {
         return brick_trilinear(page, c.x, c.i0, c.b, brick_level0.dims);
@@ -230,10 +231,66 @@ fn bricked_sample(c: vec3<i32>) -> f32 {
         at = b - select(vec3<u32>(0u), vec3<u32>(1u), on_face);
         page = brick_page(lv, at);
     }
+    mark_level0_brick(select(b, at, page != 0u));
     if page != 0u {
         return pool_sample(page, vec3<i32>(u - (at << vec3<u32>(cells))));
     }
     return coarsest_sample(vec3<f32>(c));
+}
+
+// The last level-0 brick this invocation marked (a ray's lookups mostly stay in one brick).
+var<private> last_mark: u32 = 0xffffffffu;
+
+// Marks level-0 brick b in `brick_marks` where the host asked for marks (`params.perf.w`): a
+// ray read it, resident or not. A still frame whose
+// marked bricks are all resident read level 0 wherever it read the volume or relied on a
+// block's min/max (`mark_block`), so it is the whole volume's frame; the host loads the marked
+// bricks that are not (ray-guided rounds, DESIGN.md "Large volumes").
+fn mark_level0_brick(b: vec3<u32>) {
+    if params.perf.w == 0u {
+        return;
+    }
+    let i = b.x + brick_level0.counts.x * (b.y + brick_level0.counts.y * b.z);
+    if i != last_mark {
+        last_mark = i;
+        atomicOr(&brick_marks[i >> 5u], 1u << (i & 31u));
+    }
+}
+
+// Marks block b of the coarse level (`brick_marks` after the level-0 bricks' words): a ray did
+// not skip it on its min/max. It spans many bricks where they are smaller than it; the host loads
+// only those that are not resident and whose range reaches iso (the others cannot change its
+// max against iso). For a volume held whole, nothing.
+fn mark_coarse_block(coarse: Level, b: vec3<u32>) {
+    if !BRICKED || params.perf.w == 0u {
+        return;
+    }
+    let c = brick_level0.counts;
+    let first = (c.x * c.y * c.z + 31u) >> 5u;
+    let i = b.x + coarse.counts.x * (b.y + coarse.counts.y * b.z);
+    atomicOr(&brick_marks[first + (i >> 5u)], 1u << (i & 31u));
+}
+
+// Marks the level-0 bricks that make block b's min/max (the bricks holding its cells; a brick
+// holds its far face, so a block's samples are all in them), where a ray did not skip the block
+// on that min/max: the whole volume's exact range might have let it skip. A decision to skip is
+// the whole volume's too (a brick's range where it is not resident bounds the exact one). For a
+// volume held whole, nothing.
+fn mark_block(b: vec3<u32>, cells: u32) {
+    if !BRICKED {
+        return;
+    }
+    let shift = vec3<u32>(brick_head.y);
+    let top = brick_level0.counts - 1u;
+    let lo = min((b * cells) >> shift, top);
+    let hi = min(((b + 1u) * cells - 1u) >> shift, top);
+    for (var z = lo.z; z <= hi.z; z += 1u) {
+        for (var y = lo.y; y <= hi.y; y += 1u) {
+            for (var x = lo.x; x <= hi.x; x += 1u) {
+                mark_level0_brick(vec3<u32>(x, y, z));
+            }
+        }
+    }
 }
 
 // Where level 0 is not resident, the cell walks of AO rays read the coarsest level's sample
@@ -390,6 +447,8 @@ fn empty_exit(level: Level, coarse: Level, b: vec3<u32>, c: vec3<i32>, o: vec3<f
         if level_range(coarse, cb).y < iso {
             block = cb;
             cells = coarse.cells;
+        } else {
+            mark_coarse_block(coarse, cb);
         }
     }
     return level_exit(block, f32(cells), o, inv_dir);

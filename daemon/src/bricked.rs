@@ -3,9 +3,10 @@
 //! (the pool, `--gpu-budget-mb`) and a host budget (decoded bricks, `--host-budget-mb`).
 //!
 //! `isowalld render` with a GPU budget renders its still frame with every brick it reads at level
-//! 0, in screen regions where the pool cannot hold the whole view's bricks, so what it writes is
-//! the whole volume's picture (tests/gpu_bricks.rs in the render crate holds the two equal bit
-//! for bit).
+//! 0, found by ray-guided rounds (the kernels mark the bricks their rays read; the missing ones
+//! are loaded and the frame rendered again), in screen regions where the pool cannot hold the
+//! bricks of the whole view's rays, so what it writes is the whole volume's picture
+//! (tests/gpu_bricks.rs in the render crate holds the two equal bit for bit).
 
 use anyhow::{anyhow, bail, Context, Result};
 use glam::DVec3;

@@ -211,9 +211,11 @@ pub struct RenderArgs {
     /// Render through the brick cache (DESIGN.md "Large volumes") with a pool of this many MiB of
     /// GPU memory: an OME-Zarr store is read brick by brick (never whole, so it may be larger
     /// than memory), any other volume is loaded whole and cut into a pyramid. Every pixel is
-    /// rendered with the bricks it reads resident at level 0, so the picture is the whole
-    /// volume's picture; where the pool cannot hold the bricks of the whole view, the picture is
-    /// finished in passes over screen regions [default: off: the volume is uploaded whole]
+    /// rendered with the bricks it reads resident at level 0 (ray-guided rounds: each frame
+    /// marks the bricks its rays read, the missing ones are loaded and the frame rendered
+    /// again), so the picture is the whole volume's picture; where the pool cannot hold the
+    /// bricks of the whole view's rays, the picture is finished in passes over screen regions
+    /// [default: off: the volume is uploaded whole]
     #[arg(long = "gpu-budget-mb", value_name = "MIB")]
     pub gpu_budget_mb: Option<u64>,
     /// With --gpu-budget-mb: the most MiB of decoded bricks held in memory (least recently used
@@ -470,9 +472,10 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             (
                 c.frame,
                 format!(
-                    "gpu '{}', {:.1} ms on the GPU; bricks: {} pass(es), at most {} wanted at level 0 in one, {} uploaded, a pool of {} slots in {:.1} MiB, host cache peak {:.1} MiB",
+                    "gpu '{}', {:.1} ms on the GPU; bricks: {} ray-guided round(s) in {} pass(es), at most {} read at level 0 in one, {} uploaded, a pool of {} slots in {:.1} MiB, host cache peak {:.1} MiB",
                     gpu.adapter_name(),
                     c.gpu_time.as_secs_f64() * 1e3,
+                    c.rounds,
                     c.passes,
                     c.most_wanted,
                     r.uploads,

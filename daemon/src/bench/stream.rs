@@ -118,32 +118,21 @@ pub fn run(a: &StreamArgs) -> Result<()> {
         first.uploaded, first.resident, first.wanted
     );
 
-    // Refine the still view: a capped round a frame until every brick it wants is resident.
+    // Finish the still view at level 0: ray-guided rounds, uploads uncapped (the camera is still),
+    // in passes where the rays' bricks outgrow the pool.
     let converge = |b: &mut BrickedOnGpu, view: &View, what: &str| -> Result<f64> {
         let start = Instant::now();
-        let mut rounds = 0;
-        loop {
-            let (r, _) = frame(b, view, true)?;
-            rounds += 1;
-            if r.complete() {
-                let t = start.elapsed().as_secs_f64();
-                println!(
-                    "stream: {what}: level 0 everywhere the view wants it in {t:.2} s, {rounds} frames ({} bricks)",
-                    r.wanted
-                );
-                return Ok(t);
-            }
-            if r.over_pool > 0 {
-                // Larger than the pool: finished in passes instead.
-                let c = b.render_converged(&gpu, view, &settings, None, 1)?.converged;
-                let t = start.elapsed().as_secs_f64();
-                println!(
-                    "stream: {what}: the view's {} bricks are more than the pool's slots: finished in {} passes in {t:.2} s",
-                    r.wanted, c.passes
-                );
-                return Ok(t);
-            }
-        }
+        let c = b.render_converged(&gpu, view, &settings, None, 1)?.converged;
+        let t = start.elapsed().as_secs_f64();
+        println!(
+            "stream: {what}: level 0 everywhere the rays read in {t:.2} s ({:.2} s of it rendering, {:.2} s loading bricks): {} ray-guided rounds in {} pass(es), at most {} bricks read in one",
+            c.gpu_time.as_secs_f64(),
+            c.loading.as_secs_f64(),
+            c.rounds,
+            c.passes,
+            c.most_wanted
+        );
+        Ok(t)
     };
     converge(&mut b, &view, "still at the start")?;
 

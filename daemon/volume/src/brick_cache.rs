@@ -307,8 +307,49 @@ impl HostBrickCache {
             self.stats.hits += 1;
             return Ok(data.clone());
         }
-        self.stats.misses += 1;
+        let data = source.read_brick(key)?;
+        Ok(self.hold(source.layout().brick_bytes(), key, data))
+    }
+
+    /// Reads the bricks of `keys` the cache does not hold, `threads` at a time on threads of
+    /// their own (a store's chunks decode independently), and holds them as [`Self::get`] would,
+    /// in the order given: at most as many as the budget holds, so that none pushes out another
+    /// of them. The caller's `get`s then find them. Memory: the cache's budget and `threads`
+    /// bricks being read.
+    pub fn prefetch(
+        &mut self,
+        source: &dyn BrickSource,
+        keys: &[BrickKey],
+        threads: usize,
+    ) -> Result<(), VolumeError> {
         let bytes = source.layout().brick_bytes();
+        let fits = (self.budget / bytes) as usize;
+        let mut seen = std::collections::HashSet::new();
+        let missing: Vec<BrickKey> =
+            keys.iter().copied().filter(|k| !self.holds(*k) && seen.insert(*k)).take(fits).collect();
+        if threads < 2 || missing.len() < 2 {
+            return Ok(());
+        }
+        for batch in missing.chunks(threads) {
+            let read: Vec<Result<Vec<f32>, VolumeError>> = std::thread::scope(|s| {
+                let readers: Vec<_> = batch.iter().map(|&k| s.spawn(move || source.read_brick(k))).collect();
+                readers
+                    .into_iter()
+                    .map(|r| r.join().unwrap_or_else(|p| std::panic::resume_unwind(p)))
+                    .collect()
+            });
+            for (&key, data) in batch.iter().zip(read) {
+                self.clock += 1;
+                self.hold(bytes, key, data?);
+            }
+        }
+        Ok(())
+    }
+
+    /// Holds `data` (brick `key`, `bytes` bytes) as a miss, evicting the least recently used
+    /// bricks first so the cache never holds more than its budget.
+    fn hold(&mut self, bytes: u64, key: BrickKey, data: Vec<f32>) -> Arc<Vec<f32>> {
+        self.stats.misses += 1;
         while self.stats.bytes + bytes > self.budget {
             let Some(oldest) = self.bricks.iter().min_by_key(|(_, (_, s))| *s).map(|(k, _)| *k) else {
                 break;
@@ -317,11 +358,11 @@ impl HostBrickCache {
             self.stats.bytes -= bytes;
             self.stats.evictions += 1;
         }
-        let data = Arc::new(source.read_brick(key)?);
+        let data = Arc::new(data);
         self.bricks.insert(key, (data.clone(), self.clock));
         self.stats.bytes += bytes;
         self.stats.peak_bytes = self.stats.peak_bytes.max(self.stats.bytes);
-        Ok(data)
+        data
     }
 }
 

@@ -3,8 +3,8 @@
 
 use super::frame_params::gpu_code;
 use super::{
-    buffer_entries, frame_entries, storage_entry, Aovs, FrameParams, GpuContext, GpuError, GpuVolume,
-    PerfOptions,
+    buffer_entries, frame_entries, marks_entry, storage_entry, Aovs, FrameParams, GpuContext, GpuError,
+    GpuVolume, PerfOptions,
 };
 use crate::shaders::Kernel;
 use isowall_model::AoMethod;
@@ -114,14 +114,15 @@ pub struct AoKernel {
 }
 
 impl AoKernel {
-    /// The bind group layout: the frame's inputs (0-2), the primary hits, the accumulators and the
+    /// The bind group layout: the frame's inputs (0-2, 11), the primary hits, the accumulators and the
     /// pass's sample range (a test holds it to naga's reflection of the WGSL).
     pub(crate) fn entries() -> Vec<wgpu::BindGroupLayoutEntry> {
-        let [e0, e1, e2] = frame_entries();
+        let [e0, e1, e2, marks] = frame_entries();
         vec![
             e0,
             e1,
             e2,
+            marks,
             storage_entry(3, true),
             storage_entry(4, true),
             storage_entry(5, true),
@@ -192,6 +193,7 @@ impl AoKernel {
         ];
         let mut entries = buffer_entries(&buffers);
         entries.push(wgpu::BindGroupEntry { binding: 10, resource: a.pos_sum.as_entire_binding() });
+        entries.push(marks_entry(volume));
         entries.push(wgpu::BindGroupEntry {
             binding: 9,
             resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {

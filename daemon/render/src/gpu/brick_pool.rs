@@ -22,7 +22,7 @@
 //! so its blocks are skipped by both), which keeps the march's steps, and so the picture, the
 //! same.
 
-use super::resources::{next_resource_id, BlockLevel, MarchTexture};
+use super::resources::{brick_marks, next_resource_id, BlockLevel, MarchTexture};
 use super::{GpuContext, GpuError, GpuRenderer, GpuVolume, PerfOptions};
 use crate::Frame;
 use isowall_model::camera::Rect;
@@ -94,6 +94,9 @@ pub struct BrickPool {
     bounds: BlockBounds,
     /// A level-0 brick came or went since the block levels were last written.
     bounds_dirty: bool,
+    /// Words of the brick marks, and the coarse level's index in `bounds` where there is one.
+    marks_words: usize,
+    coarse_bounds: Option<usize>,
 }
 
 impl BrickPool {
@@ -133,7 +136,10 @@ impl BrickPool {
         let pool_word = pages_word + n;
         let brick_words = layout.brick_voxels();
         // Counted before anything is allocated: a store's pyramid may be far larger than the budget.
-        let minmax_bytes = 8 * cells.iter().map(|&c| l0_blocks(c as u32)).sum::<u64>();
+        // The marks: a bit per level-0 brick, then one per block of the coarse level.
+        let marks_words = mark_words(&layout) + coarse.map_or(0, |c| l0_blocks(c).div_ceil(32) as usize);
+        let minmax_bytes =
+            8 * cells.iter().map(|&c| l0_blocks(c as u32)).sum::<u64>() + 4 * marks_words as u64;
         let fixed = 4 * pool_word as u64 + minmax_bytes;
         let limit = super::storage_binding_limit(&ctx.device.limits());
         let by_budget = budget.saturating_sub(fixed) / layout.brick_bytes();
@@ -185,13 +191,13 @@ impl BrickPool {
             })
         })?;
         ctx.write_buffer(&voxels, 0, bytemuck::cast_slice(&head));
-        let minmax = bounds.all();
+        let minmax = bounds.all.clone();
         let block_minmax = ctx.storage_init("brick min/max", bytemuck::cast_slice(&minmax))?;
         let (lo, hi) = source.value_range().unwrap_or((0.0, 0.0));
         let level = |k: usize| BlockLevel {
             counts: bounds.levels[k].counts.map(|c| c as u32),
             cells: bounds.levels[k].cells as u32,
-            offset: (0..k).map(|i| bounds.blocks(i)).sum::<usize>() as u32,
+            offset: bounds.levels[k].offset as u32,
         };
         let ao_level = ao.map(|_| level(1));
         let coarse_level = coarse.map(|_| level(cells.len() - 1));
@@ -200,6 +206,8 @@ impl BrickPool {
             id: next_resource_id(),
             voxels,
             block_minmax,
+            brick_marks: brick_marks(ctx, marks_words)?,
+            marking: false,
             march: MarchTexture::new(ctx, &name, None)?,
             format: VoxelFormat::R32F,
             value_range: (lo, hi),
@@ -232,6 +240,8 @@ impl BrickPool {
             layout,
             bounds,
             bounds_dirty: false,
+            marks_words,
+            coarse_bounds: coarse.map(|_| cells.len() - 1),
         };
         let coarsest: Vec<BrickKey> = pool.layout.keys(pool.layout.coarsest()).collect();
         for (slot, key) in coarsest.into_iter().enumerate() {
@@ -294,6 +304,18 @@ impl BrickPool {
             }
         }
         let brick = self.layout.brick_bytes();
+        // The round's uploads read from the source in parallel first (their host cache misses).
+        let room = (self.slots.len() - self.pinned) as u64;
+        let to_upload: Vec<BrickKey> = wanted
+            .iter()
+            .copied()
+            .filter(|k| !self.resident.contains_key(k))
+            .take((upload_cap / brick).clamp(1, room) as usize)
+            .collect();
+        let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+        cache
+            .prefetch(source, &to_upload, threads)
+            .map_err(|e| GpuError::Settings(format!("bricks of {}: {e}", source.name())))?;
         let mut changed = false;
         for &key in wanted {
             if self.resident.contains_key(&key) {
@@ -365,53 +387,131 @@ impl BrickPool {
         Ok(())
     }
 
+    /// Clears the brick marks and has the kernels' frames after this mark the level-0 bricks
+    /// their rays read ([`BrickPool::read_marks`]; until the caller sets `marking` off again).
+    pub fn clear_marks(&mut self, ctx: &GpuContext) {
+        self.volume.marking = true;
+        ctx.write_buffer(&self.volume.brick_marks, 0, &vec![0u8; 4 * self.marks_words]);
+    }
+
+    /// The level-0 bricks the rays of the frames since [`BrickPool::clear_marks`] read or relied
+    /// on the min/max of (shaders/volume.wgsl, `mark_level0_brick`), resident or not; of a coarse
+    /// block they did not skip, its bricks that are not resident and whose range reaches `iso`
+    /// (`mark_coarse_block`). Waits for the GPU.
+    pub fn read_marks(&self, ctx: &GpuContext, iso: f32) -> Result<Vec<BrickKey>, GpuError> {
+        let marks = &self.volume.brick_marks;
+        let staging = ctx.validated("brick marks readback", || {
+            ctx.buffer(
+                "brick marks",
+                marks.size(),
+                wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            )
+        })?;
+        let mut enc =
+            ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("brick marks") });
+        enc.copy_buffer_to_buffer(marks, 0, &staging, 0, None);
+        ctx.queue.submit([enc.finish()]);
+        let (bytes, _) = super::read_buffers(ctx, std::slice::from_ref(&staging))?;
+        let words: Vec<u32> = bytemuck::pod_collect_to_vec(&bytes[0]);
+        let set = |first: usize, i: usize| words[first + (i >> 5)] & (1 << (i & 31)) != 0;
+        let [cx, cy, _] = self.layout.levels[0].counts;
+        let key = |i: usize| BrickKey {
+            level: 0,
+            brick: [(i % cx) as u32, ((i / cx) % cy) as u32, (i / (cx * cy)) as u32],
+        };
+        let mut marked: Vec<BrickKey> = (0..self.layout.bricks(0)).filter(|&i| set(0, i)).map(key).collect();
+        if let Some(k) = self.coarse_bounds {
+            let first = mark_words(&self.layout);
+            let mut more = std::collections::BTreeSet::new();
+            for j in (0..self.bounds.blocks(k)).filter(|&j| set(first, j)) {
+                for i in self.bounds.bricks_of_block(k, j) {
+                    let b = key(i);
+                    if !self.holds(b) && self.bounds.brick_bound[i][1] >= iso {
+                        more.insert(b);
+                    }
+                }
+            }
+            let seen: HashSet<BrickKey> = marked.iter().copied().collect();
+            marked.extend(more.into_iter().filter(|b| !seen.contains(b)));
+        }
+        Ok(marked)
+    }
+
     /// Writes the page tables, and the block levels where they changed.
     fn write_pages(&mut self, ctx: &GpuContext) {
         ctx.write_buffer(&self.volume.voxels, 4 * self.pages_word as u64, bytemuck::cast_slice(&self.pages));
-        // The block levels only where level 0 changed (the whole volume's levels are O(voxels / 512)).
+        // The block levels only where level 0 changed, each level's span of changed blocks (the
+        // whole volume's levels are O(voxels / 512)).
         if std::mem::take(&mut self.bounds_dirty) {
-            ctx.write_buffer(&self.volume.block_minmax, 0, bytemuck::cast_slice(&self.bounds.all()));
+            for (first, values) in self.bounds.take_dirty() {
+                ctx.write_buffer(&self.volume.block_minmax, 8 * first as u64, bytemuck::cast_slice(values));
+            }
         }
         self.volume.id = next_resource_id();
     }
+}
+
+/// Words of a pyramid's brick marks: a bit per level-0 brick.
+fn mark_words(layout: &BrickLayout) -> usize {
+    layout.bricks(0).div_ceil(32)
 }
 
 /// A block level over level 0 ([`BlockBounds`]).
 struct BoundLevel {
     cells: usize,
     counts: [usize; 3],
-    minmax: Vec<[f32; 2]>,
+    /// Its first block in [`BlockBounds::all`].
+    offset: usize,
+    /// The blocks written since the GPU's copy was: the lowest and highest index.
+    dirty: Option<(usize, usize)>,
 }
 
 /// The block levels of empty-space skipping over level 0, kept as the module says.
 struct BlockBounds {
     levels: Vec<BoundLevel>,
+    /// Every level's min/max, in order (the GPU's `block_minmax`).
+    all: Vec<[f32; 2]>,
     /// Level 0's samples on each axis, cells per brick and bricks.
     dims: [usize; 3],
     brick_cells: usize,
     brick_counts: [usize; 3],
     /// Each level-0 brick's range where it is not resident.
     brick_bound: Vec<[f32; 2]>,
-    /// (brick, level, block) -> the exact range of the block's samples in that resident brick.
-    partial: HashMap<([u32; 3], usize, usize), [f32; 2]>,
+    /// Per resident level-0 brick, per level: the exact range of the samples within the brick
+    /// of each block its cells meet ([`BlockBounds::blocks_of_brick`], x fastest).
+    partial: HashMap<[u32; 3], Vec<Vec<[f32; 2]>>>,
 }
 
-/// On one axis: the indices `i` of cells-`c` spans (samples `i*c ..= (i+1)*c`, `count` of them)
-/// whose samples meet the samples `lo ..= hi`.
+/// On one axis: the indices `i` of cells-`c` spans (cells `i*c .. (i+1)*c`, `count` of them)
+/// whose cells meet the cells `lo .. hi` (at least cell `lo`). A span's samples `i*c ..= (i+1)*c`
+/// are those of its cells, so a block's samples are all in the bricks holding its cells (a brick
+/// holds its far face), and a brick's in the blocks holding its cells: the rule the kernels'
+/// `mark_block` follows (shaders/volume.wgsl).
 fn spans_meeting(c: usize, count: usize, lo: usize, hi: usize) -> std::ops::RangeInclusive<usize> {
-    let first = lo.div_ceil(c).saturating_sub(1);
-    let last = (hi / c).min(count - 1);
-    first..=last
+    let first = (lo / c).min(count - 1);
+    let last = (hi.max(lo + 1) - 1) / c;
+    first..=last.min(count - 1)
+}
+
+type Span3 = [std::ops::RangeInclusive<usize>; 3];
+
+/// Index of `b` within the box `r` (x fastest).
+fn local_index(r: &Span3, b: [usize; 3]) -> usize {
+    let n = |a: usize| r[a].end() - r[a].start() + 1;
+    (b[0] - r[0].start()) + n(0) * ((b[1] - r[1].start()) + n(1) * (b[2] - r[2].start()))
 }
 
 impl BlockBounds {
     fn new(layout: &BrickLayout, source: &dyn BrickSource, cells: &[usize]) -> BlockBounds {
         let l0 = &layout.levels[0];
+        let mut offset = 0;
         let levels = cells
             .iter()
             .map(|&c| {
                 let counts = l0.dims.map(|n| (n.max(2) - 1).div_ceil(c));
-                BoundLevel { cells: c, counts, minmax: Vec::new() }
+                let level = BoundLevel { cells: c, counts, offset, dirty: None };
+                offset += counts.iter().product::<usize>();
+                level
             })
             .collect();
         let brick_bound = match source.ranges(0) {
@@ -420,6 +520,7 @@ impl BlockBounds {
         };
         let mut b = BlockBounds {
             levels,
+            all: vec![[0.0; 2]; offset],
             dims: l0.dims,
             brick_cells: layout.cells,
             brick_counts: l0.counts,
@@ -427,11 +528,10 @@ impl BlockBounds {
             partial: HashMap::new(),
         };
         for k in 0..b.levels.len() {
-            let n: usize = b.levels[k].counts.iter().product();
-            b.levels[k].minmax = vec![[0.0; 2]; n];
-            for j in 0..n {
+            for j in 0..b.blocks(k) {
                 b.recompute(k, j);
             }
+            b.levels[k].dirty = None;
         }
         b
     }
@@ -440,91 +540,167 @@ impl BlockBounds {
         self.levels[k].counts.iter().product()
     }
 
-    /// The blocks of level k a level-0 brick's samples meet, as a box of indices per axis.
-    fn blocks_of_brick(&self, k: usize, brick: [u32; 3]) -> [std::ops::RangeInclusive<usize>; 3] {
+    /// The blocks of level k a level-0 brick's cells meet, as a box of indices per axis.
+    fn blocks_of_brick(&self, k: usize, brick: [u32; 3]) -> Span3 {
         let (c, bc) = (self.levels[k].cells, self.brick_cells);
         std::array::from_fn(|a| {
             let lo = brick[a] as usize * bc;
-            let hi = ((brick[a] as usize + 1) * bc).min(self.dims[a] - 1);
+            let hi = ((brick[a] as usize + 1) * bc).min(self.dims[a].max(2) - 1);
             spans_meeting(c, self.levels[k].counts[a], lo, hi)
+        })
+    }
+
+    /// The level-0 bricks (linear indices) holding the cells of block j of level k: those its
+    /// min/max is made of.
+    fn bricks_of_block(&self, k: usize, j: usize) -> impl Iterator<Item = usize> + '_ {
+        let l = &self.levels[k];
+        let (cx, cy) = (l.counts[0], l.counts[1]);
+        let b = [j % cx, (j / cx) % cy, j / (cx * cy)];
+        let [rx, ry, rz]: [_; 3] = std::array::from_fn(|a| {
+            let lo = b[a] * l.cells;
+            let hi = ((b[a] + 1) * l.cells).min(self.dims[a].max(2) - 1);
+            spans_meeting(self.brick_cells, self.brick_counts[a], lo, hi)
+        });
+        let [bx, by] = [self.brick_counts[0], self.brick_counts[1]];
+        rz.flat_map(move |z| {
+            let rx = rx.clone();
+            ry.clone().flat_map(move |y| rx.clone().map(move |x| x + bx * (y + by * z)))
         })
     }
 
     /// Recomputes block j of level k from its bricks.
     fn recompute(&mut self, k: usize, j: usize) {
+        let [bx, by] = [self.brick_counts[0], self.brick_counts[1]];
         let l = &self.levels[k];
-        let (cx, cy) = (l.counts[0], l.counts[1]);
-        let b = [j % cx, (j / cx) % cy, j / (cx * cy)];
-        let bricks: [_; 3] = std::array::from_fn(|a| {
-            let lo = b[a] * l.cells;
-            let hi = ((b[a] + 1) * l.cells).min(self.dims[a] - 1);
-            spans_meeting(self.brick_cells, self.brick_counts[a], lo, hi)
-        });
+        let b = [j % l.counts[0], (j / l.counts[0]) % l.counts[1], j / (l.counts[0] * l.counts[1])];
         let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
-        for z in bricks[2].clone() {
-            for y in bricks[1].clone() {
-                for x in bricks[0].clone() {
-                    let key = [x as u32, y as u32, z as u32];
-                    let m = match self.partial.get(&(key, k, j)) {
-                        Some(m) => *m,
-                        None => self.brick_bound[x + self.brick_counts[0] * (y + self.brick_counts[1] * z)],
-                    };
-                    lo = lo.min(m[0]);
-                    hi = hi.max(m[1]);
-                }
-            }
+        for i in self.bricks_of_block(k, j) {
+            let key = [(i % bx) as u32, ((i / bx) % by) as u32, (i / (bx * by)) as u32];
+            let m = match self.partial.get(&key) {
+                Some(p) => p[k][local_index(&self.blocks_of_brick(k, key), b)],
+                None => self.brick_bound[i],
+            };
+            lo = lo.min(m[0]);
+            hi = hi.max(m[1]);
         }
-        self.levels[k].minmax[j] = [lo, hi];
+        let l = &mut self.levels[k];
+        self.all[l.offset + j] = [lo, hi];
+        l.dirty = Some(l.dirty.map_or((j, j), |(a, z)| (a.min(j), z.max(j))));
     }
 
-    /// A level-0 brick became resident with `data` (its samples), or (`None`) left.
+    /// A level-0 brick became resident with `data` (its samples), or (`None`) left. Each level's
+    /// blocks within the brick are the finest level's (read from the samples) merged where a
+    /// level's cells are a multiple of a finer one's: a block's samples within the brick are
+    /// the union of its finer blocks' there.
     fn brick_changed(&mut self, brick: [u32; 3], data: Option<&[f32]>) {
-        let s = self.brick_cells + 1;
-        let origin = brick.map(|b| b as usize * self.brick_cells);
+        match data {
+            Some(d) => {
+                let mut order: Vec<usize> = (0..self.levels.len()).collect();
+                order.sort_by_key(|&k| self.levels[k].cells);
+                let mut parts: Vec<Vec<[f32; 2]>> = vec![Vec::new(); self.levels.len()];
+                for (n, &k) in order.iter().enumerate() {
+                    let finer = order[..n]
+                        .iter()
+                        .rev()
+                        .copied()
+                        .find(|&m| self.levels[k].cells.is_multiple_of(self.levels[m].cells));
+                    parts[k] = match finer {
+                        Some(m) => self.merged(brick, k, m, &parts[m]),
+                        None => self.read_from_samples(brick, k, d),
+                    };
+                }
+                self.partial.insert(brick, parts);
+            }
+            None => {
+                self.partial.remove(&brick);
+            }
+        }
         for k in 0..self.levels.len() {
             let [rx, ry, rz] = self.blocks_of_brick(k, brick);
-            let (c, counts) = (self.levels[k].cells, self.levels[k].counts);
-            for bz in rz.clone() {
+            let counts = self.levels[k].counts;
+            for bz in rz {
                 for by in ry.clone() {
                     for bx in rx.clone() {
-                        let j = bx + counts[0] * (by + counts[1] * bz);
-                        match data {
-                            Some(d) => {
-                                // The block's samples within the brick, in the brick's indices.
-                                let span = |a: usize, b: usize| {
-                                    let lo = (b * c).max(origin[a]);
-                                    let hi =
-                                        ((b + 1) * c).min(origin[a] + self.brick_cells).min(self.dims[a] - 1);
-                                    (lo - origin[a])..=(hi - origin[a])
-                                };
-                                let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
-                                for z in span(2, bz) {
-                                    for y in span(1, by) {
-                                        for x in span(0, bx) {
-                                            let v = d[x + s * (y + s * z)];
-                                            lo = lo.min(v);
-                                            hi = hi.max(v);
-                                        }
-                                    }
-                                }
-                                if lo <= hi {
-                                    self.partial.insert((brick, k, j), [lo, hi]);
-                                }
-                            }
-                            None => {
-                                self.partial.remove(&(brick, k, j));
-                            }
-                        }
-                        self.recompute(k, j);
+                        self.recompute(k, bx + counts[0] * (by + counts[1] * bz));
                     }
                 }
             }
         }
     }
 
-    /// Every level's min/max, in order (the GPU's `block_minmax`).
-    fn all(&self) -> Vec<[f32; 2]> {
-        self.levels.iter().flat_map(|l| l.minmax.iter().copied()).collect()
+    /// Level k's blocks within `brick`, from its samples `d`.
+    fn read_from_samples(&self, brick: [u32; 3], k: usize, d: &[f32]) -> Vec<[f32; 2]> {
+        let s = self.brick_cells + 1;
+        let origin = brick.map(|b| b as usize * self.brick_cells);
+        let c = self.levels[k].cells;
+        let [rx, ry, rz] = self.blocks_of_brick(k, brick);
+        // The block's samples within the brick, in the brick's indices.
+        let span = |a: usize, b: usize| {
+            let lo = (b * c).max(origin[a]);
+            let hi = ((b + 1) * c).min(origin[a] + self.brick_cells).min(self.dims[a] - 1);
+            (lo - origin[a])..=(hi - origin[a])
+        };
+        let mut out = Vec::new();
+        for bz in rz {
+            for by in ry.clone() {
+                for bx in rx.clone() {
+                    let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+                    for z in span(2, bz) {
+                        for y in span(1, by) {
+                            let row = s * (y + s * z);
+                            for &v in &d[row + *span(0, bx).start()..=row + *span(0, bx).end()] {
+                                lo = lo.min(v);
+                                hi = hi.max(v);
+                            }
+                        }
+                    }
+                    out.push([lo, hi]);
+                }
+            }
+        }
+        out
+    }
+
+    /// Level k's blocks within `brick`, merged from level m's there (`finer`; m's cells divide k's).
+    fn merged(&self, brick: [u32; 3], k: usize, m: usize, finer: &[[f32; 2]]) -> Vec<[f32; 2]> {
+        let ratio = self.levels[k].cells / self.levels[m].cells;
+        let fine = self.blocks_of_brick(m, brick);
+        let [rx, ry, rz] = self.blocks_of_brick(k, brick);
+        let mut out = Vec::new();
+        for bz in rz {
+            for by in ry.clone() {
+                for bx in rx.clone() {
+                    let b = [bx, by, bz];
+                    // The finer blocks of this one that meet the brick's cells.
+                    let r: Span3 = std::array::from_fn(|a| {
+                        (b[a] * ratio).max(*fine[a].start())..=((b[a] + 1) * ratio - 1).min(*fine[a].end())
+                    });
+                    let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+                    for z in r[2].clone() {
+                        for y in r[1].clone() {
+                            for x in r[0].clone() {
+                                let m = finer[local_index(&fine, [x, y, z])];
+                                lo = lo.min(m[0]);
+                                hi = hi.max(m[1]);
+                            }
+                        }
+                    }
+                    out.push([lo, hi]);
+                }
+            }
+        }
+        out
+    }
+
+    /// Each level's blocks written since the last call, as spans of `all` (offset, values).
+    fn take_dirty(&mut self) -> Vec<(usize, &[[f32; 2]])> {
+        let mut spans = Vec::new();
+        for l in &mut self.levels {
+            if let Some((a, z)) = l.dirty.take() {
+                spans.push((l.offset + a, l.offset + z + 1));
+            }
+        }
+        spans.into_iter().map(|(a, z)| (a, &self.all[a..z])).collect()
     }
 }
 
@@ -581,22 +757,31 @@ pub fn wanted_by_views(
 /// A still frame rendered through a pool ([`GpuRenderer::render_converged`]).
 pub struct Converged {
     pub frame: Frame,
-    /// GPU time of the passes' frames.
+    /// GPU time of the rounds' frames.
     pub gpu_time: std::time::Duration,
     /// Screen regions the frame was finished in (1: the pool held the whole view's bricks).
     pub passes: usize,
-    /// The most bricks one pass wanted at level 0.
+    /// The most level-0 bricks the kept frame of one pass read.
     pub most_wanted: usize,
+    /// Ray-guided rounds: the frames rendered, each pass's last (the one kept) included.
+    pub rounds: usize,
+    /// Time spent loading the rounds' bricks: reading them (through the host cache), uploading
+    /// them and updating the page tables and block levels.
+    pub loading: std::time::Duration,
 }
 
 impl GpuRenderer {
     /// The still frame of `view` of `pool`'s volume with every brick it reads at level 0: the
-    /// whole volume's frame (DESIGN.md "Large volumes"). Where the view wants more bricks than
-    /// the pool holds beside its pinned coarsest level, the view is cut into screen regions, each
-    /// halved along its longer side until its bricks fit, and finished one region at a time (a
-    /// pass), each with its own resident set; a pixel is the same whichever rectangle renders it,
-    /// and with the filter on, each region is rendered with the filter's guard band and cut back.
-    /// Refused only where one pixel's bricks exceed the pool.
+    /// whole volume's frame (DESIGN.md "Large volumes"), found by ray-guided rounds. Each round
+    /// renders the region (all `frames`, as the kept frame would be) and reads back the level-0
+    /// bricks its rays read or relied on the min/max of (`brick_marks`); where all of them are
+    /// resident the round's frame is kept, else they are loaded and the region rendered again.
+    /// The set grows only with what rays read, so a round never loads a brick behind the
+    /// first hits it finds. Where a region's bricks outgrow the pool beside its pinned coarsest
+    /// level, the region is halved along its longer side and each half finished in its own pass
+    /// (a pixel is the same whichever rectangle renders it; with the filter on, a region is
+    /// rendered with the filter's guard band and cut back). Refused only where one pixel's
+    /// bricks exceed the pool.
     #[allow(clippy::too_many_arguments)]
     pub fn render_converged(
         &self,
@@ -609,67 +794,113 @@ impl GpuRenderer {
         frames: u32,
     ) -> Result<Converged, GpuError> {
         self.prepare(pool.volume())?;
-        let spacing = pool.layout().levels[0].spacing;
         let free = pool.slots() - pool.pinned;
         let guard = if settings.denoise.is_on() { crate::denoise::reach() } else { 0 };
-        let wanted_in = |rect: Rect| {
-            let grown = View { rect: rect.grown(guard, view.full), ..*view };
-            let fp = footprint(&grown, settings, &self.perf, spacing, true);
-            (grown, wanted_bricks(source, settings.iso as f32, &fp))
+        let mut frame = Frame::new(view.rect.width, view.rect.height);
+        let mut done = Converged {
+            frame: Frame::new(0, 0),
+            gpu_time: std::time::Duration::ZERO,
+            passes: 0,
+            most_wanted: 0,
+            rounds: 0,
+            loading: std::time::Duration::ZERO,
         };
         let mut regions = vec![view.rect];
-        let mut passes = Vec::new();
         while let Some(rect) = regions.pop() {
-            let (grown, wanted) = wanted_in(rect);
-            if wanted.len() <= free {
-                passes.push((rect, grown, wanted));
-                continue;
+            let grown = View { rect: rect.grown(guard, view.full), ..*view };
+            // The level-0 bricks this region's rounds have read so far.
+            let mut needed = std::collections::BTreeSet::new();
+            let mut restarts = 0;
+            loop {
+                pool.clear_marks(&self.ctx);
+                let part = self.render_accumulated(pool.volume(), &grown, settings, env, frames)?;
+                done.gpu_time += part.gpu_time;
+                done.rounds += 1;
+                let marked = pool.read_marks(&self.ctx, settings.iso as f32);
+                pool.volume.marking = false;
+                let marked = marked?;
+                let missing = marked.iter().filter(|k| !pool.holds(**k)).count();
+                let last = marked.len();
+                needed.extend(marked.iter().copied());
+                tracing::debug!(
+                    region = ?(rect.x, rect.y, rect.width, rect.height),
+                    read = needed.len(),
+                    missing,
+                    "a ray-guided round of a still frame through the brick pool"
+                );
+                if missing == 0 {
+                    done.passes += 1;
+                    done.most_wanted = done.most_wanted.max(last);
+                    paste(&mut frame, view.rect, &part.frame, grown.rect, rect);
+                    break;
+                }
+                if needed.len() > free && last <= free && restarts < MAX_ROUND_RESTARTS {
+                    // The earlier rounds' coarser pictures read bricks this one does not: start
+                    // the set over from this round's (a few times, so that rounds end).
+                    restarts += 1;
+                    needed = marked.into_iter().collect();
+                } else if needed.len() > free {
+                    if rect.width <= 1 && rect.height <= 1 {
+                        let over = (needed.len() - free) as u64;
+                        let bytes = pool.gpu_bytes() + over * pool.layout().brick_bytes();
+                        return Err(GpuError::Settings(format!(
+                            "{}: one pixel's still frame reads {} bricks and the pool holds {free} beside the coarsest level: raise the GPU budget to at least {} MiB",
+                            source.name(),
+                            needed.len(),
+                            bytes.div_ceil(1 << 20)
+                        )));
+                    }
+                    // Cut at once into about as many regions as the set is larger than the pool
+                    // (a round of a region that is then cut is spent): halves of halves, nearest
+                    // a power of two above the ratio.
+                    let mut parts = vec![rect];
+                    let pixels = |r: &Rect| r.width * r.height;
+                    while parts.len() < needed.len().div_ceil(free) && parts.iter().any(|r| pixels(r) > 1) {
+                        parts = parts
+                            .into_iter()
+                            .flat_map(|r| {
+                                if pixels(&r) > 1 {
+                                    <[Rect; 2]>::from(halves(r)).to_vec()
+                                } else {
+                                    vec![r]
+                                }
+                            })
+                            .collect();
+                    }
+                    regions.extend(parts.into_iter().rev());
+                    break;
+                }
+                let wanted: Vec<BrickKey> = needed.iter().copied().collect();
+                let loading = std::time::Instant::now();
+                let r = pool.refine(&self.ctx, source, cache, &wanted, u64::MAX)?;
+                done.loading += loading.elapsed();
+                if !r.complete() {
+                    return Err(GpuError::Settings(format!(
+                        "{}: {} of {} bricks of a region are resident after its round",
+                        source.name(),
+                        r.resident,
+                        r.wanted
+                    )));
+                }
             }
-            if rect.width <= 1 && rect.height <= 1 {
-                let needed = pool.gpu_bytes() + (wanted.len() - free) as u64 * pool.layout().brick_bytes();
-                return Err(GpuError::Settings(format!(
-                    "{}: one pixel's still frame reads {} bricks and the pool holds {free} beside the coarsest level: raise the GPU budget to at least {} MiB",
-                    source.name(),
-                    wanted.len(),
-                    needed.div_ceil(1 << 20)
-                )));
-            }
-            let (a, b) = if rect.width >= rect.height {
-                let w = rect.width / 2;
-                (Rect { width: w, ..rect }, Rect { x: rect.x + w, width: rect.width - w, ..rect })
-            } else {
-                let h = rect.height / 2;
-                (Rect { height: h, ..rect }, Rect { y: rect.y + h, height: rect.height - h, ..rect })
-            };
-            regions.push(b);
-            regions.push(a);
         }
-        let mut frame = Frame::new(view.rect.width, view.rect.height);
-        let mut gpu_time = std::time::Duration::ZERO;
-        let mut most_wanted = 0;
-        for (k, (rect, grown, wanted)) in passes.iter().enumerate() {
-            most_wanted = most_wanted.max(wanted.len());
-            tracing::info!(
-                pass = k + 1,
-                of = passes.len(),
-                region = ?(rect.x, rect.y, rect.width, rect.height),
-                bricks = wanted.len(),
-                "a still frame through the brick pool"
-            );
-            let r = pool.refine(&self.ctx, source, cache, wanted, u64::MAX)?;
-            if !r.complete() {
-                return Err(GpuError::Settings(format!(
-                    "{}: {} of {} bricks of a pass are resident",
-                    source.name(),
-                    r.resident,
-                    r.wanted
-                )));
-            }
-            let part = self.render_accumulated(pool.volume(), grown, settings, env, frames)?;
-            gpu_time += part.gpu_time;
-            paste(&mut frame, view.rect, &part.frame, grown.rect, *rect);
-        }
-        Ok(Converged { frame, gpu_time, passes: passes.len(), most_wanted })
+        done.frame = frame;
+        Ok(done)
+    }
+}
+
+/// How often a region's ray-guided rounds start their set of bricks over from the last round's
+/// before the region is cut in two.
+const MAX_ROUND_RESTARTS: usize = 4;
+
+/// `rect` cut in two along its longer side.
+fn halves(rect: Rect) -> (Rect, Rect) {
+    if rect.width >= rect.height {
+        let w = rect.width / 2;
+        (Rect { width: w, ..rect }, Rect { x: rect.x + w, width: rect.width - w, ..rect })
+    } else {
+        let h = rect.height / 2;
+        (Rect { height: h, ..rect }, Rect { y: rect.y + h, height: rect.height - h, ..rect })
     }
 }
 
@@ -694,9 +925,42 @@ fn paste(whole: &mut Frame, whole_rect: Rect, part: &Frame, part_rect: Rect, reg
 
 #[cfg(test)]
 mod tests {
+    use super::BlockBounds;
     use crate::shaders::tests::wgsl_constants;
     use crate::shaders::Kernel;
-    use isowall_volume::brick_cache::MAX_CACHE_LEVELS;
+    use isowall_volume::brick_cache::{BrickKey, BrickSource, InCorePyramid, MAX_CACHE_LEVELS};
+    use isowall_volume::procedural::Procedural;
+    use isowall_volume::{BlockMinMax, VolumeSource};
+
+    #[test]
+    fn with_every_brick_resident_the_block_levels_are_the_whole_volumes() {
+        // 37 samples: the last brick of 8 cells is cut short, the blocks of 32 too.
+        let volume = VolumeSource::Procedural { kind: Procedural::Torus, size: Some(37) }.load(None).unwrap();
+        let pyramid = InCorePyramid::new(volume.clone(), 8).unwrap();
+        let cells = [8, 4, 32];
+        let mut bounds = BlockBounds::new(pyramid.layout(), &pyramid, &cells);
+        let whole: Vec<[f32; 2]> = cells.iter().flat_map(|&c| BlockMinMax::new(&volume, c).minmax).collect();
+        let keys: Vec<BrickKey> = pyramid.layout().keys(0).collect();
+        // None resident: each block bounded by its bricks' ranges, so never tighter than its own.
+        let contains = |outer: &[f32; 2], inner: &[f32; 2]| outer[0] <= inner[0] && outer[1] >= inner[1];
+        assert!(bounds.all.iter().zip(&whole).all(|(b, w)| contains(b, w)));
+        assert!(bounds.all != whole, "the bricks' ranges are looser than some blocks'");
+        for key in &keys {
+            let data = pyramid.read_brick(*key).unwrap();
+            bounds.brick_changed(key.brick, Some(&data));
+        }
+        assert!(bounds.all == whole, "every brick resident: the whole volume's block levels");
+        // Dirty spans cover every changed block, then nothing is left to write.
+        let spans = bounds.take_dirty();
+        assert_eq!(spans.iter().map(|(_, v)| v.len()).sum::<usize>(), whole.len());
+        assert!(bounds.take_dirty().is_empty());
+        // One brick leaves: its blocks go back to its range, the others stay exact.
+        bounds.brick_changed(keys[5].brick, None);
+        assert!(bounds.all != whole && bounds.all.iter().zip(&whole).all(|(b, w)| contains(b, w)));
+        let data = pyramid.read_brick(keys[5]).unwrap();
+        bounds.brick_changed(keys[5].brick, Some(&data));
+        assert!(bounds.all == whole);
+    }
 
     #[test]
     fn the_kernels_hold_as_many_levels_as_the_cache_makes() {

@@ -73,7 +73,8 @@ pub struct FrameParams {
     /// The coarse level of AO rays: counts (xyz), cells per edge (w; 0: none).
     pub coarse: [u32; 4],
     /// x: performance flags (`PERF_*`); y, z: offsets of the AO and coarse levels in the block
-    /// min/max buffer; w: 0.
+    /// min/max buffer; w: 1 where the kernels mark the bricks their rays read (`brick_marks`,
+    /// [`GpuVolume::marking`]), else 0.
     pub perf: [u32; 4],
     /// xy: the value range the unorm voxel formats span (lo, hi); zw: 0.
     pub voxel_range: [f32; 4],
@@ -194,7 +195,7 @@ impl FrameParams {
                 0,
                 volume.ao_level.map_or(0, |l| l.offset),
                 volume.coarse_level.map_or(0, |l| l.offset),
-                0,
+                u32::from(volume.marking),
             ],
             voxel_range: [volume.value_range.0, volume.value_range.1, 0.0, 0.0],
             ao_pass: [s.ao.samples.max(1), exact_walk_cap(volume, s), 0, 0],

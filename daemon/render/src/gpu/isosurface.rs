@@ -2,7 +2,8 @@
 //! Outputs per pixel: direct light + hit flag, N + depth, trilinear fetches.
 
 use super::{
-    buffer_entries, frame_entries, storage_entry, Aovs, GpuContext, GpuError, GpuVolume, PerfOptions,
+    buffer_entries, frame_entries, marks_entry, storage_entry, Aovs, GpuContext, GpuError, GpuVolume,
+    PerfOptions,
 };
 use crate::shaders::Kernel;
 
@@ -14,14 +15,15 @@ pub struct IsosurfaceKernel {
 }
 
 impl IsosurfaceKernel {
-    /// The bind group layout: the frame's inputs (0-2), the three outputs, then the texture
+    /// The bind group layout: the frame's inputs (0-2, 11), the three outputs, then the texture
     /// march's volume and sampler (a test holds it to naga's reflection of the WGSL).
     pub(crate) fn entries() -> Vec<wgpu::BindGroupLayoutEntry> {
-        let [e0, e1, e2] = frame_entries();
+        let [e0, e1, e2, marks] = frame_entries();
         vec![
             e0,
             e1,
             e2,
+            marks,
             storage_entry(3, false),
             storage_entry(4, false),
             storage_entry(5, false),
@@ -67,6 +69,7 @@ impl IsosurfaceKernel {
     ) -> wgpu::BindGroup {
         let io = [params, &volume.voxels, &volume.block_minmax, &aovs.direct, &aovs.geometry, &aovs.fetches];
         let mut entries = buffer_entries(&io);
+        entries.push(marks_entry(volume));
         entries.push(wgpu::BindGroupEntry {
             binding: 6,
             resource: wgpu::BindingResource::TextureView(&volume.march.view),

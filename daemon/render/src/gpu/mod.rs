@@ -363,7 +363,7 @@ impl GpuContext {
 /// Bind group layout entries shared by every kernel: the frame parameters (0), the voxels (1) and
 /// the block min/max (2), as declared in shaders/frame.wgsl (the parameters in a read-only storage
 /// buffer: see there why not a uniform).
-pub(crate) fn frame_entries() -> [wgpu::BindGroupLayoutEntry; 3] {
+pub(crate) fn frame_entries() -> [wgpu::BindGroupLayoutEntry; 4] {
     [
         wgpu::BindGroupLayoutEntry {
             binding: 0,
@@ -377,7 +377,16 @@ pub(crate) fn frame_entries() -> [wgpu::BindGroupLayoutEntry; 3] {
         },
         storage_entry(1, true),
         storage_entry(2, true),
+        storage_entry(MARKS_BINDING, false),
     ]
+}
+
+/// Where the volume kernels bind a volume's `brick_marks` (shaders/frame.wgsl).
+pub(crate) const MARKS_BINDING: u32 = 11;
+
+/// The bind group entry of `volume`'s brick marks.
+pub(crate) fn marks_entry(volume: &GpuVolume) -> wgpu::BindGroupEntry<'_> {
+    wgpu::BindGroupEntry { binding: MARKS_BINDING, resource: volume.brick_marks.as_entire_binding() }
 }
 
 /// Bind group entries binding `buffers` whole at bindings 0, 1, 2, ... in order.

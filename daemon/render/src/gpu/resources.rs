@@ -28,6 +28,17 @@ pub(crate) fn next_resource_id() -> u64 {
     NEXT.fetch_add(1, Ordering::Relaxed)
 }
 
+/// The buffer of a volume's brick marks, `words` 32-bit words (zeroed).
+pub(crate) fn brick_marks(ctx: &GpuContext, words: usize) -> Result<wgpu::Buffer, GpuError> {
+    ctx.validated("upload", || {
+        ctx.buffer(
+            "brick marks",
+            4 * words.max(1) as u64,
+            wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::COPY_SRC,
+        )
+    })
+}
+
 /// A volume on the GPU: voxels (packed as `format`) and per-block min/max (the fine level, then the
 /// coarse one).
 pub struct GpuVolume {
@@ -35,6 +46,13 @@ pub struct GpuVolume {
     pub id: u64,
     pub(crate) voxels: wgpu::Buffer,
     pub(crate) block_minmax: wgpu::Buffer,
+    /// One bit per level-0 brick the kernels set where a ray read it (a bricked volume's; one
+    /// unused word for a volume held whole): shaders/frame.wgsl, `brick_marks`.
+    pub(crate) brick_marks: wgpu::Buffer,
+    /// Whether the kernels set `brick_marks` (a bricked volume's ray-guided rounds; the check
+    /// costs a lookup one comparison where off, the marks themselves about a fifth of a bricked
+    /// frame on lavapipe).
+    pub marking: bool,
     /// The texture march's copy of the voxels (`PerfOptions::texture`), or one texel.
     pub march: MarchTexture,
     /// How the voxels are stored; the kernels that read them must be compiled for it.
@@ -301,6 +319,8 @@ impl GpuVolume {
             id: next_resource_id(),
             voxels,
             block_minmax,
+            brick_marks: brick_marks(ctx, 1)?,
+            marking: false,
             march,
             format,
             value_range,
