@@ -13,7 +13,9 @@ use glam::DVec3;
 use isowall_model::config::BrickBudgets;
 use isowall_model::{RenderSettings, View};
 use isowall_render::gpu::{wanted_by_views, BrickPool, Converged, GpuRenderer, Refinement};
-use isowall_volume::brick_cache::{BrickSource, HostBrickCache, InCorePyramid, DEFAULT_BRICK_CELLS};
+use isowall_volume::brick_cache::{
+    BrickKey, BrickSource, HostBrickCache, InCorePyramid, DEFAULT_BRICK_CELLS,
+};
 use isowall_volume::io::ome_zarr::{is_zarr, OmeZarr};
 use isowall_volume::io::{RawSpec, VolumeLimit};
 use isowall_volume::{Orientation, VolumeSource};
@@ -114,6 +116,34 @@ pub struct BrickedOnGpu {
     pub cache: HostBrickCache,
     pub pool: BrickPool,
     pub budgets: BrickBudgets,
+    /// A still view's ray-guided refinement, where its footprint's set is larger than the pool.
+    pub guide: RayGuide,
+}
+
+/// A wall node's still view refined by the bricks its rays read (ray-guided, as
+/// [`GpuRenderer::render_converged`]'s rounds, one a frame): entered where the bricks its
+/// footprint wants (every brick near the iso in the views' cones, to the far side) are more than
+/// the pool holds; left when the camera moves.
+#[derive(Debug, Default)]
+pub struct RayGuide {
+    /// The still view is refined by what its rays read, not by its footprint.
+    pub active: bool,
+    /// The frame being rendered marks the bricks its rays read.
+    pub marking: bool,
+    /// The level-0 bricks the marked frames have read since the camera stopped (started over
+    /// from the last frame's where they outgrow the pool).
+    read: std::collections::BTreeSet<BrickKey>,
+    /// The last marked frame read only resident bricks: level 0 wherever it read the volume.
+    pub converged: bool,
+}
+
+/// What a marked frame told ([`BrickedOnGpu::after_frame`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct GuidedFrame {
+    pub read: usize,
+    pub missing: usize,
+    /// The bricks its rays read are more than the pool holds beside its coarsest level.
+    pub over_pool: bool,
 }
 
 impl BrickedOnGpu {
@@ -123,11 +153,14 @@ impl BrickedOnGpu {
             .map_err(|e| anyhow!("the host budget (--host-budget-mb, [volume] host_budget_mb): {e}"))?;
         let pool = BrickPool::new(&gpu.ctx, &gpu.perf(), source, &mut cache, budgets.gpu)
             .context("the GPU budget (--gpu-budget-mb, [volume] gpu_budget_mb)")?;
-        Ok(BrickedOnGpu { volume, cache, pool, budgets })
+        Ok(BrickedOnGpu { volume, cache, pool, budgets, guide: RayGuide::default() })
     }
 
     /// One frame's round of uploads, at most the budget's uploads a frame: the bricks `views`
-    /// want (level 0 where `still`, else each brick's footprint level), nearest first.
+    /// want (level 0 where `still`, else each brick's footprint level), nearest first. A still
+    /// view whose footprint wants more bricks than the pool holds is refined by what its rays
+    /// read instead ([`RayGuide`]): this frame then marks them, and [`BrickedOnGpu::after_frame`]
+    /// reads the marks once it is rendered.
     pub fn refine(
         &mut self,
         gpu: &GpuRenderer,
@@ -136,9 +169,54 @@ impl BrickedOnGpu {
         still: bool,
     ) -> Result<Refinement> {
         let source = self.volume.source.as_ref();
-        let wanted = wanted_by_views(source, views, settings, &gpu.perf(), still);
         let cap = self.budgets.upload_per_frame;
-        Ok(self.pool.refine(&gpu.ctx, source, &mut self.cache, &wanted, cap)?)
+        if !still {
+            self.guide = RayGuide::default();
+        }
+        let wanted = if still && self.guide.active {
+            // Nearest first, so that capped rounds fill the front of the view first.
+            let eye = views.first().map_or(DVec3::ZERO, |v| v.camera.eye);
+            let layout = self.pool.layout();
+            let distance = |k: &BrickKey| {
+                let (lo, hi) = layout.brick_box(*k);
+                (0.5 * (lo + hi)).distance_squared(eye)
+            };
+            let mut read: Vec<BrickKey> = self.guide.read.iter().copied().collect();
+            read.sort_by(|a, b| distance(a).total_cmp(&distance(b)));
+            read
+        } else {
+            wanted_by_views(source, views, settings, &gpu.perf(), still)
+        };
+        let r = self.pool.refine(&gpu.ctx, source, &mut self.cache, &wanted, cap)?;
+        if still && !self.guide.active && r.over_pool > 0 {
+            self.guide.active = true;
+        }
+        self.guide.marking = still && self.guide.active && !self.guide.converged;
+        if self.guide.marking {
+            self.pool.clear_marks(&gpu.ctx);
+        }
+        Ok(r)
+    }
+
+    /// After a frame [`BrickedOnGpu::refine`] had mark: reads the bricks its rays read (waiting
+    /// for the GPU) and keeps them for the next frame's round; `None` where the frame marked
+    /// nothing.
+    pub fn after_frame(&mut self, gpu: &GpuRenderer, iso: f64) -> Result<Option<GuidedFrame>> {
+        if !std::mem::take(&mut self.guide.marking) {
+            return Ok(None);
+        }
+        let marked = self.pool.read_marks(&gpu.ctx, iso as f32);
+        self.pool.stop_marking();
+        let marked = marked?;
+        let missing = marked.iter().filter(|k| !self.pool.holds(**k)).count();
+        let g = &mut self.guide;
+        g.converged = missing == 0;
+        g.read.extend(marked.iter().copied());
+        let free = self.pool.free_slots();
+        if g.read.len() > free {
+            g.read = marked.iter().copied().collect();
+        }
+        Ok(Some(GuidedFrame { read: marked.len(), missing, over_pool: marked.len() > free }))
     }
 
     /// The GPU budget the still view that left `over` wanted bricks out needs, in MiB.

@@ -13,7 +13,7 @@
 //! render thread filtered and composed, or the image the node composited on the CPU, uploaded
 //! ([`RenderHandle::show`]).
 
-use crate::bricked::{BrickedOnGpu, BrickedVolume};
+use crate::bricked::{BrickedOnGpu, BrickedVolume, RayGuide};
 use crate::presenter::Shown;
 use anyhow::{Context, Result};
 use isowall_model::config::BrickBudgets;
@@ -831,6 +831,41 @@ impl RenderLoop {
                     .map_err(|e| format!("tile {name}: {e}"))?;
             }
         }
+        self.after_bricked_frame(plan.frame_id, settings.iso)
+    }
+
+    /// A still frame of a ray-guided refinement ([`crate::bricked::RayGuide`]) has rendered:
+    /// reads the bricks its rays read, for the next frame's round, and says once how the
+    /// refinement ended.
+    fn after_bricked_frame(&mut self, frame_id: u64, iso: f64) -> Result<(), String> {
+        let Some(b) = self.bricked.as_mut() else {
+            return Ok(());
+        };
+        let Some(g) = b.after_frame(&self.gpu, iso).map_err(|e| format!("the brick cache: {e:#}"))? else {
+            return Ok(());
+        };
+        tracing::debug!(frame_id, read = g.read, missing = g.missing, "bricks the frame's rays read");
+        let free = b.pool.free_slots();
+        if g.missing == 0 && !self.still_said {
+            self.still_said = true;
+            tracing::info!(
+                frame_id,
+                "this node's still view has the {} bricks its rays read at level 0 (of the volume's {}; its footprint wanted more than the pool's {} slots), {} MiB uploaded so far",
+                g.read,
+                b.pool.layout().bricks(0),
+                free,
+                b.pool.stats().upload_bytes >> 20
+            );
+        } else if g.over_pool && !self.still_said {
+            self.still_said = true;
+            tracing::warn!(
+                frame_id,
+                "this node's still view's rays read {} bricks at level 0 and its pool holds {} of them: the rest is drawn from coarser levels; raise [volume] gpu_budget_mb to at least {} for level 0 everywhere",
+                g.read,
+                free,
+                b.needed_mib(g.read - free)
+            );
+        }
         Ok(())
     }
 
@@ -849,6 +884,11 @@ impl RenderLoop {
             return Ok(());
         };
         let still = plan.continuity != Continuity::ViewMoved;
+        if plan.continuity == Continuity::Changed {
+            // A new picture (iso, settings, volume): the bricks its rays read are found anew.
+            b.guide = RayGuide::default();
+            self.still_said = false;
+        }
         let views: Vec<View> =
             plan.views.iter().map(|(_, v)| View { rect: v.rect.grown(guard, v.full), ..*v }).collect();
         let t0 = Instant::now();
@@ -866,6 +906,8 @@ impl RenderLoop {
         );
         if !still {
             self.still_said = false;
+        } else if b.guide.active {
+            // Said once its rays' bricks are read (`after_bricked_frame`).
         } else if r.complete() && !self.still_said {
             self.still_said = true;
             tracing::info!(
@@ -874,15 +916,6 @@ impl RenderLoop {
                 r.wanted,
                 b.pool.layout().bricks(0),
                 b.pool.stats().upload_bytes >> 20
-            );
-        } else if r.over_pool > 0 && !self.still_said {
-            self.still_said = true;
-            tracing::warn!(
-                frame_id = plan.frame_id,
-                "this node's still view wants {} bricks at level 0 and its pool holds {} of them: the rest is drawn from coarser levels; raise [volume] gpu_budget_mb to at least {} for level 0 everywhere",
-                r.wanted,
-                r.resident,
-                b.needed_mib(r.over_pool)
             );
         }
         Ok(())

@@ -270,6 +270,11 @@ impl BrickPool {
         self.slots.len()
     }
 
+    /// Slots beside the pinned coarsest level: the most bricks one resident set can have.
+    pub fn free_slots(&self) -> usize {
+        self.slots.len() - self.pinned
+    }
+
     /// Bytes the pool holds on the GPU: within the budget it was made with.
     pub fn gpu_bytes(&self) -> u64 {
         self.bytes
@@ -388,7 +393,7 @@ impl BrickPool {
     }
 
     /// Clears the brick marks and has the kernels' frames after this mark the level-0 bricks
-    /// their rays read ([`BrickPool::read_marks`]; until the caller sets `marking` off again).
+    /// their rays read ([`BrickPool::read_marks`]), until [`BrickPool::stop_marking`].
     pub fn clear_marks(&mut self, ctx: &GpuContext) {
         self.volume.marking = true;
         ctx.write_buffer(&self.volume.brick_marks, 0, &vec![0u8; 4 * self.marks_words]);
@@ -435,6 +440,11 @@ impl BrickPool {
             marked.extend(more.into_iter().filter(|b| !seen.contains(b)));
         }
         Ok(marked)
+    }
+
+    /// The kernels' frames after this mark nothing (the marks stay as they are until cleared).
+    pub fn stop_marking(&mut self) {
+        self.volume.marking = false;
     }
 
     /// Writes the page tables, and the block levels where they changed.
@@ -794,7 +804,7 @@ impl GpuRenderer {
         frames: u32,
     ) -> Result<Converged, GpuError> {
         self.prepare(pool.volume())?;
-        let free = pool.slots() - pool.pinned;
+        let free = pool.free_slots();
         let guard = if settings.denoise.is_on() { crate::denoise::reach() } else { 0 };
         let mut frame = Frame::new(view.rect.width, view.rect.height);
         let mut done = Converged {
@@ -817,7 +827,7 @@ impl GpuRenderer {
                 done.gpu_time += part.gpu_time;
                 done.rounds += 1;
                 let marked = pool.read_marks(&self.ctx, settings.iso as f32);
-                pool.volume.marking = false;
+                pool.stop_marking();
                 let marked = marked?;
                 let missing = marked.iter().filter(|k| !pool.holds(**k)).count();
                 let last = marked.len();
