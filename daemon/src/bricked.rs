@@ -121,20 +121,26 @@ pub struct BrickedOnGpu {
 }
 
 /// A wall node's still view refined by the bricks its rays read (ray-guided, as
-/// [`GpuRenderer::render_converged`]'s rounds, one a frame): entered where the bricks its
-/// footprint wants (every brick near the iso in the views' cones, to the far side) are more than
-/// the pool holds; left when the camera moves.
+/// [`GpuRenderer::render_converged`]'s rounds, one a frame): entered at the still view's first
+/// frame where the bricks its footprint wants (every brick near the iso in the views' cones, to
+/// the far side) are more than the pool holds beside its coarsest level; left when the camera
+/// moves.
 #[derive(Debug, Default)]
 pub struct RayGuide {
     /// The still view is refined by what its rays read, not by its footprint.
     pub active: bool,
     /// The frame being rendered marks the bricks its rays read.
-    pub marking: bool,
+    marking: bool,
     /// The level-0 bricks the marked frames have read since the camera stopped (started over
     /// from the last frame's where they outgrow the pool).
     read: std::collections::BTreeSet<BrickKey>,
-    /// The last marked frame read only resident bricks: level 0 wherever it read the volume.
-    pub converged: bool,
+    /// The last marked frame's rays read more bricks than the pool holds.
+    over_pool: bool,
+    /// No more marks until the picture changes: the last marked frame read only resident bricks
+    /// (level 0 wherever it read the volume), or it read more than the pool holds and the round
+    /// after it could load nothing (the pool is full of what the rays read: each marked frame
+    /// waits for the GPU, which a still wall need not pay for nothing).
+    settled: bool,
 }
 
 /// What a marked frame told ([`BrickedOnGpu::after_frame`]).
@@ -185,22 +191,26 @@ impl BrickedOnGpu {
             read.sort_by(|a, b| distance(a).total_cmp(&distance(b)));
             read
         } else {
-            wanted_by_views(source, views, settings, &gpu.perf(), still)
+            let wanted = wanted_by_views(source, views, settings, &gpu.perf(), still);
+            // Known before any upload: this round still loads the footprint's nearest, and
+            // marks what the rays read for the next.
+            self.guide.active = still && wanted.len() > self.pool.free_slots();
+            wanted
         };
         let r = self.pool.refine(&gpu.ctx, source, &mut self.cache, &wanted, cap)?;
-        if still && !self.guide.active && r.over_pool > 0 {
-            self.guide.active = true;
+        if self.guide.over_pool && r.uploaded == 0 {
+            self.guide.settled = true;
         }
-        self.guide.marking = still && self.guide.active && !self.guide.converged;
+        self.guide.marking = still && self.guide.active && !self.guide.settled;
         if self.guide.marking {
             self.pool.clear_marks(&gpu.ctx);
         }
         Ok(r)
     }
 
-    /// After a frame [`BrickedOnGpu::refine`] had mark: reads the bricks its rays read (waiting
-    /// for the GPU) and keeps them for the next frame's round; `None` where the frame marked
-    /// nothing.
+    /// After a frame for which [`BrickedOnGpu::refine`] turned the marks on: reads the bricks its
+    /// rays read (waiting for the GPU) and keeps them for the next frame's round; `None` where
+    /// the frame marked nothing.
     pub fn after_frame(&mut self, gpu: &GpuRenderer, iso: f64) -> Result<Option<GuidedFrame>> {
         if !std::mem::take(&mut self.guide.marking) {
             return Ok(None);
@@ -209,14 +219,15 @@ impl BrickedOnGpu {
         self.pool.stop_marking();
         let marked = marked?;
         let missing = marked.iter().filter(|k| !self.pool.holds(**k)).count();
-        let g = &mut self.guide;
-        g.converged = missing == 0;
-        g.read.extend(marked.iter().copied());
         let free = self.pool.free_slots();
+        let g = &mut self.guide;
+        g.settled = missing == 0;
+        g.over_pool = marked.len() > free;
+        g.read.extend(marked.iter().copied());
         if g.read.len() > free {
             g.read = marked.iter().copied().collect();
         }
-        Ok(Some(GuidedFrame { read: marked.len(), missing, over_pool: marked.len() > free }))
+        Ok(Some(GuidedFrame { read: marked.len(), missing, over_pool: g.over_pool }))
     }
 
     /// The GPU budget the still view that left `over` wanted bricks out needs, in MiB.
