@@ -33,6 +33,9 @@ use isowall_volume::brick_cache::{
 use isowall_volume::VoxelFormat;
 use std::collections::{HashMap, HashSet};
 
+/// The most bytes of bricks a round stages for the GPU before it waits for them to be written.
+const STAGED_BYTES: u64 = 16 << 20;
+
 /// Words before the first level's directory entry.
 const HEADER_WORDS: usize = 4;
 /// Words of one level's directory entry.
@@ -351,6 +354,12 @@ impl BrickPool {
             r.uploaded += 1;
             r.upload_bytes += brick;
             changed = true;
+            // Each write is staged in host memory until a submission carries it: a round of a
+            // still frame may upload the whole pool, so the staged bytes are bounded.
+            if r.upload_bytes % STAGED_BYTES < brick {
+                ctx.queue.submit([]);
+                ctx.wait()?;
+            }
         }
         if changed {
             self.write_pages(ctx);
