@@ -725,7 +725,8 @@ impl BlockBounds {
 
 /// What a view of a bricked volume asks of the cache ([`wanted_bricks`]): its eye, pixel size,
 /// cone, and how far its rays can read outside the cone (the AO radius and offset, and two
-/// voxels for the gradient's stencil and the AO walk's cells; unbounded AO: nothing culled).
+/// voxels for the gradient's stencil and the AO walk's cells; unbounded AO: nothing culled;
+/// without AO samples no AO ray is cast, the two voxels alone).
 pub fn footprint(
     view: &View,
     settings: &RenderSettings,
@@ -736,10 +737,11 @@ pub fn footprint(
     let c = &view.camera;
     let pixel_angle = 2.0 * (c.fov_y_deg.to_radians() / 2.0).tan() / f64::from(view.full.1.max(1));
     let voxel = spacing.max_element();
-    let reach = settings
-        .ao
-        .radius_world(spacing)
-        .map_or(f64::INFINITY, |r| r + (settings.ao.offset_voxels + settings.ao.step_voxels + 2.0) * voxel);
+    let reach = match settings.ao.radius_world(spacing) {
+        _ if settings.ao.samples == 0 => 2.0 * voxel,
+        Some(r) => r + (settings.ao.offset_voxels + settings.ao.step_voxels + 2.0) * voxel,
+        None => f64::INFINITY,
+    };
     ViewFootprint {
         eye: c.eye,
         pixel_angle,
@@ -824,9 +826,36 @@ impl GpuRenderer {
             rounds: 0,
             loading: std::time::Duration::ZERO,
         };
-        let mut regions = vec![view.rect];
-        while let Some(rect) = regions.pop() {
+        let spacing = pool.layout().levels[0].spacing;
+        // Each region with the bricks the rays of the region it was cut from read (none for the
+        // whole view): the part of them its own cone can reach is loaded before its first round.
+        let mut regions: Vec<(Rect, std::rc::Rc<Vec<BrickKey>>)> = vec![(view.rect, Default::default())];
+        while let Some((rect, hint)) = regions.pop() {
             let grown = View { rect: rect.grown(guard, view.full), ..*view };
+            let fp = footprint(&grown, settings, &self.perf, spacing, true);
+            let layout = pool.layout();
+            let predicted: Vec<BrickKey> = hint
+                .iter()
+                .copied()
+                .filter(|k| {
+                    let (lo, hi) = layout.brick_box(*k);
+                    fp.sees(lo, hi)
+                })
+                .collect();
+            if predicted.len() > free && rect.width * rect.height > MIN_PREDICTED_CUT {
+                // Far over the pool already by what the parent's rays read here: cut without a
+                // round. (The cone grown by the AO reach takes more than the rays read: small
+                // regions are left to their rounds.)
+                let (a, b) = halves(rect);
+                regions.push((b, hint.clone()));
+                regions.push((a, hint));
+                continue;
+            }
+            if !predicted.is_empty() && predicted.len() <= free {
+                let loading = std::time::Instant::now();
+                pool.refine(&self.ctx, source, cache, &predicted, u64::MAX)?;
+                done.loading += loading.elapsed();
+            }
             // The level-0 bricks this region's rounds have read so far.
             let mut needed = std::collections::BTreeSet::new();
             let mut restarts = 0;
@@ -886,7 +915,8 @@ impl GpuRenderer {
                             })
                             .collect();
                     }
-                    regions.extend(parts.into_iter().rev());
+                    let read = std::rc::Rc::new(needed.iter().copied().collect::<Vec<_>>());
+                    regions.extend(parts.into_iter().rev().map(|r| (r, read.clone())));
                     break;
                 }
                 let wanted: Vec<BrickKey> = needed.iter().copied().collect();
@@ -907,6 +937,9 @@ impl GpuRenderer {
         Ok(done)
     }
 }
+
+/// The fewest pixels a region is cut into parts by what its parent's rays read, without a round.
+const MIN_PREDICTED_CUT: u32 = 32 * 32;
 
 /// How often a region's ray-guided rounds start their set of bricks over from the last round's
 /// before the region is cut in two.
