@@ -843,9 +843,9 @@ impl GpuRenderer {
                 })
                 .collect();
             if predicted.len() > free && rect.width * rect.height > MIN_PREDICTED_CUT {
-                // Far over the pool already by what the parent's rays read here: cut without a
-                // round. (The cone grown by the AO reach takes more than the rays read: small
-                // regions are left to their rounds.)
+                // Over the pool already by what the parent's rays read here: cut without a round.
+                // (The cone grown by the AO reach takes more than the rays read: small regions
+                // are left to their rounds.)
                 let (a, b) = halves(rect);
                 regions.push((b, hint.clone()));
                 regions.push((a, hint));
@@ -899,23 +899,9 @@ impl GpuRenderer {
                         )));
                     }
                     // Cut at once into about as many regions as the set is larger than the pool
-                    // (a round of a region that is then cut is spent): halves of halves, nearest
-                    // a power of two above the ratio.
-                    let mut parts = vec![rect];
-                    let pixels = |r: &Rect| r.width * r.height;
-                    while parts.len() < needed.len().div_ceil(free) && parts.iter().any(|r| pixels(r) > 1) {
-                        parts = parts
-                            .into_iter()
-                            .flat_map(|r| {
-                                if pixels(&r) > 1 {
-                                    <[Rect; 2]>::from(halves(r)).to_vec()
-                                } else {
-                                    vec![r]
-                                }
-                            })
-                            .collect();
-                    }
+                    // (a round of a region that is then cut is spent).
                     let read = std::rc::Rc::new(needed.iter().copied().collect::<Vec<_>>());
+                    let parts = parts(rect, needed.len().div_ceil(free));
                     regions.extend(parts.into_iter().rev().map(|r| (r, read.clone())));
                     break;
                 }
@@ -944,6 +930,20 @@ const MIN_PREDICTED_CUT: u32 = 32 * 32;
 /// How often a region's ray-guided rounds start their set of bricks over from the last round's
 /// before the region is cut in two.
 const MAX_ROUND_RESTARTS: usize = 4;
+
+/// `rect` cut into at least `n` parts where it has the pixels: halves of halves (along the longer
+/// side), the nearest power of two at or above `n`.
+fn parts(rect: Rect, n: usize) -> Vec<Rect> {
+    let pixels = |r: &Rect| r.width * r.height;
+    let mut parts = vec![rect];
+    while parts.len() < n && parts.iter().any(|r| pixels(r) > 1) {
+        parts = parts
+            .into_iter()
+            .flat_map(|r| if pixels(&r) > 1 { <[Rect; 2]>::from(halves(r)).to_vec() } else { vec![r] })
+            .collect();
+    }
+    parts
+}
 
 /// `rect` cut in two along its longer side.
 fn halves(rect: Rect) -> (Rect, Rect) {
@@ -983,6 +983,35 @@ mod tests {
     use isowall_volume::brick_cache::{BrickKey, BrickSource, InCorePyramid, MAX_CACHE_LEVELS};
     use isowall_volume::procedural::Procedural;
     use isowall_volume::{BlockMinMax, VolumeSource};
+
+    #[test]
+    fn a_region_is_cut_into_parts_that_cover_it_once() {
+        use isowall_model::camera::Rect;
+        for (rect, n, expect) in [
+            (Rect { x: 3, y: 1, width: 5, height: 3 }, 3, 4),
+            (Rect { x: 0, y: 0, width: 64, height: 64 }, 16, 16),
+            (Rect { x: 0, y: 0, width: 2, height: 1 }, 8, 2),
+            (Rect { x: 7, y: 7, width: 1, height: 1 }, 8, 1),
+        ] {
+            let parts = super::parts(rect, n);
+            assert_eq!(parts.len(), expect, "{rect:?} into {n}: {parts:?}");
+            let mut covered = std::collections::HashMap::new();
+            for p in &parts {
+                assert!(p.width > 0 && p.height > 0, "{p:?}");
+                for y in p.y..p.y + p.height {
+                    for x in p.x..p.x + p.width {
+                        *covered.entry((x, y)).or_insert(0) += 1;
+                    }
+                }
+            }
+            assert_eq!(covered.len(), (rect.width * rect.height) as usize, "{rect:?}: {parts:?}");
+            assert!(covered.values().all(|&c| c == 1), "{rect:?}: {parts:?}");
+            assert!(covered.keys().all(|&(x, y)| x >= rect.x
+                && y >= rect.y
+                && x < rect.x + rect.width
+                && y < rect.y + rect.height));
+        }
+    }
 
     #[test]
     fn with_every_brick_resident_the_block_levels_are_the_whole_volumes() {
