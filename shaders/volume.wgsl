@@ -242,10 +242,10 @@ fn bricked_sample(c: vec3<i32>) -> f32 {
 var<private> last_mark: u32 = 0xffffffffu;
 
 // Marks level-0 brick b in `brick_marks` where the host asked for marks (`params.perf.w`): a
-// ray read it, resident or not. A still frame whose
-// marked bricks are all resident read level 0 wherever it read the volume or relied on a
-// block's min/max (`mark_block`), so it is the whole volume's frame; the host loads the marked
-// bricks that are not (ray-guided rounds, DESIGN.md "Large volumes").
+// ray read it, resident or not. A still frame whose marked bricks are all resident read level 0
+// wherever it read the volume or relied on a block's min/max (`mark_block`), so it is the whole
+// volume's frame; the host loads the marked bricks that are not (ray-guided rounds, DESIGN.md
+// "Large volumes").
 fn mark_level0_brick(b: vec3<u32>) {
     if params.perf.w == 0u {
         return;
@@ -277,7 +277,7 @@ fn mark_coarse_block(coarse: Level, b: vec3<u32>) {
 // the whole volume's too (a brick's range where it is not resident bounds the exact one). For a
 // volume held whole, nothing.
 fn mark_block(b: vec3<u32>, cells: u32) {
-    if !BRICKED {
+    if !BRICKED || params.perf.w == 0u {
         return;
     }
     let shift = vec3<u32>(brick_head.y);
