@@ -139,14 +139,18 @@ fn the_ct_converted_to_ome_zarr_renders_exactly_as_its_nrrd_and_its_levels_withi
         .value_range()
         .1;
     assert!(coarsest_max < hi - 1.0, "{coarsest_max} {hi}");
-    for (iso, ok) in [(300.0, true), (hi as f64 - 1.0, true), (hi as f64 + 10.0, false)] {
+    // `isowall check-config` of a one-node wall of the store with these `[volume]` lines.
+    let check = |volume: &str| {
         let config = format!(
-            "[wall]\nname = \"z\"\n\n[volume]\nsource = \"ct.ome.zarr\"\niso = {iso}\nmax_bytes = 100000\n\n\
+            "[wall]\nname = \"z\"\n\n[volume]\nsource = \"ct.ome.zarr\"\n{volume}\n\
              [[tiles]]\nname = \"t\"\nx = 0\ny = 0\nwidth = 64\nheight = 48\n\n\
              [[nodes]]\nname = \"n\"\naddress = \"127.0.0.1:7999\"\ntiles = [\"t\"]\n"
         );
         std::fs::write(dir.path().join("z.toml"), config).unwrap();
-        let o = run_in(dir.path(), "isowall", &["check-config", "z.toml"]);
+        run_in(dir.path(), "isowall", &["check-config", "z.toml"])
+    };
+    for (iso, ok) in [(300.0, true), (hi as f64 - 1.0, true), (hi as f64 + 10.0, false)] {
+        let o = check(&format!("iso = {iso}\nmax_bytes = 100000\n"));
         let err = String::from_utf8_lossy(&o.stderr);
         assert_eq!(o.status.success(), ok, "iso {iso}: {err}{}", String::from_utf8_lossy(&o.stdout));
         assert!(ok || err.contains("iso"), "{err}");
@@ -154,13 +158,7 @@ fn the_ct_converted_to_ome_zarr_renders_exactly_as_its_nrrd_and_its_levels_withi
     // `max_bytes` under every level: refused, unless the nodes read the store through their
     // brick caches (never whole): then its metadata and min/max are what is checked.
     for (budget, ok) in [("", false), ("gpu_budget_mb = 8\n", true)] {
-        let config = format!(
-            "[wall]\nname = \"z\"\n\n[volume]\nsource = \"ct.ome.zarr\"\niso = 300\nmax_bytes = 4\n{budget}\n\
-             [[tiles]]\nname = \"t\"\nx = 0\ny = 0\nwidth = 64\nheight = 48\n\n\
-             [[nodes]]\nname = \"n\"\naddress = \"127.0.0.1:7999\"\ntiles = [\"t\"]\n"
-        );
-        std::fs::write(dir.path().join("z.toml"), config).unwrap();
-        let o = run_in(dir.path(), "isowall", &["check-config", "z.toml"]);
+        let o = check(&format!("iso = 300\nmax_bytes = 4\n{budget}"));
         let err = String::from_utf8_lossy(&o.stderr);
         assert_eq!(o.status.success(), ok, "{budget:?}: {err}{}", String::from_utf8_lossy(&o.stdout));
         assert!(ok || err.contains("max_bytes"), "{err}");

@@ -530,6 +530,26 @@ mod tests {
     }
 
     #[test]
+    fn bricks_read_ahead_on_threads_are_the_ones_read_alone_and_stay_within_the_budget() {
+        let p = InCorePyramid::new(sphere(), 16).unwrap();
+        let bytes = p.layout().brick_bytes();
+        let mut cache = HostBrickCache::new(3 * bytes, p.layout()).unwrap();
+        let k = |x| BrickKey { level: 0, brick: [x, 1, 2] };
+        cache.get(&p, k(0)).unwrap();
+        // Four asked (one held, one twice): the three missing are read, as many as the budget
+        // holds, and evict the one held before.
+        cache.prefetch(&p, &[k(0), k(1), k(2), k(1), k(3)], 2).unwrap();
+        assert!(cache.holds(k(1)) && cache.holds(k(2)) && cache.holds(k(3)) && !cache.holds(k(0)));
+        let s = cache.stats();
+        assert_eq!((s.misses, s.evictions), (4, 1));
+        assert!(s.peak_bytes <= 3 * bytes);
+        for x in 1..4 {
+            assert_eq!(*cache.get(&p, k(x)).unwrap(), p.read_brick(k(x)).unwrap(), "brick {x}");
+        }
+        assert_eq!(cache.stats().misses, 4, "the gets found what was read ahead");
+    }
+
+    #[test]
     fn a_still_view_wants_every_brick_near_the_object_at_level_0_nearest_first() {
         let p = InCorePyramid::new(sphere(), 8).unwrap();
         let layout = p.layout();

@@ -312,19 +312,23 @@ impl BrickPool {
             }
         }
         let brick = self.layout.brick_bytes();
-        // The round's uploads read from the source in parallel first (their host cache misses).
-        let room = (self.slots.len() - self.pinned) as u64;
+        // The round's uploads read from the source in parallel first (their host cache misses):
+        // as many as its cap and the slots this round does not want can take.
+        let room = (self.pinned..self.slots.len())
+            .filter(|&s| self.slots[s].is_none_or(|(_, used)| used < round))
+            .count() as u64;
         let to_upload: Vec<BrickKey> = wanted
             .iter()
             .copied()
             .filter(|k| !self.resident.contains_key(k))
-            .take((upload_cap / brick).clamp(1, room) as usize)
+            .take((upload_cap / brick).max(1).min(room) as usize)
             .collect();
         let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
         cache
             .prefetch(source, &to_upload, threads)
             .map_err(|e| GpuError::Settings(format!("bricks of {}: {e}", source.name())))?;
         let mut changed = false;
+        let mut staged = 0;
         for &key in wanted {
             if self.resident.contains_key(&key) {
                 continue;
@@ -356,7 +360,9 @@ impl BrickPool {
             changed = true;
             // Each write is staged in host memory until a submission carries it: a round of a
             // still frame may upload the whole pool, so the staged bytes are bounded.
-            if r.upload_bytes % STAGED_BYTES < brick {
+            staged += brick;
+            if staged >= STAGED_BYTES {
+                staged = 0;
                 ctx.queue.submit([]);
                 ctx.wait()?;
             }
@@ -428,27 +434,21 @@ impl BrickPool {
         let (bytes, _) = super::read_buffers(ctx, std::slice::from_ref(&staging))?;
         let words: Vec<u32> = bytemuck::pod_collect_to_vec(&bytes[0]);
         let set = |first: usize, i: usize| words[first + (i >> 5)] & (1 << (i & 31)) != 0;
-        let [cx, cy, _] = self.layout.levels[0].counts;
-        let key = |i: usize| BrickKey {
-            level: 0,
-            brick: [(i % cx) as u32, ((i / cx) % cy) as u32, (i / (cx * cy)) as u32],
-        };
-        let mut marked: Vec<BrickKey> = (0..self.layout.bricks(0)).filter(|&i| set(0, i)).map(key).collect();
+        let counts = self.layout.levels[0].counts;
+        let key = |i: usize| BrickKey { level: 0, brick: unflatten(i, counts).map(|v| v as u32) };
+        let mut marked: std::collections::BTreeSet<BrickKey> =
+            (0..self.layout.bricks(0)).filter(|&i| set(0, i)).map(key).collect();
         if let Some(k) = self.coarse_bounds {
             let first = mark_words(&self.layout);
-            let mut more = std::collections::BTreeSet::new();
             for j in (0..self.bounds.blocks(k)).filter(|&j| set(first, j)) {
                 for i in self.bounds.bricks_of_block(k, j) {
-                    let b = key(i);
-                    if !self.holds(b) && self.bounds.brick_bound[i][1] >= iso {
-                        more.insert(b);
+                    if !self.holds(key(i)) && self.bounds.brick_bound[i][1] >= iso {
+                        marked.insert(key(i));
                     }
                 }
             }
-            let seen: HashSet<BrickKey> = marked.iter().copied().collect();
-            marked.extend(more.into_iter().filter(|b| !seen.contains(b)));
         }
-        Ok(marked)
+        Ok(marked.into_iter().collect())
     }
 
     /// The kernels' frames after this mark nothing (the marks stay as they are until cleared).
@@ -514,6 +514,11 @@ fn spans_meeting(c: usize, count: usize, lo: usize, hi: usize) -> std::ops::Rang
 
 type Span3 = [std::ops::RangeInclusive<usize>; 3];
 
+/// Linear index `i` (x fastest) of a grid of `counts` as its indices on x, y, z.
+fn unflatten(i: usize, counts: [usize; 3]) -> [usize; 3] {
+    [i % counts[0], (i / counts[0]) % counts[1], i / (counts[0] * counts[1])]
+}
+
 /// Index of `b` within the box `r` (x fastest).
 fn local_index(r: &Span3, b: [usize; 3]) -> usize {
     let n = |a: usize| r[a].end() - r[a].start() + 1;
@@ -573,8 +578,7 @@ impl BlockBounds {
     /// min/max is made of.
     fn bricks_of_block(&self, k: usize, j: usize) -> impl Iterator<Item = usize> + '_ {
         let l = &self.levels[k];
-        let (cx, cy) = (l.counts[0], l.counts[1]);
-        let b = [j % cx, (j / cx) % cy, j / (cx * cy)];
+        let b = unflatten(j, l.counts);
         let [rx, ry, rz]: [_; 3] = std::array::from_fn(|a| {
             let lo = b[a] * l.cells;
             let hi = ((b[a] + 1) * l.cells).min(self.dims[a].max(2) - 1);
@@ -589,12 +593,10 @@ impl BlockBounds {
 
     /// Recomputes block j of level k from its bricks.
     fn recompute(&mut self, k: usize, j: usize) {
-        let [bx, by] = [self.brick_counts[0], self.brick_counts[1]];
-        let l = &self.levels[k];
-        let b = [j % l.counts[0], (j / l.counts[0]) % l.counts[1], j / (l.counts[0] * l.counts[1])];
+        let b = unflatten(j, self.levels[k].counts);
         let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
         for i in self.bricks_of_block(k, j) {
-            let key = [(i % bx) as u32, ((i / bx) % by) as u32, (i / (bx * by)) as u32];
+            let key = unflatten(i, self.brick_counts).map(|v| v as u32);
             let m = match self.partial.get(&key) {
                 Some(p) => p[k][local_index(&self.blocks_of_brick(k, key), b)],
                 None => self.brick_bound[i],
